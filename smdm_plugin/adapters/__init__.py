@@ -1,0 +1,1 @@
+"""Adapters that put existing models and diffusions into sparse keyframe mode."""

@@ -1,0 +1,228 @@
+"""``sparsify``: turn an MDM-family model (MDM trans_enc / trans_dec, DiP, priorMDM's
+doubleTake_MDM, the in-package ``TinyMDM``) into its sparse keyframe version, in place.
+
+No wrapper class: the model keeps its type and attributes (``rot2xyz``, ``njoints``,
+``parameters_wo_clip()``...). What changes:
+
+* ``input_process.poseEmbedding`` / ``output_process.poseFinal`` (and ``velEmbedding`` /
+  ``velFinal`` when present) become Lipschitz sine MLPs (``config.lipschitz``);
+* ``seqTransEncoder`` / ``seqTransDecoder`` is wrapped by :class:`KeyframeTransformer` (and its
+  self-attention keys FSQ-quantised with ``config.fsq``);
+* a forward pre-hook decides the keyframe mask of every call: ``y['keyframe_mask']`` when given
+  (training), else the sampling schedule on ``(x_t, timesteps)``; ``y['keyframe_forced']`` is
+  OR-ed in; DiP's ``context_len`` prefix frames are always kept;
+* a persistent buffer ``smdm_sparse_version`` marks the state dict as sparse.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any, Dict, Optional, Tuple
+
+import torch
+import torch.nn as nn
+
+from ..checkpoint import MARKER
+from ..config import SparseConfig
+from ..keyframe_transformer import KeyframeTransformer
+from ..lipschitz import LipschitzMLP
+from ..schedule import MaskSchedule
+
+_TRANSFORMERS = ("seqTransEncoder", "seqTransDecoder")
+
+
+@dataclass
+class Variant:
+    """What :func:`detect_variant` found."""
+
+    arch: str               # trans_enc | trans_dec
+    transformer: str        # attribute name of the transformer
+    prefix_len: int         # DiP context frames kept dense (0 otherwise)
+    name: str               # human-readable: mdm-trans_enc, mdm-trans_dec, dip, doubletake, ...
+
+
+def detect_variant(model: nn.Module) -> Variant:
+    """Recognise an MDM-family model by its structure; a clear error lists what is missing."""
+    required = ["input_process", "output_process", "arch"]
+    missing = [a for a in required if not hasattr(model, a)]
+    if not missing:
+        if not hasattr(model.input_process, "poseEmbedding"):
+            missing.append("input_process.poseEmbedding")
+        if not hasattr(model.output_process, "poseFinal"):
+            missing.append("output_process.poseFinal")
+    if missing:
+        raise TypeError(f"sparsify: {type(model).__name__} is not an MDM-family model; missing "
+                        f"attribute(s) {missing}. Supported: MDM (trans_enc/trans_dec), DiP, "
+                        "priorMDM doubleTake_MDM, smdm_plugin.TinyMDM; MotionDiffuse: "
+                        "smdm_plugin.adapters.motiondiffuse.sparsify_motiondiffuse")
+    arch = model.arch
+    if arch == "trans_enc" and isinstance(getattr(model, "seqTransEncoder", None), nn.TransformerEncoder):
+        attr = "seqTransEncoder"
+    elif arch == "trans_dec" and isinstance(getattr(model, "seqTransDecoder", None), nn.TransformerDecoder):
+        attr = "seqTransDecoder"
+    else:
+        raise TypeError(f"sparsify: arch={arch!r} of {type(model).__name__} is not supported (need "
+                        "'trans_enc' with an nn.TransformerEncoder seqTransEncoder or 'trans_dec' with an "
+                        "nn.TransformerDecoder seqTransDecoder; 'gru' has no attention to sparsify)")
+    prefix = int(getattr(model, "context_len", 0) or 0) if getattr(model, "is_prefix_comp", False) else 0
+    if prefix:
+        name = "dip"
+    elif "doubletake" in type(model).__name__.lower():
+        name = "doubletake"
+    else:
+        name = f"mdm-{arch}" + ("-emb" if getattr(model, "emb_trans_dec", False) and arch == "trans_dec" else "")
+    return Variant(arch=arch, transformer=attr, prefix_len=prefix, name=name)
+
+
+def is_sparse(model: nn.Module) -> bool:
+    return hasattr(model, "_smdm_state")
+
+
+def _swap_lipschitz(model: nn.Module, config: SparseConfig, originals: Dict[Tuple[nn.Module, str], nn.Module]
+                    ) -> None:
+    latent = int(getattr(model, "latent_dim", model.output_process.poseFinal.in_features))
+    hidden = config.lipschitz_hidden or latent
+    for owner, names in ((model.input_process, ("poseEmbedding", "velEmbedding")),
+                         (model.output_process, ("poseFinal", "velFinal"))):
+        for name in names:
+            old = getattr(owner, name, None)
+            if not isinstance(old, nn.Linear):
+                continue
+            new = LipschitzMLP(old.in_features, old.out_features, hidden=hidden,
+                               layers=config.lipschitz_layers, w0=config.sine_w0)
+            new.to(device=old.weight.device, dtype=old.weight.dtype)
+            originals[(owner, name)] = old
+            setattr(owner, name, new)
+
+
+def _frames_layout(x: torch.Tensor) -> torch.Tensor:
+    """MDM's ``[B, J, F, N]`` motion as ``[B, N, J*F]``."""
+    B, J, F_, N = x.shape
+    return x.permute(0, 3, 1, 2).reshape(B, N, J * F_)
+
+
+def _lengths_from_y(y: Dict[str, Any], B: int, N: int, device: torch.device) -> torch.Tensor:
+    mask = y.get("mask")
+    if isinstance(mask, torch.Tensor) and mask.shape[-1] == N and mask.numel() == B * N:
+        return mask.reshape(B, N).to(device).long().sum(1).clamp_min(2)
+    lengths = y.get("lengths")
+    if lengths is not None:
+        return torch.as_tensor(lengths, device=device).long().reshape(B).clamp(2, N)
+    return torch.full((B,), N, dtype=torch.long, device=device)
+
+
+def _pre_hook(model: nn.Module, args: tuple, kwargs: dict):
+    state = model._smdm_state
+    x = args[0] if args else kwargs["x"]
+    timesteps = args[1] if len(args) > 1 else kwargs.get("timesteps")
+    y = args[2] if len(args) > 2 else kwargs.get("y")
+    y = y if y is not None else {}
+    B, N = x.shape[0], x.shape[-1]
+    mask = y.get("keyframe_mask")
+    if mask is not None:
+        mask = torch.as_tensor(mask, device=x.device).to(torch.bool)
+        if mask.shape != (B, N):
+            raise ValueError(f"y['keyframe_mask'] must be bool [B, N]=[{B}, {N}], got {tuple(mask.shape)}")
+        mask = mask | y["keyframe_forced"].to(mask.device).bool() if "keyframe_forced" in y else mask
+    else:
+        key = (x.data_ptr(), x._version, tuple(x.shape), None if timesteps is None else
+               tuple(torch.as_tensor(timesteps).reshape(-1).tolist()))
+        if state.get("cache_key") == key and state.get("cache_forced") is y.get("keyframe_forced"):
+            mask = state["cache_mask"]  # classifier-free guidance: same x_t twice
+        else:
+            lengths = _lengths_from_y(y, B, N, x.device)
+            t = timesteps if timesteps is not None else torch.zeros(B, device=x.device)
+            mask = state["schedule"].sampling_mask(_frames_layout(x), t, lengths, y.get("keyframe_forced"))
+            state.update(cache_key=key, cache_mask=mask, cache_forced=y.get("keyframe_forced"))
+    prefix = state["variant"].prefix_len
+    if prefix:
+        mask = torch.cat([mask.new_ones(B, prefix), mask], dim=1)
+    state["transformer"].set_keyframes(mask)
+    return None
+
+
+def _post_hook(model: nn.Module, args: tuple, kwargs: dict, output: Any) -> None:
+    model._smdm_state["transformer"].set_keyframes(None)
+    return None
+
+
+def sparsify(model: nn.Module, config: Optional[SparseConfig] = None, *, diffusion: Any = None,
+             mean: Any = None, std: Any = None) -> nn.Module:
+    """Convert ``model`` to sparse keyframe mode in place and return it.
+
+    Args:
+        model: an MDM-family model (see module docstring).
+        config: the options; ``config.enabled=False`` returns ``model`` untouched.
+        diffusion: if given, its ``training_losses`` is wrapped (:func:`attach_diffusion`) so that
+            training masks come from x0 and ``lipschitz_lambda * L_lip`` joins the loss; its step
+            count becomes ``config.diffusion_steps``.
+        mean, std: ``[D]`` dataset statistics used to de-normalise motions for VW (HumanML3D/KIT).
+    """
+    config = config if config is not None else SparseConfig()
+    if not config.enabled:
+        return model
+    if is_sparse(model):
+        raise ValueError(f"sparsify: {type(model).__name__} is already sparse (unsparsify it first)")
+    variant = detect_variant(model)
+    if variant.prefix_len and config.prefix_frames not in (0, variant.prefix_len):
+        raise ValueError(f"sparsify: config.prefix_frames={config.prefix_frames} but the DiP model has "
+                         f"context_len={variant.prefix_len}")
+    if diffusion is not None:
+        from .diffusion import diffusion_steps
+
+        config = config.replace(diffusion_steps=diffusion_steps(diffusion))
+    if variant.prefix_len:
+        config = config.replace(prefix_frames=variant.prefix_len)
+    originals: Dict[Tuple[nn.Module, str], nn.Module] = {}
+    if config.lipschitz:
+        _swap_lipschitz(model, config, originals)
+    inner = getattr(model, variant.transformer)
+    n_fsq = 0
+    if config.fsq:
+        from ..fsq import quantize_attention_keys
+
+        n_fsq = quantize_attention_keys(inner, config.fsq_levels)
+    wrapper = KeyframeTransformer(inner, interpolate=True, backend=config.attention_backend)
+    originals[(model, variant.transformer)] = inner
+    setattr(model, variant.transformer, wrapper)
+    ref = next(model.parameters())
+    model.register_buffer(MARKER, torch.tensor(config.version, device=ref.device), persistent=True)
+    model.smdm_config = config
+    model._smdm_state = {
+        "variant": variant,
+        "transformer": wrapper,
+        "schedule": MaskSchedule(config, mean, std),
+        "originals": originals,
+        "fsq_layers": n_fsq,
+        "handles": [model.register_forward_pre_hook(_pre_hook, with_kwargs=True),
+                    model.register_forward_hook(_post_hook, with_kwargs=True)],
+    }
+    if diffusion is not None:
+        from .diffusion import attach_diffusion
+
+        attach_diffusion(diffusion, config, model=model)
+    return model
+
+
+def unsparsify(model: nn.Module) -> nn.Module:
+    """Undo :func:`sparsify`: put back the original dense layers and remove the hooks.
+
+    The dense layers come back with the weights they had when the model was sparsified; weights
+    learned in sparse mode by the Lipschitz MLPs are dropped (they have no dense equivalent).
+    FSQ-quantised attention layers stay quantised.
+    """
+    if not is_sparse(model):
+        return model
+    state = model._smdm_state
+    for h in state["handles"]:
+        h.remove()
+    for (owner, name), module in state["originals"].items():
+        setattr(owner, name, module)
+    del model._buffers[MARKER]
+    del model._smdm_state
+    del model.smdm_config
+    return model
+
+
+def set_mean_std(model: nn.Module, mean: Any, std: Any) -> None:
+    """Give a sparse model the dataset Mean/Std after the fact (e.g. once the data is loaded)."""
+    model._smdm_state["schedule"] = MaskSchedule(model.smdm_config, mean, std)

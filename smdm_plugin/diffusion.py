@@ -1,0 +1,101 @@
+"""A small x0-predicting Gaussian diffusion (DDPM, cosine schedule) for the in-package backbone:
+training losses with valid-frame masking, and ancestral sampling with classifier-free guidance.
+It has MDM's ``training_losses(model, x_start, t, model_kwargs)`` interface, so the same
+:func:`~smdm_plugin.adapters.diffusion.attach_diffusion` wraps it."""
+from __future__ import annotations
+
+import math
+from typing import Any, Callable, Dict, Optional
+
+import torch
+import torch.nn as nn
+
+
+def cosine_betas(T: int, s: float = 0.008) -> torch.Tensor:
+    """Nichol & Dhariwal's cosine schedule, ``[T]`` float64."""
+    steps = torch.arange(T + 1, dtype=torch.float64) / T
+    abar = torch.cos((steps + s) / (1 + s) * math.pi / 2) ** 2
+    return (1 - abar[1:] / abar[:-1]).clamp(max=0.999)
+
+
+def masked_mse(a: torch.Tensor, b: torch.Tensor, mask: Optional[torch.Tensor]) -> torch.Tensor:
+    """Mean squared error per sample ``[B]`` over valid frames. ``a, b [B, J, F, N]``,
+    ``mask [B, 1, 1, N]`` bool or None."""
+    err = (a - b) ** 2
+    if mask is None or mask.shape[-1] != a.shape[-1]:
+        return err.flatten(1).mean(1)
+    m = mask.to(err.dtype).expand_as(err)
+    return (err * m).flatten(1).sum(1) / m.flatten(1).sum(1).clamp_min(1)
+
+
+class SimpleDiffusion:
+    """``num_timesteps`` steps; the model predicts x0 (as MDM does)."""
+
+    def __init__(self, num_timesteps: int = 50) -> None:
+        self.num_timesteps = int(num_timesteps)
+        betas = cosine_betas(self.num_timesteps)
+        alphas = 1 - betas
+        self.abar = torch.cumprod(alphas, 0)
+        abar_prev = torch.cat([torch.ones(1, dtype=torch.float64), self.abar[:-1]])
+        self.post_var = betas * (1 - abar_prev) / (1 - self.abar)
+        self.coef_x0 = betas * abar_prev.sqrt() / (1 - self.abar)
+        self.coef_xt = (1 - abar_prev) * alphas.sqrt() / (1 - self.abar)
+
+    @staticmethod
+    def _at(table: torch.Tensor, t: torch.Tensor, like: torch.Tensor) -> torch.Tensor:
+        return table.to(like.device)[t].to(like.dtype).view(-1, *([1] * (like.dim() - 1)))
+
+    def q_sample(self, x0: torch.Tensor, t: torch.Tensor, noise: Optional[torch.Tensor] = None) -> torch.Tensor:
+        noise = torch.randn_like(x0) if noise is None else noise
+        return self._at(self.abar.sqrt(), t, x0) * x0 + self._at((1 - self.abar).sqrt(), t, x0) * noise
+
+    def training_losses(self, model: nn.Module, x_start: torch.Tensor, t: torch.Tensor,
+                        model_kwargs: Optional[Dict[str, Any]] = None, noise: Optional[torch.Tensor] = None
+                        ) -> Dict[str, torch.Tensor]:
+        """``{'loss': [B]}``: masked MSE between the predicted and the clean motion."""
+        model_kwargs = model_kwargs or {}
+        x_t = self.q_sample(x_start, t, noise)
+        pred = model(x_t, t, **model_kwargs)
+        mse = masked_mse(pred, x_start, model_kwargs.get("y", {}).get("mask"))
+        return {"loss": mse, "mse": mse.detach()}
+
+    @torch.no_grad()
+    def p_sample(self, model: Callable, x_t: torch.Tensor, t: int, model_kwargs: Dict[str, Any],
+                 generator: Optional[torch.Generator] = None) -> torch.Tensor:
+        tt = torch.full((x_t.shape[0],), t, device=x_t.device, dtype=torch.long)
+        x0 = model(x_t, tt, **model_kwargs)
+        mean = self._at(self.coef_x0, tt, x_t) * x0 + self._at(self.coef_xt, tt, x_t) * x_t
+        if t == 0:
+            return x0
+        noise = torch.randn(x_t.shape, generator=generator, device=x_t.device, dtype=x_t.dtype)
+        return mean + self._at(self.post_var.sqrt(), tt, x_t) * noise
+
+    @torch.no_grad()
+    def p_sample_loop(self, model: Callable, shape: tuple, model_kwargs: Optional[Dict[str, Any]] = None,
+                      device: Any = "cpu", generator: Optional[torch.Generator] = None,
+                      progress: bool = False) -> torch.Tensor:
+        model_kwargs = model_kwargs or {}
+        x = torch.randn(shape, generator=generator, device=device)
+        steps = range(self.num_timesteps - 1, -1, -1)
+        if progress:
+            from tqdm.auto import tqdm
+
+            steps = tqdm(steps, desc="sampling")
+        for t in steps:
+            x = self.p_sample(model, x, t, model_kwargs, generator)
+        return x
+
+
+class ClassifierFreeGuidance(nn.Module):
+    """``uncond + scale * (cond - uncond)``: two forward passes per step, as MDM samples."""
+
+    def __init__(self, model: nn.Module, scale: float = 2.5) -> None:
+        super().__init__()
+        self.model, self.scale = model, scale
+
+    def forward(self, x: torch.Tensor, timesteps: torch.Tensor, y: Optional[Dict[str, Any]] = None
+                ) -> torch.Tensor:
+        y = y or {}
+        cond = self.model(x, timesteps, y)
+        uncond = self.model(x, timesteps, {**y, "uncond": True})
+        return uncond + self.scale * (cond - uncond)

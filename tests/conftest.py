@@ -1,0 +1,43 @@
+"""Shared fixtures: locate ../shared data (tests that need it skip when it is absent)."""
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+SHARED = Path(__file__).resolve().parents[1].parent / "shared" / "data"
+HML = SHARED / "cmu-humanml3d"
+MOCAP = SHARED / "cmu-mocap"
+
+
+@pytest.fixture(autouse=True)
+def _seed():
+    torch.manual_seed(0)
+    np.random.seed(0)
+
+
+@pytest.fixture(scope="session")
+def hml_dir() -> Path:
+    if not (HML / "Mean.npy").exists():
+        pytest.skip("../shared/data/cmu-humanml3d not available")
+    return HML
+
+
+@pytest.fixture(scope="session")
+def hml_batch(hml_dir):
+    """Real HumanML3D-format motions: normalised ``x [B, 263, 1, N]``, ``lengths [B]``, mean, std."""
+    mean = np.load(hml_dir / "Mean.npy")
+    std = np.load(hml_dir / "Std.npy")
+    ids = sorted((hml_dir / "train.txt").read_text().split())[:16]
+    motions = [np.load(hml_dir / "new_joint_vecs" / f"{i}.npy") for i in ids]
+    N = 196
+    x = np.zeros((len(motions), N, 263), np.float32)
+    lengths = []
+    for b, m in enumerate(motions):
+        L = min(len(m), N)
+        x[b, :L] = (m[:L] - mean) / std
+        lengths.append(L)
+    x = torch.from_numpy(x).permute(0, 2, 1).unsqueeze(2).contiguous()
+    return x, torch.tensor(lengths), mean, std

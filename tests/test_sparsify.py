@@ -1,0 +1,202 @@
+"""The MDM adapter on the in-package MDM-compatible backbone (CI has no upstream checkout)."""
+import copy
+
+import pytest
+import torch
+import torch.nn as nn
+
+from smdm_plugin import (SimpleDiffusion, SparseConfig, TinyMDM, detect_variant, is_sparse, lipschitz_loss,
+                         sparsify, unsparsify)
+from smdm_plugin.lipschitz import LipschitzMLP
+
+VARIANTS = {
+    "mdm-trans_enc": dict(arch="trans_enc"),
+    "mdm-trans_dec": dict(arch="trans_dec"),
+    "mdm-trans_dec-emb": dict(arch="trans_dec", emb_trans_dec=True),
+    "dip": dict(arch="trans_dec", emb_trans_dec=True, context_len=20, pred_len=40),
+}
+
+
+def tiny(**kw):
+    torch.manual_seed(0)
+    return TinyMDM(latent_dim=64, ff_size=128, num_layers=2, **kw)
+
+
+def batch(model, B=3, N=None, lengths=None, seed=0):
+    g = torch.Generator().manual_seed(seed)
+    N = N or (model.pred_len if model.is_prefix_comp else 60)
+    lengths = torch.tensor(lengths or [N] * B)
+    x = torch.randn(B, 263, 1, N, generator=g)
+    y = {"mask": (torch.arange(N) < lengths[:, None]).view(B, 1, 1, N), "lengths": lengths,
+         "text_embed": torch.randn(1, B, 512, generator=g)}
+    if model.is_prefix_comp:
+        y["prefix"] = torch.randn(B, 263, 1, model.context_len, generator=g)
+    return x, torch.tensor([1, 30, 45][:B]), y
+
+
+def record_keyframes(model):
+    seen = []
+    tr = model._smdm_state["transformer"]
+    orig = tr.set_keyframes
+    tr.set_keyframes = lambda m: (seen.append(None if m is None else m.clone()), orig(m))
+    return seen
+
+
+@pytest.mark.parametrize("name", VARIANTS)
+def test_detects_variant(name):
+    assert detect_variant(tiny(**VARIANTS[name])).name == name
+
+
+def test_unknown_model_is_a_clear_error():
+    with pytest.raises(TypeError, match=r"missing attribute\(s\) \['input_process', 'output_process', 'arch'\]"):
+        sparsify(nn.Linear(3, 3), SparseConfig())
+    m = tiny()
+    m.arch = "gru"
+    with pytest.raises(TypeError, match="gru"):
+        sparsify(m, SparseConfig())
+
+
+def test_disabled_flag_leaves_model_bit_for_bit():
+    model = tiny()
+    before = {k: v.clone() for k, v in model.state_dict().items()}
+    ref = copy.deepcopy(model).eval()
+    out = sparsify(model, SparseConfig(enabled=False))
+    assert out is model and not is_sparse(model)
+    assert all(torch.equal(before[k], v) for k, v in model.state_dict().items()) and len(before) == len(model.state_dict())
+    x, t, y = batch(model)
+    with torch.no_grad():
+        assert torch.equal(model.eval()(x, t, y), ref(x, t, y))
+
+
+@pytest.mark.parametrize("name", VARIANTS)
+def test_all_keyframes_equals_dense(name):
+    dense = tiny(**VARIANTS[name]).eval()
+    model = sparsify(copy.deepcopy(dense), SparseConfig(reduction=0.0, lipschitz=False, mask_noise=0.0)).eval()
+    N = 40 if name == "dip" else 60
+    x, t, y = batch(dense, N=N, lengths=[N, N - 7, N // 2])
+    with torch.no_grad():
+        out, ref = model(x, t, dict(y)), dense(x, t, dict(y))
+    valid = y["mask"].expand_as(out)
+    assert (out - ref)[valid].abs().max() < 1e-5
+
+
+@pytest.mark.parametrize("name", VARIANTS)
+def test_transformer_sees_only_keyframes(name):
+    model = sparsify(tiny(**VARIANTS[name]), SparseConfig(reduction=0.8, lipschitz=False)).eval()
+    tr = model._smdm_state["transformer"]
+    tokens = []
+    tr.layers[0].register_forward_pre_hook(lambda m, a, kw=None: tokens.append(a[0].shape[0]))
+    seen = record_keyframes(model)
+    x, t, y = batch(model)
+    with torch.no_grad():
+        model(x, t, y)
+    prefix = model.context_len if model.is_prefix_comp else 0
+    N = x.shape[-1]
+    K = max(2, round(0.2 * N))
+    lead = 1 if (model.arch == "trans_enc" or model.emb_trans_dec) else 0
+    assert seen[0].sum(1).tolist() == [K + prefix] * 3
+    if prefix:
+        assert seen[0][:, :prefix].all()  # DiP context frames stay dense
+    assert tokens == [lead + prefix + K]
+    assert seen[-1] is None  # cleared after the call
+
+
+def test_sampling_schedule_uniform_early_vw_late():
+    model = sparsify(tiny(), SparseConfig(reduction=0.8, gamma=0.1, diffusion_steps=50, lipschitz=False)).eval()
+    seen = record_keyframes(model)
+    x, _, y = batch(model, B=2)
+    with torch.no_grad():
+        model(x, torch.tensor([40, 40]), y)
+        model(x, torch.tensor([5, 5]), y)
+    from smdm_plugin import select_keyframes
+    from smdm_plugin.schedule import MaskSchedule
+    uniform = select_keyframes(torch.zeros(2, 60, 1), None, 0.8, "uniform")
+    vw = MaskSchedule(model.smdm_config).sampling_mask(x.squeeze(2).transpose(1, 2), torch.tensor([5, 5]))
+    assert torch.equal(seen[0], uniform)
+    assert torch.equal(seen[2], vw) and not torch.equal(vw, uniform)
+    model.smdm_config.dynamic_update = False
+    with torch.no_grad():
+        model(x + 1, torch.tensor([5, 5]), y)
+    assert torch.equal(seen[4], uniform)
+
+
+def test_explicit_and_forced_keyframes_are_honoured():
+    model = sparsify(tiny(), SparseConfig(reduction=0.9, lipschitz=False)).eval()
+    seen = record_keyframes(model)
+    x, t, y = batch(model, B=2)
+    explicit = torch.zeros(2, 60, dtype=torch.bool)
+    explicit[:, [0, 30, 59]] = True
+    forced = torch.zeros(2, 60, dtype=torch.bool)
+    forced[:, 10:14] = True
+    with torch.no_grad():
+        model(x, t, {**y, "keyframe_mask": explicit})
+        model(x, t, {**y, "keyframe_forced": forced})
+        model(x, t, {**y, "keyframe_mask": explicit, "keyframe_forced": forced})
+    assert torch.equal(seen[0], explicit)
+    assert seen[2][forced].all()
+    assert torch.equal(seen[4], explicit | forced)
+    with pytest.raises(ValueError, match=r"keyframe_mask'\] must be bool \[B, N\]"):
+        model(x, t, {**y, "keyframe_mask": explicit[:, :10]})
+
+
+def test_lipschitz_layers_swapped_and_unsparsify_restores_dense():
+    dense = tiny().eval()
+    model = sparsify(copy.deepcopy(dense), SparseConfig()).eval()
+    assert isinstance(model.input_process.poseEmbedding, LipschitzMLP)
+    assert isinstance(model.output_process.poseFinal, LipschitzMLP)
+    assert "smdm_sparse_version" in model.state_dict()
+    assert lipschitz_loss(model) > 0
+    unsparsify(model)
+    x, t, y = batch(model)
+    with torch.no_grad():
+        assert torch.equal(model(x, t, y), dense(x, t, y))
+    assert set(model.state_dict()) == set(dense.state_dict())
+
+
+def test_deepcopy_for_ema_and_already_sparse_error():
+    model = sparsify(tiny(), SparseConfig()).eval()
+    ema = copy.deepcopy(model)
+    x, t, y = batch(model)
+    with torch.no_grad():
+        assert torch.equal(ema(x, t, y), model(x, t, y))
+    with pytest.raises(ValueError, match="already sparse"):
+        sparsify(model, SparseConfig())
+
+
+def test_training_losses_use_x0_mask_and_add_lipschitz_term():
+    model = tiny()
+    diffusion = SimpleDiffusion(50)
+    sparsify(model, SparseConfig(lipschitz_lambda=0.5, mask_noise=0.0), diffusion=diffusion)
+    assert model.smdm_config.diffusion_steps == 50
+    seen = record_keyframes(model)
+    x, _, y = batch(model)
+    t = torch.tensor([49, 49, 49])
+    torch.manual_seed(1)
+    terms = diffusion.training_losses(model, x, t, {"y": y})
+    from smdm_plugin.schedule import MaskSchedule
+    expected = MaskSchedule(model.smdm_config).training_mask(x.squeeze(2).transpose(1, 2), y["lengths"])
+    assert torch.equal(seen[0], expected)  # from x0, not from the (pure-noise) x_t
+    assert torch.allclose(terms["loss"] - terms["mse"], 0.5 * terms["lip"])
+    assert "keyframe_mask" not in y  # the caller's dict is not mutated
+
+
+def test_sparse_training_reduces_loss_on_real_motion(hml_batch):
+    x, lengths, mean, std = hml_batch
+    N = x.shape[-1]
+    y = {"mask": (torch.arange(N) < lengths[:, None]).view(-1, 1, 1, N), "lengths": lengths,
+         "text_embed": torch.zeros(1, len(lengths), 512)}
+    torch.manual_seed(0)
+    model = TinyMDM(latent_dim=64, ff_size=128, num_layers=2, cond_mode="no_cond", dropout=0.0)
+    diffusion = SimpleDiffusion(50)
+    sparsify(model, SparseConfig(), diffusion=diffusion, mean=mean, std=std)
+    opt = torch.optim.AdamW(model.parameters(), lr=2e-3)
+    g = torch.Generator().manual_seed(0)
+    losses = []
+    for step in range(60):
+        t = torch.randint(0, 50, (len(lengths),), generator=g)
+        loss = diffusion.training_losses(model, x, t, {"y": y})["loss"].mean()
+        opt.zero_grad()
+        loss.backward()
+        opt.step()
+        losses.append(loss.item())
+    assert sum(losses[-10:]) / 10 < 0.7 * sum(losses[:10]) / 10
