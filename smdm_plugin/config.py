@@ -39,7 +39,7 @@ class SparseConfig:
     mask_noise: float = 0.1                # training: up to this fraction of K added/dropped
     # --- sampling schedule ---------------------------------------------------------------
     gamma: float = 0.1                     # re-select by VW on x_t when t <= gamma * T
-    dynamic_update: bool = True            # False: uniform mask at every step (sDiP default)
+    dynamic_update: Optional[bool] = None  # None: on, except DiP (prefix_frames > 0); False: uniform always
     diffusion_steps: int = 50              # T; overwritten from the diffusion when attached
     prefix_frames: int = 0                 # leading frames kept dense (DiP context)
     # --- model ---------------------------------------------------------------------------
@@ -95,6 +95,12 @@ class SparseConfig:
         if int(self.version) > CONFIG_VERSION:
             bad("version", f"<= {CONFIG_VERSION} (config written by a newer smdm-plugin)")
         return self
+
+    @property
+    def dynamic(self) -> bool:
+        """Whether sampling re-selects keyframes by VW on x_t for t <= gamma*T (``dynamic_update``
+        resolved: None means on, except for prefix completion (DiP), where the paper found it useless)."""
+        return self.dynamic_update if self.dynamic_update is not None else self.prefix_frames == 0
 
     def replace(self, **changes: Any) -> "SparseConfig":
         """A copy with ``changes`` applied (validated)."""
@@ -182,7 +188,7 @@ class SparseConfig:
                 continue
             default = getattr(defaults, f.name)
             flag = f"--sparse_{f.name}"
-            if isinstance(default, bool):
+            if isinstance(default, bool) or f.name == "dynamic_update":
                 target.add_argument(flag, type=_str2bool, default=default, metavar="BOOL",
                                     help=f"sparse: {f.name} (default {default})")
             elif isinstance(default, tuple):
@@ -210,7 +216,7 @@ class SparseConfig:
             key = f"sparse_{f.name}"
             if key in d and d[key] is not None and f.name not in ("enabled", "version"):
                 kw[f.name] = d[key]
-            elif f.name == "lipschitz_hidden" and key in d:
+            elif f.name in ("lipschitz_hidden", "dynamic_update") and key in d:
                 kw[f.name] = d[key]
         if "sparse_version" in d:
             kw["version"] = d["sparse_version"]

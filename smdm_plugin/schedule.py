@@ -77,14 +77,14 @@ class MaskSchedule:
     def sampling_mask(self, x_t: torch.Tensor, t: torch.Tensor, lengths=None,
                       forced: Optional[torch.Tensor] = None) -> torch.Tensor:
         """bool ``[B, N]`` at sampling step ``t [B]``: uniform while ``t > gamma*T``, else the
-        selector (VW) on ``x_t`` (when ``dynamic_update``); forced frames OR-ed in."""
+        selector (VW) on ``x_t`` (when ``config.dynamic``); forced frames OR-ed in."""
         B, N, _ = x_t.shape
         lengths = resolve_lengths(lengths, B, N, x_t.device)
         c = self.config
         with torch.no_grad():
             dummy = x_t.new_zeros(B, N, 1)
             mask = select_keyframes(dummy, lengths, c.reduction, "uniform")
-            if c.dynamic_update and c.reduction > 0:
+            if c.dynamic and c.reduction > 0:
                 t = torch.as_tensor(t, device=x_t.device).reshape(-1).expand(B)
                 late = t.float() <= c.gamma * c.diffusion_steps
                 if bool(late.any()):

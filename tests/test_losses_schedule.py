@@ -1,0 +1,61 @@
+import pytest
+import torch
+
+from smdm_plugin import MaskSchedule, SparseConfig, dense_loss, keyframe_loss, lipschitz_term, select_keyframes
+from smdm_plugin.lipschitz import LipschitzMLP
+
+
+def test_dense_loss_ignores_padding_and_keyframe_loss_ignores_non_keyframes():
+    pred, target = torch.zeros(2, 10, 3), torch.zeros(2, 10, 3)
+    target[0, 8:] = 100.0  # beyond length 8: must not count
+    target[1, 3] = 1.0
+    lengths = torch.tensor([8, 10])
+    assert torch.allclose(dense_loss(pred, target, lengths), torch.tensor([0.0, 1.0 / 10]))
+    kf = torch.zeros(2, 10, dtype=torch.bool)
+    kf[:, [0, 5]] = True
+    assert torch.allclose(keyframe_loss(pred, target, kf), torch.tensor([0.0, 0.0]))
+    kf[1, 3] = True
+    assert torch.allclose(keyframe_loss(pred, target, kf)[1], torch.tensor(1.0 / 3))
+    with pytest.raises(ValueError, match="keyframes must be"):
+        keyframe_loss(pred, target, kf[:, :4])
+
+
+def test_lipschitz_term_is_lambda_times_product():
+    mlp = LipschitzMLP(4, 4, hidden=8, layers=3)
+    cs = [p for n, p in mlp.named_parameters() if n.endswith(".c") or n.split(".")[-1] == "c"]
+    prod = torch.stack([torch.nn.functional.softplus(c).reshape(()) for c in cs]).prod()
+    assert len(cs) == 3 and torch.allclose(lipschitz_term(mlp, 0.1), 0.1 * prod)
+
+
+def test_training_mask_from_x0_keeps_forced_and_budget():
+    cfg = SparseConfig(reduction=0.8, mask_noise=0.0, feature="raw")
+    sched = MaskSchedule(cfg)
+    x0 = torch.randn(3, 50, 12)
+    lengths = torch.tensor([50, 30, 12])
+    forced = torch.zeros(3, 50, dtype=torch.bool)
+    forced[:, 5] = True
+    m = sched.training_mask(x0, lengths, forced)
+    base = select_keyframes(sched.features(x0), lengths, 0.8, "vw")
+    assert torch.equal(m, base | forced)
+    noisy = MaskSchedule(cfg.replace(mask_noise=0.5)).training_mask(x0, lengths, generator=torch.Generator().manual_seed(0))
+    assert not torch.equal(noisy, base) and noisy[:, 0].all()
+
+
+def test_sampling_mask_switches_per_sample_at_gamma_T():
+    cfg = SparseConfig(reduction=0.8, gamma=0.1, diffusion_steps=100, feature="raw")
+    sched = MaskSchedule(cfg)
+    x = torch.randn(2, 60, 5)
+    m = sched.sampling_mask(x, torch.tensor([50, 10]))
+    uniform = select_keyframes(torch.zeros(1, 60, 1), None, 0.8, "uniform")[0]
+    assert torch.equal(m[0], uniform)
+    assert torch.equal(m[1], select_keyframes(sched.features(x[1:]), None, 0.8, "vw")[0])
+
+
+def test_schedule_input_errors():
+    sched = MaskSchedule(SparseConfig(feature="raw"))
+    with pytest.raises(ValueError, match="lengths must be <= N=10"):
+        sched.training_mask(torch.randn(1, 10, 3), torch.tensor([11]))
+    with pytest.raises(ValueError, match=r"lengths must have shape \[B\]"):
+        sched.training_mask(torch.randn(2, 10, 3), torch.tensor([10]))
+    with pytest.raises(ValueError, match="forced keyframes must have shape"):
+        sched.training_mask(torch.randn(2, 10, 3), None, torch.zeros(2, 9, dtype=torch.bool))
