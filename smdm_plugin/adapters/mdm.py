@@ -126,13 +126,18 @@ def _pre_hook(model: nn.Module, args: tuple, kwargs: dict):
     else:
         key = (x.data_ptr(), x._version, tuple(x.shape), None if timesteps is None else
                tuple(torch.as_tensor(timesteps).reshape(-1).tolist()))
-        if state.get("cache_key") == key and state.get("cache_forced") is y.get("keyframe_forced"):
+        forced = y.get("keyframe_forced")
+        cached_forced = state.get("cache_forced")
+        same_forced = (forced is None and cached_forced is None) or (
+            forced is not None and cached_forced is not None and forced.shape == cached_forced.shape
+            and torch.equal(forced.to(cached_forced.device), cached_forced))
+        if state.get("cache_key") == key and same_forced:
             mask = state["cache_mask"]  # classifier-free guidance: same x_t twice
         else:
             lengths = _lengths_from_y(y, B, N, x.device)
             t = timesteps if timesteps is not None else torch.zeros(B, device=x.device)
-            mask = state["schedule"].sampling_mask(_frames_layout(x), t, lengths, y.get("keyframe_forced"))
-            state.update(cache_key=key, cache_mask=mask, cache_forced=y.get("keyframe_forced"))
+            mask = state["schedule"].sampling_mask(_frames_layout(x), t, lengths, forced)
+            state.update(cache_key=key, cache_mask=mask, cache_forced=forced)
     prefix = state["variant"].prefix_len
     if prefix:
         mask = torch.cat([mask.new_ones(B, prefix), mask], dim=1)

@@ -1,0 +1,178 @@
+"""Forced keyframes for priorMDM's DoubleTake (long-sequence generation from a sparse prior).
+
+DoubleTake runs the model twice (see ``docs/priormdm.md``):
+
+* **First take**: a batch of ``S`` segments, one per text prompt, sampled together. After every
+  denoising step, the last ``h`` (handshake) frames of segment ``i`` and the first ``h`` frames of
+  segment ``i + 1`` are replaced by their linear blend, so neighbouring segments agree there.
+  priorMDM marks exactly these frames in ``y['is_transition']``.
+* **Second take**: ``S - 1`` sequences, each made of the inner part of segment ``i``, the shared
+  handshake and the inner part of segment ``i + 1``; it is re-noised and denoised again as
+  inpainting (``y['inpainting_mask']`` 1 = keep, a ramp ``0.85 -> 0`` over ``blend_len`` frames
+  before the handshake and ``0 -> 0.85`` after it). The model's output is used where the mask is
+  below 1: the blend windows.
+
+Frames that are forced to be keyframes (computed by the model, not interpolated):
+
+* first take: the handshake frames (``is_transition``). The blend writes into them after every
+  step; if they were interpolated from keyframes outside the handshake the two segments would be
+  blended from unrelated interpolants and the transition would be a straight line.
+* second take: the whole transition window ``[b - blend_len, b + h + blend_len)`` around each
+  handshake start ``b``: the blend ramps (where the model's output is actually used) and the
+  handshake between them, so that the regenerated frames are model outputs and the kept frames
+  next to them anchor the interpolation.
+"""
+from __future__ import annotations
+
+from typing import Any, Dict, Optional, Sequence
+
+import torch
+from torch import nn
+
+
+def _lengths_list(lengths) -> list:
+    if isinstance(lengths, torch.Tensor):
+        return [int(v) for v in lengths.reshape(-1).tolist()]
+    return [int(v) for v in lengths]
+
+
+def doubletake_forced_frames(lengths: Sequence[int], handshake_size: int,
+                             n_frames: Optional[int] = None, *, take: str = "first",
+                             blend_len: int = 0, device=None) -> torch.Tensor:
+    """Frames that must be keyframes in DoubleTake's first or second take, bool ``[B, N]``.
+
+    Args:
+        lengths: the first take's segment lengths ``[S]`` (``y['lengths']`` before DoubleTake
+            changes them).
+        handshake_size: ``--handshake_size``.
+        n_frames: frames of the batch. First take: default ``max(lengths)``; second take:
+            default ``(max(lengths) - 2 h) * 2 + h`` (priorMDM's ``new_sample_seq_len``).
+        take: ``"first"`` (rows = segments, ``[S, N]``) or ``"second"`` (rows = pairs of
+            neighbouring segments, ``[S - 1, N]``).
+        blend_len: ``--blend_len`` (second take).
+    """
+    lens = _lengths_list(lengths)
+    S, h = len(lens), int(handshake_size)
+    if S < 1:
+        raise ValueError("doubletake_forced_frames: lengths must not be empty")
+    if h < 0 or blend_len < 0:
+        raise ValueError(f"doubletake_forced_frames: handshake_size and blend_len must be >= 0, "
+                         f"got {handshake_size}, {blend_len}")
+    if take == "first":
+        N = max(lens) if n_frames is None else int(n_frames)
+        if max(lens) > N:
+            raise ValueError(f"doubletake_forced_frames: lengths must be <= n_frames={N}, got {lens}")
+        forced = torch.zeros(S, N, dtype=torch.bool, device=device)
+        for i, L in enumerate(lens):
+            if i > 0:
+                forced[i, :h] = True          # shared with the end of segment i - 1
+            if i < S - 1:
+                forced[i, max(0, L - h):L] = True  # shared with the start of segment i + 1
+        return forced
+    if take == "second":
+        if S < 2:
+            raise ValueError("doubletake_forced_frames: the second take needs >= 2 segments")
+        N = (max(lens) - 2 * h) * 2 + h if n_frames is None else int(n_frames)
+        forced = torch.zeros(S - 1, N, dtype=torch.bool, device=device)
+        for i in range(S - 1):
+            b = lens[i] - 2 * h  # where the handshake starts in the second-take sequence
+            forced[i, max(0, b - blend_len):min(N, b + h + blend_len)] = True
+        return forced
+    raise ValueError(f"doubletake_forced_frames: take must be 'first' or 'second', got {take!r}")
+
+
+def forced_from_y(y: Dict[str, Any], n_frames: int, batch_size: int,
+                  device=None) -> Optional[torch.Tensor]:
+    """The forced keyframes ``[B, N]`` of one DoubleTake model call, read from ``y``.
+
+    Second take (``inpainting_mask`` present, frames with mask < 1 exist): the transition
+    windows, i.e. the span from the first to the last frame with mask < 1 around each
+    handshake, which covers both blend ramps and the handshake between them. First take:
+    ``is_transition`` > 0. Returns None when ``y`` carries neither (plain MDM sampling).
+    """
+    forced = None
+    mask = y.get("inpainting_mask")
+    if isinstance(mask, torch.Tensor) and mask.shape[0] == batch_size and mask.shape[-1] == n_frames:
+        m = mask.reshape(batch_size, -1, n_frames).float()
+        free = (m < 1.0).any(dim=1)  # frames where the model's output is (partly) used
+        if bool(free.any()):
+            forced = _close_gaps(free, max_gap=_max_gap(y, free))
+    trans = y.get("is_transition")
+    if isinstance(trans, torch.Tensor) and trans.dim() == 2 and trans.shape == (batch_size, n_frames):
+        t = trans.to(torch.bool)
+        forced = t if forced is None else (forced | t.to(forced.device))
+    if forced is None:
+        return None
+    return forced.to(device) if device is not None else forced
+
+
+def _max_gap(y: Dict[str, Any], free: torch.Tensor) -> int:
+    """The handshake between two blend ramps keeps mask 1; close gaps up to its size."""
+    h = y.get("handshake_size")
+    if h is not None:
+        return int(h)
+    return int(free.shape[1])  # close any gap between the first and last free frame of a pair
+
+
+def _close_gaps(free: torch.Tensor, max_gap: int) -> torch.Tensor:
+    """Fill runs of False of length <= ``max_gap`` that lie between two True frames (per row)."""
+    out = free.clone()
+    B, N = free.shape
+    for b in range(B):
+        idx = free[b].nonzero(as_tuple=True)[0].tolist()
+        for a, c in zip(idx[:-1], idx[1:]):
+            if 1 < c - a <= max_gap + 1:
+                out[b, a:c] = True
+    return out
+
+
+# --------------------------------------------------------------------------- model hook
+def _find_y(args, kwargs):
+    if "y" in kwargs:
+        return kwargs["y"], "kw"
+    if len(args) >= 3:
+        return args[2], "pos"
+    return None, None
+
+
+def _doubletake_pre_hook(module: nn.Module, args, kwargs):
+    y, where = _find_y(args, kwargs)
+    if not isinstance(y, dict):
+        return None
+    x = args[0] if args else kwargs.get("x")
+    if not isinstance(x, torch.Tensor):
+        return None
+    B, N = x.shape[0], x.shape[-1]
+    forced = forced_from_y(y, N, B, device=x.device)
+    if forced is None:
+        return None
+    y = dict(y)  # never write into the caller's dict (DoubleTake reuses it across takes)
+    prev = y.get("keyframe_forced")
+    if isinstance(prev, torch.Tensor) and prev.shape == forced.shape:
+        forced = forced | prev.to(forced.device, torch.bool)
+    y["keyframe_forced"] = forced
+    if where == "kw":
+        kwargs = dict(kwargs)
+        kwargs["y"] = y
+    else:
+        args = tuple(args[:2]) + (y,) + tuple(args[3:])
+    return args, kwargs
+
+
+def attach_doubletake_forcing(model: nn.Module) -> nn.Module:
+    """Make every call of ``model(x, t, y)`` carry ``y['keyframe_forced']`` derived from DoubleTake's
+    ``is_transition`` / ``inpainting_mask`` (in a copy of ``y``). Idempotent; returns ``model``."""
+    if getattr(model, "_smdm_doubletake_hook", None) is not None:
+        return model
+    # prepend: must run before sparsify's own pre-hook, which reads y['keyframe_forced']
+    handle = model.register_forward_pre_hook(_doubletake_pre_hook, with_kwargs=True, prepend=True)
+    model._smdm_doubletake_hook = handle
+    return model
+
+
+def detach_doubletake_forcing(model: nn.Module) -> nn.Module:
+    handle = getattr(model, "_smdm_doubletake_hook", None)
+    if handle is not None:
+        handle.remove()
+        model._smdm_doubletake_hook = None
+    return model

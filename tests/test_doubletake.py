@@ -1,0 +1,130 @@
+"""DoubleTake forced keyframes: geometry, y-derived forcing, and that the sparse model honours them
+at every sampling step of both takes (TinyMDM stand-in, a DoubleTake-shaped sampling loop)."""
+import torch
+
+from smdm_plugin import SparseConfig, TinyMDM, sparsify
+from smdm_plugin.adapters.doubletake import (attach_doubletake_forcing, detach_doubletake_forcing,
+                                             doubletake_forced_frames, forced_from_y)
+from smdm_plugin.diffusion import SimpleDiffusion
+
+H, BLEND = 6, 4
+
+
+def _first_take_transition(lengths, n):
+    """priorMDM's ``is_transition`` of the first take (written from its description)."""
+    S = len(lengths)
+    tr = torch.zeros(S, n)
+    for i, L in enumerate(lengths):
+        if i > 0:
+            tr[i, :H] = 1
+        if i < S - 1:
+            tr[i, L - H:L] = 1
+    return tr
+
+
+def _second_take_inpainting(lengths, n2, feats):
+    m = torch.ones(len(lengths) - 1, feats, 1, n2)
+    for i in range(len(lengths) - 1):
+        b = lengths[i] - 2 * H
+        m[i, :, :, b - BLEND:b] = torch.linspace(0.85, 0.85 / BLEND, BLEND)
+        m[i, :, :, b + H:b + H + BLEND] = torch.arange(0.0, 0.85, 0.85 / BLEND)[:BLEND]
+    return m
+
+
+def test_forced_geometry_first_take():
+    f = doubletake_forced_frames([30, 40, 25], H)
+    assert f.shape == (3, 40)
+    assert f[0].nonzero().flatten().tolist() == list(range(24, 30))
+    assert f[1].nonzero().flatten().tolist() == list(range(0, 6)) + list(range(34, 40))
+    assert f[2].nonzero().flatten().tolist() == list(range(0, 6))
+    tr = _first_take_transition([30, 40, 25], 40)
+    assert torch.equal(f, tr.bool())
+    assert torch.equal(forced_from_y({"is_transition": tr}, 40, 3), f)
+
+
+def test_forced_geometry_second_take():
+    lens = [30, 40, 25]
+    f = doubletake_forced_frames(lens, H, take="second", blend_len=BLEND)
+    n2 = (40 - 2 * H) * 2 + H
+    assert f.shape == (2, n2)
+    for i in range(2):
+        b = lens[i] - 2 * H
+        assert f[i].nonzero().flatten().tolist() == list(range(b - BLEND, b + H + BLEND))
+    y = {"inpainting_mask": _second_take_inpainting(lens, n2, 5),
+         "is_transition": torch.zeros(2, n2)}
+    assert torch.equal(forced_from_y(y, n2, 2), f)
+
+
+def test_no_forcing_without_doubletake_keys():
+    assert forced_from_y({"lengths": torch.tensor([3])}, 10, 1) is None
+
+
+def _sparse_tiny(reduction=0.8):
+    torch.manual_seed(0)
+    model = TinyMDM(njoints=8, nfeats=1, latent_dim=32, ff_size=64, num_layers=2,
+                    cond_mode="no_cond", dropout=0.0).eval()
+    cfg = SparseConfig(reduction=reduction, feature="raw", diffusion_steps=10, gamma=0.5)
+    sparsify(model, cfg)
+    attach_doubletake_forcing(model)
+    seen = []
+    tr = model.seqTransEncoder
+    orig = tr.set_keyframes
+
+    def spy(mask):
+        if mask is not None:
+            seen.append(mask.clone())
+        orig(mask)
+
+    tr.set_keyframes = spy
+    return model, seen
+
+
+def test_forced_frames_honoured_every_step():
+    lens = [30, 40, 25]
+    S, n = len(lens), max(lens)
+    model, seen = _sparse_tiny()
+    diff = SimpleDiffusion(10)
+    y = {"lengths": torch.tensor(lens), "is_transition": _first_take_transition(lens, n),
+         "mask": (torch.arange(n)[None] < torch.tensor(lens)[:, None]).view(S, 1, 1, n)}
+    # first take: handshake blend after every step, as priorMDM's p_sample_loop does
+    x = torch.randn(S, 8, 1, n)
+    alpha = torch.arange(H) / H
+    for t in range(9, -1, -1):
+        x = diff.p_sample(model, x, t, {"y": y})
+        for i in range(1, S):
+            L = lens[i - 1]
+            blend = x[i - 1, ..., L - H:L] * (1 - alpha) + x[i, ..., :H] * alpha
+            x[i - 1, ..., L - H:L] = blend
+            x[i, ..., :H] = blend
+    first = doubletake_forced_frames(lens, H)
+    assert len(seen) == 10
+    for mask in seen:
+        assert bool(mask[first].all())
+        assert int(mask.sum()) < int(y["mask"].sum())  # still sparse elsewhere
+    assert "keyframe_forced" not in y  # the caller's dict is untouched
+
+    # second take: inpainting of the transition windows
+    seen.clear()
+    n2 = (n - 2 * H) * 2 + H
+    lens2 = torch.tensor([lens[i] + lens[i + 1] - 3 * H for i in range(S - 1)])
+    y2 = {"lengths": lens2, "is_transition": torch.zeros(S - 1, n2),
+          "inpainting_mask": _second_take_inpainting(lens, n2, 8),
+          "mask": (torch.arange(n2)[None] < lens2[:, None]).view(S - 1, 1, 1, n2)}
+    x2 = torch.randn(S - 1, 8, 1, n2)
+    for t in range(4, -1, -1):
+        x2 = diff.p_sample(model, x2, t, {"y": y2})
+    second = doubletake_forced_frames(lens, H, take="second", blend_len=BLEND)
+    assert len(seen) == 5
+    for mask in seen:
+        assert bool(mask[second].all())
+
+
+def test_detach():
+    model, seen = _sparse_tiny()
+    detach_doubletake_forcing(model)
+    lens = [30, 40]
+    y = {"lengths": torch.tensor(lens), "is_transition": _first_take_transition(lens, 40)}
+    with torch.no_grad():
+        model(torch.randn(2, 8, 1, 40), torch.tensor([9, 9]), y)
+    forced = doubletake_forced_frames(lens, H)
+    assert not bool(seen[-1][forced].all())  # uniform mask at t=9 misses most handshake frames

@@ -1,0 +1,304 @@
+"""sparsify_motiondiffuse on a small stand-in with MotionTransformer's attribute names and forward
+contract (written here from scratch; CI has no MotionDiffuse checkout)."""
+import math
+
+import pytest
+import torch
+import torch.nn as nn
+import torch.nn.functional as F
+
+from smdm_plugin import LipschitzMLP, SparseConfig
+from smdm_plugin.adapters.motiondiffuse import (attach_motiondiffuse_diffusion, gather_keyframes,
+                                                scatter_keyframes, sparsify_motiondiffuse,
+                                                trainer_loss, training_mean_std,
+                                                unsparsify_motiondiffuse)
+from smdm_plugin.integrations.motiondiffuse import (add_sparse_options, attach_trainer,
+                                                    config_from_opt)
+
+
+# --------------------------------------------------------------------------- stand-in model
+def sinusoid(t, dim):
+    half = dim // 2
+    f = torch.exp(-math.log(10000.0) * torch.arange(half, dtype=torch.float32) / half)
+    a = t.float()[:, None] * f[None]
+    return torch.cat([a.cos(), a.sin()], -1)
+
+
+class Modulate(nn.Module):
+    def __init__(self, d, e):
+        super().__init__()
+        self.emb_layers = nn.Sequential(nn.SiLU(), nn.Linear(e, 2 * d))
+        self.norm = nn.LayerNorm(d)
+        self.out_layers = nn.Sequential(nn.SiLU(), nn.Linear(d, d))
+
+    def forward(self, h, emb):
+        s, b = self.emb_layers(emb)[:, None].chunk(2, -1)
+        return self.out_layers(self.norm(h) * (1 + s) + b)
+
+
+class LinSelfAttn(nn.Module):
+    """Linear (softmax-kernel) attention whose padded tokens are masked through ``src_mask``."""
+
+    def __init__(self, d, heads, e):
+        super().__init__()
+        self.h = heads
+        self.norm = nn.LayerNorm(d)
+        self.query, self.key, self.value = nn.Linear(d, d), nn.Linear(d, d), nn.Linear(d, d)
+        self.proj_out = Modulate(d, e)
+
+    def forward(self, x, emb, src_mask):
+        B, T, D = x.shape
+        n = self.norm(x)
+        q = F.softmax(self.query(n).view(B, T, self.h, -1), -1)
+        k = F.softmax((self.key(n) - (1 - src_mask) * 1e6).view(B, T, self.h, -1), 1)
+        v = (self.value(n) * src_mask).view(B, T, self.h, -1)
+        ctx = torch.einsum("bthd,bthe->bhde", k, v)
+        return x + self.proj_out(torch.einsum("bthd,bhde->bthe", q, ctx).reshape(B, T, D), emb)
+
+
+class CrossAttn(nn.Module):
+    def __init__(self, d, dt, heads, e):
+        super().__init__()
+        self.h = heads
+        self.q, self.kv = nn.Linear(d, d), nn.Linear(dt, 2 * d)
+        self.proj_out = Modulate(d, e)
+
+    def forward(self, x, xf, emb):
+        B, T, D = x.shape
+        k, v = self.kv(xf).chunk(2, -1)
+        w = torch.softmax(self.q(x) @ k.transpose(1, 2) / math.sqrt(D), -1)
+        return x + self.proj_out(w @ v, emb)
+
+
+class Block(nn.Module):
+    def __init__(self, d, dt, heads, e):
+        super().__init__()
+        self.sa_block = LinSelfAttn(d, heads, e)
+        self.ca_block = CrossAttn(d, dt, heads, e)
+        self.ffn = nn.Sequential(nn.Linear(d, 2 * d), nn.GELU(), nn.Linear(2 * d, d))
+
+    def forward(self, x, xf, emb, src_mask):
+        x = self.sa_block(x, emb, src_mask)
+        x = self.ca_block(x, xf, emb)
+        return x + self.ffn(x)
+
+
+class StandInMotionTransformer(nn.Module):
+    """Same attribute names and ``forward(x, timesteps, length, text, xf_proj, xf_out)`` contract
+    as MotionDiffuse's MotionTransformer; the text encoder is a bag of hashed characters."""
+
+    def __init__(self, input_feats=12, num_frames=40, latent_dim=32, num_layers=2, text_dim=16):
+        super().__init__()
+        self.input_feats, self.num_frames, self.latent_dim = input_feats, num_frames, latent_dim
+        self.time_embed_dim = 4 * latent_dim
+        self.sequence_embedding = nn.Parameter(torch.randn(num_frames, latent_dim))
+        self.char_embed = nn.Embedding(64, text_dim)
+        self.text_proj = nn.Linear(text_dim, self.time_embed_dim)
+        self.joint_embed = nn.Linear(input_feats, latent_dim)
+        self.time_embed = nn.Sequential(nn.Linear(latent_dim, self.time_embed_dim), nn.SiLU(),
+                                        nn.Linear(self.time_embed_dim, self.time_embed_dim))
+        self.temporal_decoder_blocks = nn.ModuleList(
+            Block(latent_dim, text_dim, 4, self.time_embed_dim) for _ in range(num_layers))
+        self.out = nn.Linear(latent_dim, input_feats)
+
+    def encode_text(self, text, device):
+        ids = torch.tensor([[ord(c) % 64 for c in (s + " " * 8)[:8]] for s in text], device=device)
+        xf_out = self.char_embed(ids)
+        return self.text_proj(xf_out.mean(1)), xf_out
+
+    def generate_src_mask(self, T, length):
+        return (torch.arange(T)[None] < torch.as_tensor(length).reshape(-1, 1)).float()
+
+    def forward(self, x, timesteps, length=None, text=None, xf_proj=None, xf_out=None):
+        B, T = x.shape[:2]
+        if xf_proj is None or xf_out is None:
+            xf_proj, xf_out = self.encode_text(text, x.device)
+        emb = self.time_embed(sinusoid(timesteps, self.latent_dim)) + xf_proj
+        h = self.joint_embed(x) + self.sequence_embedding[None, :T]
+        src_mask = self.generate_src_mask(T, length).to(x.device).unsqueeze(-1)
+        for blk in self.temporal_decoder_blocks:
+            h = blk(h, xf_out, emb, src_mask)
+        return self.out(h).view(B, T, -1).contiguous()
+
+
+class StandInDiffusion:
+    """``training_losses`` with MotionDiffuse's contract: returns target/pred and an unmasked
+    ``mse`` over all frames."""
+
+    num_timesteps = 50
+
+    def training_losses(self, model, x_start, t, model_kwargs=None, noise=None):
+        noise = torch.randn_like(x_start) if noise is None else noise
+        x_t = x_start * 0.5 + noise * 0.5
+        pred = model(x_t, t, **(model_kwargs or {}))
+        return {"mse": ((noise - pred) ** 2).mean(dim=(1, 2)), "target": noise, "pred": pred}
+
+
+def _inputs(B=3, T=40, D=12, seed=0):
+    g = torch.Generator().manual_seed(seed)
+    x = torch.randn(B, T, D, generator=g)
+    t = torch.randint(0, 50, (B,), generator=g)
+    length = torch.tensor([40, 31, 17])[:B]
+    return x, t, length, ["a person walks", "jumps", "waves"][:B]
+
+
+def _dense_cfg(**kw):
+    base = dict(reduction=0.0, lipschitz=False, mask_noise=0.0, feature="raw")
+    base.update(kw)
+    return SparseConfig(**base)
+
+
+# --------------------------------------------------------------------------- tests
+def test_gather_scatter_roundtrip():
+    h = torch.randn(2, 6, 3)
+    mask = torch.tensor([[1, 0, 1, 1, 0, 0], [0, 1, 0, 0, 0, 1]], dtype=torch.bool)
+    packed, valid = gather_keyframes(h, mask)
+    assert packed.shape == (2, 3, 3) and valid.tolist() == [[True] * 3, [True, True, False]]
+    assert torch.equal(packed[1, :2], h[1, [1, 5]])
+    back = scatter_keyframes(packed, valid, mask)
+    assert torch.equal(back[mask], h[mask]) and bool((back[~mask] == 0).all())
+
+
+def test_all_keyframes_equals_dense():
+    torch.manual_seed(0)
+    model = StandInMotionTransformer().eval()
+    x, t, length, text = _inputs()
+    with torch.no_grad():
+        dense = model(x, t, length=length, text=text)
+        sparsify_motiondiffuse(model, _dense_cfg())
+        full = torch.ones(x.shape[:2], dtype=torch.bool)
+        sparse_explicit = model(x, t, length=length, text=text, keyframe_mask=full)
+        sparse_sched = model(x, t, length=length, text=text)  # reduction 0 -> every frame
+    valid = torch.arange(40)[None] < length[:, None]
+    assert (sparse_explicit - dense)[valid].abs().max() < 1e-5
+    assert (sparse_sched - dense)[valid].abs().max() < 1e-5
+
+
+def test_sparse_tokens_and_interpolation():
+    torch.manual_seed(1)
+    model = StandInMotionTransformer().eval()
+    sparsify_motiondiffuse(model, _dense_cfg(reduction=0.8))
+    x, t, length, text = _inputs()
+    seen = []
+    model.temporal_decoder_blocks[0].register_forward_hook(lambda m, a, o: seen.append(a[0].shape[1]))
+    mask = torch.zeros(3, 40, dtype=torch.bool)
+    mask[:, [0, 10, 16]] = True
+    with torch.no_grad():
+        out = model(x, t, length=length, text=text, keyframe_mask=mask)
+    assert seen == [3]  # only keyframe tokens went through the decoder blocks
+    # hidden features are linear between keyframes, and `out` is linear (no Lipschitz MLP here)
+    mid = out[:, 5]
+    assert torch.allclose(mid, 0.5 * (out[:, 0] + out[:, 10]), atol=1e-5)
+    # forced frames are honoured
+    forced = torch.zeros(3, 40, dtype=torch.bool)
+    forced[:, 7] = True
+    with torch.no_grad():
+        model(x, t, length=length, text=text, keyframe_forced=forced)
+    last = model._smdm_md_state["last_mask"]
+    assert bool(last[:, 7].all())
+    assert not bool(last[2, 17:].any())  # nothing beyond the valid length (17)
+
+
+def test_lipschitz_swap_and_unsparsify():
+    torch.manual_seed(2)
+    model = StandInMotionTransformer()
+    old_in, old_out = model.joint_embed, model.out
+    sparsify_motiondiffuse(model, SparseConfig(feature="raw", lipschitz_layers=2))
+    assert isinstance(model.joint_embed, LipschitzMLP) and isinstance(model.out, LipschitzMLP)
+    assert "smdm_sparse_version" in model.state_dict()
+    x, t, length, text = _inputs()
+    out = model(x, t, length=length, text=text)
+    assert out.shape == x.shape
+    # the state dict round-trips into a fresh sparse model (strict, as DDPMTrainer.load does)
+    other = sparsify_motiondiffuse(StandInMotionTransformer(), SparseConfig(feature="raw"))
+    other.load_state_dict(model.state_dict(), strict=True)
+    unsparsify_motiondiffuse(model)
+    assert model.joint_embed is old_in and model.out is old_out
+    assert "forward" not in model.__dict__ and "smdm_sparse_version" not in model.state_dict()
+
+
+def test_masked_loss_ignores_padding():
+    torch.manual_seed(3)
+    model = StandInMotionTransformer()
+    diff = StandInDiffusion()
+    sparsify_motiondiffuse(model, _dense_cfg(reduction=0.5, lipschitz=True, lipschitz_lambda=0.0),
+                           diffusion=diff)
+    x, t, length, text = _inputs()
+    noise = torch.randn_like(x)
+    terms = diff.training_losses(model, x, t, {"text": text, "length": length}, noise=noise)
+    # changing the padded frames' target (= noise) must not change the loss
+    noise2 = noise.clone()
+    pad = ~(torch.arange(40)[None] < length[:, None])
+    noise2[pad] += 100.0
+    torch.manual_seed(0)
+    a = diff.training_losses(model, x, t, {"text": text, "length": length,
+                                           "keyframe_forced": None}, noise=noise)
+    torch.manual_seed(0)
+    b = diff.training_losses(model, x, t, {"text": text, "length": length,
+                                           "keyframe_forced": None}, noise=noise2)
+    # padded frames also feed x_t, but the model never reads them (keyframes are valid frames)
+    assert torch.allclose(a["loss"], b["loss"], atol=1e-5)
+    assert terms["frame_mask"].sum(1).tolist() == length.tolist()
+
+
+def test_dense_masked_loss_flag():
+    torch.manual_seed(4)
+    model = StandInMotionTransformer()
+    diff = StandInDiffusion()
+    x, t, length, text = _inputs()
+    noise = torch.randn_like(x)
+    plain = diff.training_losses(model, x, t, {"text": text, "length": length}, noise=noise)
+    attach_motiondiffuse_diffusion(diff, None, None, masked_loss=True)
+    masked = diff.training_losses(model, x, t, {"text": text, "length": length}, noise=noise)
+    err = ((plain["pred"] - noise) ** 2).mean(-1)
+    valid = (torch.arange(40)[None] < length[:, None]).float()
+    expect = (err * valid).sum(1) / valid.sum(1)
+    assert torch.allclose(masked["loss"], expect, atol=1e-6)
+    assert not torch.allclose(plain["mse"], expect)
+
+
+class _Opt:
+    pass
+
+
+def test_trainer_loss_and_attach(tmp_path):
+    import argparse
+
+    parser = argparse.ArgumentParser()
+    add_sparse_options(parser)
+    add_sparse_options(parser)  # idempotent
+    opt = parser.parse_args(["--sparse", "--sparse_feature", "raw", "--sparse_reduction", "0.5"])
+    opt.is_train, opt.model_dir = True, str(tmp_path / "model")
+
+    class Trainer:
+        pass
+
+    tr = Trainer()
+    tr.opt, tr.encoder, tr.diffusion = opt, StandInMotionTransformer(), StandInDiffusion()
+    attach_trainer(tr)
+    assert (tmp_path / "model" / "sparse_config.json").exists()
+    x, t, length, text = _inputs()
+    out = tr.diffusion.training_losses(tr.encoder, x, t, {"text": text, "length": length})
+    tr.fake_noise, tr.real_noise = out["pred"], out["target"]
+    tr.src_mask = tr.encoder.generate_src_mask(40, length)
+    loss = trainer_loss(tr)
+    loss.backward()
+    assert torch.isfinite(loss)
+    assert tr.encoder.joint_embed.net[0].parametrizations.weight.original.grad is not None
+
+
+def test_config_from_get_opt_strings(tmp_path):
+    opt = _Opt()
+    # what MotionDiffuse's get_opt makes of opt.txt lines
+    opt.sparse, opt.sparse_reduction, opt.sparse_lipschitz_lambda = True, 0.8, "1e-06"
+    opt.sparse_fsq_levels, opt.sparse_lipschitz_hidden = "[8, 8, 8, 5, 5, 5]", "None"
+    opt.sparse_diffusion_steps, opt.is_train, opt.model_dir = 1000, False, str(tmp_path)
+    cfg = config_from_opt(opt)
+    assert cfg.enabled and cfg.lipschitz_lambda == 1e-6 and cfg.fsq_levels == (8, 8, 8, 5, 5, 5)
+    SparseConfig(reduction=0.5).save(str(tmp_path))
+    assert config_from_opt(opt).reduction == 0.5  # the saved config wins
+
+
+def test_training_mean_std():
+    mean, std = training_mean_std([0.0] * 263, [1.0] * 263, feat_bias=25)
+    assert std[0] == pytest.approx(0.04) and std[4] == 1.0 and std[-1] == pytest.approx(0.04)
