@@ -9,6 +9,7 @@ from .interpolation import interpolate_keyframes
 from .keyframe_transformer import KeyframeTransformer
 from .attention_backends import register_backend, get_backend, available_backends
 from .lipschitz import LipschitzMLP, lipschitz_loss, bake_lipschitz
+from .fsq import FSQ, FSQMultiheadAttention, quantize_attention_keys
 from .schedule import MaskSchedule
 from .losses import dense_loss, keyframe_loss, lipschitz_term
 from .backbone import TinyMDM
@@ -23,6 +24,7 @@ __all__ = [
     "SparseConfig", "load_preset", "select_keyframes", "perturb_mask", "vw_reference",
     "extract_selection_features", "interpolate_keyframes", "KeyframeTransformer", "register_backend",
     "get_backend", "available_backends", "LipschitzMLP", "lipschitz_loss", "bake_lipschitz",
+    "FSQ", "FSQMultiheadAttention", "quantize_attention_keys",
     "MaskSchedule", "dense_loss", "keyframe_loss", "lipschitz_term", "TinyMDM", "SimpleDiffusion",
     "ClassifierFreeGuidance", "sparsify", "unsparsify", "is_sparse", "detect_variant", "set_mean_std",
     "attach_diffusion", "detach_diffusion", "save_sparse_config", "load_checkpoint", "check_state_dict",

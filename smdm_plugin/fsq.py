@@ -1,0 +1,291 @@
+"""Finite scalar quantisation (Mentzer et al. 2023) and an ``nn.MultiheadAttention`` drop-in
+whose attention keys are FSQ-quantised.
+
+FSQ bounds each of ``d = len(levels)`` channels to ``L_i`` integer levels, rounds with a
+straight-through estimator and rescales to ``[-1, 1]``. :class:`FSQMultiheadAttention` keeps
+``nn.MultiheadAttention``'s parameter names (``in_proj_weight``, ``in_proj_bias``,
+``out_proj.weight``, ``out_proj.bias``) so dense checkpoints load into it, and adds ``key_down``
+(``head_dim -> d``) and ``key_up`` (``d -> head_dim``), shared by all heads.
+"""
+from __future__ import annotations
+
+import math
+from typing import Any, Optional, Sequence, Tuple
+
+import torch
+import torch.nn.functional as F
+from torch import Tensor, nn
+
+__all__ = ["FSQ", "FSQMultiheadAttention", "quantize_attention_keys"]
+
+
+class FSQ(nn.Module):
+    """Finite scalar quantiser. ``[..., d] -> [..., d]`` with ``d = len(levels)``.
+
+    Channel ``i`` is bounded to ``(L_i - 1)/2 · tanh`` (shifted by half a level for even
+    ``L_i`` so that it covers ``L_i`` integers ``-floor(L_i/2) .. ceil(L_i/2) - 1``), rounded
+    (straight-through: the gradient of the rounding is the identity) and divided by
+    ``floor(L_i/2)``. Output values lie on the grid ``{k / floor(L_i/2)}`` inside ``[-1, 1]``.
+    """
+
+    def __init__(self, levels: Sequence[int], eps: float = 1e-3) -> None:
+        super().__init__()
+        levels = [int(v) for v in levels]
+        if not levels or any(v < 2 for v in levels):
+            raise ValueError(f"FSQ: levels must be a non-empty sequence of ints >= 2, got {levels}")
+        self.levels_list = tuple(levels)
+        lv = torch.tensor(levels, dtype=torch.float64)
+        half_l = (lv - 1) * (1 - eps) / 2                        # tanh amplitude
+        offset = torch.where(lv % 2 == 0, 0.5, 0.0)              # even L: asymmetric range
+        # shift as in the paper: tan(offset / half_l) (~ atanh for L >= 4, so bound(0) ~ 0;
+        # finite for L = 2, where atanh(offset / half_l) does not exist)
+        shift = torch.tan(offset / half_l)
+        basis = torch.cumprod(torch.tensor([1] + levels[:-1], dtype=torch.long), 0)
+        # non-persistent: a dense checkpoint carries no FSQ buffers
+        self.register_buffer("_half_l", half_l.float(), persistent=False)
+        self.register_buffer("_offset", offset.float(), persistent=False)
+        self.register_buffer("_shift", shift.float(), persistent=False)
+        self.register_buffer("_half_width", (lv // 2).float(), persistent=False)
+        self.register_buffer("_basis", basis, persistent=False)
+
+    @property
+    def dim(self) -> int:
+        return len(self.levels_list)
+
+    @property
+    def codebook_size(self) -> int:
+        return int(math.prod(self.levels_list))
+
+    def bound(self, z: Tensor) -> Tensor:
+        """``[..., d]``: each channel squashed into ``(-floor(L/2) - 0.5, ceil(L/2) - 0.5)``."""
+        return torch.tanh(z + self._shift.to(z.dtype)) * self._half_l.to(z.dtype) \
+            - self._offset.to(z.dtype)
+
+    def forward(self, z: Tensor) -> Tensor:
+        if z.shape[-1] != self.dim:
+            raise ValueError(f"FSQ: input must be [..., {self.dim}], got {tuple(z.shape)}")
+        b = self.bound(z)
+        q = b + (torch.round(b) - b).detach()                   # straight-through rounding
+        return q / self._half_width.to(z.dtype)
+
+    def codes_to_indices(self, codes: Tensor) -> Tensor:
+        """``[..., d]`` grid codes (as returned by ``forward``) -> ``[...]`` long in
+        ``[0, codebook_size)``."""
+        hw = self._half_width.to(codes.dtype)
+        digits = torch.round(codes * hw + hw).long()
+        return (digits * self._basis).sum(-1)
+
+    def indices_to_codes(self, indices: Tensor) -> Tensor:
+        """``[...]`` long -> ``[..., d]`` grid codes (float32)."""
+        levels = torch.tensor(self.levels_list, device=indices.device)
+        digits = (indices.long().unsqueeze(-1) // self._basis) % levels
+        hw = self._half_width
+        return (digits.float() - hw) / hw
+
+    def extra_repr(self) -> str:
+        return f"levels={list(self.levels_list)}, codebook_size={self.codebook_size}"
+
+
+def _disable_transformer_fast_path(module: nn.Module, args: Any) -> None:
+    """No-op forward pre-hook. Its presence makes ``nn.TransformerEncoderLayer`` skip its fused
+    fast path (which would call the dense attention kernel directly and bypass FSQ)."""
+    return None
+
+
+def _to_float_mask(mask: Optional[Tensor], dtype: torch.dtype) -> Optional[Tensor]:
+    """Bool (True = masked out) or float (additive) -> additive float mask."""
+    if mask is None:
+        return None
+    if mask.dtype == torch.bool:
+        return torch.zeros(mask.shape, dtype=dtype, device=mask.device).masked_fill(
+            mask, float("-inf"))
+    return mask.to(dtype)
+
+
+class FSQMultiheadAttention(nn.Module):
+    """``nn.MultiheadAttention`` drop-in whose keys are FSQ-quantised per head.
+
+    ``k = key_up(FSQ(key_down(k_head)))`` for each head's ``k_head [.., head_dim]``, then scaled
+    dot-product attention. Shapes as ``nn.MultiheadAttention``: ``query [L, B, E]`` (``[B, L, E]``
+    with ``batch_first``; ``[L, E]`` unbatched), ``key``/``value [S, B, E]``,
+    ``key_padding_mask [B, S]`` (bool True = ignore, or additive float), ``attn_mask [L, S]`` or
+    ``[B·H, L, S]`` (bool True = not allowed, or additive float). Returns ``(out, weights)`` with
+    ``weights [B, L, S]`` (``[B, H, L, S]`` if not ``average_attn_weights``) or ``None``.
+
+    Set ``quantize = False`` to bypass the key bottleneck (then it equals dense attention).
+    Unsupported ``nn.MultiheadAttention`` options: ``kdim``/``vdim != embed_dim``,
+    ``add_bias_kv``, ``add_zero_attn``.
+    """
+
+    def __init__(self, embed_dim: int, num_heads: int, dropout: float = 0.0, bias: bool = True,
+                 add_bias_kv: bool = False, add_zero_attn: bool = False,
+                 kdim: Optional[int] = None, vdim: Optional[int] = None,
+                 batch_first: bool = False, levels: Sequence[int] = (8, 8, 8, 5, 5, 5),
+                 device: Optional[torch.device] = None, dtype: Optional[torch.dtype] = None
+                 ) -> None:
+        super().__init__()
+        if embed_dim <= 0 or num_heads <= 0 or embed_dim % num_heads:
+            raise ValueError(f"FSQMultiheadAttention: embed_dim={embed_dim} must be a positive "
+                             f"multiple of num_heads={num_heads}")
+        if add_bias_kv or add_zero_attn or kdim not in (None, embed_dim) \
+                or vdim not in (None, embed_dim):
+            raise ValueError("FSQMultiheadAttention: add_bias_kv, add_zero_attn and "
+                             "kdim/vdim != embed_dim are not supported")
+        fk = {"device": device, "dtype": dtype}
+        self.embed_dim, self.num_heads = int(embed_dim), int(num_heads)
+        self.head_dim = self.embed_dim // self.num_heads
+        self.kdim = self.vdim = self.embed_dim
+        self._qkv_same_embed_dim = True
+        self.dropout, self.batch_first = float(dropout), bool(batch_first)
+        self.bias_k = self.bias_v = None
+        self.add_zero_attn = False
+        self.in_proj_weight = nn.Parameter(torch.empty(3 * self.embed_dim, self.embed_dim, **fk))
+        self.in_proj_bias = nn.Parameter(torch.empty(3 * self.embed_dim, **fk)) if bias else None
+        self.out_proj = nn.Linear(self.embed_dim, self.embed_dim, bias=bias, **fk)
+        self.fsq = FSQ(levels).to(device)
+        self.key_down = nn.Linear(self.head_dim, self.fsq.dim, **fk)
+        self.key_up = nn.Linear(self.fsq.dim, self.head_dim, **fk)
+        self.quantize = True
+        self._reset_parameters()
+        self.register_forward_pre_hook(_disable_transformer_fast_path)
+
+    def _reset_parameters(self) -> None:
+        nn.init.xavier_uniform_(self.in_proj_weight)
+        if self.in_proj_bias is not None:
+            nn.init.zeros_(self.in_proj_bias)
+            nn.init.zeros_(self.out_proj.bias)
+
+    @classmethod
+    def from_mha(cls, mha: nn.MultiheadAttention, levels: Sequence[int]
+                 ) -> "FSQMultiheadAttention":
+        """A copy of ``mha``'s projections (and train/eval mode) with FSQ keys."""
+        if not mha._qkv_same_embed_dim or mha.bias_k is not None or mha.add_zero_attn:
+            raise ValueError("FSQMultiheadAttention.from_mha: mha must have kdim = vdim = "
+                             "embed_dim, no add_bias_kv and no add_zero_attn")
+        w = mha.in_proj_weight
+        new = cls(mha.embed_dim, mha.num_heads, dropout=mha.dropout,
+                  bias=mha.in_proj_bias is not None, batch_first=mha.batch_first,
+                  levels=levels, device=w.device, dtype=w.dtype)
+        missing, unexpected = new.load_state_dict(mha.state_dict(), strict=False)
+        assert not unexpected and all(k.startswith(("key_down.", "key_up.")) for k in missing)
+        return new.train(mha.training)
+
+    def _heads(self, x: Tensor, B: int) -> Tensor:
+        """``[B, T, E] -> [B, H, T, head_dim]``."""
+        return x.view(B, x.shape[1], self.num_heads, self.head_dim).transpose(1, 2)
+
+    def quantize_keys(self, k: Tensor) -> Tensor:
+        """``[..., head_dim] -> [..., head_dim]`` through the FSQ bottleneck."""
+        return self.key_up(self.fsq(self.key_down(k)))
+
+    def forward(self, query: Tensor, key: Tensor, value: Tensor,
+                key_padding_mask: Optional[Tensor] = None, need_weights: bool = True,
+                attn_mask: Optional[Tensor] = None, average_attn_weights: bool = True,
+                is_causal: bool = False) -> Tuple[Tensor, Optional[Tensor]]:
+        if query.is_nested or key.is_nested or value.is_nested:
+            return self._forward_nested(query, key, value, need_weights, attn_mask,
+                                        average_attn_weights, is_causal)
+        unbatched = query.dim() == 2
+        if unbatched:
+            query, key, value = query.unsqueeze(1), key.unsqueeze(1), value.unsqueeze(1)
+            if key_padding_mask is not None:
+                key_padding_mask = key_padding_mask.unsqueeze(0)
+        if not unbatched and self.batch_first:
+            q_in, k_in, v_in = query, key, value                     # [B, T, E]
+        else:
+            q_in, k_in, v_in = (t.transpose(0, 1) for t in (query, key, value))
+        B, L, _ = q_in.shape
+        S = k_in.shape[1]
+        E, H = self.embed_dim, self.num_heads
+        w_q, w_k, w_v = self.in_proj_weight.split(E)
+        b_q = b_k = b_v = None
+        if self.in_proj_bias is not None:
+            b_q, b_k, b_v = self.in_proj_bias.split(E)
+        q = self._heads(F.linear(q_in, w_q, b_q), B)               # [B, H, L, hd]
+        k = self._heads(F.linear(k_in, w_k, b_k), B)               # [B, H, S, hd]
+        v = self._heads(F.linear(v_in, w_v, b_v), B)
+        if self.quantize:
+            k = self.quantize_keys(k)
+
+        # combined additive mask, broadcastable to [B, H, L, S]
+        dt = q.dtype
+        mask = _to_float_mask(attn_mask, dt)
+        if mask is None and is_causal:
+            mask = torch.full((L, S), float("-inf"), dtype=dt, device=q.device).triu(1)
+        if mask is not None:
+            if mask.shape[-2:] != (L, S) or mask.dim() not in (2, 3):
+                raise ValueError(f"FSQMultiheadAttention: attn_mask must be [L={L}, S={S}] or "
+                                 f"[B*H={B * H}, L, S], got {tuple(mask.shape)}")
+            mask = mask.reshape(B, H, L, S) if mask.dim() == 3 else mask.reshape(1, 1, L, S)
+        kpm = _to_float_mask(key_padding_mask, dt)
+        if kpm is not None:
+            if kpm.shape != (B, S):
+                raise ValueError(f"FSQMultiheadAttention: key_padding_mask must be [B={B}, "
+                                 f"S={S}], got {tuple(kpm.shape)}")
+            kpm = kpm.view(B, 1, 1, S)
+            mask = kpm if mask is None else mask + kpm
+
+        p = self.dropout if self.training else 0.0
+        weights = None
+        if need_weights:
+            scores = q @ k.transpose(-2, -1) / math.sqrt(self.head_dim)
+            if mask is not None:
+                scores = scores + mask
+            attn = torch.softmax(scores, dim=-1)                   # [B, H, L, S]
+            out = F.dropout(attn, p=p, training=self.training) @ v
+            weights = attn.mean(dim=1) if average_attn_weights else attn
+        else:
+            out = F.scaled_dot_product_attention(q, k, v, attn_mask=mask, dropout_p=p)
+        out = self.out_proj(out.transpose(1, 2).reshape(B, L, E))  # [B, L, E]
+        if unbatched:
+            return out.squeeze(0), None if weights is None else weights.squeeze(0)
+        if not self.batch_first:
+            out = out.transpose(0, 1)
+        return out, weights
+
+    def _forward_nested(self, query: Tensor, key: Tensor, value: Tensor, need_weights: bool,
+                        attn_mask: Optional[Tensor], average_attn_weights: bool, is_causal: bool
+                        ) -> Tuple[Tensor, Optional[Tensor]]:
+        """Nested (batch-first) input, as ``nn.TransformerEncoder`` produces in eval with a
+        padding mask: pad, mask the padded keys, run, re-nest the output."""
+        if not self.batch_first or not (query.is_nested and key.is_nested and value.is_nested):
+            raise ValueError("FSQMultiheadAttention: nested input needs batch_first=True and "
+                             "nested query, key and value")
+
+        def lengths(t: Tensor) -> list:
+            return [int(u.shape[0]) for u in t.unbind()]
+
+        q = query.to_padded_tensor(0.0)
+        k = q if key is query else key.to_padded_tensor(0.0)
+        v = q if value is query else value.to_padded_tensor(0.0)
+        lk = torch.tensor(lengths(key), device=k.device)
+        kpm = torch.arange(k.shape[1], device=k.device)[None, :] >= lk[:, None]   # [B, S]
+        out, weights = self.forward(q, k, v, key_padding_mask=kpm, need_weights=need_weights,
+                                    attn_mask=attn_mask, average_attn_weights=average_attn_weights,
+                                    is_causal=is_causal)
+        out = torch.nested.as_nested_tensor(
+            [o[:n] for o, n in zip(out.unbind(0), lengths(query))], layout=query.layout)
+        return out, weights
+
+    def extra_repr(self) -> str:
+        return (f"embed_dim={self.embed_dim}, num_heads={self.num_heads}, "
+                f"dropout={self.dropout}, batch_first={self.batch_first}, quantize={self.quantize}")
+
+
+def quantize_attention_keys(module: nn.Module, levels: Sequence[int]) -> int:
+    """In place: replace each ``self_attn`` ``nn.MultiheadAttention`` inside ``module`` (e.g. of
+    ``nn.TransformerEncoderLayer`` / ``nn.TransformerDecoderLayer``) by
+    :meth:`FSQMultiheadAttention.from_mha`. Cross-attention (``multihead_attn``) is left alone.
+    Turns off ``nn.TransformerEncoder``'s nested-tensor path. Returns the number replaced."""
+    count = 0
+    for m in list(module.modules()):
+        attn = getattr(m, "self_attn", None)
+        if isinstance(attn, nn.MultiheadAttention):
+            m.self_attn = FSQMultiheadAttention.from_mha(attn, levels)
+            count += 1
+    for m in module.modules():
+        if isinstance(m, nn.TransformerEncoder) and any(
+                isinstance(getattr(layer, "self_attn", None), FSQMultiheadAttention)
+                for layer in m.layers):
+            m.use_nested_tensor = False
+    return count

@@ -1,0 +1,253 @@
+"""FSQ quantiser and the FSQ-key ``nn.MultiheadAttention`` drop-in."""
+import math
+import warnings
+
+import pytest
+import torch
+from torch import nn
+
+from smdm_plugin.fsq import FSQ, FSQMultiheadAttention, quantize_attention_keys
+
+LEVELS = (8, 5, 5, 2)
+pytestmark = pytest.mark.filterwarnings("ignore:The PyTorch API of nested tensors")
+
+
+# ----------------------------------------------------------------------------- FSQ
+def test_fsq_outputs_on_level_grid_and_cover_all_levels():
+    fsq = FSQ(LEVELS)
+    z = torch.randn(20000, len(LEVELS)) * 3
+    out = fsq(z)
+    for i, L in enumerate(LEVELS):
+        hw = L // 2
+        ints = out[:, i] * hw
+        assert torch.equal(ints, ints.round())                      # exactly on the grid
+        vals = set(ints.round().long().tolist())
+        assert vals == set(range(-hw, L - hw))                      # all L levels, no more
+    assert out.abs().max() <= 1.0
+    assert torch.equal(fsq(torch.zeros(1, len(LEVELS))), torch.zeros(1, len(LEVELS)))
+
+
+def test_fsq_straight_through_gradient():
+    fsq = FSQ(LEVELS)
+    z = (torch.randn(256, len(LEVELS)) * 0.5).requires_grad_()
+    fsq(z).sum().backward()
+    assert (z.grad.abs() > 0).all()
+    # gradient of the rounding is the identity: d/dz (bound(z) / floor(L/2))
+    zz = z.detach().clone().requires_grad_()
+    (fsq.bound(zz) / fsq._half_width).sum().backward()
+    torch.testing.assert_close(z.grad, zz.grad)
+
+
+def test_fsq_codes_indices_round_trip_full_codebook():
+    fsq = FSQ(LEVELS)
+    assert fsq.codebook_size == math.prod(LEVELS)
+    idx = torch.arange(fsq.codebook_size)
+    codes = fsq.indices_to_codes(idx)
+    assert codes.shape == (fsq.codebook_size, len(LEVELS))
+    assert torch.unique(codes, dim=0).shape[0] == fsq.codebook_size
+    assert torch.equal(fsq.codes_to_indices(codes), idx)
+    out = fsq(torch.randn(500, len(LEVELS)) * 3)                     # forward output -> index
+    assert torch.equal(fsq.indices_to_codes(fsq.codes_to_indices(out)), out)
+
+
+def test_fsq_rejects_bad_levels_and_shapes():
+    with pytest.raises(ValueError):
+        FSQ([])
+    with pytest.raises(ValueError):
+        FSQ([1, 4])
+    with pytest.raises(ValueError):
+        FSQ(LEVELS)(torch.randn(3, 5))
+
+
+# ----------------------------------------------------------------------------- attention
+def _pair(batch_first: bool, bias: bool = True, E: int = 32, H: int = 4):
+    torch.manual_seed(0)
+    mha = nn.MultiheadAttention(E, H, bias=bias, batch_first=batch_first)
+    if bias:
+        with torch.no_grad():
+            mha.in_proj_bias.normal_()
+            mha.out_proj.bias.normal_()
+    fsq = FSQMultiheadAttention.from_mha(mha, LEVELS)
+    return mha.eval(), fsq.eval()
+
+
+def _inputs(batch_first: bool, B=3, L=5, S=7, E=32):
+    g = torch.Generator().manual_seed(1)
+    q = torch.randn(B, L, E, generator=g)
+    kv = torch.randn(B, S, E, generator=g)
+    v = torch.randn(B, S, E, generator=g)
+    kpm = torch.zeros(B, S, dtype=torch.bool)
+    kpm[0, 5:] = True
+    kpm[2, 1] = True
+    kpm[2, 6] = True
+    if not batch_first:
+        q, kv, v = (t.transpose(0, 1) for t in (q, kv, v))
+    return q, kv, v, kpm
+
+
+@pytest.mark.parametrize("batch_first", [False, True])
+@pytest.mark.parametrize("bias", [True, False])
+def test_bypassed_equals_nn_multihead_attention(batch_first, bias):
+    mha, fsq = _pair(batch_first, bias)
+    fsq.quantize = False
+    q, k, v, kpm = _inputs(batch_first)
+    L, S = 5, 7
+    attn_mask = torch.zeros(L, S, dtype=torch.bool)
+    attn_mask[1, 2] = True
+    for kw in ({}, {"key_padding_mask": kpm}, {"key_padding_mask": kpm, "attn_mask": attn_mask},
+               {"key_padding_mask": kpm.float().masked_fill(kpm, float("-inf"))}):
+        for need in (True, False):
+            for avg in (True, False):
+                o1, w1 = mha(q, k, v, need_weights=need, average_attn_weights=avg, **kw)
+                o2, w2 = fsq(q, k, v, need_weights=need, average_attn_weights=avg, **kw)
+                torch.testing.assert_close(o2, o1, rtol=1e-5, atol=1e-5)
+                if need:
+                    torch.testing.assert_close(w2, w1, rtol=1e-5, atol=1e-5)
+                else:
+                    assert w2 is None
+    # self-attention, 3-D per-head mask, unbatched
+    x = q
+    m3 = torch.zeros(3 * 4, L, L)
+    m3[:, 0, 1] = float("-inf")
+    torch.testing.assert_close(fsq(x, x, x, attn_mask=m3)[0], mha(x, x, x, attn_mask=m3)[0],
+                               rtol=1e-5, atol=1e-5)
+    xu = x[:, 0] if not batch_first else x[0]
+    torch.testing.assert_close(fsq(xu, xu, xu)[0], mha(xu, xu, xu)[0], rtol=1e-5, atol=1e-5)
+
+
+def test_quantised_matches_reference_computation():
+    mha, fsq = _pair(True)
+    q, k, v, kpm = _inputs(True)
+    E, H, hd = 32, 4, 8
+    wq, wk, wv = fsq.in_proj_weight.split(E)
+    bq, bk, bv = fsq.in_proj_bias.split(E)
+
+    def heads(t):
+        return t.view(t.shape[0], t.shape[1], H, hd).transpose(1, 2)
+
+    Q, K, V = heads(q @ wq.T + bq), heads(k @ wk.T + bk), heads(v @ wv.T + bv)
+    K = fsq.key_up(fsq.fsq(fsq.key_down(K)))
+    s = Q @ K.transpose(-1, -2) / math.sqrt(hd) + kpm[:, None, None, :].float() * -1e30
+    ref = fsq.out_proj((s.softmax(-1) @ V).transpose(1, 2).reshape(3, 5, E))
+    for need in (True, False):
+        out, _ = fsq(q, k, v, key_padding_mask=kpm, need_weights=need)
+        torch.testing.assert_close(out, ref, rtol=1e-5, atol=1e-5)
+    dense, _ = mha(q, k, v, key_padding_mask=kpm)
+    assert not torch.allclose(out, dense, atol=1e-3)                # quantiser is active
+
+
+def test_is_causal_and_weights_shape():
+    _, fsq = _pair(True)
+    x = torch.randn(2, 6, 32)
+    causal = nn.Transformer.generate_square_subsequent_mask(6)
+    o1, w = fsq(x, x, x, attn_mask=causal, is_causal=True, average_attn_weights=False)
+    o2, _ = fsq(x, x, x, is_causal=True, need_weights=False)
+    torch.testing.assert_close(o1, o2, rtol=1e-5, atol=1e-6)
+    assert w.shape == (2, 4, 6, 6) and torch.all(w[..., 0, 1:] == 0)
+
+
+def test_key_padding_mask_honoured():
+    for batch_first in (False, True):
+        _, fsq = _pair(batch_first)
+        q, k, v, kpm = _inputs(batch_first)
+        out, _ = fsq(q, k, v, key_padding_mask=kpm, need_weights=False)
+        k2, v2 = k.clone(), v.clone()
+        bmask = kpm if batch_first else kpm.T
+        k2[bmask] = 100 * torch.randn(int(kpm.sum()), 32)
+        v2[bmask] = 100 * torch.randn(int(kpm.sum()), 32)
+        out2, _ = fsq(q, k2, v2, key_padding_mask=kpm, need_weights=False)
+        torch.testing.assert_close(out2, out, rtol=0, atol=1e-5)
+
+
+def test_dense_checkpoint_loads_with_same_names():
+    mha = nn.MultiheadAttention(32, 4)
+    fsq = FSQMultiheadAttention(32, 4)
+    missing, unexpected = fsq.load_state_dict(mha.state_dict(), strict=False)
+    assert not unexpected
+    assert sorted(missing) == ["key_down.bias", "key_down.weight", "key_up.bias", "key_up.weight"]
+    for name in ("in_proj_weight", "in_proj_bias", "out_proj.weight", "out_proj.bias"):
+        assert torch.equal(fsq.state_dict()[name], mha.state_dict()[name])
+    with pytest.raises(ValueError):
+        FSQMultiheadAttention(32, 4, kdim=16)
+    with pytest.raises(ValueError):
+        FSQMultiheadAttention.from_mha(nn.MultiheadAttention(32, 4, add_bias_kv=True), LEVELS)
+
+
+# ----------------------------------------------------------------------------- in transformers
+def _encoder(batch_first: bool, E=32, H=4, n=2):
+    torch.manual_seed(0)
+    layer = nn.TransformerEncoderLayer(E, H, 64, dropout=0.1, batch_first=batch_first)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        enc = nn.TransformerEncoder(layer, n)
+    return enc
+
+
+@pytest.mark.parametrize("batch_first", [False, True])
+def test_inside_transformer_encoder_train_and_eval(batch_first):
+    enc = _encoder(batch_first)
+    dense = _encoder(batch_first)
+    assert quantize_attention_keys(enc, LEVELS) == 2
+    assert all(isinstance(l.self_attn, FSQMultiheadAttention) for l in enc.layers)
+    B, N, E = 3, 9, 32
+    x = torch.randn(B, N, E) if batch_first else torch.randn(N, B, E)
+    kpm = torch.zeros(B, N, dtype=torch.bool)
+    kpm[1, 6:] = True                                               # left-aligned padding
+    # train: runs, gradients reach the quantiser and the projections
+    enc.train()
+    enc(x, src_key_padding_mask=kpm).pow(2).mean().backward()
+    for l in enc.layers:
+        for p in (l.self_attn.key_down.weight, l.self_attn.key_up.weight,
+                  l.self_attn.in_proj_weight):
+            assert p.grad is not None and p.grad.abs().sum() > 0
+    # eval: no_grad (where the fused fast path would be taken) == grad-enabled normal path
+    enc.eval()
+    dense.eval()
+    for mask in (kpm, None):
+        with torch.no_grad():
+            y_ng = enc(x, src_key_padding_mask=mask)
+            y_dense = dense(x, src_key_padding_mask=mask)
+        y_g = enc(x, src_key_padding_mask=mask).detach()
+        valid = ~kpm if batch_first else ~kpm.T
+        torch.testing.assert_close(y_ng[valid], y_g[valid], rtol=1e-5, atol=1e-5)
+        assert not torch.allclose(y_ng[valid], y_dense[valid], atol=1e-3)  # FSQ was used
+
+
+def test_direct_construction_with_nested_tensor_path():
+    """A layer built with an FSQ ``self_attn`` before ``nn.TransformerEncoder`` (nested tensors
+    stay enabled): eval + no_grad + padding mask goes through nested tensors and still works."""
+    torch.manual_seed(0)
+    layer = nn.TransformerEncoderLayer(32, 4, 64, batch_first=True)
+    layer.self_attn = FSQMultiheadAttention.from_mha(layer.self_attn, LEVELS)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        enc = nn.TransformerEncoder(layer, 2).eval()
+        assert enc.use_nested_tensor
+        x = torch.randn(3, 7, 32)
+        kpm = torch.zeros(3, 7, dtype=torch.bool)
+        kpm[0, 4:] = True
+        with torch.no_grad():
+            y = enc(x, src_key_padding_mask=kpm)
+    y_ref = enc(x, src_key_padding_mask=kpm).detach()
+    torch.testing.assert_close(y[~kpm], y_ref[~kpm], rtol=1e-5, atol=1e-5)
+
+
+@pytest.mark.parametrize("batch_first", [False, True])
+def test_inside_transformer_decoder_self_attention_only(batch_first):
+    torch.manual_seed(0)
+    dec = nn.TransformerDecoder(nn.TransformerDecoderLayer(32, 4, 64, batch_first=batch_first), 2)
+    assert quantize_attention_keys(dec, LEVELS) == 2
+    for l in dec.layers:
+        assert isinstance(l.self_attn, FSQMultiheadAttention)
+        assert type(l.multihead_attn) is nn.MultiheadAttention
+    shape_t, shape_m = ((2, 6, 32), (2, 4, 32)) if batch_first else ((6, 2, 32), (4, 2, 32))
+    tgt, mem = torch.randn(shape_t), torch.randn(shape_m)
+    tkpm = torch.tensor([[False] * 6, [False] * 4 + [True] * 2])
+    dec.train()
+    dec(tgt, mem, tgt_key_padding_mask=tkpm).sum().backward()
+    assert dec.layers[0].self_attn.key_down.weight.grad.abs().sum() > 0
+    dec.eval()
+    with torch.no_grad():
+        y = dec(tgt, mem, tgt_key_padding_mask=tkpm,
+                tgt_mask=nn.Transformer.generate_square_subsequent_mask(6), tgt_is_causal=True)
+    assert y.shape == tgt.shape and torch.isfinite(y).all()

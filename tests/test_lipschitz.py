@@ -1,0 +1,221 @@
+"""Lipschitz MLP: the reported ∞-norm bound holds, the parametrization, loss, bake, state dict."""
+import copy
+
+import pytest
+import torch
+import torch.nn.functional as F
+from torch import nn
+from torch.nn.utils import parametrize
+
+from smdm_plugin.lipschitz import (LipschitzMLP, LipschitzWeight, SineActivation,
+                                   bake_lipschitz, is_lipschitz, lipschitz_linear,
+                                   lipschitz_loss)
+from smdm_plugin.lipschitz import _inverse_softplus
+
+
+def _ratio(f, x, y):
+    """``||f(x) - f(y)||_∞ / ||x - y||_∞`` per pair, ``x, y [P, D]``."""
+    return (f(x) - f(y)).abs().amax(-1) / (x - y).abs().amax(-1)
+
+
+def _worst_ratio(mlp: LipschitzMLP, in_f: int, pairs: int = 64, steps: int = 40,
+                 seed: int = 0) -> float:
+    """Largest ratio over random pairs (wide and close) and pairs improved by gradient ascent."""
+    g = torch.Generator().manual_seed(seed)
+    dt = next(mlp.parameters()).dtype
+    x = torch.randn(pairs, in_f, generator=g, dtype=dt) * 2
+    y = torch.cat([torch.randn(pairs // 2, in_f, generator=g, dtype=dt) * 2,
+                   x[pairs // 2:] + 1e-3 * torch.randn(pairs - pairs // 2, in_f, generator=g,
+                                                       dtype=dt)])
+    with torch.no_grad():
+        worst = _ratio(mlp, x, y).max().item()
+    x, y = x.clone().requires_grad_(), y.clone().requires_grad_()
+    opt = torch.optim.Adam([x, y], lr=0.05)
+    for _ in range(steps):
+        r = _ratio(mlp, x, y)
+        worst = max(worst, r.max().item())
+        opt.zero_grad()
+        (-r.sum()).backward()
+        opt.step()
+    with torch.no_grad():
+        worst = max(worst, _ratio(mlp, x, y).max().item())
+    return worst
+
+
+@pytest.mark.parametrize("layers,w0", [(1, 1.0), (2, 1.0), (2, 5.0), (3, 30.0)])
+def test_bound_holds_random_and_adversarial(layers, w0):
+    torch.manual_seed(layers * 100 + int(w0))
+    mlp = LipschitzMLP(12, 5, hidden=16, layers=layers, w0=w0).double()
+    bound = mlp.lipschitz_bound().item()
+    assert _worst_ratio(mlp, 12) <= bound * (1 + 1e-9)
+
+
+def test_bound_holds_after_training_changes_c():
+    torch.manual_seed(1)
+    mlp = LipschitzMLP(8, 4, hidden=16, layers=3, w0=5.0).double()
+    c0 = [p.c.detach().clone() for m in mlp.net if isinstance(m, nn.Linear)
+          for p in m.parametrizations.weight]
+    opt = torch.optim.Adam(mlp.parameters(), lr=0.05)
+    x = torch.randn(64, 8, dtype=torch.float64)
+    target = torch.sin(3 * x[:, :4]) * 4          # a steep target pushes weights up
+    for _ in range(60):
+        loss = F.mse_loss(mlp(x), target) + 1e-2 * lipschitz_loss(mlp)
+        opt.zero_grad()
+        loss.backward()
+        opt.step()
+    c1 = [p.c.detach() for m in mlp.net if isinstance(m, nn.Linear)
+          for p in m.parametrizations.weight]
+    assert any((a - b).abs().item() > 1e-3 for a, b in zip(c0, c1))
+    bound = mlp.lipschitz_bound().item()
+    assert _worst_ratio(mlp, 8, seed=3) <= bound * (1 + 1e-9)
+
+
+def test_single_layer_bound_is_tight():
+    torch.manual_seed(2)
+    lin = lipschitz_linear(10, 6).double()
+    p = lin.parametrizations.weight[0]
+    with torch.no_grad():
+        p.c.fill_(_inverse_softplus(torch.tensor(0.5, dtype=torch.float64)).item())
+    w = lin.weight
+    row = w.abs().sum(1).argmax()
+    d = torch.sign(w[row]).unsqueeze(0)              # ||d||_∞ = 1, attains row's abs sum
+    x = torch.randn(1, 10, dtype=torch.float64)
+    r = _ratio(lin, x + d, x).item()
+    assert r == pytest.approx(F.softplus(p.c).item(), rel=1e-12)
+
+
+def test_rows_below_bound_unchanged_and_rows_above_clipped():
+    torch.manual_seed(3)
+    lin = lipschitz_linear(20, 30)
+    raw = lin.parametrizations.weight.original.detach().clone()
+    rows = raw.abs().sum(1)
+    thr = rows.median()
+    with torch.no_grad():
+        lin.parametrizations.weight[0].c.copy_(_inverse_softplus(thr))
+    bound = F.softplus(lin.parametrizations.weight[0].c).detach()
+    w = lin.weight.detach()
+    below = rows <= bound
+    assert below.any() and (~below).any()
+    assert torch.equal(w[below], raw[below])
+    torch.testing.assert_close(w[~below].abs().sum(1), bound.expand(int((~below).sum())),
+                               rtol=1e-6, atol=0)
+
+
+def test_c_initialisation():
+    torch.manual_seed(4)
+    lin = lipschitz_linear(33, 17)
+    raw = lin.parametrizations.weight.original.detach()
+    c = lin.parametrizations.weight[0].c
+    assert c.shape == ()
+    torch.testing.assert_close(F.softplus(c).detach(), raw.abs().sum(1).max(), rtol=1e-6, atol=0)
+    torch.testing.assert_close(lin.weight.detach(), raw, rtol=1e-6, atol=0)
+    # inverse softplus is finite and accurate over a wide range
+    y = torch.tensor([1e-12, 1e-6, 0.1, 1.0, 30.0, 1e4], dtype=torch.float64)
+    x = _inverse_softplus(y)
+    assert torch.isfinite(x).all()
+    torch.testing.assert_close(F.softplus(x), y, rtol=1e-9, atol=0)
+    assert torch.isfinite(_inverse_softplus(torch.tensor([0.0, 1e-30, 1e30]))).all()
+
+
+def test_structure_and_init():
+    mlp = LipschitzMLP(263, 64, layers=3, w0=30.0)
+    kinds = [type(m) for m in mlp.net]
+    assert kinds[1] is SineActivation and kinds[3] is SineActivation and len(kinds) == 5
+    assert not isinstance(mlp.net[-1], SineActivation)
+    assert mlp.hidden == 263 and mlp.num_sines == 2
+    assert LipschitzMLP(512, 263).hidden == 512          # hidden=None: latent width
+    one = LipschitzMLP(7, 3, layers=1)
+    assert len(one.net) == 1 and one.num_sines == 0
+    # first layer: sine argument ~unit std for unit-variance input
+    x = torch.randn(4096, 263)
+    with torch.no_grad():
+        pre = 30.0 * F.linear(x, mlp.net[0].weight)
+    assert 0.7 < pre.std().item() < 1.3
+    with pytest.raises(ValueError):
+        LipschitzMLP(3, 3, layers=0)
+
+
+def test_loss_is_product_of_softplus_c_and_sums_over_mlps():
+    torch.manual_seed(5)
+    a = LipschitzMLP(6, 4, hidden=8, layers=3, w0=2.0)
+    b = LipschitzMLP(4, 6, hidden=8, layers=2)
+    cs = [F.softplus(m.parametrizations.weight[0].c) for m in a.net if isinstance(m, nn.Linear)]
+    expected_a = torch.stack(cs).prod()
+    torch.testing.assert_close(lipschitz_loss(a), expected_a)
+    torch.testing.assert_close(a.lipschitz_bound(), expected_a * 2.0 ** 2)
+    model = nn.ModuleDict({"inp": a, "out": b, "other": nn.Linear(3, 3)})
+    torch.testing.assert_close(lipschitz_loss(model), expected_a + b.lipschitz_product())
+    z = lipschitz_loss(nn.Linear(3, 3).double())
+    assert z.shape == () and z.item() == 0.0 and z.device.type == "cpu"
+    assert lipschitz_loss(nn.Module()).item() == 0.0
+
+
+def test_gradients_reach_c():
+    torch.manual_seed(6)
+    mlp = LipschitzMLP(6, 4, hidden=8, layers=2)
+    cs = [m.parametrizations.weight[0].c for m in mlp.net if isinstance(m, nn.Linear)]
+    lipschitz_loss(mlp).backward()
+    assert all(c.grad is not None and c.grad.abs().item() > 0 for c in cs)
+    mlp.zero_grad()
+    with torch.no_grad():                         # make c bind so the task loss reaches it
+        for c in cs:
+            c.sub_(1.0)
+    mlp(torch.randn(10, 6)).pow(2).sum().backward()
+    assert all(c.grad is not None and c.grad.abs().item() > 0 for c in cs)
+
+
+def test_bake_keeps_outputs_and_removes_parametrizations():
+    torch.manual_seed(7)
+    mlp = LipschitzMLP(6, 4, hidden=8, layers=3, w0=5.0)
+    with torch.no_grad():
+        for m in mlp.net:
+            if isinstance(m, nn.Linear):
+                m.parametrizations.weight[0].c.sub_(0.5)   # clipping active
+    x = torch.randn(10, 6)
+    with torch.no_grad():
+        y = mlp(x)
+        bound = mlp.lipschitz_bound()
+    assert is_lipschitz(mlp) and not mlp.baked
+    out = bake_lipschitz(mlp)
+    assert out is mlp and mlp.baked and not is_lipschitz(mlp)
+    assert not any(parametrize.is_parametrized(m) for m in mlp.modules())
+    assert not any(isinstance(m, LipschitzWeight) for m in mlp.modules())
+    assert all(".parametrizations." not in k for k in mlp.state_dict())
+    with torch.no_grad():
+        assert torch.equal(mlp(x), y)
+        assert mlp.lipschitz_bound().item() <= bound.item() * (1 + 1e-6)
+    assert lipschitz_loss(mlp).item() == 0.0
+
+
+def test_state_dict_round_trip():
+    torch.manual_seed(8)
+    a = LipschitzMLP(6, 4, hidden=8, layers=3, w0=5.0)
+    with torch.no_grad():
+        a.net[2].parametrizations.weight[0].c.sub_(1.0)
+    torch.manual_seed(9)
+    b = LipschitzMLP(6, 4, hidden=8, layers=3, w0=5.0)
+    x = torch.randn(10, 6)
+    assert not torch.allclose(a(x), b(x))
+    b.load_state_dict(copy.deepcopy(a.state_dict()))
+    with torch.no_grad():
+        assert torch.equal(a(x), b(x))
+    torch.testing.assert_close(a.lipschitz_bound(), b.lipschitz_bound(), rtol=0, atol=0)
+    c = copy.deepcopy(a)
+    with torch.no_grad():
+        assert torch.equal(c(x), a(x))
+
+
+def test_zero_row_has_finite_gradients():
+    lin = lipschitz_linear(4, 3)
+    with torch.no_grad():
+        lin.parametrizations.weight.original[1].zero_()
+    lin(torch.randn(5, 4)).sum().backward()
+    assert torch.isfinite(lin.parametrizations.weight.original.grad).all()
+    assert torch.isfinite(lin.parametrizations.weight[0].c.grad).all()
+
+
+def test_dtype_follows_module():
+    mlp = LipschitzMLP(5, 3, layers=2).double()
+    assert all(p.dtype == torch.float64 for p in mlp.parameters())
+    assert mlp(torch.randn(2, 7, 5, dtype=torch.float64)).shape == (2, 7, 3)
+    assert lipschitz_loss(mlp).dtype == torch.float64
