@@ -3,8 +3,9 @@
 Public API — everything users and the upstream patches/launcher rely on is importable from here.
 """
 from .config import SparseConfig, load_preset
-from .selection import select_keyframes, perturb_mask, vw_reference
+from .selection import select_keyframes, perturb_mask, vw_reference, keyframe_count
 from .features import extract_selection_features
+from .bvh import read_bvh, bvh_joint_positions, load_cmu_clip
 from .interpolation import interpolate_keyframes
 from .keyframe_transformer import KeyframeTransformer
 from .attention_backends import register_backend, get_backend, available_backends
@@ -21,7 +22,8 @@ from .checkpoint import save_sparse_config, load_checkpoint, check_state_dict, f
 __version__ = "0.1.0"
 
 __all__ = [
-    "SparseConfig", "load_preset", "select_keyframes", "perturb_mask", "vw_reference",
+    "SparseConfig", "load_preset", "select_keyframes", "perturb_mask", "vw_reference", "keyframe_count",
+    "read_bvh", "bvh_joint_positions", "load_cmu_clip",
     "extract_selection_features", "interpolate_keyframes", "KeyframeTransformer", "register_backend",
     "get_backend", "available_backends", "LipschitzMLP", "lipschitz_loss", "bake_lipschitz",
     "FSQ", "FSQMultiheadAttention", "quantize_attention_keys",

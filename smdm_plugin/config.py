@@ -35,7 +35,7 @@ class SparseConfig:
     reduction: float = 0.8                 # fraction of frames dropped, in [0, 1)
     selector: str = "vw"                   # vw | uniform | random | mdo
     feature: str = "auto"                  # auto (by D: 263/251/other) | humanml3d | kit | raw
-    frame_index_scale: float = 0.01        # metres per frame appended as the extra VW dimension
+    frame_index_scale: float = 0.1         # metres per frame appended as the extra VW dimension
     mask_noise: float = 0.1                # training: up to this fraction of K added/dropped
     # --- sampling schedule ---------------------------------------------------------------
     gamma: float = 0.1                     # re-select by VW on x_t when t <= gamma * T

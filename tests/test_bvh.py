@@ -1,0 +1,196 @@
+"""BVH reader + forward kinematics, checked on synthetic files and against the CMU data."""
+from __future__ import annotations
+
+import csv
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from smdm_plugin.bvh import (CMU_TO_METRES, HUMANML22_FROM_CMU, bvh_joint_positions,
+                             cmu_to_humanml22, load_cmu_clip, read_bvh, root_relative_features)
+
+DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
+MOCAP, HML = DATA / "cmu-mocap", DATA / "cmu-humanml3d"
+
+SIMPLE = """HIERARCHY
+ROOT Hips
+{
+\tOFFSET 0 0 0
+\tCHANNELS 6 Xposition Yposition Zposition Zrotation Yrotation Xrotation
+\tJOINT A
+\t{
+\t\tOFFSET 0 0 1
+\t\tCHANNELS 3 Xrotation Yrotation Zrotation
+\t\tJOINT B
+\t\t{
+\t\t\tOFFSET 0 0 1
+\t\t\tCHANNELS 3 Yrotation Xrotation Zrotation
+\t\t\tEnd Site
+\t\t\t{
+\t\t\t\tOFFSET 0 2 0
+\t\t\t}
+\t\t}
+\t}
+\tJOINT C
+\t{
+\t\tOFFSET 1 0 0
+\t\tCHANNELS 3 Zrotation Yrotation Xrotation
+\t}
+}
+MOTION
+Frames: 3
+Frame Time: 0.05
+0 0 0 0 0 0 0 0 0 0 0 0 0 0 0
+1 2 3 90 0 0 0 0 0 0 0 0 0 0 0
+0 0 0 0 0 0 90 90 0 90 90 0 0 0 0
+"""
+
+
+def _write(tmp_path: Path, text: str, crlf: bool) -> Path:
+    p = tmp_path / ("crlf.bvh" if crlf else "lf.bvh")
+    p.write_bytes(text.replace("\n", "\r\n" if crlf else "\n").encode())
+    return p
+
+
+@pytest.mark.parametrize("crlf", [False, True])
+def test_read_synthetic(tmp_path, crlf):
+    b = read_bvh(_write(tmp_path, SIMPLE, crlf))
+    assert b.names == ["Hips", "A", "B", "C"] and b.parents == [-1, 0, 1, 0]
+    np.testing.assert_array_equal(b.offsets, [[0, 0, 0], [0, 0, 1], [0, 0, 1], [1, 0, 0]])
+    assert b.channels[1] == ["Xrotation", "Yrotation", "Zrotation"] and len(b.channels[0]) == 6
+    assert b.frame_time == 0.05 and b.motion.shape == (3, 15) and b.fps == pytest.approx(20)
+    assert len(b.end_sites) == 1 and b.end_sites[0][0] == 2
+    np.testing.assert_array_equal(b.end_sites[0][1], [0, 2, 0])
+
+
+def test_fk_known_answers(tmp_path):
+    p = bvh_joint_positions(read_bvh(_write(tmp_path, SIMPLE, False)))
+    np.testing.assert_allclose(p[0], [[0, 0, 0], [0, 0, 1], [0, 0, 2], [1, 0, 0]], atol=1e-12)
+    # frame 1: root at (1,2,3) turned 90° about Z: its +X child C moves to +Y
+    np.testing.assert_allclose(p[1], [[1, 2, 3], [1, 2, 4], [1, 2, 5], [1, 3, 3]], atol=1e-12)
+    # frame 2: A = Rx(90) Ry(90) (listed order) maps B's (0,0,1) to (1,0,0); B's own
+    # Ry(90) Rx(90) does not move anything (no child joints), so B = A + (1,0,0)
+    np.testing.assert_allclose(p[2, 2], [1, 0, 1], atol=1e-12)
+    # and the order matters: with the reverse order (Ry Rx) the offset would go to (0,-1,0)
+    swapped = read_bvh(_write(tmp_path, SIMPLE.replace(
+        "CHANNELS 3 Xrotation Yrotation Zrotation", "CHANNELS 3 Yrotation Xrotation Zrotation"),
+        False))
+    np.testing.assert_allclose(bvh_joint_positions(swapped)[2, 2], [0, -1, 1], atol=1e-12)
+    np.testing.assert_allclose(bvh_joint_positions(read_bvh(_write(tmp_path, SIMPLE, False)),
+                                                   scale=2.0)[1, 3], [2, 6, 6], atol=1e-12)
+
+
+def _scipy_fk(b, frames):
+    from scipy.spatial.transform import Rotation
+    out = np.zeros((len(frames), len(b.names), 3))
+    Rg = [None] * len(b.names)
+    col = 0
+    for j, ch in enumerate(b.channels):
+        vals = b.motion[frames, col:col + len(ch)]
+        col += len(ch)
+        rot = [(c[0], vals[:, k]) for k, c in enumerate(ch) if c.endswith("rotation")]
+        tr = np.zeros((len(frames), 3))
+        for k, c in enumerate(ch):
+            if c.endswith("position"):
+                tr[:, "XYZ".index(c[0])] = vals[:, k]
+        R = Rotation.from_euler("".join(a for a, _ in rot), np.stack([v for _, v in rot], -1),
+                                degrees=True)                         # upper case = intrinsic
+        p = b.parents[j]
+        if p < 0:
+            out[:, j], Rg[j] = b.offsets[j] + tr, R
+        else:
+            out[:, j] = out[:, p] + Rg[p].apply(b.offsets[j] + tr)
+            Rg[j] = Rg[p] * R
+    return out
+
+
+@pytest.mark.parametrize("name", ["variants/daz/85_02.bvh", "variants/3dsmax/131_01.bvh",
+                                  "05_01.bvh"])
+def test_fk_matches_scipy_on_mixed_channel_orders(name):
+    path = MOCAP / name
+    if not path.exists():
+        pytest.skip("shared/data/cmu-mocap not available")
+    b = read_bvh(path)
+    frames = np.arange(0, b.num_frames, 37)
+    np.testing.assert_allclose(bvh_joint_positions(b)[frames], _scipy_fk(b, frames), atol=1e-9)
+
+
+def test_fk_matches_cmu_humanml3d_joints():
+    """Pairwise joint distances (invariant to the stored heading rotation/translation) of our
+    FK equal those of cmu-humanml3d/joints/<id>.npy for segments of several clips."""
+    if not (HML / "index.csv").exists() or not MOCAP.exists():
+        pytest.skip("shared/data not available")
+    rows = [r for r in csv.DictReader(open(HML / "index.csv"))
+            if r["clip"] in ("01_01", "05_02", "07_12", "16_58", "49_06")]
+    assert rows
+    clips = {}
+    for r in rows:
+        if r["clip"] not in clips:
+            clips[r["clip"]] = load_cmu_clip(MOCAP / f"{r['clip']}.bvh")
+        a = (int(r["first_file_frame"]) - 1) // 6
+        b = (int(r["last_file_frame"]) - 1) // 6
+        ours = clips[r["clip"]][a:b + 1]
+        ref = np.load(HML / "joints" / f"{r['id']}.npy")
+        assert ours.shape == ref.shape == (int(r["joint_frames"]), 22, 3)
+        dist = lambda x: np.linalg.norm(x[:, :, None] - x[:, None], axis=-1)  # noqa: E731
+        np.testing.assert_allclose(dist(ours), dist(ref), atol=1e-4)
+        # the stored segment is ours turned about the vertical axis: heights relative to the
+        # first frame's root height agree
+        np.testing.assert_allclose(ours[..., 1] - ours[0, 0, 1], ref[..., 1] - ref[0, 0, 1],
+                                   atol=1e-4)
+
+
+def test_load_cmu_clip_frames_and_units():
+    path = MOCAP / "16_58.bvh"
+    if not path.exists():
+        pytest.skip("shared/data/cmu-mocap not available")
+    b = read_bvh(path)
+    j = load_cmu_clip(path)
+    assert j.shape == (len(range(1, b.num_frames, 6)), 22, 3)
+    full = bvh_joint_positions(b, CMU_TO_METRES)
+    np.testing.assert_allclose(j[1, 0], full[7, b.names.index("Hips")])
+    assert 1.2 < j[0, 15, 1] - min(j[0, 10, 1], j[0, 11, 1]) < 1.6  # head above toes, metres
+
+
+def test_cmu_to_humanml22_mapping_and_midpoints():
+    names = sorted({n for e in HUMANML22_FROM_CMU for n in ((e,) if isinstance(e, str) else e)})
+    names = ["Extra"] + names
+    pos = np.random.default_rng(0).normal(size=(4, len(names), 3))
+    out = cmu_to_humanml22(pos, names)
+    at = lambda n: pos[:, names.index(n)]  # noqa: E731
+    assert out.shape == (4, 22, 3)
+    np.testing.assert_array_equal(out[:, 0], at("Hips"))
+    np.testing.assert_array_equal(out[:, 12], at("Neck1"))
+    np.testing.assert_array_equal(out[:, 21], at("RightHand"))
+    np.testing.assert_allclose(out[:, 6], (at("Spine") + at("Spine1")) / 2)
+    np.testing.assert_allclose(out[:, 13], (at("Spine1") + at("LeftArm")) / 2)
+    np.testing.assert_allclose(out[:, 14], (at("Spine1") + at("RightArm")) / 2)
+    with pytest.raises(ValueError, match=r"cmu_to_humanml22: names lack CMU joints \['Head'\]"):
+        cmu_to_humanml22(np.delete(pos, names.index("Head"), 1),
+                         [n for n in names if n != "Head"])
+    with pytest.raises(ValueError, match=r"positions must be \[T, J=20, 3\], got \(4, 5, 3\)"):
+        cmu_to_humanml22(pos[:, :5], names)
+
+
+def test_root_relative_features():
+    j = np.random.default_rng(1).normal(size=(2, 7, 22, 3))
+    f = root_relative_features(j, 0.1)
+    assert f.shape == (2, 7, 64)
+    np.testing.assert_allclose(f[1, 3, :3], j[1, 3, 1] - j[1, 3, 0])
+    np.testing.assert_allclose(f[0, :, 63], np.arange(7) * 0.1)
+    with pytest.raises(ValueError, match=r"joints22 must be \[\.\.\., T, 22, 3\]"):
+        root_relative_features(np.zeros((7, 21, 3)))
+
+
+@pytest.mark.parametrize("edit,match", [
+    (lambda s: s.replace("0 0 0 0 0 0 90 90 0 90 90 0 0 0 0\n", ""), r"expected 3 frames"),
+    (lambda s: s.replace("\t}\n}\nMOTION", "\t}\nMOTION"), r"unbalanced braces"),
+    (lambda s: s.replace("Yrotation Xrotation Zrotation", "Yrotation Wrotation Zrotation"),
+     r"bad CHANNELS"),
+    (lambda s: s.replace("MOTION", "MOTIONLESS").replace("Frames:", "Frame:"), r"Frames: n"),
+    (lambda s: s.split("MOTION")[0], r"no MOTION section"),
+])
+def test_read_errors(tmp_path, edit, match):
+    with pytest.raises(ValueError, match="read_bvh: .*" + match):
+        read_bvh(_write(tmp_path, edit(SIMPLE), False))
