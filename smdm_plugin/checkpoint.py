@@ -51,7 +51,8 @@ def find_sparse_config(checkpoint_path: str) -> Optional[SparseConfig]:
 
 
 def state_dict_is_sparse(state_dict: Mapping[str, Any]) -> bool:
-    return any(k == MARKER or k.endswith("." + MARKER) or "parametrizations." in k for k in state_dict)
+    """Whether ``state_dict`` comes from a sparsified model (it carries the marker buffer)."""
+    return any(k == MARKER or k.endswith("." + MARKER) for k in state_dict)
 
 
 def check_state_dict(model: nn.Module, state_dict: Mapping[str, Any], source: str = "checkpoint") -> None:

@@ -1,0 +1,1 @@
+"""Upstream integrations (MDM, priorMDM, MotionDiffuse): patches and launcher import hooks."""

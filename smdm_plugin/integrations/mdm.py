@@ -1,0 +1,154 @@
+"""MDM (and DiP, which lives in the same repository) integration: ``--sparse*`` options,
+sparsify where the model and diffusion are built, dense/sparse checkpoint checks.
+
+Two ways in, one code path:
+
+* ``patches/mdm.patch`` (``git apply`` in an MDM checkout, commit d4fd88c) calls
+  :func:`add_sparse_options` from ``utils/parser_util.py:add_model_options``,
+  :func:`sparsify_mdm` from ``utils/model_util.py:create_model_and_diffusion`` and
+  :func:`check_mdm_state_dict` from ``utils/model_util.py:load_model_wo_clip``;
+* ``smdm run --repo PATH -- python -m train.train_mdm ... --sparse`` calls :func:`install_hooks`
+  (from a generated ``sitecustomize``), which wraps the same three functions as their modules are
+  imported. Both together are harmless (every step is idempotent).
+
+The options join MDM's ``model`` argument group, so ``train/train_mdm.py`` writes them to
+``args.json`` and ``sample.generate`` / ``sample.edit`` / ``eval.eval_humanml`` restore them with
+``load_args_from_model`` (it overwrites the ``dataset``/``model``/``diffusion`` groups from the
+checkpoint's ``args.json``): a sparse checkpoint samples sparse without extra flags. Old
+``args.json`` files without ``sparse`` keys keep the defaults (dense).
+"""
+from __future__ import annotations
+
+import functools
+import os
+import warnings
+from typing import Any, Optional, Tuple
+
+from ..config import CONFIG_FILENAME, SparseConfig
+
+__all__ = ["add_sparse_options", "sparsify_mdm", "check_mdm_state_dict", "dataset_mean_std",
+           "install_hooks", "is_mdm_repo"]
+
+
+def is_mdm_repo(path: str) -> bool:
+    """An MDM / DiP checkout (priorMDM shares the layout but has ``model/DoubleTake_MDM.py``)."""
+    return (os.path.isfile(os.path.join(path, "model", "mdm.py"))
+            and os.path.isfile(os.path.join(path, "utils", "model_util.py"))
+            and not os.path.isfile(os.path.join(path, "model", "DoubleTake_MDM.py")))
+
+
+def add_sparse_options(group: Any) -> Any:
+    """Add ``--sparse`` / ``--sparse_<field>`` to MDM's ``model`` argument group (idempotent:
+    the patch and the launcher may both call it)."""
+    if "--sparse" in getattr(group, "_option_string_actions", {}):
+        return group
+    SparseConfig.add_argparse_args(group)
+    return group
+
+
+def dataset_mean_std(data: Any) -> Tuple[Any, Any]:
+    """The Mean/Std MDM's HumanML3D/KIT loader normalises with (``dataset/HumanML3D/Mean.npy``),
+    from a DataLoader or a dataset; ``(None, None)`` when not reachable."""
+    ds = getattr(data, "dataset", data)
+    for obj in (ds, getattr(ds, "t2m_dataset", None)):
+        mean, std = getattr(obj, "mean", None), getattr(obj, "std", None)
+        if mean is not None and std is not None:
+            return mean, std
+    return None, None
+
+
+def sparsify_mdm(model: Any, args: Any, data: Any = None, diffusion: Any = None,
+                 config: Optional[SparseConfig] = None) -> Any:
+    """Sparsify the MDM/DiP model built by ``create_model_and_diffusion`` when ``args.sparse``
+    (a no-op otherwise: the model is returned untouched, bit for bit).
+
+    Also wraps ``diffusion.training_losses`` (keyframe masks from x0, ``lambda * L_lip``) and,
+    when training (``args.save_dir`` exists), writes ``sparse_config.json`` beside the weights.
+    """
+    from ..adapters.mdm import is_sparse, sparsify
+
+    config = config if config is not None else SparseConfig.from_args(args)
+    if not config.enabled:
+        return model
+    if is_sparse(model):
+        return model  # patch + launcher together: already done
+    mean, std = dataset_mean_std(data)
+    if mean is None and config.feature != "raw":
+        warnings.warn("smdm: no dataset Mean/Std on the data loader; keyframes are selected on "
+                      "normalised features", stacklevel=2)
+    sparsify(model, config, diffusion=diffusion, mean=mean, std=std)
+    save_dir = getattr(args, "save_dir", None)
+    if save_dir and os.path.isdir(save_dir) and not getattr(args, "model_path", None):
+        from ..checkpoint import save_sparse_config
+
+        save_sparse_config(model, save_dir)
+    return model
+
+
+def check_mdm_state_dict(model: Any, state_dict: Any, model_path: Optional[str] = None) -> None:
+    """Raise a clear error when a sparse checkpoint meets a dense MDM (``--sparse`` lost, e.g. an
+    ``args.json`` without the ``sparse`` keys) or the reverse; see
+    :func:`smdm_plugin.checkpoint.check_state_dict`."""
+    from ..checkpoint import check_state_dict, state_dict_is_sparse
+
+    source = model_path or "checkpoint"
+    if model_path and not hasattr(model, "_smdm_state") and state_dict_is_sparse(state_dict):
+        cfg = os.path.join(os.path.dirname(os.path.abspath(model_path)), CONFIG_FILENAME)
+        if os.path.exists(cfg):
+            source = f"{model_path} (with {CONFIG_FILENAME} beside it)"
+    check_state_dict(model, state_dict, source)
+
+
+# --------------------------------------------------------------------------- import hooks
+def _patch_parser_util(mod: Any) -> None:
+    original = getattr(mod, "add_model_options", None)
+    if original is None or getattr(original, "_smdm_wrapped", False):
+        return
+
+    @functools.wraps(original)
+    def add_model_options(parser):
+        result = original(parser)
+        for group in parser._action_groups:
+            if group.title == "model":
+                add_sparse_options(group)
+                break
+        else:  # pragma: no cover - MDM always has a 'model' group
+            add_sparse_options(parser.add_argument_group("model"))
+        return result
+
+    add_model_options._smdm_wrapped = True
+    mod.add_model_options = add_model_options
+
+
+def _patch_model_util(mod: Any) -> None:
+    original = getattr(mod, "create_model_and_diffusion", None)
+    if original is not None and not getattr(original, "_smdm_wrapped", False):
+        @functools.wraps(original)
+        def create_model_and_diffusion(args, data, *a, **kw):
+            model, diffusion = original(args, data, *a, **kw)
+            sparsify_mdm(model, args, data, diffusion)
+            return model, diffusion
+
+        create_model_and_diffusion._smdm_wrapped = True
+        mod.create_model_and_diffusion = create_model_and_diffusion
+
+    load_wo_clip = getattr(mod, "load_model_wo_clip", None)
+    if load_wo_clip is not None and not getattr(load_wo_clip, "_smdm_wrapped", False):
+        @functools.wraps(load_wo_clip)
+        def load_model_wo_clip(model, state_dict, *a, **kw):
+            check_mdm_state_dict(model, state_dict)
+            return load_wo_clip(model, state_dict, *a, **kw)
+
+        load_model_wo_clip._smdm_wrapped = True
+        mod.load_model_wo_clip = load_model_wo_clip  # load_saved_model looks it up here
+
+
+def install_hooks() -> None:
+    """Wrap MDM's ``utils.parser_util.add_model_options`` and ``utils.model_util``'s
+    ``create_model_and_diffusion`` / ``load_model_wo_clip`` as they are imported (idempotent).
+    Modules that do ``from utils.model_util import create_model_and_diffusion`` get the wrapped
+    function because the wrap happens right after ``utils.model_util`` executes."""
+    from ._hooks import on_import
+
+    on_import("utils.parser_util", _patch_parser_util)
+    on_import("utils.model_util", _patch_model_util)

@@ -1,0 +1,192 @@
+"""MotionDiffuse (text2motion/) integration: ``--sparse*`` / ``--masked_loss`` options, sparsify
+the ``MotionTransformer`` where ``DDPMTrainer`` receives it, masked loss + L_lip in
+``DDPMTrainer.backward_G``.
+
+MotionDiffuse is released under the S-Lab License 1.0 (non-commercial); see
+``docs/motiondiffuse.md``. Nothing of it is copied here.
+
+Two ways in, same code path:
+
+* ``patches/motiondiffuse.patch`` adds the options to ``options/train_options.py``,
+  ``options/evaluate_options.py`` and ``tools/visualization.py`` and calls
+  :func:`attach_trainer` / :func:`smdm_plugin.adapters.motiondiffuse.trainer_loss` from
+  ``trainers/ddpm_trainer.py``;
+* ``smdm run --repo PATH/text2motion --integration motiondiffuse -- python -u tools/train.py ...``
+  calls :func:`install_hooks`, which wraps the same places on import (and, like the patch, falls
+  back to the CPU when CUDA is absent).
+
+The sparse config of a trained model is written to ``<model_dir>/sparse_config.json`` (beside
+``latest.tar``) and to ``opt.txt`` (the ``sparse_*`` keys); evaluation and visualisation read the
+JSON first, so no flag is needed there.
+"""
+from __future__ import annotations
+
+import functools
+import os
+from typing import Any, Optional
+
+import numpy as np
+
+from ..config import CONFIG_FILENAME, SparseConfig
+
+
+def add_sparse_options(parser: Any) -> Any:
+    """``--sparse``, ``--sparse_<field>`` and ``--masked_loss`` (idempotent)."""
+    actions = getattr(parser, "_option_string_actions", {})
+    if "--sparse" not in actions:
+        SparseConfig.add_argparse_args(parser)
+    if "--masked_loss" not in actions:
+        parser.add_argument("--masked_loss", action="store_true",
+                            help="dense mode: exclude padded frames from the diffusion loss "
+                                 "(always on in sparse mode)")
+    return parser
+
+
+def _coerce(value: Any, default: Any) -> Any:
+    """``opt.txt`` values come back as str/int/float (utils/get_opt.py); fix them up."""
+    if isinstance(value, str):
+        s = value.strip()
+        if s == "None":
+            return None
+        if isinstance(default, tuple) and s.startswith("["):
+            return tuple(int(v) for v in s.strip("[]()").split(",") if v.strip())
+        if isinstance(default, bool):
+            return s == "True"
+        if isinstance(default, float):
+            return float(s)
+        if isinstance(default, int):
+            return int(float(s))
+    if isinstance(default, float) and isinstance(value, int) and not isinstance(value, bool):
+        return float(value)
+    return value
+
+
+def config_from_opt(opt: Any) -> SparseConfig:
+    """The sparse config of a MotionDiffuse run: ``<model_dir>/sparse_config.json`` when not
+    training and present, else the ``sparse*`` options of ``opt`` (argparse or ``get_opt``)."""
+    model_dir = getattr(opt, "model_dir", None)
+    if not getattr(opt, "is_train", False) and model_dir:
+        path = os.path.join(model_dir, CONFIG_FILENAME)
+        if os.path.exists(path) and not getattr(opt, "_smdm_cli_override", False):
+            return SparseConfig.load(path)
+    d = dict(vars(opt))
+    defaults = SparseConfig(enabled=False).to_dict()
+    for k, v in defaults.items():
+        key = f"sparse_{k}"
+        if key in d:
+            d[key] = _coerce(d[key], tuple(v) if isinstance(v, list) else v)
+    d["sparse"] = bool(_coerce(d.get("sparse", False), False))
+    d.pop("sparse_version", None)
+    return SparseConfig.from_args(d)
+
+
+def merge_sparse_options(opt: Any, args: Any) -> Any:
+    """Visualisation: ``--sparse*`` given on its command line win over the checkpoint's."""
+    if getattr(args, "sparse", False):
+        for k, v in vars(args).items():
+            if k == "sparse" or k.startswith("sparse_"):
+                setattr(opt, k, v)
+        opt._smdm_cli_override = True
+    if getattr(args, "masked_loss", False):
+        opt.masked_loss = True
+    return opt
+
+
+def mean_std_from_opt(opt: Any):
+    """The statistics the denoiser's inputs are normalised with."""
+    from ..adapters.motiondiffuse import training_mean_std
+
+    meta = getattr(opt, "meta_dir", None)
+    if not getattr(opt, "is_train", False) and meta and os.path.exists(os.path.join(meta, "mean.npy")):
+        return np.load(os.path.join(meta, "mean.npy")), np.load(os.path.join(meta, "std.npy"))
+    root = getattr(opt, "data_root", None)
+    if root and os.path.exists(os.path.join(root, "Mean.npy")):
+        mean, std = np.load(os.path.join(root, "Mean.npy")), np.load(os.path.join(root, "Std.npy"))
+        joints = int(getattr(opt, "joints_num", 22))
+        return training_mean_std(mean, std, float(getattr(opt, "feat_bias", 25.0)), joints)
+    return None, None
+
+
+def attach_trainer(trainer: Any, config: Optional[SparseConfig] = None) -> Any:
+    """Sparsify ``trainer.encoder`` (or its ``.module``) and wrap ``trainer.diffusion`` according
+    to ``trainer.opt``; training runs save the config beside the checkpoints."""
+    from ..adapters.motiondiffuse import (attach_motiondiffuse_diffusion, is_sparse_motiondiffuse,
+                                          sparsify_motiondiffuse)
+
+    opt = trainer.opt
+    config = config if config is not None else config_from_opt(opt)
+    enc = trainer.encoder
+    core = getattr(enc, "module", enc)
+    if config.enabled and not is_sparse_motiondiffuse(core):
+        mean, std = mean_std_from_opt(opt)
+        sparsify_motiondiffuse(core, config, mean, std, diffusion=trainer.diffusion)
+    elif getattr(opt, "masked_loss", False):
+        attach_motiondiffuse_diffusion(trainer.diffusion, config, None, masked_loss=True)
+    if config.enabled and getattr(opt, "is_train", False) and getattr(opt, "model_dir", None):
+        os.makedirs(opt.model_dir, exist_ok=True)
+        core.smdm_config.save(os.path.join(opt.model_dir, CONFIG_FILENAME))
+    return trainer
+
+
+# --------------------------------------------------------------------------- import hooks
+def _patch_options(mod, cls_name: str) -> None:
+    cls = getattr(mod, cls_name, None)
+    if cls is None or getattr(cls.initialize, "_smdm_wrapped", False):
+        return
+    original = cls.initialize
+
+    @functools.wraps(original)
+    def initialize(self):
+        original(self)
+        add_sparse_options(self.parser)
+
+    initialize._smdm_wrapped = True
+    cls.initialize = initialize
+
+
+def _cpu_fallback(opt: Any) -> None:
+    """``tools/train.py`` sets ``opt.device = cuda`` unconditionally; without CUDA use the CPU
+    (what the patch's change to ``tools/train.py`` does)."""
+    import torch
+
+    dev = getattr(opt, "device", None)
+    if dev is not None and torch.device(dev).type == "cuda" and not torch.cuda.is_available():
+        opt.device = torch.device("cpu")
+
+
+def _patch_trainer(mod) -> None:
+    cls = getattr(mod, "DDPMTrainer", None)
+    if cls is None or getattr(cls.__init__, "_smdm_wrapped", False):
+        return
+    init, backward = cls.__init__, cls.backward_G
+
+    @functools.wraps(init)
+    def __init__(self, args, encoder, *a, **kw):
+        _cpu_fallback(args)
+        init(self, args, encoder, *a, **kw)
+        if getattr(args, "sparse", False) or getattr(args, "masked_loss", False):
+            attach_trainer(self)
+            self.to(self.device)
+
+    @functools.wraps(backward)
+    def backward_G(self):
+        logs = backward(self)
+        if getattr(self.opt, "sparse", False) or getattr(self.opt, "masked_loss", False):
+            from ..adapters.motiondiffuse import trainer_loss
+
+            self.loss_mot_rec = trainer_loss(self)
+            logs["loss_mot_rec"] = self.loss_mot_rec.item()
+        return logs
+
+    __init__._smdm_wrapped = True
+    cls.__init__, cls.backward_G = __init__, backward_G
+
+
+def install_hooks() -> None:
+    """Wrap MotionDiffuse's option classes and ``DDPMTrainer`` as they are imported (run from
+    ``text2motion/``). Idempotent; do not combine with the patch."""
+    from ._hooks import on_import
+
+    on_import("options.train_options", lambda m: _patch_options(m, "TrainCompOptions"))
+    on_import("options.evaluate_options", lambda m: _patch_options(m, "TestOptions"))
+    on_import("trainers.ddpm_trainer", _patch_trainer)

@@ -1,0 +1,417 @@
+"""MDM and DiP end to end, with the real upstream code: ``patches/mdm.patch`` and the ``smdm run``
+launcher (no upstream edit), on real motion (cmu-humanml3d, HumanML3D format).
+
+Skipped unless ``SMDM_MDM_ROOT`` points at an MDM checkout (github:GuyTevet/motion-diffusion-model,
+tested at d4fd88c; read-only, it is copied). Prepare the Python deps once with
+``SMDM_MDM_SRC=$SMDM_MDM_ROOT scripts/prepare_mdm_checkout.sh``. CLIP/DistilBERT have random
+weights of the right architecture and SMPL/GloVe are stubbed (``mdm_harness.py``); the CLIP text
+tower is 1 layer deep here for speed (``SMDM_TEST_CLIP_LAYERS``).
+
+What is checked:
+* the patch applies cleanly and only adds lines;
+* sparse training (trans_enc, trans_dec, DiP) runs, the loss goes down (trans_enc, 60 steps),
+  ``args.json`` carries the ``sparse_*`` options and ``sparse_config.json`` is saved; MDM's own
+  ``sample.generate`` samples from the checkpoint (dynamic keyframe update at the end);
+* ``sample.generate`` / ``sample.edit`` / ``eval.eval_humanml`` re-create the sparse model from
+  ``args.json`` with no extra flag (``sample.edit`` is also run);
+* flag off: patched and launched runs equal upstream bit for bit (same seed: checkpoint and samples);
+* sparse with reduction 0 (all keyframes) equals the dense model within 1e-5 (same weights);
+* a sparse checkpoint given to a dense model is a clear error (flag lost), and unpatched upstream
+  refuses it too.
+The launcher tests at the end need no checkout (a fake MDM layout) and always run.
+"""
+from __future__ import annotations
+
+import glob
+import json
+import os
+import re
+import shutil
+import sys
+
+import numpy as np
+import pytest
+
+from _upstream import PATCHES, git_apply, plugin_env, run_logged
+
+ROOT = os.environ.get("SMDM_MDM_ROOT")
+HERE = os.path.dirname(os.path.abspath(__file__))
+HARNESS = os.path.join(HERE, "mdm_harness.py")
+PATCH = os.path.join(PATCHES, "mdm.patch")
+
+needs_mdm = pytest.mark.skipif(not ROOT, reason="SMDM_MDM_ROOT not set (an MDM checkout)")
+
+TINY = ["--dataset", "humanml", "--latent_dim", "64", "--layers", "2", "--batch_size", "8",
+        "--save_interval", "1000000", "--seed", "10"]
+ARCH = {
+    "trans_enc": ["--diffusion_steps", "20"],
+    "trans_dec": ["--arch", "trans_dec", "--diffusion_steps", "20"],
+    "dip": ["--arch", "trans_dec", "--text_encoder_type", "bert", "--context_len", "20",
+            "--pred_len", "40", "--mask_frames", "--diffusion_steps", "10"],
+}
+GEN = {"trans_enc": ["--motion_length", "2"], "trans_dec": ["--motion_length", "2"],
+       "dip": ["--motion_length", "4", "--autoregressive"]}
+ENV = {"SMDM_TEST_CLIP_LAYERS": "1", "SMDM_TEST_NUM_WORKERS": "0", "SMDM_TEST_NO_RENDER": "1"}
+
+
+# --------------------------------------------------------------------------- helpers
+def mdm(repo, module, args, launcher=False, check=True, timeout=600):
+    """Run an MDM entry point (``train.train_mdm``, ``sample.generate``...) in ``repo`` through
+    the offline harness; ``launcher`` wraps it in ``smdm run`` (no patch needed)."""
+    cmd = [sys.executable, HARNESS, module, *args]
+    if launcher:
+        cmd = [sys.executable, "-m", "smdm_plugin.integrations.launcher", "--repo", repo, "--"] + cmd
+    return run_logged(cmd, cwd=repo, env=plugin_env(ENV), timeout=timeout, check=check)
+
+
+def harness_code(repo, code, launcher=False, check=True):
+    cmd = [sys.executable, HARNESS, "-c", code]
+    if launcher:
+        cmd = [sys.executable, "-m", "smdm_plugin.integrations.launcher", "--repo", repo, "--"] + cmd
+    return run_logged(cmd, cwd=repo, env=plugin_env(ENV), check=check)
+
+
+def latest_checkpoint(save_dir):
+    ckpts = sorted(glob.glob(os.path.join(save_dir, "model*.pt")))
+    assert ckpts, f"no checkpoint in {save_dir}: {os.listdir(save_dir)}"
+    return ckpts[-1]
+
+
+def logged_losses(output):
+    return [(int(s), float(v)) for s, v in re.findall(r"step\[(\d+)\]: loss\[([0-9.eE+-]+)\]", output)]
+
+
+def train(repo, save_dir, arch, steps, extra=(), launcher=False):
+    proc = mdm(repo, "train.train_mdm", ["--save_dir", save_dir, "--num_steps", str(steps),
+                                         *TINY, *ARCH[arch], *extra], launcher=launcher)
+    return proc, latest_checkpoint(save_dir)
+
+
+def generate(repo, ckpt, out_dir, arch, extra=(), launcher=False, check=True):
+    proc = mdm(repo, "sample.generate", ["--model_path", ckpt, "--output_dir", out_dir,
+                                         "--num_samples", "2", "--num_repetitions", "1",
+                                         "--seed", "3", *GEN[arch], *extra],
+               launcher=launcher, check=check)
+    if not check:
+        return proc, None
+    return proc, np.load(os.path.join(out_dir, "results.npy"), allow_pickle=True).item()
+
+
+def load_sd(path):
+    import torch
+
+    sd = torch.load(path, map_location="cpu", weights_only=True)
+    return sd.get("model", sd) if isinstance(sd.get("model", None), dict) else sd
+
+
+# --------------------------------------------------------------------------- fixtures
+@pytest.fixture(scope="module")
+def pristine(upstream_copy):
+    return upstream_copy(ROOT, "mdm_pristine")
+
+
+@pytest.fixture(scope="module")
+def patched(upstream_copy):
+    return upstream_copy(ROOT, "mdm_patched", patch=PATCH)
+
+
+@pytest.fixture(scope="module")
+def sparse_run(patched, tmp_path_factory):
+    """A sparse trans_enc trained through the patch: 60 steps, enough to see the loss fall."""
+    save = str(tmp_path_factory.mktemp("runs") / "sparse_enc")
+    proc, ckpt = train(patched, save, "trans_enc", 60, ["--log_interval", "10", "--lr", "5e-4",
+                                                       "--sparse"])
+    return {"save": save, "ckpt": ckpt, "out": proc.stdout + proc.stderr}
+
+
+# --------------------------------------------------------------------------- tests
+@needs_mdm
+def test_patch_applies_cleanly_and_only_adds(pristine, tmp_path):
+    res = git_apply(PATCH, pristine, check_only=True)
+    assert res.returncode == 0, res.stderr
+    with open(PATCH) as f:
+        removed = [ln for ln in f if ln.startswith("-") and not ln.startswith("---")]
+    assert removed == [], f"mdm.patch must only add lines, removes: {removed}"
+
+
+@needs_mdm
+def test_sparse_trans_enc_trains_and_samples(sparse_run, patched):
+    losses = logged_losses(sparse_run["out"])
+    assert len(losses) >= 6, sparse_run["out"][-3000:]
+    windows = [v for s, v in losses if s > 0]  # step 0 is a single-batch average
+    print("sparse trans_enc loss per 10 steps:", windows)
+    assert all(np.isfinite(windows))
+    assert np.mean(windows[-2:]) < 0.95 * windows[0], f"loss did not go down: {windows}"
+    args = json.load(open(os.path.join(sparse_run["save"], "args.json")))
+    assert args["sparse"] is True and args["sparse_reduction"] == pytest.approx(0.8)
+    cfg = json.load(open(os.path.join(sparse_run["save"], "sparse_config.json")))
+    assert cfg["enabled"] is True and cfg["version"] >= 1
+    sd = load_sd(sparse_run["ckpt"])
+    assert "smdm_sparse_version" in sd
+
+    out = os.path.join(sparse_run["save"], "gen")
+    proc, res = generate(patched, sparse_run["ckpt"], out, "trans_enc")
+    assert res["motion"].shape == (2, 22, 3, 40)
+    assert np.isfinite(res["motion"]).all()
+
+
+@needs_mdm
+@pytest.mark.parametrize("arch,launcher", [("trans_dec", True), ("dip", False), ("dip", True)],
+                         ids=["trans_dec-launcher", "dip-patch", "dip-launcher"])
+def test_sparse_trains_and_samples(arch, launcher, pristine, patched, tmp_path):
+    repo = pristine if launcher else patched
+    save = str(tmp_path / f"sparse_{arch}")
+    proc, ckpt = train(repo, save, arch, 8, ["--log_interval", "4", "--sparse"], launcher=launcher)
+    losses = [v for _, v in logged_losses(proc.stdout + proc.stderr)]
+    assert losses and all(np.isfinite(losses))
+    args = json.load(open(os.path.join(save, "args.json")))
+    assert args["sparse"] is True
+    cfg = json.load(open(os.path.join(save, "sparse_config.json")))
+    if arch == "dip":
+        assert cfg["prefix_frames"] == 20
+    assert "smdm_sparse_version" in load_sd(ckpt)
+    proc, res = generate(repo, ckpt, str(tmp_path / "gen"), arch, launcher=launcher)
+    n_frames = 80 if arch == "dip" else 40
+    assert res["motion"].shape == (2, 22, 3, n_frames)
+    assert np.isfinite(res["motion"]).all()
+
+
+RESTORE = r"""
+import sys, json
+from utils import parser_util
+from utils.model_util import create_model_and_diffusion, load_saved_model
+from data_loaders.get_data import get_dataset_loader
+from smdm_plugin import is_sparse
+ckpt = sys.argv[1]
+out = {}
+for name, fn in [("generate", parser_util.generate_args), ("edit", parser_util.edit_args),
+                 ("eval", parser_util.evaluation_parser)]:
+    sys.argv = [name, "--model_path", ckpt]
+    args = fn()
+    out[name] = {"sparse": bool(args.sparse), "reduction": args.sparse_reduction}
+data = get_dataset_loader(name="humanml", batch_size=2, num_frames=None, split="test", hml_mode="eval")
+model, diffusion = create_model_and_diffusion(args, data)
+load_saved_model(model, ckpt)
+out["eval_model_sparse"] = is_sparse(model)
+print("RESTORE=" + json.dumps(out))
+"""
+
+
+@needs_mdm
+def test_generate_edit_eval_restore_sparse_from_args_json(sparse_run, patched, tmp_path):
+    proc = harness_code(patched, RESTORE.replace("sys.argv[1]", repr(sparse_run["ckpt"])))
+    out = json.loads(re.search(r"RESTORE=(.*)", proc.stdout).group(1))
+    for name in ("generate", "edit", "eval"):
+        assert out[name] == {"sparse": True, "reduction": pytest.approx(0.8)}, out
+    assert out["eval_model_sparse"] is True
+    # sample.edit end to end (in-betweening on 196 frames), sparse restored from args.json
+    edit_out = str(tmp_path / "edit")
+    mdm(patched, "sample.edit", ["--model_path", sparse_run["ckpt"], "--output_dir", edit_out,
+                                 "--num_samples", "2", "--num_repetitions", "1",
+                                 "--text_condition", "a person walks forward"])
+    res = np.load(os.path.join(edit_out, "results.npy"), allow_pickle=True).item()
+    assert res["motion"].shape[0] == 2 and np.isfinite(res["motion"]).all()
+
+
+@needs_mdm
+def test_flag_off_equals_upstream_bit_for_bit(pristine, patched, tmp_path):
+    runs = {}
+    for name, repo, launcher in (("upstream", pristine, False), ("patched", patched, False),
+                                 ("launcher", pristine, True)):
+        save = str(tmp_path / name)
+        _, ckpt = train(repo, save, "trans_enc", 3, launcher=launcher)
+        _, res = generate(repo, ckpt, str(tmp_path / f"gen_{name}"), "trans_enc", launcher=launcher)
+        runs[name] = (load_sd(ckpt), res["motion"])
+        assert not os.path.exists(os.path.join(save, "sparse_config.json"))
+    ref_sd, ref_motion = runs["upstream"]
+    for name in ("patched", "launcher"):
+        sd, motion = runs[name]
+        assert sorted(sd) == sorted(ref_sd), name
+        for k in ref_sd:
+            assert ref_sd[k].dtype == sd[k].dtype and bool((ref_sd[k] == sd[k]).all()), (name, k)
+        assert np.array_equal(motion, ref_motion), f"{name}: samples differ from upstream"
+
+
+EQUIV = r"""
+import argparse, numpy as np, torch
+from utils import parser_util
+from utils.model_util import create_model_and_diffusion
+from smdm_plugin import is_sparse
+
+mean = np.load("dataset/HumanML3D/Mean.npy"); std = np.load("dataset/HumanML3D/Std.npy")
+class _DS: pass
+ds = _DS(); ds.mean, ds.std = mean, std
+data = argparse.Namespace(dataset=ds)
+ARCH = {ARCH}
+worst = {{}}
+for arch, extra in ARCH.items():
+    def build(flags):
+        p = argparse.ArgumentParser()
+        parser_util.add_base_options(p); parser_util.add_data_options(p)
+        parser_util.add_model_options(p); parser_util.add_diffusion_options(p)
+        args = parser_util.apply_rules(p.parse_args(["--dataset", "humanml", "--latent_dim", "64",
+                                                     "--layers", "2"] + extra + flags))
+        torch.manual_seed(0)
+        model = create_model_and_diffusion(args, data)[0]
+        model.eval()  # (MDM.train returns None, so model.eval() does too)
+        return model
+    dense = build([])
+    sparse = build(["--sparse", "--sparse_reduction", "0.0", "--sparse_lipschitz", "false",
+                    "--sparse_fsq", "false", "--sparse_mask_noise", "0.0"])
+    assert is_sparse(sparse) and not is_sparse(dense)
+    missing, unexpected = sparse.load_state_dict(dense.state_dict(), strict=False)
+    assert unexpected == [] and set(missing) <= {{"smdm_sparse_version"}}, (missing, unexpected)
+    g = torch.Generator().manual_seed(1)
+    B, N = 3, 40
+    x = torch.randn(B, 263, 1, N, generator=g)
+    lengths = torch.tensor([40, 31, 22])
+    mask = (torch.arange(N)[None] < lengths[:, None]).view(B, 1, 1, N)
+    texts = ["a person walks", "a person jumps", "someone dances"]
+    with torch.no_grad():
+        emb = dense.encode_text(texts)
+    valid = mask.view(B, 1, 1, N).float()  # frames at or past a sample's length are not compared
+    diffs = []
+    for t in (0, 5, 19):
+        ts = torch.full((B,), t, dtype=torch.long)
+        def y():
+            d = {{"mask": mask.clone(), "lengths": lengths.clone(), "text": texts, "text_embed": emb}}
+            if "--context_len" in extra:
+                d["prefix"] = torch.randn(B, 263, 1, 20, generator=torch.Generator().manual_seed(2))
+            return d
+        with torch.no_grad():
+            a = dense(x, ts, y()); b = sparse(x, ts, y())
+        diffs.append(float(((a - b).abs() * valid).max()))
+    worst[arch] = max(diffs)
+print("EQUIV=" + repr(worst))
+"""
+
+
+@needs_mdm
+@pytest.mark.parametrize("launcher", [False, True], ids=["patch", "launcher"])
+def test_reduction_zero_equals_dense(launcher, pristine, patched):
+    arch = {k: ARCH[k] + (["--mask_frames"] if k != "dip" else []) for k in ARCH}
+    code = EQUIV.replace("{ARCH}", repr(arch)).replace("{{", "{").replace("}}", "}")
+    proc = harness_code(pristine if launcher else patched, code, launcher=launcher)
+    worst = eval(re.search(r"EQUIV=(.*)", proc.stdout).group(1))
+    print("max |dense - sparse(reduction=0)|:", worst)
+    assert set(worst) == set(ARCH)
+    for arch_name, d in worst.items():
+        assert d < 1e-5, (arch_name, d)
+
+
+@needs_mdm
+def test_sparse_checkpoint_into_dense_model_is_a_clear_error(sparse_run, pristine, patched, tmp_path):
+    # --sparse lost: args.json without the sparse keys (e.g. copied from a dense run)
+    lost = str(tmp_path / "flag_lost")
+    shutil.copytree(sparse_run["save"], lost, ignore=shutil.ignore_patterns("gen*", "edit*"))
+    args = json.load(open(os.path.join(lost, "args.json")))
+    for k in [k for k in args if k == "sparse" or k.startswith("sparse_")]:
+        del args[k]
+    json.dump(args, open(os.path.join(lost, "args.json"), "w"))
+    ckpt = os.path.join(lost, os.path.basename(sparse_run["ckpt"]))
+    proc, _ = generate(patched, ckpt, str(tmp_path / "g1"), "trans_enc", check=False)
+    text = proc.stdout + proc.stderr
+    assert proc.returncode != 0
+    assert "SPARSE" in text and "dense" in text, text[-2000:]
+    # the launcher path gives the same error
+    proc, _ = generate(pristine, ckpt, str(tmp_path / "g2"), "trans_enc", launcher=True, check=False)
+    assert proc.returncode != 0 and "SPARSE" in proc.stdout + proc.stderr
+    # unpatched upstream does not load it silently either (unexpected state-dict keys)
+    proc, _ = generate(pristine, sparse_run["ckpt"], str(tmp_path / "g3"), "trans_enc", check=False)
+    assert proc.returncode != 0
+    assert not os.path.exists(os.path.join(tmp_path, "g3", "results.npy"))
+
+
+# --------------------------------------------------------------------------- launcher, no checkout
+FAKE_PARSER = """
+def add_model_options(parser):
+    group = parser.add_argument_group('model')
+    group.add_argument('--layers', default=2, type=int)
+"""
+FAKE_MODEL_UTIL = """
+def create_model_and_diffusion(args, data):
+    from smdm_plugin import TinyMDM
+    return TinyMDM(latent_dim=32, num_layers=args.layers, cond_mode='no_cond'), None
+
+def load_model_wo_clip(model, state_dict):
+    model.load_state_dict(state_dict, strict=False)
+"""
+PROBE = """
+import argparse, json, os, sys
+from utils.parser_util import add_model_options
+from utils.model_util import create_model_and_diffusion, load_model_wo_clip
+import utils.model_util as mu
+p = argparse.ArgumentParser()
+add_model_options(p)
+args = p.parse_args()
+groups = {g.title: [a.dest for a in g._group_actions] for g in p._action_groups}
+model, _ = create_model_and_diffusion(args, None)
+from smdm_plugin import is_sparse
+err = ''
+if is_sparse(model):
+    from smdm_plugin import unsparsify
+    sd = dict(model.state_dict())
+    dense = mu.create_model_and_diffusion(argparse.Namespace(layers=args.layers, sparse=False), None)[0]
+    try:
+        load_model_wo_clip(dense, sd)
+    except RuntimeError as e:
+        err = str(e)
+print('PROBE=' + json.dumps({'sparse': is_sparse(model), 'in_model_group': 'sparse' in groups['model'],
+      'reduction': getattr(args, 'sparse_reduction', None), 'chained': os.environ.get('CHAINED_MARK', ''),
+      'load_error': err, 'cwd': os.getcwd()}))
+"""
+
+
+@pytest.fixture()
+def fake_mdm(tmp_path):
+    repo = tmp_path / "fake_mdm"
+    (repo / "model").mkdir(parents=True)
+    (repo / "utils").mkdir()
+    (repo / "model" / "mdm.py").write_text("# fake\n")
+    (repo / "utils" / "parser_util.py").write_text(FAKE_PARSER)
+    (repo / "utils" / "model_util.py").write_text(FAKE_MODEL_UTIL)
+    (repo / "probe.py").write_text(PROBE)
+    # an existing sitecustomize that the generated one must still run
+    other = tmp_path / "other_site"
+    other.mkdir()
+    (other / "sitecustomize.py").write_text("import os\nos.environ['CHAINED_MARK'] = 'yes'\n")
+    return str(repo), str(other)
+
+
+def _launch(repo, other, *args):
+    env = plugin_env()
+    env["PYTHONPATH"] = env["PYTHONPATH"] + os.pathsep + other
+    cmd = [sys.executable, "-m", "smdm_plugin.integrations.launcher", "--repo", repo, "--",
+           sys.executable, "probe.py", *args]
+    proc = run_logged(cmd, cwd=os.path.dirname(repo), env=env, timeout=300)
+    return json.loads(re.search(r"PROBE=(.*)", proc.stdout).group(1))
+
+
+def test_launcher_hooks_fake_mdm(fake_mdm):
+    repo, other = fake_mdm
+    out = _launch(repo, other, "--sparse", "--sparse_reduction", "0.5")
+    assert out["sparse"] is True and out["in_model_group"] is True
+    assert out["reduction"] == 0.5
+    assert out["chained"] == "yes", "the pre-existing sitecustomize was not run"
+    assert os.path.realpath(out["cwd"]) == os.path.realpath(repo)
+    assert "SPARSE" in out["load_error"]
+    out = _launch(repo, other)  # flag off: options there, model untouched
+    assert out["sparse"] is False and out["in_model_group"] is True
+
+
+def test_launcher_detects_repo_kind(tmp_path):
+    from smdm_plugin.integrations.launcher import detect_repo, parse_run_args
+
+    (tmp_path / "mdm" / "model").mkdir(parents=True)
+    (tmp_path / "mdm" / "utils").mkdir()
+    (tmp_path / "mdm" / "model" / "mdm.py").write_text("")
+    (tmp_path / "mdm" / "utils" / "model_util.py").write_text("")
+    assert detect_repo(str(tmp_path / "mdm")) == "mdm"
+    (tmp_path / "mdm" / "model" / "DoubleTake_MDM.py").write_text("")
+    assert detect_repo(str(tmp_path / "mdm")) == "priormdm"
+    (tmp_path / "md" / "text2motion").mkdir(parents=True)
+    assert detect_repo(str(tmp_path / "md")) == "motiondiffuse"
+    with pytest.raises(ValueError, match="model/mdm.py"):
+        detect_repo(str(tmp_path))
+    args, cmd = parse_run_args(["--repo", "x", "--", "python", "-m", "train.train_mdm", "--sparse"])
+    assert args.repo == "x" and cmd == ["python", "-m", "train.train_mdm", "--sparse"]
