@@ -13,8 +13,8 @@ from typing import Optional
 import torch
 import torch.nn as nn
 
-from .attention_backends import get_backend
-from .interpolation import interpolate_keyframes
+from .attention_backends import get_backend, lerp_rows, supports_packed, varlen_backend, varlen_packed
+from .interpolation import interpolate_keyframes, neighbour_keyframes
 
 
 class KeyframeTransformer(nn.Module):
@@ -77,8 +77,11 @@ class KeyframeTransformer(nn.Module):
                                       "supported in sparse mode; only key padding masks")
         x = src.transpose(0, 1) if self.batch_first else src  # [S, B, d]
         keep = self._keep(x, src_key_padding_mask)
-        out = get_backend(self.backend, x.device, self.training)(self.inner, x, keep)
-        out = self._fill(out, keep)
+        fn = get_backend(self.backend, x.device, self.training)
+        if fn is varlen_backend and self._packable(keep):
+            out = self._packed_fill(*varlen_packed(self.inner, x, keep), keep)
+        else:
+            out = self._fill(fn(self.inner, x, keep), keep)
         return out.transpose(0, 1) if self.batch_first else out
 
     def _forward_decoder(self, tgt: torch.Tensor, memory: torch.Tensor,
@@ -92,9 +95,14 @@ class KeyframeTransformer(nn.Module):
         x = tgt.transpose(0, 1) if self.batch_first else tgt
         mem = memory.transpose(0, 1) if self.batch_first else memory
         keep = self._keep(x, tgt_key_padding_mask)
-        out = get_backend(self.backend, x.device, self.training)(
-            self.inner, x, keep, memory=mem, memory_key_padding_mask=memory_key_padding_mask)
-        out = self._fill(out, keep)
+        fn = get_backend(self.backend, x.device, self.training)
+        if fn is varlen_backend and self._packable(keep):
+            h, packing = varlen_packed(self.inner, x, keep, memory=mem,
+                                       memory_key_padding_mask=memory_key_padding_mask)
+            out = self._packed_fill(h, packing, keep)
+        else:
+            out = self._fill(fn(self.inner, x, keep, memory=mem, memory_key_padding_mask=memory_key_padding_mask),
+                             keep)
         return out.transpose(0, 1) if self.batch_first else out
 
     # ------------------------------------------------------------------ helpers
@@ -110,6 +118,34 @@ class KeyframeTransformer(nn.Module):
         if key_padding_mask is not None:
             keep = keep & ~key_padding_mask.to(torch.bool)
         return keep
+
+    def _packable(self, keep: torch.Tensor) -> bool:
+        """Interpolate straight from the packed rows (needs every lead token kept)."""
+        return (self.interpolate and supports_packed(self.inner)
+                and (self.n_lead == 0 or bool(keep[:, :self.n_lead].all())))
+
+    def _packed_fill(self, h: torch.Tensor, packing, keep: torch.Tensor) -> torch.Tensor:
+        """Same result as scattering the packed rows ``h [T, d]`` back to ``[S, B, d]`` and
+        :meth:`_fill`, but read straight from the packed rows (no zero-filled ``[S, B, d]``
+        intermediate, no concatenation): every output token is ``lerp(h[prev], h[next], w)``; lead
+        and kept tokens have ``prev = next`` = their own row and ``w = 0``."""
+        B, S = keep.shape
+        lead = self.n_lead
+        frames = keep[:, lead:]
+        if not bool(frames.any(dim=1).all()):
+            raise ValueError("interpolate_keyframes: every row of mask needs at least one keyframe")
+        rowmap = torch.zeros(B, S, dtype=torch.long, device=keep.device)
+        rowmap[packing.seg, packing.src] = torch.arange(packing.T, device=keep.device)
+        prev, nxt, w = neighbour_keyframes(frames, h.dtype)
+        fr = rowmap[:, lead:]
+        prev_r, next_r = fr.gather(1, prev), fr.gather(1, nxt)
+        if lead:
+            prev_r = torch.cat([rowmap[:, :lead], prev_r], 1)
+            next_r = torch.cat([rowmap[:, :lead], next_r], 1)
+            w = torch.cat([w.new_zeros(B, lead), w], 1)
+        d = h.shape[-1]
+        out = lerp_rows(h, prev_r.t().reshape(-1), next_r.t().reshape(-1), w.t().reshape(-1, 1))
+        return out.view(S, B, d)
 
     def _fill(self, out: torch.Tensor, keep: torch.Tensor) -> torch.Tensor:
         """Interpolate frame tokens (rows ``n_lead:``) from the kept ones. ``out [S, B, d]``."""

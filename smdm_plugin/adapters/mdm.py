@@ -142,12 +142,50 @@ def _pre_hook(model: nn.Module, args: tuple, kwargs: dict):
     if prefix:
         mask = torch.cat([mask.new_ones(B, prefix), mask], dim=1)
     state["transformer"].set_keyframes(mask)
+    state["frame_mask"] = mask
     return None
 
 
 def _post_hook(model: nn.Module, args: tuple, kwargs: dict, output: Any) -> None:
     model._smdm_state["transformer"].set_keyframes(None)
+    model._smdm_state["frame_mask"] = None
     return None
+
+
+# Input embedding on keyframe rows only (speed; outputs unchanged). Only keyframe tokens enter the
+# keyframe transformer (every backend reads kept tokens only, and the output of the other frames
+# is interpolated from the kept ones), so the embedding of the other frames is never used: the
+# hooks below hand ``poseEmbedding`` the keyframe rows ``[T, F]`` and scatter its output back to
+# ``[N, B, d]`` with zeros elsewhere. They are plain functions that find the model's state through
+# an attribute (not a closure), so ``copy.deepcopy`` (EMA) keeps each copy on its own state.
+def _rows_pre_hook(module: nn.Module, args: tuple):
+    state = getattr(module, "_smdm_rows_state", None)
+    mask = None if state is None else state.get("frame_mask")
+    x = args[0] if args else None
+    state_rows = None
+    if (mask is not None and isinstance(x, torch.Tensor) and x.dim() == 3 and len(args) == 1
+            and x.shape[0] == mask.shape[1] and x.shape[1] == mask.shape[0] and not bool(mask.all())):
+        N, B, F_ = x.shape
+        idx = mask.t().reshape(-1).nonzero(as_tuple=True)[0].to(x.device)  # frame-major rows
+        state_rows = (idx, N, B)
+        x = x.reshape(N * B, F_).index_select(0, idx)
+        state["rows"] = state_rows
+        return (x,)
+    if state is not None:
+        state["rows"] = None
+    return None
+
+
+def _rows_post_hook(module: nn.Module, args: tuple, output: torch.Tensor):
+    state = getattr(module, "_smdm_rows_state", None)
+    rows = None if state is None else state.get("rows")
+    if rows is None:
+        return None
+    from ..attention_backends import scatter_rows
+
+    idx, N, B = rows
+    state["rows"] = None
+    return scatter_rows(output, idx, N * B).view(N, B, output.shape[-1])
 
 
 def sparsify(model: nn.Module, config: Optional[SparseConfig] = None, *, diffusion: Any = None,
@@ -201,6 +239,11 @@ def sparsify(model: nn.Module, config: Optional[SparseConfig] = None, *, diffusi
         "handles": [model.register_forward_pre_hook(_pre_hook, with_kwargs=True),
                     model.register_forward_hook(_post_hook, with_kwargs=True)],
     }
+    embed = getattr(model.input_process, "poseEmbedding", None)
+    if isinstance(embed, nn.Module):
+        embed._smdm_rows_state = model._smdm_state
+        model._smdm_state["handles"] += [embed.register_forward_pre_hook(_rows_pre_hook),
+                                         embed.register_forward_hook(_rows_post_hook)]
     if diffusion is not None:
         from .diffusion import attach_diffusion
 
@@ -220,6 +263,9 @@ def unsparsify(model: nn.Module) -> nn.Module:
     state = model._smdm_state
     for h in state["handles"]:
         h.remove()
+    embed = getattr(model.input_process, "poseEmbedding", None)
+    if embed is not None and hasattr(embed, "_smdm_rows_state"):
+        del embed._smdm_rows_state
     for (owner, name), module in state["originals"].items():
         setattr(owner, name, module)
     del model._buffers[MARKER]

@@ -1,0 +1,221 @@
+"""Keyframe attention backends: every registered backend against the dense masked reference,
+auto-selection, forcing by name, clean fallbacks (CPU); CUDA checks skip without CUDA."""
+import copy
+
+import pytest
+import torch
+import torch.nn as nn
+
+from smdm_plugin import KeyframeTransformer, register_backend
+from smdm_plugin import attention_backends as ab
+from smdm_plugin.attention_backends import (Packing, available_backends, compact_backend, get_backend,
+                                            lerp_rows, varlen_backend)
+
+CUDA = pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")
+
+
+def encoder(d=32, layers=2, dropout=0.0, norm_first=False):
+    layer = nn.TransformerEncoderLayer(d, 4, 64, dropout, "gelu", norm_first=norm_first)
+    return nn.TransformerEncoder(layer, layers, enable_nested_tensor=False)
+
+
+def decoder(d=32, layers=2, dropout=0.0, norm_first=False):
+    return nn.TransformerDecoder(nn.TransformerDecoderLayer(d, 4, 64, dropout, "gelu", norm_first=norm_first),
+                                 layers)
+
+
+def keyframes(B, N, lengths, k, seed=0):
+    g = torch.Generator().manual_seed(seed)
+    mask = torch.zeros(B, N, dtype=torch.bool)
+    for b, L in enumerate(lengths):
+        idx = torch.randperm(max(L - 2, 0), generator=g)[: max(k - 2, 0)] + 1
+        mask[b, idx] = True
+        mask[b, 0] = mask[b, L - 1] = True
+    return mask
+
+
+def registered():
+    return sorted(ab._REGISTRY)
+
+
+def reference(inner, x, keep, memory=None):
+    """The dense module, key padding over everything that is not kept."""
+    if memory is None:
+        return inner(x, src_key_padding_mask=~keep)
+    return inner(x, memory, tgt_key_padding_mask=~keep)
+
+
+@pytest.mark.parametrize("backend", registered())
+@pytest.mark.parametrize("kind", ["encoder", "decoder"])
+@pytest.mark.parametrize("norm_first", [False, True])
+def test_backend_equals_masked_reference_eval(backend, kind, norm_first):
+    torch.manual_seed(0)
+    S, B, d = 33, 5, 32
+    inner = (encoder if kind == "encoder" else decoder)(norm_first=norm_first).eval()
+    x = torch.randn(S, B, d)
+    memory = torch.randn(2, B, d) if kind == "decoder" else None
+    keep = keyframes(B, S, [33, 30, 12, 33, 3], 7)
+    fn = ab._REGISTRY[backend][0]
+    with torch.no_grad():
+        out = fn(inner, x, keep, memory=memory)
+        ref = reference(inner, x, keep, memory)
+    kt = keep.t()
+    assert torch.allclose(out[kt], ref[kt], atol=1e-5)
+
+
+@pytest.mark.parametrize("backend", registered())
+def test_backend_equals_reference_in_training_without_dropout(backend):
+    torch.manual_seed(1)
+    S, B, d = 25, 4, 32
+    inner = encoder(dropout=0.0).train()
+    keep = keyframes(B, S, [25, 20, 9, 25], 5)
+    x = torch.randn(S, B, d, requires_grad=True)
+    w = torch.randn(S, B, d)
+    kt = keep.t().unsqueeze(-1).float()
+    grads = {}
+    for name, fn in (("ref", None), (backend, ab._REGISTRY[backend][0])):
+        x.grad = None
+        inner.zero_grad()
+        out = reference(inner, x, keep) if fn is None else fn(inner, x, keep)
+        (out * w * kt).sum().backward()
+        grads[name] = (out.detach() * kt, x.grad.clone(), inner.layers[0].self_attn.in_proj_weight.grad.clone())
+    for a, b in zip(grads[backend], grads["ref"]):
+        assert torch.allclose(a, b, atol=1e-4)
+
+
+@pytest.mark.parametrize("backend", ["auto", "compact", "varlen", "masked"])
+def test_keyframe_transformer_matches_reference_with_interpolation(backend):
+    torch.manual_seed(2)
+    S, B, d = 41, 3, 32
+    enc = encoder().eval()
+    mask = keyframes(B, S - 1, [40, 31, 8], 6)
+    keep = torch.cat([torch.ones(B, 1, dtype=torch.bool), mask], 1)
+    x = torch.randn(S, B, d)
+    wrap = KeyframeTransformer(copy.deepcopy(enc), backend=backend).eval()
+    wrap.set_keyframes(mask)
+    with torch.no_grad():
+        out = wrap(x)
+        ref = reference(enc, x, keep)
+    from smdm_plugin import interpolate_keyframes
+
+    expect = torch.cat([ref[:1], interpolate_keyframes(ref[1:].transpose(0, 1), mask).transpose(0, 1)])
+    assert torch.allclose(out, expect, atol=1e-5)
+
+
+def test_auto_selection_and_forcing_by_name():
+    cpu = torch.device("cpu")
+    assert set(available_backends(cpu)) >= {"masked", "compact", "varlen"}
+    assert get_backend("auto", cpu) is varlen_backend  # packed rows are the fast path on CPU too
+    assert get_backend("compact", cpu) is compact_backend
+    assert get_backend("masked", cpu) is ab.masked_backend
+    assert get_backend("varlen", cpu) is varlen_backend
+    with pytest.raises(ValueError, match="unknown"):
+        get_backend("xformers", cpu)
+
+
+def test_backend_unavailable_on_device_falls_back_to_compact():
+    register_backend("_never", lambda *a, **k: 1 / 0, available=lambda d: False)
+    try:
+        assert get_backend("_never", torch.device("cpu")) is compact_backend
+    finally:
+        del ab._REGISTRY["_never"]
+
+
+def test_forced_varlen_without_flash_attn_is_correct(monkeypatch):
+    monkeypatch.setattr(ab, "_flash_attn_fn", lambda: None)
+    monkeypatch.setattr(ab, "_torch_varlen_fn", lambda: None)
+    torch.manual_seed(3)
+    S, B, d = 20, 3, 32
+    dec = decoder().eval()
+    x, mem = torch.randn(S, B, d), torch.randn(3, B, d)
+    mpad = torch.tensor([[False, False, True], [False, False, False], [False, True, True]])
+    keep = keyframes(B, S, [20, 15, 4], 5)
+    with torch.no_grad():
+        out = varlen_backend(dec, x, keep, memory=mem, memory_key_padding_mask=mpad)
+        ref = dec(x, mem, tgt_key_padding_mask=~keep, memory_key_padding_mask=mpad)
+    assert torch.allclose(out[keep.t()], ref[keep.t()], atol=1e-5)
+
+
+def test_varlen_falls_back_to_compact_for_hooks_and_custom_attention():
+    torch.manual_seed(4)
+    S, B, d = 18, 2, 32
+    enc = encoder().eval()
+    keep = keyframes(B, S, [18, 10], 4)
+    x = torch.randn(S, B, d)
+    calls = []
+    h = enc.layers[0].register_forward_pre_hook(lambda m, a: calls.append(a[0].shape[0]))
+    with torch.no_grad():
+        out = varlen_backend(enc, x, keep)
+    h.remove()
+    with torch.no_grad():
+        ref = reference(enc, x, keep)
+    assert calls == [4]  # hooks fire: ran through the modules (compact, K_max tokens)
+    assert torch.allclose(out[keep.t()], ref[keep.t()], atol=1e-5)
+    assert ab.supports_packed(enc)  # the hook is gone: packed again
+
+
+def test_varlen_with_fsq_attention_falls_back_and_matches_compact():
+    fsq = pytest.importorskip("smdm_plugin.fsq")
+    torch.manual_seed(5)
+    S, B, d = 16, 2, 32
+    enc = encoder().eval()
+    fsq.quantize_attention_keys(enc, (8, 5, 5, 5))
+    keep = keyframes(B, S, [16, 9], 4)
+    x = torch.randn(S, B, d)
+    assert not ab.supports_packed(enc)
+    with torch.no_grad():
+        assert torch.allclose(varlen_backend(enc, x, keep)[keep.t()], compact_backend(enc, x, keep)[keep.t()],
+                              atol=1e-6)
+
+
+def test_packing_roundtrip_and_lerp_rows_gradient():
+    keep = torch.tensor([[1, 0, 1, 1, 0], [0, 1, 0, 0, 0], [1, 1, 1, 1, 1]], dtype=torch.bool)
+    p = Packing(keep)
+    assert p.T == 9 and p.max == 5 and p.counts.tolist() == [3, 1, 5]
+    t = torch.randn(p.T, 4, requires_grad=True)
+    padded = p.pad(t)
+    assert padded.shape == (3, 5, 4) and torch.equal(padded[1, 1:], torch.zeros(4, 4))
+    assert torch.equal(p.unpad(padded), t)
+    padded.sum().backward()
+    assert torch.equal(t.grad, torch.ones_like(t))
+    h = torch.randn(6, 3, dtype=torch.float64, requires_grad=True)
+    prev = torch.tensor([0, 0, 2, 5, 5])
+    nxt = torch.tensor([0, 2, 4, 5, 1])
+    w = torch.tensor([[0.0], [0.25], [0.5], [0.0], [0.9]], dtype=torch.float64)
+    assert torch.autograd.gradcheck(lambda h: lerp_rows(h, prev, nxt, w), (h,))
+    assert torch.equal(lerp_rows(h, prev, nxt, w), torch.lerp(h[prev], h[nxt], w))
+
+
+@CUDA
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float16])
+def test_varlen_on_cuda_matches_masked(dtype):
+    torch.manual_seed(6)
+    S, B, d = 40, 4, 64
+    enc = encoder(d=d).eval().to("cuda", dtype)
+    keep = keyframes(B, S, [40, 22, 9, 40], 8).cuda()
+    x = torch.randn(S, B, d, device="cuda", dtype=dtype)
+    assert get_backend("auto", x.device) is varlen_backend
+    with torch.no_grad():
+        out = varlen_backend(enc, x, keep)
+        ref = ab.masked_backend(enc, x, keep)
+    tol = 1e-4 if dtype == torch.float32 else 2e-2
+    assert torch.allclose(out[keep.t()].float(), ref[keep.t()].float(), atol=tol)
+
+
+def test_single_memory_token_shortcut_matches_reference_gradients():
+    """MDM trans_dec: one condition token per sample; varlen skips the (irrelevant) query
+    projection of the cross-attention but keeps outputs and every gradient (zeros included)."""
+    torch.manual_seed(7)
+    dec = decoder().train()
+    x = torch.randn(20, 3, 32, requires_grad=True)
+    mem = torch.randn(1, 3, 32, requires_grad=True)
+    keep = keyframes(3, 20, [20, 14, 6], 4)
+    w = torch.randn(20, 3, 32) * keep.t()[..., None]
+    grads = {}
+    for name, fn in (("varlen", varlen_backend), ("masked", ab.masked_backend)):
+        dec.zero_grad()
+        x.grad = mem.grad = None
+        (fn(dec, x, keep, memory=mem) * w).sum().backward()
+        grads[name] = [x.grad.clone(), mem.grad.clone()] + [p.grad.clone() for p in dec.parameters()]
+    for a, b in zip(grads["varlen"], grads["masked"]):
+        assert torch.allclose(a, b, atol=1e-5)
