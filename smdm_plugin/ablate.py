@@ -192,6 +192,29 @@ def _ees(motion_norm: torch.Tensor, lengths: torch.Tensor, data: MotionData) -> 
     return float(end_effector_speed(motion_norm, lengths, mean=data.mean, std=data.std))
 
 
+def validation_loss(model, diffusion, data: "MotionData", device: torch.device, seed: int, n_t: int = 5) -> float:
+    """Denoising MSE on the validation motions over all valid frames, at ``n_t`` fixed timesteps
+    spread over ``[0, T)`` with fixed noise (identical for every variant). The model runs as it
+    would at sampling time (its own keyframe schedule on ``x_t``), so sparse and dense compare on
+    the same dense frames. Not comparable with training losses, which sample t at random."""
+    from .diffusion import masked_mse
+
+    val = data.val
+    x = val["x"].permute(0, 2, 1).unsqueeze(2).to(device)
+    B, N = x.shape[0], x.shape[-1]
+    y = {"mask": (torch.arange(N) < val["lengths"][:, None]).view(B, 1, 1, N).to(device),
+         "lengths": val["lengths"].to(device)}
+    g = torch.Generator().manual_seed(seed + 4)
+    out = []
+    with torch.no_grad():
+        for t in torch.linspace(0, diffusion.num_timesteps - 1, n_t).round().long():
+            tt = t.expand(B).to(device)
+            noise = torch.randn(x.shape, generator=g).to(device)
+            pred = model(diffusion.q_sample(x, tt, noise), tt, {"y": dict(y)})
+            out.append(float(masked_mse(pred, x, y["mask"]).mean()))
+    return float(np.mean(out))
+
+
 # ----------------------------------------------------------------------------------------- run
 def run_variant(cfg: Dict[str, Any], variant: Dict[str, Any], data: MotionData, device: torch.device,
                 progress: bool = False) -> Dict[str, Any]:
@@ -241,6 +264,7 @@ def run_variant(cfg: Dict[str, Any], variant: Dict[str, Any], data: MotionData, 
     ev = cfg["eval"]
     ns, nf = int(ev.get("samples", 8)), min(int(ev.get("frames", 120)), N)
     model.eval()
+    val_loss = validation_loss(model, diffusion, data, device, seed)
     g = torch.Generator().manual_seed(seed + 3)
     lengths = torch.full((ns,), nf, dtype=torch.long)
     y = {"mask": torch.ones(ns, 1, 1, nf, dtype=torch.bool, device=device), "lengths": lengths.to(device)}
@@ -252,7 +276,7 @@ def run_variant(cfg: Dict[str, Any], variant: Dict[str, Any], data: MotionData, 
     smooth = np.convolve(losses, np.ones(k) / k, mode="valid") if losses else np.array([np.nan])
     return {
         "name": variant["name"], "status": "ok", "steps": steps,
-        "final_loss": float(np.mean(losses[-k:])), "best_loss": float(np.min(smooth)),
+        "final_loss": float(np.mean(losses[-k:])), "best_loss": float(np.min(smooth)), "val_loss": val_loss,
         "steps_per_s": steps / train_s, "train_s": train_s, "sample_s": sample_s,
         "keyframe_error_mm": keyframe_error_mm(data, sc, ev.get("keyframe_motions"), seed),
         "ees": _ees(motion, lengths, data), "losses": losses,
@@ -314,7 +338,7 @@ def run_ablation(cfg: Dict[str, Any], out: str, data_root: str, device: str = "a
 
 
 # ----------------------------------------------------------------------------------------- report
-COLUMNS = ("variant", "status", "final loss", "best loss", "steps/s", "keyframe error (mm)", "EES (cm/frame)",
+COLUMNS = ("variant", "status", "final loss", "best loss", "val loss", "steps/s", "keyframe error (mm)", "EES (cm/frame)",
            "wall (s)")
 
 
@@ -328,6 +352,7 @@ def write_report(results: List[Dict[str, Any]], out: str, real_ees: Optional[flo
         ok = r.get("status") == "ok"
         rows.append([r["name"], r.get("status", "?"),
                      _fmt(r.get("final_loss") if ok else None, ".4f"), _fmt(r.get("best_loss") if ok else None, ".4f"),
+                     _fmt(r.get("val_loss") if ok else None, ".4f"),
                      _fmt(r.get("steps_per_s") if ok else None, ".2f"),
                      _fmt(r.get("keyframe_error_mm") if ok else None, ".1f"),
                      _fmt(r.get("ees") if ok else None, ".3f"), _fmt(r.get("wall_s"), ".0f")])

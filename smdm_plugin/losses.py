@@ -43,3 +43,15 @@ def _masked_mean(pred: torch.Tensor, target: torch.Tensor, m: torch.Tensor) -> t
 def lipschitz_term(model: nn.Module, lam: float) -> torch.Tensor:
     """``lam * ∏ softplus(c_i)`` summed over the model's Lipschitz MLPs (0 when there are none)."""
     return lam * lipschitz_loss(model)
+
+
+def add_lipschitz_term(terms: dict, model: nn.Module, config, batch: int) -> dict:
+    """Add ``config.lipschitz_lambda * L_lip`` of ``model`` to ``terms['loss']`` (or to
+    ``terms['mse']`` when there is no ``loss``) and log it as ``terms['lip'] [batch]``; no-op when
+    the Lipschitz layers are off or λ = 0. Returns ``terms``."""
+    if not (config.enabled and config.lipschitz and config.lipschitz_lambda > 0):
+        return terms
+    lip = lipschitz_loss(model)
+    terms["lip"] = lip.detach().expand(batch)
+    terms["loss"] = terms.get("loss", terms.get("mse")) + config.lipschitz_lambda * lip
+    return terms

@@ -41,6 +41,7 @@ def test_quick_grid_runs_resumes_and_records_failures(hml_dir, tmp_path, monkeyp
     dense = json.loads((out / "dense" / "result.json").read_text())
     assert res["keyframe_error_mm"] > 0 and dense["keyframe_error_mm"] is None
     assert len(res["losses"]) == 3 and res["ees"] is not None
+    assert 0 < res["val_loss"] < 100 and 0 < dense["val_loss"] < 100  # same fixed noise and timesteps
 
     # resumable: finished variants are skipped; a crashing one is recorded, the others survive
     calls = []

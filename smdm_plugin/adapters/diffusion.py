@@ -16,7 +16,7 @@ import torch
 import torch.nn as nn
 
 from ..config import SparseConfig
-from ..lipschitz import lipschitz_loss
+from ..losses import add_lipschitz_term
 
 
 def diffusion_steps(diffusion: Any) -> int:
@@ -68,11 +68,7 @@ def attach_diffusion(diffusion: Any, config: SparseConfig, model: Optional[nn.Mo
             y["mask"] = y["mask"] & mask.view(y["mask"].shape).to(y["mask"].dtype)
         model_kwargs["y"] = y
         terms = original(model_arg, x_start, t, model_kwargs, *args, **kwargs)
-        if config.lipschitz_lambda > 0 and config.lipschitz:
-            lip = lipschitz_loss(sparse)
-            terms["lip"] = lip.detach().expand(B)
-            terms["loss"] = terms["loss"] + config.lipschitz_lambda * lip
-        return terms
+        return add_lipschitz_term(terms, sparse, config, B)
 
     diffusion.training_losses = training_losses
     diffusion._smdm_attached = True

@@ -43,9 +43,10 @@ import torch.nn as nn
 from ..config import SparseConfig
 from ..interpolation import interpolate_keyframes
 from ..lipschitz import LipschitzMLP, lipschitz_loss
+from ..losses import add_lipschitz_term
 from ..schedule import MaskSchedule
 
-MARKER = "smdm_sparse_version"
+from ..checkpoint import MARKER
 _REQUIRED = ("joint_embed", "out", "temporal_decoder_blocks", "sequence_embedding", "time_embed",
              "encode_text", "latent_dim", "input_feats")
 
@@ -279,11 +280,8 @@ def attach_motiondiffuse_diffusion(diffusion: Any, config: Optional[SparseConfig
             terms["mse"] = mse
             terms["loss"] = mse
             terms["frame_mask"] = frame_mask
-        if sparse is not None and config.enabled and config.lipschitz and config.lipschitz_lambda > 0:
-            lip = lipschitz_loss(sparse)
-            terms["lip"] = lip.detach().expand(B)
-            base = terms.get("loss", terms.get("mse"))
-            terms["loss"] = base + config.lipschitz_lambda * lip
+        if sparse is not None:
+            add_lipschitz_term(terms, sparse, config, B)
         return terms
 
     diffusion.training_losses = training_losses

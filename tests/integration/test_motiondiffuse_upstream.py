@@ -33,6 +33,7 @@ import sys
 
 import numpy as np
 import pytest
+from _upstream import find_humanml3d
 
 ROOT = os.environ.get("SMDM_MOTIONDIFFUSE_ROOT")
 HERE = os.path.dirname(os.path.abspath(__file__))
@@ -40,16 +41,7 @@ REPO = os.path.dirname(os.path.dirname(HERE))
 PATCH = os.path.join(REPO, "patches", "motiondiffuse.patch")
 
 
-def _data_dir() -> str:
-    for cand in (os.environ.get("SMDM_HUMANML3D_DIR"),
-                 os.path.join(os.path.dirname(REPO), "shared", "data", "cmu-humanml3d"),
-                 "/work/shared/data/cmu-humanml3d"):
-        if cand and os.path.isdir(os.path.join(cand, "new_joint_vecs")):
-            return os.path.abspath(cand)
-    return ""
-
-
-DATA = _data_dir()
+DATA = find_humanml3d() or ""
 
 pytestmark = [pytest.mark.skipif(not ROOT, reason="SMDM_MOTIONDIFFUSE_ROOT not set"),
               pytest.mark.skipif(not DATA, reason="no HumanML3D-format data (SMDM_HUMANML3D_DIR)")]
