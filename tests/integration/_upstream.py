@@ -35,8 +35,8 @@ def copy_checkout(src: str, dst: str) -> str:
     """Copy the tracked files of an upstream checkout (``git ls-tree HEAD`` when it is a repo; large
     assets skipped) into ``dst`` (``git apply`` works there without a repo)."""
     os.makedirs(dst, exist_ok=True)
-    is_git = subprocess.run(["git", "-C", src, "rev-parse", "--git-dir"], capture_output=True).returncode == 0
-    if is_git:
+    top = subprocess.run(["git", "-C", src, "rev-parse", "--show-toplevel"], capture_output=True, text=True)
+    if top.returncode == 0 and os.path.samefile(top.stdout.strip(), src):
         # committed files (an index can be empty in a partial checkout)
         files = subprocess.run(["git", "-C", src, "ls-tree", "-r", "--name-only", "HEAD"], capture_output=True,
                                text=True, check=True).stdout.splitlines()

@@ -33,7 +33,7 @@ import sys
 
 import numpy as np
 import pytest
-from _upstream import find_humanml3d
+from _upstream import copy_checkout, find_humanml3d
 
 ROOT = os.environ.get("SMDM_PRIORMDM_ROOT")
 HERE = os.path.dirname(os.path.abspath(__file__))
@@ -48,27 +48,6 @@ pytestmark = [pytest.mark.skipif(not ROOT, reason="SMDM_PRIORMDM_ROOT not set"),
 
 H, BLEND, SKIP, DT_STEPS, SEG = 10, 5, 5, 20, 150  # DoubleTake geometry (n_frames=150 per prompt)
 REDUCTION = 0.8
-
-
-def copy_checkout(src: str, dst: str) -> None:
-    """Copy the checkout's committed files (``git ls-tree HEAD``, so a checkout whose index is
-    empty or partial still yields upstream's files; files missing on disk, e.g. a large data file
-    whose checkout failed, and ``assets/`` are skipped); a plain directory is copied as is."""
-    os.makedirs(dst, exist_ok=True)
-    git = subprocess.run(["git", "-C", src, "rev-parse", "--show-toplevel"], capture_output=True,
-                         text=True)
-    if git.returncode == 0 and os.path.samefile(git.stdout.strip(), src):
-        files = subprocess.run(["git", "-C", src, "ls-tree", "-r", "--name-only", "HEAD"],
-                               capture_output=True, text=True, check=True).stdout.split("\n")
-        for rel in filter(None, files):
-            s = os.path.join(src, rel)
-            if rel.startswith("assets/") or not os.path.isfile(s):
-                continue
-            os.makedirs(os.path.dirname(os.path.join(dst, rel)) or dst, exist_ok=True)
-            shutil.copy2(s, os.path.join(dst, rel))
-    else:
-        shutil.copytree(src, dst, dirs_exist_ok=True,
-                        ignore=shutil.ignore_patterns("assets", ".git", "save"))
 
 
 def make_glove(run: str, data: str) -> None:
