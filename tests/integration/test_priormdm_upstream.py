@@ -33,14 +33,10 @@ import sys
 
 import numpy as np
 import pytest
-from _upstream import copy_checkout, find_humanml3d
+from _upstream import HERE, PATCHES, REPO, copy_checkout, find_humanml3d
 
 ROOT = os.environ.get("SMDM_PRIORMDM_ROOT")
-HERE = os.path.dirname(os.path.abspath(__file__))
-REPO = os.path.dirname(os.path.dirname(HERE))
-PATCH = os.path.join(REPO, "patches", "priormdm.patch")
-
-
+PATCH = os.path.join(PATCHES, "priormdm.patch")
 DATA = find_humanml3d() or ""
 
 pytestmark = [pytest.mark.skipif(not ROOT, reason="SMDM_PRIORMDM_ROOT not set"),
