@@ -22,7 +22,6 @@ What is checked (each would fail if the integration were wrong):
   sampling mask at every one of the ``diffusion_steps`` steps, and gives finite joints
   ``[60, 22, 3]``.
 """
-import importlib.util
 import json
 import os
 import pickle
@@ -33,7 +32,7 @@ import sys
 
 import numpy as np
 import pytest
-from _upstream import HERE, PATCHES, REPO, find_humanml3d
+from _upstream import HERE, LAUNCHER, PATCHES, REPO, find_humanml3d
 
 ROOT = os.environ.get("SMDM_MOTIONDIFFUSE_ROOT")
 PATCH = os.path.join(PATCHES, "motiondiffuse.patch")
@@ -176,22 +175,13 @@ def test_hooks_train_and_generate(tmp_path):
     generate(t2m, tmp_path, hooks="motiondiffuse")
 
 
-def _launcher_cmd():
-    if importlib.util.find_spec("smdm_plugin.cli") is not None:
-        return [sys.executable, "-m", "smdm_plugin.cli", "run"]
-    if importlib.util.find_spec("smdm_plugin.integrations.launcher") is not None:
-        return [sys.executable, "-m", "smdm_plugin.integrations.launcher"]
-    return None
-
-
-@pytest.mark.skipif(_launcher_cmd() is None, reason="no smdm run launcher")
 def test_launcher_train(tmp_path):
     """``smdm run --repo COPY/text2motion --integration motiondiffuse -- python HARNESS ...
     tools/train.py ... --sparse``: the hooks come from the launcher's sitecustomize (the harness
     installs none; it only stubs what this machine lacks)."""
     t2m = prepare(str(tmp_path / "MotionDiffuse"), patch=False)
     rec = str(tmp_path / "train.pkl")
-    cmd = _launcher_cmd() + ["--repo", t2m, "--integration", "motiondiffuse", "--",
+    cmd = LAUNCHER + ["--repo", t2m, "--integration", "motiondiffuse", "--",
                              sys.executable, os.path.join(HERE, "upstream_harness.py"), t2m,
                              *train_args(1)]
     out = _run(cmd, REPO, _env(record=rec))

@@ -22,7 +22,6 @@ What is checked (each would fail if the integration were wrong):
   ``y``-based hook under test); the unfolded sample is finite, ``[1, 22, 3, 3*150 - 2*10]``.
 """
 import glob
-import importlib.util
 import json
 import os
 import pickle
@@ -33,7 +32,7 @@ import sys
 
 import numpy as np
 import pytest
-from _upstream import HERE, PATCHES, REPO, copy_checkout, find_humanml3d
+from _upstream import HERE, LAUNCHER, PATCHES, REPO, copy_checkout, find_humanml3d
 
 ROOT = os.environ.get("SMDM_PRIORMDM_ROOT")
 PATCH = os.path.join(PATCHES, "priormdm.patch")
@@ -224,22 +223,13 @@ def test_hooks_train_and_double_take(tmp_path):
     check_forced(rec)
 
 
-def _launcher_cmd():
-    if importlib.util.find_spec("smdm_plugin.cli") is not None:
-        return [sys.executable, "-m", "smdm_plugin.cli", "run"]
-    if importlib.util.find_spec("smdm_plugin.integrations.launcher") is not None:
-        return [sys.executable, "-m", "smdm_plugin.integrations.launcher"]
-    return None
-
-
-@pytest.mark.skipif(_launcher_cmd() is None, reason="no smdm run launcher")
 def test_launcher_train(tmp_path):
     """``smdm run --repo COPY -- python HARNESS COPY -m train.train_mdm ... --sparse``: the hooks
     come from the launcher's sitecustomize (the harness installs none; it only stubs CLIP's
     download and torchvision, which this machine lacks)."""
     run, save = prepare(str(tmp_path / "priorMDM"), patch=False), str(tmp_path / "save" / "run")
     rec = str(tmp_path / "train.pkl")
-    cmd = _launcher_cmd() + ["--repo", run, "--", sys.executable,
+    cmd = LAUNCHER + ["--repo", run, "--", sys.executable,
                              os.path.join(HERE, "upstream_harness.py"), run, *train_args(save, 2)]
     out = _run(cmd, REPO, _env(record=rec))
     check_training(save, out, rec, 2)
