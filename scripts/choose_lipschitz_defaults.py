@@ -21,7 +21,7 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from smdm_plugin.lipschitz import LipschitzMLP, lipschitz_loss
+from smdm_plugin.core.lipschitz import LipschitzMLP, lipschitz_loss
 
 DATA = "/work/shared/data/cmu-humanml3d"
 

@@ -24,9 +24,9 @@ from typing import Dict, List, Tuple
 import numpy as np
 import torch
 
-from smdm_plugin.bvh import load_cmu_clip, root_relative_features
-from smdm_plugin.features import extract_selection_features
-from smdm_plugin.selection import select_keyframes
+from smdm_plugin.io.bvh import load_cmu_clip, root_relative_features
+from smdm_plugin.core.features import extract_selection_features
+from smdm_plugin.core.selection import select_keyframes
 
 DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
 SCALES = (0.0, 0.001, 0.003, 0.01, 0.03, 0.1)

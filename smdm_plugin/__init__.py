@@ -1,34 +1,84 @@
 """smdm-plugin: sparse keyframe mode ("Less is More", sMDM) for MDM-family motion diffusion code.
 
-Public API — everything users and the upstream patches/launcher rely on is importable from here.
+Layers (each imports only from those below it; see ``docs/architecture.md``)::
+
+    apps/          smdm bench | ablate | demo | run (CLI)
+    integrations/  upstream MDM / DiP, priorMDM, MotionDiffuse: launcher hooks, patch entry points
+    adapters/      model surgery: sparsify / unsparsify per model family, diffusion wrapper
+    core/          the method: selection, plan, keyframe transformer, interpolation, Lipschitz, FSQ
+    io/, reference/, metrics/   beside them: file formats, the in-package TinyMDM, motion metrics
+
+The public API below is importable from here; names are resolved on first use, so
+``import smdm_plugin`` stays cheap and importing one layer does not pull in the others.
 """
-from .config import SparseConfig, load_preset
-from .selection import select_keyframes, perturb_mask, vw_reference, keyframe_count
-from .features import extract_selection_features
-from .bvh import read_bvh, bvh_joint_positions, load_cmu_clip
-from .interpolation import interpolate_keyframes
-from .keyframe_transformer import KeyframeTransformer
-from .attention_backends import register_backend, get_backend, available_backends
-from .lipschitz import LipschitzMLP, lipschitz_loss, bake_lipschitz
-from .fsq import FSQ, FSQMultiheadAttention, quantize_attention_keys
-from .schedule import MaskSchedule
-from .losses import dense_loss, keyframe_loss, lipschitz_term
-from .backbone import TinyMDM
-from .diffusion import SimpleDiffusion, ClassifierFreeGuidance
-from .adapters.mdm import sparsify, unsparsify, is_sparse, detect_variant, set_mean_std
-from .adapters.diffusion import attach_diffusion, detach_diffusion
-from .checkpoint import save_sparse_config, load_checkpoint, check_state_dict, find_sparse_config
+from __future__ import annotations
 
-__version__ = "0.1.0"
+import importlib
+from typing import TYPE_CHECKING, Any, Dict, List
 
-__all__ = [
-    "SparseConfig", "load_preset", "select_keyframes", "perturb_mask", "vw_reference", "keyframe_count",
-    "read_bvh", "bvh_joint_positions", "load_cmu_clip",
-    "extract_selection_features", "interpolate_keyframes", "KeyframeTransformer", "register_backend",
-    "get_backend", "available_backends", "LipschitzMLP", "lipschitz_loss", "bake_lipschitz",
-    "FSQ", "FSQMultiheadAttention", "quantize_attention_keys",
-    "MaskSchedule", "dense_loss", "keyframe_loss", "lipschitz_term", "TinyMDM", "SimpleDiffusion",
-    "ClassifierFreeGuidance", "sparsify", "unsparsify", "is_sparse", "detect_variant", "set_mean_std",
-    "attach_diffusion", "detach_diffusion", "save_sparse_config", "load_checkpoint", "check_state_dict",
-    "find_sparse_config", "__version__",
-]
+from . import _compat
+
+__version__ = "0.2.0"
+
+_EXPORTS: Dict[str, str] = {
+    # core: the method
+    "SparseConfig": "core.config", "load_preset": "core.config",
+    "select_keyframes": "core.selection", "perturb_mask": "core.selection",
+    "vw_reference": "core.selection", "keyframe_count": "core.selection",
+    "extract_selection_features": "core.features",
+    "interpolate_keyframes": "core.interpolation",
+    "KeyframeTransformer": "core.keyframe_transformer",
+    "register_backend": "core.attention_backends", "get_backend": "core.attention_backends",
+    "available_backends": "core.attention_backends",
+    "LipschitzMLP": "core.lipschitz", "lipschitz_loss": "core.lipschitz", "bake_lipschitz": "core.lipschitz",
+    "FSQ": "core.fsq", "FSQMultiheadAttention": "core.fsq", "quantize_attention_keys": "core.fsq",
+    "MaskSchedule": "core.schedule",
+    "dense_loss": "core.losses", "keyframe_loss": "core.losses", "lipschitz_term": "core.losses",
+    # adapters: model surgery
+    "sparsify": "adapters.mdm", "unsparsify": "adapters.mdm", "is_sparse": "adapters.mdm",
+    "detect_variant": "adapters.mdm", "set_mean_std": "adapters.mdm",
+    "attach_diffusion": "adapters.diffusion", "detach_diffusion": "adapters.diffusion",
+    # io
+    "read_bvh": "io.bvh", "bvh_joint_positions": "io.bvh", "load_cmu_clip": "io.bvh",
+    "save_sparse_config": "io.checkpoint", "load_checkpoint": "io.checkpoint",
+    "check_state_dict": "io.checkpoint", "find_sparse_config": "io.checkpoint",
+    # reference model
+    "TinyMDM": "reference.backbone",
+    "SimpleDiffusion": "reference.diffusion", "ClassifierFreeGuidance": "reference.diffusion",
+}
+
+__all__: List[str] = sorted(_EXPORTS) + ["__version__"]
+
+_compat.install()
+
+
+def __getattr__(name: str) -> Any:
+    module = _EXPORTS.get(name)
+    if module is None:
+        raise AttributeError(f"module 'smdm_plugin' has no attribute {name!r}")
+    value = getattr(importlib.import_module(f"{__name__}.{module}"), name)
+    globals()[name] = value  # resolve once
+    return value
+
+
+def __dir__() -> List[str]:
+    return sorted(set(globals()) | set(__all__))
+
+
+if TYPE_CHECKING:  # pragma: no cover - for type checkers and IDEs
+    from .adapters.diffusion import attach_diffusion, detach_diffusion
+    from .adapters.mdm import detect_variant, is_sparse, set_mean_std, sparsify, unsparsify
+    from .core.attention_backends import available_backends, get_backend, register_backend
+    from .core.config import SparseConfig, load_preset
+    from .core.features import extract_selection_features
+    from .core.fsq import FSQ, FSQMultiheadAttention, quantize_attention_keys
+    from .core.interpolation import interpolate_keyframes
+    from .core.keyframe_transformer import KeyframeTransformer
+    from .core.lipschitz import LipschitzMLP, bake_lipschitz, lipschitz_loss
+    from .core.losses import dense_loss, keyframe_loss, lipschitz_term
+    from .core.schedule import MaskSchedule
+    from .core.selection import keyframe_count, perturb_mask, select_keyframes, vw_reference
+    from .io.bvh import bvh_joint_positions, load_cmu_clip, read_bvh
+    from .io.checkpoint import check_state_dict, find_sparse_config, load_checkpoint, save_sparse_config
+    from .reference.backbone import TinyMDM
+    from .reference.diffusion import ClassifierFreeGuidance, SimpleDiffusion

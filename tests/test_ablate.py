@@ -5,14 +5,14 @@ from pathlib import Path
 
 import pytest
 
-from smdm_plugin import ablate
+from smdm_plugin.apps import ablate
 
 ROOT = Path(__file__).resolve().parents[1]
-QUICK = ROOT / "configs" / "ablations" / "quick.yaml"
+QUICK = ROOT / "smdm_plugin" / "configs" / "ablations" / "quick.yaml"
 
 
 def test_table1_config_lists_the_paper_ablations():
-    cfg = ablate.load_config(str(ROOT / "configs" / "ablations" / "table1.yaml"))
+    cfg = ablate.load_config(str(ROOT / "smdm_plugin" / "configs" / "ablations" / "table1.yaml"))
     names = [v["name"] for v in cfg["variants"]]
     assert names[0] == "dense" and len(names) == 9
     for v in cfg["variants"]:

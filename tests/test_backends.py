@@ -7,8 +7,8 @@ import torch
 import torch.nn as nn
 
 from smdm_plugin import KeyframeTransformer, register_backend
-from smdm_plugin import attention_backends as ab
-from smdm_plugin.attention_backends import (Packing, available_backends, compact_backend, get_backend,
+from smdm_plugin.core import attention_backends as ab
+from smdm_plugin.core.attention_backends import (Packing, available_backends, compact_backend, get_backend,
                                             lerp_rows, varlen_backend)
 
 CUDA = pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")
@@ -155,7 +155,7 @@ def test_varlen_falls_back_to_compact_for_hooks_and_custom_attention():
 
 
 def test_varlen_with_fsq_attention_falls_back_and_matches_compact():
-    fsq = pytest.importorskip("smdm_plugin.fsq")
+    fsq = pytest.importorskip("smdm_plugin.core.fsq")
     torch.manual_seed(5)
     S, B, d = 16, 2, 32
     enc = encoder().eval()

@@ -1,10 +1,10 @@
-"""`smdm bench --quick` smoke run, `python -m smdm_plugin.bench keyframes`, and the `smdm` CLI."""
+"""`smdm bench --quick` smoke run, `python -m smdm_plugin.apps.bench keyframes`, and the `smdm` CLI."""
 import json
 import subprocess
 import sys
 import types
 
-from smdm_plugin import bench, cli
+from smdm_plugin.apps import bench, cli
 
 
 def test_bench_quick_writes_json_and_table(tmp_path, capsys):
@@ -20,7 +20,7 @@ def test_bench_quick_writes_json_and_table(tmp_path, capsys):
 
 
 def test_bench_keyframes_module_mode():
-    p = subprocess.run([sys.executable, "-m", "smdm_plugin.bench", "keyframes", "--repeats", "1"],
+    p = subprocess.run([sys.executable, "-m", "smdm_plugin.apps.bench", "keyframes", "--repeats", "1"],
                        capture_output=True, text=True, timeout=300)
     assert p.returncode == 0 and "batched VW on [64, 196, 64]" in p.stdout
 

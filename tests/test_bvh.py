@@ -7,7 +7,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from smdm_plugin.bvh import (CMU_TO_METRES, HUMANML22_FROM_CMU, bvh_joint_positions,
+from smdm_plugin.io.bvh import (CMU_TO_METRES, HUMANML22_FROM_CMU, bvh_joint_positions,
                              cmu_to_humanml22, load_cmu_clip, read_bvh, root_relative_features)
 
 DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"

@@ -4,7 +4,7 @@ import json
 import numpy as np
 import pytest
 
-from smdm_plugin import demo
+from smdm_plugin.apps import demo
 
 
 @pytest.fixture(scope="module")

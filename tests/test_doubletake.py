@@ -5,7 +5,7 @@ import torch
 from smdm_plugin import SparseConfig, TinyMDM, sparsify
 from smdm_plugin.adapters.doubletake import (attach_doubletake_forcing, detach_doubletake_forcing,
                                              doubletake_forced_frames, forced_from_y)
-from smdm_plugin.diffusion import SimpleDiffusion
+from smdm_plugin.reference.diffusion import SimpleDiffusion
 
 H, BLEND = 6, 4
 

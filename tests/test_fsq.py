@@ -6,7 +6,7 @@ import pytest
 import torch
 from torch import nn
 
-from smdm_plugin.fsq import FSQ, FSQMultiheadAttention, quantize_attention_keys
+from smdm_plugin.core.fsq import FSQ, FSQMultiheadAttention, quantize_attention_keys
 
 LEVELS = (8, 5, 5, 2)
 pytestmark = pytest.mark.filterwarnings("ignore:The PyTorch API of nested tensors")

@@ -5,7 +5,7 @@ import torch
 import torch.nn as nn
 
 from smdm_plugin import KeyframeTransformer, interpolate_keyframes
-from smdm_plugin.attention_backends import compact_indices, get_backend
+from smdm_plugin.core.attention_backends import compact_indices, get_backend
 
 BACKENDS = ["masked", "compact", "varlen"]
 

@@ -7,10 +7,10 @@ import torch.nn.functional as F
 from torch import nn
 from torch.nn.utils import parametrize
 
-from smdm_plugin.lipschitz import (LipschitzMLP, LipschitzWeight, SineActivation,
+from smdm_plugin.core.lipschitz import (LipschitzMLP, LipschitzWeight, SineActivation,
                                    bake_lipschitz, is_lipschitz, lipschitz_linear,
                                    lipschitz_loss)
-from smdm_plugin.lipschitz import _inverse_softplus
+from smdm_plugin.core.lipschitz import _inverse_softplus
 
 
 def _ratio(f, x, y):

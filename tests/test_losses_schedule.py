@@ -2,7 +2,7 @@ import pytest
 import torch
 
 from smdm_plugin import MaskSchedule, SparseConfig, dense_loss, keyframe_loss, lipschitz_term, select_keyframes
-from smdm_plugin.lipschitz import LipschitzMLP
+from smdm_plugin.core.lipschitz import LipschitzMLP
 
 
 def test_dense_loss_ignores_padding_and_keyframe_loss_ignores_non_keyframes():

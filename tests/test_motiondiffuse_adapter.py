@@ -194,7 +194,7 @@ def test_sparse_tokens_and_interpolation():
     forced[:, 7] = True
     with torch.no_grad():
         model(x, t, length=length, text=text, keyframe_forced=forced)
-    last = model._smdm_md_state["last_mask"]
+    last = model._smdm_md_state.last_mask
     assert bool(last[:, 7].all())
     assert not bool(last[2, 17:].any())  # nothing beyond the valid length (17)
 

@@ -8,8 +8,8 @@ import numpy as np
 import pytest
 import torch
 
-from smdm_plugin.features import extract_selection_features
-from smdm_plugin.selection import (METHODS, keyframe_count, perturb_mask, select_keyframes,
+from smdm_plugin.core.features import extract_selection_features
+from smdm_plugin.core.selection import (METHODS, keyframe_count, perturb_mask, select_keyframes,
                                    vw_reference)
 
 DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
@@ -86,7 +86,7 @@ def test_vw_equals_reference_on_real_humanml3d(scale):
 
 
 def test_vw_equals_reference_on_real_bvh():
-    from smdm_plugin.bvh import load_cmu_clip, root_relative_features
+    from smdm_plugin.io.bvh import load_cmu_clip, root_relative_features
     clips = ["01_01", "05_02", "49_06"]                               # LF, CRLF, LF files
     if not all((DATA / "cmu-mocap" / f"{c}.bvh").exists() for c in clips):
         pytest.skip("shared/data/cmu-mocap not available")

@@ -7,7 +7,7 @@ import torch.nn as nn
 
 from smdm_plugin import (SimpleDiffusion, SparseConfig, TinyMDM, detect_variant, is_sparse, lipschitz_loss,
                          sparsify, unsparsify)
-from smdm_plugin.lipschitz import LipschitzMLP
+from smdm_plugin.core.lipschitz import LipschitzMLP
 
 VARIANTS = {
     "mdm-trans_enc": dict(arch="trans_enc"),
@@ -36,7 +36,7 @@ def batch(model, B=3, N=None, lengths=None, seed=0):
 
 def record_keyframes(model):
     seen = []
-    tr = model._smdm_state["transformer"]
+    tr = model._smdm_state.transformer
     orig = tr.set_keyframes
     tr.set_keyframes = lambda m: (seen.append(None if m is None else m.clone()), orig(m))
     return seen
@@ -83,7 +83,7 @@ def test_all_keyframes_equals_dense(name):
 @pytest.mark.parametrize("name", VARIANTS)
 def test_transformer_sees_only_keyframes(name):
     model = sparsify(tiny(**VARIANTS[name]), SparseConfig(reduction=0.8, lipschitz=False)).eval()
-    tr = model._smdm_state["transformer"]
+    tr = model._smdm_state.transformer
     tokens = []
     tr.layers[0].register_forward_pre_hook(lambda m, a, kw=None: tokens.append(a[0].shape[0]))
     seen = record_keyframes(model)
@@ -109,7 +109,7 @@ def test_sampling_schedule_uniform_early_vw_late():
         model(x, torch.tensor([40, 40]), y)
         model(x, torch.tensor([5, 5]), y)
     from smdm_plugin import select_keyframes
-    from smdm_plugin.schedule import MaskSchedule
+    from smdm_plugin.core.schedule import MaskSchedule
     uniform = select_keyframes(torch.zeros(2, 60, 1), None, 0.8, "uniform")
     vw = MaskSchedule(model.smdm_config).sampling_mask(x.squeeze(2).transpose(1, 2), torch.tensor([5, 5]))
     assert torch.equal(seen[0], uniform)
@@ -173,7 +173,7 @@ def test_training_losses_use_x0_mask_and_add_lipschitz_term():
     t = torch.tensor([49, 49, 49])
     torch.manual_seed(1)
     terms = diffusion.training_losses(model, x, t, {"y": y})
-    from smdm_plugin.schedule import MaskSchedule
+    from smdm_plugin.core.schedule import MaskSchedule
     expected = MaskSchedule(model.smdm_config).training_mask(x.squeeze(2).transpose(1, 2), y["lengths"])
     assert torch.equal(seen[0], expected)  # from x0, not from the (pure-noise) x_t
     assert torch.allclose(terms["loss"] - terms["mse"], 0.5 * terms["lip"])

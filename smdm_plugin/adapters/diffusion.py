@@ -15,8 +15,9 @@ from typing import Any, Optional
 import torch
 import torch.nn as nn
 
-from ..config import SparseConfig
-from ..losses import add_lipschitz_term
+from ..core.config import SparseConfig
+from ..core.losses import add_lipschitz_term
+from .state import find_sparse_model, frames_layout, get_state, lengths_from_y
 
 
 def diffusion_steps(diffusion: Any) -> int:
@@ -26,22 +27,6 @@ def diffusion_steps(diffusion: Any) -> int:
             return int(getattr(diffusion, attr))
     raise ValueError(f"attach_diffusion: cannot read the step count of {type(diffusion).__name__} "
                      "(expected num_timesteps or original_num_steps)")
-
-
-def find_sparse_model(model: nn.Module) -> Optional[nn.Module]:
-    """The sparsified module inside ``model`` (which may be a DDP or CFG wrapper)."""
-    for m in model.modules():
-        if hasattr(m, "_smdm_state"):
-            return m
-    return None
-
-
-def _motion_as_frames(x: torch.Tensor) -> torch.Tensor:
-    """``[B, J, F, N]`` (MDM) -> ``[B, N, J*F]``; ``[B, N, D]`` passes through."""
-    if x.dim() == 4:
-        B, J, F_, N = x.shape
-        return x.permute(0, 3, 1, 2).reshape(B, N, J * F_)
-    return x
 
 
 def attach_diffusion(diffusion: Any, config: SparseConfig, model: Optional[nn.Module] = None) -> Any:
@@ -57,12 +42,10 @@ def attach_diffusion(diffusion: Any, config: SparseConfig, model: Optional[nn.Mo
             return original(model_arg, x_start, t, model_kwargs, *args, **kwargs)
         model_kwargs = dict(model_kwargs or {})
         y = dict(model_kwargs.get("y", {}))
-        frames = _motion_as_frames(x_start)
+        frames = frames_layout(x_start)
         B, N = frames.shape[:2]
-        from .mdm import _lengths_from_y
-
-        lengths = _lengths_from_y(y, B, N, x_start.device)
-        mask = sparse._smdm_state["schedule"].training_mask(frames, lengths, y.get("keyframe_forced"))
+        lengths = lengths_from_y(y, B, N, x_start.device)
+        mask = get_state(sparse).schedule.training_mask(frames, lengths, y.get("keyframe_forced"))
         y["keyframe_mask"] = mask
         if not config.interpolate and isinstance(y.get("mask"), torch.Tensor):
             y["mask"] = y["mask"] & mask.view(y["mask"].shape).to(y["mask"].dtype)

@@ -15,29 +15,21 @@ No wrapper class: the model keeps its type and attributes (``rot2xyz``, ``njoint
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
 from typing import Any, Dict, Optional, Tuple
 
 import torch
 import torch.nn as nn
 
-from ..checkpoint import MARKER
-from ..config import SparseConfig
-from ..keyframe_transformer import KeyframeTransformer
-from ..lipschitz import LipschitzMLP
-from ..schedule import MaskSchedule
+from ..core.attention_backends import scatter_rows
+from ..core.config import MARKER, SparseConfig
+from ..core.fsq import quantize_attention_keys
+from ..core.keyframe_transformer import KeyframeTransformer
+from ..core.lipschitz import LipschitzMLP
+from ..core.schedule import MaskSchedule
+from .diffusion import attach_diffusion, diffusion_steps
+from .state import STATE_ATTR, SparseState, Variant, frames_layout, get_state, lengths_from_y
 
 _TRANSFORMERS = ("seqTransEncoder", "seqTransDecoder")
-
-
-@dataclass
-class Variant:
-    """What :func:`detect_variant` found."""
-
-    arch: str               # trans_enc | trans_dec
-    transformer: str        # attribute name of the transformer
-    prefix_len: int         # DiP context frames kept dense (0 otherwise)
-    name: str               # human-readable: mdm-trans_enc, mdm-trans_dec, dip, doubletake, ...
 
 
 def detect_variant(model: nn.Module) -> Variant:
@@ -74,7 +66,8 @@ def detect_variant(model: nn.Module) -> Variant:
 
 
 def is_sparse(model: nn.Module) -> bool:
-    return hasattr(model, "_smdm_state")
+    """Whether ``model`` itself was sparsified (see :func:`sparsify`)."""
+    return get_state(model) is not None
 
 
 def _swap_lipschitz(model: nn.Module, config: SparseConfig, originals: Dict[Tuple[nn.Module, str], nn.Module]
@@ -94,24 +87,8 @@ def _swap_lipschitz(model: nn.Module, config: SparseConfig, originals: Dict[Tupl
             setattr(owner, name, new)
 
 
-def _frames_layout(x: torch.Tensor) -> torch.Tensor:
-    """MDM's ``[B, J, F, N]`` motion as ``[B, N, J*F]``."""
-    B, J, F_, N = x.shape
-    return x.permute(0, 3, 1, 2).reshape(B, N, J * F_)
-
-
-def _lengths_from_y(y: Dict[str, Any], B: int, N: int, device: torch.device) -> torch.Tensor:
-    mask = y.get("mask")
-    if isinstance(mask, torch.Tensor) and mask.shape[-1] == N and mask.numel() == B * N:
-        return mask.reshape(B, N).to(device).long().sum(1).clamp_min(2)
-    lengths = y.get("lengths")
-    if lengths is not None:
-        return torch.as_tensor(lengths, device=device).long().reshape(B).clamp(2, N)
-    return torch.full((B,), N, dtype=torch.long, device=device)
-
-
 def _pre_hook(model: nn.Module, args: tuple, kwargs: dict):
-    state = model._smdm_state
+    state: SparseState = getattr(model, STATE_ATTR)
     x = args[0] if args else kwargs["x"]
     timesteps = args[1] if len(args) > 1 else kwargs.get("timesteps")
     y = args[2] if len(args) > 2 else kwargs.get("y")
@@ -127,28 +104,30 @@ def _pre_hook(model: nn.Module, args: tuple, kwargs: dict):
         key = (x.data_ptr(), x._version, tuple(x.shape), None if timesteps is None else
                tuple(torch.as_tensor(timesteps).reshape(-1).tolist()))
         forced = y.get("keyframe_forced")
-        cached_forced = state.get("cache_forced")
+        cache = state.sampling_cache
+        cached_forced = cache[2] if cache else None
         same_forced = (forced is None and cached_forced is None) or (
             forced is not None and cached_forced is not None and forced.shape == cached_forced.shape
             and torch.equal(forced.to(cached_forced.device), cached_forced))
-        if state.get("cache_key") == key and same_forced:
-            mask = state["cache_mask"]  # classifier-free guidance: same x_t twice
+        if cache and cache[0] == key and same_forced:
+            mask = cache[1]  # classifier-free guidance: same x_t twice
         else:
-            lengths = _lengths_from_y(y, B, N, x.device)
+            lengths = lengths_from_y(y, B, N, x.device)
             t = timesteps if timesteps is not None else torch.zeros(B, device=x.device)
-            mask = state["schedule"].sampling_mask(_frames_layout(x), t, lengths, forced)
-            state.update(cache_key=key, cache_mask=mask, cache_forced=forced)
-    prefix = state["variant"].prefix_len
+            mask = state.schedule.sampling_mask(frames_layout(x), t, lengths, forced)
+            state.sampling_cache = (key, mask, forced)
+    prefix = state.variant.prefix_len
     if prefix:
         mask = torch.cat([mask.new_ones(B, prefix), mask], dim=1)
-    state["transformer"].set_keyframes(mask)
-    state["frame_mask"] = mask
+    state.transformer.set_keyframes(mask)
+    state.frame_mask = mask
     return None
 
 
 def _post_hook(model: nn.Module, args: tuple, kwargs: dict, output: Any) -> None:
-    model._smdm_state["transformer"].set_keyframes(None)
-    model._smdm_state["frame_mask"] = None
+    state: SparseState = getattr(model, STATE_ATTR)
+    state.transformer.set_keyframes(None)
+    state.frame_mask = None
     return None
 
 
@@ -159,8 +138,8 @@ def _post_hook(model: nn.Module, args: tuple, kwargs: dict, output: Any) -> None
 # ``[N, B, d]`` with zeros elsewhere. They are plain functions that find the model's state through
 # an attribute (not a closure), so ``copy.deepcopy`` (EMA) keeps each copy on its own state.
 def _rows_pre_hook(module: nn.Module, args: tuple):
-    state = getattr(module, "_smdm_rows_state", None)
-    mask = None if state is None else state.get("frame_mask")
+    state: Optional[SparseState] = getattr(module, "_smdm_rows_state", None)
+    mask = None if state is None else state.frame_mask
     x = args[0] if args else None
     state_rows = None
     if (mask is not None and isinstance(x, torch.Tensor) and x.dim() == 3 and len(args) == 1
@@ -169,22 +148,20 @@ def _rows_pre_hook(module: nn.Module, args: tuple):
         idx = mask.t().reshape(-1).nonzero(as_tuple=True)[0].to(x.device)  # frame-major rows
         state_rows = (idx, N, B)
         x = x.reshape(N * B, F_).index_select(0, idx)
-        state["rows"] = state_rows
+        state.embed_rows = state_rows
         return (x,)
     if state is not None:
-        state["rows"] = None
+        state.embed_rows = None
     return None
 
 
 def _rows_post_hook(module: nn.Module, args: tuple, output: torch.Tensor):
-    state = getattr(module, "_smdm_rows_state", None)
-    rows = None if state is None else state.get("rows")
+    state: Optional[SparseState] = getattr(module, "_smdm_rows_state", None)
+    rows = None if state is None else state.embed_rows
     if rows is None:
         return None
-    from ..attention_backends import scatter_rows
-
     idx, N, B = rows
-    state["rows"] = None
+    state.embed_rows = None
     return scatter_rows(output, idx, N * B).view(N, B, output.shape[-1])
 
 
@@ -210,8 +187,6 @@ def sparsify(model: nn.Module, config: Optional[SparseConfig] = None, *, diffusi
         raise ValueError(f"sparsify: config.prefix_frames={config.prefix_frames} but the DiP model has "
                          f"context_len={variant.prefix_len}")
     if diffusion is not None:
-        from .diffusion import diffusion_steps
-
         config = config.replace(diffusion_steps=diffusion_steps(diffusion))
     if variant.prefix_len:
         config = config.replace(prefix_frames=variant.prefix_len)
@@ -221,7 +196,7 @@ def sparsify(model: nn.Module, config: Optional[SparseConfig] = None, *, diffusi
     inner = getattr(model, variant.transformer)
     n_fsq = 0
     if config.fsq:
-        from ..fsq import quantize_attention_keys
+        from ..core.fsq import quantize_attention_keys
 
         n_fsq = quantize_attention_keys(inner, config.fsq_levels)
     wrapper = KeyframeTransformer(inner, interpolate=True, backend=config.attention_backend)
@@ -230,23 +205,17 @@ def sparsify(model: nn.Module, config: Optional[SparseConfig] = None, *, diffusi
     ref = next(model.parameters())
     model.register_buffer(MARKER, torch.tensor(config.version, device=ref.device), persistent=True)
     model.smdm_config = config
-    model._smdm_state = {
-        "variant": variant,
-        "transformer": wrapper,
-        "schedule": MaskSchedule(config, mean, std),
-        "originals": originals,
-        "fsq_layers": n_fsq,
-        "handles": [model.register_forward_pre_hook(_pre_hook, with_kwargs=True),
-                    model.register_forward_hook(_post_hook, with_kwargs=True)],
-    }
+    state = SparseState(config=config, variant=variant, transformer=wrapper,
+                        schedule=MaskSchedule(config, mean, std), originals=originals, fsq_layers=n_fsq)
+    setattr(model, STATE_ATTR, state)
+    state.handles += [model.register_forward_pre_hook(_pre_hook, with_kwargs=True),
+                      model.register_forward_hook(_post_hook, with_kwargs=True)]
     embed = getattr(model.input_process, "poseEmbedding", None)
     if isinstance(embed, nn.Module):
-        embed._smdm_rows_state = model._smdm_state
-        model._smdm_state["handles"] += [embed.register_forward_pre_hook(_rows_pre_hook),
-                                         embed.register_forward_hook(_rows_post_hook)]
+        embed._smdm_rows_state = state
+        state.handles += [embed.register_forward_pre_hook(_rows_pre_hook),
+                          embed.register_forward_hook(_rows_post_hook)]
     if diffusion is not None:
-        from .diffusion import attach_diffusion
-
         attach_diffusion(diffusion, config, model=model)
     return model
 
@@ -260,20 +229,20 @@ def unsparsify(model: nn.Module) -> nn.Module:
     """
     if not is_sparse(model):
         return model
-    state = model._smdm_state
-    for h in state["handles"]:
+    state = get_state(model)
+    for h in state.handles:
         h.remove()
     embed = getattr(model.input_process, "poseEmbedding", None)
     if embed is not None and hasattr(embed, "_smdm_rows_state"):
         del embed._smdm_rows_state
-    for (owner, name), module in state["originals"].items():
+    for (owner, name), module in state.originals.items():
         setattr(owner, name, module)
     del model._buffers[MARKER]
-    del model._smdm_state
+    delattr(model, STATE_ATTR)
     del model.smdm_config
     return model
 
 
 def set_mean_std(model: nn.Module, mean: Any, std: Any) -> None:
     """Give a sparse model the dataset Mean/Std after the fact (e.g. once the data is loaded)."""
-    model._smdm_state["schedule"] = MaskSchedule(model.smdm_config, mean, std)
+    get_state(model).schedule = MaskSchedule(model.smdm_config, mean, std)

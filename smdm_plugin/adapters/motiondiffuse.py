@@ -34,21 +34,42 @@ from __future__ import annotations
 import functools
 import math
 import types
-from typing import Any, Dict, Optional, Tuple
+from dataclasses import dataclass, field
+from typing import Any, Callable, Dict, Optional, Tuple
 
 import numpy as np
 import torch
 import torch.nn as nn
 
-from ..config import SparseConfig
-from ..interpolation import interpolate_keyframes
-from ..lipschitz import LipschitzMLP, lipschitz_loss
-from ..losses import add_lipschitz_term
-from ..schedule import MaskSchedule
+from ..core.config import MARKER, SparseConfig
+from ..core.interpolation import interpolate_keyframes
+from ..core.lipschitz import LipschitzMLP, lipschitz_loss
+from ..core.losses import add_lipschitz_term
+from ..core.schedule import MaskSchedule
 
-from ..checkpoint import MARKER
 _REQUIRED = ("joint_embed", "out", "temporal_decoder_blocks", "sequence_embedding", "time_embed",
              "encode_text", "latent_dim", "input_feats")
+
+
+MD_STATE_ATTR = "_smdm_md_state"
+
+
+@dataclass
+class MotionDiffuseState:
+    """What :func:`sparsify_motiondiffuse` keeps on the model (``model._smdm_md_state``):
+    the replaced layers and ``forward`` (for undoing), the mask schedule, the timestep
+    embedding function, and ``last_mask`` (bool ``[B, T]``, the keyframes of the latest call)."""
+
+    schedule: MaskSchedule
+    timestep_embedding: Callable[..., torch.Tensor]
+    originals: Dict[str, nn.Module] = field(default_factory=dict)
+    had_forward: bool = False
+    old_forward: Any = None
+    last_mask: Optional[torch.Tensor] = None
+
+
+def _md_state(model: nn.Module) -> Optional[MotionDiffuseState]:
+    return getattr(model, MD_STATE_ATTR, None)
 
 
 # --------------------------------------------------------------------------- helpers
@@ -60,7 +81,7 @@ def _check_model(model: nn.Module) -> None:
 
 
 def is_sparse_motiondiffuse(model: nn.Module) -> bool:
-    return hasattr(model, "_smdm_md_state")
+    return _md_state(model) is not None
 
 
 def timestep_embedding(timesteps: torch.Tensor, dim: int, max_period: int = 10000) -> torch.Tensor:
@@ -114,14 +135,14 @@ def _sparse_forward(self, x, timesteps, length=None, text=None, xf_proj=None, xf
                     keyframe_mask=None, keyframe_forced=None):
     """Sparse ``MotionTransformer.forward``: same arguments and output ``[B, T, D]``, plus
     ``keyframe_mask`` / ``keyframe_forced`` (bool ``[B, T]``)."""
-    state = self._smdm_md_state
+    state: MotionDiffuseState = getattr(self, MD_STATE_ATTR)
     B, T = x.shape[0], x.shape[1]
     if text is not None and len(text) != B:  # upstream's per-GPU slice of a replicated text list
         index = x.device.index or 0
         text = text[index * B: index * B + B]
     if xf_proj is None or xf_out is None:
         xf_proj, xf_out = self.encode_text(text, x.device)
-    emb = self.time_embed(state["timestep_embedding"](timesteps, self.latent_dim)) + xf_proj
+    emb = self.time_embed(state.timestep_embedding(timesteps, self.latent_dim)) + xf_proj
 
     h = self.joint_embed(x)
     h = h + self.sequence_embedding.unsqueeze(0)[:, :T, :]
@@ -130,7 +151,7 @@ def _sparse_forward(self, x, timesteps, length=None, text=None, xf_proj=None, xf
     if keyframe_mask is None:
         lengths = valid.long().sum(1).clamp(2, T) if T >= 2 else valid.long().sum(1)
         t = timesteps if timesteps is not None else torch.zeros(B, device=x.device)
-        mask = state["schedule"].sampling_mask(x.detach(), t, lengths, keyframe_forced)
+        mask = state.schedule.sampling_mask(x.detach(), t, lengths, keyframe_forced)
     else:
         mask = torch.as_tensor(keyframe_mask, device=x.device).bool()
         if mask.shape != (B, T):
@@ -143,7 +164,7 @@ def _sparse_forward(self, x, timesteps, length=None, text=None, xf_proj=None, xf
     if bool(empty.any()):  # a row without valid frames: keep its first frame
         mask = mask.clone()
         mask[empty, 0] = True
-    state["last_mask"] = mask
+    state.last_mask = mask
 
     hk, tok_valid = gather_keyframes(h, mask)
     src_mask = tok_valid.to(h.dtype).unsqueeze(-1)
@@ -191,14 +212,10 @@ def sparsify_motiondiffuse(model: nn.Module, config: Optional[SparseConfig] = No
             setattr(model, name, mlp)
     model.register_buffer(MARKER, torch.tensor(config.version, device=ref.device), persistent=True)
     model.smdm_config = config
-    model._smdm_md_state = {
-        "originals": originals,
-        "had_forward": "forward" in model.__dict__,
-        "old_forward": model.__dict__.get("forward"),
-        "schedule": MaskSchedule(config, mean, std),
-        "timestep_embedding": _timestep_embedding_fn(model),
-        "last_mask": None,
-    }
+    setattr(model, MD_STATE_ATTR, MotionDiffuseState(
+        schedule=MaskSchedule(config, mean, std), timestep_embedding=_timestep_embedding_fn(model),
+        originals=originals, had_forward="forward" in model.__dict__,
+        old_forward=model.__dict__.get("forward")))
     model.forward = types.MethodType(_sparse_forward, model)
     if diffusion is not None:
         attach_motiondiffuse_diffusion(diffusion, config, model, masked_loss=True)
@@ -209,21 +226,21 @@ def unsparsify_motiondiffuse(model: nn.Module) -> nn.Module:
     """Undo :func:`sparsify_motiondiffuse` (dense layers come back with their old weights)."""
     if not is_sparse_motiondiffuse(model):
         return model
-    state = model._smdm_md_state
-    for name, module in state["originals"].items():
+    state = _md_state(model)
+    for name, module in state.originals.items():
         setattr(model, name, module)
-    if state["had_forward"]:
-        model.forward = state["old_forward"]
+    if state.had_forward:
+        model.forward = state.old_forward
     else:
         del model.forward
     del model._buffers[MARKER]
-    del model._smdm_md_state
+    delattr(model, MD_STATE_ATTR)
     del model.smdm_config
     return model
 
 
 def set_mean_std(model: nn.Module, mean: Any, std: Any) -> None:
-    model._smdm_md_state["schedule"] = MaskSchedule(model.smdm_config, mean, std)
+    _md_state(model).schedule = MaskSchedule(model.smdm_config, mean, std)
 
 
 # --------------------------------------------------------------------------- loss
@@ -237,7 +254,7 @@ def masked_frame_mse(pred: torch.Tensor, target: torch.Tensor, frame_mask: torch
 
 def _find_md_sparse(model: nn.Module) -> Optional[nn.Module]:
     for m in model.modules():
-        if hasattr(m, "_smdm_md_state"):
+        if _md_state(m) is not None:
             return m
     return None
 
@@ -269,7 +286,7 @@ def attach_motiondiffuse_diffusion(diffusion: Any, config: Optional[SparseConfig
         frame_mask = valid
         if sparse is not None and config.enabled:
             lengths = valid.long().sum(1).clamp(2, T)
-            mask = sparse._smdm_md_state["schedule"].training_mask(
+            mask = _md_state(sparse).schedule.training_mask(
                 x_start.detach(), lengths, model_kwargs.get("keyframe_forced"))
             model_kwargs["keyframe_mask"] = mask
             if not config.interpolate:
@@ -311,7 +328,7 @@ def trainer_loss(trainer: Any, upstream_loss: Optional[torch.Tensor] = None) -> 
     frame_mask = src.reshape(src.shape[0], -1).bool()
     config = getattr(sparse, "smdm_config", None)
     if sparse is not None and config is not None and not config.interpolate:
-        last = sparse._smdm_md_state.get("last_mask")
+        last = _md_state(sparse).last_mask
         if last is not None and last.shape == frame_mask.shape:
             frame_mask = frame_mask & last.to(frame_mask.device)
     err = ((trainer.fake_noise - trainer.real_noise) ** 2).mean(dim=-1)

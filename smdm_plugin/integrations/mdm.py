@@ -24,7 +24,7 @@ import os
 import warnings
 from typing import Any, Optional, Tuple
 
-from ..config import CONFIG_FILENAME, SparseConfig
+from ..core.config import CONFIG_FILENAME, SparseConfig
 
 __all__ = ["add_sparse_options", "sparsify_mdm", "check_mdm_state_dict", "dataset_mean_std",
            "install_hooks", "is_mdm_repo"]
@@ -79,7 +79,7 @@ def sparsify_mdm(model: Any, args: Any, data: Any = None, diffusion: Any = None,
     sparsify(model, config, diffusion=diffusion, mean=mean, std=std)
     save_dir = getattr(args, "save_dir", None)
     if save_dir and os.path.isdir(save_dir) and not getattr(args, "model_path", None):
-        from ..checkpoint import save_sparse_config
+        from ..io.checkpoint import save_sparse_config
 
         save_sparse_config(model, save_dir)
     return model
@@ -89,10 +89,10 @@ def check_mdm_state_dict(model: Any, state_dict: Any, model_path: Optional[str] 
     """Raise a clear error when a sparse checkpoint meets a dense MDM (``--sparse`` lost, e.g. an
     ``args.json`` without the ``sparse`` keys) or the reverse; see
     :func:`smdm_plugin.checkpoint.check_state_dict`."""
-    from ..checkpoint import check_state_dict, state_dict_is_sparse
+    from ..io.checkpoint import check_state_dict, model_is_sparse, state_dict_is_sparse
 
     source = model_path or "checkpoint"
-    if model_path and not hasattr(model, "_smdm_state") and state_dict_is_sparse(state_dict):
+    if model_path and not model_is_sparse(model) and state_dict_is_sparse(state_dict):
         cfg = os.path.join(os.path.dirname(os.path.abspath(model_path)), CONFIG_FILENAME)
         if os.path.exists(cfg):
             source = f"{model_path} (with {CONFIG_FILENAME} beside it)"

@@ -27,7 +27,7 @@ from typing import Any, Optional
 
 import numpy as np
 
-from ..config import CONFIG_FILENAME, SparseConfig
+from ..core.config import CONFIG_FILENAME, SparseConfig
 
 
 def add_sparse_options(parser: Any) -> Any:

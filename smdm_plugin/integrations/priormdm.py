@@ -19,7 +19,7 @@ import functools
 import warnings
 from typing import Any, Optional
 
-from ..config import SparseConfig
+from ..core.config import SparseConfig
 
 
 def add_sparse_options(group: Any) -> Any:

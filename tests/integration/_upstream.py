@@ -19,7 +19,7 @@ import pytest
 HERE = os.path.dirname(os.path.abspath(__file__))
 REPO = os.path.dirname(os.path.dirname(HERE))
 PATCHES = os.path.join(REPO, "patches")
-LAUNCHER = [sys.executable, "-m", "smdm_plugin.cli", "run"]  # `smdm run`, whatever is on PATH
+LAUNCHER = [sys.executable, "-m", "smdm_plugin.apps.cli", "run"]  # `smdm run`, whatever is on PATH
 
 
 def find_humanml3d() -> Optional[str]:

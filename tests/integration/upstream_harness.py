@@ -178,8 +178,8 @@ def install_recorder(path: str) -> None:
 
     import torch
 
-    from smdm_plugin.keyframe_transformer import KeyframeTransformer
-    from smdm_plugin.schedule import MaskSchedule, resolve_lengths
+    from smdm_plugin.core.keyframe_transformer import KeyframeTransformer
+    from smdm_plugin.core.schedule import MaskSchedule, resolve_lengths
 
     records = []
 
@@ -222,7 +222,7 @@ def install_recorder(path: str) -> None:
             model._smdm_recorded = True
 
             def pre_hook(module, args):
-                mask = getattr(model, "_smdm_md_state", {}).get("last_mask")
+                mask = getattr(getattr(model, "_smdm_md_state", None), "last_mask", None)
                 records.append({"kind": "blocks", "tokens": int(args[0].shape[1]),
                                 "mask": None if mask is None else mask.detach().cpu().numpy().copy(),
                                 "lengths": None, "forced": None})

@@ -10,9 +10,8 @@ from typing import Any, Dict, Mapping, Optional, Tuple, Union
 import torch
 import torch.nn as nn
 
-from .config import CONFIG_FILENAME, SparseConfig
+from ..core.config import CONFIG_FILENAME, MARKER, SparseConfig
 
-MARKER = "smdm_sparse_version"
 BACKBONE_FILENAME = "backbone.json"
 
 
@@ -55,10 +54,15 @@ def state_dict_is_sparse(state_dict: Mapping[str, Any]) -> bool:
     return any(k == MARKER or k.endswith("." + MARKER) for k in state_dict)
 
 
+def model_is_sparse(model: nn.Module) -> bool:
+    """Whether ``model`` (or a submodule) carries the sparse marker buffer (any adapter)."""
+    return state_dict_is_sparse(dict(model.named_buffers()))
+
+
 def check_state_dict(model: nn.Module, state_dict: Mapping[str, Any], source: str = "checkpoint") -> None:
     """Raise a clear error when a sparse state dict meets a dense model or the reverse."""
     sd_sparse = state_dict_is_sparse(state_dict)
-    model_sparse = hasattr(model, "_smdm_state")
+    model_sparse = model_is_sparse(model)
     if sd_sparse and not model_sparse:
         raise RuntimeError(
             f"{source} holds a SPARSE (sMDM) model but the model being loaded is dense. Re-create it "
@@ -90,7 +94,7 @@ def load_checkpoint(path: str, model: Optional[nn.Module] = None, map_location: 
     Returns:
         ``(model, config)``; config is None for a dense checkpoint.
     """
-    from .adapters.mdm import sparsify
+    from ..adapters.mdm import sparsify
 
     state = unwrap_state_dict(torch.load(path, map_location=map_location, weights_only=True))
     config = find_sparse_config(path)
@@ -103,11 +107,11 @@ def load_checkpoint(path: str, model: Optional[nn.Module] = None, map_location: 
         if not os.path.exists(bpath):
             raise FileNotFoundError(f"load_checkpoint: no model given and no {BACKBONE_FILENAME} beside "
                                     f"{path} to build the in-package TinyMDM")
-        from .backbone import TinyMDM
+        from ..reference.backbone import TinyMDM
 
         with open(bpath) as f:
             model = TinyMDM(**json.load(f))
-    if config is not None and config.enabled and not hasattr(model, "_smdm_state"):
+    if config is not None and config.enabled and not model_is_sparse(model):
         sparsify(model, config, **sparsify_kwargs)
     check_state_dict(model, state, path)
     missing, unexpected = model.load_state_dict(state, strict=False)

@@ -2,7 +2,7 @@
 
 * ``smdm bench``      — wall-clock of dense vs sparse training / sampling steps (MDM size);
   ``smdm bench keyframes`` times batched VW alone.
-* ``smdm ablate``     — A/B ablation runner (``configs/ablations/*.yaml``) on real motion.
+* ``smdm ablate``     — A/B ablation runner (``smdm_plugin/configs/ablations/*.yaml``) on real motion.
 * ``smdm demo``       — keyframes and dense-vs-sparse training on CMU motion capture (BVH).
 * ``smdm run ...``    — run an upstream script (MDM, priorMDM, MotionDiffuse) in sparse mode.
 * ``smdm keyframes``  — keyframes of one BVH clip (reconstruction error per method and rate).
@@ -65,7 +65,7 @@ def main(argv: Optional[List[str]] = None) -> int:
         print(_usage())
         return 0
     if argv[0] in ("-V", "--version"):
-        from . import __version__
+        from .. import __version__
 
         print(f"smdm-plugin {__version__}")
         return 0
@@ -84,7 +84,7 @@ def main(argv: Optional[List[str]] = None) -> int:
         return int(demo_main(rest) or 0)
     if cmd == "run":
         try:
-            from .integrations.launcher import main_run
+            from ..integrations.launcher import main_run
         except ImportError as e:  # the launcher ships with the integrations
             print(f"smdm run: the launcher is not available ({e})", file=sys.stderr)
             return 2

@@ -1,6 +1,6 @@
 """``smdm ablate``: A/B ablations of sparse keyframe mode on real motion, one results folder.
 
-Every variant of a YAML grid (``configs/ablations/table1.yaml``: the paper's Table 1 set) trains the
+Every variant of a YAML grid (``smdm_plugin/configs/ablations/table1.yaml``: the paper's Table 1 set) trains the
 in-package backbone (:class:`~smdm_plugin.backbone.TinyMDM` + :class:`~smdm_plugin.diffusion.SimpleDiffusion`)
 with the *same* seed, initial weights, data order, diffusion steps ``t`` and step count, on
 HumanML3D-format motion (``--data``, default ``../shared/data/cmu-humanml3d``: ``new_joint_vecs``,
@@ -64,10 +64,26 @@ DEFAULTS: Dict[str, Any] = {
 
 
 # ----------------------------------------------------------------------------------------- config
+ABLATIONS_DIR = os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))), "configs", "ablations")
+
+
+def config_path(name_or_path: str) -> str:
+    """A grid's YAML file: a path, or the name of a packaged grid (``table1``, ``defaults``,
+    ``quick``: ``smdm_plugin/configs/ablations/<name>.yaml``)."""
+    if os.path.exists(name_or_path):
+        return name_or_path
+    packaged = os.path.join(ABLATIONS_DIR, os.path.basename(name_or_path))
+    for cand in (packaged, packaged + ".yaml"):
+        if os.path.isfile(cand):
+            return cand
+    raise FileNotFoundError(f"ablate: --config {name_or_path!r} is neither a file nor a packaged grid "
+                            f"({', '.join(sorted(f[:-5] for f in os.listdir(ABLATIONS_DIR)))})")
+
+
 def load_config(path: str) -> Dict[str, Any]:
     import yaml
 
-    with open(path) as f:
+    with open(config_path(path)) as f:
         cfg = yaml.safe_load(f) or {}
     return resolve(cfg)
 
@@ -93,7 +109,7 @@ def slug(name: str) -> str:
 
 
 def sparse_config(cfg: Dict[str, Any], variant: Dict[str, Any]):
-    from .config import SparseConfig
+    from ..core.config import SparseConfig
 
     if variant.get("dense"):
         return None
@@ -162,8 +178,8 @@ def keyframe_error_mm(data: MotionData, sc, limit: Optional[int] = None, seed: i
     (selector on the HumanML3D features, no mask noise)."""
     if sc is None:
         return None
-    from .interpolation import interpolate_keyframes
-    from .schedule import MaskSchedule
+    from ..core.interpolation import interpolate_keyframes
+    from ..core.schedule import MaskSchedule
 
     sched = MaskSchedule(sc.replace(mask_noise=0.0), data.mean, data.std)
     val = data.val
@@ -176,7 +192,7 @@ def keyframe_error_mm(data: MotionData, sc, limit: Optional[int] = None, seed: i
             continue
         L = int(val["lengths"][b])
         x = val["x"][b:b + 1, :L]
-        from .selection import select_keyframes
+        from ..core.selection import select_keyframes
 
         mask = select_keyframes(sched.features(x), torch.tensor([L]), sc.reduction, sc.selector, generator=g)
         rec = interpolate_keyframes(torch.from_numpy(j).reshape(1, L, -1).double(), mask).reshape(L, -1, 3)
@@ -186,7 +202,7 @@ def keyframe_error_mm(data: MotionData, sc, limit: Optional[int] = None, seed: i
 
 def _ees(motion_norm: torch.Tensor, lengths: torch.Tensor, data: MotionData) -> Optional[float]:
     try:
-        from .metrics import end_effector_speed
+        from ..metrics import end_effector_speed
     except ImportError:
         return None
     return float(end_effector_speed(motion_norm, lengths, mean=data.mean, std=data.std))
@@ -197,7 +213,7 @@ def validation_loss(model, diffusion, data: "MotionData", device: torch.device, 
     spread over ``[0, T)`` with fixed noise (identical for every variant). The model runs as it
     would at sampling time (its own keyframe schedule on ``x_t``), so sparse and dense compare on
     the same dense frames. Not comparable with training losses, which sample t at random."""
-    from .diffusion import masked_mse
+    from ..reference.diffusion import masked_mse
 
     val = data.val
     x = val["x"].permute(0, 2, 1).unsqueeze(2).to(device)
@@ -218,9 +234,9 @@ def validation_loss(model, diffusion, data: "MotionData", device: torch.device, 
 # ----------------------------------------------------------------------------------------- run
 def run_variant(cfg: Dict[str, Any], variant: Dict[str, Any], data: MotionData, device: torch.device,
                 progress: bool = False) -> Dict[str, Any]:
-    from .adapters.mdm import sparsify
-    from .backbone import TinyMDM
-    from .diffusion import SimpleDiffusion
+    from ..adapters.mdm import sparsify
+    from ..reference.backbone import TinyMDM
+    from ..reference.diffusion import SimpleDiffusion
 
     seed = int(cfg["seed"])
     sc = sparse_config(cfg, variant)
@@ -407,7 +423,8 @@ def _plot(results: List[Dict[str, Any]], path: str) -> None:
 # ----------------------------------------------------------------------------------------- CLI
 def main(argv: Optional[List[str]] = None) -> int:
     p = argparse.ArgumentParser(prog="smdm ablate", description=__doc__.split("\n\n")[0])
-    p.add_argument("--config", default=os.path.join("configs", "ablations", "table1.yaml"))
+    p.add_argument("--config", default="table1",
+                   help="the grid: a YAML path or a packaged grid name (table1, defaults, quick)")
     p.add_argument("--out", default=os.path.join("results", "ablate"))
     p.add_argument("--data", default=None, help=f"HumanML3D-format folder (default: config 'data' or {DEFAULT_DATA})")
     p.add_argument("--steps", type=int, default=None, help="override the config's steps per variant")

@@ -151,10 +151,10 @@ def make_batch(batch: int, frames: int, device: torch.device, seed: int = 0, min
 def build(arch: str, reduction: Optional[float], device: torch.device, quick: bool, steps: int,
           backend: str = "auto", seed: int = 0):
     """(model, diffusion) — dense when ``reduction`` is None."""
-    from .adapters.mdm import sparsify
-    from .backbone import TinyMDM
-    from .config import SparseConfig
-    from .diffusion import SimpleDiffusion
+    from ..adapters.mdm import sparsify
+    from ..reference.backbone import TinyMDM
+    from ..core.config import SparseConfig
+    from ..reference.diffusion import SimpleDiffusion
 
     torch.manual_seed(seed)
     model = TinyMDM(arch=arch, **mdm_size(quick)).to(device)
@@ -182,7 +182,7 @@ def _train_step_fn(model, diffusion, batch, device, seed: int = 0) -> Callable[[
 
 
 def _sample_step_fn(model, diffusion, batch, device, gamma: float = 0.1) -> Callable[[], None]:
-    from .diffusion import ClassifierFreeGuidance
+    from ..reference.diffusion import ClassifierFreeGuidance
 
     model.eval()
     cfg = ClassifierFreeGuidance(model, scale=2.5)
@@ -202,12 +202,12 @@ def _sample_step_fn(model, diffusion, batch, device, gamma: float = 0.1) -> Call
 def _overhead_fns(model, batch, device, train: bool):
     """Keyframe selection and the interpolation back to all frames, alone, with the step's
     shapes: ``(select, interp)`` callables."""
-    from .adapters.diffusion import _motion_as_frames
-    from .attention_backends import Packing, get_backend, supports_packed, varlen_backend
+    from ..adapters.state import frames_layout, get_state
+    from ..core.attention_backends import Packing, get_backend, supports_packed, varlen_backend
 
-    state = model._smdm_state
-    sched, tr = state["schedule"], state["transformer"]
-    frames = _motion_as_frames(batch["x"])
+    state = get_state(model)
+    sched, tr = state.schedule, state.transformer
+    frames = frames_layout(batch["x"])
     lengths = batch["lengths"].to(device)
     B, N = frames.shape[:2]
     d = model.latent_dim
@@ -379,7 +379,7 @@ def markdown(result: Dict[str, Any]) -> str:
 def bench_keyframes(batch: int = 64, frames: int = 196, dims: int = 64, reduction: float = 0.8,
                     repeats: int = 5, device: str = "auto") -> Dict[str, Any]:
     """Batched VW on ``[batch, frames, dims]`` (random walk features, full lengths)."""
-    from .selection import select_keyframes
+    from ..core.selection import select_keyframes
 
     dev = pick_device(device)
     g = torch.Generator().manual_seed(0)

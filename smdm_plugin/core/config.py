@@ -15,6 +15,8 @@ from typing import Any, Dict, Optional, Sequence, Tuple
 
 CONFIG_VERSION = 1
 CONFIG_FILENAME = "sparse_config.json"
+#: name of the persistent buffer that marks a state dict as sparse (its value: the config version)
+MARKER = "smdm_sparse_version"
 
 SELECTORS = ("vw", "uniform", "random", "mdo")
 FEATURES = ("auto", "humanml3d", "kit", "raw")
@@ -52,6 +54,9 @@ class SparseConfig:
     fsq: bool = False                      # quantise attention keys with FSQ
     fsq_levels: Tuple[int, ...] = (8, 8, 8, 5, 5, 5)
     attention_backend: str = "auto"        # auto | compact | varlen | masked
+    # --- text conditioning (sMDM-stella) ------------------------------------------------------
+    text_encoder: Optional[str] = None     # None: the model's own (CLIP / DistilBERT); else a
+                                           # transformers hub id or local path (frozen, pooled)
     version: int = CONFIG_VERSION
 
     def __post_init__(self) -> None:
@@ -196,6 +201,10 @@ class SparseConfig:
                                     help=f"sparse: {f.name} (default {list(default)})")
             elif f.name == "lipschitz_hidden":
                 target.add_argument(flag, type=int, default=None, help="sparse: lipschitz_hidden")
+            elif f.name == "text_encoder":
+                target.add_argument(flag, type=str, default=None, metavar="ID_OR_PATH",
+                                    help="sparse: text encoder (transformers hub id or local path) in place "
+                                         "of the model's CLIP/DistilBERT (sMDM-stella)")
             else:
                 kw: Dict[str, Any] = {"type": type(default), "default": default}
                 if f.name == "selector":
@@ -216,7 +225,7 @@ class SparseConfig:
             key = f"sparse_{f.name}"
             if key in d and d[key] is not None and f.name not in ("enabled", "version"):
                 kw[f.name] = d[key]
-            elif f.name in ("lipschitz_hidden", "dynamic_update") and key in d:
+            elif f.name in ("lipschitz_hidden", "dynamic_update", "text_encoder") and key in d:
                 kw[f.name] = d[key]
         if "sparse_version" in d:
             kw["version"] = d["sparse_version"]
@@ -243,11 +252,9 @@ def _str2bool(v: str) -> bool:
 
 
 def preset_dirs() -> list:
-    """Where presets are looked up: the source tree's ``configs/`` and the installed copy."""
-    import sys
+    """Where presets are looked up: the package's own ``smdm_plugin/configs/``."""
     here = os.path.dirname(os.path.abspath(__file__))
-    return [os.path.join(os.path.dirname(here), "configs"),
-            os.path.join(sys.prefix, "share", "smdm-plugin", "configs")]
+    return [os.path.join(os.path.dirname(here), "configs")]
 
 
 def load_preset(name: str) -> SparseConfig:

@@ -73,7 +73,7 @@ def load_clips(files: Sequence[str], fps: int = 20, max_clips: Optional[int] = N
                log=print) -> List[Tuple[str, np.ndarray]]:
     """``[(name, joints [T, 22, 3] metres)]``; files that are not CMU skeletons are skipped with a
     note (the 22-joint mapping needs CMU's joint names; cgspeed 2008 and 2010 both work)."""
-    from .bvh import load_cmu_clip
+    from ..io.bvh import load_cmu_clip
 
     clips = []
     for f in files:
@@ -114,7 +114,7 @@ def selection_features(joints: np.ndarray, frame_index_scale: float = 0.1) -> np
 def reconstruction_error(joints: np.ndarray, mask: np.ndarray) -> Tuple[float, np.ndarray]:
     """Mean joint position error (mm) over all frames of linear interpolation from the keyframes
     ``mask [T]``, and the reconstruction ``[T, 22, 3]``."""
-    from .interpolation import interpolate_keyframes
+    from ..core.interpolation import interpolate_keyframes
 
     T = joints.shape[0]
     x = torch.from_numpy(joints.reshape(1, T, -1)).double()
@@ -126,7 +126,7 @@ def reconstruction_error(joints: np.ndarray, mask: np.ndarray) -> Tuple[float, n
 def keyframe_study(wins, reductions: Sequence[float], methods: Sequence[str] = METHODS, seed: int = 0,
                    frame_index_scale: float = 0.1) -> Dict[str, Any]:
     """Reconstruction error (mm) per method and reduction, averaged over the windows."""
-    from .selection import select_keyframes
+    from ..core.selection import select_keyframes
 
     g = torch.Generator().manual_seed(seed)
     table: Dict[str, Dict[float, float]] = {m: {} for m in methods}
@@ -164,7 +164,7 @@ def plot_keyframes(win: np.ndarray, title: str, reduction: float, path: str, joi
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    from .selection import select_keyframes
+    from ..core.selection import select_keyframes
 
     T = len(win)
     f = torch.from_numpy(selection_features(win, frame_index_scale)).float()[None]
@@ -237,10 +237,10 @@ def train_dense_vs_sparse(data: np.ndarray, seconds: float, batch: int = 32, red
                           latent: int = 256, layers: int = 4, device: str = "cpu", seed: int = 0,
                           max_steps: Optional[int] = None, progress: bool = True) -> Dict[str, Any]:
     """Train dense and sparse copies of the same TinyMDM, time-sliced, for ``seconds`` in total."""
-    from .adapters.mdm import sparsify
-    from .backbone import TinyMDM
-    from .config import SparseConfig
-    from .diffusion import SimpleDiffusion
+    from ..adapters.mdm import sparsify
+    from ..reference.backbone import TinyMDM
+    from ..core.config import SparseConfig
+    from ..reference.diffusion import SimpleDiffusion
 
     dev = torch.device(device)
     mean, std = data.reshape(-1, data.shape[-1]).mean(0), data.reshape(-1, data.shape[-1]).std(0) + 1e-4

@@ -1,0 +1,119 @@
+"""The package layout: dependencies point one way, old import paths still work (and warn), the
+public API resolves. See docs/architecture.md."""
+import ast
+import importlib
+import json
+import subprocess
+import sys
+import warnings
+from pathlib import Path
+
+import pytest
+
+import smdm_plugin
+
+PKG = Path(smdm_plugin.__file__).resolve().parent
+
+# layer -> the layers it may import from (itself included)
+ALLOWED = {
+    "core": {"core"},
+    "reference": {"reference", "core"},
+    "adapters": {"adapters", "core"},
+    "io": {"io", "core", "adapters", "reference"},
+    "metrics": {"metrics", "io", "core"},
+    "integrations": {"integrations", "adapters", "core", "io", "reference", "metrics"},
+    "apps": {"apps", "integrations", "adapters", "core", "io", "reference", "metrics"},
+}
+
+
+def layer_of(module: str) -> str:
+    parts = module.split(".")
+    return parts[1] if len(parts) > 1 and parts[1] in ALLOWED else "<root>"
+
+
+def module_name(path: Path) -> str:
+    rel = path.relative_to(PKG.parent).with_suffix("")
+    parts = list(rel.parts)
+    if parts[-1] == "__init__":
+        parts = parts[:-1]
+    return ".".join(parts)
+
+
+def imports_of(path: Path):
+    """Every smdm_plugin module a file imports (module level and inside functions), resolved."""
+    name = module_name(path)
+    package = name if path.name == "__init__.py" else name.rsplit(".", 1)[0]
+    for node in ast.walk(ast.parse(path.read_text())):
+        if isinstance(node, ast.Import):
+            for a in node.names:
+                if a.name.startswith("smdm_plugin"):
+                    yield node.lineno, a.name
+        elif isinstance(node, ast.ImportFrom):
+            if node.level:
+                base = package.split(".")
+                base = base[:len(base) - node.level + 1]
+                target = ".".join(base + ([node.module] if node.module else []))
+            else:
+                target = node.module or ""
+            if target.startswith("smdm_plugin"):
+                if node.module is None or target.count(".") == 1 and target.split(".")[1] not in ALLOWED:
+                    # `from . import x` / `from .. import core`: the names are the modules
+                    for a in node.names:
+                        yield node.lineno, f"{target}.{a.name}" if target != "smdm_plugin" else f"smdm_plugin.{a.name}"
+                else:
+                    yield node.lineno, target
+
+
+def test_every_module_is_in_a_layer_folder():
+    loose = sorted(p.name for p in PKG.glob("*.py") if p.name not in ("__init__.py", "__main__.py", "_compat.py"))
+    assert loose == [], f"modules outside the layer folders: {loose}"
+
+
+def test_dependencies_point_one_way():
+    bad = []
+    for path in sorted(PKG.rglob("*.py")):
+        src_layer = layer_of(module_name(path))
+        if src_layer == "<root>":
+            continue
+        for line, target in imports_of(path):
+            dst = layer_of(target)
+            if dst == "<root>":
+                if target not in ("smdm_plugin", "smdm_plugin.__version__") and not target.startswith(
+                        "smdm_plugin.__version__"):
+                    bad.append(f"{path.relative_to(PKG)}:{line} imports {target} (the package root)")
+                continue
+            if dst not in ALLOWED[src_layer]:
+                bad.append(f"{path.relative_to(PKG)}:{line}: {src_layer} -> {dst} ({target})")
+    assert not bad, "imports against the layer order:\n" + "\n".join(bad)
+
+
+@pytest.mark.parametrize("layer", ["core", "reference", "adapters", "io", "metrics", "integrations"])
+def test_importing_a_layer_pulls_in_only_what_it_may(layer):
+    modules = sorted(module_name(p) for p in (PKG / layer).rglob("*.py"))
+    code = ("import importlib, json, sys\n"
+            f"for m in {modules!r}: importlib.import_module(m)\n"
+            "print(json.dumps(sorted({m.split('.')[1] for m in sys.modules "
+            "if m.startswith('smdm_plugin.') and len(m.split('.')) > 1})))")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
+    loaded = set(json.loads(out.strip().splitlines()[-1])) - {"_compat"}
+    assert loaded <= ALLOWED[layer], f"importing {layer} loaded {sorted(loaded - ALLOWED[layer])}"
+
+
+def test_old_module_paths_warn_and_return_the_new_module():
+    from smdm_plugin._compat import MOVED
+
+    for old, new in MOVED.items():
+        sys.modules.pop(old, None)
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always")
+            mod = importlib.import_module(old)
+        assert mod is importlib.import_module(new), old
+        assert any(issubclass(w.category, DeprecationWarning) and new in str(w.message) for w in caught), old
+    from smdm_plugin.selection import select_keyframes  # noqa: F401  (the common spelling)
+
+
+def test_public_api_resolves_every_name():
+    for name in smdm_plugin.__all__:
+        assert getattr(smdm_plugin, name) is not None, name
+    with pytest.raises(AttributeError, match="no attribute 'nope'"):
+        smdm_plugin.nope  # noqa: B018
