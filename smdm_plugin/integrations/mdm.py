@@ -147,8 +147,13 @@ def install_hooks() -> None:
     """Wrap MDM's ``utils.parser_util.add_model_options`` and ``utils.model_util``'s
     ``create_model_and_diffusion`` / ``load_model_wo_clip`` as they are imported (idempotent).
     Modules that do ``from utils.model_util import create_model_and_diffusion`` get the wrapped
-    function because the wrap happens right after ``utils.model_util`` executes."""
+    function because the wrap happens right after ``utils.model_util`` executes. Then the
+    extensions: text encoders (:mod:`.mdm_text`), multi-process training (:mod:`.mdm_train`),
+    keyframe in-betweening in ``sample.edit`` (:mod:`.mdm_edit`)."""
+    from . import mdm_edit, mdm_text, mdm_train
     from ._hooks import on_import
 
     on_import("utils.parser_util", _patch_parser_util)
     on_import("utils.model_util", _patch_model_util)
+    for extension in (mdm_text, mdm_train, mdm_edit):
+        extension.install_hooks()
