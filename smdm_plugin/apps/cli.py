@@ -13,21 +13,24 @@ import the benchmark code.
 from __future__ import annotations
 
 import argparse
+import importlib
 import sys
-from typing import List, Optional
+from typing import Dict, List, Optional, Tuple
 
-COMMANDS = {
-    "bench": "time dense vs sparse training / sampling steps (MDM size); 'bench keyframes': VW alone",
-    "ablate": "run an ablation grid (YAML) on real motion; table, CSV, loss curves",
-    "demo": "keyframes + dense-vs-sparse training on CMU motion capture (BVH), no download",
-    "run": "run an upstream MDM / priorMDM / MotionDiffuse script in sparse mode",
-    "keyframes": "keyframe reconstruction error of BVH clips per selection method and rate",
+# command -> (module with ``main(argv) -> int``, one-line help)
+COMMANDS: Dict[str, Tuple[str, str]] = {
+    "bench": ("smdm_plugin.apps.bench",
+              "time dense vs sparse training / sampling steps (MDM size); 'bench keyframes': VW alone"),
+    "ablate": ("smdm_plugin.apps.ablate", "run an ablation grid (YAML) on real motion; table, CSV, loss curves"),
+    "demo": ("smdm_plugin.apps.demo", "keyframes + dense-vs-sparse training on CMU motion capture (BVH), no download"),
+    "run": ("smdm_plugin.integrations.launcher", "run an upstream MDM / priorMDM / MotionDiffuse script in sparse mode"),
+    "keyframes": ("smdm_plugin.apps.cli", "keyframe reconstruction error of BVH clips per selection method and rate"),
 }
 
 
 def _usage() -> str:
     lines = ["usage: smdm <command> [options]", "", "commands:"]
-    lines += [f"  {k:10s} {v}" for k, v in COMMANDS.items()]
+    lines += [f"  {k:10s} {v[1]}" for k, v in COMMANDS.items()]
     lines += ["", "'smdm <command> --help' for the options of a command."]
     return "\n".join(lines)
 
@@ -35,7 +38,7 @@ def _usage() -> str:
 def _keyframes(argv: List[str]) -> int:
     from . import demo
 
-    p = argparse.ArgumentParser(prog="smdm keyframes", description=COMMANDS["keyframes"])
+    p = argparse.ArgumentParser(prog="smdm keyframes", description=COMMANDS["keyframes"][1])
     p.add_argument("bvh", nargs="*", help="BVH files or folders (default: as smdm demo)")
     p.add_argument("--reductions", nargs="+", type=float, default=[0.6, 0.7, 0.8, 0.9])
     p.add_argument("--frame-index-scale", type=float, default=0.1)
@@ -70,29 +73,14 @@ def main(argv: Optional[List[str]] = None) -> int:
         print(f"smdm-plugin {__version__}")
         return 0
     cmd, rest = argv[0], argv[1:]
-    if cmd == "bench":
-        from .bench import main as bench_main
-
-        return int(bench_main(rest) or 0)
-    if cmd == "ablate":
-        from .ablate import main as ablate_main
-
-        return int(ablate_main(rest) or 0)
-    if cmd == "demo":
-        from .demo import main as demo_main
-
-        return int(demo_main(rest) or 0)
-    if cmd == "run":
-        try:
-            from ..integrations.launcher import main_run
-        except ImportError as e:  # the launcher ships with the integrations
-            print(f"smdm run: the launcher is not available ({e})", file=sys.stderr)
-            return 2
-        return int(main_run(rest) or 0)
+    if cmd not in COMMANDS:
+        print(f"smdm: unknown command {cmd!r}\n\n{_usage()}", file=sys.stderr)
+        return 2
     if cmd == "keyframes":
         return _keyframes(rest)
-    print(f"smdm: unknown command {cmd!r}\n\n{_usage()}", file=sys.stderr)
-    return 2
+    module = importlib.import_module(COMMANDS[cmd][0])
+    entry = getattr(module, "main_run" if cmd == "run" else "main")
+    return int(entry(rest) or 0)
 
 
 if __name__ == "__main__":
