@@ -68,14 +68,14 @@ def _sparse_tiny(reduction=0.8):
     attach_doubletake_forcing(model)
     seen = []
     tr = model.seqTransEncoder
-    orig = tr.set_keyframes
+    orig = tr.set_plan
 
-    def spy(mask):
-        if mask is not None:
-            seen.append(mask.clone())
-        orig(mask)
+    def spy(plan):
+        if plan is not None:
+            seen.append(plan.mask.clone())
+        orig(plan)
 
-    tr.set_keyframes = spy
+    tr.set_plan = spy
     return model, seen
 
 

@@ -41,7 +41,7 @@ class SparseConfig:
     mask_noise: float = 0.1                # training: up to this fraction of K added/dropped
     # --- sampling schedule ---------------------------------------------------------------
     gamma: float = 0.1                     # re-select by VW on x_t when t <= gamma * T
-    dynamic_update: Optional[bool] = None  # None: on, except DiP (prefix_frames > 0); False: uniform always
+    dynamic_update: Optional[bool] = None  # None: on iff diffusion_steps >= 100 and no DiP prefix
     diffusion_steps: int = 50              # T; overwritten from the diffusion when attached
     prefix_frames: int = 0                 # leading frames kept dense (DiP context)
     # --- model ---------------------------------------------------------------------------
@@ -103,9 +103,13 @@ class SparseConfig:
 
     @property
     def dynamic(self) -> bool:
-        """Whether sampling re-selects keyframes by VW on x_t for t <= gamma*T (``dynamic_update``
-        resolved: None means on, except for prefix completion (DiP), where the paper found it useless)."""
-        return self.dynamic_update if self.dynamic_update is not None else self.prefix_frames == 0
+        """Whether sampling re-selects keyframes by VW on x_t in the last ``round(gamma*T)`` steps
+        (``dynamic_update`` resolved). None (auto) follows the paper's Table 2: on when
+        ``diffusion_steps >= 100`` (where it helps), off at 50 and 10 steps (neutral to worse) and
+        for prefix completion (DiP)."""
+        if self.dynamic_update is not None:
+            return bool(self.dynamic_update)
+        return int(self.diffusion_steps) >= 100 and int(self.prefix_frames) == 0
 
     def replace(self, **changes: Any) -> "SparseConfig":
         """A copy with ``changes`` applied (validated)."""
