@@ -125,25 +125,23 @@ def test_file_errors_name_the_path(tmp_path):
         SparseConfig.from_json("nope")  # never parsed as JSON text
     with pytest.raises(FileNotFoundError, match="sparse_config.json"):
         SparseConfig.load(tmp_path)  # a folder without sparse_config.json
-    bad = tmp_path / "bad.json"
-    bad.write_text('{"reduction": 0.7,')
-    with pytest.raises(ValueError, match=rf"^{bad}: not valid JSON"):
-        SparseConfig.load(bad)
-    bad = tmp_path / "bad.yaml"
-    bad.write_text("reduction: [0.7\n")
-    with pytest.raises(ValueError, match=rf"^{bad}: not valid YAML"):
-        SparseConfig.load(bad)
-    bad.write_text("reduction: 1.5\n")
-    with pytest.raises(ValueError, match=rf"^{bad}: SparseConfig.reduction=1.5"):
-        SparseConfig.load(bad)
-    bad.write_text("lipschitz: 'no'\n")
-    with pytest.raises(TypeError, match=rf"^{bad}: SparseConfig.lipschitz='no'"):
-        SparseConfig.load(bad)
-    bad.write_text("- 1\n- 2\n")
-    with pytest.raises(TypeError, match=rf"^{bad}: expected a mapping"):
-        SparseConfig.load(bad)
     with pytest.raises(ValueError, match="SparseConfig.from_json: not valid JSON"):
         SparseConfig.from_json("{")
+
+
+@pytest.mark.parametrize("name,text,error,needle", [
+    ("bad.json", '{"reduction": 0.7,', ValueError, "not valid JSON"),
+    ("bad.yaml", "reduction: [0.7\n", ValueError, "not valid YAML"),
+    ("bad.yaml", "reduction: 1.5\n", ValueError, "SparseConfig.reduction=1.5"),
+    ("bad.yaml", "lipschitz: 'no'\n", TypeError, "SparseConfig.lipschitz='no'"),
+    ("bad.yaml", "- 1\n- 2\n", TypeError, "expected a mapping"),
+])
+def test_bad_file_contents_name_the_file(tmp_path, name, text, error, needle):
+    bad = tmp_path / name
+    bad.write_text(text)
+    with pytest.raises(error) as e:
+        SparseConfig.load(bad)
+    assert str(e.value).startswith(f"{bad}: ") and needle in str(e.value)
 
 
 def test_sparse_section_is_the_config_and_other_sections_are_allowed(tmp_path):
@@ -190,29 +188,29 @@ def _parser():
     return p
 
 
-@pytest.mark.parametrize("argv,needle", [
-    (["--sparse_reduction", "1.0"], "argument --sparse_reduction: must be a finite number in [0, 1), got 1.0"),
-    (["--sparse_reduction", "nan"], "argument --sparse_reduction: must be a finite number in [0, 1)"),
-    (["--sparse_gamma", "-0.1"], "argument --sparse_gamma: must be a finite number in [0, 1]"),
-    (["--sparse_mask_noise", "x"], "argument --sparse_mask_noise: expected a number, got 'x'"),
-    (["--sparse_diffusion_steps", "0"], "argument --sparse_diffusion_steps: must be an integer >= 1, got 0"),
-    (["--sparse_diffusion_steps", "8.7"], "argument --sparse_diffusion_steps: expected an integer, got '8.7'"),
-    (["--sparse_prefix_frames", "-1"], "argument --sparse_prefix_frames: must be an integer >= 0"),
-    (["--sparse_sine_w0", "0"], "argument --sparse_sine_w0: must be a finite number > 0"),
-    (["--sparse_lipschitz_layers", "0"], "argument --sparse_lipschitz_layers: must be an integer >= 1"),
-    (["--sparse_lipschitz_hidden", "0"], "argument --sparse_lipschitz_hidden: must be an integer >= 1"),
-    (["--sparse_lipschitz_lambda", "inf"], "argument --sparse_lipschitz_lambda: must be a finite number >= 0"),
-    (["--sparse_frame_index_scale", "-1"], "argument --sparse_frame_index_scale: must be a finite number >= 0"),
-    (["--sparse_fsq_levels", "8", "1"], "argument --sparse_fsq_levels: must be an integer >= 2, got 1"),
-    (["--sparse_lipschitz", "maybe"], "argument --sparse_lipschitz: expected a boolean (true/false), got 'maybe'"),
-    (["--sparse_text_encoder", ""], "argument --sparse_text_encoder: expected a non-empty string"),
-    (["--sparse_selector", "VW"], "argument --sparse_selector: invalid choice: 'VW'"),
+@pytest.mark.parametrize("field,value,needle", [
+    ("reduction", "1.0", "must be a finite number in [0, 1), got 1.0"),
+    ("reduction", "nan", "must be a finite number in [0, 1)"),
+    ("gamma", "-0.1", "must be a finite number in [0, 1]"),
+    ("mask_noise", "x", "expected a number, got 'x'"),
+    ("diffusion_steps", "0", "must be an integer >= 1, got 0"),
+    ("diffusion_steps", "8.7", "expected an integer, got '8.7'"),
+    ("prefix_frames", "-1", "must be an integer >= 0"),
+    ("sine_w0", "0", "must be a finite number > 0"),
+    ("lipschitz_layers", "0", "must be an integer >= 1"),
+    ("lipschitz_hidden", "0", "must be an integer >= 1"),
+    ("lipschitz_lambda", "inf", "must be a finite number >= 0"),
+    ("frame_index_scale", "-1", "must be a finite number >= 0"),
+    ("fsq_levels", "8 1", "must be an integer >= 2, got 1"),
+    ("lipschitz", "maybe", "expected a boolean (true/false), got 'maybe'"),
+    ("text_encoder", "", "expected a non-empty string"),
+    ("selector", "VW", "invalid choice: 'VW'"),
 ])
-def test_argparse_options_are_range_checked(argv, needle, capsys):
+def test_argparse_options_are_range_checked(field, value, needle, capsys):
     with pytest.raises(SystemExit) as e:
-        _parser().parse_args(argv)
+        _parser().parse_args([f"--sparse_{field}", *value.split(" ")])
     err = capsys.readouterr().err
-    assert e.value.code == 2 and needle in err and "Traceback" not in err
+    assert e.value.code == 2 and f"argument --sparse_{field}: {needle}" in err and "Traceback" not in err
 
 
 def test_argparse_every_field_and_none_for_optional_ones():
