@@ -63,9 +63,15 @@ def test_save_config_never_overwrites_unasked(tmp_path):
     save_sparse_config(SparseConfig(reduction=0.6), str(tmp_path))
     p = tmp_path / "sparse_config.json"
     before = p.read_bytes()
-    with pytest.raises(FileExistsError, match="sparse_config.json' exists; pass --overwrite"):
-        save_sparse_config(SparseConfig(reduction=0.7), str(tmp_path))  # the default: never overwrite
+    with pytest.raises(FileExistsError, match=r"sparse_config.json' exists with another config \(differs in "
+                                              r"reduction, fsq\); pass overwrite=True"):
+        save_sparse_config(SparseConfig(reduction=0.7, fsq=True), str(tmp_path))  # the default: never overwrite
     assert p.read_bytes() == before
+    # the same config again (a second save, every rank of a distributed run): nothing to refuse
+    assert save_sparse_config(SparseConfig(reduction=0.6), str(tmp_path)) == str(p) and p.read_bytes() == before
+    p.write_text("{ half-writ")
+    with pytest.raises(FileExistsError, match="exists with contents that are not a valid config"):
+        save_sparse_config(SparseConfig(reduction=0.6), str(tmp_path))
     assert save_sparse_config(SparseConfig(reduction=0.7), str(tmp_path), overwrite=True) == str(p)
     assert SparseConfig.load(p).reduction == 0.7 and sorted(x.name for x in tmp_path.iterdir()) == [p.name]
     with pytest.raises(ValueError, match="not sparse"):

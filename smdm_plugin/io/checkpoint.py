@@ -11,7 +11,7 @@ import torch
 import torch.nn as nn
 
 from ..core.config import CONFIG_FILENAME, MARKER, SparseConfig
-from .files import check_new_file
+from .files import OutputExistsError
 
 BACKBONE_FILENAME = "backbone.json"
 
@@ -23,15 +23,34 @@ def _dir_of(path: str) -> str:
 def save_sparse_config(model_or_config: Union[nn.Module, SparseConfig], directory: str,
                        overwrite: bool = False) -> str:
     """Write ``sparse_config.json`` into ``directory`` (created if needed), atomically; returns its
-    path. An existing file is an :class:`~smdm_plugin.io.files.OutputExistsError` (a
-    ``FileExistsError``) unless ``overwrite``."""
+    path. An existing file holding the same config is left as it is (saving twice, or from every
+    rank of a distributed run, is fine); one holding another config (or unreadable) is an
+    :class:`~smdm_plugin.io.files.OutputExistsError` (a ``FileExistsError``) unless ``overwrite``."""
     config = model_or_config if isinstance(model_or_config, SparseConfig) else getattr(
         model_or_config, "smdm_config", None)
     if config is None:
         raise ValueError("save_sparse_config: the model is not sparse (no smdm_config); sparsify it first")
     os.makedirs(directory, exist_ok=True)
-    path = check_new_file(os.path.join(directory, CONFIG_FILENAME), overwrite, what="save_sparse_config:")
+    path = os.path.join(directory, CONFIG_FILENAME)
+    if os.path.isdir(path):
+        raise OutputExistsError(f"save_sparse_config: {path!r} is a folder")
+    if not overwrite and os.path.lexists(path):
+        why = _how_it_differs(path, config)
+        if why is None:
+            return path
+        raise OutputExistsError(f"save_sparse_config: {path!r} exists with {why}; pass overwrite=True "
+                                "(--overwrite) to replace it")
     return config.save(path)
+
+
+def _how_it_differs(path: str, config: SparseConfig) -> Optional[str]:
+    """None when ``path`` holds ``config`` (its version aside), else what it holds instead."""
+    try:
+        saved = SparseConfig.load(path)
+    except (OSError, ValueError) as e:  # ConfigTypeError is a ValueError too
+        return f"contents that are not a valid config ({e})"
+    diff = saved.differences(config)
+    return f"another config (differs in {', '.join(diff)})" if diff else None
 
 
 def find_sparse_config(checkpoint_path: str) -> Optional[SparseConfig]:
