@@ -148,6 +148,7 @@ def test_keyframes_bad_arguments(tmp_path):
     user_error(smdm("keyframes", "--reductions", "-0.2"), "argument --reductions")
     user_error(smdm("keyframes", "--frame-index-scale", "-1"), "argument --frame-index-scale: must be a finite")
     user_error(smdm("keyframes", tmp_path / "missing.bvh"), "argument bvh: no such file")
+    user_error(smdm("keyframes", tmp_path), f"smdm keyframes: no .bvh file in {tmp_path}")
     user_error(smdm("keyframes", "--plot", tmp_path / "x.gif"), "argument --plot: expected a file name ending in .png")
 
 

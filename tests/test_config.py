@@ -213,6 +213,17 @@ def test_argparse_options_are_range_checked(field, value, needle, capsys):
     assert e.value.code == 2 and f"argument --sparse_{field}: {needle}" in err and "Traceback" not in err
 
 
+def test_every_field_declares_its_spec_and_default():
+    import dataclasses
+
+    from smdm_plugin.core.config import FieldSpec, spec_of
+
+    for f in dataclasses.fields(SparseConfig):
+        assert isinstance(spec_of(f), FieldSpec) and spec_of(f).help
+        # the default passes its own check
+        assert getattr(SparseConfig(), f.name) == (f.default if f.name != "fsq_levels" else tuple(f.default))
+
+
 def test_argparse_every_field_and_none_for_optional_ones():
     p = _parser()
     flags = {a.dest for a in p._actions}

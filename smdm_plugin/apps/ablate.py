@@ -738,6 +738,8 @@ def build_parser() -> argparse.ArgumentParser:
 def main(argv: Optional[List[str]] = None) -> int:
     p = build_parser()
     a = p.parse_args(argv)
+    if not a.out.strip():
+        p.error("argument --out: expected a folder path, got ''")
     try:
         cfg = load_config(a.config)
     except (FileNotFoundError, ValueError) as e:

@@ -53,7 +53,7 @@ def main(argv: Optional[List[str]] = None) -> int:
 
     files = demo.find_bvh(a.bvh or None)
     if not files:
-        print(demo.NO_BVH, file=sys.stderr)
+        print(f"smdm keyframes: no .bvh file in {', '.join(a.bvh)}" if a.bvh else demo.NO_BVH, file=sys.stderr)
         return 2
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")

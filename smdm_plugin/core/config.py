@@ -158,7 +158,17 @@ class FieldSpec:
 
 
 def _field(default: Any, kind: type, help: str, **spec: Any) -> Any:
+    """A ``SparseConfig`` field: its default and the :class:`FieldSpec` that checks it."""
     return dataclasses.field(default=default, metadata={"spec": FieldSpec(kind, help, **spec)})
+
+
+def spec_of(f: "dataclasses.Field[Any]") -> FieldSpec:
+    """The :class:`FieldSpec` of a ``SparseConfig`` field."""
+    spec = f.metadata.get("spec")
+    if not isinstance(spec, FieldSpec):
+        raise TypeError(f"SparseConfig.{f.name}: declare the field with _field(default, kind, help, ...) so that "
+                        "it is type- and range-checked and gets its --sparse_ option")
+    return spec
 
 
 @dataclass
@@ -214,7 +224,7 @@ class SparseConfig:
         """Check (and normalise: ints to float, sequences to tuple) every field; raise
         :class:`ConfigTypeError` for a wrong type, ``ValueError`` for a value out of range."""
         for f in dataclasses.fields(self):
-            setattr(self, f.name, _check_field(f.name, f.metadata["spec"], getattr(self, f.name)))
+            setattr(self, f.name, _check_field(f.name, spec_of(f), getattr(self, f.name)))
         return self
 
     @property
@@ -334,7 +344,7 @@ class SparseConfig:
         for f in dataclasses.fields(cls):
             if f.name in ("enabled", "version"):
                 continue
-            spec: FieldSpec = f.metadata["spec"]
+            spec = spec_of(f)
             default = list(f.default) if isinstance(f.default, tuple) else f.default
             kw: Dict[str, Any] = {"default": default, "type": _argparse_type(spec),
                                   "help": f"sparse: {spec.help} (default {default})"}
@@ -359,7 +369,7 @@ class SparseConfig:
             key = f"sparse_{f.name}"
             if f.name == "enabled" or key not in d:
                 continue
-            if d[key] is not None or f.metadata["spec"].optional:
+            if d[key] is not None or spec_of(f).optional:
                 kw[f.name] = d[key]
         return cls(**kw)
 
