@@ -38,7 +38,7 @@ from typing import Any, Callable, Dict, List, Optional, Sequence
 
 import torch
 
-from ._args import add_overwrite, device_type, float_range, int_range
+from ._args import add_overwrite, device_type, float_range, int_range, resolve_device
 
 TARGETS = {"train": 4.0, "sample": 3.5, "loop": 3.0, "overhead": 0.10}  # at 80% reduction
 MODES = ("train", "sample", "loop")
@@ -46,9 +46,8 @@ MODES = ("train", "sample", "loop")
 
 # ----------------------------------------------------------------------------------------- utils
 def pick_device(name: str = "auto") -> torch.device:
-    if name == "auto":
-        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
-    return torch.device(name)
+    """``auto``: CUDA, else MPS, else the CPU (see :func:`smdm_plugin.apps._args.resolve_device`)."""
+    return resolve_device(name)
 
 
 def _sync(device: torch.device) -> None:
