@@ -297,3 +297,19 @@ def test_folder_and_non_cmu_skeleton_are_clear_errors(tmp_path):
     p = _write(tmp_path, SIMPLE, False)
     with pytest.raises(BVHError, match=rf"{p.name}: not a CMU skeleton: lacks the joints \['Head'"):
         load_cmu_clip(p)
+
+
+def test_embedded_clips_are_the_bvh_clips_at_20_fps():
+    """The package's own clips (smdm demo's default) equal a fresh conversion of their BVH files."""
+    from smdm_plugin.io.bvh import load_cmu_clip
+    from smdm_plugin.io.embedded import embedded_clips, embedded_descriptions
+
+    clips = embedded_clips()
+    assert len(clips) == 17 and all(j.shape[1:] == (22, 3) and j.dtype == np.float32 for _, j in clips)
+    assert embedded_descriptions()["02_01"] == "walk"
+    mocap = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "cmu-mocap"
+    if not mocap.exists():
+        pytest.skip("../shared/data/cmu-mocap not available")
+    for name, joints in clips[:3]:
+        fresh = load_cmu_clip(mocap / f"{name}.bvh", fps=20)
+        assert np.allclose(joints, fresh, atol=1e-5), name
