@@ -23,6 +23,8 @@ COMMANDS: Dict[str, Tuple[str, str]] = {
               "time dense vs sparse training / sampling steps (MDM size); 'bench keyframes': VW alone"),
     "ablate": ("smdm_plugin.apps.ablate", "run an ablation grid (YAML) on real motion; table, CSV, loss curves"),
     "demo": ("smdm_plugin.apps.demo", "keyframes + dense-vs-sparse training on CMU motion capture (BVH), no download"),
+    "train": ("smdm_plugin.apps.trainer", "train TinyMDM (dense or --sparse) on HumanML3D-format motion; "
+              "under torchrun: DistributedDataParallel"),
     "run": ("smdm_plugin.integrations.launcher", "run an upstream MDM / priorMDM / MotionDiffuse script in sparse mode"),
     "keyframes": ("smdm_plugin.apps.cli", "keyframe reconstruction error of BVH clips per selection method and rate"),
 }
