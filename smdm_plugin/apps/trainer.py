@@ -31,7 +31,7 @@ import torch
 import torch.nn as nn
 
 from ..core.config import CONFIG_FILENAME, SparseConfig
-from ..integrations.distributed import DistContext, init_distributed
+from ..integrations.distributed import DistContext, constant_buffers_kwargs, init_distributed
 from ..io.checkpoint import BACKBONE_FILENAME
 from ..io.files import atomic_open, atomic_write_json, atomic_write_text
 
@@ -329,7 +329,7 @@ class Trainer:
             from torch.nn.parallel import DistributedDataParallel
 
             self.forward_model = DistributedDataParallel(
-                self.model, device_ids=[dev.index] if dev.type == "cuda" else None)
+                self.model, device_ids=[dev.index] if dev.type == "cuda" else None, **constant_buffers_kwargs())
         if config.compile:
             self.forward_model = torch.compile(self.forward_model, backend=config.compile_backend)
         self.optimizer = torch.optim.AdamW(self.model.parameters(), lr=config.lr,

@@ -104,6 +104,19 @@ class DistContext:
         return float((hi - lo).max())
 
 
+def constant_buffers_kwargs() -> dict:
+    """``DistributedDataParallel`` keywords for a model whose buffers never change in training
+    (positional tables, markers; no batch-norm statistics): no buffer broadcast before every
+    forward. ``forward_sync_buffers=False`` (newer torch) still syncs them once at construction;
+    older torch only has ``broadcast_buffers=False``."""
+    import inspect
+
+    from torch.nn.parallel import DistributedDataParallel
+
+    params = inspect.signature(DistributedDataParallel.__init__).parameters
+    return {"forward_sync_buffers": False} if "forward_sync_buffers" in params else {"broadcast_buffers": False}
+
+
 def timeout_minutes(env: Optional[Mapping[str, str]] = None) -> float:
     env = os.environ if env is None else env
     text = env.get("SMDM_DIST_TIMEOUT_MIN", "")
