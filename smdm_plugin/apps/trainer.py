@@ -244,9 +244,9 @@ _TINYMDM_ARGS = ("latent_dim", "ff_size", "num_layers", "num_heads", "dropout", 
 @dataclass
 class TrainResult:
     """What :meth:`Trainer.train` did: ``losses`` (per step, mean over every sample of the global
-    batch), wall ``seconds``, ``world_size``, ``global_batch``, ``total_steps`` (the trainer's
-    step count afterwards), ``max_divergence`` (largest parameter difference between ranks after
-    the last step; 0.0 = in sync)."""
+    batch), ``seconds`` (wall time spent in :meth:`Trainer.step`), ``world_size``,
+    ``global_batch``, ``total_steps`` (the trainer's step count afterwards), ``max_divergence``
+    (largest parameter or buffer difference between ranks after the last step; 0.0 = in sync)."""
 
     losses: List[float]
     seconds: float
@@ -389,15 +389,16 @@ class Trainer:
             bar = tqdm(total=n, desc="sparse" if self.config.sparse is not None else "dense",
                        unit="step", mininterval=0.5)
         losses: List[float] = []
-        t0 = time.perf_counter()
+        seconds = 0.0  # in step() only: not the progress bar, not the callback (checkpoints)
         for _ in range(n):
+            t0 = time.perf_counter()
             losses.append(self.step())
+            seconds += time.perf_counter() - t0
             if bar is not None:
                 bar.set_postfix_str(f"loss {np.mean(losses[-20:]):.4f}", refresh=False)
                 bar.update(1)
             if callback is not None:
                 callback(self, losses[-1])
-        seconds = time.perf_counter() - t0
         if bar is not None:
             bar.close()
         return TrainResult(losses=losses, seconds=seconds, world_size=self.dist.world_size,

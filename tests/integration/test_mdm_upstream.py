@@ -376,6 +376,26 @@ def test_torchrun_two_processes(arch, launcher, pristine, patched, tmp_path):
     assert all(np.isfinite(v[0]) for v in per_step.values())
 
 
+@needs_mdm
+def test_torchrun_one_process_equals_the_plain_run(pristine, tmp_path):
+    """``torchrun --nproc_per_node 1``: DDP over one process changes nothing (same data order, same
+    random stream on rank 0, gradients averaged over one rank): the checkpoint is bit for bit the
+    one of the plain run (dense, through ``smdm run``)."""
+    import torch
+
+    plain, ddp = str(tmp_path / "plain"), str(tmp_path / "ddp")
+    _, ckpt_plain = train(pristine, plain, "trans_enc", 3, launcher=True)
+    cmd = [sys.executable, "-m", "smdm_plugin", "run", "--repo", pristine, "--", sys.executable, "-m",
+           "torch.distributed.run", "--standalone", "--nproc_per_node", "1", HARNESS, "train.train_mdm",
+           "--save_dir", ddp, "--num_steps", "3", *TINY, *ARCH["trans_enc"]]
+    run_logged(cmd, cwd=pristine, env=plugin_env(ENV), timeout=900)  # the environment of the plain run
+    a, b = load_sd(ckpt_plain), load_sd(latest_checkpoint(ddp))
+    assert os.path.basename(latest_checkpoint(ddp)) == os.path.basename(ckpt_plain)
+    assert sorted(a) == sorted(b)
+    for k in a:
+        assert torch.equal(a[k], b[k]), k
+
+
 # --------------------------------------------------------------------------- launcher, no checkout
 FAKE_PARSER = """
 def add_model_options(parser):
