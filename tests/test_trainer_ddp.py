@@ -55,8 +55,12 @@ def runs(hml_dir, tmp_path_factory):
                      "--batch", "4", *TINY, *SPARSE)
     from smdm_plugin.apps.trainer import main
 
-    torch.set_num_threads(1)
-    assert main(["--data", str(hml_dir), "--out", str(single_out), "--batch", "8", *TINY, *SPARSE]) == 0
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)  # as the workers (OMP_NUM_THREADS=1)
+    try:
+        assert main(["--data", str(hml_dir), "--out", str(single_out), "--batch", "8", *TINY, *SPARSE]) == 0
+    finally:
+        torch.set_num_threads(threads)
     return {"dump": dump, "ddp": ddp_out, "single": single_out, "log": proc.stdout + proc.stderr}
 
 
