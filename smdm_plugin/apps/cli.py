@@ -4,6 +4,7 @@
   ``smdm bench keyframes`` times batched VW alone.
 * ``smdm ablate``     — A/B ablation runner (``smdm_plugin/configs/ablations/*.yaml``) on real motion.
 * ``smdm demo``       — keyframes and dense-vs-sparse training on CMU motion capture (BVH).
+* ``smdm train``      — train TinyMDM (dense or --sparse) on HumanML3D-format motion; torchrun: DDP.
 * ``smdm run ...``    — run an upstream script (MDM, priorMDM, MotionDiffuse) in sparse mode.
 * ``smdm keyframes``  — keyframes of BVH clips (reconstruction error per method and rate).
 
@@ -25,6 +26,8 @@ COMMANDS: Dict[str, Tuple[str, str]] = {
               "time dense vs sparse training / sampling steps (MDM size); 'bench keyframes': VW alone"),
     "ablate": ("smdm_plugin.apps.ablate", "run an ablation grid (YAML) on real motion; table, CSV, loss curves"),
     "demo": ("smdm_plugin.apps.demo", "keyframes + dense-vs-sparse training on CMU motion capture (BVH), no download"),
+    "train": ("smdm_plugin.apps.trainer", "train TinyMDM (dense or --sparse) on HumanML3D-format motion; "
+              "under torchrun: DistributedDataParallel"),
     "run": ("smdm_plugin.integrations.launcher:main_run",
             "run an upstream MDM / priorMDM / MotionDiffuse script in sparse mode"),
     "keyframes": ("smdm_plugin.apps.keyframes", "keyframe reconstruction error of BVH clips per selection method and rate"),
