@@ -216,11 +216,11 @@ def test_cli_writes_a_checkpoint_folder_and_never_overwrites(hml_dir, tmp_path, 
 
 @pytest.mark.parametrize("args,message", [
     (["--batch", "0"], "argument --batch: must be an integer >= 1, got 0"),
-    (["--lr", "0"], "argument --lr: must be a number > 0.0"),
-    (["--dropout", "1"], "argument --dropout: must be a number in [0.0, 1.0)"),
+    (["--lr", "0"], "argument --lr: must be a finite number > 0, got 0"),
+    (["--dropout", "1"], "argument --dropout: must be a finite number in [0, 1), got 1"),
     (["--latent-dim", "30", "--heads", "4"], "--latent-dim (30) must be a multiple of --heads (4)"),
     (["--min-frames", "50", "--max-frames", "40"], "--min-frames (50) must be <= --max-frames (40)"),
-    (["--sparse", "--sparse_reduction", "1.5"], "SparseConfig.reduction=1.5"),
+    (["--sparse", "--sparse_reduction", "1.5"], "argument --sparse_reduction: must be a finite number in [0, 1), got 1.5"),
     (["--sparse_text_encoder", "x"], "--sparse_text_encoder: not an option of smdm train"),
     (["--device", "nonsense"], "argument --device"),
 ])

@@ -10,6 +10,7 @@ from __future__ import annotations
 import json
 import os
 import shutil
+import re
 import subprocess
 import sys
 from pathlib import Path
@@ -124,6 +125,9 @@ def test_refuses_existing_output_on_every_rank(runs, hml_dir):
         cwd=str(REPO), env=_env(), capture_output=True, text=True, timeout=300)
     assert proc.returncode != 0
     assert proc.stderr.count("exists and is not empty; pass --overwrite") == 1  # rank 0 says it, once
-    assert proc.stderr.count("exitcode  : 2") == 2  # both ranks stop with status 2 (torchrun's summary)
+    # both ranks stop: each exits 2, unless torchrun ends the second one first (SIGTERM, -15) once the
+    # first has exited; which happens first depends on the machine's load
+    codes = re.findall(r"exitcode\s*:\s*(-?\d+)", proc.stderr)
+    assert "2" in codes and set(codes) <= {"2", "-15"}, proc.stderr[-2000:]
     assert "smdm_plugin/" not in proc.stderr  # no traceback from the workers
     assert (runs["ddp"] / f"model{STEPS:09d}.pt").exists()
