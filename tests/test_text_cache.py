@@ -13,15 +13,10 @@ from smdm_plugin import SimpleDiffusion, SparseConfig, TinyMDM, sparsify
 from smdm_plugin.adapters.text_cache import (CachedTextEncoder, TextEmbeddingCache, install_text_cache,
                                              module_fingerprint, remove_text_cache)
 
+sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+from text_encoder_fixtures import make_tiny_encoder, one_thread  # noqa: E402,F401
+
 CAPTIONS = ["a person walks forward", "jumps", "a person sits down", "waves with hand", "jumps"]
-
-
-@pytest.fixture(autouse=True)
-def one_thread():
-    n = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(n)
 
 
 class ToyEncoder(nn.Module):
@@ -186,9 +181,6 @@ def test_ema_copy_shares_the_cache_but_uses_its_own_encoder():
 
 def test_cache_on_a_swapped_hf_encoder_matches_uncached(tmp_path):
     pytest.importorskip("transformers")
-    sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
-    from text_encoder_fixtures import make_tiny_encoder
-
     from smdm_plugin.adapters.text_encoder import swap_text_encoder
 
     path = make_tiny_encoder(str(tmp_path / "enc"))

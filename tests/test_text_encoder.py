@@ -20,19 +20,10 @@ from smdm_plugin.integrations import mdm_text  # noqa: E402
 from smdm_plugin.integrations.mdm import sparsify_mdm, warn_if_upstream_steps  # noqa: E402
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
-from text_encoder_fixtures import dense_head, make_tiny_encoder  # noqa: E402
+from text_encoder_fixtures import dense_head, make_tiny_encoder, one_thread  # noqa: E402,F401
 
 CAPTIONS = ["a person walks forward and then turns left", "jumps", "a person sits on the ground slowly",
             "waves with hand"]
-
-
-@pytest.fixture(autouse=True)
-def one_thread():
-    """Tiny models: one thread is faster than two on a shared, busy CPU (and deterministic)."""
-    n = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(n)
 
 
 @pytest.fixture(scope="module")
@@ -123,6 +114,27 @@ def test_sentence_transformers_layout_is_followed(st_dir):
         torch.testing.assert_close(out[i], want, atol=1e-5, rtol=1e-5)
     # an explicit pooling overrides the layout's
     assert HFTextEncoder(st_dir, pooling="mean").pooling == "mean"
+
+
+def test_layout_of_a_hub_id_is_read_through_hf_hub_download(monkeypatch, st_dir):
+    """A hub id (not a folder): the layout files are fetched one by one; absent ones are absent."""
+    import huggingface_hub
+    from huggingface_hub.errors import EntryNotFoundError
+
+    asked = []
+
+    def fake_download(repo_id, filename, **kw):
+        asked.append((repo_id, filename))
+        path = os.path.join(st_dir, filename)
+        if not os.path.isfile(path):
+            raise EntryNotFoundError(f"{filename} not in {repo_id}")
+        return path
+
+    monkeypatch.setattr(huggingface_hub, "hf_hub_download", fake_download)
+    layout = read_layout("someone/stella-like")
+    assert (layout.pooling, layout.head, layout.normalize, layout.prompt) == ("cls", "2_Dense", True, "motion ")
+    assert ("someone/stella-like", "modules.json") in asked
+    assert ("someone/stella-like", "1_Pooling/config.json") in asked
 
 
 def test_unsupported_sentence_transformers_module_is_a_clear_error(tmp_path, bert_dir):
@@ -313,7 +325,7 @@ def test_swap_rejects_models_without_text_conditioning(bert_dir):
 
 # --------------------------------------------------------------------------- MDM integration glue
 def mdm_args(tmp_path, **kw):
-    d = dict(sparse=True, save_dir=str(tmp_path), diffusion_steps=50)
+    d = dict(sparse=True, save_dir=str(tmp_path), diffusion_steps=50, sparse_feature="raw")
     d.update(kw)
     return argparse.Namespace(**d)
 

@@ -145,6 +145,8 @@ def read_layout(name_or_path: str, pooling: Optional[str] = None) -> EncoderLayo
                                  f"(one of {POOLINGS}); pass pooling= to choose one")
             kw["pooling"] = on[0] if on else "mean"
         elif kind == "Dense":
+            if "head" in kw:
+                raise ValueError(f"text encoder {name_or_path!r}: more than one Dense module is not supported")
             kw["head"] = path
         elif kind == "Normalize":
             kw["normalize"] = True

@@ -95,29 +95,24 @@ def test_text_encoder_swap_trains_saves_and_restores(arch, route, repos, encoder
 
 
 CACHE = r"""
-import argparse, json, os, warnings, numpy as np, torch
+import json, os, sys, tempfile, types, warnings, numpy as np, torch
 from utils import parser_util
 from utils.model_util import create_model_and_diffusion
 from smdm_plugin.adapters.text_cache import CachedTextEncoder
 
-mean = np.load("dataset/HumanML3D/Mean.npy"); std = np.load("dataset/HumanML3D/Std.npy")
-class _DS: pass
-ds = _DS(); ds.mean, ds.std = mean, std
-data = argparse.Namespace(dataset=ds)
+stats = types.SimpleNamespace(mean=np.load("dataset/HumanML3D/Mean.npy"), std=np.load("dataset/HumanML3D/Std.npy"))
+data = types.SimpleNamespace(dataset=stats)  # what sparsify_mdm reads Mean/Std from
 ENC = {ENC}
 CAPS = ["a person walks forward", "a person jumps", "someone dances", "a person sits down", "jumps",
         "a person walks forward"]
 
 def build(flags, cache):
+    os.environ.pop("SMDM_TEXT_CACHE", None)
     if cache:
         os.environ["SMDM_TEXT_CACHE"] = "on"
-    else:
-        os.environ.pop("SMDM_TEXT_CACHE", None)
-    p = argparse.ArgumentParser()
-    parser_util.add_base_options(p); parser_util.add_data_options(p)
-    parser_util.add_model_options(p); parser_util.add_diffusion_options(p)
-    args = parser_util.apply_rules(p.parse_args(["--dataset", "humanml", "--latent_dim", "64", "--layers", "2",
-                                                 "--diffusion_steps", "20"] + flags))
+    sys.argv = ["train", "--dataset", "humanml", "--latent_dim", "64", "--layers", "2", "--diffusion_steps", "20",
+                "--save_dir", tempfile.mkdtemp()] + flags
+    args = parser_util.train_args()
     torch.manual_seed(0)
     model, diffusion = create_model_and_diffusion(args, data)
     model.train()
