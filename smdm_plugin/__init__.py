@@ -38,6 +38,9 @@ _EXPORTS: Dict[str, str] = {
     "sparsify": "adapters.mdm", "unsparsify": "adapters.mdm", "is_sparse": "adapters.mdm",
     "detect_variant": "adapters.mdm", "set_mean_std": "adapters.mdm",
     "attach_diffusion": "adapters.diffusion", "detach_diffusion": "adapters.diffusion",
+    "keyframe_collate": "adapters.diffusion",
+    "swap_text_encoder": "adapters.text_encoder", "HFTextEncoder": "adapters.text_encoder",
+    "install_text_cache": "adapters.text_cache", "TextEmbeddingCache": "adapters.text_cache",
     "ConfigTypeError": "core.config",
     # io
     "read_bvh": "io.bvh", "bvh_joint_positions": "io.bvh", "load_cmu_clip": "io.bvh",
@@ -68,7 +71,9 @@ def __dir__() -> List[str]:
 
 
 if TYPE_CHECKING:  # pragma: no cover - for type checkers and IDEs
-    from .adapters.diffusion import attach_diffusion, detach_diffusion
+    from .adapters.diffusion import attach_diffusion, detach_diffusion, keyframe_collate
+    from .adapters.text_cache import TextEmbeddingCache, install_text_cache
+    from .adapters.text_encoder import HFTextEncoder, swap_text_encoder
     from .adapters.mdm import detect_variant, is_sparse, set_mean_std, sparsify, unsparsify
     from .core.attention_backends import available_backends, get_backend, register_backend
     from .core.config import ConfigTypeError, SparseConfig, load_preset

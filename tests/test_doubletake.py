@@ -6,7 +6,7 @@ import warnings
 import pytest
 import torch
 
-from smdm_plugin import SparseConfig, TinyMDM, sparsify
+from smdm_plugin import SparseConfig, TinyMDM, keyframe_count, sparsify
 from smdm_plugin.adapters.doubletake import (PAPER_BLEND_LEN, attach_doubletake_forcing,
                                              detach_doubletake_forcing, doubletake_forced_frames,
                                              forced_from_y, paper_blend_len)
@@ -182,3 +182,21 @@ def test_sparse_doubletake_warns_about_a_non_paper_blend(blend, warns):
     if warns:
         assert "--blend_len 5" in hit[0] and ("priorMDM's default" in hit[0]) == (blend == 20)
     assert model._smdm_doubletake_hook is not None  # forcing attached either way
+
+
+def test_forced_frames_count_inside_the_budget():
+    """Issue 11: DoubleTake's forced handshake / inpainting frames are part of the K keyframes, not
+    added on top: every segment keeps max(K, its protected frames), all forced frames among them."""
+    lens = [60, 60, 60]
+    n = max(lens)
+    model, seen = _sparse_tiny(reduction=0.8)
+    y = {"lengths": torch.tensor(lens), "is_transition": _first_take_transition(lens, n),
+         "mask": (torch.arange(n)[None] < torch.tensor(lens)[:, None]).view(3, 1, 1, n)}
+    with torch.no_grad():
+        model(torch.randn(3, 8, 1, n), torch.tensor([9, 9, 9]), y)
+    forced = doubletake_forced_frames(lens, H)
+    K = keyframe_count(60, 0.8)
+    protected = (forced | (torch.arange(n) == 0) | (torch.arange(n) == n - 1)).sum(1)
+    assert (protected <= K).all()                                      # the budget can hold them
+    assert seen[-1][forced].all()
+    assert seen[-1].sum(1).tolist() == [K] * 3                          # K, not K + forced

@@ -118,7 +118,7 @@ def sparsify_mdm(model: Any, args: Any, data: Any = None, diffusion: Any = None,
         if os.path.isdir(save_dir):
             from ..io.checkpoint import save_sparse_config
 
-            save_sparse_config(model, save_dir)
+            save_sparse_config(model, save_dir, overwrite=bool(getattr(args, "overwrite", False)))
     return model
 
 

@@ -113,8 +113,9 @@ def attach_trainer(trainer: Any, config: Optional[SparseConfig] = None) -> Any:
         mean, std = mean_std_from_opt(opt)
         sparsify_motiondiffuse(core, config, mean, std, diffusion=trainer.diffusion)
     if config.enabled and getattr(opt, "is_train", False) and getattr(opt, "model_dir", None):
-        os.makedirs(opt.model_dir, exist_ok=True)
-        core.smdm_config.save(os.path.join(opt.model_dir, CONFIG_FILENAME))
+        from ..io.checkpoint import save_sparse_config  # never replaces another config unasked
+
+        save_sparse_config(core.smdm_config, opt.model_dir)
     return trainer
 
 

@@ -176,6 +176,10 @@ def load_checkpoint(path: str, model: Optional[nn.Module] = None, map_location: 
                 model = TinyMDM(**json.load(f))
         except (ValueError, TypeError) as e:
             raise ValueError(f"load_checkpoint: {bpath}: cannot build TinyMDM from it: {e}") from None
+    if config is not None and config.text_encoder and getattr(model, "_smdm_text_encoder", None) != config.text_encoder:
+        from ..adapters.text_encoder import swap_text_encoder  # the encoder the weights were trained with
+
+        swap_text_encoder(model, config.text_encoder)
     if config is not None and config.enabled:
         if model_is_sparse(model):
             check_config_matches(model, config, config_source or path, allow_differences)
