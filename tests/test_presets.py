@@ -77,7 +77,7 @@ def _argv(flags: dict) -> list:
 
 
 @pytest.mark.skipif(not MDM_ROOT, reason="SMDM_MDM_ROOT not set (an MDM checkout)")
-@pytest.mark.parametrize("name", ["smdm_paper", "sdip_paper"])
+@pytest.mark.parametrize("name", [n for n in PRESETS if "mdm" in (_yaml(n).get("upstream") or {})])
 def test_upstream_flags_parse_with_mdm(name):
     """Every flag is an option of MDM's train.train_mdm and parses to the preset's value; the
     'builtin' values are the ones MDM's get_model_args hard-codes."""
@@ -91,7 +91,7 @@ def test_upstream_flags_parse_with_mdm(name):
     for k, v in up["flags"].items():
         assert getattr(args, k) == v, k
     model_util = Path(MDM_ROOT, "utils", "model_util.py").read_text()
-    for k, v in up["builtin"].items():
+    for k, v in up.get("builtin", {}).items():
         assert re.search(rf"'{k}':\s*{re.escape(repr(v))}\b", model_util), k
     if "sample_flags" in up:
         gen = pu.ArgumentParser()
