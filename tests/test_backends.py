@@ -162,18 +162,32 @@ def test_varlen_falls_back_to_compact_for_hooks_and_custom_attention():
     assert ab.supports_packed(enc)  # the hook is gone: packed again
 
 
-def test_varlen_with_fsq_attention_falls_back_and_matches_compact():
-    fsq = pytest.importorskip("smdm_plugin.core.fsq")
+@pytest.mark.parametrize("kind", ["encoder", "decoder"])
+def test_varlen_packs_fsq_attention_and_matches_the_reference(kind):
+    """FSQ keys (the paper's recipe) are re-applied to the packed keys: same outputs and
+    gradients as the masked reference and the compact backend."""
+    from smdm_plugin.core.fsq import quantize_attention_keys
+
     torch.manual_seed(5)
-    S, B, d = 16, 2, 32
-    enc = encoder().eval()
-    fsq.quantize_attention_keys(enc, (8, 5, 5, 5))
-    keep = keyframes(B, S, [16, 9], 4)
-    x = torch.randn(S, B, d)
-    assert not ab.supports_packed(enc)
-    with torch.no_grad():
-        assert torch.allclose(run(varlen_backend, enc, x, keep)[keep.t()], run(compact_backend, enc, x, keep)[keep.t()],
-                              atol=1e-6)
+    S, B, d = 16, 3, 32
+    inner = (encoder if kind == "encoder" else decoder)().train()
+    quantize_attention_keys(inner, (8, 5, 5, 5))
+    assert ab.supports_packed(inner)
+    keep = keyframes(B, S, [16, 9, 5], 4)
+    x = torch.randn(S, B, d, requires_grad=True)
+    mem = torch.randn(1, B, d) if kind == "decoder" else None
+    w = torch.randn(S, B, d) * keep.t()[..., None]
+    results = {}
+    for name, fn in (("varlen", varlen_backend), ("compact", compact_backend), ("masked", ab.masked_backend)):
+        x.grad = None
+        inner.zero_grad()
+        out = run(fn, inner, x, keep, memory=mem)
+        (out * w).sum().backward()
+        key_down = inner.layers[0].self_attn.key_down.weight.grad.clone()
+        results[name] = (out.detach() * keep.t()[..., None], x.grad.clone(), key_down)
+    for name in ("varlen", "compact"):
+        for a, b in zip(results[name], results["masked"]):
+            assert torch.allclose(a, b, atol=1e-5), name
 
 
 def test_packing_roundtrip_and_lerp_rows_gradient():

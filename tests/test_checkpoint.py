@@ -65,7 +65,7 @@ def test_save_config_never_overwrites_unasked(tmp_path):
     before = p.read_bytes()
     with pytest.raises(FileExistsError, match=r"sparse_config.json' exists with another config \(differs in "
                                               r"reduction, fsq\); pass overwrite=True"):
-        save_sparse_config(SparseConfig(reduction=0.7, fsq=True), str(tmp_path))  # the default: never overwrite
+        save_sparse_config(SparseConfig(reduction=0.7, fsq=False), str(tmp_path))  # the default: never overwrite
     assert p.read_bytes() == before
     # the same config again (a second save, every rank of a distributed run): nothing to refuse
     assert save_sparse_config(SparseConfig(reduction=0.6), str(tmp_path)) == str(p) and p.read_bytes() == before
@@ -81,7 +81,7 @@ def test_save_config_never_overwrites_unasked(tmp_path):
 
 @pytest.mark.parametrize("change,fields", [
     ({"reduction": 0.8}, ["reduction: saved 0.7, model 0.8"]),
-    ({"fsq": True}, ["fsq: saved False, model True"]),
+    ({"fsq": False}, ["fsq: saved True, model False"]),
     ({"reduction": 0.9, "lipschitz": False, "selector": "uniform"},
      ["reduction: saved 0.7, model 0.9", "selector: saved 'vw', model 'uniform'", "lipschitz: saved True, model False"]),
 ])

@@ -101,7 +101,7 @@ def test_values_are_normalised_and_replace_revalidates():
     assert SparseConfig(text_encoder="dunzhang/stella_en_400M_v5").text_encoder == "dunzhang/stella_en_400M_v5"
     with pytest.raises(TypeError, match="SparseConfig.fsq"):
         c.replace(fsq="yes")
-    assert c.replace(fsq=True).fsq is True and c.fsq is False
+    assert c.replace(fsq=False).fsq is False and c.fsq is True
 
 
 def test_unknown_keys_suggest_the_closest_name(tmp_path):

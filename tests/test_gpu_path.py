@@ -18,6 +18,7 @@ from torch.utils._python_dispatch import TorchDispatchMode
 
 from smdm_plugin import SimpleDiffusion, SparseConfig, TinyMDM, sparsify
 from smdm_plugin.core.checks import static_mode
+from smdm_plugin.core.fsq import quantize_attention_keys
 
 VARIANTS = {
     "trans_enc": dict(arch="trans_enc"),
@@ -55,13 +56,15 @@ class Dispatched(TorchDispatchMode):
         return sum(self.ops.values())
 
 
-def make(name, sparse=True, layers=2, latent=32, **cfg):
+def make(name, sparse=True, layers=2, latent=32, fsq=None, **cfg):
     torch.manual_seed(0)
     model = TinyMDM(latent_dim=latent, ff_size=2 * latent, num_layers=layers, dropout=0.0, cond_mask_prob=0.0,
                     **VARIANTS[name])
     diffusion = SimpleDiffusion(50)
     if sparse:
         cfg = {"reduction": 0.8, "dynamic_update": True, **cfg}
+        if fsq is not None:
+            cfg["fsq"] = fsq
         sparsify(model, SparseConfig(**cfg), diffusion=diffusion)
     return model, diffusion
 
@@ -157,19 +160,23 @@ def test_the_sync_counter_sees_syncs():
 
 
 # ----------------------------------------------------------------------------- launch budget
+@pytest.mark.parametrize("fsq", [False, True], ids=["fsq_off", "fsq_on"])
 @pytest.mark.parametrize("name", ["trans_enc", "trans_dec"])
-def test_launch_budget_of_the_static_path(name):
+def test_launch_budget_of_the_static_path(name, fsq):
     """MDM-depth TinyMDM (8 layers), B=8, 196 frames, lengths 40..196: ops dispatched by the
     sparse model <= 1.5x the dense model's for a training step (loss + backward) and <= 1.6x for
-    each sampling call (a new x_t, before and inside the late steps). The optimizer step is the
-    same for both and is left out."""
+    each sampling call (a new x_t, before and inside the late steps). Like is compared with like:
+    with FSQ on, the dense model gets the same FSQ attention (``quantize_attention_keys``). The
+    optimizer step is the same for both and is left out."""
     B, N = 8, 196
     x, y = batch(name, B=B, N=N)
     y["lengths"] = torch.linspace(40, N, B).round().long()
     y["mask"] = (torch.arange(N) < y["lengths"][:, None]).view(B, 1, 1, N)
     counts = {}
     for sparse in (False, True):
-        model, diffusion = make(name, sparse=sparse, layers=8, latent=64)
+        model, diffusion = make(name, sparse=sparse, layers=8, latent=64, fsq=fsq)
+        if fsq and not sparse:
+            assert quantize_attention_keys(model, SparseConfig().fsq_levels) == 8
         t = torch.arange(B) * 6
         with static_mode():
             model.train()

@@ -7,6 +7,7 @@ import torch.nn as nn
 
 from smdm_plugin import (SimpleDiffusion, SparseConfig, TinyMDM, detect_variant, is_sparse, lipschitz_loss,
                          sparsify, unsparsify)
+from smdm_plugin.core.fsq import FSQMultiheadAttention, quantize_attention_keys
 from smdm_plugin.core.lipschitz import LipschitzMLP
 
 VARIANTS = {
@@ -69,10 +70,15 @@ def test_disabled_flag_leaves_model_bit_for_bit():
         assert torch.equal(model.eval()(x, t, y), ref(x, t, y))
 
 
+@pytest.mark.parametrize("fsq", [False, True], ids=["mha", "fsq"])
 @pytest.mark.parametrize("name", VARIANTS)
-def test_all_keyframes_equals_dense(name):
+def test_all_keyframes_equals_dense(name, fsq):
+    """With FSQ keys the dense reference has the same FSQ attention (quantised before the copy)."""
     dense = tiny(**VARIANTS[name]).eval()
-    model = sparsify(copy.deepcopy(dense), SparseConfig(reduction=0.0, lipschitz=False, mask_noise=0.0)).eval()
+    if fsq:
+        assert quantize_attention_keys(dense, SparseConfig().fsq_levels) > 0
+    model = sparsify(copy.deepcopy(dense), SparseConfig(reduction=0.0, lipschitz=False, mask_noise=0.0,
+                                                        fsq=fsq)).eval()
     N = 40 if name == "dip" else 60
     x, t, y = batch(dense, N=N, lengths=[N, N - 7, N // 2])
     with torch.no_grad():
@@ -210,3 +216,17 @@ def test_sparse_training_reduces_loss_on_real_motion(hml_batch):
         opt.step()
         losses.append(loss.item())
     assert sum(losses[-10:]) / 10 < 0.7 * sum(losses[:10]) / 10
+
+
+def test_unsparsify_turns_fsq_attention_back_into_mha_with_its_trained_weights():
+    model = sparsify(tiny(), SparseConfig(fsq=True))
+    fsq = [m for m in model.modules() if isinstance(m, FSQMultiheadAttention)]
+    assert len(fsq) == 2
+    with torch.no_grad():
+        fsq[0].in_proj_weight.add_(1.0)                              # as if trained in sparse mode
+    trained = fsq[0].in_proj_weight.detach().clone()
+    unsparsify(model)
+    attns = [m.self_attn for m in model.modules() if hasattr(m, "self_attn")]
+    assert [type(a) for a in attns] == [nn.MultiheadAttention] * 2
+    assert torch.equal(attns[0].in_proj_weight, trained)
+    assert not any("key_down" in k for k in model.state_dict())

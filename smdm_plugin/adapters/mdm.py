@@ -30,7 +30,7 @@ import torch.nn as nn
 from ..core.attention_backends import gather_rows, scatter_rows
 from ..core.checks import host_checkable
 from ..core.config import MARKER, SparseConfig
-from ..core.fsq import quantize_attention_keys
+from ..core.fsq import quantize_attention_keys, unquantize_attention_keys
 from ..core.keyframe_transformer import KeyframeTransformer
 from ..core.lipschitz import LipschitzMLP
 from ..core.plan import KeyframePlan
@@ -244,9 +244,10 @@ def sparsify(model: nn.Module, config: Optional[SparseConfig] = None, *, diffusi
 def unsparsify(model: nn.Module) -> nn.Module:
     """Undo :func:`sparsify`: put back the original dense layers and remove the hooks.
 
-    The dense layers come back with the weights they had when the model was sparsified; weights
-    learned in sparse mode by the Lipschitz MLPs are dropped (they have no dense equivalent).
-    FSQ-quantised attention layers stay quantised.
+    The dense input/output layers come back with the weights they had when the model was
+    sparsified; weights learned in sparse mode by the Lipschitz MLPs are dropped (they have no
+    dense equivalent). FSQ-quantised self-attention layers become ``nn.MultiheadAttention`` again
+    with their current (trained) q/k/v/out weights; the key codebook projections are dropped.
     """
     if not is_sparse(model):
         return model
@@ -259,6 +260,8 @@ def unsparsify(model: nn.Module) -> nn.Module:
         del embed._smdm_rows_state
     for (owner, name), module in state.originals.items():
         setattr(owner, name, module)
+    if state.fsq_layers:
+        unquantize_attention_keys(getattr(model, state.variant.transformer))
     del model._buffers[MARKER]
     delattr(model, STATE_ATTR)
     del model.smdm_config

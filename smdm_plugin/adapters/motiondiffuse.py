@@ -183,7 +183,9 @@ def sparsify_motiondiffuse(model: nn.Module, config: Optional[SparseConfig] = No
 
     Args:
         model: the ``MotionTransformer`` (not a DataParallel wrapper: pass ``.module``).
-        config: the options; ``enabled=False`` returns ``model`` untouched.
+        config: the options; ``enabled=False`` returns ``model`` untouched. ``fsq`` is set to
+            False (FSQ keys quantise softmax attention; MotionDiffuse's attention is linear), so
+            the saved config says what ran.
         mean, std: ``[D]`` statistics the training data was normalised with (MotionDiffuse
             divides the root and foot-contact std by ``feat_bias``; see :func:`training_mean_std`).
         diffusion: MotionDiffuse's ``GaussianDiffusion``; its ``training_losses`` is wrapped
@@ -198,6 +200,8 @@ def sparsify_motiondiffuse(model: nn.Module, config: Optional[SparseConfig] = No
         raise ValueError("sparsify_motiondiffuse: the model is already sparse (unsparsify it first)")
     if diffusion is not None and getattr(diffusion, "num_timesteps", None):
         config = config.replace(diffusion_steps=int(diffusion.num_timesteps))
+    if config.fsq:   # FSQ keys are defined for softmax attention; MotionDiffuse's is linear
+        config = config.replace(fsq=False)
     originals: Dict[str, nn.Module] = {}
     ref = model.sequence_embedding
     if config.lipschitz:

@@ -17,7 +17,7 @@ anywhere valid). The keyframe transformer interpolates every frame from these ro
 * ``compact`` — the lead tokens and the ``K`` plan slots gathered to ``[lead + K, B, d]`` with a key
   padding mask over the empty slots, the wrapped module called as it is. Static shapes, no host
   sync: the default on accelerators and under ``torch.compile``; also the fallback for layers
-  ``varlen`` cannot re-apply (FSQ attention keys, custom layers, hooks).
+  ``varlen`` cannot re-apply (custom layers, hooks).
 * ``varlen``  — kept tokens packed with no padding at all ``[T, d]``, the layer maths of
   ``nn.TransformerEncoderLayer`` / ``DecoderLayer`` re-applied with variable-length attention
   (``flash_attn`` or PyTorch's ``varlen_attn`` on CUDA in half precision, else SDPA on a padded view
@@ -34,6 +34,7 @@ import torch.nn as nn
 import torch.nn.functional as F
 
 from .checks import static_shapes
+from .fsq import FSQMultiheadAttention, _disable_transformer_fast_path
 from .plan import KeyframePlan
 
 Backend = Callable[..., Tuple[torch.Tensor, torch.Tensor]]
@@ -288,6 +289,7 @@ def _mha_packed(mha: nn.MultiheadAttention, xq: torch.Tensor, xkv: torch.Tensor,
         # padded attention: one scatter of the fused q|k|v projection, one gather of the output
         qkv = pq.pad(F.linear(xq, W, b)).view(pq.B, pq.max, 3, H, Dh).permute(2, 0, 3, 1, 4)
         q, k, v = qkv.unbind(0)  # unbind: its backward stacks, no zero-filled [3, ...] per index
+        k = _quantized_keys(mha, k)
         o = F.scaled_dot_product_attention(q, k, v, attn_mask=pq.key_bias(xq.dtype), dropout_p=p)
         return mha.out_proj(pq.unpad(o.transpose(1, 2)).reshape(-1, d))
     if not self_attn and pk.full and pk.max == 1:
@@ -304,6 +306,7 @@ def _mha_packed(mha: nn.MultiheadAttention, xq: torch.Tensor, xkv: torch.Tensor,
         return mha.out_proj(o) + zero
     if self_attn:
         q, k, v = F.linear(xq, W, b).chunk(3, dim=-1)
+        k = _quantized_keys(mha, k.reshape(-1, H, Dh)).reshape(-1, d)
     else:
         bq, bkv = (b[:d], b[d:]) if b is not None else (None, None)
         q = F.linear(xq, W[:d], bq)
@@ -312,20 +315,29 @@ def _mha_packed(mha: nn.MultiheadAttention, xq: torch.Tensor, xkv: torch.Tensor,
     return mha.out_proj(o.reshape(-1, d))
 
 
+def _quantized_keys(mha: nn.Module, k: torch.Tensor) -> torch.Tensor:
+    """Keys ``[..., head_dim]`` through an FSQ attention's bottleneck (others: unchanged)."""
+    return mha.quantize_keys(k) if isinstance(mha, FSQMultiheadAttention) and mha.quantize else k
+
+
 def _has_hooks(m: Optional[nn.Module]) -> bool:
-    return m is not None and bool(m._forward_hooks or m._forward_pre_hooks or m._backward_hooks
-                                  or getattr(m, "_backward_pre_hooks", None))
+    if m is None:
+        return False
+    pre = [h for h in m._forward_pre_hooks.values() if h is not _disable_transformer_fast_path]
+    return bool(m._forward_hooks or pre or m._backward_hooks or getattr(m, "_backward_pre_hooks", None))
 
 
 def _supports_varlen(layer: nn.Module) -> bool:
-    """The layer maths can be re-applied to packed rows: plain ``nn.MultiheadAttention`` (packed
-    q/k/v projection) and no hooks on the layer or its attention modules (``varlen`` reads their
-    weights instead of calling them, which would silently skip the hooks)."""
+    """The layer maths can be re-applied to packed rows: ``nn.MultiheadAttention`` or FSQ
+    attention (packed q/k/v projection; FSQ keys applied to the packed keys) and no hooks on the
+    layer or its attention modules (``varlen`` reads their weights instead of calling them, which
+    would silently skip the hooks)."""
     if any(_has_hooks(m) for m in (layer, getattr(layer, "self_attn", None),
                                     getattr(layer, "multihead_attn", None))):
         return False
     attn = getattr(layer, "self_attn", None)
-    if not (type(attn) is nn.MultiheadAttention and attn._qkv_same_embed_dim and attn.in_proj_weight is not None):
+    if not (type(attn) in (nn.MultiheadAttention, FSQMultiheadAttention) and attn._qkv_same_embed_dim
+            and attn.in_proj_weight is not None):
         return False
     cross = getattr(layer, "multihead_attn", None)
     return cross is None or (type(cross) is nn.MultiheadAttention and cross._qkv_same_embed_dim

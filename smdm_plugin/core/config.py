@@ -187,7 +187,7 @@ class SparseConfig:
     selector: str = _field("vw", str, "keyframe selector", choices=SELECTORS)
     feature: str = _field("auto", str, "what VW measures (auto: by D, 263 HumanML3D / 251 KIT / other raw)",
                           choices=FEATURES)
-    frame_index_scale: float = _field(0.1, float, "metres per frame appended as the extra VW dimension",
+    frame_index_scale: float = _field(0.3, float, "metres per frame appended as the extra VW dimension",
                                       range=Range(0.0), note="metres per frame")
     mask_noise: float = _field(0.1, float, "training: up to this fraction of the keyframes added/dropped",
                                range=Range(0.0, 1.0), note="fraction of keyframes added/dropped")
@@ -202,12 +202,12 @@ class SparseConfig:
     # --- model ---------------------------------------------------------------------------
     interpolate: bool = _field(True, bool, "false: loss on keyframes only (ablation)")
     lipschitz: bool = _field(True, bool, "Lipschitz sine MLPs for the input/output layers")
-    lipschitz_lambda: float = _field(1e-6, float, "weight of prod softplus(c_i) in the loss", range=Range(0.0))
+    lipschitz_lambda: float = _field(0.0, float, "weight of prod softplus(c_i) in the loss", range=Range(0.0))
     lipschitz_hidden: Optional[int] = _field(None, int, "Lipschitz MLP hidden width (None/auto: latent dim)",
                                              range=Range(1), optional=True)
     lipschitz_layers: int = _field(2, int, "linear layers per Lipschitz MLP", range=Range(1))
     sine_w0: float = _field(1.0, float, "sine activation frequency", range=Range(0.0, lo_open=True))
-    fsq: bool = _field(False, bool, "quantise attention keys with FSQ")
+    fsq: bool = _field(True, bool, "quantise attention keys with FSQ")
     fsq_levels: Tuple[int, ...] = _field((8, 8, 8, 5, 5, 5), tuple, "FSQ levels per key dimension",
                                          range=Range(2))
     attention_backend: str = _field("auto", str, "how keyframe tokens are packed", choices=BACKENDS)
@@ -535,8 +535,12 @@ def preset_names() -> List[str]:
 
 
 def load_preset(name: str) -> SparseConfig:
-    """A preset from ``configs/`` (``smdm_humanml``, ``sdip``, ``smotiondiffuse``) or any
-    YAML/JSON path."""
+    """A packaged preset by name or any YAML/JSON path.
+
+    Packaged (``smdm_plugin/configs/``): ``smdm_paper`` (App. B.1: trans_dec-ready, 50 steps, FSQ
+    keys, lambda 0, no dynamic update), ``sdip_paper`` (App. B.2: 10 steps, 20 past + 40 future
+    frames), ``smdm_humanml`` and ``sdip`` (earlier measured variants, kept by name),
+    ``smotiondiffuse``; ``preset_names()`` lists them all."""
     if os.path.exists(name):
         return SparseConfig.load(name)
     fname = name if name.endswith((".yaml", ".yml")) else f"{name}.yaml"

@@ -44,6 +44,7 @@ class FSQ(nn.Module):
         # non-persistent: a dense checkpoint carries no FSQ buffers
         self.register_buffer("_half_l", half_l.float(), persistent=False)
         self.register_buffer("_offset", offset.float(), persistent=False)
+        self.register_buffer("_neg_offset", -offset.float(), persistent=False)
         self.register_buffer("_shift", shift.float(), persistent=False)
         self.register_buffer("_half_width", (lv // 2).float(), persistent=False)
         self.register_buffer("_basis", basis, persistent=False)
@@ -57,16 +58,19 @@ class FSQ(nn.Module):
         return int(math.prod(self.levels_list))
 
     def bound(self, z: Tensor) -> Tensor:
-        """``[..., d]``: each channel squashed into ``(-floor(L/2) - 0.5, ceil(L/2) - 0.5)``."""
-        return torch.tanh(z + self._shift.to(z.dtype)) * self._half_l.to(z.dtype) \
-            - self._offset.to(z.dtype)
+        """``[..., d]``: each channel squashed into ``(-floor(L/2) - 0.5, ceil(L/2) - 0.5)``
+        (``tanh(z + shift) * half_l - offset``, as one fused multiply-add)."""
+        return torch.addcmul(self._neg_offset.to(z.dtype), torch.tanh(z + self._shift.to(z.dtype)),
+                             self._half_l.to(z.dtype))
 
     def forward(self, z: Tensor) -> Tensor:
         if z.shape[-1] != self.dim:
             raise ValueError(f"FSQ: input must be [..., {self.dim}], got {tuple(z.shape)}")
         b = self.bound(z)
-        q = b + (torch.round(b) - b).detach()                   # straight-through rounding
-        return q / self._half_width.to(z.dtype)
+        r = torch.round(b)
+        if torch.is_grad_enabled() and b.requires_grad:
+            r = b + (r - b).detach()                            # straight-through rounding
+        return r / self._half_width.to(z.dtype)
 
     def codes_to_indices(self, codes: Tensor) -> Tensor:
         """``[..., d]`` grid codes (as returned by ``forward``) -> ``[...]`` long in
@@ -170,13 +174,28 @@ class FSQMultiheadAttention(nn.Module):
         assert not unexpected and all(k.startswith(("key_down.", "key_up.")) for k in missing)
         return new.train(mha.training)
 
-    def _heads(self, x: Tensor, B: int) -> Tensor:
-        """``[B, T, E] -> [B, H, T, head_dim]``."""
-        return x.view(B, x.shape[1], self.num_heads, self.head_dim).transpose(1, 2)
+    def to_mha(self) -> nn.MultiheadAttention:
+        """The dense ``nn.MultiheadAttention`` with this layer's current q/k/v/out weights (and
+        train/eval mode); the key codebook projections (``key_down``/``key_up``) are dropped."""
+        w = self.in_proj_weight
+        mha = nn.MultiheadAttention(self.embed_dim, self.num_heads, dropout=self.dropout,
+                                    bias=self.in_proj_bias is not None, batch_first=self.batch_first,
+                                    device=w.device, dtype=w.dtype)
+        own = self.state_dict()
+        mha.load_state_dict({k: own[k] for k in mha.state_dict()})
+        return mha.train(self.training)
+
+    def _heads(self, x: Tensor, batch_first: bool) -> Tensor:
+        """``[B, T, E]`` (``batch_first``) or ``[T, B, E]`` -> ``[B, H, T, head_dim]`` (a view)."""
+        if not batch_first:
+            x = x.transpose(0, 1)
+        return x.unflatten(-1, (self.num_heads, self.head_dim)).transpose(1, 2)
 
     def quantize_keys(self, k: Tensor) -> Tensor:
-        """``[..., head_dim] -> [..., head_dim]`` through the FSQ bottleneck."""
-        return self.key_up(self.fsq(self.key_down(k)))
+        """``[..., head_dim] -> [..., head_dim]`` through the FSQ bottleneck (the linear layers run on
+        rows ``[-1, head_dim]``: one fused multiply-add each)."""
+        rows = k.reshape(-1, k.shape[-1])
+        return self.key_up(self.fsq(self.key_down(rows))).view(k.shape)
 
     def forward(self, query: Tensor, key: Tensor, value: Tensor,
                 key_padding_mask: Optional[Tensor] = None, need_weights: bool = True,
@@ -190,23 +209,22 @@ class FSQMultiheadAttention(nn.Module):
             query, key, value = query.unsqueeze(1), key.unsqueeze(1), value.unsqueeze(1)
             if key_padding_mask is not None:
                 key_padding_mask = key_padding_mask.unsqueeze(0)
-        if not unbatched and self.batch_first:
-            q_in, k_in, v_in = query, key, value                     # [B, T, E]
+        bf = not unbatched and self.batch_first                    # else [T, B, E]
+        E, H, hd = self.embed_dim, self.num_heads, self.head_dim
+        # projections in the input's own layout; one for self-attention (query is key is value)
+        if query is key and key is value:
+            q, k, v = F.linear(query, self.in_proj_weight, self.in_proj_bias).chunk(3, dim=-1)
         else:
-            q_in, k_in, v_in = (t.transpose(0, 1) for t in (query, key, value))
-        B, L, _ = q_in.shape
-        S = k_in.shape[1]
-        E, H = self.embed_dim, self.num_heads
-        w_q, w_k, w_v = self.in_proj_weight.split(E)
-        b_q = b_k = b_v = None
-        if self.in_proj_bias is not None:
-            b_q, b_k, b_v = self.in_proj_bias.split(E)
-        q = self._heads(F.linear(q_in, w_q, b_q), B)               # [B, H, L, hd]
-        k = self._heads(F.linear(k_in, w_k, b_k), B)               # [B, H, S, hd]
-        v = self._heads(F.linear(v_in, w_v, b_v), B)
+            w_q, w_k, w_v = self.in_proj_weight.split(E)
+            b_q = b_k = b_v = None
+            if self.in_proj_bias is not None:
+                b_q, b_k, b_v = self.in_proj_bias.split(E)
+            q, k, v = F.linear(query, w_q, b_q), F.linear(key, w_k, b_k), F.linear(value, w_v, b_v)
+        B = q.shape[0] if bf else q.shape[1]
+        L, S = q.shape[1 if bf else 0], k.shape[1 if bf else 0]
         if self.quantize:
-            k = self.quantize_keys(k)
-
+            k = self.quantize_keys(k.reshape(*k.shape[:2], H, hd)).reshape(k.shape)
+        q, k, v = (self._heads(t, bf) for t in (q, k, v))           # [B, H, T, hd]
         # combined additive mask, broadcastable to [B, H, L, S]
         dt = q.dtype
         mask = _to_float_mask(attn_mask, dt)
@@ -236,11 +254,10 @@ class FSQMultiheadAttention(nn.Module):
             weights = attn.mean(dim=1) if average_attn_weights else attn
         else:
             out = F.scaled_dot_product_attention(q, k, v, attn_mask=mask, dropout_p=p)
-        out = self.out_proj(out.transpose(1, 2).reshape(B, L, E))  # [B, L, E]
+        out = out.permute(0, 2, 1, 3) if bf else out.permute(2, 0, 1, 3)   # [B, L, H, hd] / [L, B, H, hd]
+        out = self.out_proj(out.reshape(-1, E)).view(*out.shape[:2], E)
         if unbatched:
-            return out.squeeze(0), None if weights is None else weights.squeeze(0)
-        if not self.batch_first:
-            out = out.transpose(0, 1)
+            return out.squeeze(1), None if weights is None else weights.squeeze(0)
         return out, weights
 
     def _forward_nested(self, query: Tensor, key: Tensor, value: Tensor, need_weights: bool,
@@ -287,5 +304,24 @@ def quantize_attention_keys(module: nn.Module, levels: Sequence[int]) -> int:
         if isinstance(m, nn.TransformerEncoder) and any(
                 isinstance(getattr(layer, "self_attn", None), FSQMultiheadAttention)
                 for layer in m.layers):
+            if not hasattr(m, "_smdm_nested_tensor"):
+                m._smdm_nested_tensor = m.use_nested_tensor
             m.use_nested_tensor = False
+    return count
+
+
+def unquantize_attention_keys(module: nn.Module) -> int:
+    """In place, the inverse of :func:`quantize_attention_keys`: each ``FSQMultiheadAttention``
+    ``self_attn`` becomes an ``nn.MultiheadAttention`` with its current weights
+    (:meth:`FSQMultiheadAttention.to_mha`), and ``nn.TransformerEncoder``'s nested-tensor setting
+    is put back. Returns the number replaced."""
+    count = 0
+    for m in list(module.modules()):
+        attn = getattr(m, "self_attn", None)
+        if isinstance(attn, FSQMultiheadAttention):
+            m.self_attn = attn.to_mha()
+            count += 1
+    for m in module.modules():
+        if isinstance(m, nn.TransformerEncoder) and hasattr(m, "_smdm_nested_tensor"):
+            m.use_nested_tensor = m.__dict__.pop("_smdm_nested_tensor")
     return count
