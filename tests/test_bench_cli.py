@@ -40,6 +40,20 @@ def test_bench_bf16_and_compiled_modes_run():
     assert "torch.compile default" in bench.markdown(r) and "bf16" in bench.markdown(r)
 
 
+@pytest.mark.parametrize("fsq,dense_fsq,sparse_fsq", [("paper", False, True), ("both", True, True),
+                                                     ("off", False, False)])
+def test_fsq_choice_decides_which_side_gets_fsq_keys(fsq, dense_fsq, sparse_fsq):
+    from smdm_plugin.core.fsq import FSQMultiheadAttention
+
+    def has_fsq(model):
+        return any(isinstance(m, FSQMultiheadAttention) for m in model.modules())
+
+    dense, _ = bench.build("trans_enc", None, torch.device("cpu"), True, 4, fsq=fsq)
+    sparse, _ = bench.build("trans_enc", 0.8, torch.device("cpu"), True, 4, fsq=fsq)
+    assert (has_fsq(dense), has_fsq(sparse)) == (dense_fsq, sparse_fsq)
+    assert sparse.smdm_config.fsq is sparse_fsq
+
+
 def test_bench_keyframes_module_mode():
     p = subprocess.run([sys.executable, "-m", "smdm_plugin.apps.bench", "keyframes", "--repeats", "1"],
                        capture_output=True, text=True, timeout=300)

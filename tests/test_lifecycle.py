@@ -164,3 +164,22 @@ def test_keyframe_collate_chooses_the_masks_the_diffusion_would():
     losses(diffusion, model, motion, cond["y"])                    # the loader's mask is used ...
     losses(diffusion, model, x, y)                                 # ... and equals the in-step one
     assert torch.equal(seen[0], cond["y"]["keyframe_mask"]) and torch.equal(seen[0], seen[1])
+
+
+@pytest.mark.parametrize("M", [1, 120])
+def test_conditions_for_another_length_are_cut_to_the_window_with_a_warning(M):
+    """MDM's sample.generate with dataset prompts and --motion_length 2: x has N=60 frames while
+    y['mask'] is a one-frame placeholder (or made for 120 frames) and y['lengths'] say 120. Every
+    frame of the window is valid, as in the dense model; lengths < 2 are still errors."""
+    model = sparsify(tiny(), SparseConfig()).eval()
+    x, y = batch()
+    N = x.shape[-1]
+    other = {**y, "lengths": torch.full((3,), 120), "mask": torch.ones(3, 1, 1, M, dtype=torch.bool)}
+    seen = seen_masks(model)
+    with torch.no_grad(), pytest.warns(UserWarning, match=rf"covers {M} frames but the motion has N={N}"):
+        model(x, T, other)
+    with torch.no_grad():
+        model(x, T, {**y, "lengths": torch.full((3,), N), "mask": torch.ones(3, 1, 1, N, dtype=torch.bool)})
+    assert torch.equal(seen[0], seen[1])
+    with torch.no_grad(), pytest.warns(UserWarning), pytest.raises(ValueError, match=r"lengths must be >= 2, got min 1"):
+        model(x, T, {**other, "lengths": torch.tensor([1, 120, 120])})

@@ -6,6 +6,7 @@ model hooks and the diffusion wrapper.
 """
 from __future__ import annotations
 
+import warnings
 import weakref
 from dataclasses import dataclass, field
 from typing import Any, Dict, List, Optional, Tuple
@@ -13,7 +14,7 @@ from typing import Any, Dict, List, Optional, Tuple
 import torch
 import torch.nn as nn
 
-from ..core.checks import as_lengths, as_mask, require
+from ..core.checks import as_lengths, as_mask, compiling, require
 from ..core.config import SparseConfig
 from ..core.plan import KeyframePlan
 from ..core.schedule import MaskSchedule
@@ -83,12 +84,23 @@ def lengths_from_y(y: Dict[str, Any], B: int, N: int, device: torch.device) -> t
     """Valid frames per sample ``[B]`` long from MDM's ``y``: ``y['mask'] [B, 1, 1, N]`` when it
     covers the frames (at least 2 valid frames each), else ``y['lengths']`` (integers in
     ``[2, N]``), else all ``N``. Bad values are a ``ValueError`` (checked on the host when the data
-    is on the CPU, with ``torch._assert_async`` on accelerators: no sync)."""
+    is on the CPU, with ``torch._assert_async`` on accelerators: no sync).
+
+    One exception, decided from shapes alone: when ``y['mask']`` does not cover the ``N`` frames
+    (``[B, 1, 1, M]``, ``M != N``), the conditions describe another length than the window being
+    sampled: MDM's ``sample.generate`` with dataset prompts passes a one-frame placeholder mask and
+    ``lengths`` 120 whatever ``--motion_length`` is. Then ``y['lengths']`` (still >= 2) are cut to
+    ``N``, as the dense model treats every frame of the window as valid, with a warning."""
     mask = y.get("mask")
     if isinstance(mask, torch.Tensor) and mask.shape[-1] == N and mask.numel() == B * N:
         lengths = mask.reshape(B, N).to(device=device, dtype=torch.long).sum(1)
         require(lengths >= 2, f"y['mask'] must mark at least 2 valid frames of the N={N} in every sample")
         return lengths
+    if isinstance(mask, torch.Tensor) and mask.dim() and mask.shape[-1] != N and y.get("lengths") is not None:
+        if not compiling():
+            warnings.warn(f"y['mask'] covers {mask.shape[-1]} frames but the motion has N={N}: y['lengths'] "
+                          f"are cut to N (MDM's sample.generate does this with dataset prompts)", stacklevel=3)
+        return as_lengths(y["lengths"], B, N, device, "y['lengths']", clip=True)
     if y.get("lengths") is not None:
         return as_lengths(y["lengths"], B, N, device, "y['lengths']")
     return torch.full((B,), N, dtype=torch.long, device=device)

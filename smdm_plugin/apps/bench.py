@@ -150,19 +150,29 @@ def make_batch(batch: int, frames: int, device: torch.device, seed: int = 0, min
     return {"x": x.to(device), "y": y, "lengths": lengths}
 
 
+FSQ_CHOICES = {"paper": "sparse only (dense = upstream MDM, sparse = the paper's recipe)",
+               "both": "dense and sparse (like with like)", "off": "neither"}
+
+
 def build(arch: str, reduction: Optional[float], device: torch.device, quick: bool, steps: int,
-          backend: str = "auto", seed: int = 0, **sparse: Any):
-    """(model, diffusion) — dense when ``reduction`` is None."""
+          backend: str = "auto", seed: int = 0, fsq: str = "paper", **sparse: Any):
+    """(model, diffusion) — dense when ``reduction`` is None. ``fsq`` (:data:`FSQ_CHOICES`): which
+    side gets FSQ-quantised attention keys."""
     from ..adapters.mdm import sparsify
     from ..core.config import SparseConfig
+    from ..core.fsq import quantize_attention_keys
     from ..reference.backbone import TinyMDM
     from ..reference.diffusion import SimpleDiffusion
 
     torch.manual_seed(seed)
     model = TinyMDM(arch=arch, **mdm_size(quick)).to(device)
     diffusion = SimpleDiffusion(steps)
+    config = SparseConfig(reduction=0.0 if reduction is None else reduction, attention_backend=backend,
+                          fsq=fsq != "off", **sparse)
     if reduction is not None:
-        sparsify(model, SparseConfig(reduction=reduction, attention_backend=backend, **sparse), diffusion=diffusion)
+        sparsify(model, config, diffusion=diffusion)
+    elif fsq == "both":
+        quantize_attention_keys(model, config.fsq_levels)
     return model, diffusion
 
 
@@ -276,7 +286,7 @@ def run_bench(archs: Sequence[str] = ("trans_enc", "trans_dec"), reductions: Seq
               batch: int = 64, frames: int = 196, repeats: int = 3, warmup: int = 1, device: str = "auto",
               quick: bool = False, backend: str = "auto", steps: int = 50, fastpath: bool = False,
               modes: Sequence[str] = ("train", "sample"), amp: str = "fp32", compile_mode: str = "none",
-              progress: Optional[Callable[[str], None]] = None) -> Dict[str, Any]:
+              progress: Optional[Callable[[str], None]] = None, fsq: str = "paper") -> Dict[str, Any]:
     """Dense and sparse, interleaved per repeat; wall-clock, process CPU time, peak memory."""
     mha = getattr(torch.backends, "mha", None)
     has_fp = mha is not None and hasattr(mha, "set_fastpath_enabled")
@@ -285,14 +295,14 @@ def run_bench(archs: Sequence[str] = ("trans_enc", "trans_dec"), reductions: Seq
         mha.set_fastpath_enabled(bool(fastpath))
     try:
         return _run_bench(list(archs), list(reductions), batch, frames, repeats, warmup, device, quick, backend,
-                          steps, fastpath, list(modes), amp, compile_mode, progress)
+                          steps, fastpath, list(modes), amp, compile_mode, progress, fsq)
     finally:
         if has_fp:
             mha.set_fastpath_enabled(before)
 
 
 def _run_bench(archs, reductions, batch, frames, repeats, warmup, device, quick, backend, steps, fastpath,
-               modes, amp, compile_mode, progress) -> Dict[str, Any]:
+               modes, amp, compile_mode, progress, fsq) -> Dict[str, Any]:
     from ..core.attention_backends import resolve_backend_name
 
     dev = pick_device(device)
@@ -308,7 +318,7 @@ def _run_bench(archs, reductions, batch, frames, repeats, warmup, device, quick,
             sparse_kw = {"dynamic_update": True} if mode == "sample" else {}
             cells = []
             for red in variants:
-                model, diffusion = build(arch, red, dev, quick, steps, backend, **sparse_kw)
+                model, diffusion = build(arch, red, dev, quick, steps, backend, fsq=fsq, **sparse_kw)
                 fn = makers[mode](model, diffusion, data, dev, amp, compile_mode)
                 cells.append({"red": red, "model": model, "fn": fn, "wall": [], "cpu": [], "mem": 0})
             for _ in range(warmup):
@@ -353,7 +363,7 @@ def _run_bench(archs, reductions, batch, frames, repeats, warmup, device, quick,
         "threads": torch.get_num_threads(), "batch": batch, "frames": frames,
         "lengths": [int(v) for v in data["lengths"]], "model": mdm_size(quick), "repeats": repeats,
         "warmup": warmup, "backend": backend, "sparse_backend": sparse_backend, "amp": amp,
-        "compile": compile_mode, "fastpath": bool(fastpath), "diffusion_steps": steps,
+        "compile": compile_mode, "fastpath": bool(fastpath), "diffusion_steps": steps, "fsq": fsq,
         "load_average": _loadavg(), "rows": rows, "targets": TARGETS,
     }
 
@@ -383,6 +393,7 @@ def markdown(result: Dict[str, Any]) -> str:
     mode = f"{result['amp']}, {'eager' if result['compile'] == 'none' else 'torch.compile ' + result['compile']}"
     lines = [f"device: {result['device_name']} ({result['device']}), torch {result['torch']}, "
              f"{result['threads']} threads; {mode}; sparse attention backend: {result['sparse_backend']}; "
+             f"FSQ keys: {FSQ_CHOICES[result.get('fsq', 'paper')]}; "
              f"batch {result['batch']}, {result['frames']} frames, model {result['model']}, "
              f"T = {result['diffusion_steps']}; median of {result['repeats']} (dense and sparse interleaved) "
              f"after {result['warmup']} warm-up; load average {result.get('load_average')}",
@@ -447,6 +458,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                         "loop: the whole T-step CFG sampling loop")
     p.add_argument("--steps", type=int_range(1), default=50, help="diffusion steps T (paper recipe: 50)")
     p.add_argument("--amp", choices=["fp32", "bf16"], default="fp32", help="bf16: torch.autocast for both")
+    p.add_argument("--fsq", choices=list(FSQ_CHOICES), default="paper",
+                   help="FSQ attention keys on: " + "; ".join(f"{k}: {v}" for k, v in FSQ_CHOICES.items()))
     p.add_argument("--compile", dest="compile_mode", default="none",
                    choices=["none", "default", "reduce-overhead", "max-autotune"],
                    help="torch.compile dense and sparse models alike (fullgraph) with this mode")
@@ -500,7 +513,7 @@ def main_bench(args: argparse.Namespace, parser: argparse.ArgumentParser) -> Dic
         print(note, file=sys.stderr)
     result = run_bench(args.arch, args.reductions, args.batch, args.frames, args.repeats, args.warmup, args.device,
                        args.quick, args.backend, args.steps, args.fastpath, args.modes, args.amp, args.compile_mode,
-                       progress=lambda s: print(s, file=sys.stderr, flush=True))
+                       progress=lambda s: print(s, file=sys.stderr, flush=True), fsq=args.fsq)
     table = markdown(result)
     print(table)
     if paths:

@@ -60,9 +60,11 @@ def require(cond: torch.Tensor, message: str) -> None:
         torch._assert_async(cond.all(), message)
 
 
-def as_lengths(lengths: LengthsLike, B: int, N: int, device: torch.device, fn: str) -> torch.Tensor:
+def as_lengths(lengths: LengthsLike, B: int, N: int, device: torch.device, fn: str,
+               clip: bool = False) -> torch.Tensor:
     """``lengths`` as a long tensor ``[B]`` on ``device`` (None: all ``N``), checked: an integer
-    tensor (or sequence) of shape ``[B]`` with ``2 <= L <= N``. Errors name ``fn``."""
+    tensor (or sequence) of shape ``[B]`` with ``2 <= L <= N`` (``clip``: ``L >= 2``, and values
+    above ``N`` cut to ``N``). Errors name ``fn``."""
     if lengths is None:
         if N < 2:
             raise ValueError(f"{fn}: N must be >= 2 frames, got N={N}")
@@ -80,12 +82,15 @@ def as_lengths(lengths: LengthsLike, B: int, N: int, device: torch.device, fn: s
         lo, hi = int(lengths.min()), int(lengths.max())
         if lo < 2:
             raise ValueError(f"{fn}: lengths must be >= 2, got min {lo}")
-        if hi > N:
+        if hi > N and not clip:
             raise ValueError(f"{fn}: lengths must be <= N={N}, got max {hi}")
+    elif B and clip:
+        torch._assert_async((lengths >= 2).all(), f"{fn}: lengths must be >= 2")
     elif B:
         torch._assert_async(((lengths >= 2) & (lengths <= N)).all(),
                             f"{fn}: lengths must be in [2, N={N}]")
-    return lengths.to(device=device, dtype=torch.long)
+    lengths = lengths.to(device=device, dtype=torch.long)
+    return lengths.clamp(max=N) if clip else lengths
 
 
 def as_mask(mask, B: int, N: int, device: torch.device, what: str) -> "Optional[torch.Tensor]":

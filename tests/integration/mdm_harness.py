@@ -224,7 +224,8 @@ def install_no_render() -> None:
 def install_ddp_probe() -> None:
     """``SMDM_TEST_DDP_PROBE=DIR`` (training under ``torchrun``): each rank writes ``DIR/rank<r>.pt``
     (its model's state dict when ``TrainLoop.run_loop`` ends) and, at exit, ``DIR/rank<r>.json``:
-    ``writes``, every file the process opened for writing (a ``sys.addaudithook`` on ``open``, so
+    ``writes``, every file the process opened for writing or renamed into place (a
+    ``sys.addaudithook`` on ``open`` and ``os.rename``/``os.replace``, so
     nothing escapes it), and ``epochs``, the dataset indices each pass over a ``DistributedSampler``
     yielded. Read-only otherwise: it changes nothing the run computes."""
     out = os.environ.get("SMDM_TEST_DDP_PROBE")
@@ -241,6 +242,9 @@ def install_ddp_probe() -> None:
     write_flags = os.O_WRONLY | os.O_RDWR | os.O_CREAT | os.O_APPEND
 
     def audit(event, args):
+        if event == "os.rename" and isinstance(args[1], (str, bytes, os.PathLike)):  # also os.replace:
+            record["writes"].append(os.path.abspath(os.fsdecode(args[1])))         # atomic writes land here
+            return
         if event != "open" or not isinstance(args[0], (str, bytes, os.PathLike)):
             return
         path, mode, flags = args
