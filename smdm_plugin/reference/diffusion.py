@@ -1,11 +1,20 @@
 """A small x0-predicting Gaussian diffusion (DDPM, cosine schedule) for the in-package backbone:
 training losses with valid-frame masking, and ancestral sampling with classifier-free guidance.
 It has MDM's ``training_losses(model, x_start, t, model_kwargs)`` interface, so the same
-:func:`~smdm_plugin.adapters.diffusion.attach_diffusion` wraps it."""
+:func:`~smdm_plugin.adapters.diffusion.attach_diffusion` wraps it.
+
+Sampling honours MDM's in-painting keys, as MDM's ``sample.edit`` passes them:
+``y['inpainting_mask']`` (bool, broadcastable to the motion ``[B, J, F, N]``; True = given) and
+``y['inpainted_motion']`` (``[B, J, F, N]``, the given values). How they are imposed
+(``imputation``): ``"x0"`` replaces the given entries of the model's clean-motion prediction at every
+step (MDM's ``p_mean_variance`` does exactly this); ``"xt"`` replaces them in ``x_t`` by the target
+noised to step ``t`` before every model call (and in the final output); ``"both"`` does both. Either
+way the given entries of the output equal the target. Without the keys, sampling is unchanged bit
+for bit (same random draws)."""
 from __future__ import annotations
 
 import math
-from typing import Any, Callable, Dict, Optional
+from typing import Any, Callable, Dict, Optional, Tuple
 
 import torch
 import torch.nn as nn
@@ -59,11 +68,38 @@ class SimpleDiffusion:
         mse = masked_mse(pred, x_start, model_kwargs.get("y", {}).get("mask"))
         return {"loss": mse, "mse": mse.detach()}
 
+    @staticmethod
+    def constraint(model_kwargs: Optional[Dict[str, Any]], x: torch.Tensor
+                   ) -> Optional[Tuple[torch.Tensor, torch.Tensor]]:
+        """``(mask, target)`` from MDM's ``y['inpainting_mask']`` / ``y['inpainted_motion']``
+        (mask bool, expanded to ``x``'s shape ``[B, J, F, N]``), or None when they are absent."""
+        y = (model_kwargs or {}).get("y") or {}
+        if "inpainting_mask" not in y or "inpainted_motion" not in y:
+            return None
+        mask, target = torch.as_tensor(y["inpainting_mask"]), torch.as_tensor(y["inpainted_motion"])
+        if mask.dtype != torch.bool:
+            raise TypeError(f"y['inpainting_mask'] must be bool (True = given), got dtype {mask.dtype}")
+        if tuple(target.shape) != tuple(x.shape):
+            raise ValueError(f"y['inpainted_motion'] must have the motion's shape {list(x.shape)}, "
+                             f"got {list(target.shape)}")
+        try:
+            mask = mask.to(x.device).expand_as(x)
+        except RuntimeError:
+            raise ValueError(f"y['inpainting_mask'] must broadcast to the motion's shape {list(x.shape)}, "
+                             f"got {list(mask.shape)}") from None
+        return mask, target.to(device=x.device, dtype=x.dtype)
+
     @torch.no_grad()
     def p_sample(self, model: Callable, x_t: torch.Tensor, t: int, model_kwargs: Dict[str, Any],
-                 generator: Optional[torch.Generator] = None) -> torch.Tensor:
+                 generator: Optional[torch.Generator] = None, impute_x0: bool = True) -> torch.Tensor:
+        """One ancestral step ``x_t -> x_{t-1}`` (at ``t == 0`` the clean prediction). With MDM's
+        in-painting keys in ``model_kwargs['y']`` and ``impute_x0``, the prediction's given entries
+        are replaced by the target first (see the module docstring)."""
         tt = torch.full((x_t.shape[0],), t, device=x_t.device, dtype=torch.long)
         x0 = model(x_t, tt, **model_kwargs)
+        given = self.constraint(model_kwargs, x0) if impute_x0 else None
+        if given is not None:
+            x0 = torch.where(given[0], given[1], x0)
         mean = self._at(self.coef_x0, tt, x_t) * x0 + self._at(self.coef_xt, tt, x_t) * x_t
         if t == 0:
             return x0
@@ -73,17 +109,32 @@ class SimpleDiffusion:
     @torch.no_grad()
     def p_sample_loop(self, model: Callable, shape: tuple, model_kwargs: Optional[Dict[str, Any]] = None,
                       device: Any = "cpu", generator: Optional[torch.Generator] = None,
-                      progress: bool = False) -> torch.Tensor:
+                      progress: bool = False, imputation: str = "x0") -> torch.Tensor:
+        """Sample ``shape`` (``[B, J, F, N]``) from noise in ``num_timesteps`` steps. ``imputation``
+        (``"x0"`` | ``"xt"`` | ``"both"``) says how MDM's in-painting keys in ``model_kwargs['y']``
+        are imposed; it has no effect without them."""
+        if imputation not in IMPUTATIONS:
+            raise ValueError(f"p_sample_loop: imputation must be one of {IMPUTATIONS}, got {imputation!r}")
         model_kwargs = model_kwargs or {}
         x = torch.randn(shape, generator=generator, device=device)
+        given = self.constraint(model_kwargs, x)
         steps = range(self.num_timesteps - 1, -1, -1)
         if progress:
             from tqdm.auto import tqdm
 
-            steps = tqdm(steps, desc="sampling")
+            steps = tqdm(steps, desc="sampling", unit="step")
         for t in steps:
-            x = self.p_sample(model, x, t, model_kwargs, generator)
+            if given is not None and imputation in ("xt", "both"):
+                noise = torch.randn(x.shape, generator=generator, device=x.device, dtype=x.dtype)
+                tt = torch.full((x.shape[0],), t, device=x.device, dtype=torch.long)
+                x = torch.where(given[0], self.q_sample(given[1], tt, noise), x)
+            x = self.p_sample(model, x, t, model_kwargs, generator,
+                              impute_x0=imputation != "xt" or t == 0)
         return x
+
+
+#: how :meth:`SimpleDiffusion.p_sample_loop` imposes given frames (see the module docstring)
+IMPUTATIONS = ("x0", "xt", "both")
 
 
 class ClassifierFreeGuidance(nn.Module):
