@@ -24,6 +24,9 @@ COMMANDS: Dict[str, Tuple[str, str]] = {
     "ablate": ("smdm_plugin.apps.ablate", "run an ablation grid (YAML) on real motion; table, CSV, loss curves"),
     "demo": ("smdm_plugin.apps.demo", "keyframes + dense-vs-sparse training on CMU motion capture (BVH), no download"),
     "run": ("smdm_plugin.integrations.launcher", "run an upstream MDM / priorMDM / MotionDiffuse script in sparse mode"),
+    "inbetween": ("smdm_plugin.apps.inbetween",
+                  "in-betweening: a motion through your keyframes (BVH / .npy), dense and sparse, with a GIF"),
+    "render": ("smdm_plugin.apps.render", "a saved motion (.npy joints / HumanML3D features, BVH) as an animated GIF"),
     "keyframes": ("smdm_plugin.apps.cli", "keyframe reconstruction error of BVH clips per selection method and rate"),
 }
 
