@@ -1,10 +1,45 @@
-"""`smdm demo --quick` on a real CMU clip (assimp-testmodels or ../shared/data/cmu-mocap)."""
+"""``smdm demo`` as a user runs it (subprocess): the quick run on real CMU clips with unusable BVH
+files beside them, the trained models it leaves, and bad options / an existing output folder as
+one-line errors with nothing touched."""
+from __future__ import annotations
+
 import json
+import shutil
+import subprocess
+import sys
+import warnings
 
 import numpy as np
 import pytest
 
 from smdm_plugin.apps import demo
+
+OTHER_SKELETON = """HIERARCHY
+ROOT Pelvis
+{
+  OFFSET 0 0 0
+  CHANNELS 6 Xposition Yposition Zposition Zrotation Xrotation Yrotation
+  JOINT Spine
+  {
+    OFFSET 0 10 0
+    CHANNELS 3 Zrotation Xrotation Yrotation
+    End Site
+    {
+      OFFSET 0 10 0
+    }
+  }
+}
+MOTION
+Frames: 2
+Frame Time: 0.0333333
+0 90 0 0 0 0 0 0 0
+0 91 0 0 0 0 0 0 0
+"""
+
+
+def run(*args, cwd=None, timeout=900):
+    return subprocess.run([sys.executable, "-m", "smdm_plugin", "demo", *args], capture_output=True, text=True,
+                          cwd=cwd, timeout=timeout)
 
 
 @pytest.fixture(scope="module")
@@ -15,18 +50,123 @@ def bvh_files():
     return files
 
 
-def test_quick_demo_writes_tables_and_figures(bvh_files, tmp_path, capsys):
+def test_quick_demo_skips_unusable_files_keeps_given_flags_and_leaves_models(bvh_files, tmp_path):
+    folder = tmp_path / "bvh"
+    folder.mkdir()
+    good = folder / "c_good.bvh"
+    shutil.copy(bvh_files[0], good)
+    text = good.read_text()
+    (folder / "a_truncated.bvh").write_text(text[: int(len(text) * 0.7)])
+    (folder / "b_other_skeleton.bvh").write_text(OTHER_SKELETON)
     out = tmp_path / "demo"
-    rc = demo.main(["--quick", "--out", str(out)])
-    assert rc == 0
-    text = capsys.readouterr().out
+    p = run("--quick", "--batch", "3", "--bvh", str(folder), "--out", str(out), "--every", "20")
+    assert p.returncode == 0, p.stderr[-3000:]
+    text = p.stdout
     assert "| vw |" in text and "sparse / dense training speed" in text and str(out) in text
-    for f in ("keyframes.md", "keyframes.csv", "keyframes.png", "training.md", "loss.png", "summary.json"):
+    # which files were skipped and why
+    assert f"skipping {folder / 'a_truncated.bvh'}: " in text and f"skipping {folder / 'b_other_skeleton.bvh'}: " in text
+    assert "CMU joints" in text and "skipped 2 of 3 file(s)" in text
+    # --quick applied its settings except the one given
+    assert "--batch" not in text.split("smdm demo --quick:")[1].splitlines()[0]
+    for f in ("keyframes.md", "keyframes.csv", "keyframes.png", "training.md", "loss.png", "summary.json",
+              "inbetween.md", "inbetween.gif"):
         assert (out / f).stat().st_size > 0, f
     s = json.loads((out / "summary.json").read_text())
+    assert s["options"]["batch"] == 3 and s["training"]["batch"] == 3 and s["options"]["latent"] == 32
     assert s["training"]["dense"]["steps"] == 3 and s["training"]["sparse"]["steps"] == 3
+    assert [f for f, _ in s["skipped"]] == [str(folder / "a_truncated.bvh"), str(folder / "b_other_skeleton.bvh")]
     err = s["keyframes"]["mpjpe_mm"]
     assert 0 < err["vw"]["0.8"] < 200 and err["random"]["0.8"] > 0
+    # the in-betweening table: keyframes exact for both models
+    rows = [r for r in (out / "inbetween.md").read_text().splitlines() if r.startswith("| dense") or r.startswith("| sparse")]
+    assert len(rows) == 2 and all(r.split("|")[3].strip() == "0.0" for r in rows)
+    from PIL import Image
+
+    assert Image.open(out / "inbetween.gif").n_frames == 30  # 60 frames, every 2nd in --quick
+    # the trained models are folders smdm inbetween reads
+    from smdm_plugin.io.bundle import load_bundle
+
+    assert load_bundle(str(out / "sparse")).sparse and not load_bundle(str(out / "dense")).sparse
+    # a second run into the same folder is refused, nothing changes; --overwrite is accepted
+    before = {f.name: f.stat().st_mtime_ns for f in out.iterdir()}
+    p = run("--quick", "--bvh", str(good), "--out", str(out))
+    assert p.returncode == 2 and "--overwrite" in p.stderr and "Traceback" not in p.stderr
+    assert {f.name: f.stat().st_mtime_ns for f in out.iterdir()} == before
+
+
+@pytest.mark.parametrize("args, message", [
+    (["--minutes", "-1"], "argument --minutes: must be a number in (0, 1440], got -1"),
+    (["--minutes", "0"], "argument --minutes"),
+    (["--batch", "0"], "argument --batch: must be an integer in [1, 4096], got 0"),
+    (["--frames", "500"], "argument --frames"),
+    (["--reductions", "0.5", "1.0"], "argument --reductions"),
+    (["--train-reduction", "nan"], "argument --train-reduction"),
+    (["--latent", "30"], "argument --latent: must be a multiple of 4"),
+    (["--threads", "0"], "argument --threads"),
+    (["--seed", "-3"], "argument --seed"),
+    (["--device", "cuda:3"], "argument --device"),
+    (["--device", "tpu"], "argument --device"),
+])
+def test_bad_options_are_one_line_errors(args, message, tmp_path, capsys):
+    out = tmp_path / "never"
+    with pytest.raises(SystemExit) as e:
+        demo.main([*args, "--out", str(out)])
+    err = capsys.readouterr().err
+    assert e.value.code == 2
+    last = err.strip().splitlines()[-1]
+    assert last.startswith("smdm demo: error: ") and message in last, err
+    assert not out.exists()
+
+
+def test_bad_options_as_a_user_runs_them(tmp_path):
+    for args, message in ((["--minutes", "-1"], "argument --minutes: must be a number in (0, 1440], got -1"),
+                          (["--device", "cuda:3"], "argument --device")):
+        p = run(*args, "--out", str(tmp_path / "never"))
+        assert p.returncode == 2 and "Traceback" not in p.stderr
+        assert p.stderr.strip().splitlines()[-1].startswith("smdm demo: error: ") and message in p.stderr
+    assert not (tmp_path / "never").exists()
+
+
+def test_existing_output_folder_is_refused(tmp_path):
+    out = tmp_path / "mine"
+    out.mkdir()
+    (out / "notes.txt").write_text("keep me")
+    p = run("--quick", "--out", str(out))
+    assert p.returncode == 2 and "exists and is not empty; pass --overwrite" in p.stderr
+    assert [f.name for f in out.iterdir()] == ["notes.txt"] and (out / "notes.txt").read_text() == "keep me"
+    (tmp_path / "file").write_text("x")
+    p = run("--out", str(tmp_path / "file"))
+    assert p.returncode == 2 and "is not a folder" in p.stderr
+
+
+def test_quick_keeps_given_flags():
+    p = __import__("argparse").ArgumentParser()
+    demo.add_arguments(p)
+    a = p.parse_args(["--quick", "--frames", "100", "--reductions", "0.5"])
+    applied = demo.apply_quick(a)
+    assert (a.frames, a.reductions, a.batch, a.latent, a.layers, a.max_clips) == (100, [0.5], 4, 32, 1, 1)
+    assert not any(s.startswith(("--frames", "--reductions")) for s in applied)
+    a = p.parse_args(["--batch", "8"])
+    assert demo.apply_quick(a) == [] and (a.frames, a.batch, a.latent) == (120, 8, 256)
+
+
+def test_load_clips_reports_warnings_and_skips(monkeypatch):
+    import smdm_plugin.io.bvh as bvh
+
+    def fake(path, fps=20):
+        if "odd" in path:
+            warnings.warn(f"{path}: one extra motion row ignored", UserWarning)
+        if "bad" in path:
+            raise ValueError(f"read_bvh: {path}: Frame Time must be > 0")
+        return np.zeros((40 if "short" not in path else 5, 22, 3))
+
+    monkeypatch.setattr(bvh, "load_cmu_clip", fake)
+    log, skipped = [], []
+    clips = demo.load_clips(["odd.bvh", "bad.bvh", "short.bvh", "ok.bvh"], log=log.append, skipped=skipped)
+    assert [n for n, _ in clips] == ["odd", "ok"]
+    assert log[0] == "  note: odd.bvh: odd.bvh: one extra motion row ignored"
+    assert skipped == [("bad.bvh", "read_bvh: bad.bvh: Frame Time must be > 0"),
+                       ("short.bvh", "only 5 frames at 20 fps (20 needed)")]
 
 
 def test_reconstruction_error_and_features():
@@ -39,6 +179,7 @@ def test_reconstruction_error_and_features():
     assert demo.reconstruction_error(j, np.ones(T, bool))[0] == 0
     f = demo.motion_features(j)
     assert f.shape == (T, 66) and np.allclose(f[:, 63], j[:, 0, 1])
+    assert np.allclose(f[0, 64:], 0) and np.allclose(f[:, 64:] + j[0, 0, [0, 2]], j[:, 0, [0, 2]], atol=1e-6)
 
 
 def test_no_bvh_message(tmp_path, capsys):
