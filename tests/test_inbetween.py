@@ -281,7 +281,7 @@ def test_plan_keyframes():
     kf = plan_keyframes(200, [30, 60, 90], None, None, None, 196)
     assert (kf.frames, kf.start, kf.length, kf.placed) == ([0, 30, 60], 30, 61, False)
     kf = plan_keyframes(3, [0, 50, 99], None, None, None, 196)  # three poses placed at frames
-    assert (kf.frames, kf.source_frames, kf.length, kf.placed) == ([0, 50, 99], [0, 50, 99], 100, True)
+    assert (kf.frames, kf.source_frames, kf.length, kf.placed) == ([0, 50, 99], [0, 1, 2], 100, True)
     kf = plan_keyframes(100, None, 20, 10, None, 196)
     assert kf.frames == [0, 20, 40, 60, 80, 89] and kf.source_frames[0] == 10 and kf.length == 90
     for args, msg in (((100, [5, 120], None, None, None, 196), "beyond the 100 frames"),
@@ -383,6 +383,12 @@ def test_cli_humanml3d_features_and_clear_errors(model_folders, hml_dir, tmp_pat
     f = np.load(out / "humanml3d-sparse_features.npy")
     src = np.load(feats)[:61]
     assert f.shape == (1, 61, 263) and np.abs(f[0, [0, 30, 60]] - src[[0, 30, 60]]).max() < 1e-5
+    poses = np.load(hml_dir / "new_joints" / "000003.npy")[[0, 50, 100]]  # three poses placed at 0, 20, 39
+    np.save(tmp_path / "poses.npy", poses)
+    assert cli.main(["--model", str(model_folders / "joints66-sparse"), "--keyframes", str(tmp_path / "poses.npy"),
+                     "--frames", "0", "20", "39", "--no-gif", "--out", str(tmp_path / "p"), "--quiet"]) == 0
+    j = np.load(tmp_path / "p" / "joints66-sparse_joints.npy")
+    assert j.shape == (1, 40, 22, 3) and np.abs(j[0, [0, 20, 39]] - poses).max() < 1e-5
     bad = [(["--model", str(model_folders / "humanml3d-dense"), "--keyframes", str(hml_dir / "new_joints" / "000003.npy")],
             "HumanML3D (263-D) model"),
            (["--model", str(model_folders / "joints66-dense"), "--keyframes", str(feats), "--frames", "5", "400"],

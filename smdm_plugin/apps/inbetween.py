@@ -37,7 +37,7 @@ import torch
 from ..adapters.inbetween import POLICIES
 from ..reference.diffusion import IMPUTATIONS
 from ._args import add_overwrite, device_type, int_range
-from .motion_files import ACCEPTED, LoadedMotion
+from .motion_files import ACCEPTED, LoadedMotion, add_motion_file_options
 
 DEFAULT_MODELS = (os.path.join("smdm_out", "demo", "dense"), os.path.join("smdm_out", "demo", "sparse"))
 
@@ -83,7 +83,7 @@ def plan_keyframes(n_source: int, frames: Optional[Sequence[int]], every: Option
         length = need if length is None else length
         if length < need:
             raise ValueError(f"--length {length} is too short for keyframes up to frame {fr[-1]} from --start {start}")
-        out = Keyframes([f - start for f in fr], fr, length, start, placed)
+        out = Keyframes([f - start for f in fr], list(range(len(fr))) if placed else fr, length, start, placed)
     else:
         start = 0 if start is None else start
         if start >= n_source:
@@ -236,8 +236,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--forced", choices=POLICIES, default="ends",
                    help="which keyframes are tokens of a sparse model: ends of each run of consecutive "
                         "keyframes (default), all, none")
-    p.add_argument("--sample", type=int_range(0), default=0, help="which motion of a batched keyframe file")
-    p.add_argument("--allow-pickle", action="store_true", help="read MDM's results.npy (trusted files only)")
+    add_motion_file_options(p)
     p.add_argument("--out", default=os.path.join("smdm_out", "inbetween"), help="output folder")
     p.add_argument("--no-gif", action="store_true", help="skip the animation")
     p.add_argument("--device", type=device_type, default="auto")
@@ -285,8 +284,8 @@ def main(argv: Optional[List[str]] = None) -> int:
         p.error(str(e))
     names = [os.path.basename(os.path.normpath(m)) or f"model{i}" for i, m in enumerate(models)]
     names = [n if names.count(n) == 1 else f"{n}{i}" for i, n in enumerate(names)]
-    how = "placed at" if kf.placed else "from frames"
-    print(f"smdm inbetween: {len(kf.frames)} keyframes {how} {kf.source_frames} of {a.keyframes} "
+    how = f"placed at frames {kf.frames}" if kf.placed else f"from frames {kf.source_frames}"
+    print(f"smdm inbetween: {len(kf.frames)} keyframes {how} of {a.keyframes} "
           f"({source.kind}) -> {kf.length} frames at {fps:g} fps on {dev}; imputation {a.imputation}, "
           f"forced keyframes: {a.forced}")
     rows, results = [], []

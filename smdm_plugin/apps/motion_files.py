@@ -13,6 +13,7 @@ Accepted (:func:`load_motion`):
 """
 from __future__ import annotations
 
+import argparse
 import os
 from dataclasses import dataclass
 from typing import Optional
@@ -113,3 +114,12 @@ def load_motion(path: str, fps: float = 20.0, sample: int = 0, allow_pickle: boo
     if len(out.joints) < 1 or not np.isfinite(out.joints).all():
         raise ValueError(f"{path}: the motion is empty or holds NaN / inf")
     return out
+
+
+def add_motion_file_options(p: argparse.ArgumentParser) -> None:
+    """``--sample`` and ``--allow-pickle``, the options of :func:`load_motion` a command exposes."""
+    from ._args import int_range
+
+    p.add_argument("--sample", type=int_range(0), default=0, help="which motion of a batched file")
+    p.add_argument("--allow-pickle", action="store_true",
+                   help="read pickled .npy files (MDM's results.npy); only for files you trust")

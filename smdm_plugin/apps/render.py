@@ -16,7 +16,7 @@ import sys
 from typing import List, Optional
 
 from ._args import add_overwrite, float_range, int_range
-from .motion_files import ACCEPTED
+from .motion_files import ACCEPTED, add_motion_file_options
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -30,9 +30,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--fps", type=float_range(0, lo_open=True, hi=1000), default=20.0,
                    help="frames per second of .npy motions, and the rate BVH files are resampled to")
     p.add_argument("--stride", type=int_range(1), default=1, help="draw every STRIDE-th frame (same speed)")
-    p.add_argument("--sample", type=int_range(0), default=0, help="which motion of a batched file")
-    p.add_argument("--allow-pickle", action="store_true",
-                   help="read pickled .npy files (MDM's results.npy); only for files you trust")
+    add_motion_file_options(p)
     p.add_argument("--size", type=float_range(1, 20), default=3.0, help="panel size (inches at 80 dpi)")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     add_overwrite(p)
