@@ -412,3 +412,22 @@ def test_cli_humanml3d_features_and_clear_errors(model_folders, hml_dir, tmp_pat
     # as a user runs it: one line, exit 2, no traceback
     p = run("--model", str(model_folders / "humanml3d-dense"), "--keyframes", str(hml_dir / "new_joints" / "000003.npy"))
     assert p.returncode == 2 and "Traceback" not in p.stderr and "HumanML3D (263-D) model" in p.stderr
+
+
+def test_transition_frames_and_metrics_known_answers(hml_dir):
+    from smdm_plugin.apps.inbetween import keyframe_metrics, transition_frames
+    from smdm_plugin.metrics import jitter
+
+    given = torch.tensor([[1, 0, 0, 0, 1, 1, 1, 0, 0, 1]], dtype=torch.bool)
+    assert transition_frames(given, torch.tensor([10]))[0].nonzero().flatten().tolist() == [0, 1, 3, 4, 6, 7, 8, 9]
+    assert transition_frames(given, torch.tensor([6]))[0].nonzero().flatten().tolist() == [0, 1, 3, 4]
+    j = np.load(hml_dir / "new_joints" / "000003.npy")[:60]
+    g = np.zeros(60, bool)
+    g[[0, 20, 40, 59]] = True
+    m = keyframe_metrics(j[None], j, g, reference=True)
+    assert m["keyframe_error_mm"] == 0 and m["inbetween_error_mm"] == 0
+    assert m["jitter"] == pytest.approx(m["reference_jitter"]) == pytest.approx(float(jitter(j)))
+    moved = j + np.array([0.1, 0, 0])  # 10 cm sideways: global error 100 mm, pose error 0
+    m = keyframe_metrics(moved[None], j, g, reference=True)
+    assert m["keyframe_error_mm"] == pytest.approx(100) and m["keyframe_error_root_relative_mm"] == pytest.approx(0, abs=1e-9)
+    assert m["inbetween_error_mm"] == pytest.approx(100)

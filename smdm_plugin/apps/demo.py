@@ -293,8 +293,10 @@ def inbetween_demo(bundles: Dict[str, Any], clip: Tuple[str, np.ndarray], length
     for label, b in bundles.items():
         r = run_inbetween(b, source, kf, samples=1, seed=seed, device=device, progress=progress)
         results[label] = r
+        given = np.zeros(length, bool)
+        given[kf.frames] = True
         rows.append({"model": label, "feature_error": r.feature_error, "seconds": r.seconds,
-                     **keyframe_metrics(r.joints, r.target, kf.frames, 20.0, True)})
+                     **keyframe_metrics(r.joints, r.target, given, 20.0, reference=True)})
     table = (f"In-betweening {name} frames 0-{length - 1}{note}: {len(kf.frames)} keyframes (every {every} "
              f"frames and the last) imposed by imputation; the sparse model also keeps them as keyframe tokens.\n\n"
              + summary_markdown(rows))

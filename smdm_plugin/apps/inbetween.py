@@ -166,38 +166,62 @@ def run_inbetween(bundle: Any, source: LoadedMotion, kf: Keyframes, samples: int
     return Result(bundle.label, out, joints, target, err, seconds)
 
 
-def keyframe_metrics(joints: np.ndarray, target: np.ndarray, frames: Sequence[int], fps: float,
-                     reference: bool, global_error: bool = True) -> Dict[str, float]:
-    """Keyframe error (mm; global — unless ``global_error`` is False: the target's global
-    positions are unknown — and root-relative), jitter near the keyframes and overall (m/s³) of
-    ``joints [S, N, J, 3]`` against ``target [N, J, 3]``; with ``reference`` (the target is a whole
-    real motion) also the target's own jitter and the in-between frames' error (mm)."""
-    from ..metrics import jitter, keyframe_error
+def transition_frames(given: torch.Tensor, lengths: torch.Tensor) -> torch.Tensor:
+    """bool ``[B, N]``: the frames on both sides of every change between given and generated frames
+    within the length — where the transitions are. An isolated keyframe: it and its two neighbours."""
+    B, N = given.shape
+    valid = torch.arange(N)[None] < lengths[:, None]
+    change = (given[:, 1:] != given[:, :-1]) & valid[:, 1:]
+    out = torch.zeros_like(given)
+    out[:, 1:] |= change
+    out[:, :-1] |= change
+    return out & valid
+
+
+def keyframe_metrics(joints: np.ndarray, target: np.ndarray, given: np.ndarray, fps: float = 20.0,
+                     lengths: Optional[Sequence[int]] = None, reference: bool = False,
+                     global_error: bool = True) -> Dict[str, float]:
+    """Metrics of in-betweens ``joints [S, N, J, 3]`` (metres) with keyframes ``given`` (bool ``[N]``
+    or ``[S, N]``) taken from ``target`` (``[N, J, 3]`` or ``[S, N, J, 3]``), over ``lengths`` valid
+    frames (None: all): keyframe error (mm, CondMDI's, global — unless ``global_error`` is False,
+    when the target's global positions are unknown — and root-relative), jitter at the transitions
+    (:func:`transition_frames`) and overall (m/s³, DNO's), foot skating ratio (GMD's). With
+    ``reference`` (the target is the real motion everywhere): the in-between frames' mean joint
+    error (mm) and the target's own jitter and foot skating."""
+    from ..metrics import foot_skating_ratio, jitter, keyframe_error
 
     S, N = joints.shape[:2]
-    tgt = np.repeat(np.asarray(target)[None], S, 0)
-    near = np.zeros(N, bool)
-    near[list(frames)] = True
-    m = {"keyframe_error_root_relative_mm": 1000 * float(keyframe_error(
-        joints - joints[:, :, :1], tgt - tgt[:, :, :1], list(frames), fps=fps))}
+    j = torch.as_tensor(np.asarray(joints, np.float64))
+    t = torch.as_tensor(np.asarray(target, np.float64)).expand_as(j)
+    g = torch.as_tensor(np.asarray(given, bool)).expand(S, N)
+    L = torch.full((S,), N, dtype=torch.long) if lengths is None else torch.as_tensor(lengths).long().reshape(S)
+    rel = lambda x: x - x[:, :, :1]  # noqa: E731
+    kf = [row.nonzero().flatten().tolist() for row in g]
+    m = {"keyframe_error_root_relative_mm": 1000 * float(keyframe_error(rel(j), rel(t), kf, fps=fps, lengths=L))}
     if global_error:
-        m["keyframe_error_mm"] = 1000 * float(keyframe_error(joints, tgt, list(frames), fps=fps))
-    if N >= 4:
-        m["jitter_near_keyframes"] = float(jitter(joints, fps=fps, frame_mask=near))
-        m["jitter"] = float(jitter(joints, fps=fps))
+        m["keyframe_error_mm"] = 1000 * float(keyframe_error(j, t, kf, fps=fps, lengths=L))
+    if int(L.min()) >= 4:
+        trans = transition_frames(g, L)
+        m["jitter_transitions"] = float(jitter(j, fps=fps, lengths=L, frame_mask=trans))
+        m["jitter"] = float(jitter(j, fps=fps, lengths=L))
+        if reference:
+            m["reference_jitter_transitions"] = float(jitter(t, fps=fps, lengths=L, frame_mask=trans))
+            m["reference_jitter"] = float(jitter(t, fps=fps, lengths=L))
+    m["foot_skating"] = float(foot_skating_ratio(j, fps=fps, lengths=L))
     if reference:
-        m["inbetween_error_mm"] = 1000 * float(np.linalg.norm(joints - tgt, axis=-1)[:, ~near].mean()) if (~near).any() else 0.0
-        if N >= 4:
-            m["reference_jitter_near_keyframes"] = float(jitter(target, fps=fps, frame_mask=near))
-            m["reference_jitter"] = float(jitter(target, fps=fps))
+        m["reference_foot_skating"] = float(foot_skating_ratio(t, fps=fps, lengths=L))
+        between = (torch.arange(N)[None] < L[:, None]) & ~g
+        if bool(between.any()):
+            m["inbetween_error_mm"] = 1000 * float((j - t).norm(dim=-1).mean(-1)[between].mean())
     return m
 
 
 COLUMNS = (("keyframe feature error (max)", "feature_error", "{:.2g}"),
            ("keyframe error (mm)", "keyframe_error_mm", "{:.1f}"),
            ("root-relative keyframe error (mm)", "keyframe_error_root_relative_mm", "{:.1f}"),
-           ("jitter near keyframes (m/s³)", "jitter_near_keyframes", "{:.1f}"),
-           ("jitter (m/s³)", "jitter", "{:.1f}"),
+           ("jitter at transitions (m/s³)", "jitter_transitions", "{:.0f}"),
+           ("jitter (m/s³)", "jitter", "{:.0f}"),
+           ("foot skating", "foot_skating", "{:.3f}"),
            ("in-between error vs source (mm)", "inbetween_error_mm", "{:.0f}"),
            ("sampling (s)", "seconds", "{:.2f}"))
 
@@ -209,8 +233,8 @@ def summary_markdown(rows: List[Dict[str, Any]]) -> str:
         lines.append(f"| {r['model']} | " + " | ".join(c[2].format(r[c[1]]) if c[1] in r else "—" for c in cols) + " |")
     ref = next((r for r in rows if "reference_jitter" in r), None)
     if ref:
-        lines.append(f"\nsource motion: jitter {ref['reference_jitter']:.1f} m/s³, near keyframes "
-                     f"{ref['reference_jitter_near_keyframes']:.1f} m/s³")
+        lines.append(f"\nthe source motion: jitter {ref['reference_jitter']:.0f} m/s³, at the transitions "
+                     f"{ref['reference_jitter_transitions']:.0f} m/s³, foot skating {ref['reference_foot_skating']:.3f}")
     return "\n".join(lines)
 
 
@@ -294,8 +318,11 @@ def main(argv: Optional[List[str]] = None) -> int:
         results.append(res)
         seg = kf.segment(len(source.joints)) is not None
         known = seg or b.representation.name != "humanml3d"  # placed 263-D poses: no global position
+        given = np.zeros(kf.length, bool)
+        given[kf.frames] = True
         row = {"model": f"{name}: {res.label}", "folder": b.path, "feature_error": res.feature_error,
-               "seconds": res.seconds, **keyframe_metrics(res.joints, res.target, kf.frames, fps, seg, known)}
+               "seconds": res.seconds,
+               **keyframe_metrics(res.joints, res.target, given, fps, reference=seg, global_error=known)}
         rows.append(row)
         for suffix, arr in (("joints", res.joints), ("features", res.features)):
             with atomic_open(os.path.join(a.out, f"{name}_{suffix}.npy"), "wb") as f:
