@@ -256,7 +256,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--seed", type=int_range(0), default=0)
     p.add_argument("--imputation", choices=IMPUTATIONS, default="x0",
                    help="how keyframes are imposed at each step: x0 = the clean prediction (MDM's edit mode), "
-                        "xt = the noisy motion, both")
+                        "xt = the noisy motion")
     p.add_argument("--forced", choices=POLICIES, default="ends",
                    help="which keyframes are tokens of a sparse model: ends of each run of consecutive "
                         "keyframes (default), all, none")

@@ -17,6 +17,28 @@ import torch
 import torch.nn as nn
 
 Transform = Callable[[np.ndarray], np.ndarray]
+#: a crop and two numbers uniform in [0, 1) -> the augmented crop
+Augment = Callable[[np.ndarray, float, float], np.ndarray]
+
+#: HumanML3D's 22 joints: left and right counterparts (hips, knees, ankles, feet, collars, shoulders,
+#: elbows, wrists), as HumanML3D's own mirroring swaps them
+LEFT22 = (1, 4, 7, 10, 13, 16, 18, 20)
+RIGHT22 = (2, 5, 8, 11, 14, 17, 19, 21)
+
+
+def augment_joints22(crop: np.ndarray, u_angle: float, u_mirror: float) -> np.ndarray:
+    """Joints ``[l, 22, 3]`` (y up) turned about the vertical axis through the first frame's root
+    by ``2π u_angle`` and, when ``u_mirror < 0.5``, mirrored (x -> -x, left and right swapped)."""
+    j = np.array(crop, dtype=np.float32)
+    if u_mirror < 0.5:
+        j[..., 0] *= -1
+        j[:, LEFT22 + RIGHT22] = j[:, RIGHT22 + LEFT22]
+    a = 2 * np.pi * u_angle
+    c, s = np.cos(a), np.sin(a)
+    o = j[0, 0, [0, 2]]
+    x, z = j[..., 0] - o[0], j[..., 2] - o[1]
+    j[..., 0], j[..., 2] = c * x + s * z + o[0], -s * x + c * z + o[1]
+    return j
 
 
 class CropSampler:
@@ -29,10 +51,11 @@ class CropSampler:
             (``min_frames == frames``: fixed-length crops).
         transform: a crop ``[l, ...]`` -> features ``[l, D]`` (e.g. canonicalise and encode joints).
         mean, std: ``[D]``, to normalise the features.
+        augment: applied to each crop before ``transform`` (e.g. :func:`augment_joints22`).
     """
 
     def __init__(self, motions: Sequence[np.ndarray], frames: int, min_frames: int, transform: Transform,
-                 mean: np.ndarray, std: np.ndarray) -> None:
+                 mean: np.ndarray, std: np.ndarray, augment: Optional[Augment] = None) -> None:
         self.motions = [m for m in motions if len(m) >= min_frames]
         if not self.motions:
             raise ValueError(f"CropSampler: no motion has min_frames={min_frames} frames")
@@ -40,10 +63,11 @@ class CropSampler:
             raise ValueError(f"CropSampler: need 2 <= min_frames <= frames, got {min_frames}, {frames}")
         self.frames, self.min_frames, self.transform = int(frames), int(min_frames), transform
         self.mean, self.std = np.asarray(mean, np.float32), np.asarray(std, np.float32)
+        self.augment = augment
 
     def __call__(self, batch: int, generator: torch.Generator) -> Tuple[torch.Tensor, torch.Tensor]:
         idx = torch.randint(0, len(self.motions), (batch,), generator=generator).tolist()
-        u = torch.rand(batch, 2, generator=generator, dtype=torch.float64).numpy()
+        u = torch.rand(batch, 4, generator=generator, dtype=torch.float64).numpy()
         x = np.zeros((batch, self.frames, self.mean.shape[0]), np.float32)
         lengths = []
         for b, i in enumerate(idx):
@@ -51,7 +75,10 @@ class CropSampler:
             hi = min(len(m), self.frames)
             length = self.min_frames + int(u[b, 0] * (hi - self.min_frames + 1))
             start = int(u[b, 1] * (len(m) - length + 1))
-            x[b, :length] = (self.transform(m[start:start + length]) - self.mean) / self.std
+            crop = m[start:start + length]
+            if self.augment is not None:
+                crop = self.augment(crop, float(u[b, 2]), float(u[b, 3]))
+            x[b, :length] = (self.transform(crop) - self.mean) / self.std
             lengths.append(length)
         return torch.from_numpy(x), torch.tensor(lengths)
 
@@ -104,16 +131,20 @@ def _y(lengths: torch.Tensor, N: int, device: torch.device) -> Dict[str, Any]:
 def train_dense_vs_sparse(sample_batch: Callable[[int, torch.Generator], Tuple[torch.Tensor, torch.Tensor]],
                           spec: BackboneSpec, seconds: float, batch: int = 32, device: Any = "cpu",
                           seed: int = 0, max_steps: Optional[int] = None, progress: bool = True,
-                          mean=None, std=None) -> Tuple[Dict[str, Any], Dict[str, Tuple[nn.Module, Any]]]:
+                          mean=None, std=None, log_every: int = 0,
+                          validate: Optional[Callable[[nn.Module, Any], float]] = None
+                          ) -> Tuple[Dict[str, Any], Dict[str, Tuple[nn.Module, Any]]]:
     """Train the pair for ``seconds`` in total (time-sliced) or ``max_steps`` each, whichever
-    comes first. Returns ``(stats, pair)``: per model steps, seconds, steps/s, the loss curve, and
-    ``speed_ratio`` (sparse / dense steps per second); ``pair`` as :func:`build_pair`, trained
-    (left in ``train`` mode)."""
+    comes first. Every ``log_every`` steps of a model (0: never) its mean recent loss is printed and
+    ``validate(model, diffusion)`` (e.g. a held-out loss; run in ``eval`` mode, untimed) recorded.
+    Returns ``(stats, pair)``: per model steps, seconds, steps/s, the loss curve, ``val``
+    ``[(step, value)]``, and ``speed_ratio`` (sparse / dense steps per second); ``pair`` as
+    :func:`build_pair`, trained (left in ``train`` mode)."""
     dev = torch.device(device)
     pair = build_pair(spec, dev, seed, mean, std)
     runs: Dict[str, Dict[str, Any]] = {}
     for name, (model, diffusion) in pair.items():
-        runs[name] = {"model": model.train(), "diffusion": diffusion, "spent": 0.0, "steps": 0, "loss": [],
+        runs[name] = {"model": model.train(), "diffusion": diffusion, "spent": 0.0, "steps": 0, "loss": [], "val": [],
                       "time": [], "opt": torch.optim.AdamW(model.parameters(), lr=spec.lr),
                       "gen": torch.Generator().manual_seed(seed)}
     warm = torch.Generator().manual_seed(seed + 1)
@@ -150,6 +181,15 @@ def train_dense_vs_sparse(sample_batch: Callable[[int, torch.Generator], Tuple[t
         r["steps"] += 1
         r["loss"].append(loss.item())
         r["time"].append(r["spent"])
+        if log_every and r["steps"] % log_every == 0:
+            line = f"{name} step {r['steps']}: loss {np.mean(r['loss'][-log_every:]):.4f}, {r['spent']:.0f} s"
+            if validate is not None:
+                r["model"].eval()
+                with torch.no_grad():
+                    r["val"].append((r["steps"], float(validate(r["model"], r["diffusion"]))))
+                r["model"].train()
+                line += f", validation {r['val'][-1][1]:.4f}"
+            print(line, flush=True)
         if bar is not None:
             bar.set_postfix_str(", ".join(f"{k} {v['steps']} steps loss {np.mean(v['loss'][-10:]):.3f}"
                                           for k, v in runs.items() if v["loss"]), refresh=False)
@@ -164,7 +204,7 @@ def train_dense_vs_sparse(sample_batch: Callable[[int, torch.Generator], Tuple[t
         stats[name] = {"steps": r["steps"], "seconds": r["spent"],
                        "steps_per_s": r["steps"] / max(r["spent"], 1e-9),
                        "final_loss": float(np.mean(r["loss"][-k:])) if r["loss"] else None,
-                       "loss": r["loss"], "time": r["time"]}
+                       "loss": r["loss"], "time": r["time"], "val": r["val"]}
     stats["speed_ratio"] = stats["sparse"]["steps_per_s"] / max(stats["dense"]["steps_per_s"], 1e-9)
     return stats, pair
 

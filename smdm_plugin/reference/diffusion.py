@@ -8,8 +8,10 @@ Sampling honours MDM's in-painting keys, as MDM's ``sample.edit`` passes them:
 ``y['inpainted_motion']`` (``[B, J, F, N]``, the given values). How they are imposed
 (``imputation``): ``"x0"`` replaces the given entries of the model's clean-motion prediction at every
 step (MDM's ``p_mean_variance`` does exactly this); ``"xt"`` replaces them in ``x_t`` by the target
-noised to step ``t`` before every model call (and in the final output); ``"both"`` does both. Either
-way the given entries of the output equal the target. Without the keys, sampling is unchanged bit
+noised to step ``t`` before every model call (and in the final output). Either way the given
+entries of the output equal the target. (Doing both is the same as ``"xt"``: the posterior step is
+per entry, so a replaced prediction changes only the given entries of ``x_{t-1}``, which ``"xt"``
+overwrites next.) Without the keys, sampling is unchanged bit
 for bit (same random draws)."""
 from __future__ import annotations
 
@@ -111,7 +113,7 @@ class SimpleDiffusion:
                       device: Any = "cpu", generator: Optional[torch.Generator] = None,
                       progress: bool = False, imputation: str = "x0") -> torch.Tensor:
         """Sample ``shape`` (``[B, J, F, N]``) from noise in ``num_timesteps`` steps. ``imputation``
-        (``"x0"`` | ``"xt"`` | ``"both"``) says how MDM's in-painting keys in ``model_kwargs['y']``
+        (``"x0"`` | ``"xt"``) says how MDM's in-painting keys in ``model_kwargs['y']``
         are imposed; it has no effect without them."""
         if imputation not in IMPUTATIONS:
             raise ValueError(f"p_sample_loop: imputation must be one of {IMPUTATIONS}, got {imputation!r}")
@@ -124,17 +126,17 @@ class SimpleDiffusion:
 
             steps = tqdm(steps, desc="sampling", unit="step")
         for t in steps:
-            if given is not None and imputation in ("xt", "both"):
+            if given is not None and imputation == "xt":
                 noise = torch.randn(x.shape, generator=generator, device=x.device, dtype=x.dtype)
                 tt = torch.full((x.shape[0],), t, device=x.device, dtype=torch.long)
                 x = torch.where(given[0], self.q_sample(given[1], tt, noise), x)
             x = self.p_sample(model, x, t, model_kwargs, generator,
-                              impute_x0=imputation != "xt" or t == 0)
+                              impute_x0=imputation == "x0" or t == 0)
         return x
 
 
 #: how :meth:`SimpleDiffusion.p_sample_loop` imposes given frames (see the module docstring)
-IMPUTATIONS = ("x0", "xt", "both")
+IMPUTATIONS = ("x0", "xt")
 
 
 class ClassifierFreeGuidance(nn.Module):
