@@ -11,7 +11,8 @@ Data sets (../shared/data): ``hml`` = cmu-humanml3d (features from new_joint_vec
 ``extract_selection_features`` with Mean/Std, positions from new_joints); ``bvh`` = the same
 79 segments straight from the BVH files (``load_cmu_clip``, features ``root_relative_features``,
 world positions). Usage:
-``python scripts/choose_selection_defaults.py [--bench] [--root-relative]``.
+``python scripts/choose_selection_defaults.py [--bench] [--root-relative] [--quality]``
+(``--quality``: jitter, foot skating and EES of the motions rebuilt from the keyframes).
 """
 from __future__ import annotations
 
@@ -27,10 +28,11 @@ import torch
 from smdm_plugin.io.bvh import load_cmu_clip, root_relative_features
 from smdm_plugin.core.features import extract_selection_features
 from smdm_plugin.core.selection import select_keyframes
+from smdm_plugin.metrics import end_effector_speed, foot_skating_ratio, jitter
 
 DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
 SCALES = (0.0, 0.001, 0.003, 0.01, 0.03, 0.1)
-EXTRA_SCALES = (0.3, 1.0)          # beyond the asked grid, to show the trend
+EXTRA_SCALES = (0.3, 1.0, 3.0, 10.0)  # beyond the first grid: where the error levels off
 REDUCTIONS = (0.6, 0.7, 0.8, 0.9)
 RANDOM_SEEDS = (0, 1, 2)
 
@@ -67,19 +69,43 @@ def load_bvh_segments() -> Tuple[np.ndarray, List[int]]:
     return P, [len(s) for s in segs]
 
 
-def interp_error(P: np.ndarray, lengths: List[int], mask: np.ndarray) -> Tuple[float, int, float]:
-    """(MPJPE mm over valid frames, max keyframe gap, mean per-motion max gap)."""
-    err_sum, frames, gaps = 0.0, 0, []
+def reconstruct(P: np.ndarray, lengths: List[int], mask: np.ndarray) -> np.ndarray:
+    """Joints ``[B, N, 22, 3]`` linearly interpolated from the keyframes (valid frames only)."""
+    rec = np.zeros_like(P)
     for b, L in enumerate(lengths):
         k = np.flatnonzero(mask[b, :L])
-        t = np.arange(L)
         flat = P[b, :L].reshape(L, -1)
-        rec = np.stack([np.interp(t, k, flat[k, c]) for c in range(flat.shape[1])], 1)
-        e = np.linalg.norm((rec - flat).reshape(L, 22, 3), axis=-1).mean(1)
-        err_sum += e.sum()
-        frames += L
-        gaps.append(int(np.diff(k).max()))
-    return 1000.0 * err_sum / frames, max(gaps), float(np.mean(gaps))
+        rec[b, :L] = np.stack([np.interp(np.arange(L), k, flat[k, c]) for c in range(flat.shape[1])],
+                              1).reshape(L, 22, 3)
+    return rec
+
+
+def interp_error(P: np.ndarray, lengths: List[int], mask: np.ndarray) -> Tuple[float, int, float]:
+    """(MPJPE mm over valid frames, max keyframe gap, mean per-motion max gap)."""
+    rec = reconstruct(P, lengths, mask)
+    valid = np.arange(P.shape[1])[None] < np.asarray(lengths)[:, None]
+    err = np.linalg.norm(rec - P, axis=-1).mean(-1)[valid]
+    gaps = [int(np.diff(np.flatnonzero(mask[b, :L])).max()) for b, L in enumerate(lengths)]
+    return 1000.0 * float(err.mean()), max(gaps), float(np.mean(gaps))
+
+
+def quality_table(name: str, feats_for_scale, P: np.ndarray, lengths: List[int], reduction: float = 0.8) -> None:
+    """Jitter and foot skating of the motions rebuilt from the keyframes (global positions):
+    what a perfect sparse model, which gets the keyframes right and interpolates, would output."""
+    lens_t = torch.tensor(lengths)
+    kw = {"fps": 20.0, "lengths": lens_t}
+    rows = [("real motion", P)]
+    for s in SCALES + EXTRA_SCALES:
+        mask = select_keyframes(feats_for_scale(s), lens_t, reduction, "vw").numpy()
+        rows.append((f"vw, scale {s:g}", reconstruct(P, lengths, mask)))
+    mask = select_keyframes(feats_for_scale(0.0), lens_t, reduction, "uniform").numpy()
+    rows.append(("uniform", reconstruct(P, lengths, mask)))
+    print(f"\n### {name}: motion rebuilt from {100 * (1 - reduction):.0f}% keyframes\n")
+    print("| keyframes | jitter (m/s³) | foot skating ratio | EES (cm/frame) |")
+    print("| --- | ---: | ---: | ---: |")
+    for label, Q in rows:
+        print(f"| {label} | {float(jitter(Q, **kw)):.1f} | {float(foot_skating_ratio(Q, **kw)):.4f} | "
+              f"{float(end_effector_speed(torch.from_numpy(Q), lens_t)):.3f} |")
 
 
 def evaluate(name: str, feats_for_scale, P: np.ndarray, lengths: List[int]) -> None:
@@ -133,6 +159,8 @@ def main() -> None:
     ap.add_argument("--bench", action="store_true", help="also time select_keyframes")
     ap.add_argument("--root-relative", action="store_true",
                     help="measure the error on root-relative positions (pose only)")
+    ap.add_argument("--quality", action="store_true",
+                    help="also the jitter / foot skating / EES of the motions rebuilt from the keyframes")
     args = ap.parse_args()
     rel = (lambda q: q - q[:, :, :1]) if args.root_relative else (lambda q: q)
     what = "root-relative positions" if args.root_relative else "global positions"
@@ -145,6 +173,9 @@ def main() -> None:
     Pb, lb = load_bvh_segments()
     evaluate(f"cmu-mocap BVH (world joints -> root-relative 64-D features), error on {what}",
              lambda s: torch.from_numpy(root_relative_features(Pb, s)), rel(Pb), lb)
+    if args.quality:
+        quality_table("cmu-humanml3d, global positions",
+                      lambda s: extract_selection_features(torch.from_numpy(x), "humanml3d", mean, std, s), P, lengths)
     if args.bench:
         bench()
 

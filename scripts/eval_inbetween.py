@@ -47,7 +47,7 @@ def transform_for(rep: str):
 
 
 def stats_for(data: Path, rep: str, motions: List[np.ndarray]) -> Tuple[np.ndarray, np.ndarray]:
-    from smdm_plugin.apps.trainer import feature_stats
+    from smdm_plugin.apps.pair_trainer import feature_stats
 
     if rep == "humanml3d":  # the data set's own Mean/Std, as MDM normalises
         return np.load(data / "Mean.npy").astype(np.float32), np.load(data / "Std.npy").astype(np.float32)
@@ -74,7 +74,7 @@ def heldout_loss(x: torch.Tensor, lengths: torch.Tensor, mean: np.ndarray, std: 
 
 
 def cmd_train(a: argparse.Namespace) -> int:
-    from smdm_plugin.apps.trainer import BackboneSpec, CropSampler, augment_joints22, train_dense_vs_sparse
+    from smdm_plugin.apps.pair_trainer import BackboneSpec, CropSampler, augment_joints22, train_dense_vs_sparse
     from smdm_plugin.io.bundle import save_bundle
     from smdm_plugin.io.representation import Representation
 
@@ -143,7 +143,7 @@ def eval_set(data: Path, rep: str) -> Tuple[List[str], torch.Tensor, torch.Tenso
 
 def score(rep, out: torch.Tensor, ref: torch.Tensor, given: torch.Tensor, lengths: torch.Tensor) -> Dict[str, float]:
     """Metrics of generated features ``out [B, N, D]`` against the real motions ``ref`` (un-normalised)."""
-    from smdm_plugin.apps.inbetween import keyframe_metrics
+    from smdm_plugin.metrics.inbetween import keyframe_metrics
 
     return {"feature_error": float((out - ref).abs()[given].max()),
             **keyframe_metrics(rep.to_joints(out.double()).numpy(), rep.to_joints(ref.double()).numpy(),

@@ -38,8 +38,13 @@ _EXPORTS: Dict[str, str] = {
     "sparsify": "adapters.mdm", "unsparsify": "adapters.mdm", "is_sparse": "adapters.mdm",
     "detect_variant": "adapters.mdm", "set_mean_std": "adapters.mdm",
     "attach_diffusion": "adapters.diffusion", "detach_diffusion": "adapters.diffusion",
+    "keyframe_collate": "adapters.diffusion",
+    "swap_text_encoder": "adapters.text_encoder", "HFTextEncoder": "adapters.text_encoder",
+    "install_text_cache": "adapters.text_cache", "TextEmbeddingCache": "adapters.text_cache",
+    "ConfigTypeError": "core.config",
     # io
     "read_bvh": "io.bvh", "bvh_joint_positions": "io.bvh", "load_cmu_clip": "io.bvh",
+    "BVHError": "io.bvh", "BVHWarning": "io.bvh", "OutputExistsError": "io.files",
     "save_sparse_config": "io.checkpoint", "load_checkpoint": "io.checkpoint",
     "check_state_dict": "io.checkpoint", "find_sparse_config": "io.checkpoint",
     # reference model
@@ -66,10 +71,12 @@ def __dir__() -> List[str]:
 
 
 if TYPE_CHECKING:  # pragma: no cover - for type checkers and IDEs
-    from .adapters.diffusion import attach_diffusion, detach_diffusion
+    from .adapters.diffusion import attach_diffusion, detach_diffusion, keyframe_collate
+    from .adapters.text_cache import TextEmbeddingCache, install_text_cache
+    from .adapters.text_encoder import HFTextEncoder, swap_text_encoder
     from .adapters.mdm import detect_variant, is_sparse, set_mean_std, sparsify, unsparsify
     from .core.attention_backends import available_backends, get_backend, register_backend
-    from .core.config import SparseConfig, load_preset
+    from .core.config import ConfigTypeError, SparseConfig, load_preset
     from .core.features import extract_selection_features
     from .core.fsq import FSQ, FSQMultiheadAttention, quantize_attention_keys
     from .core.interpolation import interpolate_keyframes
@@ -78,7 +85,8 @@ if TYPE_CHECKING:  # pragma: no cover - for type checkers and IDEs
     from .core.losses import dense_loss, keyframe_loss, lipschitz_term
     from .core.schedule import MaskSchedule
     from .core.selection import keyframe_count, perturb_mask, select_keyframes, vw_reference
-    from .io.bvh import bvh_joint_positions, load_cmu_clip, read_bvh
+    from .io.bvh import BVHError, BVHWarning, bvh_joint_positions, load_cmu_clip, read_bvh
+    from .io.files import OutputExistsError
     from .io.checkpoint import check_state_dict, find_sparse_config, load_checkpoint, save_sparse_config
     from .reference.backbone import TinyMDM
     from .reference.diffusion import ClassifierFreeGuidance, SimpleDiffusion

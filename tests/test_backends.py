@@ -8,8 +8,9 @@ import torch.nn as nn
 
 from smdm_plugin import KeyframeTransformer, register_backend
 from smdm_plugin.core import attention_backends as ab
-from smdm_plugin.core.attention_backends import (Packing, available_backends, compact_backend, get_backend,
-                                            lerp_rows, varlen_backend)
+from smdm_plugin.core.attention_backends import (Packing, available_backends, compact_backend, fill_frames,
+                                                 get_backend, lerp_rows, varlen_backend)
+from smdm_plugin.core.plan import KeyframePlan
 
 CUDA = pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")
 
@@ -32,6 +33,13 @@ def keyframes(B, N, lengths, k, seed=0):
         mask[b, idx] = True
         mask[b, 0] = mask[b, L - 1] = True
     return mask
+
+
+def run(fn, inner, x, keep, memory=None, memory_key_padding_mask=None, capacity=None):
+    """A backend's kept-token outputs scattered back to ``[S, B, d]`` (zeros elsewhere)."""
+    plan = KeyframePlan.build(keep, capacity)
+    h, rows = fn(inner, x, plan, 0, memory, memory_key_padding_mask)
+    return fill_frames(h, rows, plan, 0, interpolate=False)
 
 
 def registered():
@@ -57,7 +65,7 @@ def test_backend_equals_masked_reference_eval(backend, kind, norm_first):
     keep = keyframes(B, S, [33, 30, 12, 33, 3], 7)
     fn = ab._REGISTRY[backend][0]
     with torch.no_grad():
-        out = fn(inner, x, keep, memory=memory)
+        out = run(fn, inner, x, keep, memory=memory)
         ref = reference(inner, x, keep, memory)
     kt = keep.t()
     assert torch.allclose(out[kt], ref[kt], atol=1e-5)
@@ -76,7 +84,7 @@ def test_backend_equals_reference_in_training_without_dropout(backend):
     for name, fn in (("ref", None), (backend, ab._REGISTRY[backend][0])):
         x.grad = None
         inner.zero_grad()
-        out = reference(inner, x, keep) if fn is None else fn(inner, x, keep)
+        out = reference(inner, x, keep) if fn is None else run(fn, inner, x, keep)
         (out * w * kt).sum().backward()
         grads[name] = (out.detach() * kt, x.grad.clone(), inner.layers[0].self_attn.in_proj_weight.grad.clone())
     for a, b in zip(grads[backend], grads["ref"]):
@@ -131,7 +139,7 @@ def test_forced_varlen_without_flash_attn_is_correct(monkeypatch):
     mpad = torch.tensor([[False, False, True], [False, False, False], [False, True, True]])
     keep = keyframes(B, S, [20, 15, 4], 5)
     with torch.no_grad():
-        out = varlen_backend(dec, x, keep, memory=mem, memory_key_padding_mask=mpad)
+        out = run(varlen_backend, dec, x, keep, memory=mem, memory_key_padding_mask=mpad)
         ref = dec(x, mem, tgt_key_padding_mask=~keep, memory_key_padding_mask=mpad)
     assert torch.allclose(out[keep.t()], ref[keep.t()], atol=1e-5)
 
@@ -145,11 +153,11 @@ def test_varlen_falls_back_to_compact_for_hooks_and_custom_attention():
     calls = []
     h = enc.layers[0].register_forward_pre_hook(lambda m, a: calls.append(a[0].shape[0]))
     with torch.no_grad():
-        out = varlen_backend(enc, x, keep)
+        out = run(varlen_backend, enc, x, keep, capacity=4)
     h.remove()
     with torch.no_grad():
         ref = reference(enc, x, keep)
-    assert calls == [4]  # hooks fire: ran through the modules (compact, K_max tokens)
+    assert calls == [4]  # hooks fire: ran through the modules (compact, capacity tokens)
     assert torch.allclose(out[keep.t()], ref[keep.t()], atol=1e-5)
     assert ab.supports_packed(enc)  # the hook is gone: packed again
 
@@ -164,7 +172,7 @@ def test_varlen_with_fsq_attention_falls_back_and_matches_compact():
     x = torch.randn(S, B, d)
     assert not ab.supports_packed(enc)
     with torch.no_grad():
-        assert torch.allclose(varlen_backend(enc, x, keep)[keep.t()], compact_backend(enc, x, keep)[keep.t()],
+        assert torch.allclose(run(varlen_backend, enc, x, keep)[keep.t()], run(compact_backend, enc, x, keep)[keep.t()],
                               atol=1e-6)
 
 
@@ -194,10 +202,10 @@ def test_varlen_on_cuda_matches_masked(dtype):
     enc = encoder(d=d).eval().to("cuda", dtype)
     keep = keyframes(B, S, [40, 22, 9, 40], 8).cuda()
     x = torch.randn(S, B, d, device="cuda", dtype=dtype)
-    assert get_backend("auto", x.device) is varlen_backend
+    assert get_backend("auto", x.device) is compact_backend  # static shapes on accelerators
     with torch.no_grad():
-        out = varlen_backend(enc, x, keep)
-        ref = ab.masked_backend(enc, x, keep)
+        out = run(varlen_backend, enc, x, keep)
+        ref = run(ab.masked_backend, enc, x, keep)
     tol = 1e-4 if dtype == torch.float32 else 2e-2
     assert torch.allclose(out[keep.t()].float(), ref[keep.t()].float(), atol=tol)
 
@@ -215,7 +223,7 @@ def test_single_memory_token_shortcut_matches_reference_gradients():
     for name, fn in (("varlen", varlen_backend), ("masked", ab.masked_backend)):
         dec.zero_grad()
         x.grad = mem.grad = None
-        (fn(dec, x, keep, memory=mem) * w).sum().backward()
+        (run(fn, dec, x, keep, memory=mem) * w).sum().backward()
         grads[name] = [x.grad.clone(), mem.grad.clone()] + [p.grad.clone() for p in dec.parameters()]
     for a, b in zip(grads["varlen"], grads["masked"]):
         assert torch.allclose(a, b, atol=1e-5)

@@ -1,28 +1,89 @@
-"""`smdm bench --quick` smoke run, `python -m smdm_plugin.apps.bench keyframes`, and the `smdm` CLI."""
+"""`smdm bench`: the quick smoke run, its outputs, and what a user gets for bad or repeated input
+(one line, exit 2, no traceback, nothing overwritten)."""
 import json
 import subprocess
 import sys
 import types
 
+import pytest
+import torch
+
 from smdm_plugin.apps import bench, cli
+
+
+def smdm(*args, timeout=600):
+    return subprocess.run([sys.executable, "-m", "smdm_plugin", *args], capture_output=True, text=True,
+                          timeout=timeout)
 
 
 def test_bench_quick_writes_json_and_table(tmp_path, capsys):
     out = tmp_path / "bench.json"
-    assert bench.main(["--quick", "--arch", "trans_enc", "trans_dec", "--reductions", "0.8", "--out", str(out)]) == 0
+    assert bench.main(["--quick", "--arch", "trans_enc", "trans_dec", "--reductions", "0.8", "--modes", "train",
+                       "sample", "loop", "--steps", "4", "--out", str(out)]) == 0
     r = json.loads(out.read_text())
     rows = {(x["arch"], x["mode"], x["variant"]) for x in r["rows"]}
     assert ("trans_enc", "train", "dense") in rows and ("trans_dec", "sample", "sparse 80%") in rows
+    assert ("trans_enc", "loop", "sparse 80%") in rows
     sparse = [x for x in r["rows"] if x["variant"] != "dense"]
-    assert all(x["speedup"] > 0 and 0 <= x["overhead_share"] and x["peak_mem_mib"] >= 0 for x in sparse)
-    assert "| trans_enc | train | dense |" in capsys.readouterr().out
-    assert out.with_suffix(".md").exists()
+    assert all(x["speedup"] > 0 and x["peak_mem_mib"] >= 0 for x in sparse)
+    assert all(0 <= x["overhead_share"] for x in sparse if x["mode"] != "loop")
+    assert r["sparse_backend"] == "varlen" and r["amp"] == "fp32" and r["compile"] == "none"
+    text = capsys.readouterr().out
+    assert "| trans_enc | train | dense |" in text and "sparse attention backend: varlen" in text
+    assert out.with_suffix(".md").read_text().startswith("device:")
+
+
+def test_bench_bf16_and_compiled_modes_run():
+    r = bench.run_bench(["trans_enc"], [0.8], batch=2, frames=24, repeats=1, warmup=1, device="cpu", quick=True,
+                        steps=4, modes=["train", "sample"], amp="bf16", compile_mode="default")
+    assert {x["variant"] for x in r["rows"]} == {"dense", "sparse 80%"} and r["sparse_backend"] == "compact"
+    assert "torch.compile default" in bench.markdown(r) and "bf16" in bench.markdown(r)
 
 
 def test_bench_keyframes_module_mode():
     p = subprocess.run([sys.executable, "-m", "smdm_plugin.apps.bench", "keyframes", "--repeats", "1"],
                        capture_output=True, text=True, timeout=300)
-    assert p.returncode == 0 and "batched VW on [64, 196, 64]" in p.stdout
+    assert p.returncode == 0 and "VW keyframe selection on [64, 196, 64]" in p.stdout
+
+
+@pytest.mark.parametrize("args,message", [
+    (["--batch", "0"], "argument --batch: must be an integer >= 1, got 0"),
+    (["--frames", "1"], "argument --frames: must be an integer >= 2, got 1"),
+    (["--reductions", "1.0"], "argument --reductions: must be a finite number in [0, 1), got 1.0"),
+    (["--repeats", "x"], "argument --repeats: expected an integer, got 'x'"),
+    (["--steps", "-3"], "argument --steps: must be an integer >= 1, got -3"),
+])
+def test_bad_numbers_are_one_line_errors(args, message):
+    p = smdm("bench", *args)
+    assert p.returncode == 2 and message in p.stderr and "Traceback" not in p.stderr
+
+
+@pytest.mark.skipif(torch.cuda.is_available(), reason="this machine has CUDA")
+def test_a_device_that_does_not_exist_is_a_one_line_error():
+    p = smdm("bench", "--device", "cuda")
+    assert p.returncode == 2 and "argument --device: cuda: CUDA is not available" in p.stderr
+    assert "Traceback" not in p.stderr
+
+
+def test_outputs_are_never_overwritten_without_asking(tmp_path):
+    md = tmp_path / "table.md"
+    md.write_text("my notes\n")
+    p = smdm("bench", "--quick", "--arch", "trans_enc", "--modes", "sample", "--reductions", "0.8", "--out", str(md))
+    assert p.returncode == 2 and "--overwrite" in p.stderr and md.read_text() == "my notes\n"
+    assert not (tmp_path / "table.json").exists()
+    p = smdm("bench", "--quick", "--arch", "trans_enc", "--modes", "sample", "--reductions", "0.8", "--out", str(md),
+             "--overwrite")
+    assert p.returncode == 0, p.stderr
+    assert json.loads((tmp_path / "table.json").read_text())["rows"] and md.read_text().startswith("device:")
+
+
+def test_quick_never_overrides_a_flag_the_user_gave(tmp_path):
+    out = tmp_path / "q"
+    p = smdm("bench", "--quick", "--batch", "3", "--frames", "30", "--arch", "trans_enc", "--modes", "sample",
+             "--reductions", "0.8", "--out", str(out))
+    assert p.returncode == 0, p.stderr
+    r = json.loads((tmp_path / "q.json").read_text())
+    assert r["batch"] == 3 and r["frames"] == 30 and r["repeats"] == 1
 
 
 def test_cli_help_and_run_delegates(monkeypatch, capsys):

@@ -2,13 +2,14 @@
 from __future__ import annotations
 
 import csv
+import warnings
 from pathlib import Path
 
 import numpy as np
 import pytest
 
-from smdm_plugin.io.bvh import (CMU_TO_METRES, HUMANML22_FROM_CMU, bvh_joint_positions,
-                             cmu_to_humanml22, load_cmu_clip, read_bvh, root_relative_features)
+from smdm_plugin.io.bvh import (CMU_TO_METRES, HUMANML22_FROM_CMU, BVHError, BVHWarning, bvh_joint_positions,
+                                cmu_to_humanml22, load_cmu_clip, read_bvh, root_relative_features)
 
 DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
 MOCAP, HML = DATA / "cmu-mocap", DATA / "cmu-humanml3d"
@@ -184,13 +185,131 @@ def test_root_relative_features():
 
 
 @pytest.mark.parametrize("edit,match", [
-    (lambda s: s.replace("0 0 0 0 0 0 90 90 0 90 90 0 0 0 0\n", ""), r"expected 3 frames"),
+    (lambda s: s.replace("0 0 0 0 0 0 90 90 0 90 90 0 0 0 0\n", ""), r"truncated motion: Frames: 3 declared, 2"),
     (lambda s: s.replace("\t}\n}\nMOTION", "\t}\nMOTION"), r"unbalanced braces"),
     (lambda s: s.replace("Yrotation Xrotation Zrotation", "Yrotation Wrotation Zrotation"),
      r"bad CHANNELS"),
-    (lambda s: s.replace("MOTION", "MOTIONLESS").replace("Frames:", "Frame:"), r"Frames: n"),
+    (lambda s: s.replace("Frames:", "Frame:"), r"line 26: MOTION needs 'Frames: n'"),
+    (lambda s: s.replace("MOTION", "MOTIONLESS"), r"no MOTION section"),
     (lambda s: s.split("MOTION")[0], r"no MOTION section"),
 ])
 def test_read_errors(tmp_path, edit, match):
     with pytest.raises(ValueError, match="read_bvh: .*" + match):
         read_bvh(_write(tmp_path, edit(SIMPLE), False))
+
+
+# --------------------------------------------------------------------- tolerance and strictness
+ROWS = SIMPLE.split("Frame Time: 0.05\n")[1].splitlines()
+
+
+def _same(a, b):
+    assert a.names == b.names and a.parents == b.parents and a.channels == b.channels
+    assert a.frame_time == b.frame_time
+    np.testing.assert_array_equal(a.offsets, b.offsets)
+    np.testing.assert_array_equal(a.motion, b.motion)
+
+
+@pytest.mark.parametrize("encode", [
+    lambda s: b"\xef\xbb\xbf" + s.encode(),                                   # UTF-8 byte-order mark
+    lambda s: ("\ufeff" + s.replace("\n", "\r\n")).encode(),                   # BOM + CRLF
+    lambda s: s.replace("\n", "\r").encode(),                                  # old Mac CR
+    lambda s: s.replace(" ", "\t").replace("\n", "\n\n").encode(),              # tabs, blank lines
+    lambda s: s.replace("Frame Time: 0.05\n", "Frame Time:\t0.05  \n").encode() + b"\n   \n",
+])
+def test_tolerated_formatting_reads_the_same(tmp_path, encode):
+    p = tmp_path / "x.bvh"
+    p.write_bytes(encode(SIMPLE))
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # no warning for these
+        _same(read_bvh(p), read_bvh(_write(tmp_path, SIMPLE, False)))
+
+
+def test_latin1_joint_name(tmp_path):
+    p = tmp_path / "x.bvh"
+    p.write_bytes(SIMPLE.replace("JOINT C", "JOINT C\u00e9").encode("latin-1"))
+    assert read_bvh(p).names[-1] == "C\u00e9"
+
+
+def _boxing_toes_like(tmp_path):
+    """Debian assimp-testmodels' Boxing_Toes.bvh declares 3069 frames and holds 3070 rows; the real
+    file when installed, else one built the same way (declared n, n + 1 rows)."""
+    real = Path("/usr/share/assimp/models/BVH/Boxing_Toes.bvh")
+    if real.exists():
+        return real, 3069
+    rng = np.random.default_rng(0)
+    rows = "\n".join(" ".join(f"{v:.4f}" for v in r) for r in rng.normal(size=(3070, 15)) * 30)
+    p = tmp_path / "Boxing_Toes.bvh"
+    p.write_text(SIMPLE.split("Frames: 3")[0] + "Frames: 3069\nFrame Time: 0.033333\n" + rows + "\n")
+    return p, 3069
+
+
+def test_one_extra_motion_row_is_ignored_with_a_warning(tmp_path):
+    path, declared = _boxing_toes_like(tmp_path)
+    with pytest.warns(BVHWarning, match=f"{path.name}: Frames: {declared} declared, {declared + 1} rows"):
+        b = read_bvh(path)
+    assert b.num_frames == declared
+    # the rows kept are the file's first `declared` rows, in order
+    lines = path.read_text().splitlines()
+    first = next(k for k, ln in enumerate(lines) if ln.split()[:2] == ["Frame", "Time:"]) + 1
+    body = [ln.split() for ln in lines[first:] if ln.strip()]
+    np.testing.assert_array_equal(b.motion, np.array(body[:declared], dtype=float))
+    # small file: the extra row is the one dropped
+    p = tmp_path / "extra.bvh"
+    p.write_text(SIMPLE + "9 9 9 9 9 9 9 9 9 9 9 9 9 9 9\n")
+    with pytest.warns(BVHWarning, match=r"line 32\) is ignored"):
+        _same(read_bvh(p), read_bvh(_write(tmp_path, SIMPLE, False)))
+
+
+@pytest.mark.parametrize("edit,match,line", [
+    (lambda s: s + "1 1 1 1 1 1 1 1 1 1 1 1 1 1 1\n" * 2, r"Frames: 3 declared, 5 motion rows present", None),
+    (lambda s: s.replace("Frames: 3", "Frames: 4"), r"truncated motion: Frames: 4 declared, 3 row\(s\)", None),
+    (lambda s: s.replace("Frame Time: 0.05", "Frame Time: 0"), r"Frame Time: must be .* > 0, got 0", 28),
+    (lambda s: s.replace("Frame Time: 0.05", "Frame Time: -0.05"), r"Frame Time: must be", 28),
+    (lambda s: s.replace("Frame Time: 0.05", "Frame Time: nan"), r"Frame Time: must be a finite", 28),
+    (lambda s: s.replace("Frame Time: 0.05", "Frame Time: inf"), r"Frame Time: must be a finite", 28),
+    (lambda s: s.replace("Frame Time: 0.05", "Frame Time: fast"), r"Frame Time: expected a number", 28),
+    (lambda s: s.replace("Frames: 3", "Frames: three"), r"Frames: expected an integer, got 'three'", 27),
+    (lambda s: s.replace("Frames: 3", "Frames: -1"), r"Frames: must be >= 0", 27),
+    (lambda s: s.replace("1 2 3 90", "1 2 x3 90"), r"motion value 'x3' is not a number", 30),
+    (lambda s: s.replace("1 2 3 90", "1 2 nan 90"), r"not finite", 30),
+    (lambda s: s.replace("1 2 3 90 0 0", "1 2 3 90 0"), r"motion row has 14 values, expected 15", 30),
+    (lambda s: s.replace("1 2 3 90 0 0", "1 2 3 90 0 0 0"), r"motion row has 16 values, expected 15", 30),
+    (lambda s: s.replace("OFFSET 0 0 1\n\t\tCHANNELS 3 X", "OFFSET 0 zero 1\n\t\tCHANNELS 3 X"),
+     r"OFFSET: expected a number, got 'zero'", 8),
+    (lambda s: s.replace("CHANNELS 3 Zrotation Yrotation Xrotation\n\t}", "CHANNELS 4 Zrotation Yrotation "
+                         "Xrotation\n\t}"), r"bad CHANNELS 4", 23),
+    (lambda s: s.replace("CHANNELS 3 Xrotation", "CHANNELS three Xrotation"), r"CHANNELS count: expected an integer", 9),
+    (lambda s: s.replace("JOINT A", "JOINT"), r"unexpected token|without a name", None),
+])
+def test_strict_errors_name_the_file_and_line(tmp_path, edit, match, line):
+    p = _write(tmp_path, edit(SIMPLE), False)
+    with pytest.raises(BVHError, match=match) as e:
+        read_bvh(p)
+    assert isinstance(e.value, ValueError) and e.value.path == str(p)
+    assert str(e.value).startswith(f"read_bvh: {p}")
+    if line is not None:
+        assert e.value.line == line and f"{p}, line {line}:" in str(e.value)
+
+
+def test_folder_and_non_cmu_skeleton_are_clear_errors(tmp_path):
+    with pytest.raises(BVHError, match="is a folder"):
+        read_bvh(tmp_path)
+    p = _write(tmp_path, SIMPLE, False)
+    with pytest.raises(BVHError, match=rf"{p.name}: not a CMU skeleton: lacks the joints \['Head'"):
+        load_cmu_clip(p)
+
+
+def test_embedded_clips_are_the_bvh_clips_at_20_fps():
+    """The package's own clips (smdm demo's default) equal a fresh conversion of their BVH files."""
+    from smdm_plugin.io.bvh import load_cmu_clip
+    from smdm_plugin.io.embedded import embedded_clips, embedded_descriptions
+
+    clips = embedded_clips()
+    assert len(clips) == 17 and all(j.shape[1:] == (22, 3) and j.dtype == np.float32 for _, j in clips)
+    assert embedded_descriptions()["02_01"] == "walk"
+    mocap = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "cmu-mocap"
+    if not mocap.exists():
+        pytest.skip("../shared/data/cmu-mocap not available")
+    for name, joints in clips[:3]:
+        fresh = load_cmu_clip(mocap / f"{name}.bvh", fps=20)
+        assert np.allclose(joints, fresh, atol=1e-5), name

@@ -60,9 +60,74 @@ def test_dense_checkpoint_loads_dense(tmp_path):
 
 
 def test_save_config_never_overwrites_unasked(tmp_path):
-    cfg = SparseConfig()
-    save_sparse_config(cfg, str(tmp_path))
-    with pytest.raises(FileExistsError):
-        save_sparse_config(cfg, str(tmp_path), overwrite=False)
+    save_sparse_config(SparseConfig(reduction=0.6), str(tmp_path))
+    p = tmp_path / "sparse_config.json"
+    before = p.read_bytes()
+    with pytest.raises(FileExistsError, match=r"sparse_config.json' exists with another config \(differs in "
+                                              r"reduction, fsq\); pass overwrite=True"):
+        save_sparse_config(SparseConfig(reduction=0.7, fsq=True), str(tmp_path))  # the default: never overwrite
+    assert p.read_bytes() == before
+    # the same config again (a second save, every rank of a distributed run): nothing to refuse
+    assert save_sparse_config(SparseConfig(reduction=0.6), str(tmp_path)) == str(p) and p.read_bytes() == before
+    p.write_text("{ half-writ")
+    with pytest.raises(FileExistsError, match="exists with contents that are not a valid config"):
+        save_sparse_config(SparseConfig(reduction=0.6), str(tmp_path))
+    assert save_sparse_config(SparseConfig(reduction=0.7), str(tmp_path), overwrite=True) == str(p)
+    assert SparseConfig.load(p).reduction == 0.7 and sorted(x.name for x in tmp_path.iterdir()) == [p.name]
     with pytest.raises(ValueError, match="not sparse"):
-        save_sparse_config(TinyMDM(**KW), str(tmp_path))
+        save_sparse_config(TinyMDM(**KW), str(tmp_path / "new"))
+    assert save_sparse_config(SparseConfig(), str(tmp_path / "a" / "b")).endswith("a/b/sparse_config.json")
+
+
+@pytest.mark.parametrize("change,fields", [
+    ({"reduction": 0.8}, ["reduction: saved 0.7, model 0.8"]),
+    ({"fsq": True}, ["fsq: saved False, model True"]),
+    ({"reduction": 0.9, "lipschitz": False, "selector": "uniform"},
+     ["reduction: saved 0.7, model 0.9", "selector: saved 'vw', model 'uniform'", "lipschitz: saved True, model False"]),
+])
+def test_sparse_model_with_another_config_is_a_clear_error(tmp_path, change, fields):
+    save_run(tmp_path, sparse=True)
+    other = sparsify(TinyMDM(**KW), SparseConfig(reduction=0.7).replace(**change))
+    with pytest.raises(ValueError) as e:
+        load_checkpoint(str(tmp_path / "model000001.pt"), model=other)
+    msg = str(e.value)
+    assert f"in {len(fields)} field(s)" in msg and str(tmp_path / "sparse_config.json") in msg
+    for f in fields:
+        assert f in msg
+
+
+def test_sparse_model_with_the_same_config_loads(tmp_path):
+    model = save_run(tmp_path, sparse=True)
+    target = sparsify(TinyMDM(**KW), SparseConfig(reduction=0.7))
+    loaded, config = load_checkpoint(str(tmp_path / "model000001.pt"), model=target)
+    assert loaded is target and config == model.smdm_config
+    for a, b in zip(model.state_dict().values(), loaded.state_dict().values()):
+        assert torch.equal(a, b)
+    # a field changed on purpose (e.g. sampling with another gamma) when named
+    other = sparsify(TinyMDM(**KW), SparseConfig(reduction=0.7, gamma=0.3))
+    load_checkpoint(str(tmp_path / "model000001.pt"), model=other, allow_differences=("gamma",))
+    assert other.smdm_config.gamma == 0.3
+    with pytest.raises(ValueError, match=r"allow_differences names unknown SparseConfig field\(s\) \['gama'\]"):
+        load_checkpoint(str(tmp_path / "model000001.pt"), model=other, allow_differences=("gama",))
+
+
+def test_args_json_config_disagreeing_is_named_too(tmp_path):
+    model = save_run(tmp_path, sparse=True, with_config=False)
+    (tmp_path / "args.json").write_text(json.dumps(model.smdm_config.to_args_dict()))
+    with pytest.raises(ValueError, match=r"args.json\) in 1 field\(s\): reduction: saved 0.7, model 0.5"):
+        load_checkpoint(str(tmp_path / "model000001.pt"), model=sparsify(TinyMDM(**KW), SparseConfig(reduction=0.5)))
+
+
+def test_checkpoint_file_errors_name_the_file(tmp_path):
+    with pytest.raises(FileNotFoundError, match="no such checkpoint file: .*missing.pt"):
+        load_checkpoint(str(tmp_path / "missing.pt"))
+    save_run(tmp_path, sparse=True, with_config=False)
+    (tmp_path / "args.json").write_text('{"sparse": true, ')
+    with pytest.raises(ValueError, match=r"args.json: not valid JSON"):
+        load_checkpoint(str(tmp_path / "model000001.pt"))
+    (tmp_path / "args.json").write_text(json.dumps({"sparse": True, "sparse_lipschitz": "no"}))
+    with pytest.raises(TypeError, match=r"args.json: SparseConfig.lipschitz='no'"):
+        find_sparse_config(str(tmp_path / "model000001.pt"))
+    (tmp_path / "sparse_config.json").write_text('{"reduction": 0.7, "fsq": "on"}')
+    with pytest.raises(TypeError, match=r"sparse_config.json: SparseConfig.fsq='on'"):
+        load_checkpoint(str(tmp_path / "model000001.pt"))

@@ -37,16 +37,18 @@ Frame Time: 0.0333333
 """
 
 
-def run(*args, cwd=None, timeout=900):
+def run(*args, cwd=None, timeout=900, env=None):
     return subprocess.run([sys.executable, "-m", "smdm_plugin", "demo", *args], capture_output=True, text=True,
-                          cwd=cwd, timeout=timeout)
+                          cwd=cwd, timeout=timeout, env=env)
 
 
 @pytest.fixture(scope="module")
 def bvh_files():
-    files = demo.find_bvh()
+    from conftest import MOCAP
+
+    files = demo.find_bvh([str(MOCAP)]) if MOCAP.is_dir() else []
     if not files:
-        pytest.skip("no BVH clip available (apt-get install assimp-testmodels)")
+        pytest.skip("../shared/data/cmu-mocap not available")
     return files
 
 
@@ -63,9 +65,9 @@ def test_quick_demo_skips_unusable_files_keeps_given_flags_and_leaves_models(bvh
     assert p.returncode == 0, p.stderr[-3000:]
     text = p.stdout
     assert "| vw |" in text and "sparse / dense training speed" in text and str(out) in text
-    # which files were skipped and why
-    assert f"skipping {folder / 'a_truncated.bvh'}: " in text and f"skipping {folder / 'b_other_skeleton.bvh'}: " in text
-    assert "CMU joints" in text and "skipped 2 of 3 file(s)" in text
+    # which files were skipped and why (the reader's whole message)
+    assert f"skipping {folder / 'a_truncated.bvh'}: read_bvh: {folder / 'a_truncated.bvh'}" in text and f"skipping {folder / 'b_other_skeleton.bvh'}: " in text
+    assert "not a CMU skeleton" in text and "skipped 2 of 3 file(s)" in text
     # --quick applied its settings except the one given
     assert "--batch" not in text.split("smdm demo --quick:")[1].splitlines()[0]
     for f in ("keyframes.md", "keyframes.csv", "keyframes.png", "training.md", "loss.png", "summary.json",
@@ -95,7 +97,7 @@ def test_quick_demo_skips_unusable_files_keeps_given_flags_and_leaves_models(bvh
 
 
 @pytest.mark.parametrize("args, message", [
-    (["--minutes", "-1"], "argument --minutes: must be a number in (0, 1440], got -1"),
+    (["--minutes", "-1"], "argument --minutes: must be a finite number in (0, 1440], got -1"),
     (["--minutes", "0"], "argument --minutes"),
     (["--batch", "0"], "argument --batch: must be an integer in [1, 4096], got 0"),
     (["--frames", "500"], "argument --frames"),
@@ -119,7 +121,7 @@ def test_bad_options_are_one_line_errors(args, message, tmp_path, capsys):
 
 
 def test_bad_options_as_a_user_runs_them(tmp_path):
-    for args, message in ((["--minutes", "-1"], "argument --minutes: must be a number in (0, 1440], got -1"),
+    for args, message in ((["--minutes", "-1"], "argument --minutes: must be a finite number in (0, 1440], got -1"),
                           (["--device", "cuda:3"], "argument --device")):
         p = run(*args, "--out", str(tmp_path / "never"))
         assert p.returncode == 2 and "Traceback" not in p.stderr
@@ -164,7 +166,7 @@ def test_load_clips_reports_warnings_and_skips(monkeypatch):
     log, skipped = [], []
     clips = demo.load_clips(["odd.bvh", "bad.bvh", "short.bvh", "ok.bvh"], log=log.append, skipped=skipped)
     assert [n for n, _ in clips] == ["odd", "ok"]
-    assert log[0] == "  note: odd.bvh: odd.bvh: one extra motion row ignored"
+    assert log[0] == "  note: odd.bvh: one extra motion row ignored (UserWarning)"
     assert skipped == [("bad.bvh", "read_bvh: bad.bvh: Frame Time must be > 0"),
                        ("short.bvh", "only 5 frames at 20 fps (20 needed)")]
 

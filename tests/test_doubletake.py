@@ -1,10 +1,16 @@
 """DoubleTake forced keyframes: geometry, y-derived forcing, and that the sparse model honours them
 at every sampling step of both takes (TinyMDM stand-in, a DoubleTake-shaped sampling loop)."""
+import argparse
+import warnings
+
+import pytest
 import torch
 
-from smdm_plugin import SparseConfig, TinyMDM, sparsify
-from smdm_plugin.adapters.doubletake import (attach_doubletake_forcing, detach_doubletake_forcing,
-                                             doubletake_forced_frames, forced_from_y)
+from smdm_plugin import SparseConfig, TinyMDM, keyframe_count, sparsify
+from smdm_plugin.adapters.doubletake import (PAPER_BLEND_LEN, attach_doubletake_forcing,
+                                             detach_doubletake_forcing, doubletake_forced_frames,
+                                             forced_from_y, paper_blend_len)
+from smdm_plugin.integrations.priormdm import sparsify_priormdm
 from smdm_plugin.reference.diffusion import SimpleDiffusion
 
 H, BLEND = 6, 4
@@ -22,12 +28,16 @@ def _first_take_transition(lengths, n):
     return tr
 
 
-def _second_take_inpainting(lengths, n2, feats):
+def _second_take_inpainting(lengths, n2, feats, blend=BLEND):
+    """priorMDM's second-take ``inpainting_mask`` (utils/sampling_utils.py, written from its
+    description): 1 = keep; ramps 0.85 -> 0 before each handshake and 0 -> 0.85 after it, only
+    when ``blend >= 2``."""
     m = torch.ones(len(lengths) - 1, feats, 1, n2)
     for i in range(len(lengths) - 1):
         b = lengths[i] - 2 * H
-        m[i, :, :, b - BLEND:b] = torch.linspace(0.85, 0.85 / BLEND, BLEND)
-        m[i, :, :, b + H:b + H + BLEND] = torch.arange(0.0, 0.85, 0.85 / BLEND)[:BLEND]
+        if blend >= 2:
+            m[i, :, :, b - blend:b] = torch.linspace(0.85, 0.85 / blend, blend)
+            m[i, :, :, b + H:b + H + blend] = torch.arange(0.0, 0.85, 0.85 / blend)[:blend]
     return m
 
 
@@ -68,14 +78,14 @@ def _sparse_tiny(reduction=0.8):
     attach_doubletake_forcing(model)
     seen = []
     tr = model.seqTransEncoder
-    orig = tr.set_keyframes
+    orig = tr.set_plan
 
-    def spy(mask):
-        if mask is not None:
-            seen.append(mask.clone())
-        orig(mask)
+    def spy(plan):
+        if plan is not None:
+            seen.append(plan.mask.clone())
+        orig(plan)
 
-    tr.set_keyframes = spy
+    tr.set_plan = spy
     return model, seen
 
 
@@ -128,3 +138,65 @@ def test_detach():
         model(torch.randn(2, 8, 1, 40), torch.tensor([9, 9]), y)
     forced = doubletake_forced_frames(lens, H)
     assert not bool(seen[-1][forced].all())  # uniform mask at t=9 misses most handshake frames
+
+
+# --------------------------------------------------------------------------- blend length
+def test_paper_blend_length_is_the_default():
+    assert paper_blend_len(20) == PAPER_BLEND_LEN == 5  # 0.25 s at HumanML3D's 20 fps
+    assert paper_blend_len(30) == 8 and paper_blend_len(12.5) == 3
+    with pytest.raises(ValueError, match="fps must be > 0"):
+        paper_blend_len(0)
+    lens = [30, 40, 25]
+    f = doubletake_forced_frames(lens, H, take="second")  # no blend_len given: the paper's
+    for i in range(2):
+        b = lens[i] - 2 * H
+        assert f[i].nonzero().flatten().tolist() == list(range(b - 5, b + H + 5))
+
+
+@pytest.mark.parametrize("blend", [0, 1, 2, 5, 7])
+def test_second_take_geometry_matches_priormdm_mask_for_every_blend(blend):
+    lens = [30, 40, 25]
+    n2 = (40 - 2 * H) * 2 + H
+    geo = doubletake_forced_frames(lens, H, take="second", blend_len=blend)
+    y = {"inpainting_mask": _second_take_inpainting(lens, n2, 3, blend), "is_transition": torch.zeros(2, n2)}
+    assert torch.equal(forced_from_y(y, n2, 2), geo)
+    assert int(geo.sum()) == (0 if blend < 2 else 2 * (2 * blend + H))  # no ramp, nothing regenerated
+
+
+class doubleTake_TinyMDM(TinyMDM):  # noqa: N801 - named like priorMDM's doubleTake_MDM
+    pass
+
+
+@pytest.mark.parametrize("blend,warns", [(20, True), (10, True), (5, False), (None, False)])
+def test_sparse_doubletake_warns_about_a_non_paper_blend(blend, warns):
+    torch.manual_seed(0)
+    model = doubleTake_TinyMDM(njoints=8, nfeats=1, latent_dim=32, ff_size=64, num_layers=1, cond_mode="no_cond")
+    args = argparse.Namespace(sparse=True, sparse_feature="raw")
+    if blend is not None:
+        args.blend_len = blend
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        sparsify_priormdm(model, args)
+    hit = [str(w.message) for w in caught if "--blend_len" in str(w.message)]
+    assert bool(hit) == warns
+    if warns:
+        assert "--blend_len 5" in hit[0] and ("priorMDM's default" in hit[0]) == (blend == 20)
+    assert model._smdm_doubletake_hook is not None  # forcing attached either way
+
+
+def test_forced_frames_count_inside_the_budget():
+    """Issue 11: DoubleTake's forced handshake / inpainting frames are part of the K keyframes, not
+    added on top: every segment keeps max(K, its protected frames), all forced frames among them."""
+    lens = [60, 60, 60]
+    n = max(lens)
+    model, seen = _sparse_tiny(reduction=0.8)
+    y = {"lengths": torch.tensor(lens), "is_transition": _first_take_transition(lens, n),
+         "mask": (torch.arange(n)[None] < torch.tensor(lens)[:, None]).view(3, 1, 1, n)}
+    with torch.no_grad():
+        model(torch.randn(3, 8, 1, n), torch.tensor([9, 9, 9]), y)
+    forced = doubletake_forced_frames(lens, H)
+    K = keyframe_count(60, 0.8)
+    protected = (forced | (torch.arange(n) == 0) | (torch.arange(n) == n - 1)).sum(1)
+    assert (protected <= K).all()                                      # the budget can hold them
+    assert seen[-1][forced].all()
+    assert seen[-1].sum(1).tolist() == [K] * 3                          # K, not K + forced

@@ -102,7 +102,7 @@ def test_replacing_the_prediction_too_changes_nothing_after_xt_imputation():
 def test_sparse_model_keeps_the_forced_keyframes_as_tokens_at_every_step():
     model, diffusion = tiny(sparse=True, steps=6)
     seen = []
-    model.register_forward_pre_hook(lambda m, a, k: seen.append(get_state(m).frame_mask.clone()),
+    model.register_forward_pre_hook(lambda m, a, k: seen.append(get_state(m).plan.mask.clone()),
                                     with_kwargs=True)
     lengths = torch.tensor([N, 17])
     c, y = constraint_y(lengths=lengths, frames=(0, 5, 9, 16))
@@ -359,7 +359,9 @@ def test_cli_bvh_keyframes_dense_and_sparse(model_folders, tmp_path):
     from smdm_plugin.apps.demo import find_bvh
     from smdm_plugin.io.bvh import load_cmu_clip
 
-    files = find_bvh()
+    from conftest import MOCAP
+
+    files = find_bvh([str(MOCAP)]) if MOCAP.is_dir() else []
     if not files:
         pytest.skip("no CMU BVH clip available")
     out = tmp_path / "ib"
@@ -425,7 +427,7 @@ def test_cli_humanml3d_features_and_clear_errors(model_folders, hml_dir, tmp_pat
 
 
 def test_transition_frames_and_metrics_known_answers(hml_dir):
-    from smdm_plugin.apps.inbetween import keyframe_metrics, transition_frames
+    from smdm_plugin.metrics.inbetween import keyframe_metrics, transition_frames
     from smdm_plugin.metrics import jitter
 
     given = torch.tensor([[1, 0, 0, 0, 1, 1, 1, 0, 0, 1]], dtype=torch.bool)

@@ -5,7 +5,7 @@ import torch
 import torch.nn as nn
 
 from smdm_plugin import KeyframeTransformer, interpolate_keyframes
-from smdm_plugin.core.attention_backends import compact_indices, get_backend
+from smdm_plugin.core.attention_backends import get_backend
 
 BACKENDS = ["masked", "compact", "varlen"]
 
@@ -110,7 +110,7 @@ def test_training_mode_gradients_match_reference():
     assert torch.all(grads["compact"][0][~mask.t()] == 0)  # non-keyframe inputs are never read
 
 
-def test_compaction_runs_on_kmax_tokens_and_keeps_state_dict_keys():
+def test_compaction_runs_on_capacity_tokens_and_keeps_state_dict_keys():
     S, B, d = 50, 3, 32
     enc = encoder().eval()
     keys = set(enc.state_dict())
@@ -121,16 +121,15 @@ def test_compaction_runs_on_kmax_tokens_and_keeps_state_dict_keys():
     mask = torch.zeros(B, S, dtype=torch.bool)
     mask[:, [0, 10, 49]] = True
     mask[0, 20] = True
-    wrap.set_keyframes(mask)
-    with torch.no_grad():
-        wrap(torch.randn(S, B, d))
-    assert seen == [4]  # K_max, not S
-
-
-def test_compact_indices_are_sort_free_and_correct():
-    keep = torch.tensor([[1, 0, 1, 1, 0], [0, 1, 0, 0, 0]], dtype=torch.bool)
-    pos, valid = compact_indices(keep)
-    assert pos[0].tolist() == [0, 2, 3] and pos[1, 0] == 1 and valid.tolist() == [[1, 1, 1], [1, 0, 0]]
+    x = torch.randn(S, B, d)
+    for capacity in (4, 7):  # the plan's fixed capacity, not S (and not data-dependent)
+        wrap.set_keyframes(mask, capacity=capacity)
+        with torch.no_grad():
+            out = wrap(x)
+        assert seen[-1] == capacity
+        if capacity == 4:
+            first = out
+    assert torch.allclose(out, first, atol=1e-6)  # extra (padded) slots change nothing
 
 
 def test_batch_first_and_no_mask_runs_dense():
@@ -149,7 +148,7 @@ def test_bad_inputs():
         KeyframeTransformer(nn.Linear(3, 3))
     wrap = KeyframeTransformer(encoder())
     wrap.set_keyframes(torch.ones(3, 99, dtype=torch.bool))
-    with pytest.raises(ValueError, match="keyframe mask must be"):
+    with pytest.raises(ValueError, match=r"keyframe plan is for \[B, N\]=\[3, 99\]"):
         wrap(torch.randn(10, 3, 32))
     with pytest.raises(ValueError, match="unknown"):
         get_backend("nope", torch.device("cpu"))

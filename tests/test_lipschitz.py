@@ -219,3 +219,27 @@ def test_dtype_follows_module():
     assert all(p.dtype == torch.float64 for p in mlp.parameters())
     assert mlp(torch.randn(2, 7, 5, dtype=torch.float64)).shape == (2, 7, 3)
     assert lipschitz_loss(mlp).dtype == torch.float64
+
+
+def test_normalised_weight_is_reused_without_autograd_and_never_stale():
+    torch.manual_seed(0)
+    mlp = LipschitzMLP(8, 4, hidden=16)
+    x = torch.randn(5, 8)
+    lin = mlp.net[0]
+    with torch.no_grad():
+        w1 = lin.weight
+        assert lin.weight is w1                                   # cached: the same tensor
+        out1 = mlp(x)
+    opt = torch.optim.SGD(mlp.parameters(), lr=0.5)
+    mlp(x).pow(2).sum().backward()                                # with autograd: computed afresh
+    opt.step()                                                    # in-place update of W and c
+    with torch.no_grad():
+        w2 = lin.weight
+        out2 = mlp(x)
+        assert w2 is not w1 and not torch.equal(out2, out1)
+        fresh = lin.parametrizations.weight.original
+        p = lin.parametrizations.weight[0]
+        expect = fresh * torch.clamp(p.bound() / fresh.abs().sum(1, keepdim=True), max=1.0)
+        assert torch.allclose(w2, expect)
+        lin.parametrizations.weight.original.mul_(0.5)           # any in-place change invalidates
+        assert not torch.equal(lin.weight, w2)

@@ -1,5 +1,6 @@
 """sparsify_motiondiffuse on a small stand-in with MotionTransformer's attribute names and forward
 contract (written here from scratch; CI has no MotionDiffuse checkout)."""
+import argparse
 import math
 
 import pytest
@@ -7,11 +8,9 @@ import torch
 import torch.nn as nn
 import torch.nn.functional as F
 
-from smdm_plugin import LipschitzMLP, SparseConfig
-from smdm_plugin.adapters.motiondiffuse import (attach_motiondiffuse_diffusion, gather_keyframes,
-                                                scatter_keyframes, sparsify_motiondiffuse,
-                                                trainer_loss, training_mean_std,
-                                                unsparsify_motiondiffuse)
+from smdm_plugin import LipschitzMLP, SparseConfig, lipschitz_loss
+from smdm_plugin.adapters.motiondiffuse import (gather_keyframes, scatter_keyframes, sparsify_motiondiffuse,
+                                                trainer_loss, training_mean_std, unsparsify_motiondiffuse)
 from smdm_plugin.integrations.motiondiffuse import (add_sparse_options, attach_trainer,
                                                     config_from_opt)
 
@@ -217,78 +216,120 @@ def test_lipschitz_swap_and_unsparsify():
     assert "forward" not in model.__dict__ and "smdm_sparse_version" not in model.state_dict()
 
 
-def test_masked_loss_ignores_padding():
+def upstream_backward_g(fake_noise, real_noise, src_mask):
+    """MotionDiffuse's DDPMTrainer.backward_G loss: per-frame MSE weighted by src_mask [B, T]."""
+    err = ((fake_noise - real_noise) ** 2).mean(dim=-1)
+    return (err * src_mask).sum() / src_mask.sum()
+
+
+class Trainer:
+    """What trainer_loss reads of a DDPMTrainer after forward()."""
+
+    def __init__(self, encoder, diffusion, opt=None):
+        self.encoder, self.diffusion, self.opt = encoder, diffusion, opt
+
+    def forward(self, x, t, length, text, noise=None):
+        out = self.diffusion.training_losses(model=self.encoder, x_start=x, t=t,
+                                             model_kwargs={"text": text, "length": length}, noise=noise)
+        self.real_noise, self.fake_noise = out["target"], out["pred"]
+        self.src_mask = self.encoder.generate_src_mask(x.shape[1], length)
+        return out
+
+
+def test_dense_loss_is_upstream_s_own():
+    """Upstream's trainer already excludes padded frames (src_mask): nothing to fix in dense mode."""
+    torch.manual_seed(4)
+    tr = Trainer(StandInMotionTransformer(), StandInDiffusion())
+    x, t, length, text = _inputs()
+    noise = torch.randn_like(x)
+    tr.forward(x, t, length, text, noise)
+    up = upstream_backward_g(tr.fake_noise, tr.real_noise, tr.src_mask)
+    assert trainer_loss(tr, up) is up
+    noise2 = noise.clone()
+    noise2[~(torch.arange(40)[None] < length[:, None])] += 100.0  # padded frames' targets
+    tr.forward(x, t, length, text, noise2)
+    assert torch.allclose(upstream_backward_g(tr.fake_noise, tr.real_noise, tr.src_mask), up, atol=1e-6)
+
+
+def test_sparse_loss_counts_interpolated_frames_not_padded_ones():
     torch.manual_seed(3)
     model = StandInMotionTransformer()
     diff = StandInDiffusion()
-    sparsify_motiondiffuse(model, _dense_cfg(reduction=0.5, lipschitz=True, lipschitz_lambda=0.0),
+    sparsify_motiondiffuse(model, _dense_cfg(reduction=0.8, lipschitz=True, lipschitz_lambda=0.0),
                            diffusion=diff)
+    tr = Trainer(model, diff)
     x, t, length, text = _inputs()
     noise = torch.randn_like(x)
-    terms = diff.training_losses(model, x, t, {"text": text, "length": length}, noise=noise)
-    # changing the padded frames' target (= noise) must not change the loss
-    noise2 = noise.clone()
-    pad = ~(torch.arange(40)[None] < length[:, None])
-    noise2[pad] += 100.0
-    torch.manual_seed(0)
-    a = diff.training_losses(model, x, t, {"text": text, "length": length,
-                                           "keyframe_forced": None}, noise=noise)
-    torch.manual_seed(0)
-    b = diff.training_losses(model, x, t, {"text": text, "length": length,
-                                           "keyframe_forced": None}, noise=noise2)
-    # padded frames also feed x_t, but the model never reads them (keyframes are valid frames)
-    assert torch.allclose(a["loss"], b["loss"], atol=1e-5)
-    assert terms["frame_mask"].sum(1).tolist() == length.tolist()
+    valid = torch.arange(40)[None] < length[:, None]
+
+    def loss_with(target_noise):
+        torch.manual_seed(0)  # same keyframes (mask noise) every time
+        out = tr.forward(x, t, length, text, target_noise)
+        return trainer_loss(tr, upstream_backward_g(tr.fake_noise, tr.real_noise, tr.src_mask)), out
+
+    base, out = loss_with(noise)
+    keys = out["keyframe_mask"]
+    assert not (keys & ~valid).any()  # keyframes are valid frames only
+    padded = noise.clone()
+    padded[~valid] += 100.0
+    assert torch.allclose(loss_with(padded)[0], base, atol=1e-5)  # padded frames: out of the loss
+    between = (valid & ~keys).nonzero()[0]  # a valid, interpolated frame
+    moved = noise.clone()
+    moved[between[0], between[1]] += 1.0
+    assert not torch.allclose(loss_with(moved)[0], base)  # interpolated frames: in the loss
 
 
-def test_dense_masked_loss_flag():
-    torch.manual_seed(4)
+def test_training_losses_passes_keyframes_and_keeps_upstream_terms():
+    torch.manual_seed(5)
     model = StandInMotionTransformer()
     diff = StandInDiffusion()
     x, t, length, text = _inputs()
     noise = torch.randn_like(x)
     plain = diff.training_losses(model, x, t, {"text": text, "length": length}, noise=noise)
-    attach_motiondiffuse_diffusion(diff, None, None, masked_loss=True)
-    masked = diff.training_losses(model, x, t, {"text": text, "length": length}, noise=noise)
-    err = ((plain["pred"] - noise) ** 2).mean(-1)
-    valid = (torch.arange(40)[None] < length[:, None]).float()
-    expect = (err * valid).sum(1) / valid.sum(1)
-    assert torch.allclose(masked["loss"], expect, atol=1e-6)
-    assert not torch.allclose(plain["mse"], expect)
+    sparsify_motiondiffuse(model, _dense_cfg(reduction=0.8, mask_noise=0.0), diffusion=diff)
+    terms = diff.training_losses(model, x, t, {"text": text, "length": length}, noise=noise)
+    assert set(terms) == set(plain) | {"keyframe_mask"}
+    keys = terms["keyframe_mask"]
+    assert torch.equal(keys, model._smdm_md_state.last_mask)  # the mask the model ran on
+    counts = keys.sum(1)
+    want = torch.tensor([max(2, round(0.2 * int(L))) for L in length])
+    assert torch.equal(counts, want)
+    torch.testing.assert_close(terms["mse"], ((noise - terms["pred"]) ** 2).mean(dim=(1, 2)))  # upstream's
 
 
-class _Opt:
-    pass
-
-
-def test_trainer_loss_and_attach(tmp_path):
+def test_trainer_loss_adds_lipschitz_and_keyframe_only_ablation(tmp_path):
     import argparse
 
     parser = argparse.ArgumentParser()
     add_sparse_options(parser)
     add_sparse_options(parser)  # idempotent
-    opt = parser.parse_args(["--sparse", "--sparse_feature", "raw", "--sparse_reduction", "0.5"])
+    assert "--masked_loss" not in parser._option_string_actions  # the no-op option is gone
+    opt = parser.parse_args(["--sparse", "--sparse_feature", "raw", "--sparse_reduction", "0.5",
+                             "--sparse_lipschitz_lambda", "0.01"])
     opt.is_train, opt.model_dir = True, str(tmp_path / "model")
-
-    class Trainer:
-        pass
-
-    tr = Trainer()
-    tr.opt, tr.encoder, tr.diffusion = opt, StandInMotionTransformer(), StandInDiffusion()
+    tr = Trainer(StandInMotionTransformer(), StandInDiffusion(), opt)
     attach_trainer(tr)
     assert (tmp_path / "model" / "sparse_config.json").exists()
     x, t, length, text = _inputs()
-    out = tr.diffusion.training_losses(tr.encoder, x, t, {"text": text, "length": length})
-    tr.fake_noise, tr.real_noise = out["pred"], out["target"]
-    tr.src_mask = tr.encoder.generate_src_mask(40, length)
-    loss = trainer_loss(tr)
+    tr.forward(x, t, length, text)
+    up = upstream_backward_g(tr.fake_noise, tr.real_noise, tr.src_mask)
+    loss = trainer_loss(tr, up)
+    assert torch.allclose(loss, up + 0.01 * lipschitz_loss(tr.encoder))
     loss.backward()
-    assert torch.isfinite(loss)
     assert tr.encoder.joint_embed.net[0].parametrizations.weight.original.grad is not None
+    # interpolate=False: the loss over valid keyframes only (reference: a loop over frames)
+    tr.encoder.smdm_config = tr.encoder.smdm_config.replace(interpolate=False, lipschitz_lambda=0.0)
+    with torch.no_grad():
+        tr.forward(x, t, length, text)
+        got = trainer_loss(tr, upstream_backward_g(tr.fake_noise, tr.real_noise, tr.src_mask))
+    keys = tr.encoder._smdm_md_state.last_mask
+    errs = [((tr.fake_noise[b, i] - tr.real_noise[b, i]) ** 2).mean() for b in range(3) for i in range(40)
+            if keys[b, i] and i < int(length[b])]
+    assert torch.allclose(got, torch.stack(errs).mean(), atol=1e-6)
 
 
 def test_config_from_get_opt_strings(tmp_path):
-    opt = _Opt()
+    opt = argparse.Namespace()
     # what MotionDiffuse's get_opt makes of opt.txt lines
     opt.sparse, opt.sparse_reduction, opt.sparse_lipschitz_lambda = True, 0.8, "1e-06"
     opt.sparse_fsq_levels, opt.sparse_lipschitz_hidden = "[8, 8, 8, 5, 5, 5]", "None"

@@ -135,7 +135,9 @@ def test_render_command_on_every_input_kind(tmp_path, hml_dir, monkeypatch, caps
 def test_render_bvh(tmp_path):
     from smdm_plugin.apps.demo import find_bvh
 
-    files = find_bvh()
+    from conftest import MOCAP
+
+    files = find_bvh([str(MOCAP)]) if MOCAP.is_dir() else []
     if not files:
         pytest.skip("no BVH clip available")
     p = render(os.path.abspath(files[0]), "--stride", "40", "--out", "c.gif", "--quiet", "--size", "1.5", cwd=tmp_path)

@@ -35,10 +35,11 @@ def batch(model, B=3, N=None, lengths=None, seed=0):
 
 
 def record_keyframes(model):
+    """The keyframe mask handed to the transformer at every call (None after each call)."""
     seen = []
     tr = model._smdm_state.transformer
-    orig = tr.set_keyframes
-    tr.set_keyframes = lambda m: (seen.append(None if m is None else m.clone()), orig(m))
+    orig = tr.set_plan
+    tr.set_plan = lambda p: (seen.append(None if p is None else p.mask.clone()), orig(p))
     return seen
 
 
@@ -102,22 +103,31 @@ def test_transformer_sees_only_keyframes(name):
 
 
 def test_sampling_schedule_uniform_early_vw_late():
-    model = sparsify(tiny(), SparseConfig(reduction=0.8, gamma=0.1, diffusion_steps=50, lipschitz=False)).eval()
+    cfg = SparseConfig(reduction=0.8, gamma=0.1, diffusion_steps=50, lipschitz=False, dynamic_update=True)
+    model = sparsify(tiny(), cfg).eval()
     seen = record_keyframes(model)
     x, _, y = batch(model, B=2)
     with torch.no_grad():
         model(x, torch.tensor([40, 40]), y)
-        model(x, torch.tensor([5, 5]), y)
+        model(x, torch.tensor([5, 5]), y)     # the paper's t = 6 > gamma*T = 5: still uniform
+        model(x, torch.tensor([4, 4]), y)     # the paper's t = 5: VW on x_t
     from smdm_plugin import select_keyframes
     from smdm_plugin.core.schedule import MaskSchedule
     uniform = select_keyframes(torch.zeros(2, 60, 1), None, 0.8, "uniform")
-    vw = MaskSchedule(model.smdm_config).sampling_mask(x.squeeze(2).transpose(1, 2), torch.tensor([5, 5]))
-    assert torch.equal(seen[0], uniform)
-    assert torch.equal(seen[2], vw) and not torch.equal(vw, uniform)
+    vw = select_keyframes(MaskSchedule(model.smdm_config).features(x.squeeze(2).transpose(1, 2)), None, 0.8, "vw")
+    assert torch.equal(seen[0], uniform) and torch.equal(seen[2], uniform)
+    assert torch.equal(seen[4], vw) and not torch.equal(vw, uniform)
     model.smdm_config.dynamic_update = False
     with torch.no_grad():
-        model(x + 1, torch.tensor([5, 5]), y)
-    assert torch.equal(seen[4], uniform)
+        model(x + 1, torch.tensor([4, 4]), y)
+    assert torch.equal(seen[6], uniform)
+
+
+def test_dynamic_update_auto_follows_table_2():
+    assert not SparseConfig(diffusion_steps=50).dynamic and not SparseConfig(diffusion_steps=10).dynamic
+    assert SparseConfig(diffusion_steps=100).dynamic and SparseConfig(diffusion_steps=1000).dynamic
+    assert not SparseConfig(diffusion_steps=1000, prefix_frames=20).dynamic   # DiP
+    assert SparseConfig(diffusion_steps=50, dynamic_update=True).dynamic
 
 
 def test_explicit_and_forced_keyframes_are_honoured():

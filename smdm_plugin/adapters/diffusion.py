@@ -1,15 +1,24 @@
 """Wrap a Gaussian diffusion's ``training_losses`` (MDM / guided-diffusion style, or the
-in-package :class:`~smdm_plugin.diffusion.SimpleDiffusion`) for sparse training:
+in-package :class:`~smdm_plugin.reference.diffusion.SimpleDiffusion`) for sparse training:
 
 * the keyframe mask is selected from the clean motion ``x_start`` (+ mask noise) and handed to
-  the model as ``y['keyframe_mask']``;
+  the model as ``y['keyframe_mask']``, with its static capacity as ``y['keyframe_capacity']``
+  (unless the batch already carries one, chosen while loading: :func:`keyframe_collate`);
 * the loss stays on the dense, interpolated frames with the upstream valid-frame mask — or on
   keyframes only when ``config.interpolate`` is False (ablation);
 * ``config.lipschitz_lambda * L_lip`` is added to ``terms['loss']``.
+
+The wrapper holds no model and no config: at every call it finds the sparsified module inside the
+model it is given (through DDP / EMA / guidance wrappers) and uses that module's own state. A dense
+model passes straight through to the upstream function. So sparsify, unsparsify and re-sparsify, in
+any order and with several models sharing one diffusion, always train each model with its own
+current config. ``unsparsify`` of the last sparse model attached to a diffusion restores the
+diffusion's original method.
 """
 from __future__ import annotations
 
 import functools
+import weakref
 from typing import Any, Optional
 
 import torch
@@ -17,7 +26,8 @@ import torch.nn as nn
 
 from ..core.config import SparseConfig
 from ..core.losses import add_lipschitz_term
-from .state import find_sparse_model, frames_layout, get_state, lengths_from_y
+from .state import (find_sparse_model, forced_from_y, frames_layout, get_state, lengths_from_y,
+                    protected_count)
 
 
 def diffusion_steps(diffusion: Any) -> int:
@@ -29,29 +39,59 @@ def diffusion_steps(diffusion: Any) -> int:
                      "(expected num_timesteps or original_num_steps)")
 
 
-def attach_diffusion(diffusion: Any, config: SparseConfig, model: Optional[nn.Module] = None) -> Any:
-    """Wrap ``diffusion.training_losses`` in place (idempotent) and return ``diffusion``."""
+def _attached_models(diffusion: Any) -> list:
+    """The live sparse models attached to ``diffusion``."""
+    refs = getattr(diffusion, "_smdm_models", [])
+    return [m for m in (r() for r in refs) if m is not None and get_state(m) is not None]
+
+
+def attach_diffusion(diffusion: Any, config: Optional[SparseConfig] = None,
+                     model: Optional[nn.Module] = None) -> Any:
+    """Wrap ``diffusion.training_losses`` in place (once) and return ``diffusion``.
+
+    Args:
+        config: unused (kept for compatibility): each call uses the config of the sparse model it
+            trains.
+        model: the sparse model trained with this diffusion; needed only when the callable handed
+            to ``training_losses`` is not an ``nn.Module`` containing it, and remembered so that
+            ``unsparsify`` can restore the diffusion.
+    """
+    if model is not None:
+        refs = [r for r in getattr(diffusion, "_smdm_models", []) if r() is not None and r() is not model]
+        diffusion._smdm_models = refs + [weakref.ref(model)]
+        state = get_state(model)
+        if state is not None and not any(r() is diffusion for r in state.diffusions):
+            state.diffusions.append(weakref.ref(diffusion))
     if getattr(diffusion, "_smdm_attached", False):
         return diffusion
     original = diffusion.training_losses
 
     @functools.wraps(original)
     def training_losses(model_arg, x_start, t, model_kwargs=None, *args, **kwargs):
-        sparse = model if model is not None else find_sparse_model(model_arg)
-        if sparse is None:  # a dense model given to a sparse diffusion: behave as upstream
+        if isinstance(model_arg, nn.Module):
+            sparse = find_sparse_model(model_arg)
+        else:  # a plain callable: the one attached sparse model, if there is exactly one
+            live = _attached_models(diffusion)
+            sparse = live[0] if len(live) == 1 else None
+        if sparse is None:  # a dense model: exactly the upstream behaviour
             return original(model_arg, x_start, t, model_kwargs, *args, **kwargs)
+        state = get_state(sparse)
         model_kwargs = dict(model_kwargs or {})
         y = dict(model_kwargs.get("y", {}))
         frames = frames_layout(x_start)
         B, N = frames.shape[:2]
         lengths = lengths_from_y(y, B, N, x_start.device)
-        mask = get_state(sparse).schedule.training_mask(frames, lengths, y.get("keyframe_forced"))
-        y["keyframe_mask"] = mask
-        if not config.interpolate and isinstance(y.get("mask"), torch.Tensor):
+        forced = forced_from_y(y, B, N, x_start.device)
+        if y.get("keyframe_mask") is None:       # else: chosen in data loading (keyframe_collate)
+            y["keyframe_mask"] = state.schedule.training_mask(frames, lengths, forced, checked=True)
+            y["keyframe_capacity"] = state.schedule.capacity(N, training=True,
+                                                             forced=protected_count(forced, lengths))
+        mask = y["keyframe_mask"]
+        if not state.config.interpolate and isinstance(y.get("mask"), torch.Tensor):
             y["mask"] = y["mask"] & mask.view(y["mask"].shape).to(y["mask"].dtype)
         model_kwargs["y"] = y
         terms = original(model_arg, x_start, t, model_kwargs, *args, **kwargs)
-        return add_lipschitz_term(terms, sparse, config, B)
+        return add_lipschitz_term(terms, sparse, state.config, B)
 
     diffusion.training_losses = training_losses
     diffusion._smdm_attached = True
@@ -60,9 +100,53 @@ def attach_diffusion(diffusion: Any, config: SparseConfig, model: Optional[nn.Mo
 
 
 def detach_diffusion(diffusion: Any) -> Any:
-    """Undo :func:`attach_diffusion`."""
+    """Undo :func:`attach_diffusion`: the original ``training_losses`` again."""
     if getattr(diffusion, "_smdm_attached", False):
         del diffusion.training_losses
         del diffusion._smdm_attached
         del diffusion._smdm_original_training_losses
+    if hasattr(diffusion, "_smdm_models"):
+        del diffusion._smdm_models
     return diffusion
+
+
+def release_diffusions(model: nn.Module) -> None:
+    """Forget ``model`` in the diffusions it was attached to; restore each diffusion that has no
+    other live sparse model (called by ``unsparsify``)."""
+    state = get_state(model)
+    if state is None:
+        return
+    for ref in state.diffusions:
+        diffusion = ref()
+        if diffusion is None:
+            continue
+        diffusion._smdm_models = [r for r in getattr(diffusion, "_smdm_models", [])
+                                  if r() is not None and r() is not model]
+        others = [m for m in (r() for r in diffusion._smdm_models)
+                  if m is not None and get_state(m) is not None]
+        if not others:
+            detach_diffusion(diffusion)
+    state.diffusions.clear()
+
+
+class keyframe_collate:
+    """Wrap an MDM-style ``collate_fn`` (returns ``(motion [B, J, F, N], {'y': {...}})``) so that the
+    training keyframes are chosen while loading, on the CPU, in the loader's worker processes:
+    ``y['keyframe_mask']`` and ``y['keyframe_capacity']`` are added, and the diffusion wrapper uses
+    them instead of selecting on the GPU. The mask depends only on x0, so the result is the same
+    (mask noise is drawn in the worker). ``schedule``: the sparse model's
+    ``MaskSchedule`` (``model._smdm_state.schedule``); it must be picklable for worker processes."""
+
+    def __init__(self, collate_fn, schedule) -> None:
+        self.collate_fn, self.schedule = collate_fn, schedule
+
+    def __call__(self, batch):
+        motion, cond = self.collate_fn(batch)
+        y = cond["y"]
+        frames = frames_layout(motion)
+        B, N = frames.shape[:2]
+        lengths = lengths_from_y(y, B, N, motion.device)
+        forced = forced_from_y(y, B, N, motion.device)
+        y["keyframe_mask"] = self.schedule.training_mask(frames, lengths, forced, checked=True)
+        y["keyframe_capacity"] = self.schedule.capacity(N, training=True, forced=protected_count(forced, lengths))
+        return motion, cond

@@ -20,7 +20,13 @@ Frames that are forced to be keyframes (computed by the model, not interpolated)
 * second take: the whole transition window ``[b - blend_len, b + h + blend_len)`` around each
   handshake start ``b``: the blend ramps (where the model's output is actually used) and the
   handshake between them, so that the regenerated frames are model outputs and the kept frames
-  next to them anchor the interpolation.
+  next to them anchor the interpolation. With ``blend_len < 2`` priorMDM draws no ramp (the
+  whole second take is kept from the first), so nothing is forced.
+
+Blend length: priorMDM's ``--blend_len`` defaults to 20 frames (1 s at 20 fps; its README samples
+with 10). The sMDM paper blends over 0.25 s, i.e. :data:`PAPER_BLEND_LEN` = 5 frames at HumanML3D's
+20 fps; that is this module's default, and the priorMDM integration warns when a sparse DoubleTake
+samples with another value (it never changes the user's flag).
 """
 from __future__ import annotations
 
@@ -28,6 +34,22 @@ from typing import Any, Dict, Optional, Sequence
 
 import torch
 from torch import nn
+
+#: the paper's DoubleTake transition blending length, in seconds
+PAPER_BLEND_SECONDS = 0.25
+#: priorMDM's own ``--blend_len`` default (frames)
+PRIORMDM_BLEND_LEN = 20
+
+
+def paper_blend_len(fps: float = 20.0) -> int:
+    """The paper's blending length in frames at ``fps`` (0.25 s: 5 frames at HumanML3D's 20 fps)."""
+    if not fps > 0:
+        raise ValueError(f"paper_blend_len: fps must be > 0, got {fps}")
+    return int(round(PAPER_BLEND_SECONDS * fps))
+
+
+#: the paper's blending length at HumanML3D's 20 fps, in frames
+PAPER_BLEND_LEN = paper_blend_len(20.0)
 
 
 def _lengths_list(lengths) -> list:
@@ -38,7 +60,7 @@ def _lengths_list(lengths) -> list:
 
 def doubletake_forced_frames(lengths: Sequence[int], handshake_size: int,
                              n_frames: Optional[int] = None, *, take: str = "first",
-                             blend_len: int = 0, device=None) -> torch.Tensor:
+                             blend_len: int = PAPER_BLEND_LEN, device=None) -> torch.Tensor:
     """Frames that must be keyframes in DoubleTake's first or second take, bool ``[B, N]``.
 
     Args:
@@ -49,7 +71,8 @@ def doubletake_forced_frames(lengths: Sequence[int], handshake_size: int,
             default ``(max(lengths) - 2 h) * 2 + h`` (priorMDM's ``new_sample_seq_len``).
         take: ``"first"`` (rows = segments, ``[S, N]``) or ``"second"`` (rows = pairs of
             neighbouring segments, ``[S - 1, N]``).
-        blend_len: ``--blend_len`` (second take).
+        blend_len: ``--blend_len`` (second take); default the paper's 0.25 s (5 frames at 20 fps).
+            Below 2, priorMDM draws no blend ramp and nothing is forced in the second take.
     """
     lens = _lengths_list(lengths)
     S, h = len(lens), int(handshake_size)
@@ -74,6 +97,8 @@ def doubletake_forced_frames(lengths: Sequence[int], handshake_size: int,
             raise ValueError("doubletake_forced_frames: the second take needs >= 2 segments")
         N = (max(lens) - 2 * h) * 2 + h if n_frames is None else int(n_frames)
         forced = torch.zeros(S - 1, N, dtype=torch.bool, device=device)
+        if blend_len < 2:  # priorMDM: `if blend_len >= 2` draws the ramps; else nothing is regenerated
+            return forced
         for i in range(S - 1):
             b = lens[i] - 2 * h  # where the handshake starts in the second-take sequence
             forced[i, max(0, b - blend_len):min(N, b + h + blend_len)] = True

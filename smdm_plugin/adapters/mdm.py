@@ -8,10 +8,17 @@ No wrapper class: the model keeps its type and attributes (``rot2xyz``, ``njoint
   ``velFinal`` when present) become Lipschitz sine MLPs (``config.lipschitz``);
 * ``seqTransEncoder`` / ``seqTransDecoder`` is wrapped by :class:`KeyframeTransformer` (and its
   self-attention keys FSQ-quantised with ``config.fsq``);
-* a forward pre-hook decides the keyframe mask of every call: ``y['keyframe_mask']`` when given
-  (training), else the sampling schedule on ``(x_t, timesteps)``; ``y['keyframe_forced']`` is
-  OR-ed in; DiP's ``context_len`` prefix frames are always kept;
+* a forward pre-hook decides the keyframes of every call and builds its
+  :class:`~smdm_plugin.core.plan.KeyframePlan` once: ``y['keyframe_mask']`` when given (training:
+  the diffusion wrapper selects it from x0 and passes its capacity as ``y['keyframe_capacity']``),
+  else the sampling schedule on ``(x_t, timesteps)``; ``y['keyframe_forced']`` frames are always
+  keyframes (inside the budget); DiP's ``context_len`` prefix frames are always kept. The input
+  embedding, the keyframe transformer and the interpolation all read that one plan;
 * a persistent buffer ``smdm_sparse_version`` marks the state dict as sparse.
+
+A call has static shapes and no host synchronisation (unless forced keyframes live on an
+accelerator: their count is read once to size the plan), so ``torch.compile(model,
+fullgraph=True)`` and CUDA graphs work on the sparse model as on the dense one.
 """
 from __future__ import annotations
 
@@ -20,14 +27,17 @@ from typing import Any, Dict, Optional, Tuple
 import torch
 import torch.nn as nn
 
-from ..core.attention_backends import scatter_rows
+from ..core.attention_backends import gather_rows, scatter_rows
+from ..core.checks import host_checkable
 from ..core.config import MARKER, SparseConfig
 from ..core.fsq import quantize_attention_keys
 from ..core.keyframe_transformer import KeyframeTransformer
 from ..core.lipschitz import LipschitzMLP
+from ..core.plan import KeyframePlan
 from ..core.schedule import MaskSchedule
-from .diffusion import attach_diffusion, diffusion_steps
-from .state import STATE_ATTR, SparseState, Variant, frames_layout, get_state, lengths_from_y
+from .diffusion import attach_diffusion, diffusion_steps, release_diffusions
+from .state import (STATE_ATTR, SparseState, Variant, forced_from_y, frames_layout, get_state,
+                    lengths_from_y, protected_count)
 
 _TRANSFORMERS = ("seqTransEncoder", "seqTransDecoder")
 
@@ -87,72 +97,83 @@ def _swap_lipschitz(model: nn.Module, config: SparseConfig, originals: Dict[Tupl
             setattr(owner, name, new)
 
 
-def _pre_hook(model: nn.Module, args: tuple, kwargs: dict):
-    state: SparseState = getattr(model, STATE_ATTR)
+def _call_args(args: tuple, kwargs: dict):
     x = args[0] if args else kwargs["x"]
     timesteps = args[1] if len(args) > 1 else kwargs.get("timesteps")
     y = args[2] if len(args) > 2 else kwargs.get("y")
-    y = y if y is not None else {}
+    return x, timesteps, (y if y is not None else {})
+
+
+def call_plan(state: SparseState, x: torch.Tensor, timesteps: Any, y: Dict[str, Any]) -> KeyframePlan:
+    """The keyframe plan of one call ``model(x [B, J, F, N], timesteps [B], y)``."""
     B, N = x.shape[0], x.shape[-1]
+    device = x.device
+    lengths = lengths_from_y(y, B, N, device)
+    forced = forced_from_y(y, B, N, device)
+    valid = torch.arange(N, device=device)[None] < lengths[:, None]
     mask = y.get("keyframe_mask")
-    if mask is not None:
-        mask = torch.as_tensor(mask, device=x.device).to(torch.bool)
-        if mask.shape != (B, N):
+    if mask is not None:                                   # training (or a caller's own mask)
+        mask = torch.as_tensor(mask, device=device)
+        if tuple(mask.shape) != (B, N):
             raise ValueError(f"y['keyframe_mask'] must be bool [B, N]=[{B}, {N}], got {tuple(mask.shape)}")
-        mask = mask | y["keyframe_forced"].to(mask.device).bool() if "keyframe_forced" in y else mask
-    else:
-        key = (x.data_ptr(), x._version, tuple(x.shape), None if timesteps is None else
-               tuple(torch.as_tensor(timesteps).reshape(-1).tolist()))
-        forced = y.get("keyframe_forced")
-        cache = state.sampling_cache
-        cached_forced = cache[2] if cache else None
-        same_forced = (forced is None and cached_forced is None) or (
-            forced is not None and cached_forced is not None and forced.shape == cached_forced.shape
-            and torch.equal(forced.to(cached_forced.device), cached_forced))
-        if cache and cache[0] == key and same_forced:
-            mask = cache[1]  # classifier-free guidance: same x_t twice
-        else:
-            lengths = lengths_from_y(y, B, N, x.device)
-            t = timesteps if timesteps is not None else torch.zeros(B, device=x.device)
-            mask = state.schedule.sampling_mask(frames_layout(x), t, lengths, forced)
-            state.sampling_cache = (key, mask, forced)
+        mask = mask.to(torch.bool) & valid
+        if forced is not None:
+            mask = mask | (forced & valid)
+        capacity = y.get("keyframe_capacity")
+        if capacity is None:                               # a mask from elsewhere: size it safely
+            capacity = int(mask.sum(1).max()) if host_checkable(mask) and B else N
+        check = True
+    else:                                                  # sampling: the schedule on x_t
+        t = timesteps if timesteps is not None else torch.zeros(B, dtype=torch.long, device=device)
+        mask = state.schedule.sampling_mask(frames_layout(x), t, lengths, forced, checked=True)
+        capacity = state.schedule.capacity(N, training=False, forced=protected_count(forced, lengths))
+        check = False                                      # 2..capacity keyframes by construction
+    capacity = max(1, min(int(capacity), N))
     prefix = state.variant.prefix_len
     if prefix:
         mask = torch.cat([mask.new_ones(B, prefix), mask], dim=1)
-    state.transformer.set_keyframes(mask)
-    state.frame_mask = mask
+        capacity += prefix
+    return KeyframePlan.build(mask, capacity, check=check)
+
+
+def _pre_hook(model: nn.Module, args: tuple, kwargs: dict):
+    state: SparseState = getattr(model, STATE_ATTR)
+    x, timesteps, y = _call_args(args, kwargs)
+    state.plan = call_plan(state, x, timesteps, y)
+    state.transformer.set_plan(state.plan)
     return None
 
 
 def _post_hook(model: nn.Module, args: tuple, kwargs: dict, output: Any) -> None:
     state: SparseState = getattr(model, STATE_ATTR)
-    state.transformer.set_keyframes(None)
-    state.frame_mask = None
+    state.transformer.set_plan(None)
+    state.plan = None
     return None
 
 
 # Input embedding on keyframe rows only (speed; outputs unchanged). Only keyframe tokens enter the
 # keyframe transformer (every backend reads kept tokens only, and the output of the other frames
 # is interpolated from the kept ones), so the embedding of the other frames is never used: the
-# hooks below hand ``poseEmbedding`` the keyframe rows ``[T, F]`` and scatter its output back to
-# ``[N, B, d]`` with zeros elsewhere. They are plain functions that find the model's state through
-# an attribute (not a closure), so ``copy.deepcopy`` (EMA) keeps each copy on its own state.
+# hooks below hand ``poseEmbedding`` the rows of the plan's slots ``[K*B, F]`` (static shape; on
+# the CPU in eager mode, exactly the keyframe rows) and scatter its output back to ``[N, B, d]``
+# with zeros elsewhere. They are plain functions that find the model's state through an attribute
+# (not a closure), so ``copy.deepcopy`` (EMA) keeps each copy on its own state.
 def _rows_pre_hook(module: nn.Module, args: tuple):
     state: Optional[SparseState] = getattr(module, "_smdm_rows_state", None)
-    mask = None if state is None else state.frame_mask
+    plan = None if state is None else state.plan
     x = args[0] if args else None
-    state_rows = None
-    if (mask is not None and isinstance(x, torch.Tensor) and x.dim() == 3 and len(args) == 1
-            and x.shape[0] == mask.shape[1] and x.shape[1] == mask.shape[0] and not bool(mask.all())):
-        N, B, F_ = x.shape
-        idx = mask.t().reshape(-1).nonzero(as_tuple=True)[0].to(x.device)  # frame-major rows
-        state_rows = (idx, N, B)
-        x = x.reshape(N * B, F_).index_select(0, idx)
-        state.embed_rows = state_rows
-        return (x,)
-    if state is not None:
-        state.embed_rows = None
-    return None
+    if (plan is None or not isinstance(x, torch.Tensor) or x.dim() != 3 or len(args) != 1
+            or x.shape[0] != plan.frames or x.shape[1] != plan.batch):
+        if state is not None:
+            state.embed_rows = None
+        return None
+    N, B, F_ = x.shape
+    if host_checkable(plan.mask):                          # exact keyframe rows (data-dependent size)
+        rows = plan.mask.t().reshape(-1).nonzero(as_tuple=True)[0]
+    else:                                                  # every slot's frame: K*B rows, distinct
+        rows = (plan.slot_frames() * B + torch.arange(B, device=x.device)).reshape(-1)
+    state.embed_rows = (rows, N, B)
+    return (gather_rows(x.reshape(N * B, F_), rows),)
 
 
 def _rows_post_hook(module: nn.Module, args: tuple, output: torch.Tensor):
@@ -196,9 +217,9 @@ def sparsify(model: nn.Module, config: Optional[SparseConfig] = None, *, diffusi
     inner = getattr(model, variant.transformer)
     n_fsq = 0
     if config.fsq:
-        from ..core.fsq import quantize_attention_keys
-
         n_fsq = quantize_attention_keys(inner, config.fsq_levels)
+    # always interpolate: the "w/o interpolation" ablation (config.interpolate=False) changes the
+    # training loss (keyframes only, adapters/diffusion.py), sampling still returns every frame
     wrapper = KeyframeTransformer(inner, interpolate=True, backend=config.attention_backend)
     originals[(model, variant.transformer)] = inner
     setattr(model, variant.transformer, wrapper)
@@ -230,6 +251,7 @@ def unsparsify(model: nn.Module) -> nn.Module:
     if not is_sparse(model):
         return model
     state = get_state(model)
+    release_diffusions(model)
     for h in state.handles:
         h.remove()
     embed = getattr(model.input_process, "poseEmbedding", None)

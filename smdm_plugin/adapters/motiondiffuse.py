@@ -21,13 +21,16 @@ the number of tokens: here only keyframe tokens go through the decoder blocks.
 
 :func:`unsparsify_motiondiffuse` puts the original layers and ``forward`` back.
 
-The loss: MotionDiffuse's ``GaussianDiffusion.training_losses`` returns ``terms['mse']`` averaged
-over *all* frames, padded ones included (the shipped ``DDPMTrainer.backward_G`` re-weights the
-per-frame error with ``src_mask`` itself, but anything that uses ``terms['mse']`` does not).
-:func:`attach_motiondiffuse_diffusion` wraps ``training_losses`` so that ``terms['mse']`` and
-``terms['loss']`` only count valid frames (always in sparse mode, with ``masked_loss=True`` in
-dense mode) and adds ``lipschitz_lambda * L_lip``; :func:`trainer_loss` is the same fix for
-``DDPMTrainer.backward_G``.
+The loss. MotionDiffuse trains on the loss of ``DDPMTrainer.backward_G``: the per-frame MSE
+weighted by ``src_mask`` (frames before each motion's length), i.e. padded frames already excluded.
+``GaussianDiffusion.training_losses`` only returns ``pred`` / ``target`` (and an unused ``mse``), so
+the dense loss needs no fix. In sparse mode every valid frame still counts: keyframes (model
+outputs) and the frames between them (interpolated from the keyframes' hidden features), exactly
+the frames upstream's ``src_mask`` selects; padded frames are never keyframes, never enter the
+decoder blocks, and stay out of the loss as upstream. What sparse mode adds is
+:func:`trainer_loss`: ``+ lipschitz_lambda * L_lip`` and, for the keyframes-only ablation
+(``config.interpolate=False``), the loss on keyframes only. :func:`attach_motiondiffuse_diffusion`
+chooses each training sample's keyframes from ``x_start`` and passes them to the model.
 """
 from __future__ import annotations
 
@@ -44,7 +47,6 @@ import torch.nn as nn
 from ..core.config import MARKER, SparseConfig
 from ..core.interpolation import interpolate_keyframes
 from ..core.lipschitz import LipschitzMLP, lipschitz_loss
-from ..core.losses import add_lipschitz_term
 from ..core.schedule import MaskSchedule
 
 _REQUIRED = ("joint_embed", "out", "temporal_decoder_blocks", "sequence_embedding", "time_embed",
@@ -176,14 +178,12 @@ def _sparse_forward(self, x, timesteps, length=None, text=None, xf_proj=None, xf
 
 # --------------------------------------------------------------------------- (un)sparsify
 def sparsify_motiondiffuse(model: nn.Module, config: Optional[SparseConfig] = None,
-                           mean: Any = None, std: Any = None, *, diffusion: Any = None,
-                           masked_loss: bool = True) -> nn.Module:
+                           mean: Any = None, std: Any = None, *, diffusion: Any = None) -> nn.Module:
     """Turn MotionDiffuse's ``MotionTransformer`` into its sparse keyframe version, in place.
 
     Args:
         model: the ``MotionTransformer`` (not a DataParallel wrapper: pass ``.module``).
-        config: the options; ``enabled=False`` leaves the model dense (but still attaches the
-            masked loss to ``diffusion`` when ``masked_loss``).
+        config: the options; ``enabled=False`` returns ``model`` untouched.
         mean, std: ``[D]`` statistics the training data was normalised with (MotionDiffuse
             divides the root and foot-contact std by ``feat_bias``; see :func:`training_mean_std`).
         diffusion: MotionDiffuse's ``GaussianDiffusion``; its ``training_losses`` is wrapped
@@ -192,8 +192,6 @@ def sparsify_motiondiffuse(model: nn.Module, config: Optional[SparseConfig] = No
     """
     config = config if config is not None else SparseConfig()
     if not config.enabled:
-        if diffusion is not None and masked_loss:
-            attach_motiondiffuse_diffusion(diffusion, config, None, masked_loss=True)
         return model
     _check_model(model)
     if is_sparse_motiondiffuse(model):
@@ -218,7 +216,7 @@ def sparsify_motiondiffuse(model: nn.Module, config: Optional[SparseConfig] = No
         old_forward=model.__dict__.get("forward")))
     model.forward = types.MethodType(_sparse_forward, model)
     if diffusion is not None:
-        attach_motiondiffuse_diffusion(diffusion, config, model, masked_loss=True)
+        attach_motiondiffuse_diffusion(diffusion, config, model)
     return model
 
 
@@ -244,14 +242,6 @@ def set_mean_std(model: nn.Module, mean: Any, std: Any) -> None:
 
 
 # --------------------------------------------------------------------------- loss
-def masked_frame_mse(pred: torch.Tensor, target: torch.Tensor, frame_mask: torch.Tensor
-                     ) -> torch.Tensor:
-    """Per-sample MSE ``[B]`` over the frames of ``frame_mask [B, T]`` (features averaged)."""
-    err = ((pred - target) ** 2).mean(dim=-1)
-    w = frame_mask.to(err.dtype)
-    return (err * w).sum(1) / w.sum(1).clamp_min(1.0)
-
-
 def _find_md_sparse(model: nn.Module) -> Optional[nn.Module]:
     for m in model.modules():
         if _md_state(m) is not None:
@@ -259,46 +249,32 @@ def _find_md_sparse(model: nn.Module) -> Optional[nn.Module]:
     return None
 
 
-def attach_motiondiffuse_diffusion(diffusion: Any, config: Optional[SparseConfig] = None,
-                                   model: Optional[nn.Module] = None, masked_loss: bool = True
+def attach_motiondiffuse_diffusion(diffusion: Any, config: SparseConfig, model: Optional[nn.Module] = None
                                    ) -> Any:
-    """Wrap MotionDiffuse's ``GaussianDiffusion.training_losses`` in place (idempotent).
-
-    With a sparse model: the keyframe mask is chosen from ``x_start`` (+ mask noise) and passed as
-    ``keyframe_mask``. ``terms['mse']`` / ``terms['loss']`` become the per-sample MSE over valid
-    frames (``length``) when ``masked_loss`` or sparse — on keyframes only when
-    ``config.interpolate`` is False — plus ``lipschitz_lambda * L_lip`` in ``terms['loss']``.
-    ``terms['frame_mask']`` holds the frames that count.
-    """
+    """Wrap MotionDiffuse's ``GaussianDiffusion.training_losses`` in place (idempotent): with a
+    sparse model (``model``, else found inside the model it is called with) each sample's keyframes
+    are chosen from ``x_start`` (+ mask noise) and passed to it as ``keyframe_mask``; the returned
+    terms are upstream's plus ``terms['keyframe_mask']`` (bool ``[B, T]``). A dense model is run as
+    upstream runs it. The training loss itself is :func:`trainer_loss`."""
     if getattr(diffusion, "_smdm_md_attached", False):
         return diffusion
-    config = config if config is not None else SparseConfig(enabled=False)
     original = diffusion.training_losses
     bound_model = model
 
     @functools.wraps(original)
     def training_losses(model, x_start, t, model_kwargs=None, noise=None):
         # (keyword names as upstream: DDPMTrainer calls training_losses(model=..., x_start=...))
-        model_kwargs = dict(model_kwargs or {})
         sparse = bound_model if bound_model is not None else _find_md_sparse(model)
+        if sparse is None or not config.enabled:
+            return original(model, x_start, t, model_kwargs=model_kwargs, noise=noise)
+        model_kwargs = dict(model_kwargs or {})
         B, T = x_start.shape[:2]
-        valid = valid_frames(model_kwargs.get("length"), B, T, x_start.device)
-        frame_mask = valid
-        if sparse is not None and config.enabled:
-            lengths = valid.long().sum(1).clamp(2, T)
-            mask = _md_state(sparse).schedule.training_mask(
-                x_start.detach(), lengths, model_kwargs.get("keyframe_forced"))
-            model_kwargs["keyframe_mask"] = mask
-            if not config.interpolate:
-                frame_mask = valid & mask
+        lengths = valid_frames(model_kwargs.get("length"), B, T, x_start.device).long().sum(1).clamp(2, T)
+        mask = _md_state(sparse).schedule.training_mask(
+            x_start.detach(), lengths, model_kwargs.get("keyframe_forced"))
+        model_kwargs["keyframe_mask"] = mask
         terms = original(model, x_start, t, model_kwargs=model_kwargs, noise=noise)
-        if (masked_loss or (sparse is not None and config.enabled)) and "pred" in terms:
-            mse = masked_frame_mse(terms["pred"], terms["target"], frame_mask)
-            terms["mse"] = mse
-            terms["loss"] = mse
-            terms["frame_mask"] = frame_mask
-        if sparse is not None:
-            add_lipschitz_term(terms, sparse, config, B)
+        terms["keyframe_mask"] = mask
         return terms
 
     diffusion.training_losses = training_losses
@@ -315,28 +291,33 @@ def detach_motiondiffuse_diffusion(diffusion: Any) -> Any:
     return diffusion
 
 
-def trainer_loss(trainer: Any, upstream_loss: Optional[torch.Tensor] = None) -> torch.Tensor:
-    """The loss of MotionDiffuse's ``DDPMTrainer.backward_G`` in sparse / masked mode.
+def trainer_loss(trainer: Any, upstream_loss: torch.Tensor) -> torch.Tensor:
+    """The loss of MotionDiffuse's ``DDPMTrainer.backward_G`` in sparse mode, from upstream's own.
 
-    MSE between ``trainer.fake_noise`` and ``trainer.real_noise`` over valid frames
-    (``trainer.src_mask``; keyframes only when ``config.interpolate`` is False), each valid frame
-    weighted equally across the batch, plus ``lipschitz_lambda * L_lip`` of a sparse encoder.
+    ``upstream_loss``: what ``backward_G`` computed (MSE between ``trainer.fake_noise`` and
+    ``trainer.real_noise`` per frame, weighted by ``trainer.src_mask``: every valid frame, keyframe
+    or interpolated, counts once). Returned: that loss (the same tensor, when interpolating) or, for
+    ``config.interpolate=False``, the same MSE over valid keyframes only (the mask of the latest
+    forward call); plus ``lipschitz_lambda * L_lip``. A dense encoder gets ``upstream_loss`` back.
     """
-    enc = trainer.encoder
-    sparse = _find_md_sparse(enc)
-    src = trainer.src_mask
-    frame_mask = src.reshape(src.shape[0], -1).bool()
-    config = getattr(sparse, "smdm_config", None)
-    if sparse is not None and config is not None and not config.interpolate:
+    sparse = _find_md_sparse(trainer.encoder)
+    config: Optional[SparseConfig] = getattr(sparse, "smdm_config", None)
+    if sparse is None or config is None:
+        return upstream_loss
+    loss = upstream_loss
+    if not config.interpolate:
+        src = trainer.src_mask
+        frame_mask = src.reshape(src.shape[0], -1).bool()
         last = _md_state(sparse).last_mask
-        if last is not None and last.shape == frame_mask.shape:
-            frame_mask = frame_mask & last.to(frame_mask.device)
-    err = ((trainer.fake_noise - trainer.real_noise) ** 2).mean(dim=-1)
-    w = frame_mask.to(err.dtype)
-    loss = (err * w).sum() / w.sum().clamp_min(1.0)
-    if sparse is not None and config is not None and config.lipschitz and config.lipschitz_lambda > 0:
-        lip = lipschitz_loss(sparse)
-        loss = loss + config.lipschitz_lambda * lip
+        if last is None or last.shape != frame_mask.shape:
+            raise RuntimeError("trainer_loss: no keyframe mask of shape [B, T] from the latest forward "
+                               "(call the sparse model through training_losses first)")
+        frame_mask = frame_mask & last.to(frame_mask.device)
+        err = ((trainer.fake_noise - trainer.real_noise) ** 2).mean(dim=-1)
+        w = frame_mask.to(err.dtype)
+        loss = (err * w).sum() / w.sum().clamp_min(1.0)
+    if config.lipschitz and config.lipschitz_lambda > 0:
+        loss = loss + config.lipschitz_lambda * lipschitz_loss(sparse)
     return loss
 
 

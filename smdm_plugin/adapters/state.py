@@ -6,13 +6,16 @@ model hooks and the diffusion wrapper.
 """
 from __future__ import annotations
 
+import weakref
 from dataclasses import dataclass, field
 from typing import Any, Dict, List, Optional, Tuple
 
 import torch
 import torch.nn as nn
 
+from ..core.checks import as_lengths, as_mask, require
 from ..core.config import SparseConfig
+from ..core.plan import KeyframePlan
 from ..core.schedule import MaskSchedule
 
 STATE_ATTR = "_smdm_state"
@@ -35,10 +38,11 @@ class SparseState:
     Set once by ``sparsify``: ``config``, ``variant``, ``transformer`` (the
     :class:`~smdm_plugin.core.keyframe_transformer.KeyframeTransformer` that replaced the dense
     one), ``schedule``, ``originals`` (the replaced modules, for ``unsparsify``), ``handles`` (hooks
-    to remove). Per call: ``frame_mask`` (bool ``[B, N]`` over the model's frames, DiP prefix
-    included), written by the model's forward pre-hook and cleared by its forward hook;
-    ``embed_rows`` (the frame-major rows the input embedding ran on), written and cleared by the
-    embedding hooks.
+    to remove), ``diffusions`` (weak references to the diffusions whose loss was wrapped for this
+    model). Per call: ``plan``, the :class:`~smdm_plugin.core.plan.KeyframePlan` of the call (over
+    the model's frames, DiP prefix included), written by the model's forward pre-hook and cleared
+    by its forward hook; ``embed_rows`` (the frame-major rows the input embedding ran on), written
+    and cleared by the embedding hooks.
     """
 
     config: SparseConfig
@@ -48,9 +52,9 @@ class SparseState:
     originals: Dict[Tuple[nn.Module, str], nn.Module] = field(default_factory=dict)
     handles: List[Any] = field(default_factory=list)
     fsq_layers: int = 0
-    frame_mask: Optional[torch.Tensor] = None
+    diffusions: List["weakref.ref"] = field(default_factory=list)
+    plan: Optional[KeyframePlan] = None
     embed_rows: Optional[Tuple[torch.Tensor, int, int]] = None
-    sampling_cache: Optional[Tuple[Any, torch.Tensor, Optional[torch.Tensor]]] = None
 
 
 def get_state(model: nn.Module) -> Optional[SparseState]:
@@ -77,11 +81,30 @@ def frames_layout(x: torch.Tensor) -> torch.Tensor:
 
 def lengths_from_y(y: Dict[str, Any], B: int, N: int, device: torch.device) -> torch.Tensor:
     """Valid frames per sample ``[B]`` long from MDM's ``y``: ``y['mask'] [B, 1, 1, N]`` when it
-    covers the frames, else ``y['lengths']``, else all ``N``."""
+    covers the frames (at least 2 valid frames each), else ``y['lengths']`` (integers in
+    ``[2, N]``), else all ``N``. Bad values are a ``ValueError`` (checked on the host when the data
+    is on the CPU, with ``torch._assert_async`` on accelerators: no sync)."""
     mask = y.get("mask")
     if isinstance(mask, torch.Tensor) and mask.shape[-1] == N and mask.numel() == B * N:
-        return mask.reshape(B, N).to(device).long().sum(1).clamp_min(2)
-    lengths = y.get("lengths")
-    if lengths is not None:
-        return torch.as_tensor(lengths, device=device).long().reshape(B).clamp(2, N)
+        lengths = mask.reshape(B, N).to(device=device, dtype=torch.long).sum(1)
+        require(lengths >= 2, f"y['mask'] must mark at least 2 valid frames of the N={N} in every sample")
+        return lengths
+    if y.get("lengths") is not None:
+        return as_lengths(y["lengths"], B, N, device, "y['lengths']")
     return torch.full((B,), N, dtype=torch.long, device=device)
+
+
+def forced_from_y(y: Dict[str, Any], B: int, N: int, device: torch.device) -> Optional[torch.Tensor]:
+    """``y['keyframe_forced']`` as bool ``[B, N]`` on ``device`` (shape checked), or None."""
+    return as_mask(y.get("keyframe_forced"), B, N, device, "y['keyframe_forced']")
+
+
+def protected_count(forced: Optional[torch.Tensor], lengths: torch.Tensor) -> int:
+    """The most protected frames (both ends + forced) of any sample: a host read of ``forced``
+    (free on the CPU; one device sync on an accelerator — DoubleTake and in-betweening only)."""
+    if forced is None:
+        return 0
+    idx = torch.arange(forced.shape[1], device=forced.device)
+    ends = (idx[None] == 0) | (idx[None] == (lengths - 1)[:, None])
+    valid = idx[None] < lengths[:, None]
+    return int(((forced | ends) & valid).sum(1).max()) if forced.shape[0] else 0

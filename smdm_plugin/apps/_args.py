@@ -4,60 +4,43 @@ output paths that are never overwritten without ``--overwrite``."""
 from __future__ import annotations
 
 import argparse
-import math
-from typing import Callable, Optional
+import os
+from typing import TYPE_CHECKING, Callable
 
-import torch
+if TYPE_CHECKING:
+    import torch
+
+# the range-checked types live in core (the --sparse_* options use them too); re-exported here
+from ..core.config import float_range, int_range, str2bool
+
+__all__ = ["int_range", "float_range", "str2bool", "existing_path", "device_type", "resolve_device",
+           "add_overwrite"]
 
 
-def int_range(lo: Optional[int] = None, hi: Optional[int] = None) -> Callable[[str], int]:
-    """argparse ``type``: an int in ``[lo, hi]`` (either bound may be None)."""
-    def parse(text: str) -> int:
-        try:
-            v = int(text)
-        except ValueError:
-            raise argparse.ArgumentTypeError(f"expected an integer, got {text!r}") from None
-        if (lo is not None and v < lo) or (hi is not None and v > hi):
-            raise argparse.ArgumentTypeError(f"must be {_range_text(lo, hi, int)}, got {v}")
-        return v
-    parse.__name__ = "int"
+def existing_path(kind: str = "any") -> Callable[[str], str]:
+    """argparse ``type``: a path that exists (``kind``: ``"file"``, ``"dir"`` or ``"any"``)."""
+    if kind not in ("file", "dir", "any"):
+        raise ValueError(f"existing_path: kind must be 'file', 'dir' or 'any', got {kind!r}")
+
+    def parse(text: str) -> str:
+        if not os.path.exists(text):
+            raise argparse.ArgumentTypeError(f"no such {'folder' if kind == 'dir' else 'file'}: {text!r}")
+        if kind == "file" and os.path.isdir(text):
+            raise argparse.ArgumentTypeError(f"{text!r} is a folder, expected a file")
+        if kind == "dir" and not os.path.isdir(text):
+            raise argparse.ArgumentTypeError(f"{text!r} is not a folder")
+        return text
+
+    parse.__name__ = "path"
     return parse
-
-
-def float_range(lo: Optional[float] = None, hi: Optional[float] = None, *, lo_open: bool = False,
-                hi_open: bool = False) -> Callable[[str], float]:
-    """argparse ``type``: a finite float in ``[lo, hi]`` (``(lo`` / ``hi)`` when open)."""
-    def parse(text: str) -> float:
-        try:
-            v = float(text)
-        except ValueError:
-            raise argparse.ArgumentTypeError(f"expected a number, got {text!r}") from None
-        bad = not math.isfinite(v)
-        bad |= lo is not None and (v <= lo if lo_open else v < lo)
-        bad |= hi is not None and (v >= hi if hi_open else v > hi)
-        if bad:
-            raise argparse.ArgumentTypeError(
-                f"must be {_range_text(lo, hi, float, lo_open, hi_open)}, got {text}")
-        return v
-    parse.__name__ = "float"
-    return parse
-
-
-def _range_text(lo, hi, kind, lo_open: bool = False, hi_open: bool = False) -> str:
-    name = "an integer" if kind is int else "a number"
-    if lo is not None and hi is not None:
-        return f"{name} in {'(' if lo_open else '['}{lo}, {hi}{')' if hi_open else ']'}"
-    if lo is not None:
-        return f"{name} {'>' if lo_open else '>='} {lo}"
-    if hi is not None:
-        return f"{name} {'<' if hi_open else '<='} {hi}"
-    return name
 
 
 def device_type(text: str) -> str:
     """argparse ``type``: ``auto``, ``cpu``, ``cuda``/``cuda:N`` or ``mps``, and only one this machine has."""
     if text == "auto":
         return text
+    import torch  # here, so that parsing the other options (and --help) does not import torch
+
     try:
         dev = torch.device(text)
     except (RuntimeError, ValueError):
@@ -77,6 +60,20 @@ def device_type(text: str) -> str:
     return text
 
 
+def resolve_device(name: str = "auto") -> "torch.device":
+    """The ``torch.device`` of a ``--device`` value (checked by :func:`device_type`): ``auto`` is
+    CUDA when available, else MPS when available, else the CPU."""
+    import torch
+
+    if name != "auto":
+        return torch.device(device_type(name))
+    if torch.cuda.is_available():
+        return torch.device("cuda")
+    mps = getattr(torch.backends, "mps", None)
+    return torch.device("mps" if mps is not None and mps.is_available() else "cpu")
+
+
 def add_overwrite(p: argparse.ArgumentParser) -> None:
+    """``--overwrite``: without it, a command refuses an existing output file or non-empty folder."""
     p.add_argument("--overwrite", action="store_true",
                    help="replace existing output files / write into a non-empty output folder")

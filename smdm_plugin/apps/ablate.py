@@ -13,10 +13,23 @@ cm/frame, :func:`smdm_plugin.metrics.end_effector_speed`) of motions sampled fro
 model next to the EES of the real validation motions.
 
 Output (``--out``): ``results.md``, ``results.csv``, ``loss_curves.png``, ``config.yaml`` (the grid
-as run, with ``--steps``/``--data`` overrides) and per variant ``<slug>/result.json`` +
-``<slug>/config.json`` (the resolved settings). Resumable: a variant whose ``result.json`` exists is
-not run again; a variant that raises is written to ``<slug>/failed.json`` (traceback) and retried
-next time; the others go on.
+as run, with ``--steps``/``--data`` overrides), ``ablate.json`` (what the folder is, last run) and
+per variant ``<slug>/result.json`` (or ``<slug>/failed.json``) + ``<slug>/config.json``. Every
+file is written atomically. Each result records its *provenance*: a hash of the settings that shape
+it (the grid's shared settings, the variant, its resolved ``SparseConfig``), a fingerprint of the
+data files' contents, the smdm-plugin version, steps, seed and device type.
+
+An existing non-empty ``--out`` is refused unless:
+
+* ``--resume``: results whose provenance matches are reused; missing, failed and unreadable ones
+  run; a result from other settings, data, version, steps, seed or device stops the run before
+  anything trains, naming what differs (rerun those with ``--overwrite``, or pick another ``--out``);
+* ``--overwrite``: every selected variant runs again and replaces its result.
+
+``--only NAME ...`` (names or folder names) runs those variants and keeps the other rows: a current
+result stays as it is, an out-of-date one is shown as ``stale`` (no numbers), one never run as
+``not run``. A variant that fails (an invalid config included) is recorded in ``failed.json`` and
+shown as ``failed``; the others go on and the exit status is 1.
 
 YAML schema::
 
@@ -39,6 +52,7 @@ from __future__ import annotations
 
 import argparse
 import csv
+import inspect
 import json
 import math
 import os
@@ -46,11 +60,17 @@ import re
 import sys
 import time
 import traceback
+from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Dict, List, Optional
+from typing import Any, Callable, Dict, List, Optional, Sequence, Set
 
 import numpy as np
 import torch
+
+from ..core.config import ConfigTypeError, Range, closest
+from ..io.files import OutputExistsError, atomic_open, atomic_write_json, atomic_write_text
+from ._args import add_overwrite, device_type, existing_path, int_range, resolve_device
+from .provenance import differences, fingerprint_files, make_provenance
 
 DEFAULT_DATA = os.path.join("..", "shared", "data", "cmu-humanml3d")
 DEFAULTS: Dict[str, Any] = {
@@ -61,50 +81,141 @@ DEFAULTS: Dict[str, Any] = {
     "sparse": {"reduction": 0.8},
     "eval": {"samples": 8, "frames": 120, "keyframe_motions": None},
 }
+MANIFEST = "ablate.json"
+#: the grid settings every variant's result depends on (with the variant itself and its SparseConfig)
+SHARED_SETTINGS = ("seed", "steps", "batch", "max_frames", "diffusion_steps", "lr", "model", "eval")
+
+
+class AblateConfigError(ValueError):
+    """The grid YAML is malformed (unknown key, wrong type or range, clashing names)."""
+
+
+class AblateConfigTypeError(AblateConfigError, ConfigTypeError):
+    """A value of the wrong type in the grid YAML."""
+
+
+class StaleResultsError(OutputExistsError):
+    """``--resume`` met results from another run (other settings, data, version, steps, seed or
+    device) that it would have to replace."""
 
 
 # ----------------------------------------------------------------------------------------- config
 ABLATIONS_DIR = os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))), "configs", "ablations")
 
 
+def packaged_grids() -> List[str]:
+    return sorted(f[:-5] for f in os.listdir(ABLATIONS_DIR) if f.endswith(".yaml"))
+
+
 def config_path(name_or_path: str) -> str:
     """A grid's YAML file: a path, or the name of a packaged grid (``table1``, ``defaults``,
     ``quick``: ``smdm_plugin/configs/ablations/<name>.yaml``)."""
-    if os.path.exists(name_or_path):
+    if os.path.isfile(name_or_path):
         return name_or_path
     packaged = os.path.join(ABLATIONS_DIR, os.path.basename(name_or_path))
     for cand in (packaged, packaged + ".yaml"):
-        if os.path.isfile(cand):
+        if os.path.isfile(cand) and os.path.dirname(name_or_path) in ("", ABLATIONS_DIR):
             return cand
-    raise FileNotFoundError(f"ablate: --config {name_or_path!r} is neither a file nor a packaged grid "
-                            f"({', '.join(sorted(f[:-5] for f in os.listdir(ABLATIONS_DIR)))})")
+    grids = packaged_grids()
+    hint = closest(os.path.basename(name_or_path).removesuffix(".yaml"), grids)
+    raise FileNotFoundError(f"--config {name_or_path!r} is neither a file nor a packaged grid "
+                            f"({', '.join(grids)}){hint}")
 
 
 def load_config(path: str) -> Dict[str, Any]:
+    """The resolved grid of a YAML file (or packaged grid name); errors name the file."""
     import yaml
 
-    with open(config_path(path)) as f:
-        cfg = yaml.safe_load(f) or {}
-    return resolve(cfg)
+    p = config_path(path)
+    try:
+        with open(p, encoding="utf-8-sig") as f:
+            cfg = yaml.safe_load(f)
+    except yaml.YAMLError as e:
+        raise AblateConfigError(f"{p}: not valid YAML: {' '.join(str(e).split())}") from None
+    except OSError as e:
+        raise AblateConfigError(f"{p}: cannot read it: {e.strerror}") from None
+    try:
+        return resolve(cfg if cfg is not None else {})
+    except ValueError as e:
+        raise type(e)(f"{p}: {e}") from None
+
+
+def _model_keys() -> List[str]:
+    from ..reference.backbone import TinyMDM
+
+    fixed = {"self", "njoints", "nfeats", "cond_mode", "text_encoder"}
+    return [k for k in inspect.signature(TinyMDM.__init__).parameters if k not in fixed]
+
+
+def _check(where: str, v: Any, kind: type, rng: Range = Range(), optional: bool = False) -> None:
+    """Raise :class:`AblateConfigError` unless ``v`` is a ``kind`` in ``rng`` (None if ``optional``)."""
+    if v is None and optional:
+        return
+    if kind is float:
+        ok_type = isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v)
+    else:
+        ok_type = isinstance(v, kind) and not (kind is int and isinstance(v, bool))
+    what = {int: rng.describe(True), float: "a finite " + rng.describe(False)[2:], str: "a non-empty string",
+            bool: "true or false", dict: "a mapping", list: "a list"}[kind]
+    if not ok_type or (kind in (int, float) and v not in rng) or (kind is str and not v.strip()):
+        raise (AblateConfigError if ok_type else AblateConfigTypeError)(f"{where}={v!r}: expected {'null or ' if optional else ''}{what}")
+
+
+def _check_keys(where: str, d: Dict[str, Any], known: Sequence[str]) -> None:
+    for k in d:
+        if k not in known:
+            raise AblateConfigError(f"{where}: unknown key {k!r}{closest(str(k), known)} (known: {', '.join(known)})")
 
 
 def resolve(cfg: Dict[str, Any]) -> Dict[str, Any]:
+    """``cfg`` over :data:`DEFAULTS` (one level deep for the mapping sections), validated: known
+    keys only, types and ranges, every variant named, names and their folder names unique.
+    Variants' ``sparse`` values are checked when the variant runs (an invalid one fails alone)."""
+    if not isinstance(cfg, dict):
+        raise AblateConfigError(f"expected a mapping (name, seed, steps, ..., variants), got {type(cfg).__name__}")
+    _check_keys("ablate config", cfg, [*DEFAULTS, "variants", "data"])
     out = json.loads(json.dumps(DEFAULTS))
     for k, v in cfg.items():
         if isinstance(v, dict) and isinstance(out.get(k), dict):
             out[k].update(v)
         else:
             out[k] = v
-    variants = out.get("variants") or []
+    _check("name", out["name"], str)
+    for k, lo in (("seed", 0), ("steps", 1), ("batch", 1), ("max_frames", 2), ("diffusion_steps", 1), ("log_every", 1)):
+        _check(k, out[k], int, Range(lo))
+    _check("lr", out["lr"], float, Range(0.0, lo_open=True))
+    _check("data", out.get("data"), str, optional=True)
+    for section in ("model", "sparse", "eval"):
+        _check(section, out[section], dict)
+    _check_keys("model", out["model"], _model_keys())
+    _check_keys("eval", out["eval"], list(DEFAULTS["eval"]))
+    _check("eval.samples", out["eval"]["samples"], int, Range(1))
+    _check("eval.frames", out["eval"]["frames"], int, Range(2))
+    _check("eval.keyframe_motions", out["eval"]["keyframe_motions"], int, Range(1), optional=True)
+    variants = out.get("variants")
     if not variants:
-        raise ValueError("ablate: the config lists no variants")
-    names = [v.get("name") for v in variants]
-    if any(not n for n in names) or len(set(names)) != len(names):
-        raise ValueError(f"ablate: every variant needs a unique name, got {names}")
+        raise AblateConfigError("the config lists no variants")
+    _check("variants", variants, list)
+    seen: Dict[str, str] = {}
+    for i, v in enumerate(variants):
+        if not isinstance(v, dict):
+            raise AblateConfigTypeError(f"variants[{i}]={v!r}: expected a mapping with a name")
+        _check_keys(f"variants[{i}]", v, ["name", "dense", "sparse"])
+        if not isinstance(v.get("name"), str) or not v["name"].strip():
+            raise AblateConfigError(f"variants[{i}]: every variant needs a unique name, got {v.get('name')!r}")
+        _check(f"variants[{i}].dense", v.get("dense", False), bool)
+        _check(f"variants[{i}].sparse", v.get("sparse") or {}, dict)
+        s = slug(v["name"])
+        if s in seen:
+            same = "the same name" if seen[s] == v["name"] else f"the same folder name {s!r}"
+            raise AblateConfigError(f"variants {seen[s]!r} and {v['name']!r} have {same}; every variant needs a "
+                                    "unique name (and folder name: lower case, runs of other characters as '-')")
+        seen[s] = v["name"]
     return out
 
 
 def slug(name: str) -> str:
+    """The folder name of a variant: lower case, runs of anything but ``[a-z0-9]`` as ``-``."""
     return re.sub(r"[^a-z0-9]+", "-", name.lower()).strip("-") or "variant"
 
 
@@ -118,30 +229,58 @@ def sparse_config(cfg: Dict[str, Any], variant: Dict[str, Any]):
     return SparseConfig.from_dict(d)
 
 
+def select_variants(cfg: Dict[str, Any], only: Optional[Sequence[str]]) -> Set[str]:
+    """The names of the variants ``only`` picks (names or folder names; all when None). An unknown
+    entry is a ``ValueError`` listing the known names."""
+    names = [v["name"] for v in cfg["variants"]]
+    if not only:
+        return set(names)
+    by_slug = {slug(n): n for n in names}
+    picked, unknown = set(), []
+    for o in only:
+        hit = o if o in names else by_slug.get(o) or by_slug.get(slug(o))
+        if hit is None:
+            unknown.append(o)
+        else:
+            picked.add(hit)
+    if unknown:
+        raise ValueError(f"unknown variant(s) {', '.join(map(repr, unknown))}"
+                         f"{closest(unknown[0], names)}; known: {', '.join(map(repr, names))}")
+    return picked
+
+
 # ----------------------------------------------------------------------------------------- data
 class MotionData:
-    """HumanML3D-format motions: normalised ``[M, max_frames, 263]`` + lengths, joints for eval."""
+    """HumanML3D-format motions: normalised ``[M, max_frames, 263]`` + lengths, joints for eval.
+    ``files`` lists every file read; ``fingerprint`` hashes their names, sizes and contents."""
 
     def __init__(self, root: str, max_frames: int = 196, min_frames: int = 40) -> None:
         root_p = Path(root)
         if not (root_p / "Mean.npy").exists():
-            raise FileNotFoundError(f"ablate: no HumanML3D-format data at {root} (need Mean.npy, Std.npy, "
+            raise FileNotFoundError(f"no HumanML3D-format data at {root} (need Mean.npy, Std.npy, "
                                     "new_joint_vecs/, train.txt); pass --data")
         self.root = root_p
+        self.files: List[str] = [str(root_p / "Mean.npy"), str(root_p / "Std.npy")]
         self.mean = np.load(root_p / "Mean.npy").astype(np.float32)
         self.std = np.load(root_p / "Std.npy").astype(np.float32)
         self.max_frames = max_frames
         self.train = self._load("train", min_frames)
         self.val = self._load("val" if (root_p / "val.txt").exists() else "test", min_frames)
+        self.fingerprint = fingerprint_files(str(root_p), self.files)
 
     def _load(self, split: str, min_frames: int) -> Dict[str, Any]:
-        ids = [i for i in (self.root / f"{split}.txt").read_text().split() if i]
+        listing = self.root / f"{split}.txt"
+        if not listing.exists():
+            raise FileNotFoundError(f"{listing} is missing (the {split} split's motion ids)")
+        self.files.append(str(listing))
+        ids = [i for i in listing.read_text().split() if i]
         x, lengths, joints, kept = [], [], [], []
         for i in ids:
             f = self.root / "new_joint_vecs" / f"{i}.npy"
             if not f.exists():
                 continue
             m = np.load(f).astype(np.float32)
+            self.files.append(str(f))
             if len(m) < min_frames:
                 continue
             L = min(len(m), self.max_frames)
@@ -150,10 +289,12 @@ class MotionData:
             x.append(pad)
             lengths.append(L)
             jf = self.root / "new_joints" / f"{i}.npy"
+            if jf.exists():
+                self.files.append(str(jf))
             joints.append(np.load(jf)[:L].astype(np.float32) if jf.exists() else None)
             kept.append(i)
         if not x:
-            raise ValueError(f"ablate: split {split!r} of {self.root} has no usable motion")
+            raise ValueError(f"split {split!r} of {self.root} has no usable motion")
         return {"ids": kept, "x": torch.from_numpy(np.stack(x)), "lengths": torch.tensor(lengths),
                 "joints": joints}
 
@@ -300,57 +441,186 @@ def run_variant(cfg: Dict[str, Any], variant: Dict[str, Any], data: MotionData, 
     }
 
 
+# ----------------------------------------------------------------------------------------- results folder
+@dataclass
+class Cached:
+    """What a variant's folder holds. ``state``: ``missing``, ``current`` (a result whose
+    provenance matches), ``stale`` (a result from another run; ``reason`` says how it differs),
+    ``failed`` (``failed.json``) or ``corrupt`` (an unreadable ``result.json``)."""
+
+    state: str
+    record: Optional[Dict[str, Any]] = None
+    reason: str = ""
+
+
+def variant_settings(cfg: Dict[str, Any], variant: Dict[str, Any]) -> Dict[str, Any]:
+    """Everything but the data that shapes a variant's result: the grid's shared settings, the
+    variant entry and its resolved ``SparseConfig`` (``"invalid: ..."`` when it does not validate).
+    Written to ``<slug>/config.json``; its hash is the provenance's ``config_hash``."""
+    try:
+        sc = sparse_config(cfg, variant)
+        resolved: Any = None if sc is None else sc.to_dict()
+    except (TypeError, ValueError) as e:
+        resolved = f"invalid: {e}"
+    return {**{k: cfg[k] for k in SHARED_SETTINGS}, "variant": variant, "sparse_config": resolved}
+
+
+def variant_provenance(cfg: Dict[str, Any], variant: Dict[str, Any], data: MotionData,
+                       device: torch.device) -> Dict[str, Any]:
+    return make_provenance(variant_settings(cfg, variant), data.fingerprint, cfg["steps"], cfg["seed"], device.type,
+                           data_root=os.path.abspath(str(data.root)), data_files=len(data.files))
+
+
+def read_cached(vdir: str, provenance: Dict[str, Any]) -> Cached:
+    """Classify what ``vdir`` holds against the ``provenance`` of the run about to happen."""
+    res_path, fail_path = os.path.join(vdir, "result.json"), os.path.join(vdir, "failed.json")
+    if os.path.exists(res_path):
+        try:
+            with open(res_path) as f:
+                rec = json.load(f)
+            if not isinstance(rec, dict) or rec.get("status") != "ok":
+                raise ValueError("not a result record")
+        except (OSError, ValueError) as e:  # json.JSONDecodeError is a ValueError
+            return Cached("corrupt", None, f"unreadable {res_path} ({type(e).__name__}: {e})")
+        why = differences(rec.get("provenance"), provenance)
+        return Cached("stale", rec, "; ".join(why)) if why else Cached("current", rec)
+    if os.path.exists(fail_path):
+        try:
+            with open(fail_path) as f:
+                rec = dict(json.load(f))
+        except (OSError, ValueError, TypeError) as e:
+            rec = {"error": f"unreadable {fail_path} ({type(e).__name__})"}
+        return Cached("failed", rec, str(rec.get("error", "")))
+    return Cached("missing")
+
+
+def row_from_cache(name: str, cached: Cached) -> Dict[str, Any]:
+    """The report row of a variant not run now."""
+    if cached.state == "current":
+        return {**(cached.record or {}), "name": name, "reused": True}
+    if cached.state == "failed":
+        return {**(cached.record or {}), "name": name, "status": "failed"}
+    if cached.state in ("stale", "corrupt"):
+        return {"name": name, "status": cached.state, "reason": cached.reason}
+    return {"name": name, "status": "not run"}
+
+
+def check_out_dir(out: str, resume: bool = False, overwrite: bool = False) -> None:
+    """Refuse (:class:`OutputExistsError`) a non-empty ``out`` unless ``resume`` (and it holds
+    ablation results) or ``overwrite``."""
+    if os.path.lexists(out) and not os.path.isdir(out):
+        raise OutputExistsError(f"--out {out!r} exists and is not a folder")
+    if overwrite or not os.path.isdir(out) or not os.listdir(out):
+        return
+    if not any(os.path.exists(os.path.join(out, f)) for f in (MANIFEST, "config.yaml")):
+        raise OutputExistsError(f"--out {out!r} is a non-empty folder without smdm ablate results; pick another "
+                                "--out, or pass --overwrite to write into it")
+    if not resume:
+        raise OutputExistsError(f"--out {out!r} already holds ablation results; pass --resume to reuse the "
+                                "current ones and run the rest, or --overwrite to run the selected variants "
+                                "again (or pick another --out)")
+
+
+def _remove(path: str) -> None:
+    try:
+        os.remove(path)
+    except FileNotFoundError:
+        pass
+
+
+def run_one(cfg: Dict[str, Any], variant: Dict[str, Any], data: MotionData, dev: torch.device, vdir: str,
+            provenance: Dict[str, Any], progress: bool, log: Callable[[str], Any]) -> Dict[str, Any]:
+    """Run one variant and record it (atomically): ``result.json`` (its stale ``failed.json``
+    removed) or, when it raises, ``failed.json`` (a previous ``result.json`` removed)."""
+    name = variant["name"]
+    res_path, fail_path = os.path.join(vdir, "result.json"), os.path.join(vdir, "failed.json")
+    os.makedirs(vdir, exist_ok=True)
+    atomic_write_json(os.path.join(vdir, "config.json"), variant_settings(cfg, variant))
+    t0 = time.perf_counter()
+    try:
+        res = run_variant(cfg, variant, data, dev, progress)
+    except Exception as e:  # recorded, the other variants go on
+        rec = {"name": name, "status": "failed", "error": f"{type(e).__name__}: {e}",
+               "traceback": traceback.format_exc(), "wall_s": time.perf_counter() - t0, "provenance": provenance}
+        atomic_write_json(fail_path, rec)
+        _remove(res_path)
+        log(f"  {name}: FAILED ({rec['error']}); see {fail_path}")
+        return rec
+    res["wall_s"] = time.perf_counter() - t0
+    res["provenance"] = provenance
+    atomic_write_json(res_path, res, indent=None)
+    _remove(fail_path)
+    log(f"  {name}: loss {res['final_loss']:.4f}, {res['steps_per_s']:.2f} steps/s, {res['wall_s']:.0f} s")
+    return res
+
+
 def run_ablation(cfg: Dict[str, Any], out: str, data_root: str, device: str = "auto",
-                 only: Optional[List[str]] = None, progress: bool = True, log=print) -> List[Dict[str, Any]]:
+                 only: Optional[Sequence[str]] = None, progress: bool = True, log: Callable[[str], Any] = print,
+                 resume: bool = False, overwrite: bool = False) -> List[Dict[str, Any]]:
+    """Run the grid ``cfg`` into ``out``; returns one row per variant of the grid, in its order.
+
+    ``only``: the variants to run (names or folder names), the others keep their rows. An existing
+    non-empty ``out`` needs ``resume`` (reuse current results, run the missing / failed /
+    unreadable ones; results from another run stop it with :class:`StaleResultsError` before
+    anything trains) or ``overwrite`` (run every selected variant again). See the module docstring.
+    """
     import yaml
 
-    from .bench import pick_device
-
-    dev = pick_device(device)
-    os.makedirs(out, exist_ok=True)
-    with open(os.path.join(out, "config.yaml"), "w") as f:
-        yaml.safe_dump(cfg, f, sort_keys=False)
+    if resume and overwrite:
+        raise ValueError("run_ablation: resume and overwrite exclude each other")
+    selected = select_variants(cfg, only)
+    check_out_dir(out, resume, overwrite)
+    dev = resolve_device(device)
     data = MotionData(data_root, int(cfg["max_frames"]))
     log(f"ablate: {len(data.train['ids'])} training / {len(data.val['ids'])} validation motions from "
-        f"{data_root}; {cfg['steps']} steps x batch {cfg['batch']} per variant on {dev}")
-    real_ees = _ees(data.val["x"], data.val["lengths"], data)
-    results: List[Dict[str, Any]] = []
+        f"{data_root} (fingerprint {data.fingerprint}); {cfg['steps']} steps x batch {cfg['batch']} per variant "
+        f"on {dev}")
+    plan, conflicts = [], []
     for variant in cfg["variants"]:
-        if only and variant["name"] not in only and slug(variant["name"]) not in only:
-            continue
-        vdir = os.path.join(out, slug(variant["name"]))
-        os.makedirs(vdir, exist_ok=True)
-        res_path, fail_path = os.path.join(vdir, "result.json"), os.path.join(vdir, "failed.json")
-        with open(os.path.join(vdir, "config.json"), "w") as f:
-            sc = sparse_config(cfg, variant)
-            json.dump({"variant": variant, "sparse_config": None if sc is None else sc.to_dict(),
-                       **{k: cfg[k] for k in ("seed", "steps", "batch", "max_frames", "diffusion_steps", "lr",
-                                              "model", "eval")}}, f, indent=2)
-        if os.path.exists(res_path):
-            with open(res_path) as f:
-                res = json.load(f)
-            log(f"  {variant['name']}: done before, skipped ({res_path})")
-            results.append(res)
-            continue
-        t0 = time.perf_counter()
-        try:
-            res = run_variant(cfg, variant, data, dev, progress)
-            res["wall_s"] = time.perf_counter() - t0
-            with open(res_path, "w") as f:
-                json.dump(res, f)
-            if os.path.exists(fail_path):
-                os.remove(fail_path)
-            log(f"  {variant['name']}: loss {res['final_loss']:.4f}, {res['steps_per_s']:.2f} steps/s, "
-                f"{res['wall_s']:.0f} s")
-        except Exception as e:  # recorded, the other variants go on
-            res = {"name": variant["name"], "status": "failed", "error": f"{type(e).__name__}: {e}",
-                   "traceback": traceback.format_exc(), "wall_s": time.perf_counter() - t0}
-            with open(fail_path, "w") as f:
-                json.dump(res, f, indent=2)
-            log(f"  {variant['name']}: FAILED ({res['error']}); see {fail_path}")
-        results.append(res)
-    write_report(results, out, real_ees, cfg)
-    return results
+        name = variant["name"]
+        vdir = os.path.join(out, slug(name))
+        prov = variant_provenance(cfg, variant, data, dev)
+        cached = read_cached(vdir, prov)
+        if name not in selected:
+            action = "keep"
+        elif overwrite or cached.state in ("missing", "failed", "corrupt"):
+            action = "run"
+        elif cached.state == "current":
+            action = "keep"
+        else:
+            conflicts.append(f"{name!r} ({cached.reason})")
+            action = "conflict"
+        invalid = prov["settings"]["sparse_config"]
+        if action == "run" and isinstance(invalid, str):
+            log(f"  {name}: {invalid} -- it will be reported as failed")
+        plan.append((variant, vdir, prov, cached, action))
+    if conflicts:
+        raise StaleResultsError(
+            f"--out {out!r} holds {len(conflicts)} result(s) from another run: {'; '.join(conflicts)}. Pass "
+            "--overwrite to run them again (replacing them), leave them out with --only, or pick another --out")
+
+    os.makedirs(out, exist_ok=True)
+    from .. import __version__
+
+    atomic_write_json(os.path.join(out, MANIFEST), {
+        "tool": "smdm ablate", "format": 1, "grid": cfg.get("name"), "variants": [v["name"] for v in cfg["variants"]],
+        "package_version": __version__, "data_root": os.path.abspath(data_root), "data_fingerprint": data.fingerprint,
+        "device": dev.type, "updated": time.strftime("%Y-%m-%dT%H:%M:%S%z")})
+    atomic_write_text(os.path.join(out, "config.yaml"), yaml.safe_dump(cfg, sort_keys=False))
+    real_ees = _ees(data.val["x"], data.val["lengths"], data)
+    rows = [row_from_cache(v["name"], c) for v, _, _, c, _ in plan]
+    try:
+        for k, (variant, vdir, prov, cached, action) in enumerate(plan):
+            if action != "run":
+                if variant["name"] in selected:
+                    log(f"  {variant['name']}: reused (same provenance; {os.path.join(vdir, 'result.json')})")
+                continue
+            if cached.state in ("corrupt", "stale"):
+                log(f"  {variant['name']}: replacing {cached.state} result ({cached.reason})")
+            rows[k] = run_one(cfg, variant, data, dev, vdir, prov, progress, log)
+    finally:  # the report is written even when interrupted (Ctrl-C): it then shows what is done
+        write_report(rows, out, real_ees, cfg, data.fingerprint)
+    return rows
 
 
 # ----------------------------------------------------------------------------------------- report
@@ -362,7 +632,10 @@ def _fmt(v: Any, spec: str) -> str:
     return "—" if v is None or (isinstance(v, float) and not math.isfinite(v)) else format(v, spec)
 
 
-def write_report(results: List[Dict[str, Any]], out: str, real_ees: Optional[float], cfg: Dict[str, Any]) -> str:
+def write_report(results: List[Dict[str, Any]], out: str, real_ees: Optional[float], cfg: Dict[str, Any],
+                 data_fingerprint: Optional[str] = None) -> str:
+    """``results.md`` / ``results.csv`` / ``loss_curves.png`` of ``results`` (one row per variant;
+    numbers only for ``ok`` rows); returns the markdown."""
     rows = []
     for r in results:
         ok = r.get("status") == "ok"
@@ -371,8 +644,9 @@ def write_report(results: List[Dict[str, Any]], out: str, real_ees: Optional[flo
                      _fmt(r.get("val_loss") if ok else None, ".4f"),
                      _fmt(r.get("steps_per_s") if ok else None, ".2f"),
                      _fmt(r.get("keyframe_error_mm") if ok else None, ".1f"),
-                     _fmt(r.get("ees") if ok else None, ".3f"), _fmt(r.get("wall_s"), ".0f")])
-    with open(os.path.join(out, "results.csv"), "w", newline="") as f:
+                     _fmt(r.get("ees") if ok else None, ".3f"),
+                     _fmt(r.get("wall_s") if r.get("status") in ("ok", "failed") else None, ".0f")])
+    with atomic_open(os.path.join(out, "results.csv"), "w", newline="") as f:
         w = csv.writer(f)
         w.writerow(COLUMNS)
         w.writerows(rows)
@@ -387,12 +661,25 @@ def write_report(results: List[Dict[str, Any]], out: str, real_ees: Optional[flo
                      "(generated motions closer to it are better).")
     except ImportError:
         lines.append("\nEES: smdm_plugin.metrics is not available; column left empty.")
-    failed = [r for r in results if r.get("status") != "ok"]
-    for r in failed:
-        lines.append(f"\n{r['name']} failed: {r.get('error')}")
+    from .. import __version__
+
+    lines.append(f"\nProvenance: smdm-plugin {__version__}, data {cfg.get('data')}"
+                 + (f" (fingerprint {data_fingerprint})" if data_fingerprint else "")
+                 + "; per variant in <folder>/result.json.")
+    reused = [r["name"] for r in results if r.get("reused")]
+    if reused:
+        lines.append(f"\nReused from an earlier run with the same provenance: {', '.join(reused)}.")
+    for r in results:
+        if r.get("status") == "failed":
+            lines.append(f"\n{r['name']} failed: {r.get('error')}")
+        elif r.get("status") in ("stale", "corrupt"):
+            lines.append(f"\n{r['name']}: {r['status']}, not shown ({r.get('reason')}); run it with --only and "
+                         "--overwrite.")
+    pending = [r["name"] for r in results if r.get("status") == "not run"]
+    if pending:
+        lines.append(f"\nNot run yet: {', '.join(pending)}.")
     text = "\n".join(lines)
-    with open(os.path.join(out, "results.md"), "w") as f:
-        f.write(text + "\n")
+    atomic_write_text(os.path.join(out, "results.md"), text + "\n")
     _plot(results, os.path.join(out, "loss_curves.png"))
     return text
 
@@ -414,42 +701,73 @@ def _plot(results: List[Dict[str, Any]], path: str) -> None:
     ax.set_xlabel("training step")
     ax.set_ylabel("training loss (moving average)")
     ax.set_yscale("log")
-    ax.legend(fontsize=8)
+    if ax.lines:
+        ax.legend(fontsize=8)
     fig.tight_layout()
-    fig.savefig(path, dpi=110)
+    with atomic_open(path, "wb") as f:
+        fig.savefig(f, format="png", dpi=110)
     plt.close(fig)
 
 
 # ----------------------------------------------------------------------------------------- CLI
-def main(argv: Optional[List[str]] = None) -> int:
-    p = argparse.ArgumentParser(prog="smdm ablate", description=__doc__.split("\n\n")[0])
+def build_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(
+        prog="smdm ablate", description=__doc__.split("\n\n")[0],
+        epilog="An existing non-empty --out needs --resume (reuse results with the same provenance, run the rest) "
+               "or --overwrite (run the selected variants again). Exit status: 0 all selected variants ok, "
+               "1 one failed, 2 bad arguments or a refused --out, 130 interrupted.")
     p.add_argument("--config", default="table1",
                    help="the grid: a YAML path or a packaged grid name (table1, defaults, quick)")
-    p.add_argument("--out", default=os.path.join("results", "ablate"))
-    p.add_argument("--data", default=None, help=f"HumanML3D-format folder (default: config 'data' or {DEFAULT_DATA})")
-    p.add_argument("--steps", type=int, default=None, help="override the config's steps per variant")
-    p.add_argument("--device", default="auto")
-    p.add_argument("--only", nargs="+", default=None, help="run only these variants (names or slugs)")
-    p.add_argument("--threads", type=int, default=None,
+    p.add_argument("--out", default=os.path.join("results", "ablate"), help="results folder (default results/ablate)")
+    p.add_argument("--data", type=existing_path("dir"), default=None,
+                   help=f"HumanML3D-format folder (default: config 'data' or {DEFAULT_DATA})")
+    p.add_argument("--steps", type=int_range(1), default=None, help="override the config's steps per variant (>= 1)")
+    p.add_argument("--device", type=device_type, default="auto", help="auto (CUDA, else MPS, else CPU), cpu, cuda[:N], mps")
+    p.add_argument("--only", nargs="+", default=None, metavar="VARIANT",
+                   help="run only these variants (names or folder names); the other rows are kept")
+    p.add_argument("--threads", type=int_range(1), default=None,
                    help="torch.set_num_threads; 1 is much faster on a CPU shared with other jobs")
+    g = p.add_mutually_exclusive_group()
+    g.add_argument("--resume", action="store_true",
+                   help="continue in an existing --out: reuse results with the same provenance, run the rest")
+    add_overwrite(g)
     p.add_argument("--no-progress", action="store_true")
+    return p
+
+
+def main(argv: Optional[List[str]] = None) -> int:
+    p = build_parser()
     a = p.parse_args(argv)
+    if not a.out.strip():
+        p.error("argument --out: expected a folder path, got ''")
+    try:
+        cfg = load_config(a.config)
+    except (FileNotFoundError, ValueError) as e:
+        p.error(str(e))
+    if a.steps is not None:
+        cfg["steps"] = a.steps
+    try:
+        selected = select_variants(cfg, a.only)
+    except ValueError as e:
+        p.error(f"argument --only: {e}")
     if a.threads:
         torch.set_num_threads(a.threads)
-    cfg = load_config(a.config)
-    if a.steps:
-        cfg["steps"] = a.steps
     data_root = a.data or cfg.get("data") or DEFAULT_DATA
     cfg["data"] = data_root
     try:
-        results = run_ablation(cfg, a.out, data_root, a.device, a.only, progress=not a.no_progress)
-    except FileNotFoundError as e:
-        print(str(e), file=sys.stderr)
+        results = run_ablation(cfg, a.out, data_root, a.device, a.only, progress=not a.no_progress,
+                               resume=a.resume, overwrite=a.overwrite)
+    except (OutputExistsError, FileNotFoundError, ValueError, PermissionError, NotADirectoryError) as e:
+        print(f"smdm ablate: error: {e}", file=sys.stderr)
         return 2
+    except KeyboardInterrupt:
+        print(f"\nsmdm ablate: interrupted; finished variants are kept in {a.out} (results.md shows them). "
+              "Rerun with --resume to continue.", file=sys.stderr)
+        return 130
     with open(os.path.join(a.out, "results.md")) as f:
         print("\n" + f.read())
     print(f"results: {os.path.abspath(a.out)}")
-    return 0 if all(r.get("status") == "ok" for r in results) else 1
+    return 0 if all(r.get("status") == "ok" for r in results if r["name"] in selected) else 1
 
 
 if __name__ == "__main__":

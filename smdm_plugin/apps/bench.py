@@ -1,30 +1,32 @@
-"""``smdm bench``: what sparse keyframe mode saves in wall-clock time, measured in one run.
+"""``smdm bench``: what sparse keyframe mode saves, dense and sparse side by side in one run.
 
-For the MDM-size in-package backbone (:class:`~smdm_plugin.backbone.TinyMDM`, latent 512, 8
-layers, 4 heads, ff 1024; ``trans_enc`` and ``trans_dec``) on a HumanML3D-like batch (batch 64,
-196 frames, valid lengths drawn in 40..196 with a fixed seed, cached text embeddings — no CLIP) it
-times, dense and at every reduction rate:
+For the MDM-size in-package backbone (:class:`~smdm_plugin.reference.backbone.TinyMDM`, latent
+512, 8 layers, 4 heads, ff 1024; ``trans_enc`` and ``trans_dec``) on a HumanML3D-like batch (default
+batch 64, 196 frames, valid lengths drawn in 40..196 with a fixed seed, cached text embeddings — no
+CLIP) it times, dense and at every reduction rate, in the same process and interleaved (every
+repeat runs every variant in turn, so machine load hits all alike):
 
-* a **training step**: ``SimpleDiffusion.training_losses`` (with the sparse diffusion attached, so
-  keyframe selection on x0 is included) + backward + ``AdamW.step``;
-* a **sampling step** with classifier-free guidance (two forward passes, ``eval``, ``no_grad``) at
-  a late diffusion step (``t <= gamma*T``, where the mask is re-selected by VW on x_t: the
+* ``train`` — one training step: ``SimpleDiffusion.training_losses`` with the sparse diffusion
+  wrapper (keyframe selection on x0 + mask noise included) + backward + ``AdamW.step``;
+* ``sample`` — one sampling step with classifier-free guidance (two forward passes, ``eval``,
+  ``no_grad``) at a late step (``t < round(γT)``, dynamic update forced on: VW on x_t, the
   costliest step of the schedule);
-* the **overhead** of keyframe selection (features + VW + mask noise) and of the interpolation
-  back to all frames (forward + backward in training), as a share of the sparse step;
-* **peak memory** of the step: CUDA max allocated, or on CPU the peak rise of the process RSS
-  during the step (sampled from ``/proc/self/statm``; glibc's mmap threshold is pinned so freed
-  activations go back to the OS and the number is per step, not cumulative).
+* ``loop`` — the whole sampling loop a user runs: ``--steps`` steps with classifier-free guidance
+  and the config's own schedule;
 
-Medians over ``--repeats`` after ``--warmup`` runs. Dense and sparse run the same module types
-with the same fast-path setting (``torch.backends.mha`` fast path off for both, see
-``--fastpath``), so the ratio compares like with like.
+plus, for the sparse variants, the share of the step spent in keyframe selection and in the
+interpolation back to all frames, and peak memory (CUDA: max allocated; CPU: the peak rise of the
+process RSS). ``--amp bf16`` runs under ``torch.autocast``; ``--compile`` wraps dense and sparse
+models alike in ``torch.compile`` (the same choice for both). Medians of ``--repeats`` after
+``--warmup`` runs (compilation happens in the warm-up). The table names the device, the mode and
+the attention backend the sparse model ran.
 
-``python -m smdm_plugin.bench keyframes`` times batched VW alone on ``[64, 196, 64]``.
+``smdm bench keyframes`` times VW selection alone on ``[64, 196, 64]``.
 """
 from __future__ import annotations
 
 import argparse
+import contextlib
 import ctypes
 import json
 import os
@@ -32,20 +34,20 @@ import statistics
 import sys
 import threading
 import time
-from typing import Any, Callable, Dict, List, Optional
+from typing import Any, Callable, Dict, List, Optional, Sequence
 
 import torch
 
-TARGETS = {"train": 4.0, "sample": 3.5, "overhead": 0.10}  # at reduction 0.8, MDM size, CPU
+from ._args import add_overwrite, device_type, float_range, int_range, resolve_device
+
+TARGETS = {"train": 4.0, "sample": 3.5, "loop": 3.0, "overhead": 0.10}  # at 80% reduction
+MODES = ("train", "sample", "loop")
 
 
 # ----------------------------------------------------------------------------------------- utils
 def pick_device(name: str = "auto") -> torch.device:
-    if name == "auto":
-        if torch.cuda.is_available():
-            return torch.device("cuda")
-        return torch.device("cpu")
-    return torch.device(name)
+    """``auto``: CUDA, else MPS, else the CPU (see :func:`smdm_plugin.apps._args.resolve_device`)."""
+    return resolve_device(name)
 
 
 def _sync(device: torch.device) -> None:
@@ -149,31 +151,48 @@ def make_batch(batch: int, frames: int, device: torch.device, seed: int = 0, min
 
 
 def build(arch: str, reduction: Optional[float], device: torch.device, quick: bool, steps: int,
-          backend: str = "auto", seed: int = 0):
+          backend: str = "auto", seed: int = 0, **sparse: Any):
     """(model, diffusion) — dense when ``reduction`` is None."""
     from ..adapters.mdm import sparsify
-    from ..reference.backbone import TinyMDM
     from ..core.config import SparseConfig
+    from ..reference.backbone import TinyMDM
     from ..reference.diffusion import SimpleDiffusion
 
     torch.manual_seed(seed)
     model = TinyMDM(arch=arch, **mdm_size(quick)).to(device)
     diffusion = SimpleDiffusion(steps)
     if reduction is not None:
-        cfg = SparseConfig(reduction=reduction, attention_backend=backend)
-        sparsify(model, cfg, diffusion=diffusion)
+        sparsify(model, SparseConfig(reduction=reduction, attention_backend=backend, **sparse), diffusion=diffusion)
     return model, diffusion
 
 
-def _train_step_fn(model, diffusion, batch, device, seed: int = 0) -> Callable[[], None]:
+def _autocast(device: torch.device, amp: str):
+    if amp == "bf16":
+        return torch.autocast(device_type=device.type, dtype=torch.bfloat16)
+    return contextlib.nullcontext()
+
+
+def _compiled(model: torch.nn.Module, compile_mode: str) -> torch.nn.Module:
+    if compile_mode == "none":
+        return model
+    return torch.compile(model, mode=None if compile_mode == "default" else compile_mode, fullgraph=True)
+
+
+def _train_step_fn(model, diffusion, batch, device, amp: str, compile_mode: str, seed: int = 0
+                   ) -> Callable[[], None]:
     model.train()
+    run = _compiled(model, compile_mode)
     opt = torch.optim.AdamW(model.parameters(), lr=1e-4)
     g = torch.Generator(device="cpu").manual_seed(seed)
     B = batch["x"].shape[0]
+    ts = [torch.randint(0, diffusion.num_timesteps, (B,), generator=g).to(device) for _ in range(16)]
+    step_no = [0]
 
     def step() -> None:
-        t = torch.randint(0, diffusion.num_timesteps, (B,), generator=g).to(device)
-        loss = diffusion.training_losses(model, batch["x"], t, {"y": dict(batch["y"])})["loss"].mean()
+        t = ts[step_no[0] % len(ts)]                 # made ahead of time: no host-to-device copy
+        step_no[0] += 1
+        with _autocast(device, amp):
+            loss = diffusion.training_losses(run, batch["x"], t, {"y": dict(batch["y"])})["loss"].mean()
         opt.zero_grad(set_to_none=True)
         loss.backward()
         opt.step()
@@ -181,91 +200,101 @@ def _train_step_fn(model, diffusion, batch, device, seed: int = 0) -> Callable[[
     return step
 
 
-def _sample_step_fn(model, diffusion, batch, device, gamma: float = 0.1) -> Callable[[], None]:
+def _cfg(model, compile_mode: str):
     from ..reference.diffusion import ClassifierFreeGuidance
 
-    model.eval()
-    cfg = ClassifierFreeGuidance(model, scale=2.5)
+    return _compiled(ClassifierFreeGuidance(model.eval(), scale=2.5), compile_mode)
+
+
+def _sample_step_fn(model, diffusion, batch, device, amp: str, compile_mode: str) -> Callable[[], None]:
+    cfg = _cfg(model, compile_mode)
     B = batch["x"].shape[0]
-    t_late = max(0, int(gamma * diffusion.num_timesteps) - 1)  # VW re-selection on x_t
-    t = torch.full((B,), t_late, dtype=torch.long, device=device)
+    state = getattr(model, "_smdm_state", None)
+    late = state.schedule.late_steps if state is not None else 1
+    t = torch.full((B,), max(0, late - 1), dtype=torch.long, device=device)
     x_t = diffusion.q_sample(batch["x"], t)
 
     def step() -> None:
-        with torch.no_grad():
-            x_t.add_(0)  # bump the version: every step is a new x_t (no stale mask cache)
+        with torch.no_grad(), _autocast(device, amp):
+            x_t.add_(0)                              # a new x_t every time
             cfg(x_t, t, dict(batch["y"]))
 
     return step
 
 
+def _sample_loop_fn(model, diffusion, batch, device, amp: str, compile_mode: str) -> Callable[[], None]:
+    cfg = _cfg(model, compile_mode)
+    shape = tuple(batch["x"].shape)
+    g = torch.Generator(device=device).manual_seed(0)
+
+    def loop() -> None:
+        with torch.no_grad(), _autocast(device, amp):
+            diffusion.p_sample_loop(cfg, shape, {"y": dict(batch["y"])}, device=device, generator=g)
+
+    return loop
+
+
 def _overhead_fns(model, batch, device, train: bool):
     """Keyframe selection and the interpolation back to all frames, alone, with the step's
     shapes: ``(select, interp)`` callables."""
+    from ..adapters.mdm import call_plan
     from ..adapters.state import frames_layout, get_state
-    from ..core.attention_backends import Packing, get_backend, supports_packed, varlen_backend
+    from ..core.attention_backends import fill_frames
 
     state = get_state(model)
-    sched, tr = state.schedule, state.transformer
     frames = frames_layout(batch["x"])
     lengths = batch["lengths"].to(device)
     B, N = frames.shape[:2]
-    d = model.latent_dim
     if train:
         def select():
-            return sched.training_mask(frames, lengths)
+            return state.schedule.training_mask(frames, lengths, checked=True)
     else:
-        t = torch.zeros(B, dtype=torch.long, device=device)
+        late = torch.zeros(B, dtype=torch.long, device=device)
 
         def select():
-            return sched.sampling_mask(frames, t, lengths)
-    mask = select()
+            return state.schedule.sampling_mask(frames, late, lengths, checked=True)
+    y = dict(batch["y"])
+    y["keyframe_mask"], y["keyframe_capacity"] = select(), state.schedule.capacity(N, training=train)
+    plan = call_plan(state, batch["x"], None, y)
     lead = 1 if model.arch == "trans_enc" or getattr(model, "emb_trans_dec", False) else 0
-    tr.n_lead = lead
-    keep = torch.cat([mask.new_ones(B, lead), mask], 1) if lead else mask
-    packed = (get_backend(tr.backend, device, train) is varlen_backend and tr.interpolate
-              and supports_packed(tr.inner))
-    if packed:
-        T = int(keep.sum())
-        h = torch.randn(T, d, device=device, requires_grad=train)
-        fill = lambda: tr._packed_fill(h, Packing(keep), keep)
-    else:
-        h = torch.randn(N + lead, B, d, device=device, requires_grad=train)
-        fill = lambda: tr._fill(h, keep)
+    K = plan.capacity
+    h = torch.randn((lead + K) * B, model.latent_dim, device=device, requires_grad=train)
+    rows = torch.arange((lead + K) * B, device=device).view(lead + K, B)
 
     def interp():
         if train:
-            fill().sum().backward()
+            fill_frames(h, rows, plan, lead).sum().backward()
         else:
             with torch.no_grad():
-                fill()
+                fill_frames(h, rows, plan, lead)
 
     return select, interp
 
 
 # ----------------------------------------------------------------------------------------- run
-def run_bench(archs=("trans_enc", "trans_dec"), reductions=(0.6, 0.7, 0.8, 0.9), batch: int = 64,
-              frames: int = 196, repeats: int = 3, warmup: int = 1, device: str = "auto",
-              quick: bool = False, backend: str = "auto", steps: int = 1000, fastpath: bool = False,
-              modes=("train", "sample"), progress: Optional[Callable[[str], None]] = None
-              ) -> Dict[str, Any]:
-    """Interleaved: every repeat times dense and each reduction in turn, so that load from other
-    processes (shared CI machines) hits all variants alike. Wall-clock and process CPU time."""
+def run_bench(archs: Sequence[str] = ("trans_enc", "trans_dec"), reductions: Sequence[float] = (0.6, 0.7, 0.8, 0.9),
+              batch: int = 64, frames: int = 196, repeats: int = 3, warmup: int = 1, device: str = "auto",
+              quick: bool = False, backend: str = "auto", steps: int = 50, fastpath: bool = False,
+              modes: Sequence[str] = ("train", "sample"), amp: str = "fp32", compile_mode: str = "none",
+              progress: Optional[Callable[[str], None]] = None) -> Dict[str, Any]:
+    """Dense and sparse, interleaved per repeat; wall-clock, process CPU time, peak memory."""
     mha = getattr(torch.backends, "mha", None)
     has_fp = mha is not None and hasattr(mha, "set_fastpath_enabled")
     before = mha.get_fastpath_enabled() if has_fp else None
     if has_fp:
         mha.set_fastpath_enabled(bool(fastpath))
     try:
-        return _run_bench(archs, reductions, batch, frames, repeats, warmup, device, quick, backend, steps,
-                          fastpath, modes, progress)
+        return _run_bench(list(archs), list(reductions), batch, frames, repeats, warmup, device, quick, backend,
+                          steps, fastpath, list(modes), amp, compile_mode, progress)
     finally:
         if has_fp:
             mha.set_fastpath_enabled(before)
 
 
 def _run_bench(archs, reductions, batch, frames, repeats, warmup, device, quick, backend, steps, fastpath,
-               modes, progress) -> Dict[str, Any]:
+               modes, amp, compile_mode, progress) -> Dict[str, Any]:
+    from ..core.attention_backends import resolve_backend_name
+
     dev = pick_device(device)
     if dev.type == "cpu":
         _pin_malloc()
@@ -273,12 +302,14 @@ def _run_bench(archs, reductions, batch, frames, repeats, warmup, device, quick,
     say = progress or (lambda s: None)
     rows: List[Dict[str, Any]] = []
     variants: List[Optional[float]] = [None] + list(reductions)
+    makers = {"train": _train_step_fn, "sample": _sample_step_fn, "loop": _sample_loop_fn}
     for arch in archs:
         for mode in modes:
+            sparse_kw = {"dynamic_update": True} if mode == "sample" else {}
             cells = []
             for red in variants:
-                model, diffusion = build(arch, red, dev, quick, steps, backend)
-                fn = (_train_step_fn if mode == "train" else _sample_step_fn)(model, diffusion, data, dev)
+                model, diffusion = build(arch, red, dev, quick, steps, backend, **sparse_kw)
+                fn = makers[mode](model, diffusion, data, dev, amp, compile_mode)
                 cells.append({"red": red, "model": model, "fn": fn, "wall": [], "cpu": [], "mem": 0})
             for _ in range(warmup):
                 for c in cells:
@@ -302,23 +333,27 @@ def _run_bench(archs, reductions, batch, frames, repeats, warmup, device, quick,
                     "variant": "dense" if red is None else f"sparse {int(round(red * 100))}%",
                     "median_s": wall, "cpu_s": cpu, "times_s": c["wall"], "cpu_times_s": c["cpu"],
                     "speedup": d_wall / wall, "cpu_speedup": d_cpu / cpu, "peak_mem_mib": c["mem"] / 2 ** 20,
+                    "mem_ratio": c["mem"] / dense["mem"] if dense["mem"] > 0 else None,
                 }
-                if red is not None:
+                if red is not None and mode != "loop":
                     sel, interp = _overhead_fns(c["model"], data, dev, mode == "train")
-                    t_sel = statistics.median(time_it(sel, dev, repeats, 1))
-                    t_int = statistics.median(time_it(interp, dev, repeats, 1))
-                    # CFG: both forward passes interpolate; the mask is selected once (cached)
-                    n_int = 1 if mode == "train" else 2
-                    row.update(select_s=t_sel, interp_s=t_int * n_int,
-                               overhead_share=(t_sel + t_int * n_int) / wall)
+                    with _autocast(dev, amp):
+                        t_sel = statistics.median(time_it(sel, dev, repeats, 1))
+                        t_int = statistics.median(time_it(interp, dev, repeats, 1))
+                    n_int = 1 if mode == "train" else 2   # CFG: two forward passes, two selections
+                    n_sel = 1 if mode == "train" else 2
+                    row.update(select_s=t_sel * n_sel, interp_s=t_int * n_int,
+                               overhead_share=(t_sel * n_sel + t_int * n_int) / wall)
                 rows.append(row)
                 say(_row_line(row))
             del cells
+    sparse_backend = resolve_backend_name(backend, dev) if compile_mode == "none" else "compact"
     return {
         "device": str(dev), "device_name": _device_name(dev), "torch": torch.__version__,
         "threads": torch.get_num_threads(), "batch": batch, "frames": frames,
         "lengths": [int(v) for v in data["lengths"]], "model": mdm_size(quick), "repeats": repeats,
-        "warmup": warmup, "backend": backend, "fastpath": bool(fastpath), "diffusion_steps": steps,
+        "warmup": warmup, "backend": backend, "sparse_backend": sparse_backend, "amp": amp,
+        "compile": compile_mode, "fastpath": bool(fastpath), "diffusion_steps": steps,
         "load_average": _loadavg(), "rows": rows, "targets": TARGETS,
     }
 
@@ -339,46 +374,49 @@ def _device_name(dev: torch.device) -> str:
 
 
 def _row_line(r: Dict[str, Any]) -> str:
-    sp = f" x{r['speedup']:.2f} (cpu x{r['cpu_speedup']:.2f})"
     ov = f" overhead {100 * r['overhead_share']:.1f}%" if "overhead_share" in r else ""
-    return f"{r['arch']} {r['mode']:6s} {r['variant']:10s} {r['median_s'] * 1000:9.1f} ms{sp}{ov}"
+    return (f"{r['arch']} {r['mode']:6s} {r['variant']:10s} {r['median_s'] * 1000:9.1f} ms "
+            f"x{r['speedup']:.2f} (cpu x{r['cpu_speedup']:.2f}){ov}")
 
 
 def markdown(result: Dict[str, Any]) -> str:
+    mode = f"{result['amp']}, {'eager' if result['compile'] == 'none' else 'torch.compile ' + result['compile']}"
     lines = [f"device: {result['device_name']} ({result['device']}), torch {result['torch']}, "
-             f"{result['threads']} threads; batch {result['batch']}, {result['frames']} frames, model "
-             f"{result['model']}; median of {result['repeats']} (interleaved) after {result['warmup']} "
-             f"warm-up; load average {result.get('load_average')}",
+             f"{result['threads']} threads; {mode}; sparse attention backend: {result['sparse_backend']}; "
+             f"batch {result['batch']}, {result['frames']} frames, model {result['model']}, "
+             f"T = {result['diffusion_steps']}; median of {result['repeats']} (dense and sparse interleaved) "
+             f"after {result['warmup']} warm-up; load average {result.get('load_average')}",
              "",
-             "| arch | step | variant | wall (ms) | speed-up (wall) | CPU time (ms) | speed-up (CPU) | "
-             "selection (ms) | interpolation (ms) | overhead share | peak mem (MiB) |",
-             "| --- | --- | --- | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: |"]
+             "| arch | step | variant | wall (ms) | speed-up | CPU time (ms) | speed-up (CPU) | "
+             "selection (ms) | interpolation (ms) | overhead share | peak mem (MiB) | mem vs dense |",
+             "| --- | --- | --- | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: |"]
     for r in result["rows"]:
-        sp = "—" if r.get("speedup") is None else f"{r['speedup']:.2f}×"
         sel = f"{r['select_s'] * 1000:.1f}" if "select_s" in r else "—"
         itp = f"{r['interp_s'] * 1000:.1f}" if "interp_s" in r else "—"
         ov = f"{100 * r['overhead_share']:.1f}%" if "overhead_share" in r else "—"
-        lines.append(f"| {r['arch']} | {r['mode']} | {r['variant']} | {r['median_s'] * 1000:.1f} | {sp} | "
-                     f"{r['cpu_s'] * 1000:.1f} | {r['cpu_speedup']:.2f}× | "
-                     f"{sel} | {itp} | {ov} | {r['peak_mem_mib']:.0f} |")
+        mr = "—" if r["variant"] == "dense" or r.get("mem_ratio") is None else f"{r['mem_ratio']:.2f}"
+        lines.append(f"| {r['arch']} | {r['mode']} | {r['variant']} | {r['median_s'] * 1000:.1f} | "
+                     f"{r['speedup']:.2f}× | {r['cpu_s'] * 1000:.1f} | {r['cpu_speedup']:.2f}× | "
+                     f"{sel} | {itp} | {ov} | {r['peak_mem_mib']:.0f} | {mr} |")
     at = [r for r in result["rows"] if abs(r["reduction"] - 0.8) < 1e-9]
     if at:
-        lines += ["", "targets at 80% reduction: training ≥ 4×, sampling ≥ 3.5×, selection + "
-                  "interpolation < 10% of the sparse step"]
+        lines += ["", "at 80% reduction (targets: training ≥ 4×, sampling step ≥ 3.5×, sampling loop ≥ 3×, "
+                  "selection + interpolation < 10% of the sparse step):"]
         for r in at:
             tgt = TARGETS[r["mode"]]
-            ok = r["speedup"] is not None and r["speedup"] >= tgt
-            lines.append(f"* {r['arch']} {r['mode']}: {r['speedup']:.2f}× wall, {r['cpu_speedup']:.2f}× CPU "
-                         f"(target {tgt}×) "
-                         f"{'met' if ok else 'MISSED'}; overhead {100 * r['overhead_share']:.1f}% "
-                         f"{'met' if r['overhead_share'] < TARGETS['overhead'] else 'MISSED'}")
+            ov = ""
+            if "overhead_share" in r:
+                ov = (f"; overhead {100 * r['overhead_share']:.1f}% "
+                      f"{'met' if r['overhead_share'] < TARGETS['overhead'] else 'MISSED'}")
+            lines.append(f"* {r['arch']} {r['mode']}: {r['speedup']:.2f}× (target {tgt}×) "
+                         f"{'met' if r['speedup'] >= tgt else 'MISSED'}{ov}")
     return "\n".join(lines)
 
 
 # ----------------------------------------------------------------------------------------- keyframes
 def bench_keyframes(batch: int = 64, frames: int = 196, dims: int = 64, reduction: float = 0.8,
                     repeats: int = 5, device: str = "auto") -> Dict[str, Any]:
-    """Batched VW on ``[batch, frames, dims]`` (random walk features, full lengths)."""
+    """VW selection (the fused op) on ``[batch, frames, dims]`` (random-walk features, full lengths)."""
     from ..core.selection import select_keyframes
 
     dev = pick_device(device)
@@ -390,24 +428,36 @@ def bench_keyframes(batch: int = 64, frames: int = 196, dims: int = 64, reductio
 
 
 # ----------------------------------------------------------------------------------------- CLI
+QUICK = {"batch": 4, "frames": 60, "repeats": 1, "warmup": 0}
+
+
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--arch", nargs="+", default=["trans_enc", "trans_dec"], choices=["trans_enc", "trans_dec"])
-    p.add_argument("--reductions", nargs="+", type=float, default=[0.6, 0.7, 0.8, 0.9])
-    p.add_argument("--batch", type=int, default=64)
-    p.add_argument("--frames", type=int, default=196)
-    p.add_argument("--repeats", type=int, default=3, help="timed runs per cell (median reported)")
-    p.add_argument("--warmup", type=int, default=1, help="untimed runs before timing")
-    p.add_argument("--device", default="auto", help="auto (cuda if available) | cpu | cuda | cuda:1 ...")
+    p.add_argument("--reductions", nargs="+", type=float_range(0.0, 1.0, hi_open=True), default=[0.6, 0.7, 0.8, 0.9],
+                   help="fractions of frames dropped, each in [0, 1)")
+    p.add_argument("--batch", type=int_range(1), default=None, help="motions per batch (default 64)")
+    p.add_argument("--frames", type=int_range(2), default=None, help="frames per motion (default 196)")
+    p.add_argument("--repeats", type=int_range(1), default=None, help="timed runs per cell, median reported (default 3)")
+    p.add_argument("--warmup", type=int_range(0), default=None, help="untimed runs before timing (default 1)")
+    p.add_argument("--device", type=device_type, default="auto", help="auto (cuda if available) | cpu | cuda | cuda:N | mps")
     p.add_argument("--backend", default="auto", choices=["auto", "compact", "varlen", "masked"],
                    help="keyframe attention backend of the sparse model")
-    p.add_argument("--modes", nargs="+", default=["train", "sample"], choices=["train", "sample"])
-    p.add_argument("--steps", type=int, default=1000, help="diffusion steps T (MDM: 1000)")
-    p.add_argument("--threads", type=int, default=None, help="torch.set_num_threads (CPU)")
+    p.add_argument("--modes", nargs="+", default=["train", "sample"], choices=list(MODES),
+                   help="train: one training step; sample: one CFG sampling step (VW on x_t); "
+                        "loop: the whole T-step CFG sampling loop")
+    p.add_argument("--steps", type=int_range(1), default=50, help="diffusion steps T (paper recipe: 50)")
+    p.add_argument("--amp", choices=["fp32", "bf16"], default="fp32", help="bf16: torch.autocast for both")
+    p.add_argument("--compile", dest="compile_mode", default="none",
+                   choices=["none", "default", "reduce-overhead", "max-autotune"],
+                   help="torch.compile dense and sparse models alike (fullgraph) with this mode")
+    p.add_argument("--threads", type=int_range(1), default=None, help="torch.set_num_threads (CPU)")
     p.add_argument("--fastpath", action="store_true",
                    help="leave torch's MHA/Transformer fast path enabled (default: off for dense and sparse)")
     p.add_argument("--quick", action="store_true",
-                   help="tiny model, batch 4, 60 frames, 1 repeat, no warm-up: a smoke run")
-    p.add_argument("--out", default=None, help="write the JSON result here (and the table beside it, .md)")
+                   help=f"a smoke run: tiny model; batch, frames, repeats and warm-up default to {QUICK} "
+                        "(values you pass win)")
+    p.add_argument("--out", default=None, help="write the result as <out>.json and the table as <out>.md")
+    add_overwrite(p)
 
 
 def busy_note(threads: int) -> Optional[str]:
@@ -421,51 +471,65 @@ def busy_note(threads: int) -> Optional[str]:
     return None
 
 
-def main_bench(args: argparse.Namespace) -> Dict[str, Any]:
+def output_paths(out: str):
+    """``(json, md)`` for ``--out`` (``x``, ``x.json`` or ``x.md`` all give ``x.json`` + ``x.md``)."""
+    base, ext = os.path.splitext(out)
+    base = base if ext.lower() in (".json", ".md") else out
+    return base + ".json", base + ".md"
+
+
+def main_bench(args: argparse.Namespace, parser: argparse.ArgumentParser) -> Dict[str, Any]:
+    from ..io.files import OutputExistsError, atomic_write_json, atomic_write_text, check_new_file
+
+    defaults = QUICK if args.quick else {"batch": 64, "frames": 196, "repeats": 3, "warmup": 1}
+    for k, v in defaults.items():
+        if getattr(args, k) is None:
+            setattr(args, k, v)
+    paths = None
+    if args.out:
+        paths = output_paths(args.out)
+        try:
+            for p in paths:
+                check_new_file(p, args.overwrite, "smdm bench: --out")
+        except OutputExistsError as e:
+            parser.error(str(e))
     if args.threads:
         torch.set_num_threads(args.threads)
     note = busy_note(torch.get_num_threads()) if pick_device(args.device).type == "cpu" else None
     if note:
         print(note, file=sys.stderr)
-    if args.quick:
-        args.batch, args.frames = min(args.batch, 4), min(args.frames, 60)
-        args.repeats, args.warmup = 1, 0
-    result = run_bench(args.arch, args.reductions, args.batch, args.frames, args.repeats, args.warmup,
-                       args.device, args.quick, args.backend, args.steps, args.fastpath, args.modes,
+    result = run_bench(args.arch, args.reductions, args.batch, args.frames, args.repeats, args.warmup, args.device,
+                       args.quick, args.backend, args.steps, args.fastpath, args.modes, args.amp, args.compile_mode,
                        progress=lambda s: print(s, file=sys.stderr, flush=True))
     table = markdown(result)
     print(table)
-    if args.out:
-        os.makedirs(os.path.dirname(os.path.abspath(args.out)), exist_ok=True)
-        with open(args.out, "w") as f:
-            json.dump(result, f, indent=2)
-        with open(os.path.splitext(args.out)[0] + ".md", "w") as f:
-            f.write(table + "\n")
-        print(f"\nwrote {args.out}")
+    if paths:
+        atomic_write_json(paths[0], result)
+        atomic_write_text(paths[1], table + "\n")
+        print(f"\nwrote {paths[0]} and {paths[1]}")
     return result
 
 
 def main(argv: Optional[List[str]] = None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
     if argv and argv[0] == "keyframes":
-        p = argparse.ArgumentParser(prog="python -m smdm_plugin.bench keyframes",
-                                    description="time batched VW keyframe selection")
-        p.add_argument("--batch", type=int, default=64)
-        p.add_argument("--frames", type=int, default=196)
-        p.add_argument("--dims", type=int, default=64)
-        p.add_argument("--reduction", type=float, default=0.8)
-        p.add_argument("--repeats", type=int, default=5)
-        p.add_argument("--device", default="auto")
+        p = argparse.ArgumentParser(prog="smdm bench keyframes", description="time VW keyframe selection")
+        p.add_argument("--batch", type=int_range(1), default=64)
+        p.add_argument("--frames", type=int_range(2), default=196)
+        p.add_argument("--dims", type=int_range(1), default=64)
+        p.add_argument("--reduction", type=float_range(0.0, 1.0, hi_open=True), default=0.8)
+        p.add_argument("--repeats", type=int_range(1), default=5)
+        p.add_argument("--device", type=device_type, default="auto")
         a = p.parse_args(argv[1:])
         r = bench_keyframes(a.batch, a.frames, a.dims, a.reduction, a.repeats, a.device)
-        print(f"batched VW on {r['shape']} (reduction {r['reduction']}, {r['device']}): "
-              f"{r['median_s'] * 1000:.1f} ms (median of {len(r['times_s'])})")
+        print(f"VW keyframe selection on {r['shape']} (reduction {r['reduction']}, {r['device']}): "
+              f"{r['median_s'] * 1000:.2f} ms (median of {len(r['times_s'])})")
         return 0
     if argv and argv[0] == "steps":
         argv = argv[1:]
     p = argparse.ArgumentParser(prog="smdm bench", description=__doc__.split("\n\n")[0])
     add_arguments(p)
-    main_bench(p.parse_args(argv))
+    main_bench(p.parse_args(argv), p)
     return 0
 
 

@@ -100,7 +100,8 @@ def load_clips(files: Sequence[str], fps: int = 20, max_clips: Optional[int] = N
                 reason = str(e).splitlines()[0][:200] if str(e) else type(e).__name__
         for w in caught:
             if issubclass(w.category, UserWarning):
-                log(f"  note: {f}: {str(w.message).splitlines()[0][:200]}")
+                msg = " ".join(str(w.message).split())
+                log(f"  note: {msg if f in msg else f'{f}: {msg}'} ({w.category.__name__})")
             else:  # not ours to judge: hand it back
                 warnings.warn_explicit(w.message, w.category, w.filename, w.lineno)
         if reason is not None:
@@ -283,7 +284,8 @@ def inbetween_demo(bundles: Dict[str, Any], clip: Tuple[str, np.ndarray], length
                    seed: int, device: Any, gif: bool, progress: bool, stride: int = 1, note: str = "") -> str:
     """In-between one window of ``clip`` (keyframes every ``every`` frames and the last) with each
     model of ``bundles``; writes ``inbetween.md`` and ``inbetween.gif`` to ``out``; returns the table."""
-    from .inbetween import keyframe_metrics, plan_keyframes, run_inbetween, summary_markdown
+    from ..metrics.inbetween import keyframe_metrics
+    from .inbetween import plan_keyframes, run_inbetween, summary_markdown
     from .motion_files import LoadedMotion
 
     name, joints = clip
@@ -360,7 +362,7 @@ def main_demo(args: argparse.Namespace) -> int:
     from ..io.bundle import save_bundle
     from ..io.representation import Representation
     from .bench import pick_device
-    from .trainer import BackboneSpec, CropSampler, feature_stats, train_dense_vs_sparse
+    from .pair_trainer import BackboneSpec, CropSampler, feature_stats, train_dense_vs_sparse
 
     t_start = time.perf_counter()
     if args.threads:

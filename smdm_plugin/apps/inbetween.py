@@ -36,6 +36,7 @@ import torch
 
 from ..adapters.inbetween import POLICIES
 from ..reference.diffusion import IMPUTATIONS
+from ..metrics.inbetween import keyframe_metrics
 from ._args import add_overwrite, device_type, int_range
 from .motion_files import ACCEPTED, LoadedMotion, add_motion_file_options
 
@@ -164,56 +165,6 @@ def run_inbetween(bundle: Any, source: LoadedMotion, kf: Keyframes, samples: int
     err = float(np.abs(out[:, kf.frames] - feats[kf.frames][None]).max())
     joints = np.asarray(bundle.representation.to_joints(out), np.float32) + offset
     return Result(bundle.label, out, joints, target, err, seconds)
-
-
-def transition_frames(given: torch.Tensor, lengths: torch.Tensor) -> torch.Tensor:
-    """bool ``[B, N]``: the frames on both sides of every change between given and generated frames
-    within the length — where the transitions are. An isolated keyframe: it and its two neighbours."""
-    B, N = given.shape
-    valid = torch.arange(N)[None] < lengths[:, None]
-    change = (given[:, 1:] != given[:, :-1]) & valid[:, 1:]
-    out = torch.zeros_like(given)
-    out[:, 1:] |= change
-    out[:, :-1] |= change
-    return out & valid
-
-
-def keyframe_metrics(joints: np.ndarray, target: np.ndarray, given: np.ndarray, fps: float = 20.0,
-                     lengths: Optional[Sequence[int]] = None, reference: bool = False,
-                     global_error: bool = True) -> Dict[str, float]:
-    """Metrics of in-betweens ``joints [S, N, J, 3]`` (metres) with keyframes ``given`` (bool ``[N]``
-    or ``[S, N]``) taken from ``target`` (``[N, J, 3]`` or ``[S, N, J, 3]``), over ``lengths`` valid
-    frames (None: all): keyframe error (mm, CondMDI's, global — unless ``global_error`` is False,
-    when the target's global positions are unknown — and root-relative), jitter at the transitions
-    (:func:`transition_frames`) and overall (m/s³, DNO's), foot skating ratio (GMD's). With
-    ``reference`` (the target is the real motion everywhere): the in-between frames' mean joint
-    error (mm) and the target's own jitter and foot skating."""
-    from ..metrics import foot_skating_ratio, jitter, keyframe_error
-
-    S, N = joints.shape[:2]
-    j = torch.as_tensor(np.asarray(joints, np.float64))
-    t = torch.as_tensor(np.asarray(target, np.float64)).expand_as(j)
-    g = torch.as_tensor(np.asarray(given, bool)).expand(S, N)
-    L = torch.full((S,), N, dtype=torch.long) if lengths is None else torch.as_tensor(lengths).long().reshape(S)
-    rel = lambda x: x - x[:, :, :1]  # noqa: E731
-    kf = [row.nonzero().flatten().tolist() for row in g]
-    m = {"keyframe_error_root_relative_mm": 1000 * float(keyframe_error(rel(j), rel(t), kf, fps=fps, lengths=L))}
-    if global_error:
-        m["keyframe_error_mm"] = 1000 * float(keyframe_error(j, t, kf, fps=fps, lengths=L))
-    if int(L.min()) >= 4:
-        trans = transition_frames(g, L)
-        m["jitter_transitions"] = float(jitter(j, fps=fps, lengths=L, frame_mask=trans))
-        m["jitter"] = float(jitter(j, fps=fps, lengths=L))
-        if reference:
-            m["reference_jitter_transitions"] = float(jitter(t, fps=fps, lengths=L, frame_mask=trans))
-            m["reference_jitter"] = float(jitter(t, fps=fps, lengths=L))
-    m["foot_skating"] = float(foot_skating_ratio(j, fps=fps, lengths=L))
-    if reference:
-        m["reference_foot_skating"] = float(foot_skating_ratio(t, fps=fps, lengths=L))
-        between = (torch.arange(N)[None] < L[:, None]) & ~g
-        if bool(between.any()):
-            m["inbetween_error_mm"] = 1000 * float((j - t).norm(dim=-1).mean(-1)[between].mean())
-    return m
 
 
 COLUMNS = (("keyframe feature error (max)", "feature_error", "{:.2g}"),

@@ -1,215 +1,638 @@
-"""Train the in-package backbone dense and sparse side by side on the same batches (``smdm demo``,
-``scripts/eval_inbetween.py``).
+"""The in-package trainer: the reference :class:`~smdm_plugin.reference.backbone.TinyMDM` +
+:class:`~smdm_plugin.reference.diffusion.SimpleDiffusion`, dense or sparse, on HumanML3D-format
+motion; one process, or many under ``torchrun`` (DistributedDataParallel).
 
-Both copies start from the same weights and see the same batches and diffusion steps; each training
-step goes to the copy that has used less time so far (time-slicing), so machine load hits both
-alike and the measured steps/s ratio is fair. Batches come from :class:`CropSampler`: random crops
-of variable length from whole motions, padded to ``N`` frames with MDM's valid-frame mask.
+    trainer = Trainer(TrainConfig(steps=300, sparse=SparseConfig()), load_humanml3d(root))
+    result = trainer.train()              # fixed step count (smdm ablate)
+    loss = trainer.step()                 # one optimiser step (smdm demo's time-sliced race)
+    trainer.save("runs/smdm")             # model*.pt + backbone.json (+ sparse_config.json)
+
+Under ``torchrun --nproc_per_node N -m smdm_plugin train ...`` every process builds the same model
+(same seed), wraps it in DDP (gradients all-reduced; ``gloo`` on CPU, ``nccl`` on CUDA) and trains
+on its own shard of every global batch; only rank 0 writes. The randomness that defines the
+objective (each sample's diffusion step ``t`` and noise) is a function of (seed, step, global
+sample index), so ``N`` processes with ``batch`` samples each follow the same trajectory as one
+process with ``N * batch`` (up to float rounding); dropout and training mask noise draw from a
+per-rank stream (seed offset by rank).
 """
 from __future__ import annotations
 
+import argparse
+import dataclasses
+import math
+import os
 import time
-from dataclasses import asdict, dataclass
+from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Any, Callable, Dict, List, Optional, Sequence, Tuple
 
 import numpy as np
 import torch
 import torch.nn as nn
 
-Transform = Callable[[np.ndarray], np.ndarray]
-#: a crop and two numbers uniform in [0, 1) -> the augmented crop
-Augment = Callable[[np.ndarray, float, float], np.ndarray]
+from ..core.config import CONFIG_FILENAME, SparseConfig
+from ..integrations.distributed import DistContext, constant_buffers_kwargs, init_distributed
+from ..io.checkpoint import BACKBONE_FILENAME
+from ..io.files import atomic_open, atomic_write_json, atomic_write_text
 
-#: HumanML3D's 22 joints: left and right counterparts (hips, knees, ankles, feet, collars, shoulders,
-#: elbows, wrists), as HumanML3D's own mirroring swaps them
-LEFT22 = (1, 4, 7, 10, 13, 16, 18, 20)
-RIGHT22 = (2, 5, 8, 11, 14, 17, 19, 21)
-
-
-def augment_joints22(crop: np.ndarray, u_angle: float, u_mirror: float) -> np.ndarray:
-    """Joints ``[l, 22, 3]`` (y up) turned about the vertical axis through the first frame's root
-    by ``2π u_angle`` and, when ``u_mirror < 0.5``, mirrored (x -> -x, left and right swapped)."""
-    j = np.array(crop, dtype=np.float32)
-    if u_mirror < 0.5:
-        j[..., 0] *= -1
-        j[:, LEFT22 + RIGHT22] = j[:, RIGHT22 + LEFT22]
-    a = 2 * np.pi * u_angle
-    c, s = np.cos(a), np.sin(a)
-    o = j[0, 0, [0, 2]]
-    x, z = j[..., 0] - o[0], j[..., 2] - o[1]
-    j[..., 0], j[..., 2] = c * x + s * z + o[0], -s * x + c * z + o[1]
-    return j
+#: TinyMDM size of ``smdm train`` / ``smdm ablate`` (MDM's HumanML3D size is 512-D, 8 layers, ff 1024)
+DEFAULT_MODEL: Dict[str, Any] = {"latent_dim": 128, "num_layers": 4, "num_heads": 4, "ff_size": 256,
+                                 "arch": "trans_enc", "dropout": 0.1}
+TRAIN_CONFIG_FILENAME = "train_config.json"
 
 
-class CropSampler:
-    """Batches ``(x [B, N, D] float32, lengths [B] long)`` of random crops.
+# ----------------------------------------------------------------------------------------- data
+@dataclass
+class MotionSet:
+    """Normalised motions, stored unpadded: ``frames [sum(lengths), D]`` float32 (sample ``i`` is
+    rows ``offsets[i]:offsets[i + 1]``), ``lengths [M]`` long, ``ids`` (M names), ``mean``/``std``
+    ``[D]`` (the normalisation, needed to select keyframes on de-normalised features), ``joints``
+    (optional, per sample ``[L, 22, 3]`` metres), ``max_frames`` N (batches are padded to it)."""
 
-    Args:
-        motions: whole motions ``[L_i, ...]`` (any per-frame shape ``transform`` accepts).
-        frames: ``N``, the padded length (and the longest crop).
-        min_frames: the shortest crop; crops take a length uniform in ``[min_frames, min(L_i, N)]``
-            (``min_frames == frames``: fixed-length crops).
-        transform: a crop ``[l, ...]`` -> features ``[l, D]`` (e.g. canonicalise and encode joints).
-        mean, std: ``[D]``, to normalise the features.
-        augment: applied to each crop before ``transform`` (e.g. :func:`augment_joints22`).
-    """
+    frames: torch.Tensor
+    lengths: torch.Tensor
+    ids: List[str]
+    mean: np.ndarray
+    std: np.ndarray
+    max_frames: int
+    joints: Optional[List[Optional[np.ndarray]]] = None
+    offsets: torch.Tensor = field(init=False)
 
-    def __init__(self, motions: Sequence[np.ndarray], frames: int, min_frames: int, transform: Transform,
-                 mean: np.ndarray, std: np.ndarray, augment: Optional[Augment] = None) -> None:
-        self.motions = [m for m in motions if len(m) >= min_frames]
-        if not self.motions:
-            raise ValueError(f"CropSampler: no motion has min_frames={min_frames} frames")
-        if not 2 <= min_frames <= frames:
-            raise ValueError(f"CropSampler: need 2 <= min_frames <= frames, got {min_frames}, {frames}")
-        self.frames, self.min_frames, self.transform = int(frames), int(min_frames), transform
-        self.mean, self.std = np.asarray(mean, np.float32), np.asarray(std, np.float32)
-        self.augment = augment
+    def __post_init__(self) -> None:
+        if self.frames.dim() != 2:
+            raise ValueError(f"MotionSet: frames must be [sum(lengths), D], got {tuple(self.frames.shape)}")
+        D = self.frames.shape[1]
+        if self.lengths.dim() != 1 or len(self.ids) != len(self.lengths):
+            raise ValueError(f"MotionSet: lengths must be [M] with M={len(self.ids)} ids, got "
+                             f"{tuple(self.lengths.shape)}")
+        if int(self.lengths.sum()) != self.frames.shape[0]:
+            raise ValueError(f"MotionSet: frames has {self.frames.shape[0]} rows but lengths sum to "
+                             f"{int(self.lengths.sum())}")
+        if len(self.lengths) and (int(self.lengths.min()) < 2 or int(self.lengths.max()) > self.max_frames):
+            raise ValueError(f"MotionSet: lengths must be in [2, max_frames={self.max_frames}], got "
+                             f"[{int(self.lengths.min())}, {int(self.lengths.max())}]")
+        for name in ("mean", "std"):
+            if np.shape(getattr(self, name)) != (D,):
+                raise ValueError(f"MotionSet: {name} must be [D]=[{D}], got {np.shape(getattr(self, name))}")
+        self.offsets = torch.cat([torch.zeros(1, dtype=torch.long), self.lengths.long().cumsum(0)])
 
-    def __call__(self, batch: int, generator: torch.Generator) -> Tuple[torch.Tensor, torch.Tensor]:
-        idx = torch.randint(0, len(self.motions), (batch,), generator=generator).tolist()
-        u = torch.rand(batch, 4, generator=generator, dtype=torch.float64).numpy()
-        x = np.zeros((batch, self.frames, self.mean.shape[0]), np.float32)
-        lengths = []
-        for b, i in enumerate(idx):
-            m = self.motions[i]
-            hi = min(len(m), self.frames)
-            length = self.min_frames + int(u[b, 0] * (hi - self.min_frames + 1))
-            start = int(u[b, 1] * (len(m) - length + 1))
-            crop = m[start:start + length]
-            if self.augment is not None:
-                crop = self.augment(crop, float(u[b, 2]), float(u[b, 3]))
-            x[b, :length] = (self.transform(crop) - self.mean) / self.std
-            lengths.append(length)
-        return torch.from_numpy(x), torch.tensor(lengths)
+    def __len__(self) -> int:
+        return len(self.ids)
+
+    @property
+    def feature_dim(self) -> int:
+        return int(self.frames.shape[1])
+
+    def padded(self, indices: Optional[Sequence[int]] = None) -> Tuple[torch.Tensor, torch.Tensor]:
+        """``(x [b, N, D], lengths [b])``: the samples ``indices`` (all when None), zero-padded to
+        ``N = max_frames``."""
+        idx = torch.arange(len(self)) if indices is None else torch.as_tensor(indices, dtype=torch.long)
+        x = self.frames.new_zeros(len(idx), self.max_frames, self.feature_dim)
+        for row, i in enumerate(idx.tolist()):
+            a, b = int(self.offsets[i]), int(self.offsets[i + 1])
+            x[row, :b - a] = self.frames[a:b]
+        return x, self.lengths[idx].clone()
+
+    @classmethod
+    def from_motions(cls, motions: Sequence[np.ndarray], mean: np.ndarray, std: np.ndarray,
+                     ids: Optional[Sequence[str]] = None, max_frames: int = 196,
+                     joints: Optional[List[Optional[np.ndarray]]] = None) -> "MotionSet":
+        """From raw (un-normalised) motions ``[L_i, D]``; each is cut to its first ``max_frames``."""
+        mean, std = np.asarray(mean, np.float32), np.asarray(std, np.float32)
+        cut = [np.asarray(m, np.float32)[:max_frames] for m in motions]
+        if not cut:
+            raise ValueError("MotionSet.from_motions: no motions given")
+        D = mean.shape[-1] if mean.ndim == 1 else -1
+        for name, v in (("mean", mean), ("std", std)):
+            if v.shape != (D,) or any(m.ndim != 2 or m.shape[1] != D for m in cut):
+                raise ValueError(f"MotionSet: motions must be [L, D] and {name} [D]; got {name} {v.shape} and "
+                                 f"motions {sorted({m.shape[1:] for m in cut})}")
+        frames = torch.from_numpy(np.concatenate([(m - mean) / std for m in cut]).astype(np.float32))
+        lengths = torch.tensor([len(m) for m in cut], dtype=torch.long)
+        names = list(ids) if ids is not None else [str(i) for i in range(len(cut))]
+        return cls(frames, lengths, names, mean, std, max_frames, joints)
+
+
+def load_humanml3d(root: str, split: str = "train", max_frames: int = 196, min_frames: int = 40,
+                   with_joints: bool = False) -> MotionSet:
+    """The ``split`` (``<root>/<split>.txt``) of a HumanML3D-format folder (``new_joint_vecs/*.npy``
+    ``[T, 263]``, ``Mean.npy``/``Std.npy``; ``new_joints/*.npy`` ``[T, 22, 3]`` with
+    ``with_joints``), normalised; motions shorter than ``min_frames`` are skipped, longer ones cut
+    to their first ``max_frames`` frames."""
+    base = Path(root)
+    missing = [n for n in ("Mean.npy", "Std.npy", "new_joint_vecs", f"{split}.txt") if not (base / n).exists()]
+    if missing:
+        raise FileNotFoundError(f"data: {root} is not a HumanML3D-format folder (missing {', '.join(missing)})")
+    if not 2 <= min_frames <= max_frames:
+        raise ValueError(f"load_humanml3d: need 2 <= min_frames <= max_frames, got {min_frames}, {max_frames}")
+    kept, motions, joints = [], [], []
+    for name in (base / f"{split}.txt").read_text().split():
+        path = base / "new_joint_vecs" / f"{name}.npy"
+        if not path.exists():
+            continue
+        motion = np.load(path)
+        if len(motion) < min_frames:
+            continue
+        kept.append(name)
+        motions.append(motion)
+        if with_joints:
+            jpath = base / "new_joints" / f"{name}.npy"
+            joints.append(np.load(jpath)[:max_frames].astype(np.float32) if jpath.exists() else None)
+    if not kept:
+        raise ValueError(f"data: split {split!r} of {root} has no motion of >= {min_frames} frames")
+    return MotionSet.from_motions(motions, np.load(base / "Mean.npy"), np.load(base / "Std.npy"), kept,
+                                  max_frames, joints if with_joints else None)
+
+
+# ----------------------------------------------------------------------------------------- randomness
+_MASK64 = (1 << 64) - 1
+
+
+def mix_seed(*values: int) -> int:
+    """A 63-bit seed from integers (splitmix64 over them): nearby inputs give unrelated streams."""
+    h = 0x9E3779B97F4A7C15
+    for v in values:
+        h = (h ^ (int(v) & _MASK64)) & _MASK64
+        h = (h + 0x9E3779B97F4A7C15) & _MASK64
+        z = h
+        z = ((z ^ (z >> 30)) * 0xBF58476D1CE4E5B9) & _MASK64
+        z = ((z ^ (z >> 27)) * 0x94D049BB133111EB) & _MASK64
+        h = z ^ (z >> 31)
+    return h & ((1 << 63) - 1)
+
+
+def global_batch_indices(step: int, global_batch: int, n: int, seed: int) -> torch.Tensor:
+    """The dataset indices ``[global_batch]`` of optimiser step ``step``: the next entries of an
+    endless stream of epoch permutations (epoch ``e``: ``randperm(n)`` seeded by ``(seed, e)``).
+    The same on every rank; rank ``r`` of ``W`` takes the slice ``[r*b, (r+1)*b)``."""
+    start = step * global_batch
+    pos = torch.arange(start, start + global_batch)
+    epochs, where = pos // n, pos % n
+    out = torch.empty(global_batch, dtype=torch.long)
+    for e in torch.unique(epochs).tolist():
+        perm = torch.randperm(n, generator=torch.Generator().manual_seed(mix_seed(seed, 1, e)))
+        sel = epochs == e
+        out[sel] = perm[where[sel]]
+    return out
+
+
+def diffusion_draws(seed: int, step: int, sample_ids: Sequence[int], num_timesteps: int,
+                    shape: Tuple[int, ...], device: torch.device) -> Tuple[torch.Tensor, torch.Tensor]:
+    """Each sample's diffusion step ``t [b]`` and noise ``[b, *shape]`` at ``step``, a function of
+    ``(seed, step, global sample index)`` only (so the split of a batch over ranks does not matter)."""
+    ts, noise = [], []
+    for i in sample_ids:
+        g = torch.Generator(device=device).manual_seed(mix_seed(seed, 2, step, int(i)))
+        ts.append(torch.randint(0, num_timesteps, (1,), generator=g, device=device))
+        noise.append(torch.randn(shape, generator=g, device=device))
+    return torch.cat(ts), torch.stack(noise)
+
+
+# ----------------------------------------------------------------------------------------- config
+@dataclass
+class TrainConfig:
+    """What to train and how. ``batch`` is per process (global batch = ``batch * world_size``);
+    ``model``: :class:`TinyMDM` keyword arguments (``njoints`` comes from the data); ``sparse``:
+    None trains the dense model. ``grad_clip`` 0 = off. ``compile``: ``torch.compile`` the
+    (DDP-wrapped) model with ``compile_backend``."""
+
+    steps: int = 1000
+    batch: int = 16
+    lr: float = 2e-4
+    weight_decay: float = 0.0
+    grad_clip: float = 0.0
+    diffusion_steps: int = 100
+    seed: int = 0
+    model: Dict[str, Any] = field(default_factory=lambda: dict(DEFAULT_MODEL))
+    sparse: Optional[SparseConfig] = None
+    compile: bool = False
+    compile_backend: str = "inductor"
+
+    def __post_init__(self) -> None:
+        checks = {"steps": self.steps >= 0, "batch": self.batch >= 1, "lr": self.lr > 0,
+                  "weight_decay": self.weight_decay >= 0, "grad_clip": self.grad_clip >= 0,
+                  "diffusion_steps": self.diffusion_steps >= 1}
+        expected = {"steps": "an int >= 0", "batch": "an int >= 1", "lr": "a float > 0",
+                    "weight_decay": "a float >= 0", "grad_clip": "a float >= 0 (0 = off)",
+                    "diffusion_steps": "an int >= 1"}
+        for name, ok in checks.items():
+            if not ok or (isinstance(getattr(self, name), float) and not math.isfinite(getattr(self, name))):
+                raise ValueError(f"TrainConfig.{name}={getattr(self, name)!r}: expected {expected[name]}")
+        if self.sparse is not None and not isinstance(self.sparse, SparseConfig):
+            raise TypeError(f"TrainConfig.sparse must be a SparseConfig or None, got {type(self.sparse).__name__}")
+        unknown = set(self.model) - set(_TINYMDM_ARGS)
+        if unknown:
+            raise ValueError(f"TrainConfig.model: unknown TinyMDM option(s) {sorted(unknown)}")
+
+    def to_dict(self) -> Dict[str, Any]:
+        d = dataclasses.asdict(self)
+        d["sparse"] = None if self.sparse is None else self.sparse.to_dict()
+        return d
+
+    @classmethod
+    def from_dict(cls, d: Dict[str, Any]) -> "TrainConfig":
+        d = dict(d)
+        if d.get("sparse") is not None and not isinstance(d["sparse"], SparseConfig):
+            d["sparse"] = SparseConfig.from_dict(d["sparse"])
+        return cls(**d)
+
+
+_TINYMDM_ARGS = ("latent_dim", "ff_size", "num_layers", "num_heads", "dropout", "activation", "arch",
+                 "emb_trans_dec", "mask_frames", "max_len")
 
 
 @dataclass
-class BackboneSpec:
-    """``TinyMDM`` size and the diffusion / sparse settings of a dense-vs-sparse pair."""
+class TrainResult:
+    """What :meth:`Trainer.train` did: ``losses`` (per step, mean over every sample of the global
+    batch), ``seconds`` (wall time spent in :meth:`Trainer.step`), ``world_size``,
+    ``global_batch``, ``total_steps`` (the trainer's step count afterwards), ``max_divergence``
+    (largest parameter or buffer difference between ranks after the last step; 0.0 = in sync)."""
 
-    features: int
-    latent: int = 256
-    layers: int = 4
-    heads: int = 4
-    dropout: float = 0.1
-    diffusion_steps: int = 100
-    reduction: float = 0.8
-    selection_feature: str = "raw"   # SparseConfig.feature
-    lr: float = 2e-4
+    losses: List[float]
+    seconds: float
+    world_size: int
+    global_batch: int
+    total_steps: int
+    max_divergence: float = 0.0
 
-    def backbone_kwargs(self) -> Dict[str, Any]:
-        return dict(njoints=self.features, nfeats=1, latent_dim=self.latent, ff_size=2 * self.latent,
-                    num_layers=self.layers, num_heads=self.heads, cond_mode="no_cond", dropout=self.dropout)
+    @property
+    def steps(self) -> int:
+        return len(self.losses)
+
+    @property
+    def steps_per_s(self) -> float:
+        return self.steps / self.seconds if self.seconds > 0 else float("nan")
+
+    @property
+    def samples_per_s(self) -> float:
+        return self.steps_per_s * self.global_batch
+
+    @property
+    def final_loss(self) -> float:
+        """Mean loss of the last 10% of the steps (nan when none)."""
+        if not self.losses:
+            return float("nan")
+        k = max(1, len(self.losses) // 10)
+        return float(np.mean(self.losses[-k:]))
+
+    @property
+    def best_loss(self) -> float:
+        """Lowest moving average (window: 10% of the steps)."""
+        if not self.losses:
+            return float("nan")
+        k = max(1, len(self.losses) // 10)
+        return float(np.convolve(self.losses, np.ones(k) / k, mode="valid").min())
+
+    def to_dict(self) -> Dict[str, Any]:
+        d = dataclasses.asdict(self)
+        d.update(steps=self.steps, steps_per_s=self.steps_per_s, samples_per_s=self.samples_per_s,
+                 final_loss=self.final_loss, best_loss=self.best_loss)
+        return d
 
 
-def build_pair(spec: BackboneSpec, device: torch.device, seed: int, mean=None, std=None
-               ) -> Dict[str, Tuple[nn.Module, Any]]:
-    """``{'dense': (model, diffusion), 'sparse': (model, diffusion)}`` from the same initial weights."""
-    from ..adapters.mdm import sparsify
-    from ..core.config import SparseConfig
-    from ..reference.backbone import TinyMDM
-    from ..reference.diffusion import SimpleDiffusion
+# ----------------------------------------------------------------------------------------- trainer
+class Trainer:
+    """TinyMDM + SimpleDiffusion training, dense or sparse, single process or DDP.
 
-    pair = {}
-    for name in ("dense", "sparse"):
-        torch.manual_seed(seed)
-        model = TinyMDM(**spec.backbone_kwargs()).to(device)
-        diffusion = SimpleDiffusion(spec.diffusion_steps)
-        if name == "sparse":
-            sparsify(model, SparseConfig(reduction=spec.reduction, feature=spec.selection_feature),
-                     diffusion=diffusion, mean=mean, std=std)
-        pair[name] = (model, diffusion)
-    return pair
+    Args:
+        config: the :class:`TrainConfig`.
+        data: the training :class:`MotionSet`.
+        dist: where this process stands; None: :func:`init_distributed` (joins the ``torchrun``
+            group when started by ``torchrun``, else a single process on ``device``).
+        device: ``auto`` | ``cpu`` | ``cuda`` | ``cuda:N`` | ``mps`` (used when ``dist`` is None).
 
+    Attributes: ``model`` (the plain module: save it, sample with it), ``diffusion``,
+    ``optimizer``, ``dist``, ``step_count`` (optimiser steps so far), ``losses`` (all of them).
+    """
 
-def _y(lengths: torch.Tensor, N: int, device: torch.device) -> Dict[str, Any]:
-    lengths = lengths.to(device)
-    return {"mask": (torch.arange(N, device=device)[None] < lengths[:, None]).view(-1, 1, 1, N),
-            "lengths": lengths}
+    def __init__(self, config: TrainConfig, data: MotionSet, dist: Optional[DistContext] = None,
+                 device: str = "auto") -> None:
+        from ..adapters.mdm import sparsify
+        from ..reference.backbone import TinyMDM
+        from ..reference.diffusion import SimpleDiffusion
 
+        if len(data) == 0:
+            raise ValueError("Trainer: data holds no motion")
+        self.config, self.data = config, data
+        self.dist = dist if dist is not None else init_distributed(device)
+        dev = self.dist.device
+        torch.manual_seed(config.seed)  # initial weights: equal on every rank
+        self.backbone_args: Dict[str, Any] = {"njoints": data.feature_dim, "nfeats": 1, "cond_mode": "no_cond",
+                                              **config.model}
+        self.model = TinyMDM(**self.backbone_args).to(dev)
+        self.diffusion = SimpleDiffusion(config.diffusion_steps)
+        if config.sparse is not None:
+            sparsify(self.model, config.sparse, diffusion=self.diffusion, mean=data.mean, std=data.std)
+        self.model.train()
+        self.forward_model: nn.Module = self.model
+        if self.dist.distributed:
+            from torch.nn.parallel import DistributedDataParallel
 
-def train_dense_vs_sparse(sample_batch: Callable[[int, torch.Generator], Tuple[torch.Tensor, torch.Tensor]],
-                          spec: BackboneSpec, seconds: float, batch: int = 32, device: Any = "cpu",
-                          seed: int = 0, max_steps: Optional[int] = None, progress: bool = True,
-                          mean=None, std=None, log_every: int = 0,
-                          validate: Optional[Callable[[nn.Module, Any], float]] = None
-                          ) -> Tuple[Dict[str, Any], Dict[str, Tuple[nn.Module, Any]]]:
-    """Train the pair for ``seconds`` in total (time-sliced) or ``max_steps`` each, whichever
-    comes first. Every ``log_every`` steps of a model (0: never) its mean recent loss is printed and
-    ``validate(model, diffusion)`` (e.g. a held-out loss; run in ``eval`` mode, untimed) recorded.
-    Returns ``(stats, pair)``: per model steps, seconds, steps/s, the loss curve, ``val``
-    ``[(step, value)]``, and ``speed_ratio`` (sparse / dense steps per second); ``pair`` as
-    :func:`build_pair`, trained (left in ``train`` mode)."""
-    dev = torch.device(device)
-    pair = build_pair(spec, dev, seed, mean, std)
-    runs: Dict[str, Dict[str, Any]] = {}
-    for name, (model, diffusion) in pair.items():
-        runs[name] = {"model": model.train(), "diffusion": diffusion, "spent": 0.0, "steps": 0, "loss": [], "val": [],
-                      "time": [], "opt": torch.optim.AdamW(model.parameters(), lr=spec.lr),
-                      "gen": torch.Generator().manual_seed(seed)}
-    warm = torch.Generator().manual_seed(seed + 1)
-    x, lengths = sample_batch(batch, warm)
-    for r in runs.values():  # one untimed warm-up step each (allocations, lazy optimiser state)
-        xx = x.permute(0, 2, 1).unsqueeze(2).to(dev)
-        t = torch.zeros(x.shape[0], dtype=torch.long, device=dev)
-        r["diffusion"].training_losses(r["model"], xx, t, {"y": _y(lengths, x.shape[1], dev)})["loss"].mean().backward()
-        r["model"].zero_grad(set_to_none=True)
-    bar = None
-    if progress:
-        from tqdm.auto import tqdm
+            self.forward_model = DistributedDataParallel(
+                self.model, device_ids=[dev.index] if dev.type == "cuda" else None, **constant_buffers_kwargs())
+        if config.compile:
+            self.forward_model = torch.compile(self.forward_model, backend=config.compile_backend)
+        self.optimizer = torch.optim.AdamW(self.model.parameters(), lr=config.lr,
+                                           weight_decay=config.weight_decay)
+        # dropout and training mask noise: a stream of their own on each rank
+        torch.manual_seed(mix_seed(config.seed, 3, self.dist.rank))
+        self.step_count = 0
+        self.losses: List[float] = []
 
-        if max_steps and not np.isfinite(seconds):
-            bar = tqdm(total=2 * max_steps, desc="training dense + sparse", unit="step", mininterval=0.5)
-        else:
-            bar = tqdm(total=round(seconds), desc="training dense + sparse (s)", mininterval=0.5,
-                       bar_format="{l_bar}{bar}| {n:.0f}/{total_fmt} s [{elapsed}<{remaining}]{postfix}")
-    while True:
-        live = [k for k, v in runs.items() if v["spent"] < seconds / 2 and not (max_steps and v["steps"] >= max_steps)]
-        if not live:
-            break
-        name = min(live, key=lambda k: runs[k]["spent"])
-        r = runs[name]
-        x, lengths = sample_batch(batch, r["gen"])  # same batches for both copies
-        t = torch.randint(0, r["diffusion"].num_timesteps, (batch,), generator=r["gen"]).to(dev)
-        xx = x.permute(0, 2, 1).unsqueeze(2).to(dev)
-        t0 = time.perf_counter()
-        loss = r["diffusion"].training_losses(r["model"], xx, t, {"y": _y(lengths, x.shape[1], dev)})["loss"].mean()
-        r["opt"].zero_grad(set_to_none=True)
+    @property
+    def global_batch(self) -> int:
+        return self.config.batch * self.dist.world_size
+
+    def batch_indices(self, step: int) -> torch.Tensor:
+        """This rank's dataset indices ``[batch]`` at ``step``."""
+        ids = global_batch_indices(step, self.global_batch, len(self.data), self.config.seed)
+        b = self.config.batch
+        return ids[self.dist.rank * b:(self.dist.rank + 1) * b]
+
+    def step(self) -> float:
+        """One optimiser step on this rank's shard of the next global batch; returns the loss
+        averaged over the whole global batch (every rank gets the same value)."""
+        dev, b, N = self.dist.device, self.config.batch, self.data.max_frames
+        ids = self.batch_indices(self.step_count)
+        x, lengths = self.data.padded(ids)
+        x = x.permute(0, 2, 1).unsqueeze(2).to(dev)  # [b, D, 1, N]
+        lengths = lengths.to(dev)
+        sample_ids = range(self.step_count * self.global_batch + self.dist.rank * b,
+                           self.step_count * self.global_batch + (self.dist.rank + 1) * b)
+        t, noise = diffusion_draws(self.config.seed, self.step_count, sample_ids, self.diffusion.num_timesteps,
+                                   tuple(x.shape[1:]), dev)
+        y = {"mask": (torch.arange(N, device=dev) < lengths[:, None]).view(b, 1, 1, N), "lengths": lengths}
+        loss = self.diffusion.training_losses(self.forward_model, x, t, {"y": y}, noise=noise)["loss"].mean()
+        self.optimizer.zero_grad(set_to_none=True)
         loss.backward()
-        r["opt"].step()
-        r["spent"] += time.perf_counter() - t0
-        r["steps"] += 1
-        r["loss"].append(loss.item())
-        r["time"].append(r["spent"])
-        if log_every and r["steps"] % log_every == 0:
-            line = f"{name} step {r['steps']}: loss {np.mean(r['loss'][-log_every:]):.4f}, {r['spent']:.0f} s"
-            if validate is not None:
-                r["model"].eval()
-                with torch.no_grad():
-                    r["val"].append((r["steps"], float(validate(r["model"], r["diffusion"]))))
-                r["model"].train()
-                line += f", validation {r['val'][-1][1]:.4f}"
-            print(line, flush=True)
+        if self.config.grad_clip > 0:
+            torch.nn.utils.clip_grad_norm_(self.model.parameters(), self.config.grad_clip)
+        self.optimizer.step()
+        value = float(self.dist.mean(loss.detach()))
+        if not math.isfinite(value):
+            raise FloatingPointError(f"Trainer: the loss became {value} at step {self.step_count}")
+        self.step_count += 1
+        self.losses.append(value)
+        return value
+
+    def train(self, steps: Optional[int] = None, progress: bool = False,
+              callback: Optional[Callable[["Trainer", float], None]] = None) -> TrainResult:
+        """Run ``steps`` more optimiser steps (default: up to ``config.steps`` in total);
+        ``callback(trainer, loss)`` after each; a tqdm bar (with ETA) on rank 0 when ``progress``."""
+        n = max(0, self.config.steps - self.step_count) if steps is None else int(steps)
+        if n < 0:
+            raise ValueError(f"Trainer.train: steps must be >= 0, got {steps}")
+        bar = None
+        if progress and self.dist.is_main:
+            from tqdm.auto import tqdm
+
+            bar = tqdm(total=n, desc="sparse" if self.config.sparse is not None else "dense",
+                       unit="step", mininterval=0.5)
+        losses: List[float] = []
+        seconds = 0.0  # in step() only: not the progress bar, not the callback (checkpoints)
+        for _ in range(n):
+            t0 = time.perf_counter()
+            losses.append(self.step())
+            seconds += time.perf_counter() - t0
+            if bar is not None:
+                bar.set_postfix_str(f"loss {np.mean(losses[-20:]):.4f}", refresh=False)
+                bar.update(1)
+            if callback is not None:
+                callback(self, losses[-1])
         if bar is not None:
-            bar.set_postfix_str(", ".join(f"{k} {v['steps']} steps loss {np.mean(v['loss'][-10:]):.3f}"
-                                          for k, v in runs.items() if v["loss"]), refresh=False)
-            done = (runs["dense"]["steps"] + runs["sparse"]["steps"] if bar.unit == "step"
-                    else min(seconds, runs["dense"]["spent"] + runs["sparse"]["spent"]))
-            bar.update(done - bar.n)  # refreshes at most every mininterval
-    if bar is not None:
-        bar.close()
-    stats: Dict[str, Any] = {"spec": asdict(spec), "batch": batch, "seed": seed}
-    for name, r in runs.items():
-        k = max(1, len(r["loss"]) // 10)
-        stats[name] = {"steps": r["steps"], "seconds": r["spent"],
-                       "steps_per_s": r["steps"] / max(r["spent"], 1e-9),
-                       "final_loss": float(np.mean(r["loss"][-k:])) if r["loss"] else None,
-                       "loss": r["loss"], "time": r["time"], "val": r["val"]}
-    stats["speed_ratio"] = stats["sparse"]["steps_per_s"] / max(stats["dense"]["steps_per_s"], 1e-9)
-    return stats, pair
+            bar.close()
+        return TrainResult(losses=losses, seconds=seconds, world_size=self.dist.world_size,
+                           global_batch=self.global_batch, total_steps=self.step_count,
+                           max_divergence=self.dist.max_divergence(self.model))
+
+    # ------------------------------------------------------------------------------ checkpoints
+    def checkpoint_name(self) -> str:
+        return f"model{self.step_count:09d}.pt"
+
+    def save(self, folder: str, extra: Optional[Dict[str, Any]] = None) -> Optional[str]:
+        """Write the checkpoint folder (rank 0 only; other ranks return None): ``model<step>.pt``
+        (the plain model's state dict), ``backbone.json`` (TinyMDM arguments), ``sparse_config.json``
+        (sparse models), ``Mean.npy``/``Std.npy``, ``train_config.json`` (+ ``extra``); each file
+        written atomically. :func:`smdm_plugin.load_checkpoint` reloads it. The caller checks
+        that ``folder`` may be written (``io.files.check_new_dir``)."""
+        if not self.dist.is_main:
+            return None
+        os.makedirs(folder, exist_ok=True)
+        path = os.path.join(folder, self.checkpoint_name())
+        with atomic_open(path, "wb") as f:
+            torch.save({k: v.detach().cpu() for k, v in self.model.state_dict().items()}, f)
+        atomic_write_json(os.path.join(folder, BACKBONE_FILENAME), self.backbone_args)
+        config = getattr(self.model, "smdm_config", None)
+        if config is not None:
+            atomic_write_text(os.path.join(folder, CONFIG_FILENAME), config.to_json() + "\n")
+        for name, value in (("Mean.npy", self.data.mean), ("Std.npy", self.data.std)):
+            with atomic_open(os.path.join(folder, name), "wb") as f:
+                np.save(f, np.asarray(value, np.float32))
+        atomic_write_json(os.path.join(folder, TRAIN_CONFIG_FILENAME),
+                          {**self.config.to_dict(), "world_size": self.dist.world_size,
+                           "global_batch": self.global_batch, "step": self.step_count, **(extra or {})})
+        return path
 
 
-def feature_stats(features: List[np.ndarray], eps: float = 1e-4) -> Tuple[np.ndarray, np.ndarray]:
-    """Mean and std ``[D]`` over every frame of ``features`` (``[L_i, D]`` each); std floored at ``eps``."""
-    allf = np.concatenate(features, 0).astype(np.float64)
-    return allf.mean(0).astype(np.float32), (allf.std(0) + eps).astype(np.float32)
+def load_trained(folder: str, step: Optional[int] = None, map_location: Any = "cpu"
+                 ) -> Tuple[nn.Module, Optional[SparseConfig]]:
+    """Reload a folder written by :meth:`Trainer.save` (the last ``model*.pt``, or ``step``'s),
+    sparse mode re-created with the saved Mean/Std: ``(model, sparse config or None)``."""
+    from ..io.checkpoint import load_checkpoint
+
+    names = sorted(n for n in os.listdir(folder) if n.startswith("model") and n.endswith(".pt"))
+    if step is not None:
+        names = [n for n in names if n == f"model{step:09d}.pt"]
+    if not names:
+        raise FileNotFoundError(f"load_trained: no model{'*' if step is None else f'{step:09d}'}.pt in {folder}")
+    mean = np.load(os.path.join(folder, "Mean.npy"))
+    std = np.load(os.path.join(folder, "Std.npy"))
+    return load_checkpoint(os.path.join(folder, names[-1]), map_location=map_location, mean=mean, std=std)
+
+
+# ----------------------------------------------------------------------------------------- CLI
+def build_parser() -> argparse.ArgumentParser:
+    from ._args import add_overwrite, device_type, float_range, int_range
+
+    p = argparse.ArgumentParser(
+        prog="smdm train",
+        description="Train the in-package TinyMDM (dense, or sparse keyframe mode with --sparse) on a "
+                    "HumanML3D-format folder and save a checkpoint folder that smdm_plugin.load_checkpoint "
+                    "reloads. Under torchrun (torchrun --nproc_per_node N -m smdm_plugin train ...) it trains "
+                    "with DistributedDataParallel; --batch is per process.",
+        epilog="example: torchrun --nproc_per_node 2 -m smdm_plugin train --data dataset/HumanML3D "
+               "--out runs/smdm --sparse")
+    p.add_argument("--data", required=True, metavar="DIR",
+                   help="HumanML3D-format folder (new_joint_vecs/, Mean.npy, Std.npy, <split>.txt)")
+    p.add_argument("--split", default="train", help="which <split>.txt to train on (default: train)")
+    p.add_argument("--max-frames", type=int_range(2, 10000), default=196,
+                   help="frames per sample; longer motions are cut (default: 196)")
+    p.add_argument("--min-frames", type=int_range(2, 10000), default=40,
+                   help="skip shorter motions (default: 40)")
+    p.add_argument("--out", required=True, metavar="DIR", help="checkpoint folder to write")
+    add_overwrite(p)
+    t = p.add_argument_group("training")
+    t.add_argument("--steps", type=int_range(1), default=1000, help="optimiser steps (default: 1000)")
+    t.add_argument("--batch", type=int_range(1), default=16,
+                   help="samples per process and step; global batch = batch x processes (default: 16)")
+    t.add_argument("--lr", type=float_range(0.0, lo_open=True), default=2e-4)
+    t.add_argument("--weight-decay", type=float_range(0.0), default=0.0)
+    t.add_argument("--grad-clip", type=float_range(0.0), default=0.0, help="max gradient norm (0: off)")
+    t.add_argument("--diffusion-steps", type=int_range(1, 100000), default=100)
+    t.add_argument("--seed", type=int_range(0), default=0)
+    t.add_argument("--save-every", type=int_range(0), default=0,
+                   help="also save a checkpoint every this many steps (0: only at the end)")
+    t.add_argument("--compile", action="store_true", help="torch.compile the model")
+    t.add_argument("--compile-backend", default="inductor", help="torch.compile backend (default: inductor)")
+    m = p.add_argument_group("model (TinyMDM)")
+    m.add_argument("--arch", choices=("trans_enc", "trans_dec"), default=DEFAULT_MODEL["arch"])
+    m.add_argument("--latent-dim", type=int_range(8, 65536), default=DEFAULT_MODEL["latent_dim"])
+    m.add_argument("--layers", type=int_range(1, 256), default=DEFAULT_MODEL["num_layers"])
+    m.add_argument("--heads", type=int_range(1, 256), default=DEFAULT_MODEL["num_heads"])
+    m.add_argument("--ff-size", type=int_range(1, 1 << 20), default=DEFAULT_MODEL["ff_size"])
+    m.add_argument("--dropout", type=float_range(0.0, 1.0, hi_open=True), default=DEFAULT_MODEL["dropout"])
+    SparseConfig.add_argparse_args(p, "sparse keyframe mode (sMDM)")
+    for action in p._actions:  # set by the trainer itself, or meaningless for an unconditional TinyMDM
+        if action.dest in _NOT_CLI_SPARSE:
+            action.help = argparse.SUPPRESS
+    r = p.add_argument_group("run")
+    r.add_argument("--device", type=device_type, default="auto",
+                   help="auto (cuda:LOCAL_RANK when CUDA is available), cpu, cuda, cuda:N, mps")
+    r.add_argument("--threads", type=int_range(1, 1024), default=None, help="torch.set_num_threads")
+    r.add_argument("--no-progress", action="store_true", help="no progress bar")
+    return p
+
+
+_NOT_CLI_SPARSE = {"sparse_diffusion_steps": "set from --diffusion-steps",
+                   "sparse_prefix_frames": "TinyMDM has no DiP prefix here",
+                   "sparse_text_encoder": "TinyMDM is trained unconditionally here"}
+
+
+def _parse(argv: Optional[List[str]]) -> Tuple[Any, TrainConfig]:
+    p = build_parser()
+    a = p.parse_args(argv)
+    if a.min_frames > a.max_frames:
+        p.error(f"--min-frames ({a.min_frames}) must be <= --max-frames ({a.max_frames})")
+    if a.latent_dim % a.heads:
+        p.error(f"--latent-dim ({a.latent_dim}) must be a multiple of --heads ({a.heads})")
+    for dest in _NOT_CLI_SPARSE:
+        if getattr(a, dest) != p.get_default(dest):
+            p.error(f"--{dest}: not an option of smdm train ({_NOT_CLI_SPARSE[dest]})")
+    try:
+        sparse = SparseConfig.from_args(a) if a.sparse else None
+    except ValueError as e:
+        p.error(str(e))
+    model = {"latent_dim": a.latent_dim, "num_layers": a.layers, "num_heads": a.heads, "ff_size": a.ff_size,
+             "arch": a.arch, "dropout": a.dropout}
+    cfg = TrainConfig(steps=a.steps, batch=a.batch, lr=a.lr, weight_decay=a.weight_decay, grad_clip=a.grad_clip,
+                      diffusion_steps=a.diffusion_steps, seed=a.seed, model=model, sparse=sparse,
+                      compile=a.compile, compile_backend=a.compile_backend)
+    return a, cfg
+
+
+#: what ``smdm train`` writes besides ``model<step>.pt``
+OUTPUT_FILES = (BACKBONE_FILENAME, CONFIG_FILENAME, TRAIN_CONFIG_FILENAME, "Mean.npy", "Std.npy", "losses.csv",
+                "loss.png", "result.json")
+
+
+def _prepare_out(out: str, overwrite: bool) -> None:
+    """Refuse a non-empty ``out`` unless ``overwrite``; with it, remove what an earlier run wrote
+    there (its ``model*.pt`` and :data:`OUTPUT_FILES`: a stale ``sparse_config.json`` would make a
+    dense checkpoint load as sparse) and leave other files alone."""
+    import re
+
+    from ..io.files import check_new_dir
+
+    check_new_dir(out, overwrite, what="--out")
+    for name in os.listdir(out):
+        if name in OUTPUT_FILES or re.fullmatch(r"model\d{9}\.pt", name):
+            os.remove(os.path.join(out, name))
+
+
+def write_logs(folder: str, losses: Sequence[float], result: Optional[TrainResult] = None) -> None:
+    """``losses.csv`` (step, loss), ``loss.png`` and, with ``result``, ``result.json``."""
+    lines = ["step,loss"] + [f"{i + 1},{v:.9g}" for i, v in enumerate(losses)]
+    atomic_write_text(os.path.join(folder, "losses.csv"), "\n".join(lines) + "\n")
+    if result is not None:
+        atomic_write_json(os.path.join(folder, "result.json"), result.to_dict())
+    if losses:
+        import matplotlib
+
+        matplotlib.use("Agg")
+        import matplotlib.pyplot as plt
+
+        fig, ax = plt.subplots(figsize=(7, 4))
+        k = max(1, len(losses) // 50)
+        smooth = np.convolve(losses, np.ones(k) / k, mode="valid")
+        ax.plot(np.arange(1, len(losses) + 1), losses, lw=0.5, alpha=0.4, label="per step")
+        ax.plot(np.arange(k, len(losses) + 1), smooth, lw=1.5, label=f"moving average ({k})")
+        ax.set_xlabel("optimiser step")
+        ax.set_ylabel("training loss")
+        ax.set_yscale("log")
+        ax.legend()
+        fig.tight_layout()
+        with atomic_open(os.path.join(folder, "loss.png"), "wb") as f:
+            fig.savefig(f, format="png", dpi=110)
+        plt.close(fig)
+
+
+def main(argv: Optional[List[str]] = None) -> int:
+    """``smdm train``; returns the exit status (2: bad arguments, data or output folder)."""
+    import sys
+
+    from ..integrations.distributed import shutdown_distributed
+    from ..io.files import OutputExistsError
+
+    a, cfg = _parse(argv)
+    if a.threads:
+        torch.set_num_threads(a.threads)
+    try:
+        data = load_humanml3d(a.data, a.split, a.max_frames, a.min_frames)
+        ctx = init_distributed(a.device)
+    except (FileNotFoundError, ValueError) as e:
+        print(f"smdm train: {e}", file=sys.stderr)
+        return 2
+    try:
+        message = ""
+        if ctx.is_main:
+            try:
+                _prepare_out(a.out, a.overwrite)
+            except OutputExistsError as e:
+                message = str(e)
+        if not ctx.broadcast_flag(not message):
+            if ctx.is_main:
+                print(f"smdm train: {message}", file=sys.stderr)
+            return 2
+        trainer = Trainer(cfg, data, dist=ctx)
+        if ctx.is_main:
+            kind = "sparse" if cfg.sparse is not None else "dense"
+            print(f"smdm train: {kind} TinyMDM, {len(data)} motions from {a.data} ({a.split}), {cfg.steps} steps "
+                  f"x global batch {trainer.global_batch} ({ctx.world_size} process(es) x {cfg.batch}) on "
+                  f"{ctx.device}" + (f", backend {torch.distributed.get_backend()}" if ctx.distributed else ""),
+                  flush=True)
+        extra = {"data": os.path.abspath(a.data), "split": a.split, "min_frames": a.min_frames,
+                 "max_frames": a.max_frames}
+
+        def every(tr: Trainer, loss: float) -> None:
+            if a.save_every and tr.step_count % a.save_every == 0 and tr.step_count < cfg.steps:
+                tr.save(a.out, extra)
+                if ctx.is_main:
+                    write_logs(a.out, tr.losses)
+
+        result = trainer.train(progress=not a.no_progress, callback=every)
+        path = trainer.save(a.out, extra)
+        if ctx.is_main:
+            write_logs(a.out, trainer.losses, result)
+            print(f"smdm train: {result.steps} steps in {result.seconds:.1f} s ({result.steps_per_s:.2f} steps/s, "
+                  f"{result.samples_per_s:.1f} samples/s), final loss {result.final_loss:.4f}; ranks in sync: "
+                  f"max |difference| {result.max_divergence:.3g}\nsaved {path}")
+        ctx.barrier()
+        return 0
+    finally:
+        shutdown_distributed(ctx)
+
+
+if __name__ == "__main__":
+    import sys
+
+    sys.exit(main())

@@ -1,22 +1,29 @@
-"""How keyframe tokens are packed for the wrapped transformer: a small backend registry.
+"""How keyframe tokens go through the wrapped transformer: a small backend registry.
 
-Every backend has the signature ``fn(inner, x, keep, memory=None, memory_key_padding_mask=None)``
-with ``x [S, B, d]`` (sequence first), ``keep`` bool ``[B, S]`` and returns ``[S, B, d]`` whose rows
-at ``keep`` hold the transformer output of the kept tokens attending to each other only (other rows
-are arbitrary).
+A backend runs the kept tokens of one call (the ``lead`` tokens before the frames — MDM
+trans_enc's timestep/text token — and the keyframes of a :class:`~smdm_plugin.core.plan.KeyframePlan`)
+through the wrapped ``nn.TransformerEncoder`` / ``nn.TransformerDecoder`` so that they attend to each
+other only. Signature::
+
+    fn(inner, x, plan, lead, memory=None, memory_key_padding_mask=None, lead_padding=None)
+        -> (h [R, d], rows [lead + K, B] long)
+
+with ``x [S, B, d]`` sequence-first (``S = lead + N``). ``h`` holds output rows and ``rows[s, b]`` is
+the row of lead token ``s`` / keyframe slot ``s - lead`` of sample ``b`` (padded slots may point
+anywhere valid). The keyframe transformer interpolates every frame from these rows.
 
 * ``masked``  — the whole sequence with a key-padding mask: the slow, obviously correct reference
   (costs as much as dense).
-* ``compact`` — gather the kept tokens to ``K_max`` slots per sample (padded, key-padding mask),
-  run the wrapped module, scatter back. Sort-free (cumsum slots). Used for layers ``varlen``
-  cannot re-apply (FSQ attention keys, custom layers).
-* ``varlen``  — pack kept tokens with no padding at all ``[T, d]`` and run the layer maths with
-  variable-length attention: ``flash_attn`` when importable, else PyTorch's ``varlen_attn`` on CUDA
-  (half precision, no attention dropout), else SDPA on a padded ``[B, H, K_max, Dh]`` view of the
-  attention only (projections, feed-forward and norms stay packed). The default (``auto``)
-  everywhere: on a 2-core CPU it runs ~37% fewer rows than ``compact`` for HumanML3D-like
-  lengths, and :class:`~smdm_plugin.keyframe_transformer.KeyframeTransformer` interpolates
-  straight from its packed rows.
+* ``compact`` — the lead tokens and the ``K`` plan slots gathered to ``[lead + K, B, d]`` with a key
+  padding mask over the empty slots, the wrapped module called as it is. Static shapes, no host
+  sync: the default on accelerators and under ``torch.compile``; also the fallback for layers
+  ``varlen`` cannot re-apply (FSQ attention keys, custom layers, hooks).
+* ``varlen``  — kept tokens packed with no padding at all ``[T, d]``, the layer maths of
+  ``nn.TransformerEncoderLayer`` / ``DecoderLayer`` re-applied with variable-length attention
+  (``flash_attn`` or PyTorch's ``varlen_attn`` on CUDA in half precision, else SDPA on a padded view
+  of the attention only). No padded rows in projections, feed-forward and norms, but the packed
+  size ``T`` is data-dependent (host syncs, dynamic shapes): the default in eager mode on the CPU,
+  where rows, not launches, cost time.
 """
 from __future__ import annotations
 
@@ -26,7 +33,10 @@ import torch
 import torch.nn as nn
 import torch.nn.functional as F
 
-Backend = Callable[..., torch.Tensor]
+from .checks import static_shapes
+from .plan import KeyframePlan
+
+Backend = Callable[..., Tuple[torch.Tensor, torch.Tensor]]
 _REGISTRY: Dict[str, Tuple[Backend, Callable[[torch.device], bool]]] = {}
 
 
@@ -40,19 +50,24 @@ def available_backends(device: torch.device) -> list:
     return [n for n, (_, ok) in _REGISTRY.items() if ok(torch.device(device))]
 
 
-def get_backend(name: str, device: torch.device, training: bool = False) -> Backend:
-    """The backend called ``name``; ``auto`` picks ``varlen`` (packed rows, no padding in the
-    projections / feed-forward; flash or varlen kernels on CUDA, padded SDPA elsewhere) when it is
-    available, else ``compact``. ``varlen`` itself falls back to ``compact`` for layers it cannot
-    re-apply (FSQ attention, custom layers). A forced backend that cannot run on ``device`` falls
-    back to ``compact``."""
+def resolve_backend_name(name: str, device: torch.device) -> str:
+    """The backend a call uses: ``auto`` is ``varlen`` in eager mode on the CPU and ``compact``
+    elsewhere (accelerators, where launches and syncs cost more than padded rows, and under
+    ``torch.compile``, which needs static shapes); a named backend that cannot run on ``device``
+    or under ``torch.compile`` (``varlen``) becomes ``compact``."""
     device = torch.device(device)
     if name == "auto":
-        name = "varlen" if _REGISTRY["varlen"][1](device) else "compact"
+        name = "varlen" if device.type == "cpu" and not static_shapes() else "compact"
     if name not in _REGISTRY:
         raise ValueError(f"attention backend {name!r} unknown; registered: {sorted(_REGISTRY)}")
-    fn, ok = _REGISTRY[name]
-    return fn if ok(device) else _REGISTRY["compact"][0]
+    if not _REGISTRY[name][1](device) or (name == "varlen" and static_shapes()):
+        return "compact"
+    return name
+
+
+def get_backend(name: str, device: torch.device, training: bool = False) -> Backend:
+    """The backend function :func:`resolve_backend_name` picks for ``name`` on ``device``."""
+    return _REGISTRY[resolve_backend_name(name, device)][0]
 
 
 # ---------------------------------------------------------------------------------- helpers
@@ -70,49 +85,43 @@ def _call_inner(inner: nn.Module, x: torch.Tensor, pad: Optional[torch.Tensor], 
     return out.transpose(0, 1) if bf else out
 
 
-def compact_indices(keep: torch.Tensor) -> Tuple[torch.Tensor, torch.Tensor]:
-    """Slots of the kept tokens, sort-free.
+def _slot_positions(plan: KeyframePlan, lead: int) -> torch.Tensor:
+    """``[lead + K, B]`` long: the sequence position of every lead token and plan slot."""
+    B = plan.batch
+    lead_pos = torch.arange(lead, device=plan.index.device)[:, None].expand(lead, B)
+    return torch.cat([lead_pos, lead + plan.slot_frames()], 0)
 
-    Args:
-        keep: bool ``[B, S]``.
-    Returns:
-        ``pos [B, K]`` long (source position of slot k; ``S`` for padded slots) and
-        ``valid [B, K]`` bool, with ``K = max kept count``.
-    """
-    B, S = keep.shape
-    counts = keep.sum(1)
-    K = int(counts.max())
-    slot = keep.cumsum(1) - 1
-    slot = torch.where(keep, slot, torch.full_like(slot, K))  # dropped tokens go to a dump column
-    pos = torch.full((B, K + 1), S, dtype=torch.long, device=keep.device)
-    src = torch.arange(S, device=keep.device).expand(B, S)
-    pos.scatter_(1, slot, src)  # dump column gets any value, cut below
-    pos = pos[:, :K]
-    valid = torch.arange(K, device=keep.device) < counts.unsqueeze(1)
-    return pos, valid
+
+def _lead_keep(plan: KeyframePlan, lead: int, lead_padding: Optional[torch.Tensor]) -> torch.Tensor:
+    """bool ``[B, lead]``: lead tokens that take part (all, unless the caller pads some)."""
+    if lead_padding is not None:
+        return ~lead_padding.to(torch.bool)
+    return plan.mask.new_ones(plan.batch, lead)
 
 
 # ---------------------------------------------------------------------------------- masked
-def masked_backend(inner: nn.Module, x: torch.Tensor, keep: torch.Tensor,
-                   memory: Optional[torch.Tensor] = None,
-                   memory_key_padding_mask: Optional[torch.Tensor] = None) -> torch.Tensor:
-    return _call_inner(inner, x, ~keep, memory, memory_key_padding_mask)
+def masked_backend(inner: nn.Module, x: torch.Tensor, plan: KeyframePlan, lead: int,
+                   memory: Optional[torch.Tensor] = None, memory_key_padding_mask: Optional[torch.Tensor] = None,
+                   lead_padding: Optional[torch.Tensor] = None) -> Tuple[torch.Tensor, torch.Tensor]:
+    S, B, d = x.shape
+    keep = torch.cat([_lead_keep(plan, lead, lead_padding), plan.mask], 1)
+    out = _call_inner(inner, x, ~keep, memory, memory_key_padding_mask)
+    rows = _slot_positions(plan, lead) * B + torch.arange(B, device=x.device)
+    return out.reshape(S * B, d), rows
 
 
 # ---------------------------------------------------------------------------------- compact
-def compact_backend(inner: nn.Module, x: torch.Tensor, keep: torch.Tensor,
-                    memory: Optional[torch.Tensor] = None,
-                    memory_key_padding_mask: Optional[torch.Tensor] = None) -> torch.Tensor:
+def compact_backend(inner: nn.Module, x: torch.Tensor, plan: KeyframePlan, lead: int,
+                    memory: Optional[torch.Tensor] = None, memory_key_padding_mask: Optional[torch.Tensor] = None,
+                    lead_padding: Optional[torch.Tensor] = None) -> Tuple[torch.Tensor, torch.Tensor]:
     S, B, d = x.shape
-    pos, valid = compact_indices(keep)  # [B, K]
-    K = pos.shape[1]
-    idx = pos.clamp(max=S - 1).t().unsqueeze(-1).expand(K, B, d)
-    xc = x.gather(0, idx)  # [K, B, d]
-    pad = ~valid
-    out_c = _call_inner(inner, xc, pad if bool(pad.any()) else None, memory, memory_key_padding_mask)
-    out = x.new_zeros(S + 1, B, d)
-    out = out.scatter(0, pos.t().unsqueeze(-1).expand(K, B, d), out_c)
-    return out[:S]
+    src = _slot_positions(plan, lead) * B + torch.arange(B, device=x.device)   # [lead + K, B]
+    R = src.shape[0]
+    xc = gather_rows(x.reshape(S * B, d), src.reshape(-1)).view(R, B, d)
+    pad = torch.cat([~_lead_keep(plan, lead, lead_padding), ~plan.valid], 1)  # [B, lead + K]
+    out = _call_inner(inner, xc, pad, memory, memory_key_padding_mask)
+    rows = torch.arange(R * B, device=x.device).view(R, B)
+    return out.reshape(R * B, d), rows
 
 
 # ---------------------------------------------------------------------------------- varlen
@@ -369,17 +378,23 @@ def varlen_packed(inner: nn.Module, x: torch.Tensor, keep: torch.Tensor,
     return h, pq
 
 
-def varlen_backend(inner: nn.Module, x: torch.Tensor, keep: torch.Tensor,
-                   memory: Optional[torch.Tensor] = None,
-                   memory_key_padding_mask: Optional[torch.Tensor] = None) -> torch.Tensor:
+def varlen_backend(inner: nn.Module, x: torch.Tensor, plan: KeyframePlan, lead: int,
+                   memory: Optional[torch.Tensor] = None, memory_key_padding_mask: Optional[torch.Tensor] = None,
+                   lead_padding: Optional[torch.Tensor] = None) -> Tuple[torch.Tensor, torch.Tensor]:
     """Packed tokens with no padding; the layer maths of ``nn.TransformerEncoderLayer`` /
     ``nn.TransformerDecoderLayer`` (post- or pre-norm) re-applied to ``[T, d]``. Layers it cannot
-    re-apply (FSQ attention, custom layers) make it fall back to ``compact``."""
-    if not all(_supports_varlen(layer) for layer in inner.layers):
-        return compact_backend(inner, x, keep, memory, memory_key_padding_mask)
-    S, B, d = x.shape
+    re-apply (FSQ attention, custom layers, hooks), padded lead tokens and ``torch.compile`` make it
+    fall back to ``compact``."""
+    if lead_padding is not None or static_shapes() or not supports_packed(inner):
+        return compact_backend(inner, x, plan, lead, memory, memory_key_padding_mask, lead_padding)
+    keep = torch.cat([plan.mask.new_ones(plan.batch, lead), plan.mask], 1)
     h, pq = varlen_packed(inner, x, keep, memory, memory_key_padding_mask)
-    return scatter_rows(h, pq.src * B + pq.seg, S * B).view(S, B, d)
+    # packed rows are batch-major in sequence order: sample b's lead tokens, then its keyframes
+    start = pq.cu[:-1]                                                 # [B]
+    slot = torch.arange(lead + plan.capacity, device=x.device)[:, None]
+    ok = torch.cat([plan.mask.new_ones(lead, plan.batch), plan.valid.t()], 0)
+    rows = torch.where(ok, start[None, :] + slot, start[None, :])
+    return h, rows
 
 
 def supports_packed(inner: nn.Module) -> bool:
@@ -390,3 +405,23 @@ def supports_packed(inner: nn.Module) -> bool:
 register_backend("masked", masked_backend)
 register_backend("compact", compact_backend)
 register_backend("varlen", varlen_backend, _varlen_available)
+
+
+def fill_frames(h: torch.Tensor, rows: torch.Tensor, plan: KeyframePlan, lead: int,
+                interpolate: bool = True) -> torch.Tensor:
+    """Every output token ``[lead + N, B, d]`` from a backend's rows: lead tokens as they are,
+    frames linearly interpolated between the keyframe rows around them (or, with
+    ``interpolate=False``, keyframes as they are and zeros elsewhere)."""
+    d = h.shape[-1]
+    B, N = plan.mask.shape
+    frame_rows = rows[lead:]                                           # [K, B]
+    prev = frame_rows.gather(0, plan.prev_slot.t())                    # [N, B]
+    if interpolate:
+        out = lerp_rows(h, prev.reshape(-1), frame_rows.gather(0, plan.next_slot.t()).reshape(-1),
+                        plan.weight.t().reshape(-1, 1).to(h.dtype))
+    else:
+        out = h.index_select(0, prev.reshape(-1)) * plan.mask.t().reshape(-1, 1).to(h.dtype)
+    out = out.view(N, B, d)
+    if lead:
+        out = torch.cat([gather_rows(h, rows[:lead].reshape(-1)).view(lead, B, d), out], 0)
+    return out

@@ -3,15 +3,25 @@
 The config travels with a checkpoint (``sparse_config.json`` beside the weights, and the
 ``sparse_*`` keys of MDM's ``args.json``) so that sampling and evaluation re-create the
 sparse model without extra flags.
+
+Every field is type-checked (a bool is a ``bool``, not ``"no"``; an int is an ``int``, not ``8.7``
+or ``True``; floats are finite) and range-checked, in Python, in files and on the command line
+(``--sparse_<field>``, range-checked by argparse). Unknown keys are errors that suggest the
+closest valid name; file errors name the file.
 """
 from __future__ import annotations
 
 import argparse
 import dataclasses
+import difflib
 import json
+import math
+import numbers
 import os
-from dataclasses import dataclass, field
-from typing import Any, Dict, Optional, Sequence, Tuple
+from dataclasses import dataclass
+from typing import Any, Callable, Dict, Iterable, List, Mapping, Optional, Sequence, Tuple, Union
+
+from .atomic import atomic_write_text
 
 CONFIG_VERSION = 1
 CONFIG_FILENAME = "sparse_config.json"
@@ -21,6 +31,144 @@ MARKER = "smdm_sparse_version"
 SELECTORS = ("vw", "uniform", "random", "mdo")
 FEATURES = ("auto", "humanml3d", "kit", "raw")
 BACKENDS = ("auto", "compact", "varlen", "masked")
+
+PathLike = Union[str, "os.PathLike[str]"]
+
+
+class ConfigTypeError(TypeError, ValueError):
+    """A config value of the wrong type (e.g. ``lipschitz="no"``). A ``TypeError`` that callers
+    catching ``ValueError`` for bad configs also catch."""
+
+
+# ----------------------------------------------------------------------------------- ranges
+@dataclass(frozen=True)
+class Range:
+    """A numeric interval: ``[lo, hi]``, open at an end when ``lo_open`` / ``hi_open``; a bound of
+    None is unbounded."""
+
+    lo: Optional[float] = None
+    hi: Optional[float] = None
+    lo_open: bool = False
+    hi_open: bool = False
+
+    def __contains__(self, v: float) -> bool:
+        if self.lo is not None and (v <= self.lo if self.lo_open else v < self.lo):
+            return False
+        return not (self.hi is not None and (v >= self.hi if self.hi_open else v > self.hi))
+
+    def describe(self, integer: bool) -> str:
+        """``"an integer >= 1"``, ``"a number in [0, 1)"``..."""
+        name = "an integer" if integer else "a number"
+        lo, hi = (None if b is None else format(b, "g") for b in (self.lo, self.hi))
+        if lo is not None and self.lo == self.hi and not (self.lo_open or self.hi_open):
+            return f"{name} equal to {lo}"
+        if lo is not None and hi is not None:
+            return f"{name} in {'(' if self.lo_open else '['}{lo}, {hi}{')' if self.hi_open else ']'}"
+        if lo is not None:
+            return f"{name} {'>' if self.lo_open else '>='} {lo}"
+        if hi is not None:
+            return f"{name} {'<' if self.hi_open else '<='} {hi}"
+        return name
+
+
+def int_range(lo: Optional[int] = None, hi: Optional[int] = None) -> Callable[[str], int]:
+    """argparse ``type``: an int in ``[lo, hi]`` (either bound may be None); a bad value is an
+    argparse error naming the option (exit status 2)."""
+    rng = Range(lo, hi)
+
+    def parse(text: str) -> int:
+        try:
+            v = int(text)
+        except (TypeError, ValueError):
+            raise argparse.ArgumentTypeError(f"expected an integer, got {text!r}") from None
+        if v not in rng:
+            raise argparse.ArgumentTypeError(f"must be {rng.describe(True)}, got {v}")
+        return v
+
+    parse.__name__ = "int"
+    return parse
+
+
+def float_range(lo: Optional[float] = None, hi: Optional[float] = None, *, lo_open: bool = False,
+                hi_open: bool = False) -> Callable[[str], float]:
+    """argparse ``type``: a finite float in ``[lo, hi]`` (``(lo`` / ``hi)`` when open)."""
+    rng = Range(lo, hi, lo_open, hi_open)
+
+    def parse(text: str) -> float:
+        try:
+            v = float(text)
+        except (TypeError, ValueError):
+            raise argparse.ArgumentTypeError(f"expected a number, got {text!r}") from None
+        if not math.isfinite(v) or v not in rng:
+            raise argparse.ArgumentTypeError(f"must be a finite {rng.describe(False)[2:]}, got {text}")
+        return v
+
+    parse.__name__ = "float"
+    return parse
+
+
+def str2bool(text: Union[str, bool]) -> bool:
+    """argparse ``type``: true/false, yes/no, on/off, 1/0 (any case)."""
+    if isinstance(text, bool):
+        return text
+    s = str(text).strip().lower()
+    if s in ("1", "true", "yes", "y", "on"):
+        return True
+    if s in ("0", "false", "no", "n", "off"):
+        return False
+    raise argparse.ArgumentTypeError(f"expected a boolean (true/false), got {text!r}")
+
+
+def closest(word: str, candidates: Iterable[str]) -> str:
+    """``"; did you mean 'x'?"`` for the closest candidate to ``word``, or ``""``."""
+    cands = list(candidates)
+    lower = {c.lower(): c for c in cands}
+    hit = difflib.get_close_matches(str(word).lower(), list(lower), n=1, cutoff=0.6)
+    return f"; did you mean {lower[hit[0]]!r}?" if hit else ""
+
+
+# ----------------------------------------------------------------------------------- fields
+@dataclass(frozen=True)
+class FieldSpec:
+    """What a ``SparseConfig`` field accepts: ``kind`` (bool, int, float, str, or ``tuple`` of
+    ints), a numeric ``range`` (for tuples: of each element), ``choices`` (str), ``optional``
+    (None allowed), and the help text (units)."""
+
+    kind: type
+    help: str
+    range: Range = Range()
+    choices: Tuple[str, ...] = ()
+    optional: bool = False
+    note: str = ""            # appended to the range in error messages
+
+    def expected(self) -> str:
+        if self.kind is bool:
+            what = "a bool (true/false)"
+        elif self.choices:
+            what = f"one of {self.choices}"
+        elif self.kind is str:
+            what = "a non-empty string"
+        elif self.kind is tuple:
+            what = f"a non-empty sequence of ints, each {self.range.describe(True)[len('an integer '):]}"
+        else:
+            what = self.range.describe(self.kind is int)
+            what = what if self.kind is int else "a finite float" + what[len("a number"):]
+        what = f"None or {what}" if self.optional else what
+        return f"{what} ({self.note})" if self.note else what
+
+
+def _field(default: Any, kind: type, help: str, **spec: Any) -> Any:
+    """A ``SparseConfig`` field: its default and the :class:`FieldSpec` that checks it."""
+    return dataclasses.field(default=default, metadata={"spec": FieldSpec(kind, help, **spec)})
+
+
+def spec_of(f: "dataclasses.Field[Any]") -> FieldSpec:
+    """The :class:`FieldSpec` of a ``SparseConfig`` field."""
+    spec = f.metadata.get("spec")
+    if not isinstance(spec, FieldSpec):
+        raise TypeError(f"SparseConfig.{f.name}: declare the field with _field(default, kind, help, ...) so that "
+                        "it is type- and range-checked and gets its --sparse_ option")
+    return spec
 
 
 @dataclass
@@ -32,84 +180,74 @@ class SparseConfig:
     number of keyframes added or dropped per sample, as a fraction of that sample's keyframe count.
     """
 
-    enabled: bool = True
+    enabled: bool = _field(True, bool, "sparse keyframe mode on")
     # --- keyframe selection -------------------------------------------------------------
-    reduction: float = 0.8                 # fraction of frames dropped, in [0, 1)
-    selector: str = "vw"                   # vw | uniform | random | mdo
-    feature: str = "auto"                  # auto (by D: 263/251/other) | humanml3d | kit | raw
-    frame_index_scale: float = 0.1         # metres per frame appended as the extra VW dimension
-    mask_noise: float = 0.1                # training: up to this fraction of K added/dropped
+    reduction: float = _field(0.8, float, "fraction of frames dropped", range=Range(0.0, 1.0, hi_open=True),
+                              note="fraction of frames dropped")
+    selector: str = _field("vw", str, "keyframe selector", choices=SELECTORS)
+    feature: str = _field("auto", str, "what VW measures (auto: by D, 263 HumanML3D / 251 KIT / other raw)",
+                          choices=FEATURES)
+    frame_index_scale: float = _field(0.1, float, "metres per frame appended as the extra VW dimension",
+                                      range=Range(0.0), note="metres per frame")
+    mask_noise: float = _field(0.1, float, "training: up to this fraction of the keyframes added/dropped",
+                               range=Range(0.0, 1.0), note="fraction of keyframes added/dropped")
     # --- sampling schedule ---------------------------------------------------------------
-    gamma: float = 0.1                     # re-select by VW on x_t when t <= gamma * T
-    dynamic_update: Optional[bool] = None  # None: on, except DiP (prefix_frames > 0); False: uniform always
-    diffusion_steps: int = 50              # T; overwritten from the diffusion when attached
-    prefix_frames: int = 0                 # leading frames kept dense (DiP context)
+    gamma: float = _field(0.1, float, "the last round(gamma * T) sampling steps re-select keyframes by VW on x_t",
+                          range=Range(0.0, 1.0))
+    dynamic_update: Optional[bool] = _field(
+        None, bool, "VW re-selection at sampling (None/auto: on iff diffusion_steps >= 100 and no DiP prefix, "
+        "paper Table 2; false: uniform always)", optional=True)
+    diffusion_steps: int = _field(50, int, "T (overwritten from the diffusion when attached)", range=Range(1))
+    prefix_frames: int = _field(0, int, "leading frames kept dense (DiP context)", range=Range(0))
     # --- model ---------------------------------------------------------------------------
-    interpolate: bool = True               # False: loss on keyframes only (ablation)
-    lipschitz: bool = True                 # Lipschitz sine MLPs for input/output layers
-    lipschitz_lambda: float = 1e-6         # weight of prod softplus(c_i) in the loss
-    lipschitz_hidden: Optional[int] = None  # hidden width (None: the model's latent dim)
-    lipschitz_layers: int = 2              # linear layers per Lipschitz MLP (>= 1)
-    sine_w0: float = 1.0                   # sine activation frequency
-    fsq: bool = False                      # quantise attention keys with FSQ
-    fsq_levels: Tuple[int, ...] = (8, 8, 8, 5, 5, 5)
-    attention_backend: str = "auto"        # auto | compact | varlen | masked
+    interpolate: bool = _field(True, bool, "false: loss on keyframes only (ablation)")
+    lipschitz: bool = _field(True, bool, "Lipschitz sine MLPs for the input/output layers")
+    lipschitz_lambda: float = _field(1e-6, float, "weight of prod softplus(c_i) in the loss", range=Range(0.0))
+    lipschitz_hidden: Optional[int] = _field(None, int, "Lipschitz MLP hidden width (None/auto: latent dim)",
+                                             range=Range(1), optional=True)
+    lipschitz_layers: int = _field(2, int, "linear layers per Lipschitz MLP", range=Range(1))
+    sine_w0: float = _field(1.0, float, "sine activation frequency", range=Range(0.0, lo_open=True))
+    fsq: bool = _field(False, bool, "quantise attention keys with FSQ")
+    fsq_levels: Tuple[int, ...] = _field((8, 8, 8, 5, 5, 5), tuple, "FSQ levels per key dimension",
+                                         range=Range(2))
+    attention_backend: str = _field("auto", str, "how keyframe tokens are packed", choices=BACKENDS)
     # --- text conditioning (sMDM-stella) ------------------------------------------------------
-    text_encoder: Optional[str] = None     # None: the model's own (CLIP / DistilBERT); else a
-                                           # transformers hub id or local path (frozen, pooled)
-    version: int = CONFIG_VERSION
+    text_encoder: Optional[str] = _field(
+        None, str, "text encoder (transformers hub id or local path, frozen, pooled) in place of the "
+        "model's CLIP/DistilBERT (None: the model's own)", optional=True)
+    version: int = _field(CONFIG_VERSION, int, "config format version", range=Range(1, CONFIG_VERSION),
+                          note="a larger one was written by a newer smdm-plugin")
 
     def __post_init__(self) -> None:
-        if isinstance(self.fsq_levels, list):
-            self.fsq_levels = tuple(int(v) for v in self.fsq_levels)
         self.validate()
 
     # ------------------------------------------------------------------ validation
     def validate(self) -> "SparseConfig":
-        def bad(name: str, expected: str) -> None:
-            raise ValueError(f"SparseConfig.{name}={getattr(self, name)!r}: expected {expected}")
-
-        if not isinstance(self.reduction, (int, float)) or not 0.0 <= float(self.reduction) < 1.0:
-            bad("reduction", "a float in [0, 1) (fraction of frames dropped)")
-        if self.selector not in SELECTORS:
-            bad("selector", f"one of {SELECTORS}")
-        if self.feature not in FEATURES:
-            bad("feature", f"one of {FEATURES}")
-        if not self.frame_index_scale >= 0.0:
-            bad("frame_index_scale", "a float >= 0 (metres per frame)")
-        if not 0.0 <= self.mask_noise <= 1.0:
-            bad("mask_noise", "a float in [0, 1] (fraction of keyframes added/dropped)")
-        if not 0.0 <= self.gamma <= 1.0:
-            bad("gamma", "a float in [0, 1]")
-        if int(self.diffusion_steps) < 1:
-            bad("diffusion_steps", "an int >= 1")
-        if int(self.prefix_frames) < 0:
-            bad("prefix_frames", "an int >= 0")
-        if not self.lipschitz_lambda >= 0.0:
-            bad("lipschitz_lambda", "a float >= 0")
-        if self.lipschitz_hidden is not None and int(self.lipschitz_hidden) < 1:
-            bad("lipschitz_hidden", "None or an int >= 1")
-        if int(self.lipschitz_layers) < 1:
-            bad("lipschitz_layers", "an int >= 1")
-        if not self.sine_w0 > 0.0:
-            bad("sine_w0", "a float > 0")
-        if len(self.fsq_levels) < 1 or any(int(v) < 2 for v in self.fsq_levels):
-            bad("fsq_levels", "a non-empty sequence of ints >= 2")
-        if self.attention_backend not in BACKENDS:
-            bad("attention_backend", f"one of {BACKENDS}")
-        if int(self.version) > CONFIG_VERSION:
-            bad("version", f"<= {CONFIG_VERSION} (config written by a newer smdm-plugin)")
+        """Check (and normalise: ints to float, sequences to tuple) every field; raise
+        :class:`ConfigTypeError` for a wrong type, ``ValueError`` for a value out of range."""
+        for f in dataclasses.fields(self):
+            setattr(self, f.name, _check_field(f.name, spec_of(f), getattr(self, f.name)))
         return self
 
     @property
     def dynamic(self) -> bool:
-        """Whether sampling re-selects keyframes by VW on x_t for t <= gamma*T (``dynamic_update``
-        resolved: None means on, except for prefix completion (DiP), where the paper found it useless)."""
-        return self.dynamic_update if self.dynamic_update is not None else self.prefix_frames == 0
+        """Whether sampling re-selects keyframes by VW on x_t in the last ``round(gamma*T)`` steps
+        (``dynamic_update`` resolved). None (auto) follows the paper's Table 2: on when
+        ``diffusion_steps >= 100`` (where it helps), off at 50 and 10 steps (neutral to worse) and
+        for prefix completion (DiP)."""
+        if self.dynamic_update is not None:
+            return bool(self.dynamic_update)
+        return int(self.diffusion_steps) >= 100 and int(self.prefix_frames) == 0
 
     def replace(self, **changes: Any) -> "SparseConfig":
         """A copy with ``changes`` applied (validated)."""
         return dataclasses.replace(self, **changes)
+
+    def differences(self, other: "SparseConfig", ignore: Iterable[str] = ("version",)) -> Dict[str, Tuple[Any, Any]]:
+        """``{field: (self's value, other's value)}`` for every field that differs (but ``ignore``)."""
+        skip = set(ignore)
+        return {f.name: (getattr(self, f.name), getattr(other, f.name)) for f in dataclasses.fields(self)
+                if f.name not in skip and getattr(self, f.name) != getattr(other, f.name)}
 
     # ------------------------------------------------------------------ (de)serialisation
     def to_dict(self) -> Dict[str, Any]:
@@ -118,61 +256,84 @@ class SparseConfig:
         return d
 
     @classmethod
-    def from_dict(cls, d: Dict[str, Any]) -> "SparseConfig":
-        names = {f.name for f in dataclasses.fields(cls)}
-        unknown = sorted(set(d) - names)
+    def from_dict(cls, d: Mapping[str, Any], source: Optional[str] = None) -> "SparseConfig":
+        """From a mapping of field names; unknown names are an error suggesting the closest valid
+        one. ``source`` (a file name) prefixes error messages."""
+        if not isinstance(d, Mapping):
+            raise _located(ConfigTypeError(f"SparseConfig: expected a mapping of options, got "
+                                           f"{type(d).__name__}"), source)
+        names = [f.name for f in dataclasses.fields(cls)]
+        unknown = [k for k in d if k not in names]
         if unknown:
-            raise ValueError(f"SparseConfig: unknown option(s) {unknown}; known: {sorted(names)}")
-        return cls(**d)
+            k = unknown[0]
+            raise _located(ValueError(f"SparseConfig: unknown option {k!r}{closest(str(k), names)} "
+                                      f"(known: {', '.join(names)})"), source)
+        try:
+            return cls(**d)
+        except (TypeError, ValueError) as e:
+            raise _located(e, source) from None
 
-    def to_json(self, path: Optional[str] = None) -> str:
+    def to_json(self, path: Optional[PathLike] = None) -> str:
+        """The config as JSON text; also written to ``path`` (atomically, replacing it) if given."""
         text = json.dumps(self.to_dict(), indent=2, sort_keys=True)
         if path is not None:
-            with open(path, "w") as f:
-                f.write(text + "\n")
+            atomic_write_text(path, text + "\n")
         return text
 
-    @classmethod
-    def from_json(cls, text_or_path: str) -> "SparseConfig":
-        if os.path.exists(text_or_path):
-            with open(text_or_path) as f:
-                text_or_path = f.read()
-        return cls.from_dict(json.loads(text_or_path))
-
-    def to_yaml(self, path: Optional[str] = None) -> str:
+    def to_yaml(self, path: Optional[PathLike] = None) -> str:
+        """The config as YAML text; also written to ``path`` (atomically, replacing it) if given."""
         import yaml
 
         text = yaml.safe_dump(self.to_dict(), sort_keys=True)
         if path is not None:
-            with open(path, "w") as f:
-                f.write(text)
+            atomic_write_text(path, text)
         return text
 
     @classmethod
-    def from_yaml(cls, text_or_path: str) -> "SparseConfig":
-        import yaml
-
-        if os.path.exists(text_or_path):
-            with open(text_or_path) as f:
-                text_or_path = f.read()
-        data = yaml.safe_load(text_or_path) or {}
-        data = data.get("sparse", data)  # allow a top-level `sparse:` section
-        return cls.from_dict(data)
+    def from_json(cls, text_or_path: Union[str, "os.PathLike[str]"]) -> "SparseConfig":
+        """From JSON text or a ``.json`` file (see :meth:`load` for the ``sparse`` section)."""
+        return cls._from_source(text_or_path, "json")
 
     @classmethod
-    def load(cls, path: str) -> "SparseConfig":
-        """From a ``.json`` / ``.yaml`` file, or a directory holding ``sparse_config.json``."""
+    def from_yaml(cls, text_or_path: Union[str, "os.PathLike[str]"]) -> "SparseConfig":
+        """From YAML text or a ``.yaml`` file (see :meth:`load` for the ``sparse`` section)."""
+        return cls._from_source(text_or_path, "yaml")
+
+    @classmethod
+    def load(cls, path: PathLike) -> "SparseConfig":
+        """From a ``.json`` / ``.yaml`` file, or a directory holding ``sparse_config.json``.
+
+        When the file's mapping has a top-level ``sparse:`` section, that section is the config
+        and the other top-level sections are left alone (a preset may carry e.g. ``upstream:``);
+        otherwise the whole mapping is the config. A missing file is a ``FileNotFoundError``
+        naming it; bad contents a ``ValueError`` naming the file.
+        """
+        path = os.fspath(path)
+        if os.path.isdir(path):
+            path = os.path.join(path, CONFIG_FILENAME)
+        return cls._from_source(path, "json" if path.endswith(".json") else "yaml", is_path=True)
+
+    @classmethod
+    def _from_source(cls, src: Union[str, "os.PathLike[str]"], fmt: str, is_path: bool = False) -> "SparseConfig":
+        where: Optional[str] = None
+        if is_path or not isinstance(src, str) or _looks_like_path(src, fmt):
+            where = os.fspath(src)
+            text = _read_text(where)
+        else:
+            text = src
+        return cls.from_dict(config_section(_parse(text, fmt, where), where), where)
+
+    def save(self, directory_or_path: PathLike) -> str:
+        """Write ``sparse_config.json`` into a directory, or to the given file path, atomically
+        (replacing an existing file; :func:`smdm_plugin.save_sparse_config` refuses to). Returns
+        the path."""
+        path = os.fspath(directory_or_path)
         if os.path.isdir(path):
             path = os.path.join(path, CONFIG_FILENAME)
         if path.endswith((".yaml", ".yml")):
-            return cls.from_yaml(path)
-        return cls.from_json(path)
-
-    def save(self, directory_or_path: str) -> str:
-        path = directory_or_path
-        if os.path.isdir(path):
-            path = os.path.join(path, CONFIG_FILENAME)
-        self.to_json(path)
+            self.to_yaml(path)
+        else:
+            self.to_json(path)
         return path
 
     # ------------------------------------------------------------------ argparse
@@ -180,55 +341,42 @@ class SparseConfig:
     def add_argparse_args(cls, parser: argparse.ArgumentParser, group_title: Optional[str] = None
                           ) -> argparse.ArgumentParser:
         """Add ``--sparse`` and ``--sparse_<field>`` options to an existing parser (or to one
-        of its groups when it is an ``argparse._ArgumentGroup``). Returns what it added to."""
+        of its groups when it is an ``argparse._ArgumentGroup``). Every value is type- and
+        range-checked by argparse (a bad one: one line naming the option, exit status 2);
+        ``none``/``auto`` gives None to the optional fields. Returns what it added to."""
         target = parser.add_argument_group(group_title) if group_title else parser
-        defaults = cls.__new__(cls)  # field defaults without validation side effects
-        for f in dataclasses.fields(cls):
-            val = f.default if f.default is not dataclasses.MISSING else f.default_factory()  # type: ignore
-            setattr(defaults, f.name, val)
         target.add_argument("--sparse", action="store_true",
                             help="Train/sample in sparse keyframe mode (sMDM).")
         for f in dataclasses.fields(cls):
             if f.name in ("enabled", "version"):
                 continue
-            default = getattr(defaults, f.name)
-            flag = f"--sparse_{f.name}"
-            if isinstance(default, bool) or f.name == "dynamic_update":
-                target.add_argument(flag, type=_str2bool, default=default, metavar="BOOL",
-                                    help=f"sparse: {f.name} (default {default})")
-            elif isinstance(default, tuple):
-                target.add_argument(flag, type=int, nargs="+", default=list(default),
-                                    help=f"sparse: {f.name} (default {list(default)})")
-            elif f.name == "lipschitz_hidden":
-                target.add_argument(flag, type=int, default=None, help="sparse: lipschitz_hidden")
+            spec = spec_of(f)
+            default = list(f.default) if isinstance(f.default, tuple) else f.default
+            kw: Dict[str, Any] = {"default": default, "type": _argparse_type(spec),
+                                  "help": f"sparse: {spec.help} (default {default})"}
+            if spec.choices:
+                kw["choices"] = spec.choices
+            elif spec.kind is tuple:
+                kw["nargs"] = "+"
+            if spec.kind is bool:
+                kw["metavar"] = "BOOL|auto" if spec.optional else "BOOL"
             elif f.name == "text_encoder":
-                target.add_argument(flag, type=str, default=None, metavar="ID_OR_PATH",
-                                    help="sparse: text encoder (transformers hub id or local path) in place "
-                                         "of the model's CLIP/DistilBERT (sMDM-stella)")
-            else:
-                kw: Dict[str, Any] = {"type": type(default), "default": default}
-                if f.name == "selector":
-                    kw["choices"] = SELECTORS
-                elif f.name == "feature":
-                    kw["choices"] = FEATURES
-                elif f.name == "attention_backend":
-                    kw["choices"] = BACKENDS
-                target.add_argument(flag, help=f"sparse: {f.name} (default {default})", **kw)
+                kw["metavar"] = "ID_OR_PATH"
+            target.add_argument(f"--sparse_{f.name}", **kw)
         return parser
 
     @classmethod
     def from_args(cls, args: Any) -> "SparseConfig":
-        """From a parsed namespace (or dict) carrying ``sparse`` and ``sparse_<field>`` keys."""
-        d = vars(args) if not isinstance(args, dict) else args
-        kw: Dict[str, Any] = {"enabled": bool(d.get("sparse", False))}
+        """From a parsed namespace (or dict, e.g. MDM's ``args.json``) carrying ``sparse`` and
+        ``sparse_<field>`` keys; other keys are ignored."""
+        d = vars(args) if not isinstance(args, Mapping) else args
+        kw: Dict[str, Any] = {"enabled": d.get("sparse") or False}
         for f in dataclasses.fields(cls):
             key = f"sparse_{f.name}"
-            if key in d and d[key] is not None and f.name not in ("enabled", "version"):
+            if f.name == "enabled" or key not in d:
+                continue
+            if d[key] is not None or spec_of(f).optional:
                 kw[f.name] = d[key]
-            elif f.name in ("lipschitz_hidden", "dynamic_update", "text_encoder") and key in d:
-                kw[f.name] = d[key]
-        if "sparse_version" in d:
-            kw["version"] = d["sparse_version"]
         return cls(**kw)
 
     def to_args_dict(self) -> Dict[str, Any]:
@@ -240,21 +388,150 @@ class SparseConfig:
         return out
 
 
-def _str2bool(v: str) -> bool:
-    if isinstance(v, bool):
+# ----------------------------------------------------------------------------------- helpers
+def _check_field(name: str, spec: FieldSpec, v: Any) -> Any:
+    """``v`` normalised (int -> float for float fields, sequence -> tuple), or raise."""
+    def bad(cls: type = ValueError, hint: str = "", of: Any = v) -> Exception:
+        got = f", got {type(of).__name__}" if cls is ConfigTypeError else ""
+        return cls(f"SparseConfig.{name}={v!r}: expected {spec.expected()}{got}{hint}")
+
+    if v is None and spec.optional:
+        return None
+    if spec.kind is bool:
+        if not isinstance(v, bool):
+            raise bad(ConfigTypeError)
         return v
-    s = str(v).strip().lower()
-    if s in ("1", "true", "yes", "y", "on"):
-        return True
-    if s in ("0", "false", "no", "n", "off"):
+    if spec.kind is str:
+        if not isinstance(v, str):
+            raise bad(ConfigTypeError)
+        if spec.choices and v not in spec.choices:
+            raise bad(hint=closest(v, spec.choices))
+        if not v.strip():
+            raise bad()
+        return v
+    if spec.kind is tuple:
+        if isinstance(v, (str, bytes)) or not isinstance(v, Sequence):
+            raise bad(ConfigTypeError)
+        if not v:
+            raise bad()
+        wrong = [e for e in v if not _is_int(e)]
+        if wrong:
+            raise bad(ConfigTypeError, of=wrong[0], hint=f" element {wrong[0]!r}")
+        if not all(e in spec.range for e in v):
+            raise bad()
+        return tuple(int(e) for e in v)
+    if spec.kind is int:
+        if not _is_int(v):
+            raise bad(ConfigTypeError)
+        if v not in spec.range:
+            raise bad()
+        return int(v)
+    # float
+    if not isinstance(v, numbers.Real) or isinstance(v, bool):
+        raise bad(ConfigTypeError)
+    try:
+        x = float(v)
+    except OverflowError:
+        raise bad() from None
+    if not math.isfinite(x) or x not in spec.range:
+        raise bad()
+    return x
+
+
+def _is_int(v: Any) -> bool:
+    return isinstance(v, numbers.Integral) and not isinstance(v, bool)
+
+
+def _argparse_type(spec: FieldSpec) -> Callable[[str], Any]:
+    if spec.kind is bool:
+        parse: Callable[[str], Any] = str2bool
+    elif spec.kind in (int, tuple):
+        parse = int_range(*(None if b is None else int(b) for b in (spec.range.lo, spec.range.hi)))
+    elif spec.kind is float:
+        r = spec.range
+        parse = float_range(r.lo, r.hi, lo_open=r.lo_open, hi_open=r.hi_open)
+    else:
+        def parse(text: str) -> str:
+            if not text.strip():
+                raise argparse.ArgumentTypeError("expected a non-empty string")
+            return text
+    if not spec.optional:
+        return parse
+    inner = parse
+
+    def optional(text: str) -> Any:
+        return None if text.strip().lower() in ("none", "auto") else inner(text)
+
+    optional.__name__ = getattr(inner, "__name__", "value")
+    return optional
+
+
+def _located(e: Exception, source: Optional[str]) -> Exception:
+    """``e`` with ``source: `` in front of its message (same class)."""
+    return type(e)(f"{source}: {e}") if source else e
+
+
+def _looks_like_path(s: str, fmt: str) -> bool:
+    if "\n" in s:
         return False
-    raise argparse.ArgumentTypeError(f"expected a boolean (true/false), got {v!r}")
+    if os.path.exists(s) or s.strip().endswith((".json", ".yaml", ".yml")):
+        return True
+    return fmt == "json" and not s.lstrip().startswith("{")
 
 
-def preset_dirs() -> list:
+def _read_text(path: str) -> str:
+    if not os.path.exists(path):
+        raise FileNotFoundError(f"SparseConfig: no such config file: {path!r}")
+    if os.path.isdir(path):
+        raise IsADirectoryError(f"SparseConfig: {path!r} is a folder without {CONFIG_FILENAME}")
+    with open(path, encoding="utf-8-sig") as f:
+        return f.read()
+
+
+def _parse(text: str, fmt: str, where: Optional[str]) -> Any:
+    label = where or f"SparseConfig.from_{fmt}"
+    if fmt == "json":
+        try:
+            return json.loads(text)
+        except json.JSONDecodeError as e:
+            raise ValueError(f"{label}: not valid JSON: {e}") from None
+    import yaml
+
+    try:
+        return yaml.safe_load(text)
+    except yaml.YAMLError as e:
+        raise ValueError(f"{label}: not valid YAML: {' '.join(str(e).split())}") from None
+
+
+def config_section(data: Any, where: Optional[str] = None) -> Dict[str, Any]:
+    """The config mapping of a parsed file: its top-level ``sparse:`` section when there is one
+    (other top-level sections are then allowed), else the whole mapping (empty file: {})."""
+    label = where or "SparseConfig"
+    if data is None:
+        return {}
+    if not isinstance(data, Mapping):
+        raise ConfigTypeError(f"{label}: expected a mapping of SparseConfig options, got {type(data).__name__}")
+    if "sparse" in data:
+        section = data["sparse"]
+        if section is None:
+            return {}
+        if not isinstance(section, Mapping):
+            raise ConfigTypeError(f"{label}: the 'sparse' section must be a mapping of SparseConfig "
+                                  f"options, got {type(section).__name__}")
+        return dict(section)
+    return dict(data)
+
+
+def preset_dirs() -> List[str]:
     """Where presets are looked up: the package's own ``smdm_plugin/configs/``."""
     here = os.path.dirname(os.path.abspath(__file__))
     return [os.path.join(os.path.dirname(here), "configs")]
+
+
+def preset_names() -> List[str]:
+    """The packaged presets (``smdm_humanml``, ``sdip``, ``smotiondiffuse``...)."""
+    return sorted(f.rsplit(".", 1)[0] for d in preset_dirs() if os.path.isdir(d) for f in os.listdir(d)
+                  if f.endswith((".yaml", ".yml")))
 
 
 def load_preset(name: str) -> SparseConfig:
@@ -264,6 +541,10 @@ def load_preset(name: str) -> SparseConfig:
         return SparseConfig.load(name)
     fname = name if name.endswith((".yaml", ".yml")) else f"{name}.yaml"
     for d in preset_dirs():
-        if os.path.exists(os.path.join(d, fname)):
-            return SparseConfig.from_yaml(os.path.join(d, fname))
-    raise ValueError(f"load_preset: unknown preset {name!r}; looked in {preset_dirs()}")
+        if os.path.isfile(os.path.join(d, fname)):
+            return SparseConfig.load(os.path.join(d, fname))
+    if os.sep in name or name.endswith((".yaml", ".yml", ".json")):
+        raise FileNotFoundError(f"load_preset: no such file: {name!r}")
+    names = preset_names()
+    raise ValueError(f"load_preset: unknown preset {name!r}{closest(name, names)} (packaged: "
+                     f"{', '.join(names)}; or pass a YAML/JSON path)")

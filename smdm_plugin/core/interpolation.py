@@ -5,6 +5,8 @@ from typing import Tuple
 
 import torch
 
+from .checks import require
+
 
 def neighbour_keyframes(mask: torch.Tensor, dtype: torch.dtype = torch.float32
                         ) -> Tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
@@ -44,8 +46,7 @@ def interpolate_keyframes(features: torch.Tensor, mask: torch.Tensor) -> torch.T
     if mask.shape != (B, N):
         raise ValueError(f"interpolate_keyframes: mask must be [B, N]=[{B}, {N}], got {tuple(mask.shape)}")
     mask = mask.to(device=features.device, dtype=torch.bool)
-    if not bool(mask.any(dim=1).all()):
-        raise ValueError("interpolate_keyframes: every row of mask needs at least one keyframe")
+    require(mask.any(dim=1), "interpolate_keyframes: every row of mask needs at least one keyframe")
     prev, nxt, w = neighbour_keyframes(mask, features.dtype)
     f_prev = features.gather(1, prev.unsqueeze(-1).expand(B, N, D))
     f_next = features.gather(1, nxt.unsqueeze(-1).expand(B, N, D))

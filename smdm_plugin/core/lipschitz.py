@@ -15,12 +15,14 @@ weights into plain ``nn.Linear`` weights for inference.
 from __future__ import annotations
 
 import math
-from typing import List, Optional
+from typing import List, Optional, Tuple
 
 import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 from torch.nn.utils import parametrize
+
+from .checks import compiling as _compiling
 
 __all__ = [
     "LipschitzWeight",
@@ -57,15 +59,26 @@ class LipschitzWeight(nn.Module):
         with torch.no_grad():
             init = _inverse_softplus(_row_abs_sum(weight.detach()).max())
         self.c = nn.Parameter(init.reshape(()).clone())
+        self._cache: Optional[Tuple[tuple, Tensor]] = None
 
     def bound(self) -> Tensor:
         """``softplus(c)``: the layer's ∞-norm bound (scalar, differentiable)."""
         return F.softplus(self.c)
 
     def forward(self, weight: Tensor) -> Tensor:
+        # Without autograd (sampling) the normalised weight only changes when W or c do: reuse it
+        # while both are the same tensors at the same version (in-place updates bump the version,
+        # a new tensor has a new storage). Never while torch.compile traces.
+        key = None
+        if not torch.is_grad_enabled() and not _compiling():
+            key = (weight.data_ptr(), weight._version, self.c.data_ptr(), self.c._version,
+                   weight.dtype, weight.device, weight.shape)
+            if self._cache is not None and self._cache[0] == key:
+                return self._cache[1]
         rowsum = _row_abs_sum(weight).clamp_min(torch.finfo(weight.dtype).eps)  # 0-rows: scale 1
-        scale = torch.clamp(self.bound() / rowsum, max=1.0)
-        return weight * scale
+        out = weight * torch.clamp(self.bound() / rowsum, max=1.0)
+        self._cache = None if key is None else (key, out)
+        return out
 
 
 def _siren_uniform_(linear: nn.Linear, bound: float) -> None:
@@ -205,11 +218,19 @@ def lipschitz_loss(module: nn.Module) -> Tensor:
     A 0-d tensor; ``0.`` on the module's device when there is none. Multiply by
     ``SparseConfig.lipschitz_lambda``.
     """
-    terms = [m.lipschitz_product() for m in module.modules()
-             if isinstance(m, LipschitzMLP) and not m.baked]
-    if not terms:
+    groups = [[p.c for p in _lipschitz_layers(m)] for m in module.modules()
+              if isinstance(m, LipschitzMLP) and not m.baked]
+    groups = [g for g in groups if g]
+    if not groups:
         return torch.zeros((), device=_module_device(module))
-    return torch.stack(terms).sum()
+    # one softplus over every c; per-MLP products by log-sum (softplus(c) > 0); a few ops, whatever
+    # the number of layers
+    log_b = torch.log(F.softplus(torch.stack([c.reshape(()) for g in groups for c in g])))
+    sizes = [len(g) for g in groups]
+    if len(set(sizes)) == 1:
+        return torch.exp(log_b.view(len(groups), -1).sum(1)).sum()
+    starts = [sum(sizes[:i]) for i in range(len(sizes))]
+    return torch.stack([torch.exp(log_b[a:a + n].sum()) for a, n in zip(starts, sizes)]).sum()
 
 
 def bake_lipschitz(module: nn.Module) -> nn.Module:

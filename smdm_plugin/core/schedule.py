@@ -1,40 +1,39 @@
-"""When and how keyframes are chosen: from x0 during training, from (x_t, t) during sampling."""
+"""When and how keyframes are chosen: from x0 during training, from (x_t, t) during sampling.
+
+Sampling follows the paper's schedule with its step count: diffusion steps are numbered
+``t = T-1 … 0`` here (as in MDM's code) and ``T … 1`` in the paper, so the paper's last ``γT``
+steps (``t_paper <= γT``) are exactly the ``round(γ·T)`` steps with ``t < round(γ·T)``: 5 of 50,
+1 of 10, 100 of 1000. Those steps re-select keyframes by VW on ``x_t`` (when the dynamic update is
+on); the earlier ones use the uniform mask. Both masks are computed without a host sync and with
+static shapes (the late/early choice is a per-sample ``torch.where``; VW does no work for samples
+that are not late).
+"""
 from __future__ import annotations
 
-from typing import Optional, Sequence, Union
+from typing import Dict, Optional, Sequence, Tuple, Union
 
 import numpy as np
 import torch
 
+from .checks import as_lengths, as_mask
 from .config import SparseConfig
-from .features import extract_selection_features
-from .selection import perturb_mask, select_keyframes
+from .features import KINDS, ric_slice
+from .selection import (keyframe_capacity, keyframe_count_table, perturb_checked, select_checked,
+                        uniform_table)
 
 ArrayLike = Union[torch.Tensor, np.ndarray, Sequence[float], None]
 
 
 def resolve_lengths(lengths, B: int, N: int, device: torch.device) -> torch.Tensor:
-    """``lengths`` (tensor, list or None) as a long tensor ``[B]`` on ``device``, validated."""
-    if lengths is None:
-        return torch.full((B,), N, dtype=torch.long, device=device)
-    lengths = torch.as_tensor(lengths, device=device).long().reshape(-1)
-    if lengths.shape[0] != B:
-        raise ValueError(f"lengths must have shape [B]=[{B}], got {tuple(lengths.shape)}")
-    if bool((lengths > N).any()):
-        raise ValueError(f"lengths must be <= N={N} (frames in the tensor), got max {int(lengths.max())}")
-    if bool((lengths < 2).any()):
-        raise ValueError(f"lengths must be >= 2 (two keyframes at least), got min {int(lengths.min())}")
-    return lengths
+    """``lengths`` (tensor, list or None) as a long tensor ``[B]`` on ``device``, validated
+    (``2 <= L <= N``; no host sync on accelerators)."""
+    return as_lengths(lengths, B, N, device, "MaskSchedule")
 
 
-def apply_forced(mask: torch.Tensor, forced: Optional[torch.Tensor]) -> torch.Tensor:
-    """OR the forced keyframes ``[B, N]`` into ``mask`` ``[B, N]``."""
-    if forced is None:
-        return mask
-    forced = forced.to(device=mask.device, dtype=torch.bool)
-    if forced.shape != mask.shape:
-        raise ValueError(f"forced keyframes must have shape [B, N]={list(mask.shape)}, got {list(forced.shape)}")
-    return mask | forced
+def late_steps(gamma: float, diffusion_steps: int) -> int:
+    """How many final sampling steps re-select keyframes on ``x_t``: ``round(γ·T)`` (the paper's
+    ``t <= γT`` with ``t`` counted ``T … 1``)."""
+    return int(round(float(gamma) * int(diffusion_steps)))
 
 
 class MaskSchedule:
@@ -49,47 +48,115 @@ class MaskSchedule:
         self.config = config
         self.mean = None if mean is None else torch.as_tensor(np.asarray(mean), dtype=torch.float32)
         self.std = None if std is None else torch.as_tensor(np.asarray(std), dtype=torch.float32)
+        # per (frames, device[, dtype]) constants, made once: a host-to-device copy on every call
+        # would synchronise with the GPU. The config is fixed for the schedule's lifetime.
+        self._tables: Dict[Tuple[int, torch.device], Tuple[torch.Tensor, torch.Tensor]] = {}
+        self._consts: Dict[tuple, Tuple[Optional[torch.Tensor], Optional[torch.Tensor], torch.Tensor]] = {}
+
+    @property
+    def late_steps(self) -> int:
+        """Number of final sampling steps that use VW on ``x_t`` (0 when the update is off)."""
+        c = self.config
+        return late_steps(c.gamma, c.diffusion_steps) if c.dynamic and c.reduction > 0 else 0
+
+    def capacity(self, n_frames: int, training: bool, forced: int = 0) -> int:
+        """The most keyframes any sample of ``n_frames`` frames gets from this schedule (mask noise
+        in training; ``forced`` = the most protected frames of a sample)."""
+        c = self.config
+        return keyframe_capacity(n_frames, c.reduction, c.mask_noise if training else 0.0, forced)
+
+    def tables(self, n_frames: int, device: torch.device) -> Tuple[torch.Tensor, torch.Tensor]:
+        """``(counts [N+1] long, uniform [N+1, N] bool)`` on ``device``: the keyframe count and the
+        uniform mask of every length (index them with ``lengths``)."""
+        key = (int(n_frames), torch.device(device))
+        if key not in self._tables:
+            r = self.config.reduction
+            self._tables[key] = (keyframe_count_table(n_frames, r).to(device),
+                                 uniform_table(n_frames, r).to(device))
+        return self._tables[key]
+
+    def _kind(self, D: int) -> str:
+        kind = self.config.feature
+        return {263: "humanml3d", 251: "kit"}.get(D, "raw") if kind == "auto" else kind
 
     def features(self, x: torch.Tensor) -> torch.Tensor:
-        """What VW measures, ``[B, N, F]``, from motion ``x [B, N, D]``."""
-        kind = self.config.feature
-        if kind == "auto":
-            kind = {263: "humanml3d", 251: "kit"}.get(x.shape[-1], "raw")
-        if kind == "raw":
-            mean = std = None
-        else:
-            mean, std = self.mean, self.std
-        return extract_selection_features(x.detach().float(), kind=kind, mean=mean, std=std,
-                                          frame_index_scale=self.config.frame_index_scale)
+        """What VW measures, ``[B, N, F]``, from motion ``x [B, N, D]``: the joint positions of the
+        HumanML3D/KIT layout (de-normalised with ``mean``/``std``) or the raw features, plus the
+        frame index times ``frame_index_scale`` (see
+        :func:`~smdm_plugin.core.features.extract_selection_features`)."""
+        if not isinstance(x, torch.Tensor) or x.dim() != 3:
+            shape = tuple(x.shape) if isinstance(x, torch.Tensor) else type(x).__name__
+            raise ValueError(f"MaskSchedule.features: x must be [B, N, D], got {shape}")
+        return self._features_checked(x)
+
+    def _features_checked(self, x: torch.Tensor) -> torch.Tensor:
+        """:meth:`features` for a call's motion ``x [B, N, D]`` (shape known good), from per-device
+        constants: the de-normalisation of the selected columns only, and the frame-index column."""
+        B, N, D = x.shape
+        kind = self._kind(D)
+        x = x.detach()
+        x = x if x.dtype in (torch.float32, torch.float64) else x.float()
+        key = (kind, N, D, x.device, x.dtype)
+        if key not in self._consts:
+            cols = slice(0, D) if kind == "raw" else ric_slice(kind)
+            if kind != "raw" and D != KINDS[kind][0]:
+                raise ValueError(f"MaskSchedule: feature={kind!r} needs D={KINDS[kind][0]} features, got D={D}")
+            use = kind != "raw"
+            std = self.std[cols].to(x.device, x.dtype) if use and self.std is not None else None
+            mean = self.mean[cols].to(x.device, x.dtype) if use and self.mean is not None else None
+            col = (torch.arange(N, dtype=x.dtype) * float(self.config.frame_index_scale)).view(1, N, 1).to(x.device)
+            self._consts[key] = (cols, mean, std, col)
+        cols, mean, std, col = self._consts[key]
+        pos = x[..., cols]
+        if std is not None:
+            pos = pos * std
+        if mean is not None:
+            pos = pos + mean
+        return torch.cat([pos, col.expand(B, N, 1)], dim=-1)
 
     def training_mask(self, x0: torch.Tensor, lengths=None, forced: Optional[torch.Tensor] = None,
-                      generator: Optional[torch.Generator] = None) -> torch.Tensor:
-        """bool ``[B, N]`` from the clean motion ``x0 [B, N, D]``: selector + mask noise + forced."""
+                      generator: Optional[torch.Generator] = None, *, checked: bool = False) -> torch.Tensor:
+        """bool ``[B, N]`` from the clean motion ``x0 [B, N, D]``: the selector (forced frames
+        inside the budget) + mask noise (never dropping forced frames). ``checked=True``: ``lengths``
+        is a validated long tensor on ``x0``'s device and ``forced`` a bool ``[B, N]`` or None."""
         B, N, _ = x0.shape
-        lengths = resolve_lengths(lengths, B, N, x0.device)
+        if not checked:
+            lengths = resolve_lengths(lengths, B, N, x0.device)
+            forced = as_mask(forced, B, N, x0.device, "forced keyframes")
         c = self.config
+        counts, _ = self.tables(N, x0.device)
         with torch.no_grad():
-            mask = select_keyframes(self.features(x0), lengths, c.reduction, c.selector, generator)
+            mask = select_checked(self._features_checked(x0), lengths, counts[lengths], c.selector,
+                                  generator, forced)
             if c.mask_noise > 0:
-                mask = perturb_mask(mask, lengths, c.mask_noise, generator)
-        return apply_forced(mask, forced)
+                mask = perturb_checked(mask, lengths, c.mask_noise, generator, forced)
+        return mask
 
     def sampling_mask(self, x_t: torch.Tensor, t: torch.Tensor, lengths=None,
-                      forced: Optional[torch.Tensor] = None) -> torch.Tensor:
-        """bool ``[B, N]`` at sampling step ``t [B]``: uniform while ``t > gamma*T``, else the
-        selector (VW) on ``x_t`` (when ``config.dynamic``); forced frames OR-ed in."""
+                      forced: Optional[torch.Tensor] = None, *, checked: bool = False) -> torch.Tensor:
+        """bool ``[B, N]`` at sampling step ``t [B]`` (or a scalar): uniform for the early steps, the
+        selector (VW) on ``x_t`` for the last :attr:`late_steps` steps; forced frames inside the
+        budget. No host sync: the choice is made per sample on the device. ``checked``: as
+        :meth:`training_mask`."""
         B, N, _ = x_t.shape
-        lengths = resolve_lengths(lengths, B, N, x_t.device)
+        if not checked:
+            lengths = resolve_lengths(lengths, B, N, x_t.device)
+            forced = as_mask(forced, B, N, x_t.device, "forced keyframes")
         c = self.config
+        counts, uniform = self.tables(N, x_t.device)
         with torch.no_grad():
-            dummy = x_t.new_zeros(B, N, 1)
-            mask = select_keyframes(dummy, lengths, c.reduction, "uniform")
-            if c.dynamic and c.reduction > 0:
-                t = torch.as_tensor(t, device=x_t.device).reshape(-1).expand(B)
-                late = t.float() <= c.gamma * c.diffusion_steps
-                if bool(late.any()):
-                    rows = late.nonzero(as_tuple=True)[0]
-                    sel = select_keyframes(self.features(x_t[rows]), lengths[rows], c.reduction, c.selector)
-                    mask = mask.clone()
-                    mask[rows] = sel
-        return apply_forced(mask, forced)
+            k = counts[lengths]
+            if forced is None:
+                mask = uniform[lengths]
+            else:
+                mask = select_checked(x_t[..., :1], lengths, k, "uniform", forced=forced)
+            n_late = self.late_steps
+            if n_late > 0:
+                late = torch.as_tensor(t, device=x_t.device).reshape(-1).expand(B) < n_late
+                feats = self._features_checked(x_t)
+                if c.selector == "vw":
+                    sel = select_checked(feats, lengths, k, "vw", forced=forced, active=late)
+                else:
+                    sel = select_checked(feats, lengths, k, c.selector, forced=forced)
+                mask = torch.where(late[:, None], sel, mask)
+        return mask

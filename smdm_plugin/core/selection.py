@@ -1,29 +1,36 @@
-"""Keyframe selection: batched Visvalingam–Whyatt (VW), heap VW reference, uniform, random, MDO;
+"""Keyframe selection: Visvalingam–Whyatt (VW), uniform, random, MDO; the heap VW reference;
 training-time mask noise.
 
 Shapes: ``features [B, N, F]`` (float), ``lengths [B]`` (long; None = all N valid), masks
 ``[B, N]`` bool (True = keyframe). A sample of valid length ``L`` keeps
 ``keyframe_count(L, reduction) = min(L, max(2, round((1 - reduction) * L)))`` frames, always
-including frames ``0`` and ``L - 1`` and nothing at or beyond ``L``.
+including frames ``0`` and ``L - 1`` and nothing at or beyond ``L``. ``forced [B, N]`` frames
+(DoubleTake's handshake, user keyframes) are always kept and count inside that budget: a sample
+keeps ``max(K, its protected frames)`` where protected = both ends and the forced frames.
 
 VW area of interior point ``p`` with live neighbours ``p_prev``, ``p_next`` (any dimension F):
 ``a = p_prev - p``, ``b = p_next - p``, ``area = 0.5 * sqrt(max(0, |a|²|b|² - (a·b)²))``. Points are
-ranked by the key ``(2·area)² = max(0, |a|²|b|² - (a·b)²)`` (the same order; no square root, which
-on CPU would use a threaded math-library call per step), computed in float64 (float32 on MPS). The
-point with the smallest key is removed (ties: smallest frame index) and its two neighbours' keys
-are recomputed, until ``K`` points remain.
+ranked by the key ``(2·area)² = max(0, |a|²|b|² - (a·b)²)`` (the same order, no square root),
+computed in float64. The point with the smallest key is removed (ties: smallest frame index) and
+its two neighbours' keys are recomputed, until ``K`` points remain. VW runs as one registered
+operator (:mod:`smdm_plugin.core.kernels.vw`: Triton on CUDA, numpy on the CPU).
+
+Nothing here synchronises with a GPU except MDO (an ablation selector: its dynamic programme
+needs ``max K`` on the host): shapes are static, and value checks use
+:func:`smdm_plugin.core.checks.require`.
 """
 from __future__ import annotations
 
 import heapq
-from typing import List, Optional, Sequence, Tuple, Union
+from typing import Optional, Tuple
 
 import numpy as np
 import torch
 
-METHODS = ("vw", "uniform", "random", "mdo")
+from .checks import LengthsLike, as_lengths, as_mask, require
+from .kernels.vw import vw_keyframes
 
-LengthsLike = Union[torch.Tensor, Sequence[int], np.ndarray, None]
+METHODS = ("vw", "uniform", "random", "mdo")
 
 
 def keyframe_count(length: int, reduction: float) -> int:
@@ -31,55 +38,66 @@ def keyframe_count(length: int, reduction: float) -> int:
     return min(int(length), max(2, round((1.0 - float(reduction)) * int(length))))
 
 
-# ----------------------------------------------------------------------------- validation
-def _check_lengths(lengths: LengthsLike, B: int, N: int, device: torch.device, fn: str
-                   ) -> Tuple[torch.Tensor, List[int]]:
-    """``lengths`` as a long tensor [B] on ``device`` (None = all N) and as a list."""
-    if lengths is None:
-        if N < 2:
-            raise ValueError(f"{fn}: N must be >= 2 frames, got N={N}")
-        return torch.full((B,), N, dtype=torch.long, device=device), [N] * B
-    lengths_t = torch.as_tensor(lengths if isinstance(lengths, torch.Tensor)
-                                else np.asarray(lengths)).to(device=device)
-    if lengths_t.dtype.is_floating_point or lengths_t.dtype == torch.bool:
-        raise ValueError(f"{fn}: lengths must be an integer tensor [B={B}], "
-                         f"got dtype {lengths_t.dtype}")
-    lengths_t = lengths_t.long()
-    if tuple(lengths_t.shape) != (B,):
-        raise ValueError(f"{fn}: lengths must have shape [B={B}], got {tuple(lengths_t.shape)}")
-    lens = lengths_t.tolist()
-    if B and min(lens) < 2:
-        raise ValueError(f"{fn}: lengths must be >= 2, got min {min(lens)}")
-    if B and max(lens) > N:
-        raise ValueError(f"{fn}: lengths must be <= N={N}, got max {max(lens)}")
-    return lengths_t, lens
+def keyframe_count_table(n_frames: int, reduction: float) -> torch.Tensor:
+    """``[n_frames + 1]`` long: :func:`keyframe_count` of every length ``0..n_frames`` (exact Python
+    arithmetic; index it with a lengths tensor on any device)."""
+    return torch.tensor([keyframe_count(L, reduction) if L else 0 for L in range(n_frames + 1)], dtype=torch.long)
 
 
-def _check(features: torch.Tensor, lengths: LengthsLike, reduction: float, fn: str,
-           check_finite: bool = True) -> Tuple[torch.Tensor, torch.Tensor, List[int]]:
-    """Validate inputs; returns (features, lengths [B] long on features' device, lengths list).
-    ``check_finite=False`` leaves the NaN/inf check to the caller (VW does it on its own
-    intermediate values)."""
+def uniform_table(n_frames: int, reduction: float) -> torch.Tensor:
+    """``[n_frames + 1, n_frames]`` bool: row ``L`` is the uniform mask of a sample of length ``L``
+    (rows 0 and 1 are empty: lengths start at 2)."""
+    L = torch.arange(2, n_frames + 1)
+    table = torch.zeros(n_frames + 1, n_frames, dtype=torch.bool)
+    table[2:] = _uniform(L, keyframe_count_table(n_frames, reduction)[2:], n_frames)
+    return table
+
+
+def keyframe_counts(lengths: torch.Tensor, reduction: float) -> torch.Tensor:
+    """:func:`keyframe_count` of every element of ``lengths [B]`` (long), on its device, no sync.
+    Computed in float64 (the same IEEE operations as Python's ``round((1 - r) * L)``); on MPS, which
+    has no float64, on the CPU."""
+    if lengths.device.type == "mps":
+        return keyframe_counts(lengths.cpu(), reduction).to(lengths.device)
+    L = lengths.long()
+    k = torch.round(L.to(torch.float64) * (1.0 - float(reduction))).long()
+    return torch.minimum(L, k.clamp_min(2))
+
+
+def keyframe_capacity(n_frames: int, reduction: float, mask_noise: float = 0.0, forced: int = 0) -> int:
+    """The most keyframes a sample of up to ``n_frames`` frames can get: ``K`` of the longest
+    sample, or its ``forced`` protected frames when more, plus what mask noise can add
+    (``round(mask_noise * K)``); at most ``n_frames``. A Python int: fixed per call, so every
+    tensor shape downstream is static."""
+    k = max(keyframe_count(n_frames, reduction), min(int(forced), n_frames))
+    return min(int(n_frames), k + int(round(float(mask_noise) * k)))
+
+
+def _check_reduction(reduction: float, fn: str) -> float:
+    if isinstance(reduction, bool) or not isinstance(reduction, (int, float)) or not 0.0 <= float(reduction) < 1.0:
+        raise ValueError(f"{fn}: reduction must be a float in [0, 1) (fraction of frames dropped), got {reduction!r}")
+    return float(reduction)
+
+
+def _check(features, lengths: LengthsLike, reduction: float, fn: str
+           ) -> Tuple[torch.Tensor, torch.Tensor]:
+    """Validate inputs; returns (features as float, lengths [B] long on features' device)."""
     if not isinstance(features, torch.Tensor):
         features = torch.as_tensor(np.asarray(features))
     if features.dim() != 3:
         raise ValueError(f"{fn}: features must be 3-D [B, N, F], got shape {tuple(features.shape)}")
     B, N, _ = features.shape
-    if not isinstance(reduction, (int, float)) or not 0.0 <= float(reduction) < 1.0:
-        raise ValueError(f"{fn}: reduction must be a float in [0, 1) (fraction of frames "
-                         f"dropped), got {reduction!r}")
-    lengths_t, lens = _check_lengths(lengths, B, N, features.device, fn)
+    _check_reduction(reduction, fn)
+    lengths_t = as_lengths(lengths, B, N, features.device, fn)
     if not features.dtype.is_floating_point:
         features = features.float()
-    if not check_finite:
-        return features, lengths_t, lens
-    # one float64 reduction pass: NaN/inf anywhere in a frame makes its sum non-finite
-    valid = torch.arange(N, device=features.device)[None, :] < lengths_t[:, None]
-    sums = features.sum(-1, dtype=_work_dtype(features.device))
-    if bool((~torch.isfinite(sums) & valid).any()):
-        raise ValueError(f"{fn}: features contain NaN or inf (or values too large to sum) "
-                         f"within the valid frames")
-    return features, lengths_t, lens
+    if B and N:
+        # one reduction pass: NaN/inf anywhere in a valid frame makes its sum non-finite
+        valid = torch.arange(N, device=features.device)[None, :] < lengths_t[:, None]
+        sums = features.detach().sum(-1, dtype=_work_dtype(features.device))
+        require(torch.isfinite(sums) | ~valid,
+                f"{fn}: features contain NaN or inf (or values too large to sum) within the valid frames")
+    return features, lengths_t
 
 
 def _work_dtype(device: torch.device) -> torch.dtype:
@@ -96,116 +114,52 @@ def _rand(shape: Tuple[int, ...], generator: Optional[torch.Generator], device: 
 
 # ----------------------------------------------------------------------------- public API
 def select_keyframes(features: torch.Tensor, lengths: LengthsLike = None, reduction: float = 0.8,
-                     method: str = "vw", generator: Optional[torch.Generator] = None
+                     method: str = "vw", generator: Optional[torch.Generator] = None,
+                     forced: Optional[torch.Tensor] = None, active: Optional[torch.Tensor] = None
                      ) -> torch.Tensor:
     """Keyframe mask ``[B, N]`` bool for ``features [B, N, F]``.
 
     ``method``: "vw" (Visvalingam–Whyatt), "uniform" (evenly spaced), "random" (endpoints plus
     random frames drawn from ``generator``), "mdo" (maximum distance optimal: the K frames incl.
     both endpoints maximising the summed Euclidean distance between consecutive keyframes).
+    ``forced [B, N]`` bool: frames always kept, inside the budget (VW never removes them; the other
+    methods pick ``K - |forced interior frames|`` frames of their own). ``active [B]`` bool (VW
+    only): rows to select at all; inactive rows come back all False and cost nothing.
     """
     if method not in METHODS:
         raise ValueError(f"select_keyframes: unknown method {method!r}; known: {METHODS}")
-    features, lengths_t, lens = _check(features, lengths, reduction, "select_keyframes",
-                                       check_finite=method != "vw")
-    ks = [keyframe_count(L, reduction) for L in lens]
+    features, lengths_t = _check(features, lengths, reduction, "select_keyframes")
+    B, N, _ = features.shape
+    forced = as_mask(forced, B, N, features.device, "select_keyframes: forced")
+    if active is not None and method != "vw":
+        raise ValueError("select_keyframes: active rows are supported by method='vw' only")
+    if B == 0:
+        return torch.zeros(B, N, dtype=torch.bool, device=features.device)
+    return select_checked(features, lengths_t, keyframe_counts(lengths_t, reduction), method, generator,
+                          forced, None if active is None else active.to(device=features.device, dtype=torch.bool))
+
+
+def select_checked(features: torch.Tensor, lengths: torch.Tensor, counts: torch.Tensor, method: str = "vw",
+                   generator: Optional[torch.Generator] = None, forced: Optional[torch.Tensor] = None,
+                   active: Optional[torch.Tensor] = None) -> torch.Tensor:
+    """:func:`select_keyframes` on inputs already checked, with the keyframe ``counts [B]`` given
+    (the hot path: validation and counts happen once per call, upstream of this)."""
     with torch.no_grad():
-        if features.shape[0] == 0:
-            return torch.zeros(features.shape[:2], dtype=torch.bool, device=features.device)
+        N = features.shape[1]
         if method == "vw":
-            return _vw_batched(features.detach(), lens, ks)
-        k_t = torch.tensor(ks, dtype=torch.long, device=features.device)
+            return vw_keyframes(features, lengths, counts, forced, active)
+        idx = torch.arange(N, device=features.device)[None]
+        k = counts
+        if forced is not None:
+            interior = forced & (idx > 0) & (idx < (lengths - 1)[:, None])
+            k = torch.clamp_min(k - interior.sum(1), 2)               # the forced frames' share of K
         if method == "uniform":
-            return _uniform(lengths_t, k_t, features.shape[1])
-        if method == "random":
-            return _random(lengths_t, k_t, features.shape[1], generator)
-        return _mdo(features.detach(), lengths_t, lens, ks)
-
-
-def _vw_batched(features: torch.Tensor, lens: List[int], ks: List[int]) -> torch.Tensor:
-    """Batched VW: one removal per step for every sample, ``max(L - K)`` steps, each a fixed
-    handful of small ops on ``[B, ≤10]`` index tensors (no host syncs). Bookkeeping uses flat
-    indices ``b * N + i`` into one long table (sections: prev, next, area write slot,
-    identity) read with ``take`` and written with ``put_``; keys live in a flat ``[B*N + 1]``
-    tensor whose last element is a trash slot for writes that must not land (endpoints,
-    padding). A sample that has removed enough points gets key ``-inf`` at its frame 0, so its
-    later steps pick frame 0 and only rewrite unchanged values."""
-    device = features.device
-    B, N, Fd = features.shape
-    wd = _work_dtype(device)
-    BN = B * N
-    L_t = torch.tensor(lens, dtype=torch.long, device=device)
-    nrem = [L - k for L, k in zip(lens, ks)]
-    steps = max(nrem)
-
-    idx = torch.arange(N, device=device)
-    base = (torch.arange(B, device=device) * N)[:, None]               # [B, 1]
-    last = (L_t - 1)[:, None]
-    protected = (idx[None] == 0) | (idx[None] >= last)                 # endpoints + padding
-    flat = base + idx[None]                                            # [B, N]
-    prev = base + (idx[None] - 1).clamp_min(0)
-    nxt = base + torch.minimum(idx[None] + 1, last)
-    write = torch.where(protected, torch.full_like(flat, BN), flat)    # BN = trash slot
-    T = torch.empty(4 * BN, dtype=torch.long, device=device)          # filled section-wise:
-    for k, sec in enumerate((prev, nxt, write, flat)):                 # small ops stay serial
-        T[k * BN:(k + 1) * BN].view(B, N).copy_(sec)
-
-    # initial keys (2·area)², in batch chunks of <= 32768 elements: small float64 temporaries
-    # and no intra-op thread pool (costly on a loaded CPU); same arithmetic as the steps below
-    area = torch.full((BN + 1,), float("inf"), dtype=wd, device=device)
-    area2 = area[:BN].view(B, N)
-    dd_all = torch.empty(B, N - 1, dtype=wd, device=device)
-    X64 = features if features.dtype == wd else torch.empty(B, N, Fd, dtype=wd, device=device)
-    chunk = max(1, (1 << 15) // max(1, N * Fd))
-    for c0 in range(0, B, chunk):
-        X = X64[c0:c0 + chunk]
-        if X64 is not features:
-            X.copy_(features[c0:c0 + chunk])
-        d = X[:, 1:] - X[:, :-1]                                       # [b, N-1, F]
-        dd = torch.sum(d * d, -1, out=dd_all[c0:c0 + chunk])
-        dots = (d[:, 1:] * d[:, :-1]).sum(-1)                          # [b, N-2]
-        x = (dd[:, 1:] * dd[:, :-1] - dots * dots).clamp_min_(0)
-        area2[c0:c0 + chunk, 1:-1] = x.masked_fill_(protected[c0:c0 + chunk, 1:-1], float("inf"))
-    # NaN/inf in a valid frame makes |d|² of a valid pair (i, i+1 <= L-1) non-finite
-    # (and an overflowing key would read as removed): reject both
-    bad = (~torch.isfinite(dd_all) & (idx[None, :-1] < last)).any()
-    if bool(bad | (~(area2 < float("inf")) & ~protected).any()):
-        raise ValueError("select_keyframes: features contain NaN or inf (or values too large) "
-                         "within the valid frames")
-
-    # per step: v = (p, n, p | p, n, p, p, n, n | write slot of r); u = (Wp, Wn, pp, p, n, nn)
-    s0, s1, s2, s3 = 0, BN, 2 * BN, 3 * BN
-    # index tensors are [k, B] so that every slice used below is contiguous
-    boff1 = base.T + torch.tensor([s0, s1, s0, s0, s1, s0, s0, s1, s1, s2], device=device)[:, None]
-    # w = v[:9] + off2: (next[p], prev[n] | W[p], W[n], prev[p], p, n, next[n]) positions
-    off2 = torch.tensor([s1, s0, 0, s2, s2, s0, s3, s3, s1], device=device)[:, None]
-    Xf = X64.reshape(BN, Fd)
-    infs = torch.full((B,), float("inf"), dtype=wd, device=device)
-    done_at: dict = {}
-    for b, n in enumerate(nrem):
-        if n < steps:
-            done_at.setdefault(n, []).append(b)
-    done_idx = {s: torch.tensor(rows, dtype=torch.long, device=device) * N
-                for s, rows in done_at.items()}
-    for s in range(steps):
-        if s in done_idx:
-            area.index_fill_(0, done_idx[s], float("-inf"))            # frame 0 of done rows
-        r = area2.argmin(1)                                            # first minimum = lowest i
-        v = T.take(r + boff1)                                          # [10, B]
-        w = v[:9] + off2
-        T.put_(w[0:2], v[1:3])                                         # unlink r
-        u = T.take(w[3:9])                                             # (untouched by the put)
-        pts = Xf.index_select(0, u[2:6].view(-1)).view(4, B, Fd)       # pp, p, n, nn
-        d = pts[1:] - pts[:-1]                                         # [3, B, F]
-        dd = (d * d).sum(-1)                                           # [3, B]
-        dots = (d[1:] * d[:-1]).sum(-1)                                # [2, B]
-        x = dd[1:] * dd[:-1] - dots * dots
-        area.put_(u[0:2], x.clamp_min_(0))
-        area.put_(v[9], infs)
-
-    # removed points have key +inf; kept interior points a finite key (float32 input cannot
-    # overflow it in float64)
-    return (area2 < float("inf")) | (idx[None] == 0) | (idx[None] == last)
+            mask = _uniform(lengths, k, N)
+        elif method == "random":
+            mask = _random(lengths, k, N, generator)
+        else:
+            mask = _mdo(features.detach(), lengths, k)
+        return mask if forced is None else mask | (forced & (idx < lengths[:, None]))
 
 
 def _uniform(lengths: torch.Tensor, k: torch.Tensor, N: int) -> torch.Tensor:
@@ -237,9 +191,9 @@ def _random(lengths: torch.Tensor, k: torch.Tensor, N: int, generator: Optional[
     return ends | _rank_select(interior, k - 2, generator)
 
 
-def _mdo(features: torch.Tensor, lengths: torch.Tensor, lens: List[int], ks: List[int]
-         ) -> torch.Tensor:
-    """Exact DP: f_k[j] = max_{i<j} f_{k-1}[i] + D[i, j], f_1 = [0, -inf, ...]; O(K N²)."""
+def _mdo(features: torch.Tensor, lengths: torch.Tensor, k_t: torch.Tensor) -> torch.Tensor:
+    """Exact DP: f_k[j] = max_{i<j} f_{k-1}[i] + D[i, j], f_1 = [0, -inf, ...]; O(K N²). Reads
+    ``max K`` on the host (the number of DP rounds)."""
     device = features.device
     B, N, _ = features.shape
     X = features.to(_work_dtype(device))
@@ -249,7 +203,7 @@ def _mdo(features: torch.Tensor, lengths: torch.Tensor, lens: List[int], ks: Lis
     # Dt[b, j, i] = D[b, i, j] for i < j < L (edge i -> j), else -inf; reduce over the last dim
     ok = (i[None, :] < i[:, None])[None] & valid[:, :, None] & valid[:, None, :]
     Dt = D.masked_fill_(~ok, float("-inf"))
-    kmax = max(ks)
+    kmax = int(k_t.max())
     f = torch.full((B, N), float("-inf"), dtype=D.dtype, device=device)
     f[:, 0] = 0.0
     args = []
@@ -257,7 +211,6 @@ def _mdo(features: torch.Tensor, lengths: torch.Tensor, lens: List[int], ks: Lis
     for _ in range(2, kmax + 1):
         f, a = torch.add(f[:, None, :], Dt, out=buf).max(-1)           # over i (first max)
         args.append(a)
-    k_t = torch.tensor(ks, device=device)
     cur = (lengths - 1)[:, None]
     mask = torch.zeros(B, N, dtype=torch.bool, device=device).scatter_(1, cur, True)
     for k in range(kmax, 1, -1):
@@ -278,23 +231,33 @@ def _ref_key(P: np.ndarray, i: int, j: int, k: int) -> float:
     return float(max(0.0, aa * bb - ab * ab))
 
 
-def vw_reference(points: np.ndarray, k: int) -> np.ndarray:
-    """Plain heap VW (heapq, lazy deletion by version) on ``points [L, F]``; sorted kept indices
-    (``k`` of them, incl. 0 and L-1). Same key, float64 and tie-breaking as the batched one."""
+def vw_reference(points: np.ndarray, k: int, forced: Optional[np.ndarray] = None) -> np.ndarray:
+    """Plain heap VW (heapq, lazy deletion by version) on ``points [L, F]``: the sorted kept
+    indices, ``max(k, protected)`` of them, where protected = ``0``, ``L - 1`` and the ``forced``
+    frames (bool ``[L]``, never removed). The slow, obviously correct definition the fast kernels
+    are tested against: same key, float64, ties broken by the lowest frame."""
     P = np.asarray(points, dtype=np.float64)
     if P.ndim != 2:
         raise ValueError(f"vw_reference: points must be 2-D [L, F], got shape {P.shape}")
     L = P.shape[0]
     if not 2 <= k <= L:
         raise ValueError(f"vw_reference: k must be in [2, L={L}], got {k}")
+    protected = np.zeros(L, dtype=bool)
+    protected[[0, L - 1]] = True
+    if forced is not None:
+        forced = np.asarray(forced, dtype=bool)
+        if forced.shape != (L,):
+            raise ValueError(f"vw_reference: forced must be bool [L={L}], got shape {forced.shape}")
+        protected |= forced
     prev = list(range(-1, L - 1))
     nxt = list(range(1, L + 1))
     alive = [True] * L
     version = [0] * L
-    heap = [(_ref_key(P, j - 1, j, j + 1), j, 0) for j in range(1, L - 1)]
+    heap = [(_ref_key(P, j - 1, j, j + 1), j, 0) for j in range(1, L - 1) if not protected[j]]
     heapq.heapify(heap)                                  # (key, frame, version): ties -> frame
     remaining = L
-    while remaining > k:
+    target = max(k, int(protected.sum()))
+    while remaining > target:
         _, j, ver = heapq.heappop(heap)
         if not alive[j] or ver != version[j]:
             continue                                     # stale entry
@@ -303,7 +266,7 @@ def vw_reference(points: np.ndarray, k: int) -> np.ndarray:
         p, n = prev[j], nxt[j]
         nxt[p], prev[n] = n, p
         for q in (p, n):
-            if 0 < q < L - 1:
+            if not protected[q]:
                 version[q] += 1
                 heapq.heappush(heap, (_ref_key(P, prev[q], q, nxt[q]), q, version[q]))
     return np.flatnonzero(alive)
@@ -311,29 +274,43 @@ def vw_reference(points: np.ndarray, k: int) -> np.ndarray:
 
 # ----------------------------------------------------------------------------- mask noise
 def perturb_mask(mask: torch.Tensor, lengths: LengthsLike = None, amount: float = 0.1,
-                 generator: Optional[torch.Generator] = None) -> torch.Tensor:
+                 generator: Optional[torch.Generator] = None, protected: Optional[torch.Tensor] = None
+                 ) -> torch.Tensor:
     """Training-time mask noise on ``mask [B, N]`` bool. Per sample with ``K`` keyframes, draws
     ``c`` uniformly in ``[-m, m]`` with ``m = round(amount * K)`` and adds ``c`` random frames
-    (c > 0) or drops ``-c`` random interior keyframes (c < 0). Never drops frame 0 or L-1, never
-    adds at/after L, never goes below 2 keyframes. Returns a new mask."""
+    (c > 0) or drops ``-c`` random interior keyframes (c < 0). Never drops frame 0, L-1 or a
+    ``protected [B, N]`` frame, never adds at/after L, never goes below 2 keyframes. Returns a new
+    mask; at most ``K + round(amount * K)`` keyframes (see :func:`keyframe_capacity`)."""
     if not isinstance(mask, torch.Tensor) or mask.dim() != 2:
         shape = tuple(mask.shape) if isinstance(mask, torch.Tensor) else type(mask).__name__
         raise ValueError(f"perturb_mask: mask must be a 2-D bool tensor [B, N], got {shape}")
-    if not isinstance(amount, (int, float)) or not 0.0 <= float(amount) <= 1.0:
+    if isinstance(amount, bool) or not isinstance(amount, (int, float)) or not 0.0 <= float(amount) <= 1.0:
         raise ValueError(f"perturb_mask: amount must be a float in [0, 1] (fraction of "
                          f"keyframes), got {amount!r}")
     B, N = mask.shape
     device = mask.device
-    lengths_t, _ = _check_lengths(lengths, B, N, device, "perturb_mask")
+    lengths_t = as_lengths(lengths, B, N, device, "perturb_mask")
+    protected = as_mask(protected, B, N, device, "perturb_mask: protected")
+    return perturb_checked(mask, lengths_t, float(amount), generator, protected)
+
+
+def perturb_checked(mask: torch.Tensor, lengths_t: torch.Tensor, amount: float,
+                    generator: Optional[torch.Generator] = None, protected: Optional[torch.Tensor] = None
+                    ) -> torch.Tensor:
+    """:func:`perturb_mask` on inputs already checked (lengths ``[B]`` long on the mask's device)."""
+    B, N = mask.shape
+    device = mask.device
     with torch.no_grad():
         i = torch.arange(N, device=device)[None]
         valid = i < lengths_t[:, None]
-        m = mask.bool() & valid
-        k = m.sum(1)
-        mmax = torch.round(float(amount) * k.double()).long()
-        c = (_rand((B,), generator, device).double() * (2 * mmax + 1).double()).floor().long() - mmax
-        interior = (i > 0) & (i < (lengths_t - 1)[:, None])
-        cand = torch.where((c > 0)[:, None], valid & ~m, m & interior)
-        n_drop_max = (k - 2).clamp_min(0)
-        count = torch.where(c > 0, c, (-c).minimum(n_drop_max))
+        m = mask.to(torch.bool)                                        # keyframes lie in valid frames
+        k = m.sum(1, dtype=torch.float32)
+        mmax = torch.round(k * float(amount))                          # exact: k <= N << 2^24
+        c = torch.minimum((_rand((B,), generator, device) * (2 * mmax + 1)).floor() - mmax, mmax)
+        droppable = m & (i > 0) & (i < (lengths_t - 1)[:, None])
+        if protected is not None:
+            droppable &= ~protected
+        add = c > 0
+        cand = torch.where(add[:, None], valid & ~m, droppable)
+        count = torch.where(add, c, torch.minimum(-c, torch.minimum(k - 2, droppable.sum(1, dtype=torch.float32))))
         return m ^ _rank_select(cand, count, generator)

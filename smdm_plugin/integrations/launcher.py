@@ -106,7 +106,13 @@ def write_sitecustomize(directory: str) -> str:
 
 def run(repo: str, command: Sequence[str], integration: str = "auto",
         env: Optional[Dict[str, str]] = None) -> int:
-    """Run ``command`` in ``repo`` with the integration's import hooks; returns its exit code."""
+    """Run ``command`` in ``repo`` with the integration's import hooks; returns its exit code
+    (``128 + N`` when it died of signal ``N``; 127 / 126 when it cannot be found / executed).
+
+    Ctrl-C reaches the command itself (same process group) and the launcher waits for it to
+    finish: an upstream script stopping mid-save is not killed under it. A second Ctrl-C
+    terminates it, a third kills it.
+    """
     if not command:
         raise ValueError("smdm run: no command given (put it after `--`)")
     repo = os.path.abspath(repo)
@@ -118,10 +124,32 @@ def run(repo: str, command: Sequence[str], integration: str = "auto",
     hook_dir = tempfile.mkdtemp(prefix="smdm_run_")
     try:
         write_sitecustomize(hook_dir)
-        proc = subprocess.run(list(command), cwd=repo, env=make_environment(name, hook_dir, env))
-        return proc.returncode
+        try:
+            proc = subprocess.Popen(list(command), cwd=repo, env=make_environment(name, hook_dir, env))
+        except FileNotFoundError:
+            sys.stderr.write(f"smdm run: command not found: {command[0]!r}\n")
+            return 127
+        except PermissionError:
+            sys.stderr.write(f"smdm run: cannot execute {command[0]!r} (permission denied)\n")
+            return 126
+        return _wait(proc)
     finally:
         shutil.rmtree(hook_dir, ignore_errors=True)
+
+
+def _wait(proc: "subprocess.Popen[bytes]") -> int:
+    interrupts = 0
+    while True:
+        try:
+            code = proc.wait()
+            return 128 - code if code < 0 else code
+        except KeyboardInterrupt:
+            interrupts += 1
+            if interrupts == 2:
+                sys.stderr.write("smdm run: stopping the command (Ctrl-C again to kill it)\n")
+                proc.terminate()
+            elif interrupts >= 3:
+                proc.kill()
 
 
 def build_parser(prog: str = "smdm run") -> argparse.ArgumentParser:
@@ -151,15 +179,16 @@ def parse_run_args(argv: Sequence[str]) -> Tuple[argparse.Namespace, List[str]]:
 
 
 def main_run(argv: Optional[Sequence[str]] = None) -> int:
-    """Entry point of ``smdm run`` (called by ``smdm_plugin.cli``); returns the exit code."""
+    """Entry point of ``smdm run`` (called by ``smdm_plugin.cli``); returns the exit code: the
+    command's own, or 2 for a bad ``--repo`` / missing command (one argparse-style line)."""
+    parser = build_parser()
     args, command = parse_run_args(sys.argv[1:] if argv is None else argv)
     if not command:
-        build_parser().error("no command given: smdm run --repo PATH -- python -m ...")
+        parser.error("no command given: smdm run --repo PATH -- python -m ...")
     try:
         return run(args.repo, command, args.integration)
     except ValueError as e:
-        sys.stderr.write(f"{e}\n")
-        return 2
+        parser.error(str(e).removeprefix("smdm run: "))
 
 
 if __name__ == "__main__":  # python -m smdm_plugin.integrations.launcher --repo X -- cmd

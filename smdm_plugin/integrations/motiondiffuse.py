@@ -1,6 +1,6 @@
-"""MotionDiffuse (text2motion/) integration: ``--sparse*`` / ``--masked_loss`` options, sparsify
-the ``MotionTransformer`` where ``DDPMTrainer`` receives it, masked loss + L_lip in
-``DDPMTrainer.backward_G``.
+"""MotionDiffuse (text2motion/) integration: ``--sparse*`` options, sparsify the
+``MotionTransformer`` where ``DDPMTrainer`` receives it, sparse-mode loss terms (``+ L_lip``;
+keyframes only for the ``interpolate=False`` ablation) in ``DDPMTrainer.backward_G``.
 
 MotionDiffuse is released under the S-Lab License 1.0 (non-commercial); see
 ``docs/motiondiffuse.md``. Nothing of it is copied here.
@@ -31,14 +31,9 @@ from ..core.config import CONFIG_FILENAME, SparseConfig
 
 
 def add_sparse_options(parser: Any) -> Any:
-    """``--sparse``, ``--sparse_<field>`` and ``--masked_loss`` (idempotent)."""
-    actions = getattr(parser, "_option_string_actions", {})
-    if "--sparse" not in actions:
+    """``--sparse`` and ``--sparse_<field>`` (idempotent)."""
+    if "--sparse" not in getattr(parser, "_option_string_actions", {}):
         SparseConfig.add_argparse_args(parser)
-    if "--masked_loss" not in actions:
-        parser.add_argument("--masked_loss", action="store_true",
-                            help="dense mode: exclude padded frames from the diffusion loss "
-                                 "(always on in sparse mode)")
     return parser
 
 
@@ -87,8 +82,6 @@ def merge_sparse_options(opt: Any, args: Any) -> Any:
             if k == "sparse" or k.startswith("sparse_"):
                 setattr(opt, k, v)
         opt._smdm_cli_override = True
-    if getattr(args, "masked_loss", False):
-        opt.masked_loss = True
     return opt
 
 
@@ -110,8 +103,7 @@ def mean_std_from_opt(opt: Any):
 def attach_trainer(trainer: Any, config: Optional[SparseConfig] = None) -> Any:
     """Sparsify ``trainer.encoder`` (or its ``.module``) and wrap ``trainer.diffusion`` according
     to ``trainer.opt``; training runs save the config beside the checkpoints."""
-    from ..adapters.motiondiffuse import (attach_motiondiffuse_diffusion, is_sparse_motiondiffuse,
-                                          sparsify_motiondiffuse)
+    from ..adapters.motiondiffuse import is_sparse_motiondiffuse, sparsify_motiondiffuse
 
     opt = trainer.opt
     config = config if config is not None else config_from_opt(opt)
@@ -120,11 +112,10 @@ def attach_trainer(trainer: Any, config: Optional[SparseConfig] = None) -> Any:
     if config.enabled and not is_sparse_motiondiffuse(core):
         mean, std = mean_std_from_opt(opt)
         sparsify_motiondiffuse(core, config, mean, std, diffusion=trainer.diffusion)
-    elif getattr(opt, "masked_loss", False):
-        attach_motiondiffuse_diffusion(trainer.diffusion, config, None, masked_loss=True)
     if config.enabled and getattr(opt, "is_train", False) and getattr(opt, "model_dir", None):
-        os.makedirs(opt.model_dir, exist_ok=True)
-        core.smdm_config.save(os.path.join(opt.model_dir, CONFIG_FILENAME))
+        from ..io.checkpoint import save_sparse_config  # never replaces another config unasked
+
+        save_sparse_config(core.smdm_config, opt.model_dir)
     return trainer
 
 
@@ -164,17 +155,17 @@ def _patch_trainer(mod) -> None:
     def __init__(self, args, encoder, *a, **kw):
         _cpu_fallback(args)
         init(self, args, encoder, *a, **kw)
-        if getattr(args, "sparse", False) or getattr(args, "masked_loss", False):
+        if getattr(args, "sparse", False):
             attach_trainer(self)
             self.to(self.device)
 
     @functools.wraps(backward)
     def backward_G(self):
         logs = backward(self)
-        if getattr(self.opt, "sparse", False) or getattr(self.opt, "masked_loss", False):
+        if getattr(self.opt, "sparse", False):
             from ..adapters.motiondiffuse import trainer_loss
 
-            self.loss_mot_rec = trainer_loss(self)
+            self.loss_mot_rec = trainer_loss(self, self.loss_mot_rec)
             logs["loss_mot_rec"] = self.loss_mot_rec.item()
         return logs
 

@@ -40,11 +40,27 @@ def _dataset_mean_std(data: Any):
     return None, None
 
 
+def warn_if_not_paper_blend(args: Any) -> bool:
+    """Warn (never override) when a sparse DoubleTake samples with a ``--blend_len`` other than the
+    paper's 0.25 s (5 frames at 20 fps); priorMDM's own default is 20. Returns whether it warned."""
+    from ..adapters.doubletake import PAPER_BLEND_LEN, PRIORMDM_BLEND_LEN
+
+    blend = getattr(args, "blend_len", None)
+    if blend is None or int(blend) == PAPER_BLEND_LEN:
+        return False
+    default = " (priorMDM's default)" if int(blend) == PRIORMDM_BLEND_LEN else ""
+    warnings.warn(f"smdm: DoubleTake --blend_len {int(blend)}{default}; the sMDM paper blends transitions "
+                  f"over 0.25 s = {PAPER_BLEND_LEN} frames at 20 fps. Pass --blend_len {PAPER_BLEND_LEN} to "
+                  "follow it; this run is left unchanged.", stacklevel=3)
+    return True
+
+
 def sparsify_priormdm(model: Any, args: Any, data: Any = None, diffusion: Any = None,
                       config: Optional[SparseConfig] = None) -> Any:
     """Sparsify a priorMDM model built by ``create_model_and_diffusion`` (no-op unless
     ``args.sparse``); DoubleTake models also get their forced keyframes (see
-    :mod:`smdm_plugin.adapters.doubletake`). Returns the model (changed in place)."""
+    :mod:`smdm_plugin.adapters.doubletake`) and a warning when ``--blend_len`` is not the paper's.
+    Returns the model (changed in place)."""
     from ..adapters.doubletake import attach_doubletake_forcing
     from ..adapters.mdm import is_sparse, sparsify
 
@@ -58,6 +74,7 @@ def sparsify_priormdm(model: Any, args: Any, data: Any = None, diffusion: Any = 
     sparsify(model, config, diffusion=diffusion, mean=mean, std=std)
     if "doubletake" in type(model).__name__.lower():
         attach_doubletake_forcing(model)
+        warn_if_not_paper_blend(args)
     return model
 
 

@@ -7,9 +7,10 @@ position is ``parent_pos + parent_R @ (offset + translation)``; its world rotati
 """
 from __future__ import annotations
 
+import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import List, Sequence, Tuple, Union
+from typing import List, Optional, Sequence, Tuple, Union
 
 import numpy as np
 
@@ -51,15 +52,70 @@ class BVH:
 _VALID_CHANNELS = {"Xposition", "Yposition", "Zposition", "Xrotation", "Yrotation", "Zrotation"}
 
 
+class BVHError(ValueError):
+    """A BVH file that cannot be read correctly; the message names the file (and the line)."""
+
+    def __init__(self, path: Union[str, Path], message: str, line: Optional[int] = None) -> None:
+        self.path, self.line = str(path), line
+        where = f"{path}" + (f", line {line}" if line is not None else "")
+        super().__init__(f"read_bvh: {where}: {message}")
+
+
+class BVHWarning(UserWarning):
+    """A BVH file that is read with a tolerance other readers also apply (e.g. one motion row more
+    than ``Frames:`` declares); the message names the file."""
+
+
+def _decode(raw: bytes) -> str:
+    """UTF-8 with or without a byte-order mark; Latin-1 (every byte valid) otherwise."""
+    try:
+        return raw.decode("utf-8-sig")
+    except UnicodeDecodeError:
+        return raw.decode("latin-1")
+
+
+def _tokens(lines: Sequence[str]) -> List[Tuple[str, int]]:
+    """Whitespace-separated tokens (spaces, tabs) with their 1-based line numbers."""
+    return [(t, n) for n, line in enumerate(lines, 1) for t in line.split()]
+
+
 def read_bvh(path: Union[str, Path]) -> BVH:
-    """Read a BVH file (LF or CRLF line endings, End Sites)."""
-    text = Path(path).read_text()
-    head, sep, motion_text = text.partition("MOTION")
-    if not sep:
-        raise ValueError(f"read_bvh: {path}: no MOTION section")
-    tok = head.split()
-    if not tok or tok[0] != "HIERARCHY":
-        raise ValueError(f"read_bvh: {path}: file must start with HIERARCHY")
+    """Read a BVH file.
+
+    Tolerant where other readers are: a UTF-8 byte-order mark, LF / CRLF / CR line endings, tabs,
+    blank lines, and one motion row more than ``Frames:`` declares (Debian's ``Boxing_Toes.bvh``:
+    3069 declared, 3070 present), which is ignored with a :class:`BVHWarning`. Strict otherwise:
+    :class:`BVHError` (a ``ValueError`` naming the file and line) for a malformed HIERARCHY, wrong
+    channel counts, unparsable or non-finite numbers, ``Frame Time`` <= 0 or non-finite, and a
+    truncated motion.
+    """
+    try:
+        raw = Path(path).read_bytes()
+    except IsADirectoryError:
+        raise BVHError(path, "is a folder, expected a .bvh file") from None
+    lines = _decode(raw).splitlines()
+    ml = next((k for k, ln in enumerate(lines) if ln.split()[:1] == ["MOTION"]), None)
+    if ml is None:
+        raise BVHError(path, "no MOTION section")
+    head = _tokens(lines[:ml])
+    # MOTION, Frames: n, Frame Time: t: the tokens of the next few lines (line numbers kept)
+    tail = [(t, n + ml) for t, n in _tokens(lines[ml:ml + 8])]
+    if not head or head[0][0] != "HIERARCHY":
+        raise BVHError(path, "file must start with HIERARCHY", head[0][1] if head else None)
+
+    def number(k: int, what: str, kind: type = float) -> float:
+        if k >= len(head):
+            raise BVHError(path, f"{what}: expected a number, got the end of the HIERARCHY", head[-1][1])
+        t, n = head[k]
+        try:
+            v = kind(t)
+        except ValueError:
+            raise BVHError(path, f"{what}: expected {'an integer' if kind is int else 'a number'}, got {t!r}",
+                           n) from None
+        if not np.isfinite(v):
+            raise BVHError(path, f"{what}: expected a finite number, got {t!r}", n)
+        return v
+
     names: List[str] = []
     parents: List[int] = []
     offsets: List[List[float]] = []
@@ -68,21 +124,23 @@ def read_bvh(path: Union[str, Path]) -> BVH:
     stack: List[int] = []          # joint index per open brace (-2 for an End Site)
     pending: int = -1              # joint / End Site opened by the next "{"
     i = 1
-    while i < len(tok):
-        t = tok[i]
+    while i < len(head):
+        t, line = head[i]
         if t in ("ROOT", "JOINT"):
             if t == "ROOT" and stack:
-                raise ValueError(f"read_bvh: {path}: ROOT inside another joint")
+                raise BVHError(path, "ROOT inside another joint", line)
+            if i + 1 >= len(head) or head[i + 1][0] in ("{", "}"):
+                raise BVHError(path, f"{t} without a name", line)
             parent = next((s for s in reversed(stack) if s >= 0), -1)
-            names.append(tok[i + 1])
+            names.append(head[i + 1][0])
             parents.append(parent)
             offsets.append([0.0, 0.0, 0.0])
             channels.append([])
             pending = len(names) - 1
             i += 2
         elif t == "End":
-            if i + 1 >= len(tok) or tok[i + 1] != "Site":
-                raise ValueError(f"read_bvh: {path}: expected 'End Site'")
+            if i + 1 >= len(head) or head[i + 1][0].lower() != "site":
+                raise BVHError(path, "expected 'End Site'", line)
             parent = next((s for s in reversed(stack) if s >= 0), -1)
             end_sites.append((parent, np.zeros(3)))
             pending = -2
@@ -92,49 +150,95 @@ def read_bvh(path: Union[str, Path]) -> BVH:
             i += 1
         elif t == "}":
             if not stack:
-                raise ValueError(f"read_bvh: {path}: unbalanced braces in HIERARCHY")
+                raise BVHError(path, "unbalanced braces in HIERARCHY", line)
             stack.pop()
             i += 1
         elif t == "OFFSET":
-            vals = [float(v) for v in tok[i + 1:i + 4]]
             if not stack:
-                raise ValueError(f"read_bvh: {path}: OFFSET outside a joint")
+                raise BVHError(path, "OFFSET outside a joint", line)
+            vals = [number(i + k, "OFFSET") for k in (1, 2, 3)]
             if stack[-1] == -2:
                 end_sites[-1] = (end_sites[-1][0], np.array(vals))
             else:
                 offsets[stack[-1]] = vals
             i += 4
         elif t == "CHANNELS":
-            n = int(tok[i + 1])
-            ch = tok[i + 2:i + 2 + n]
+            n = int(number(i + 1, "CHANNELS count", int))
+            ch = [c for c, _ in head[i + 2:i + 2 + n]]
             bad = [c for c in ch if c not in _VALID_CHANNELS]
-            if bad or not stack or stack[-1] < 0:
-                raise ValueError(f"read_bvh: {path}: bad CHANNELS {ch}")
+            if n < 0 or len(ch) < n or bad or not stack or stack[-1] < 0:
+                raise BVHError(path, f"bad CHANNELS {n} {' '.join(ch)} (expected {n} of "
+                               f"{sorted(_VALID_CHANNELS)} inside a joint)", line)
             channels[stack[-1]] = ch
             i += 2 + n
         else:
-            raise ValueError(f"read_bvh: {path}: unexpected token {t!r} in HIERARCHY")
+            raise BVHError(path, f"unexpected token {t!r} in HIERARCHY", line)
     if stack:
-        raise ValueError(f"read_bvh: {path}: unbalanced braces in HIERARCHY")
+        raise BVHError(path, "unbalanced braces in HIERARCHY (a '}' is missing)", ml + 1)
     if not names:
-        raise ValueError(f"read_bvh: {path}: no joints")
-
-    mtok = motion_text.split()
-    try:
-        fi = mtok.index("Frames:")
-        n_frames = int(mtok[fi + 1])
-        if mtok[fi + 2:fi + 4] != ["Frame", "Time:"]:
-            raise ValueError
-        frame_time = float(mtok[fi + 4])
-    except (ValueError, IndexError):
-        raise ValueError(f"read_bvh: {path}: MOTION needs 'Frames: n' and 'Frame Time: t'")
+        raise BVHError(path, "no joints in HIERARCHY")
     n_ch = sum(len(c) for c in channels)
-    values = np.array(mtok[fi + 5:], dtype=np.float64)
-    if values.size != n_frames * n_ch:
-        raise ValueError(f"read_bvh: {path}: expected {n_frames} frames × {n_ch} channels = "
-                         f"{n_frames * n_ch} values, got {values.size}")
-    return BVH(names, parents, np.array(offsets, dtype=np.float64), channels, frame_time,
-               values.reshape(n_frames, n_ch), end_sites)
+    n_frames, frame_time, first_row = _motion_header(path, tail)
+    motion = _motion_rows(path, lines, first_row, n_frames, n_ch)
+    return BVH(names, parents, np.array(offsets, dtype=np.float64), channels, frame_time, motion, end_sites)
+
+
+def _motion_header(path: Union[str, Path], tok: Sequence[Tuple[str, int]]) -> Tuple[int, float, int]:
+    """``(frames, frame time in s, line index of the first motion row)`` from ``MOTION Frames: n
+    Frame Time: t`` (each on its own line, as every writer puts them)."""
+    words = [t for t, _ in tok[1:6]]
+    line = tok[0][1]
+    if len(words) < 5 or words[0] != "Frames:" or words[2:4] != ["Frame", "Time:"]:
+        raise BVHError(path, "MOTION needs 'Frames: n' and 'Frame Time: t'", line)
+    try:
+        n_frames = int(words[1])
+    except ValueError:
+        raise BVHError(path, f"Frames: expected an integer, got {words[1]!r}", tok[2][1]) from None
+    if n_frames < 0:
+        raise BVHError(path, f"Frames: must be >= 0, got {n_frames}", tok[2][1])
+    try:
+        frame_time = float(words[4])
+    except ValueError:
+        raise BVHError(path, f"Frame Time: expected a number (seconds), got {words[4]!r}", tok[5][1]) from None
+    if not (np.isfinite(frame_time) and frame_time > 0):
+        raise BVHError(path, f"Frame Time: must be a finite number of seconds > 0, got {words[4]}", tok[5][1])
+    return n_frames, frame_time, tok[5][1]  # rows start on the line after Frame Time
+
+
+def _motion_rows(path: Union[str, Path], lines: Sequence[str], first: int, n_frames: int,
+                 n_ch: int) -> np.ndarray:
+    """The motion ``[n_frames, n_ch]``: one row per non-blank line from line index ``first``."""
+    rows = [(k + 1, ln.split()) for k, ln in enumerate(lines[first:], first) if ln.strip()]
+    for line, vals in rows:
+        if len(vals) != n_ch:
+            raise BVHError(path, f"motion row has {len(vals)} values, expected {n_ch} (the channels "
+                           "declared in HIERARCHY)", line)
+    if len(rows) < n_frames:
+        raise BVHError(path, f"truncated motion: Frames: {n_frames} declared, {len(rows)} row(s) present")
+    if len(rows) == n_frames + 1 and n_frames > 0:
+        warnings.warn(BVHWarning(f"read_bvh: {path}: Frames: {n_frames} declared, {n_frames + 1} rows present; "
+                                 f"the last row (line {rows[-1][0]}) is ignored, as other BVH readers do"),
+                      stacklevel=3)
+        rows = rows[:-1]
+    elif len(rows) > n_frames:
+        raise BVHError(path, f"Frames: {n_frames} declared, {len(rows)} motion rows present")
+    try:
+        motion = np.array([v for _, v in rows], dtype=np.float64).reshape(n_frames, n_ch)
+    except ValueError:
+        line, bad = next((ln, t) for ln, vals in rows for t in vals if not _is_float(t))
+        raise BVHError(path, f"motion value {bad!r} is not a number", line) from None
+    if not np.isfinite(motion).all():
+        r = int(np.argwhere(~np.isfinite(motion))[0, 0])
+        raise BVHError(path, "motion value is not finite (nan/inf)", rows[r][0])
+    return motion
+
+
+def _is_float(t: str) -> bool:
+    try:
+        float(t)
+        return True
+    except ValueError:
+        return False
 
 
 def _axis_rotation(axis: str, deg: np.ndarray) -> np.ndarray:
@@ -201,6 +305,11 @@ def load_cmu_clip(path: Union[str, Path], fps: int = 20, drop_first: bool = True
     (the converter's synthetic T-pose) dropped, then every ``round(file_fps / fps)``-th frame
     (120 -> 20 fps: file frames 1, 7, 13, ...)."""
     bvh = read_bvh(path)
+    where = {n for e in HUMANML22_FROM_CMU for n in ((e,) if isinstance(e, str) else e)}
+    missing = sorted(where - set(bvh.names))
+    if missing:
+        raise BVHError(path, f"not a CMU skeleton: lacks the joints {missing} that the 22-joint "
+                       "(HumanML3D) mapping needs")
     step = max(1, int(round(bvh.fps / fps)))
     pos = bvh_joint_positions(bvh, scale=CMU_TO_METRES)
     pos = pos[1:] if drop_first else pos

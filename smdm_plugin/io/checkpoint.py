@@ -5,12 +5,13 @@ from __future__ import annotations
 
 import json
 import os
-from typing import Any, Dict, Mapping, Optional, Tuple, Union
+from typing import Any, Dict, Iterable, Mapping, Optional, Tuple, Union
 
 import torch
 import torch.nn as nn
 
 from ..core.config import CONFIG_FILENAME, MARKER, SparseConfig
+from .files import OutputExistsError
 
 BACKBONE_FILENAME = "backbone.json"
 
@@ -20,33 +21,63 @@ def _dir_of(path: str) -> str:
 
 
 def save_sparse_config(model_or_config: Union[nn.Module, SparseConfig], directory: str,
-                       overwrite: bool = True) -> str:
-    """Write ``sparse_config.json`` into ``directory``; returns its path."""
+                       overwrite: bool = False) -> str:
+    """Write ``sparse_config.json`` into ``directory`` (created if needed), atomically; returns its
+    path. An existing file holding the same config is left as it is (saving twice, or from every
+    rank of a distributed run, is fine); one holding another config (or unreadable) is an
+    :class:`~smdm_plugin.io.files.OutputExistsError` (a ``FileExistsError``) unless ``overwrite``."""
     config = model_or_config if isinstance(model_or_config, SparseConfig) else getattr(
         model_or_config, "smdm_config", None)
     if config is None:
         raise ValueError("save_sparse_config: the model is not sparse (no smdm_config); sparsify it first")
     os.makedirs(directory, exist_ok=True)
     path = os.path.join(directory, CONFIG_FILENAME)
-    if os.path.exists(path) and not overwrite:
-        raise FileExistsError(f"save_sparse_config: {path} exists (pass overwrite=True)")
+    if os.path.isdir(path):
+        raise OutputExistsError(f"save_sparse_config: {path!r} is a folder")
+    if not overwrite and os.path.lexists(path):
+        why = _how_it_differs(path, config)
+        if why is None:
+            return path
+        raise OutputExistsError(f"save_sparse_config: {path!r} exists with {why}; pass overwrite=True "
+                                "(--overwrite) to replace it")
     return config.save(path)
+
+
+def _how_it_differs(path: str, config: SparseConfig) -> Optional[str]:
+    """None when ``path`` holds ``config`` (its version aside), else what it holds instead."""
+    try:
+        saved = SparseConfig.load(path)
+    except (OSError, ValueError) as e:  # ConfigTypeError is a ValueError too
+        return f"contents that are not a valid config ({e})"
+    diff = saved.differences(config)
+    return f"another config (differs in {', '.join(diff)})" if diff else None
 
 
 def find_sparse_config(checkpoint_path: str) -> Optional[SparseConfig]:
     """The config saved beside a checkpoint: ``sparse_config.json``, else ``args.json``'s
     ``sparse``/``sparse_*`` keys (MDM), else None."""
+    return _find_config(checkpoint_path)[0]
+
+
+def _find_config(checkpoint_path: str) -> Tuple[Optional[SparseConfig], Optional[str]]:
+    """``(config, the file it came from)`` or ``(None, None)``; errors name the file."""
     d = _dir_of(checkpoint_path)
     p = os.path.join(d, CONFIG_FILENAME)
     if os.path.exists(p):
-        return SparseConfig.load(p)
+        return SparseConfig.load(p), p
     args = os.path.join(d, "args.json")
     if os.path.exists(args):
-        with open(args) as f:
-            a = json.load(f)
-        if a.get("sparse"):
-            return SparseConfig.from_args(a)
-    return None
+        try:
+            with open(args) as f:
+                a = json.load(f)
+        except json.JSONDecodeError as e:
+            raise ValueError(f"{args}: not valid JSON: {e}") from None
+        if isinstance(a, dict) and a.get("sparse"):
+            try:
+                return SparseConfig.from_args(a), args
+            except ValueError as e:  # ConfigTypeError too
+                raise type(e)(f"{args}: {e}") from None
+    return None, None
 
 
 def state_dict_is_sparse(state_dict: Mapping[str, Any]) -> bool:
@@ -82,22 +113,53 @@ def unwrap_state_dict(obj: Any) -> Dict[str, torch.Tensor]:
     return dict(obj)
 
 
+def check_config_matches(model: nn.Module, saved: SparseConfig, source: str,
+                         allow_differences: Iterable[str] = ()) -> None:
+    """Raise ``ValueError`` naming every field where an already-sparse ``model``'s config differs
+    from the ``saved`` one (``version`` and the fields in ``allow_differences`` aside)."""
+    allowed = tuple(allow_differences)
+    fields = saved.to_dict()
+    unknown = [k for k in allowed if k not in fields]
+    if unknown:
+        raise ValueError(f"load_checkpoint: allow_differences names unknown SparseConfig field(s) {unknown}; "
+                         f"known: {', '.join(fields)}")
+    current = next((m.smdm_config for m in model.modules()
+                    if isinstance(getattr(m, "smdm_config", None), SparseConfig)), None)
+    if current is None:
+        return
+    diff = saved.differences(current, ignore=("version", *allowed))
+    if diff:
+        listed = "; ".join(f"{k}: saved {a!r}, model {b!r}" for k, (a, b) in diff.items())
+        raise ValueError(
+            f"load_checkpoint: the model is already sparse, with a config that differs from the one saved "
+            f"with the checkpoint ({source}) in {len(diff)} field(s): {listed}. Pass a dense model (it is "
+            "sparsified with the saved config), sparsify it with find_sparse_config(path), or name the "
+            "fields you changed on purpose in allow_differences=(...)")
+
+
 def load_checkpoint(path: str, model: Optional[nn.Module] = None, map_location: Any = "cpu",
-                    strict: bool = True, **sparsify_kwargs: Any) -> Tuple[nn.Module, Optional[SparseConfig]]:
+                    strict: bool = True, allow_differences: Iterable[str] = (),
+                    **sparsify_kwargs: Any) -> Tuple[nn.Module, Optional[SparseConfig]]:
     """Load ``path`` (a ``.pt`` state dict) re-creating sparse mode from the saved config.
 
     Args:
         path: checkpoint file; ``sparse_config.json`` or ``args.json`` beside it says whether it is sparse.
-        model: the freshly built dense model to load into. None: build the in-package ``TinyMDM``
-            from ``backbone.json`` beside the checkpoint.
+        model: the freshly built dense model to load into (sparsified here with the saved config),
+            or a model already sparse, whose config must then equal the saved one (a ``ValueError``
+            names the fields that differ). None: build the in-package ``TinyMDM`` from
+            ``backbone.json`` beside the checkpoint.
+        allow_differences: config fields an already-sparse ``model`` may set differently from the
+            saved config on purpose (e.g. ``("gamma",)`` to sample with another schedule).
         sparsify_kwargs: passed to :func:`sparsify` (``mean``, ``std``, ``diffusion``).
     Returns:
         ``(model, config)``; config is None for a dense checkpoint.
     """
     from ..adapters.mdm import sparsify
 
+    if not os.path.isfile(path):
+        raise FileNotFoundError(f"load_checkpoint: no such checkpoint file: {path!r}")
     state = unwrap_state_dict(torch.load(path, map_location=map_location, weights_only=True))
-    config = find_sparse_config(path)
+    config, config_source = _find_config(path)
     if state_dict_is_sparse(state) and config is None:
         raise RuntimeError(f"load_checkpoint: {path} holds a sparse model but has no sparse config beside it "
                            f"(expected {CONFIG_FILENAME} or args.json with sparse=true in "
@@ -109,10 +171,20 @@ def load_checkpoint(path: str, model: Optional[nn.Module] = None, map_location: 
                                     f"{path} to build the in-package TinyMDM")
         from ..reference.backbone import TinyMDM
 
-        with open(bpath) as f:
-            model = TinyMDM(**json.load(f))
-    if config is not None and config.enabled and not model_is_sparse(model):
-        sparsify(model, config, **sparsify_kwargs)
+        try:
+            with open(bpath) as f:
+                model = TinyMDM(**json.load(f))
+        except (ValueError, TypeError) as e:
+            raise ValueError(f"load_checkpoint: {bpath}: cannot build TinyMDM from it: {e}") from None
+    if config is not None and config.text_encoder and getattr(model, "_smdm_text_encoder", None) != config.text_encoder:
+        from ..adapters.text_encoder import swap_text_encoder  # the encoder the weights were trained with
+
+        swap_text_encoder(model, config.text_encoder)
+    if config is not None and config.enabled:
+        if model_is_sparse(model):
+            check_config_matches(model, config, config_source or path, allow_differences)
+        else:
+            sparsify(model, config, **sparsify_kwargs)
     check_state_dict(model, state, path)
     missing, unexpected = model.load_state_dict(state, strict=False)
     missing = [k for k in missing if not k.startswith("clip_model.")]

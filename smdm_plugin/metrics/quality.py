@@ -131,6 +131,9 @@ def foot_skating_ratio(motion: ArrayLike, *, fps: float = 20.0, lengths: Lengths
         motion: joint positions ``[N, J, 3]`` / ``[B, N, J, 3]`` in metres.
         fps: frames per second (HumanML3D: 20).
         lengths: valid frames per motion (int or ``[B]``, each >= 2); None = all ``N``.
+        feet: foot joint indices (KIT-ML's 21 joints: ``(15, 20)``).
+        up_axis: the vertical axis of the positions (0, 1 or 2).
+        height, speed, window: contact height (m), sliding speed (m/s), averaging window (steps).
         reduce: ``"mean"`` (mean of the per-motion ratios) or ``"none"`` (``[B]``).
     """
     fn = "foot_skating_ratio"

@@ -59,8 +59,8 @@ def _random_clip():
 
 
 def _import_clip():
-    """``import clip``; when torchvision cannot be imported (PyPI's Linux torchvision wheels are
-    CUDA builds that do not load next to a CPU-only torch), ``clip.clip``'s import of
+    """``import clip``; when torchvision cannot be imported (missing, or PyPI's Linux torchvision
+    wheel, a CUDA build that does not load next to a CPU-only torch), ``clip.clip``'s import of
     ``torchvision.transforms`` (image preprocessing, never used by MDM) is served by placeholders
     that exist only while ``clip`` is imported: they are taken out of ``sys.modules`` afterwards,
     so other libraries (transformers) still see no torchvision."""
@@ -73,7 +73,10 @@ def _import_clip():
     except ImportError as e:
         if "torchvision" not in str(e):
             raise
-    for name in [m for m in sys.modules if m == "clip" or m.startswith("clip.")]:
+    except RuntimeError as e:  # a torchvision build that does not match torch (CUDA wheel, CPU torch)
+        if "torchvision" not in str(e):
+            raise
+    for name in [m for m in sys.modules if m in ("clip", "torchvision") or m.startswith(("clip.", "torchvision."))]:
         del sys.modules[name]
 
     class _Unavailable:
@@ -218,6 +221,61 @@ def install_no_render() -> None:
     gen.save_multiple_samples = save_multiple_samples
 
 
+def install_ddp_probe() -> None:
+    """``SMDM_TEST_DDP_PROBE=DIR`` (training under ``torchrun``): each rank writes ``DIR/rank<r>.pt``
+    (its model's state dict when ``TrainLoop.run_loop`` ends) and, at exit, ``DIR/rank<r>.json``:
+    ``writes``, every file the process opened for writing (a ``sys.addaudithook`` on ``open``, so
+    nothing escapes it), and ``epochs``, the dataset indices each pass over a ``DistributedSampler``
+    yielded. Read-only otherwise: it changes nothing the run computes."""
+    out = os.environ.get("SMDM_TEST_DDP_PROBE")
+    if not out:
+        return
+    import atexit
+    import json
+
+    import torch
+    import torch.utils.data as tud
+
+    rank = os.environ.get("RANK", "0")
+    record = {"writes": [], "epochs": []}
+    write_flags = os.O_WRONLY | os.O_RDWR | os.O_CREAT | os.O_APPEND
+
+    def audit(event, args):
+        if event != "open" or not isinstance(args[0], (str, bytes, os.PathLike)):
+            return
+        path, mode, flags = args
+        if (isinstance(mode, str) and any(c in mode for c in "wax+")) or (isinstance(flags, int) and flags & write_flags):
+            record["writes"].append(os.path.abspath(os.fsdecode(path)))
+
+    sys.addaudithook(audit)
+    sampler_iter = tud.DistributedSampler.__iter__
+
+    def __iter__(self):
+        indices = list(sampler_iter(self))
+        record["epochs"].append(indices)
+        return iter(indices)
+
+    tud.DistributedSampler.__iter__ = __iter__
+    import train.training_loop as tl
+
+    run_loop = tl.TrainLoop.run_loop
+
+    def run_loop_and_dump(self, *args, **kwargs):
+        try:
+            return run_loop(self, *args, **kwargs)
+        finally:
+            torch.save({k: v.detach().cpu() for k, v in self.model.state_dict().items()},
+                       os.path.join(out, f"rank{rank}.pt"))
+
+    tl.TrainLoop.run_loop = run_loop_and_dump
+
+    def dump():
+        with open(os.path.join(out, f"rank{rank}.json"), "w") as f:
+            json.dump(record, f)
+
+    atexit.register(dump)
+
+
 def install_all() -> None:
     if os.getcwd() not in sys.path:
         sys.path.insert(0, os.getcwd())
@@ -227,6 +285,7 @@ def install_all() -> None:
     install_glove_stub()
     install_loader_workers()
     install_no_render()
+    install_ddp_probe()
 
 
 def main(argv=None) -> None:

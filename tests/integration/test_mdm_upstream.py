@@ -2,8 +2,8 @@
 launcher (no upstream edit), on real motion (cmu-humanml3d, HumanML3D format).
 
 Skipped unless ``SMDM_MDM_ROOT`` points at an MDM checkout (github:GuyTevet/motion-diffusion-model,
-tested at d4fd88c; read-only, it is copied). Prepare the Python deps once with
-``SMDM_MDM_SRC=$SMDM_MDM_ROOT scripts/prepare_mdm_checkout.sh``. CLIP/DistilBERT have random
+tested at d4fd88c; read-only, it is copied). The Python deps: ``pip install "smdm-plugin[mdm]"``
+(docs/mdm.md). CLIP/DistilBERT have random
 weights of the right architecture and SMPL/GloVe are stubbed (``mdm_harness.py``); the CLIP text
 tower is 1 layer deep here for speed (``SMDM_TEST_CLIP_LAYERS``).
 
@@ -17,8 +17,11 @@ What is checked:
 * flag off: patched and launched runs equal upstream bit for bit (same seed: checkpoint and samples);
 * sparse with reduction 0 (all keyframes) equals the dense model within 1e-5 (same weights);
 * a sparse checkpoint given to a dense model is a clear error (flag lost), and unpatched upstream
-  refuses it too.
-The launcher tests at the end need no checkout (a fake MDM layout) and always run.
+  refuses it too;
+* ``torchrun --nproc_per_node 2`` (gloo) through ``smdm run`` (trans_enc, DiP) and through the
+  patch (trans_enc): identical parameters on both ranks, only rank 0 writes in ``--save_dir``,
+  disjoint per-rank halves of every epoch, the same all-rank loss logged by both ranks.
+The launcher and DDP-hook tests at the end need no checkout (a fake MDM layout) and always run.
 """
 from __future__ import annotations
 
@@ -322,6 +325,77 @@ def test_sparse_checkpoint_into_dense_model_is_a_clear_error(sparse_run, pristin
     assert not os.path.exists(os.path.join(tmp_path, "g3", "results.npy"))
 
 
+# --------------------------------------------------------------------------- torchrun (DDP)
+def torchrun_train(repo, save_dir, probe, arch, extra=(), launcher=True):
+    """MDM's own ``train.train_mdm`` in 2 gloo processes: ``smdm run --repo REPO -- torchrun
+    --nproc_per_node 2 <harness> train.train_mdm ...`` (or, patch route, torchrun alone)."""
+    cmd = [sys.executable, "-m", "torch.distributed.run", "--standalone", "--nproc_per_node", "2", HARNESS,
+           "train.train_mdm", "--save_dir", save_dir, "--num_steps", "4", "--log_interval", "1",
+           *TINY[:6], "--batch_size", "4", "--save_interval", "1000000", "--seed", "10", *ARCH[arch], *extra]
+    if launcher:
+        cmd = [sys.executable, "-m", "smdm_plugin", "run", "--repo", repo, "--"] + cmd
+    env = plugin_env({**ENV, "SMDM_TEST_DDP_PROBE": probe, "OMP_NUM_THREADS": "1"})
+    return run_logged(cmd, cwd=repo, env=env, timeout=900)
+
+
+@needs_mdm
+@pytest.mark.parametrize("arch,launcher", [("trans_enc", True), ("dip", True), ("trans_enc", False)],
+                         ids=["trans_enc-launcher", "dip-launcher", "trans_enc-patch"])
+def test_torchrun_two_processes(arch, launcher, pristine, patched, tmp_path):
+    import torch
+
+    save, probe = str(tmp_path / "save"), tmp_path / "probe"
+    probe.mkdir()
+    proc = torchrun_train(pristine if launcher else patched, save, str(probe), arch, ["--sparse"], launcher)
+    out = proc.stdout + proc.stderr
+    r0, r1 = (torch.load(probe / f"rank{r}.pt", weights_only=True) for r in (0, 1))
+    # identical parameters and buffers on both ranks after training
+    assert sorted(r0) == sorted(r1) and "smdm_sparse_version" in r0
+    for k in r0:
+        assert torch.equal(r0[k], r1[k]), k
+    # rank 0 wrote the run folder, rank 1 nothing in it (its start-up files went to a removed temp dir)
+    w0, w1 = (json.load(open(probe / f"rank{r}.json")) for r in (0, 1))
+    in_save = [[p for p in w["writes"] if p.startswith(save + os.sep)] for w in (w0, w1)]
+    assert in_save[1] == [], in_save[1]
+    names = {os.path.basename(p) for p in in_save[0]}
+    assert {"args.json", "sparse_config.json"} <= names
+    assert any(re.fullmatch(r"model\d{9}\.pt", n) for n in names) and any(n.startswith("opt") for n in names)
+    private = {os.path.dirname(os.path.dirname(p)) for p in w1["writes"] if "smdm_rank1_" in p}
+    assert private and not any(os.path.exists(d) for d in private)
+    ckpt = load_sd(latest_checkpoint(save))
+    assert set(ckpt) <= set(r0) and all(torch.equal(ckpt[k], r0[k]) for k in ckpt)
+    # each rank drew its own half of every epoch (DistributedSampler), a new shuffle each epoch
+    assert len(w0["epochs"]) == len(w1["epochs"]) >= 1
+    for e0, e1 in zip(w0["epochs"], w1["epochs"]):
+        assert len(e0) == len(e1) > 0 and not set(e0) & set(e1)
+    # the logged loss is the mean over both ranks' samples: both ranks print the same value per step
+    per_step = {}
+    for step, value in logged_losses(out):
+        per_step.setdefault(step, []).append(value)
+    assert per_step and all(len(v) == 2 and v[0] == v[1] for v in per_step.values()), per_step
+    assert all(np.isfinite(v[0]) for v in per_step.values())
+
+
+@needs_mdm
+def test_torchrun_one_process_equals_the_plain_run(pristine, tmp_path):
+    """``torchrun --nproc_per_node 1``: DDP over one process changes nothing (same data order, same
+    random stream on rank 0, gradients averaged over one rank): the checkpoint is bit for bit the
+    one of the plain run (dense, through ``smdm run``)."""
+    import torch
+
+    plain, ddp = str(tmp_path / "plain"), str(tmp_path / "ddp")
+    _, ckpt_plain = train(pristine, plain, "trans_enc", 3, launcher=True)
+    cmd = [sys.executable, "-m", "smdm_plugin", "run", "--repo", pristine, "--", sys.executable, "-m",
+           "torch.distributed.run", "--standalone", "--nproc_per_node", "1", HARNESS, "train.train_mdm",
+           "--save_dir", ddp, "--num_steps", "3", *TINY, *ARCH["trans_enc"]]
+    run_logged(cmd, cwd=pristine, env=plugin_env(ENV), timeout=900)  # the environment of the plain run
+    a, b = load_sd(ckpt_plain), load_sd(latest_checkpoint(ddp))
+    assert os.path.basename(latest_checkpoint(ddp)) == os.path.basename(ckpt_plain)
+    assert sorted(a) == sorted(b)
+    for k in a:
+        assert torch.equal(a[k], b[k]), k
+
+
 # --------------------------------------------------------------------------- launcher, no checkout
 FAKE_PARSER = """
 def add_model_options(parser):
@@ -415,3 +489,76 @@ def test_launcher_detects_repo_kind(tmp_path):
         detect_repo(str(tmp_path))
     args, cmd = parse_run_args(["--repo", "x", "--", "python", "-m", "train.train_mdm", "--sparse"])
     assert args.repo == "x" and cmd == ["python", "-m", "train.train_mdm", "--sparse"]
+
+
+# --------------------------------------------------------------------------- DDP hooks, no checkout
+TORCHRUN_ENV = ("RANK", "WORLD_SIZE", "LOCAL_RANK", "MASTER_ADDR", "MASTER_PORT")
+
+
+def test_ddp_hooks_are_not_installed_without_torchrun(monkeypatch):
+    from smdm_plugin.integrations import _hooks, mdm_train
+
+    for k in TORCHRUN_ENV:
+        monkeypatch.delenv(k, raising=False)
+    before = {k: list(v) for k, v in _hooks._CALLBACKS.items()}
+    mdm_train.install_hooks()
+    assert {k: list(v) for k, v in _hooks._CALLBACKS.items()} == before
+    monkeypatch.setenv("RANK", "0")  # a partial torchrun environment is not torchrun either
+    assert not mdm_train.active()
+    for k, v in zip(TORCHRUN_ENV, ("0", "2", "0", "127.0.0.1", "29500")):
+        monkeypatch.setenv(k, v)
+    assert mdm_train.active()
+    monkeypatch.setenv("SMDM_DDP", "0")
+    assert not mdm_train.active()
+
+
+def test_ddp_training_loader_is_sharded_per_rank(monkeypatch):
+    """``get_dataset_loader(split='train', hml_mode='train')`` draws from a DistributedSampler:
+    the two ranks split every epoch, a new shuffle each epoch; evaluation loaders stay as they are."""
+    import types
+
+    from torch.utils.data import DataLoader, DistributedSampler
+
+    from smdm_plugin.integrations import mdm_train
+
+    def get_dataset_loader(name, batch_size, num_frames, split="train", hml_mode="train", fixed_len=0):
+        return DataLoader(list(range(20)), batch_size=batch_size, shuffle=True, drop_last=True,
+                          collate_fn=lambda b: b)
+
+    epochs = {}
+    for rank in (0, 1):
+        monkeypatch.setattr(mdm_train, "_RUN", mdm_train._Run(rank=rank, world_size=2, local_rank=rank, seed=3))
+        fake = types.SimpleNamespace(get_dataset_loader=get_dataset_loader)
+        mdm_train._patch_get_data(fake)
+        loader = fake.get_dataset_loader("humanml", 3, None)
+        assert isinstance(loader.sampler, DistributedSampler)
+        assert (loader.sampler.rank, loader.sampler.num_replicas, loader.batch_size) == (rank, 2, 3)
+        epochs[rank] = [[i for b in loader for i in b] for _ in range(2)]
+        evaluation = fake.get_dataset_loader("humanml", 3, None, split="test", hml_mode="eval")
+        assert not isinstance(evaluation.sampler, DistributedSampler)
+    for e in range(2):
+        assert len(epochs[0][e]) == len(epochs[1][e]) == 9  # 10 per rank, 3 full batches
+        assert not set(epochs[0][e]) & set(epochs[1][e])
+    assert epochs[0][0] != epochs[0][1]  # reshuffled each epoch (set_epoch)
+
+
+def test_ddp_wrapper_answers_the_model_attributes(tmp_path):
+    import torch
+    import torch.distributed as dist
+
+    from smdm_plugin.integrations import mdm_train
+    from smdm_plugin.integrations.distributed import constant_buffers_kwargs
+
+    if not dist.is_available() or not dist.is_gloo_available() or dist.is_initialized():
+        pytest.skip("needs a fresh gloo process group")
+    dist.init_process_group("gloo", store=dist.FileStore(str(tmp_path / "store"), 1), rank=0, world_size=1)
+    try:
+        model = torch.nn.Linear(3, 2)
+        model.all_goal_joint_names = ["pelvis"]
+        ddp = mdm_train._ddp_class()(model, **constant_buffers_kwargs())
+        assert ddp.all_goal_joint_names == ["pelvis"] and ddp.module is model
+        assert torch.equal(ddp(torch.ones(1, 3)), model(torch.ones(1, 3)))
+        with pytest.raises(AttributeError):
+            ddp.no_such_attribute
+    finally:
+        dist.destroy_process_group()

@@ -1,0 +1,84 @@
+"""``smdm keyframes``: keyframe reconstruction error of BVH clips per selection method and rate.
+
+Reads the clips as ``smdm demo`` does (CMU skeletons, 22 joints in metres at 20 fps, windows of
+up to 196 frames), keeps the frames each method picks (VW, uniform, random, MDO) at every
+reduction rate, interpolates the joints linearly in between and prints the mean joint position
+error (mm) as a markdown table; ``--plot`` draws the first window. Files that cannot be used are
+named with the reason, and so are the tolerances applied while reading them.
+"""
+from __future__ import annotations
+
+import argparse
+import os
+import secrets
+import sys
+import warnings
+from typing import List, Optional
+
+from ..io.files import OutputExistsError, check_new_file
+from ._args import add_overwrite, existing_path, float_range
+
+PLOT_FORMATS = (".png", ".pdf", ".svg", ".jpg", ".jpeg")
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(prog="smdm keyframes", description=__doc__.split("\n\n")[0])
+    p.add_argument("bvh", nargs="*", type=existing_path("any"),
+                   help="BVH files or folders (default: as smdm demo: $SMDM_MOCAP, assimp-testmodels, "
+                        "../shared/data/cmu-mocap)")
+    p.add_argument("--reductions", nargs="+", type=float_range(0.0, 1.0, hi_open=True), default=[0.6, 0.7, 0.8, 0.9],
+                   metavar="R", help="fractions of frames dropped, each in [0, 1) (default 0.6 0.7 0.8 0.9)")
+    p.add_argument("--frame-index-scale", type=float_range(0.0), default=0.1, metavar="M",
+                   help="metres per frame appended to the joint positions for selection (>= 0; default 0.1)")
+    p.add_argument("--plot", default=None, metavar="FILE",
+                   help=f"write the keyframe figure of the first window here ({', '.join(PLOT_FORMATS)})")
+    add_overwrite(p)
+    return p
+
+
+def main(argv: Optional[List[str]] = None) -> int:
+    p = build_parser()
+    a = p.parse_args(argv)
+    if a.plot is not None:
+        if not a.plot.lower().endswith(PLOT_FORMATS):
+            p.error(f"argument --plot: expected a file name ending in {', '.join(PLOT_FORMATS)}, got {a.plot!r}")
+        try:
+            check_new_file(a.plot, a.overwrite, what="--plot")
+        except OutputExistsError as e:
+            p.error(str(e))
+        folder = os.path.dirname(os.path.abspath(a.plot))
+        if not os.path.isdir(folder):
+            p.error(f"argument --plot: the folder {folder!r} does not exist")
+    from . import demo  # torch, numpy: after the arguments are checked
+
+    files = demo.find_bvh(a.bvh or None)
+    if not files:
+        print(f"smdm keyframes: no .bvh file in {', '.join(a.bvh)}" if a.bvh else demo.NO_BVH, file=sys.stderr)
+        return 2
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        clips = demo.load_clips(files, log=lambda m: print(m, file=sys.stderr))
+    for w in caught:  # tolerances applied while reading (e.g. one motion row too many)
+        print(f"  note: {w.message}", file=sys.stderr)
+    if not clips:
+        print("smdm keyframes: none of the BVH files could be used (see above).\n" + demo.NO_BVH, file=sys.stderr)
+        return 2
+    wins = demo.windows(clips, 196)
+    print(demo.keyframe_markdown(demo.keyframe_study(wins, a.reductions, frame_index_scale=a.frame_index_scale)))
+    if a.plot:
+        name, start, w = wins[0]
+        root, ext = os.path.splitext(os.path.abspath(a.plot))
+        tmp = f"{os.path.dirname(root)}/.{os.path.basename(root)}.{secrets.token_hex(4)}.tmp{ext}"
+        try:  # written beside the target, then renamed: never a half-written figure
+            demo.plot_keyframes(w, f"{name} frames {start}-{start + len(w) - 1}", 0.8, tmp,
+                                frame_index_scale=a.frame_index_scale)
+            os.replace(tmp, a.plot)
+        finally:
+            if os.path.exists(tmp):
+                os.remove(tmp)
+        print(f"wrote {a.plot}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,99 @@
+"""Input checks that never stall a GPU.
+
+A check on data (not shapes) needs the data's values. Where they are on the CPU (eager mode) the
+check runs on the host and raises a ``ValueError`` naming the argument; on an accelerator, or while
+``torch.compile`` traces, it becomes ``torch._assert_async`` with the same message: no host
+synchronisation, the error surfaces at the next synchronising call. Shapes and dtypes are metadata
+and are always checked on the host.
+"""
+from __future__ import annotations
+
+import threading
+from contextlib import contextmanager
+from typing import Iterator, Optional, Sequence, Union
+
+import numpy as np
+import torch
+
+LengthsLike = Union[torch.Tensor, Sequence[int], np.ndarray, None]
+
+_STATIC = threading.local()
+
+
+def compiling() -> bool:
+    """True while ``torch.compile`` traces (data-dependent Python branches are not allowed then)."""
+    is_compiling = getattr(getattr(torch, "compiler", None), "is_compiling", None)
+    return bool(is_compiling()) if is_compiling is not None else False
+
+
+@contextmanager
+def static_mode(enabled: bool = True) -> Iterator[None]:
+    """Within the block, CPU tensors are treated as if they lived on an accelerator: no host reads
+    of values (checks become ``torch._assert_async``), static shapes everywhere (the ``compact``
+    backend, fixed-size embedding rows). The CPU proxy of the GPU code path, for tests and
+    benchmarks; thread-local."""
+    before = getattr(_STATIC, "on", False)
+    _STATIC.on = enabled
+    try:
+        yield
+    finally:
+        _STATIC.on = before
+
+
+def static_shapes() -> bool:
+    """True under ``torch.compile`` or :func:`static_mode`: take the static-shape, sync-free path."""
+    return compiling() or getattr(_STATIC, "on", False)
+
+
+def host_checkable(t: torch.Tensor) -> bool:
+    """Whether ``t``'s values can be read without a device sync or a graph break."""
+    return t.device.type == "cpu" and not static_shapes()
+
+
+def require(cond: torch.Tensor, message: str) -> None:
+    """Raise ``ValueError(message)`` unless every element of bool ``cond`` is True (host check on
+    the CPU in eager mode; ``torch._assert_async`` otherwise)."""
+    if host_checkable(cond):
+        if not bool(cond.all()):
+            raise ValueError(message)
+    else:
+        torch._assert_async(cond.all(), message)
+
+
+def as_lengths(lengths: LengthsLike, B: int, N: int, device: torch.device, fn: str) -> torch.Tensor:
+    """``lengths`` as a long tensor ``[B]`` on ``device`` (None: all ``N``), checked: an integer
+    tensor (or sequence) of shape ``[B]`` with ``2 <= L <= N``. Errors name ``fn``."""
+    if lengths is None:
+        if N < 2:
+            raise ValueError(f"{fn}: N must be >= 2 frames, got N={N}")
+        return torch.full((B,), N, dtype=torch.long, device=device)
+    if not isinstance(lengths, torch.Tensor):
+        arr = np.asarray(lengths)
+        if arr.dtype.kind not in "iu":
+            raise ValueError(f"{fn}: lengths must be an integer tensor [B={B}], got dtype {arr.dtype}")
+        lengths = torch.as_tensor(arr)
+    if lengths.dtype.is_floating_point or lengths.dtype.is_complex or lengths.dtype == torch.bool:
+        raise ValueError(f"{fn}: lengths must be an integer tensor [B={B}], got dtype {lengths.dtype}")
+    if tuple(lengths.shape) != (B,):
+        raise ValueError(f"{fn}: lengths must have shape [B={B}], got {tuple(lengths.shape)}")
+    if host_checkable(lengths) and B:
+        lo, hi = int(lengths.min()), int(lengths.max())
+        if lo < 2:
+            raise ValueError(f"{fn}: lengths must be >= 2, got min {lo}")
+        if hi > N:
+            raise ValueError(f"{fn}: lengths must be <= N={N}, got max {hi}")
+    elif B:
+        torch._assert_async(((lengths >= 2) & (lengths <= N)).all(),
+                            f"{fn}: lengths must be in [2, N={N}]")
+    return lengths.to(device=device, dtype=torch.long)
+
+
+def as_mask(mask, B: int, N: int, device: torch.device, what: str) -> "Optional[torch.Tensor]":
+    """A per-frame mask (e.g. forced keyframes) as bool ``[B, N]`` on ``device``; None stays None.
+    The error names ``what`` (the argument) and the expected shape."""
+    if mask is None:
+        return None
+    mask = torch.as_tensor(mask)
+    if tuple(mask.shape) != (B, N):
+        raise ValueError(f"{what} must be a bool tensor [B, N]=[{B}, {N}], got shape {tuple(mask.shape)}")
+    return mask.to(device=device, dtype=torch.bool)

@@ -1,0 +1,92 @@
+"""The keyframe plan of one model call: where the keyframes are, with static shapes.
+
+Computed once per call from the keyframe mask and a fixed capacity ``K`` (a Python int: from the
+frame count, the reduction rate, the mask-noise bound and any forced frames), then used by the
+input embedding, the keyframe transformer and the interpolation back to every frame. Every tensor
+has a shape fixed by ``(B, N, K)``, so a call has no data-dependent shapes and no host syncs:
+CUDA graphs and ``torch.compile(fullgraph=True)`` apply as they do to the dense model.
+
+Slots: slot ``j < count[b]`` of sample ``b`` holds its ``j``-th keyframe (frame order); the slots
+after it hold distinct non-keyframes (padding, masked out of attention). Interpolation of frame
+``n``: ``f(n) = lerp(f(slot prev[n]), f(slot next[n]), w[n])`` with the keyframes around ``n``; at a
+keyframe ``prev = next`` = its own slot, before the first / after the last keyframe both are the
+first / last keyframe (constant extension).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Optional
+
+import torch
+
+from .checks import require
+
+
+@dataclass(frozen=True)
+class KeyframePlan:
+    """Keyframes of one call. ``B`` samples, ``N`` frames, ``K`` = :attr:`capacity` slots.
+
+    Attributes:
+        mask: ``[B, N]`` bool, True = keyframe (over the model's frame tokens).
+        index: ``[B, K]`` long, the frame held by each slot (distinct within a sample).
+        valid: ``[B, K]`` bool, slot holds a keyframe.
+        count: ``[B]`` long, keyframes per sample (``1 <= count <= K``).
+        prev_slot, next_slot: ``[B, N]`` long, slots of the keyframes around each frame.
+        weight: ``[B, N]`` float32 in [0, 1], the interpolation weight of each frame.
+    """
+
+    mask: torch.Tensor
+    index: torch.Tensor
+    valid: torch.Tensor
+    count: torch.Tensor
+    prev_slot: torch.Tensor
+    next_slot: torch.Tensor
+    weight: torch.Tensor
+
+    @property
+    def capacity(self) -> int:
+        return self.index.shape[1]
+
+    @property
+    def batch(self) -> int:
+        return self.mask.shape[0]
+
+    @property
+    def frames(self) -> int:
+        return self.mask.shape[1]
+
+    @classmethod
+    def build(cls, mask: torch.Tensor, capacity: Optional[int] = None, check: bool = True) -> "KeyframePlan":
+        """The plan of bool ``mask [B, N]`` with ``capacity`` slots (None: ``N``, always enough).
+        Every sample needs between 1 and ``capacity`` keyframes (checked without a host sync;
+        ``check=False`` for masks that hold it by construction, e.g. the sampling schedule's)."""
+        if mask.dim() != 2:
+            raise ValueError(f"KeyframePlan: mask must be bool [B, N], got shape {tuple(mask.shape)}")
+        mask = mask.to(torch.bool)
+        B, N = mask.shape
+        K = N if capacity is None else int(capacity)
+        if not 1 <= K <= N:
+            raise ValueError(f"KeyframePlan: capacity must be in [1, N={N}], got {capacity}")
+        idx = torch.arange(N, device=mask.device)
+        count = mask.sum(1)
+        if check:
+            require((count >= 1) & (count <= K),
+                    f"KeyframePlan: every sample needs 1..{K} keyframes (capacity {K}); a keyframe mask "
+                    "has more than the capacity or none")
+        # keyframes first (frame order), then the other frames: one sort of distinct keys, whose
+        # positions are the frames
+        index = torch.sort(torch.where(mask, idx, idx + N), dim=1).indices[:, :K]
+        valid = idx[:K] < count[:, None]
+        seen = torch.cumsum(mask, 1)                                   # keyframes at or before n
+        prev_slot = (seen - 1).clamp_min(0)
+        next_slot = torch.minimum(torch.where(mask, seen - 1, seen), (count - 1).clamp_min(0)[:, None])
+        prev_f = index.gather(1, prev_slot)
+        next_f = index.gather(1, next_slot)
+        gap = (next_f - prev_f).clamp_min(1).to(torch.float32)
+        weight = ((idx[None] - prev_f).to(torch.float32) / gap).clamp(0.0, 1.0)
+        return cls(mask, index, valid, count, prev_slot, next_slot, weight)
+
+    def slot_frames(self) -> torch.Tensor:
+        """``[K, B]`` long: the frame of every slot, frame-major (rows of a ``[N, B, ...]`` tensor
+        are ``frame * B + b``)."""
+        return self.index.t()

@@ -1,0 +1,212 @@
+"""The GPU rules, checked on the CPU (no test needs a GPU).
+
+* every sparse call (training with a given mask, training through the attached diffusion with
+  masks from x0, sampling before and inside the last round(γT) steps; trans_enc, trans_dec and a
+  DiP-style prefix) traces with ``torch.compile(fullgraph=True)`` and gives the eager result;
+* the static-shape path (what runs on accelerators: ``static_mode`` on the CPU) makes no host
+  synchronisation and builds no tensor from host data per step;
+* the launch budget: the kernels a sparse call dispatches stay within 1.5x (training step) and
+  1.6x (each sampling call) of the dense model's;
+* the static path gives the same outputs as the default CPU path.
+"""
+import collections
+import copy
+
+import pytest
+import torch
+from torch.utils._python_dispatch import TorchDispatchMode
+
+from smdm_plugin import SimpleDiffusion, SparseConfig, TinyMDM, sparsify
+from smdm_plugin.core.checks import static_mode
+
+VARIANTS = {
+    "trans_enc": dict(arch="trans_enc"),
+    "trans_dec": dict(arch="trans_dec"),
+    "dip": dict(arch="trans_dec", emb_trans_dec=True, context_len=20, pred_len=40),
+}
+# ops that make the host wait for the device (or build device tensors from host data)
+SYNC_OPS = {"aten._local_scalar_dense.default", "aten.item.default", "aten.is_nonzero.default",
+            "aten.nonzero.default", "aten.nonzero_static.default", "aten.masked_select.default",
+            "aten.repeat_interleave.Tensor", "aten._unique2.default", "aten.unique_dim.default",
+            "aten.unique_consecutive.default", "aten.lift_fresh.default", "aten.lift_fresh_copy.default"}
+
+
+class Dispatched(TorchDispatchMode):
+    """Records every aten op a block dispatches (the kernels it would launch on a GPU)."""
+
+    def __init__(self):
+        super().__init__()
+        self.ops = collections.Counter()
+        self.syncs = collections.Counter()
+
+    def __torch_dispatch__(self, func, types, args=(), kwargs=None):
+        name = str(func)
+        if not func.is_view:
+            self.ops[name] += 1
+        bool_index = func in (torch.ops.aten.index.Tensor, torch.ops.aten.index_put_.default,
+                              torch.ops.aten.index_put.default) and any(
+            isinstance(i, torch.Tensor) and i.dtype == torch.bool for i in (args[1] or ()))
+        if name in SYNC_OPS or bool_index:
+            self.syncs[name] += 1
+        return func(*args, **(kwargs or {}))
+
+    @property
+    def count(self) -> int:
+        return sum(self.ops.values())
+
+
+def make(name, sparse=True, layers=2, latent=32, **cfg):
+    torch.manual_seed(0)
+    model = TinyMDM(latent_dim=latent, ff_size=2 * latent, num_layers=layers, dropout=0.0, cond_mask_prob=0.0,
+                    **VARIANTS[name])
+    diffusion = SimpleDiffusion(50)
+    if sparse:
+        cfg = {"reduction": 0.8, "dynamic_update": True, **cfg}
+        sparsify(model, SparseConfig(**cfg), diffusion=diffusion)
+    return model, diffusion
+
+
+def batch(name, B=3, N=None, seed=0):
+    g = torch.Generator().manual_seed(seed)
+    N = N or (40 if name == "dip" else 60)
+    lengths = torch.linspace(max(2, N // 3), N, B).round().long() if name != "dip" else torch.full((B,), N)
+    x = torch.randn(B, 263, 1, N, generator=g)
+    y = {"mask": (torch.arange(N) < lengths[:, None]).view(B, 1, 1, N), "lengths": lengths,
+         "text_embed": torch.randn(1, B, 512, generator=g)}
+    if name == "dip":
+        y["prefix"] = torch.randn(B, 263, 1, 20, generator=g)
+    return x, y
+
+
+STEPS = torch.tensor([1, 30, 45])
+
+
+def loss(diffusion, model, x, y):
+    return diffusion.training_losses(model, x, STEPS[:x.shape[0]], {"y": dict(y)}, noise=torch.ones_like(x))["loss"]
+
+
+# ----------------------------------------------------------------------------- torch.compile
+@pytest.mark.parametrize("name", VARIANTS)
+def test_every_sparse_call_compiles_fullgraph_and_matches_eager(name):
+    model, diffusion = make(name, mask_noise=0.1)
+    x, y = batch(name)
+    compiled = torch.compile(model, fullgraph=True, backend="eager")
+    B, N = x.shape[0], x.shape[-1]
+    model.train()
+    # training with a given mask (the diffusion wrapper's hand-over) ...
+    state = model._smdm_state
+    lengths = y["lengths"]
+    mask = state.schedule.training_mask(x.squeeze(2).transpose(1, 2), lengths)
+    cap = state.schedule.capacity(N, training=True)
+    t = STEPS
+    given = {**y, "keyframe_mask": mask, "keyframe_capacity": cap}
+    assert torch.allclose(compiled(x, t, dict(given)), model(x, t, dict(given)), atol=1e-4)
+    # ... and through the attached diffusion (masks from x0, mask noise drawn inside)
+    torch.manual_seed(3)
+    ref = loss(diffusion, model, x, y)
+    torch.manual_seed(3)
+    out = loss(diffusion, compiled, x, y)
+    assert torch.allclose(out, ref, atol=1e-4)
+    model.eval()
+    with torch.no_grad():
+        for step in (40, 2):                     # uniform mask / VW on x_t (last round(0.1*50) = 5 steps)
+            ts = torch.full((B,), step)
+            assert torch.allclose(compiled(x, ts, dict(y)), model(x, ts, dict(y)), atol=1e-4), step
+
+
+def test_whole_training_step_compiles_with_the_diffusion_wrapper_and_gradients_match():
+    model, diffusion = make("trans_enc", mask_noise=0.0)
+    x, y = batch("trans_enc")
+    twin = copy.deepcopy(model)
+    step = torch.compile(lambda m: loss(diffusion, m, x, y).mean(), fullgraph=True, backend="aot_eager")
+    step(model).backward()
+    loss(diffusion, twin, x, y).mean().backward()
+    for (n, p), q in zip(model.named_parameters(), twin.parameters()):
+        assert (p.grad is None) == (q.grad is None), n
+        if p.grad is not None:
+            assert torch.allclose(p.grad, q.grad, atol=1e-4), n
+
+
+# ----------------------------------------------------------------------------- host syncs
+@pytest.mark.parametrize("name", VARIANTS)
+def test_static_path_has_no_host_sync_per_step(name):
+    model, diffusion = make(name)
+    x, y = batch(name)
+    B = x.shape[0]
+    with static_mode():
+        model.train()
+        loss(diffusion, model, x, y).mean().backward()            # warm-up: per-device tables
+        with Dispatched() as d:
+            loss(diffusion, model, x, y).mean().backward()
+        assert not d.syncs, f"training step: {dict(d.syncs)}"
+        model.eval()
+        for step in (40, 2):
+            with torch.no_grad(), Dispatched() as d:
+                model(x, torch.full((B,), step), dict(y))
+            assert not d.syncs, f"sampling t={step}: {dict(d.syncs)}"
+
+
+def test_the_sync_counter_sees_syncs():
+    """The proxy itself: the default CPU path (varlen, exact embedding rows) does read the host."""
+    model, _ = make("trans_enc")
+    x, y = batch("trans_enc")
+    model.eval()
+    with torch.no_grad(), Dispatched() as d:
+        model(x, torch.full((3,), 40), dict(y))
+    assert d.syncs
+
+
+# ----------------------------------------------------------------------------- launch budget
+@pytest.mark.parametrize("name", ["trans_enc", "trans_dec"])
+def test_launch_budget_of_the_static_path(name):
+    """MDM-depth TinyMDM (8 layers), B=8, 196 frames, lengths 40..196: ops dispatched by the
+    sparse model <= 1.5x the dense model's for a training step (loss + backward) and <= 1.6x for
+    each sampling call (a new x_t, before and inside the late steps). The optimizer step is the
+    same for both and is left out."""
+    B, N = 8, 196
+    x, y = batch(name, B=B, N=N)
+    y["lengths"] = torch.linspace(40, N, B).round().long()
+    y["mask"] = (torch.arange(N) < y["lengths"][:, None]).view(B, 1, 1, N)
+    counts = {}
+    for sparse in (False, True):
+        model, diffusion = make(name, sparse=sparse, layers=8, latent=64)
+        t = torch.arange(B) * 6
+        with static_mode():
+            model.train()
+            for _ in range(2):                                    # the second one is counted
+                with Dispatched() as d:
+                    diffusion.training_losses(model, x, t, {"y": dict(y)})["loss"].mean().backward()
+            counts["train", sparse] = d.count
+            model.eval()
+            with torch.no_grad():
+                model(x, torch.full((B,), 40), dict(y))           # warm-up
+                for step in (40, 2):
+                    with Dispatched() as d:
+                        model(x + step, torch.full((B,), step), dict(y))
+                    counts[f"sample t={step}", sparse] = d.count
+    for what, budget in (("train", 1.5), ("sample t=40", 1.6), ("sample t=2", 1.6)):
+        ratio = counts[what, True] / counts[what, False]
+        assert ratio <= budget, f"{name} {what}: {counts[what, True]} vs {counts[what, False]} ops ({ratio:.2f}x)"
+
+
+# ----------------------------------------------------------------------------- same results
+@pytest.mark.parametrize("name", VARIANTS)
+def test_static_path_equals_default_cpu_path(name):
+    model, diffusion = make(name)
+    x, y = batch(name)
+    B = x.shape[0]
+    model.eval()
+    with torch.no_grad():
+        for step in (40, 2):
+            ts = torch.full((B,), step)
+            ref = model(x, ts, dict(y))
+            with static_mode():
+                out = model(x, ts, dict(y))
+            assert torch.allclose(out, ref, atol=1e-5), step
+    model.train()
+    torch.manual_seed(5)
+    ref = loss(diffusion, model, x, y)
+    torch.manual_seed(5)
+    with static_mode():
+        out = loss(diffusion, model, x, y)
+    assert torch.allclose(out, ref, atol=1e-5)

@@ -1,0 +1,139 @@
+"""``smdm::vw_keyframes``: every implementation equals the heap reference (random, ties, constant
+motion, every length 2..N, forced frames, inactive rows), the op is registered properly, and
+``torch.compile`` sees one op. The Triton kernel runs under ``TRITON_INTERPRET=1`` on the CPU when
+triton is installed (the GPU itself is not needed)."""
+import importlib.util
+import json
+import os
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+import torch
+
+from smdm_plugin.core.kernels.vw import OP, vw_keyframes
+from smdm_plugin.core.kernels.vw_numpy import vw_numpy
+from smdm_plugin.core.kernels.vw_torch import vw_torch
+from smdm_plugin.core.selection import keyframe_count, vw_reference
+
+HAS_TRITON = importlib.util.find_spec("triton") is not None
+
+
+def reference_mask(X, lengths, counts, forced=None, active=None):
+    B, N, _ = X.shape
+    out = np.zeros((B, N), dtype=bool)
+    for b in range(B):
+        if active is not None and not active[b]:
+            continue
+        L = int(lengths[b])
+        f = None if forced is None else forced[b, :L]
+        out[b, vw_reference(X[b, :L], int(counts[b]), f)] = True
+    return out
+
+
+def cases(seed):
+    """(X [B, N, F] float32, lengths, counts, forced or None, active or None): random walks,
+    ties (integer-valued), constant motion, every length 2..N, forced frames, inactive rows."""
+    rng = np.random.default_rng(seed)
+    B, N, F = 6, int(rng.integers(2, 48)), int(rng.integers(1, 7))
+    X = rng.standard_normal((B, N, F)).cumsum(1).astype(np.float32)
+    kind = seed % 4
+    if kind == 1:
+        X = np.round(X)                                    # many exact ties
+    elif kind == 2:
+        X[:] = 0.0                                         # constant motion: every key is 0
+        X[..., -1] = np.arange(N) * 0.1                    # (the frame-index column)
+    lengths = rng.integers(2, N + 1, B)
+    lengths[0] = N
+    red = float(rng.uniform(0.0, 0.95))
+    counts = np.array([keyframe_count(int(L), red) for L in lengths])
+    forced = None
+    if kind == 3:
+        forced = rng.random((B, N)) < 0.15
+    active = rng.random(B) < 0.8 if seed % 5 == 0 else None
+    return X, lengths, counts, forced, active
+
+
+def every_length(N=14, F=3):
+    X = np.random.default_rng(1).standard_normal((N - 1, N, F)).cumsum(1).astype(np.float32)
+    lengths = np.arange(2, N + 1)
+    return X, lengths, np.array([keyframe_count(int(L), 0.7) for L in lengths]), None, None
+
+
+IMPLS = {
+    "numpy (cpu kernel)": lambda X, L, K, f, a: vw_numpy(X, L, K, f, a),
+    "portable torch": lambda X, L, K, f, a: vw_torch(torch.from_numpy(X), torch.from_numpy(L), torch.from_numpy(K),
+                                                     None if f is None else torch.from_numpy(f),
+                                                     None if a is None else torch.from_numpy(a)).numpy(),
+    "registered op": lambda X, L, K, f, a: vw_keyframes(torch.from_numpy(X), torch.from_numpy(L), torch.from_numpy(K),
+                                                        None if f is None else torch.from_numpy(f),
+                                                        None if a is None else torch.from_numpy(a)).numpy(),
+}
+
+
+@pytest.mark.parametrize("impl", IMPLS)
+@pytest.mark.parametrize("seed", range(24))
+def test_implementation_equals_heap_reference(impl, seed):
+    X, L, K, f, a = cases(seed)
+    assert np.array_equal(IMPLS[impl](X, L, K, f, a), reference_mask(X, L, K, f, a))
+
+
+@pytest.mark.parametrize("impl", IMPLS)
+def test_every_length_from_2_to_N(impl):
+    X, L, K, f, a = every_length()
+    assert np.array_equal(IMPLS[impl](X, L, K, f, a), reference_mask(X, L, K, f, a))
+
+
+def test_forced_frames_count_inside_the_budget_and_inactive_rows_are_empty():
+    X, L, K, _, _ = cases(0)
+    forced = np.zeros(X.shape[:2], dtype=bool)
+    forced[:, 1] = True
+    active = np.array([True, False, True, True, False, True])
+    m = vw_numpy(X, L, K, forced, active)
+    assert not m[~active].any()
+    for b in np.flatnonzero(active):
+        protected = len({0, 1, int(L[b]) - 1})
+        assert m[b].sum() == max(K[b], protected) and m[b, 1] and m[b, 0] and m[b, L[b] - 1]
+
+
+def test_op_registration_and_one_node_under_compile():
+    X, L, K, f, _ = cases(3)
+    args = (torch.from_numpy(X), torch.from_numpy(L), torch.from_numpy(K), torch.from_numpy(f), None)
+    torch.library.opcheck(OP, args)
+    nodes = []
+
+    def backend(gm, inputs):
+        nodes.extend(n.target for n in gm.graph.nodes if n.op == "call_function")
+        return gm.forward
+
+    fn = torch.compile(lambda *a: vw_keyframes(*a), fullgraph=True, backend=backend)
+    assert torch.equal(fn(*args), vw_keyframes(*args))
+    assert nodes.count(OP) == 1
+
+
+@pytest.mark.skipif(not HAS_TRITON, reason="triton is not installed")
+def test_triton_kernel_equals_reference_in_interpreter_mode(tmp_path):
+    """The CUDA kernel's code, run by Triton's interpreter on the CPU, on a few of the cases."""
+    data = []
+    for seed in (0, 1, 2, 3, 5):
+        X, L, K, f, a = cases(seed)
+        data.append({"X": X.tolist(), "L": L.tolist(), "K": K.tolist(),
+                     "f": None if f is None else f.tolist(), "a": None if a is None else a.tolist(),
+                     "ref": reference_mask(X, L, K, f, a).tolist()})
+    path = tmp_path / "cases.json"
+    path.write_text(json.dumps(data))
+    code = (
+        "import json, sys, torch\n"
+        "from smdm_plugin.core.kernels.vw_triton import vw_triton\n"
+        "bad = 0\n"
+        f"for c in json.load(open({str(path)!r})):\n"
+        "    T = lambda v, dt: None if v is None else torch.tensor(v, dtype=dt)\n"
+        "    m = vw_triton(T(c['X'], torch.float32), T(c['L'], torch.long), T(c['K'], torch.long),\n"
+        "                  T(c['f'], torch.bool), T(c['a'], torch.bool))\n"
+        "    bad += int(not torch.equal(m, torch.tensor(c['ref'])))\n"
+        "print('mismatches', bad)\n")
+    env = {**os.environ, "TRITON_INTERPRET": "1"}
+    res = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env, timeout=900)
+    assert res.returncode == 0, res.stderr[-2000:]
+    assert "mismatches 0" in res.stdout, res.stdout + res.stderr[-2000:]
