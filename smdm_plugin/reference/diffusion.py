@@ -51,14 +51,31 @@ class SimpleDiffusion:
         self.post_var = betas * (1 - abar_prev) / (1 - self.abar)
         self.coef_x0 = betas * abar_prev.sqrt() / (1 - self.abar)
         self.coef_xt = (1 - abar_prev) * alphas.sqrt() / (1 - self.abar)
+        #: the per-step tables ``[T]`` (float64, host) that sampling and training read
+        self._host: Dict[str, torch.Tensor] = {
+            "sqrt_abar": self.abar.sqrt(), "sqrt_one_minus_abar": (1 - self.abar).sqrt(),
+            "coef_x0": self.coef_x0, "coef_xt": self.coef_xt, "post_std": self.post_var.sqrt()}
+        #: the same tables on a device in a dtype, built once per ``(device, dtype)``
+        self._tables: Dict[Tuple[torch.device, torch.dtype], Dict[str, torch.Tensor]] = {}
 
-    @staticmethod
-    def _at(table: torch.Tensor, t: torch.Tensor, like: torch.Tensor) -> torch.Tensor:
-        return table.to(like.device)[t].to(like.dtype).view(-1, *([1] * (like.dim() - 1)))
+    def tables(self, device: torch.device, dtype: torch.dtype) -> Dict[str, torch.Tensor]:
+        """The schedule tables ``[T]`` on ``device`` in ``dtype`` (copied there on the first call for
+        that pair, then reused: no host-to-device copy on the sampling hot path). Cast from the
+        float64 tables, so each entry is bit for bit ``table.to(device)[t].to(dtype)``."""
+        key = (torch.device(device), dtype)
+        cached = self._tables.get(key)
+        if cached is None:
+            cached = {k: v.to(device=key[0]).to(dtype) for k, v in self._host.items()}
+            self._tables[key] = cached
+        return cached
+
+    def _at(self, name: str, t: torch.Tensor, like: torch.Tensor) -> torch.Tensor:
+        """Table ``name`` at steps ``t [B]``, shaped ``[B, 1, ...]`` to broadcast against ``like``."""
+        return self.tables(like.device, like.dtype)[name][t].view(-1, *([1] * (like.dim() - 1)))
 
     def q_sample(self, x0: torch.Tensor, t: torch.Tensor, noise: Optional[torch.Tensor] = None) -> torch.Tensor:
         noise = torch.randn_like(x0) if noise is None else noise
-        return self._at(self.abar.sqrt(), t, x0) * x0 + self._at((1 - self.abar).sqrt(), t, x0) * noise
+        return self._at("sqrt_abar", t, x0) * x0 + self._at("sqrt_one_minus_abar", t, x0) * noise
 
     def training_losses(self, model: nn.Module, x_start: torch.Tensor, t: torch.Tensor,
                         model_kwargs: Optional[Dict[str, Any]] = None, noise: Optional[torch.Tensor] = None
@@ -102,11 +119,11 @@ class SimpleDiffusion:
         given = self.constraint(model_kwargs, x0) if impute_x0 else None
         if given is not None:
             x0 = torch.where(given[0], given[1], x0)
-        mean = self._at(self.coef_x0, tt, x_t) * x0 + self._at(self.coef_xt, tt, x_t) * x_t
+        mean = self._at("coef_x0", tt, x_t) * x0 + self._at("coef_xt", tt, x_t) * x_t
         if t == 0:
             return x0
         noise = torch.randn(x_t.shape, generator=generator, device=x_t.device, dtype=x_t.dtype)
-        return mean + self._at(self.post_var.sqrt(), tt, x_t) * noise
+        return mean + self._at("post_std", tt, x_t) * noise
 
     @torch.no_grad()
     def p_sample_loop(self, model: Callable, shape: tuple, model_kwargs: Optional[Dict[str, Any]] = None,
