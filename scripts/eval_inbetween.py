@@ -47,7 +47,7 @@ def transform_for(rep: str):
 
 
 def stats_for(data: Path, rep: str, motions: List[np.ndarray]) -> Tuple[np.ndarray, np.ndarray]:
-    from smdm_plugin.apps.pair_trainer import feature_stats
+    from smdm_plugin.apps.trainer import feature_stats
 
     if rep == "humanml3d":  # the data set's own Mean/Std, as MDM normalises
         return np.load(data / "Mean.npy").astype(np.float32), np.load(data / "Std.npy").astype(np.float32)
@@ -57,7 +57,7 @@ def stats_for(data: Path, rep: str, motions: List[np.ndarray]) -> Tuple[np.ndarr
 
 def heldout_loss(x: torch.Tensor, lengths: torch.Tensor, mean: np.ndarray, std: np.ndarray):
     """``validate(model, diffusion)``: the x0 MSE (normalised, valid frames) on the held-out motions at
-    t = 0, 10, 25 with fixed noise — reported while training, not used to pick a model."""
+    t = 0, T/5, T/2 (0, 10, 25 at T = 50) with fixed noise — reported while training, not used to pick a model."""
     xn = ((x - torch.from_numpy(mean)) / torch.from_numpy(std)).permute(0, 2, 1).unsqueeze(2)
     valid = (torch.arange(x.shape[1])[None] < lengths[:, None])
     y = {"mask": valid.view(-1, 1, 1, x.shape[1]), "lengths": lengths}
@@ -65,7 +65,8 @@ def heldout_loss(x: torch.Tensor, lengths: torch.Tensor, mean: np.ndarray, std: 
 
     def validate(model, diffusion) -> float:
         errs = []
-        for t in (0, 10, 25):
+        T = diffusion.num_timesteps
+        for t in sorted({0, T // 5, T // 2}):
             tt = torch.full((len(lengths),), t)
             x0 = model(diffusion.q_sample(xn, tt, noise), tt, y)
             errs.append(((x0 - xn) ** 2).mean(dim=(1, 2))[valid].mean())
@@ -74,7 +75,10 @@ def heldout_loss(x: torch.Tensor, lengths: torch.Tensor, mean: np.ndarray, std: 
 
 
 def cmd_train(a: argparse.Namespace) -> int:
-    from smdm_plugin.apps.pair_trainer import BackboneSpec, CropSampler, augment_joints22, train_dense_vs_sparse
+    """Train dense and sparse TinyMDM with the in-package Trainer on the train split (each motion's
+    first 196 frames) and save them as model folders."""
+    from smdm_plugin.apps.trainer import MotionSet, TrainConfig, Trainer
+    from smdm_plugin.core.config import SparseConfig
     from smdm_plugin.io.bundle import save_bundle
     from smdm_plugin.io.representation import Representation
 
@@ -82,29 +86,42 @@ def cmd_train(a: argparse.Namespace) -> int:
     data = Path(a.data)
     ids = split_ids(data, ["train"])
     for rep in a.rep:
-        motions = load_motions(data, rep, ids)
-        mean, std = stats_for(data, rep, motions)
-        augment = augment_joints22 if rep == "joints66" and a.augment else None
-        sampler = CropSampler(motions, FRAMES, a.min_frames, transform_for(rep), mean, std, augment=augment)
-        spec = BackboneSpec(features=Representation(rep).dim, latent=a.latent, layers=a.layers, dropout=a.dropout,
-                            diffusion_steps=a.diffusion_steps, reduction=a.reduction, lr=a.lr,
-                            selection_feature="raw" if rep == "joints66" else "auto")
-        print(f"[{rep}] {len(motions)} training motions, {spec}", flush=True)
-        t0 = time.time()
+        raw = load_motions(data, rep, ids)
+        mean, std = stats_for(data, rep, raw)
+        tf = transform_for(rep)
+        kept = [(i, tf(m)) for i, m in zip(ids, raw) if len(m) >= a.min_frames]
+        motions = MotionSet.from_motions([m for _, m in kept], mean, std, [i for i, _ in kept], FRAMES)
+        model = {"latent_dim": a.latent, "ff_size": 2 * a.latent, "num_layers": a.layers, "num_heads": 4,
+                 "dropout": a.dropout}
+        print(f"[{rep}] {len(motions)} training motions, TinyMDM {model}", flush=True)
         _, xv, Lv = eval_set(data, rep)
-        stats, pair = train_dense_vs_sparse(sampler, spec, float("inf"), batch=a.batch, seed=a.seed,
-                                            max_steps=a.steps, progress=a.progress, mean=mean, std=std,
-                                            log_every=a.log_every, validate=heldout_loss(xv, Lv, mean, std))
-        print(f"[{rep}] done in {time.time() - t0:.0f} s: dense {stats['dense']['final_loss']:.4f} "
-              f"({stats['dense']['steps_per_s']:.2f} steps/s), sparse {stats['sparse']['final_loss']:.4f} "
-              f"({stats['sparse']['steps_per_s']:.2f} steps/s)", flush=True)
+        validate = heldout_loss(xv, Lv, mean, std)
+        stats: Dict[str, Any] = {"model": model, "batch": a.batch, "seed": a.seed, "steps": a.steps}
         os.makedirs(os.path.join(a.out, "models"), exist_ok=True)
-        for name, (model, diffusion) in pair.items():
-            save_bundle(os.path.join(a.out, "models", f"{rep}-{name}"), model.eval(), diffusion,
-                        spec.backbone_kwargs(), Representation(rep), mean, std, fps=20, max_frames=FRAMES,
+        for name, sc in (("dense", None), ("sparse", SparseConfig(reduction=a.reduction,
+                                                                  feature="raw" if rep == "joints66" else "auto"))):
+            trainer = Trainer(TrainConfig(steps=a.steps, batch=a.batch, lr=a.lr, diffusion_steps=a.diffusion_steps,
+                                          seed=a.seed, model=model, sparse=sc), motions, device="cpu")
+            val: List[Tuple[int, float]] = []
+
+            def log(tr: Trainer, loss: float) -> None:
+                if a.log_every and tr.step_count % a.log_every == 0:
+                    tr.model.eval()
+                    with torch.no_grad():
+                        val.append((tr.step_count, float(validate(tr.model, tr.diffusion))))
+                    tr.model.train()
+                    print(f"{name} step {tr.step_count}: loss {np.mean(tr.losses[-a.log_every:]):.4f}, "
+                          f"validation {val[-1][1]:.4f}", flush=True)
+
+            result = trainer.train(progress=a.progress, callback=log)
+            stats[name] = {**result.to_dict(), "val": val}
+            print(f"[{rep}] {name}: final loss {result.final_loss:.4f}, {result.steps_per_s:.2f} steps/s", flush=True)
+            save_bundle(os.path.join(a.out, "models", f"{rep}-{name}"), trainer.model.eval(), trainer.diffusion,
+                        trainer.backbone_args, Representation(rep), mean, std, fps=20, max_frames=FRAMES,
                         info={"data": str(data), "split": "train", "motions": len(motions), "steps": a.steps,
                               "batch": a.batch, "seed": a.seed, "threads": a.threads},
                         overwrite=a.overwrite)
+        stats["speed_ratio"] = stats["sparse"]["steps_per_s"] / stats["dense"]["steps_per_s"]
         with open(os.path.join(a.out, "models", f"{rep}-training.json"), "w") as f:
             json.dump(stats, f)
     return 0
@@ -249,7 +266,6 @@ def main(argv=None) -> int:
     t.add_argument("--min-frames", type=int, default=40)
     t.add_argument("--seed", type=int, default=0)
     t.add_argument("--progress", action="store_true")
-    t.add_argument("--augment", action="store_true", help="joints66: random turns about the vertical axis, mirroring")
     t.add_argument("--dropout", type=float, default=0.1)
     t.add_argument("--log-every", type=int, default=250)
     t.add_argument("--overwrite", action="store_true")

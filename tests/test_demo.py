@@ -65,6 +65,7 @@ def test_quick_demo_skips_unusable_files_keeps_given_flags_and_leaves_models(bvh
     assert p.returncode == 0, p.stderr[-3000:]
     text = p.stdout
     assert "| vw |" in text and "sparse / dense training speed" in text and str(out) in text
+    assert f"smdm demo: motion from --bvh {folder}: 3 BVH file(s)" in text
     # which files were skipped and why (the reader's whole message)
     assert f"skipping {folder / 'a_truncated.bvh'}: read_bvh: {folder / 'a_truncated.bvh'}" in text and f"skipping {folder / 'b_other_skeleton.bvh'}: " in text
     assert "not a CMU skeleton" in text and "skipped 2 of 3 file(s)" in text
@@ -79,6 +80,15 @@ def test_quick_demo_skips_unusable_files_keeps_given_flags_and_leaves_models(bvh
     assert [f for f, _ in s["skipped"]] == [str(folder / "a_truncated.bvh"), str(folder / "b_other_skeleton.bvh")]
     err = s["keyframes"]["mpjpe_mm"]
     assert 0 < err["vw"]["0.8"] < 200 and err["random"]["0.8"] > 0
+    # jitter and foot skating of each model's samples and of the real motion: columns, finite
+    lines = (out / "training.md").read_text().splitlines()
+    assert lines[0].startswith("| model |") and lines[0].rstrip().endswith("| jitter (m/s³) | foot skating |")
+    rows = {ln.split("|")[1].strip(): ln.split("|")[-3:-1] for ln in lines if ln.startswith("| ") and "---" not in ln}
+    for name in ("dense", "sparse", "motion capture (training clips)"):
+        jit, skate = (float(v) for v in rows[name])
+        assert np.isfinite(jit) and jit >= 0 and 0 <= skate <= 1, (name, rows[name])
+    q = s["training"]["quality"]
+    assert q["motion capture"]["jitter"] > 0 and all(np.isfinite(q[m]["jitter"]) for m in ("dense", "sparse"))
     # the in-betweening table: keyframes exact for both models
     rows = [r for r in (out / "inbetween.md").read_text().splitlines() if r.startswith("| dense") or r.startswith("| sparse")]
     assert len(rows) == 2 and all(r.split("|")[3].strip() == "0.0" for r in rows)
@@ -118,6 +128,17 @@ def test_bad_options_are_one_line_errors(args, message, tmp_path, capsys):
     last = err.strip().splitlines()[-1]
     assert last.startswith("smdm demo: error: ") and message in last, err
     assert not out.exists()
+
+
+def test_quick_demo_runs_on_the_embedded_clips(tmp_path):
+    """No --bvh, no $SMDM_MOCAP, no ../shared: the clips shipped in the package."""
+    import os
+
+    env = {k: v for k, v in os.environ.items() if k != "SMDM_MOCAP"}
+    p = run("--quick", "--no-gif", "--out", str(tmp_path / "o"), cwd=tmp_path, env=env)
+    assert p.returncode == 0, p.stderr[-3000:]
+    assert "smdm demo: motion from the 17 CMU clips embedded in the package" in p.stdout
+    assert (tmp_path / "o" / "training.md").exists() and "| motion capture (" in p.stdout
 
 
 def test_bad_options_as_a_user_runs_them(tmp_path):
@@ -184,6 +205,47 @@ def test_reconstruction_error_and_features():
     assert np.allclose(f[0, 64:], 0) and np.allclose(f[:, 64:] + j[0, 0, [0, 2]], j[:, 0, [0, 2]], atol=1e-6)
 
 
-def test_no_bvh_message(tmp_path, capsys):
+def test_no_bvh_message(tmp_path, capsys, monkeypatch):
     rc = demo.main(["--bvh", str(tmp_path), "--out", str(tmp_path / "o")])
-    assert rc == 2 and "assimp-testmodels" in capsys.readouterr().err
+    err = capsys.readouterr().err
+    assert rc == 2 and f"no .bvh file in --bvh {tmp_path}" in err and "SMDM_MOCAP" in err
+    monkeypatch.setenv("SMDM_MOCAP", str(tmp_path / "absent"))
+    assert demo.main(["--out", str(tmp_path / "o")]) == 2
+    assert "SMDM_MOCAP=" in capsys.readouterr().err and not (tmp_path / "o").exists()
+
+
+def test_motion_source_order(tmp_path, monkeypatch):
+    """--bvh, else $SMDM_MOCAP, else the embedded clips."""
+    from conftest import MOCAP
+
+    from smdm_plugin.io.embedded import embedded_clips
+
+    monkeypatch.delenv("SMDM_MOCAP", raising=False)
+    source, files, clips = demo.motion_source(None, max_clips=2)
+    assert "embedded" in source and files == [] and [n for n, _ in clips] == [n for n, _ in embedded_clips()[:2]]
+    if not MOCAP.is_dir():
+        pytest.skip("../shared/data/cmu-mocap not available")
+    monkeypatch.setenv("SMDM_MOCAP", str(MOCAP))
+    source, files, clips = demo.motion_source(None, max_clips=1)
+    assert "$SMDM_MOCAP" in source and files == sorted(str(f) for f in MOCAP.glob("*.bvh")) and len(clips) == 1
+    one = tmp_path / "one"
+    one.mkdir()
+    shutil.copy(files[0], one / "x.bvh")
+    source, files, clips = demo.motion_source([str(one)])
+    assert source == f"--bvh {one}" and files == [str(one / "x.bvh")] and [n for n, _ in clips] == ["x"]
+
+
+def test_bvh_warning_is_shown(tmp_path):
+    """A tolerated oddity of a real file (one motion row too many) is shown with its category."""
+    from conftest import MOCAP
+
+    if not MOCAP.is_dir():
+        pytest.skip("../shared/data/cmu-mocap not available")
+    src = sorted(MOCAP.glob("*.bvh"))[0]
+    lines = src.read_text().rstrip("\n").splitlines()
+    f = tmp_path / "extra.bvh"
+    f.write_text("\n".join(lines + [lines[-1]]) + "\n")
+    log = []
+    clips = demo.load_clips([str(f)], log=log.append)
+    assert len(clips) == 1 and len(log) == 1
+    assert log[0].startswith(f"  note: read_bvh: {f}") and log[0].endswith("(BVHWarning)")

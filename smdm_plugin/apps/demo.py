@@ -1,8 +1,9 @@
 """``smdm demo``: sparse keyframes on real motion capture, with nothing to download.
 
-1. **Keyframes.** Loads CMU motion capture from BVH files — ``--bvh PATH ...``, else the CMU clips
-   Debian/Ubuntu's ``assimp-testmodels`` package installs under ``/usr/share/assimp/models/BVH/``
-   (cgspeed's 2008 release), else ``../shared/data/cmu-mocap`` (or ``$SMDM_MOCAP``) — converts them
+1. **Keyframes.** Motion: the BVH files of ``--bvh PATH ...`` (files or folders), else those in
+   the folder ``$SMDM_MOCAP``, else the 17 CMU clips embedded in the package
+   (:func:`smdm_plugin.io.embedded.embedded_clips`; nothing to download); the source is printed. BVH
+   files are converts them
    to HumanML3D's 22 joints in metres at 20 fps and cuts them into windows of up to 196 frames
    (HumanML3D's longest motion). For every reduction rate it keeps the frames chosen by VW
    (Visvalingam–Whyatt), uniform spacing, random choice and MDO, interpolates all 22 joints
@@ -16,7 +17,10 @@
    :class:`~smdm_plugin.reference.diffusion.SimpleDiffusion`) dense and sparse (80% reduction) from
    the same weights on the same random crops for ``--minutes`` in total, time-sliced (each step goes
    to the model that has used less time so far, so machine load hits both alike), and reports the
-   measured speed ratio and both loss curves. HumanML3D's 263-D features need foot contacts and
+   measured speed ratio and both loss curves. Training goes through the one in-package
+   :class:`~smdm_plugin.apps.trainer.Trainer`, so under ``torchrun --nproc_per_node N -m smdm_plugin
+   demo`` both models train with DistributedDataParallel (``--batch`` per process) and only rank 0
+   writes files and prints tables. HumanML3D's 263-D features need foot contacts and
    rotations that BVH positions do not give directly, so the demo trains on a representation
    computed from the joint positions, ``joints66`` (:mod:`smdm_plugin.io.representation`): joints
    1..21 relative to the root (63), root height (1) and root x, z (2; each crop starts at x = z = 0),
@@ -32,7 +36,7 @@ Writes to ``--out`` (refused when it exists and is not empty, unless ``--overwri
 ``keyframes.md`` / ``keyframes.csv``, ``keyframes.png``, ``training.md``, ``loss.png``,
 ``inbetween.md``, ``inbetween.gif``, ``summary.json`` and the two trained models ``dense/`` and
 ``sparse/`` (``smdm inbetween --model OUT/dense OUT/sparse`` samples from them). BVH files it cannot
-use are listed with the reason.
+use are listed with the full reason, and the reader's warnings (``BVHWarning``) are shown.
 """
 from __future__ import annotations
 
@@ -51,14 +55,11 @@ import torch
 from ..io.files import atomic_write_json, atomic_write_text
 from ._args import add_overwrite, device_type, float_range, int_range
 
-ASSIMP_BVH = "/usr/share/assimp/models/BVH"
 METHODS = ("vw", "uniform", "random", "mdo")
 NO_BVH = """smdm demo: no BVH motion capture found.
-  Pass one or more files:      smdm demo --bvh path/to/clip.bvh
-  or install CMU test clips:   sudo apt-get install assimp-testmodels
-                               (puts CMU BVH files under /usr/share/assimp/models/BVH/)
-  or download CMU clips in BVH form (cgspeed conversion of mocap.cs.cmu.edu) and pass them with --bvh,
-  or set SMDM_MOCAP to a folder of CMU .bvh files."""
+  Pass one or more files or folders:  smdm demo --bvh path/to/clips/
+  or set SMDM_MOCAP to a folder of CMU .bvh files (cgspeed's BVH conversion of mocap.cs.cmu.edu),
+  or give neither: smdm demo then uses the CMU clips embedded in the package."""
 
 # the 22-joint skeleton (HumanML3D / SMPL order) as parent indices, for the stick figures
 PARENTS22 = (-1, 0, 0, 0, 1, 2, 3, 4, 5, 6, 7, 8, 9, 9, 9, 12, 13, 14, 16, 17, 18, 19)
@@ -66,27 +67,52 @@ PARENTS22 = (-1, 0, 0, 0, 1, 2, 3, 4, 5, 6, 7, 8, 9, 9, 9, 12, 13, 14, 16, 17, 1
 
 # ----------------------------------------------------------------------------------------- data
 def find_bvh(paths: Optional[Sequence[str]] = None) -> List[str]:
-    """The BVH files to use: ``paths`` (files or folders), else the default locations."""
-    if paths:
-        out: List[str] = []
-        for p in paths:
-            out += sorted(glob.glob(os.path.join(p, "*.bvh"))) if os.path.isdir(p) else [p]
-        return out
-    for folder in (os.environ.get("SMDM_MOCAP"), ASSIMP_BVH, os.path.join("..", "shared", "data", "cmu-mocap"),
-                   *(str(Path(__file__).resolve().parents[k] / "shared" / "data" / "cmu-mocap") for k in (2, 3))):
-        if folder and os.path.isdir(folder):
-            files = sorted(glob.glob(os.path.join(os.path.abspath(folder), "*.bvh")))
-            if files:
-                return files
-    return []
+    """The BVH files to use: ``paths`` (files, or folders: their ``*.bvh``), else the ``*.bvh`` of
+    the folder ``$SMDM_MOCAP``; ``[]`` when neither is given."""
+    if not paths:
+        env = os.environ.get("SMDM_MOCAP")
+        paths = [os.path.abspath(env)] if env else []
+    out: List[str] = []
+    for p in paths:
+        out += sorted(glob.glob(os.path.join(p, "*.bvh"))) if os.path.isdir(p) else [p]
+    return out
+
+
+def motion_source(bvh: Optional[Sequence[str]], max_clips: Optional[int] = None, log=print,
+                  skipped: Optional[List[Tuple[str, str]]] = None, min_frames: int = 20
+                  ) -> Tuple[str, List[str], List[Tuple[str, np.ndarray]]]:
+    """The demo's motion: ``(source, files, clips)`` — ``clips`` ``[(name, joints [T, 22, 3] metres,
+    20 fps)]`` from the BVH files of ``bvh`` (files or folders), else of the folder ``$SMDM_MOCAP``,
+    else the embedded CMU clips (``files`` empty; with ``max_clips``, the first that have
+    ``min_frames`` frames). Raises ``ValueError`` when a given source holds
+    no ``.bvh`` file; BVH files that cannot be used are logged and listed in ``skipped``."""
+    env = os.environ.get("SMDM_MOCAP")
+    if bvh:
+        source = "--bvh " + " ".join(bvh)
+    elif env:
+        if not os.path.isdir(env):
+            raise ValueError(f"SMDM_MOCAP={env!r} is not a folder (unset it to use the embedded clips)")
+        source = f"$SMDM_MOCAP ({os.path.abspath(env)})"
+    else:
+        from ..io.embedded import PATH, embedded_clips
+
+        clips = embedded_clips()
+        source = f"the {len(clips)} CMU clips embedded in the package ({PATH})"
+        if max_clips:
+            clips = [c for c in clips if len(c[1]) >= min_frames][:max_clips]
+        return source, [], clips
+    files = find_bvh(bvh or [env])
+    if not files:
+        raise ValueError(f"no .bvh file in {source}")
+    return source, files, load_clips(files, max_clips=max_clips, log=log, skipped=skipped)
 
 
 def load_clips(files: Sequence[str], fps: int = 20, max_clips: Optional[int] = None, log=print,
                skipped: Optional[List[Tuple[str, str]]] = None) -> List[Tuple[str, np.ndarray]]:
     """``[(name, joints [T, 22, 3] metres)]``. A file that cannot be used (unreadable, malformed,
     not a CMU skeleton — the 22-joint mapping needs CMU's joint names —, too short) is skipped and
-    logged with the reason (and appended to ``skipped`` as ``(file, reason)``); oddities the reader
-    tolerates (its warnings) are logged as notes."""
+    logged with the full reason (and appended to ``skipped`` as ``(file, reason)``); oddities the
+    reader tolerates (its warnings, ``BVHWarning``) are logged with their category."""
     from ..io.bvh import load_cmu_clip
 
     clips = []
@@ -97,7 +123,7 @@ def load_clips(files: Sequence[str], fps: int = 20, max_clips: Optional[int] = N
                 j = load_cmu_clip(f, fps=fps)
                 reason = None if len(j) >= 20 else f"only {len(j)} frames at {fps} fps (20 needed)"
             except (ValueError, OSError, IndexError, KeyError) as e:  # malformed, unreadable, not CMU
-                reason = str(e).splitlines()[0][:200] if str(e) else type(e).__name__
+                reason = " ".join(str(e).split()) or type(e).__name__
         for w in caught:
             if issubclass(w.category, UserWarning):
                 msg = " ".join(str(w.message).split())
@@ -359,96 +385,171 @@ def apply_quick(args: argparse.Namespace) -> List[str]:
 
 
 def main_demo(args: argparse.Namespace) -> int:
-    from ..io.bundle import save_bundle
-    from ..io.representation import Representation
-    from .bench import pick_device
-    from .pair_trainer import BackboneSpec, CropSampler, feature_stats, train_dense_vs_sparse
+    """Run the demo (options checked by :func:`main`); returns the exit status. Under torchrun every
+    rank reads the motion and trains; rank 0 alone writes files and prints the tables."""
+    from ..core.config import SparseConfig
+    from ..integrations.distributed import init_distributed, shutdown_distributed
+    from .trainer import MotionSet, TrainConfig, Trainer, feature_stats, race
 
     t_start = time.perf_counter()
     if args.threads:
         torch.set_num_threads(args.threads)
-    quick = apply_quick(args)
-    if quick:
-        print("smdm demo --quick: " + ", ".join(quick) + ", 3 training steps each, 20 diffusion steps")
-    files = find_bvh(args.bvh)
-    if not files:
-        print(NO_BVH, file=sys.stderr)
+    try:
+        ctx = init_distributed(args.device)
+    except ValueError as e:
+        print(f"smdm demo: {e}", file=sys.stderr)
         return 2
-    print(f"smdm demo: reading {len(files)} BVH file(s) from {os.path.dirname(os.path.abspath(files[0]))}")
-    skipped: List[Tuple[str, str]] = []
-    clips = load_clips(files, max_clips=args.max_clips, skipped=skipped)
-    if skipped:
-        print(f"  skipped {len(skipped)} of {len(files)} file(s) (reasons above)")
-    if not clips:
-        print("smdm demo: none of the BVH files is a CMU skeleton this demo can map to 22 joints.\n" + NO_BVH,
-              file=sys.stderr)
-        return 2
-    os.makedirs(args.out, exist_ok=True)
-    print(f"  {len(clips)} clip(s): " + ", ".join(f"{n} ({len(j)} frames)" for n, j in clips))
+    main_rank = ctx.is_main
+    say = print if main_rank else (lambda *a, **k: None)
+    try:
+        quick = apply_quick(args)
+        if quick:
+            say("smdm demo --quick: " + ", ".join(quick) + ", 3 training steps each, 20 diffusion steps")
+        skipped: List[Tuple[str, str]] = []
+        try:
+            source, files, clips = motion_source(args.bvh, args.max_clips, log=say, skipped=skipped,
+                                                 min_frames=args.frames)
+        except ValueError as e:
+            print(f"smdm demo: {e}\n" + NO_BVH, file=sys.stderr)
+            return 2
+        say(f"smdm demo: motion from {source}" + (f": {len(files)} BVH file(s)" if files else ""))
+        if skipped:
+            say(f"  skipped {len(skipped)} of {len(files)} file(s) (reasons above)")
+        if not clips:
+            print("smdm demo: none of the BVH files is a CMU skeleton this demo can map to 22 joints.\n" + NO_BVH,
+                  file=sys.stderr)
+            return 2
+        say(f"  {len(clips)} clip(s): " + ", ".join(f"{n} ({len(j)} frames)" for n, j in clips))
+        if main_rank:
+            os.makedirs(args.out, exist_ok=True)
 
-    # 1. keyframes
-    wins = windows(clips, 196, max_windows=2 if args.quick else None)
-    study = keyframe_study(wins, args.reductions, seed=args.seed, frame_index_scale=args.frame_index_scale)
-    table = keyframe_markdown(study)
-    print("\n## Keyframes vs. reconstruction error\n\n" + table)
-    atomic_write_text(os.path.join(args.out, "keyframes.md"), table + "\n")
-    atomic_write_text(os.path.join(args.out, "keyframes.csv"), "method," + ",".join(
-        str(r) for r in study["reductions"]) + "\n" + "".join(m + "," + ",".join(
-            f"{study['mpjpe_mm'][m][r]:.3f}" for r in study["reductions"]) + "\n" for m in study["methods"]))
-    name, start, win = wins[0]
-    red_plot = 0.8 if 0.8 in args.reductions else args.reductions[0]
-    plot_keyframes(win, f"{name} frames {start}-{start + len(win) - 1}", red_plot,
-                   os.path.join(args.out, "keyframes.png"), frame_index_scale=args.frame_index_scale)
+        # 1. keyframes (rank 0)
+        wins = windows(clips, 196, max_windows=2 if args.quick else None)
+        study: Dict[str, Any] = {}
+        if main_rank:
+            study = keyframe_study(wins, args.reductions, seed=args.seed, frame_index_scale=args.frame_index_scale)
+            table = keyframe_markdown(study)
+            print("\n## Keyframes vs. reconstruction error\n\n" + table)
+            atomic_write_text(os.path.join(args.out, "keyframes.md"), table + "\n")
+            atomic_write_text(os.path.join(args.out, "keyframes.csv"), "method," + ",".join(
+                str(r) for r in study["reductions"]) + "\n" + "".join(m + "," + ",".join(
+                    f"{study['mpjpe_mm'][m][r]:.3f}" for r in study["reductions"]) + "\n" for m in study["methods"]))
+            name, start, win = wins[0]
+            red_plot = 0.8 if 0.8 in args.reductions else args.reductions[0]
+            plot_keyframes(win, f"{name} frames {start}-{start + len(win) - 1}", red_plot,
+                           os.path.join(args.out, "keyframes.png"), frame_index_scale=args.frame_index_scale)
 
-    # 2. training (the last clip is held out for in-betweening when there are three or more)
-    dev = pick_device(args.device)
-    held = clips[-1] if len(clips) >= 3 and len(clips[-1][1]) >= args.frames else None
-    train_clips = [c for c in clips if c is not held]
-    crops = training_crops(train_clips, args.frames, stride=max(1, args.frames // 4))
-    mean, std = feature_stats([motion_features(c) for c in crops])
-    sampler = CropSampler([j for _, j in train_clips], args.frames, args.frames, motion_features, mean, std)
-    spec = BackboneSpec(features=66, latent=args.latent, layers=args.layers, reduction=args.train_reduction,
-                        diffusion_steps=20 if args.quick else 100)
-    seconds = 60.0 * args.minutes
-    print(f"\n## Training dense vs. sparse ({int(round(args.train_reduction * 100))}% dropped) for "
-          f"{seconds:.0f} s in total on {dev}: crops of {args.frames} frames from {len(train_clips)} clip(s), "
-          "66-D joint features")
-    train, pair = train_dense_vs_sparse(sampler, spec, seconds, args.batch, dev, args.seed,
-                                        max_steps=3 if args.quick else None, progress=not args.quick)
-    plot_losses(train, os.path.join(args.out, "loss.png"))
-    lines = ["| model | steps | seconds | steps/s | final loss |", "| --- | ---: | ---: | ---: | ---: |"]
+        # 2. training (the last clip is held out for in-betweening when there are three or more)
+        dev = ctx.device
+        held = clips[-1] if len(clips) >= 3 and len(clips[-1][1]) >= args.frames else None
+        train_clips = [c for c in clips if c is not held]
+        try:
+            crops = training_crops(train_clips, args.frames, stride=max(1, args.frames // 8))
+        except ValueError as e:
+            print(e, file=sys.stderr)
+            return 2
+        feats = [motion_features(c) for c in crops]
+        mean, std = feature_stats(feats)
+        data = MotionSet.from_motions(feats, mean, std, max_frames=args.frames)
+        model = {"latent_dim": args.latent, "ff_size": 2 * args.latent, "num_layers": args.layers, "num_heads": 4,
+                 "dropout": 0.1}
+        diffusion_steps = 20 if args.quick else 100
+        trainers = {
+            n: Trainer(TrainConfig(steps=0, batch=args.batch, lr=2e-4, diffusion_steps=diffusion_steps, seed=args.seed,
+                                   model=model, sparse=sc), data, dist=ctx)
+            for n, sc in (("dense", None), ("sparse", SparseConfig(reduction=args.train_reduction, feature="raw")))}
+        seconds = 60.0 * args.minutes
+        procs = f"{ctx.world_size} processes x " if ctx.world_size > 1 else ""
+        say(f"\n## Training dense vs. sparse ({int(round(args.train_reduction * 100))}% dropped) for "
+            f"{seconds:.0f} s in total on {dev}: {len(data)} crops of {args.frames} frames from {len(train_clips)} "
+            f"clip(s), 66-D joint features, batch {procs}{args.batch}")
+        train = race(trainers, seconds, max_steps=3 if args.quick else None, progress=not args.quick,
+                     desc="training dense + sparse")
+        train.update(spec={"reduction": args.train_reduction, **model, "diffusion_steps": diffusion_steps},
+                     batch=args.batch, world_size=ctx.world_size, global_batch=trainers["dense"].global_batch,
+                     seed=args.seed)
+        if not main_rank:
+            return 0
+        plot_losses(train, os.path.join(args.out, "loss.png"))
+        bundles = save_models(trainers, args.out, args.frames, mean, std, train, [c[0] for c in train_clips], dev)
+        ref_clips = [held] if held else train_clips
+        quality = generation_quality(bundles, np.stack(training_crops(ref_clips, args.frames, stride=args.frames)),
+                                     samples=4 if args.quick else 8, seed=args.seed, device=dev)
+        train["quality"] = quality
+        ttable = training_markdown(train, quality, ("held-out clip" if held else "training clips"))
+        ttable += (f"\n\nsparse / dense training speed: **{train['speed_ratio']:.2f}×** (TinyMDM latent "
+                   f"{args.latent}, {args.layers} layers, batch {procs}{args.batch}, {args.frames} frames)")
+        print(ttable)
+        atomic_write_text(os.path.join(args.out, "training.md"), ttable + "\n")
+
+        # 3. in-betweening
+        clip = held or clips[0]
+        note = " (held out from training)" if held else " (a training clip: too few clips to hold one out)"
+        print(f"\n## In-betweening {clip[0]}{note}")
+        itable = inbetween_demo(bundles, clip, args.frames, args.every, args.out, args.seed, dev,
+                                gif=not args.no_gif, progress=not args.quick, stride=2 if args.quick else 1, note=note)
+        print(itable)
+        summary = {"source": source, "files": files, "skipped": [list(x) for x in skipped],
+                   "clips": [[n, len(j)] for n, j in clips], "keyframes": study, "training": train,
+                   "seconds": time.perf_counter() - t_start, "options": {k: v for k, v in vars(args).items()}}
+        summary["keyframes"]["mpjpe_mm"] = {m: {str(r): v for r, v in d.items()} for m, d in study["mpjpe_mm"].items()}
+        atomic_write_json(os.path.join(args.out, "summary.json"), summary, indent=1)
+        print(f"\noutputs: {os.path.abspath(args.out)}")
+        return 0
+    finally:
+        shutdown_distributed(ctx)
+
+
+def generation_quality(bundles: Dict[str, Any], reference: np.ndarray, samples: int, seed: int,
+                       device: torch.device) -> Dict[str, Dict[str, float]]:
+    """Jitter (m/s³) and foot skating ratio (:mod:`smdm_plugin.metrics`, 20 fps) of ``samples``
+    unconditional samples of each model (as long as the reference windows), and of the real motion
+    ``reference`` joints ``[W, N, 22, 3]`` (metres) under ``'motion capture'``."""
+    from ..metrics import foot_skating_ratio, jitter
+
+    N = reference.shape[1]
+    out: Dict[str, Dict[str, float]] = {}
+    for name, b in bundles.items():
+        y = {"mask": torch.ones(samples, 1, 1, N, dtype=torch.bool, device=device),
+             "lengths": torch.full((samples,), N, dtype=torch.long, device=device)}
+        gen = torch.Generator(device=device).manual_seed(seed + 11)
+        x = b.diffusion.p_sample_loop(b.model, (samples, len(b.mean), 1, N), {"y": y}, device=device, generator=gen)
+        j = torch.as_tensor(b.representation.to_joints(b.denormalise(x.squeeze(2).permute(0, 2, 1).float().cpu())))
+        out[name] = {"jitter": float(jitter(j, fps=20)), "foot_skating": float(foot_skating_ratio(j, fps=20))}
+    ref = torch.from_numpy(np.asarray(reference, np.float32))
+    out["motion capture"] = {"jitter": float(jitter(ref, fps=20)), "foot_skating": float(foot_skating_ratio(ref, fps=20))}
+    return out
+
+
+def training_markdown(train: Dict[str, Any], quality: Dict[str, Dict[str, float]], reference: str) -> str:
+    """The training table: per model steps, time, speed, final loss, and the jitter / foot skating
+    of its samples; a last row with the real motion's (``reference`` says which)."""
+    lines = ["| model | steps | seconds | steps/s | final loss | jitter (m/s³) | foot skating |",
+             "| --- | ---: | ---: | ---: | ---: | ---: | ---: |"]
     for n in ("dense", "sparse"):
-        r = train[n]
+        r, q = train[n], quality[n]
         fl = "—" if r["final_loss"] is None else f"{r['final_loss']:.4f}"
-        lines.append(f"| {n} | {r['steps']} | {r['seconds']:.1f} | {r['steps_per_s']:.2f} | {fl} |")
-    lines.append(f"\nsparse / dense training speed: **{train['speed_ratio']:.2f}×** (TinyMDM latent "
-                 f"{args.latent}, {args.layers} layers, batch {args.batch}, {args.frames} frames)")
-    ttable = "\n".join(lines)
-    print(ttable)
-    atomic_write_text(os.path.join(args.out, "training.md"), ttable + "\n")
+        lines.append(f"| {n} | {r['steps']} | {r['seconds']:.1f} | {r['steps_per_s']:.2f} | {fl} | "
+                     f"{q['jitter']:.0f} | {q['foot_skating']:.3f} |")
+    q = quality["motion capture"]
+    lines.append(f"| motion capture ({reference}) | — | — | — | — | {q['jitter']:.0f} | {q['foot_skating']:.3f} |")
+    return "\n".join(lines)
+
+
+def save_models(trainers: Dict[str, Any], out: str, frames: int, mean: np.ndarray, std: np.ndarray,
+                train: Dict[str, Any], clip_names: List[str], device: torch.device) -> Dict[str, Any]:
+    """Write ``out/dense`` and ``out/sparse`` (model folders ``smdm inbetween`` reads) and load them back."""
+    from ..io.bundle import load_bundle, save_bundle
+    from ..io.representation import Representation
+
     bundles = {}
-    for n, (model, diffusion) in pair.items():
-        save_bundle(os.path.join(args.out, n), model.eval(), diffusion, spec.backbone_kwargs(),
-                    Representation("joints66"), mean, std, fps=20, max_frames=args.frames, overwrite=True,
-                    info={"trained_by": "smdm demo", "clips": [c[0] for c in train_clips], "steps": train[n]["steps"]})
-        from ..io.bundle import load_bundle
-
-        bundles[n] = load_bundle(os.path.join(args.out, n), device=dev)
-
-    # 3. in-betweening
-    clip = held or clips[0]
-    note = " (held out from training)" if held else " (a training clip: too few clips to hold one out)"
-    print(f"\n## In-betweening {clip[0]}{note}")
-    itable = inbetween_demo(bundles, clip, args.frames, args.every, args.out, args.seed, dev,
-                            gif=not args.no_gif, progress=not args.quick, stride=2 if args.quick else 1, note=note)
-    print(itable)
-    summary = {"files": files, "skipped": [list(s) for s in skipped], "clips": [[n, len(j)] for n, j in clips],
-               "keyframes": study, "training": train, "seconds": time.perf_counter() - t_start,
-               "options": {k: v for k, v in vars(args).items()}}
-    summary["keyframes"]["mpjpe_mm"] = {m: {str(r): v for r, v in d.items()} for m, d in study["mpjpe_mm"].items()}
-    atomic_write_json(os.path.join(args.out, "summary.json"), summary, indent=1)
-    print(f"\noutputs: {os.path.abspath(args.out)}")
-    return 0
+    for n, tr in trainers.items():
+        save_bundle(os.path.join(out, n), tr.model.eval(), tr.diffusion, tr.backbone_args,
+                    Representation("joints66"), mean, std, fps=20, max_frames=frames, overwrite=True,
+                    info={"trained_by": "smdm demo", "clips": clip_names, "steps": train[n]["steps"],
+                          "world_size": train["world_size"]})
+        bundles[n] = load_bundle(os.path.join(out, n), device=device)
+    return bundles
 
 
 def main(argv: Optional[List[str]] = None) -> int:
@@ -457,9 +558,10 @@ def main(argv: Optional[List[str]] = None) -> int:
     args = p.parse_args(argv)
     if args.latent is not None and args.latent % 4:
         p.error(f"argument --latent: must be a multiple of 4 (the attention heads), got {args.latent}")
-    if os.path.isdir(args.out) and os.listdir(args.out) and not args.overwrite:
+    first = os.environ.get("RANK", "0") == "0"  # under torchrun rank 0 checks (and alone writes)
+    if first and os.path.isdir(args.out) and os.listdir(args.out) and not args.overwrite:
         p.error(f"argument --out: {args.out!r} exists and is not empty; pass --overwrite to write into it")
-    if os.path.exists(args.out) and not os.path.isdir(args.out):
+    if first and os.path.exists(args.out) and not os.path.isdir(args.out):
         p.error(f"argument --out: {args.out!r} exists and is not a folder")
     return main_demo(args)
 

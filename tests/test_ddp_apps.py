@@ -1,0 +1,42 @@
+"""``smdm demo`` and ``smdm ablate`` under ``torchrun --nproc_per_node 2`` (2 gloo processes, CPU):
+they train through the one in-package Trainer with DDP, and only rank 0 writes and prints."""
+from __future__ import annotations
+
+import json
+
+import pytest
+import torch
+
+from test_trainer_ddp import _torchrun  # the 2-process launcher of the `smdm train` DDP tests
+
+TINY_GRID = """name: ddp
+seed: 0
+steps: 2
+batch: 2
+max_frames: 64
+diffusion_steps: 5
+model: {latent_dim: 16, num_layers: 1, num_heads: 2, ff_size: 32}
+eval: {samples: 2, frames: 40, keyframe_motions: 2}
+variants:
+  - {name: dense, dense: true}
+  - {name: sparse (VW)}
+"""
+
+
+def test_demo_under_torchrun_trains_with_ddp_and_writes_one_output_set(tmp_path):
+    out = tmp_path / "demo"
+    p = _torchrun("-m", "smdm_plugin", "demo", "--quick", "--no-gif", "--batch", "2", "--out", str(out))
+    log = p.stdout
+    # rank 0 alone prints the tables (each once) ...
+    assert log.count("## Training dense vs. sparse") == 1 and log.count("| vw |") == 1, log[-3000:]
+    assert log.count("| motion capture (") == 1 and "2 processes x 2" in log
+    # ... and writes one output set: the two models trained 3 DDP steps on a global batch of 4
+    s = json.loads((out / "summary.json").read_text())
+    assert s["training"]["world_size"] == 2 and s["training"]["global_batch"] == 4
+    assert s["training"]["dense"]["steps"] == 3 and s["training"]["sparse"]["steps"] == 3
+    assert sorted(f.name for f in out.iterdir()) == sorted(
+        ["dense", "sparse", "keyframes.md", "keyframes.csv", "keyframes.png", "training.md", "loss.png",
+         "inbetween.md", "summary.json"])
+    from smdm_plugin.io.bundle import load_bundle
+
+    assert load_bundle(str(out / "sparse")).sparse and not load_bundle(str(out / "dense")).sparse
