@@ -40,3 +40,19 @@ def test_demo_under_torchrun_trains_with_ddp_and_writes_one_output_set(tmp_path)
     from smdm_plugin.io.bundle import load_bundle
 
     assert load_bundle(str(out / "sparse")).sparse and not load_bundle(str(out / "dense")).sparse
+def test_ablate_under_torchrun_trains_with_ddp_and_only_rank_zero_reports(hml_dir, tmp_path):
+    grid = tmp_path / "grid.yaml"
+    grid.write_text(TINY_GRID)
+    out = tmp_path / "abl"
+    p = _torchrun("-m", "smdm_plugin", "ablate", "--config", str(grid), "--out", str(out), "--data", str(hml_dir),
+                  "--no-progress")
+    assert p.stdout.count("| dense | ok |") == 1 and p.stdout.count("| sparse (VW) | ok |") == 1, p.stdout[-3000:]
+    assert "2 processes (DDP" in p.stdout
+    for v in ("dense", "sparse-vw"):
+        res = json.loads((out / v / "result.json").read_text())
+        assert res["world_size"] == 2 and len(res["losses"]) == 2 and res["status"] == "ok"
+        assert torch.isfinite(torch.tensor([res["jitter"], res["foot_skating"]])).all()
+    from smdm_plugin.apps.ablate import MANIFEST
+
+    assert sorted(f.name for f in out.iterdir()) == sorted(
+        ["dense", "sparse-vw", "config.yaml", "results.md", "results.csv", "loss_curves.png", MANIFEST])
