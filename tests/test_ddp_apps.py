@@ -4,23 +4,13 @@ from __future__ import annotations
 
 import json
 
-import pytest
 import torch
 
+from test_ablate import GRID
 from test_trainer_ddp import _torchrun  # the 2-process launcher of the `smdm train` DDP tests
 
-TINY_GRID = """name: ddp
-seed: 0
-steps: 2
-batch: 2
-max_frames: 64
-diffusion_steps: 5
-model: {latent_dim: 16, num_layers: 1, num_heads: 2, ff_size: 32}
-eval: {samples: 2, frames: 40, keyframe_motions: 2}
-variants:
-  - {name: dense, dense: true}
-  - {name: sparse (VW)}
-"""
+#: test_ablate's grid without its third variant
+TINY_GRID = GRID.replace("  - {name: uniform, sparse: {selector: uniform}}\n", "")
 
 
 def test_demo_under_torchrun_trains_with_ddp_and_writes_one_output_set(tmp_path):
@@ -51,6 +41,7 @@ def test_ablate_under_torchrun_trains_with_ddp_and_only_rank_zero_reports(hml_di
     for v in ("dense", "sparse-vw"):
         res = json.loads((out / v / "result.json").read_text())
         assert res["world_size"] == 2 and len(res["losses"]) == 2 and res["status"] == "ok"
+        assert res["max_divergence"] == 0.0  # the ranks hold identical weights after training
         assert torch.isfinite(torch.tensor([res["jitter"], res["foot_skating"]])).all()
     from smdm_plugin.apps.ablate import MANIFEST
 

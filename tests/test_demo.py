@@ -4,6 +4,7 @@ one-line errors with nothing touched."""
 from __future__ import annotations
 
 import json
+import os
 import shutil
 import subprocess
 import sys
@@ -43,13 +44,8 @@ def run(*args, cwd=None, timeout=900, env=None):
 
 
 @pytest.fixture(scope="module")
-def bvh_files():
-    from conftest import MOCAP
-
-    files = demo.find_bvh([str(MOCAP)]) if MOCAP.is_dir() else []
-    if not files:
-        pytest.skip("../shared/data/cmu-mocap not available")
-    return files
+def bvh_files(mocap_files):
+    return mocap_files
 
 
 def test_quick_demo_skips_unusable_files_keeps_given_flags_and_leaves_models(bvh_files, tmp_path):
@@ -132,8 +128,6 @@ def test_bad_options_are_one_line_errors(args, message, tmp_path, capsys):
 
 def test_quick_demo_runs_on_the_embedded_clips(tmp_path):
     """No --bvh, no $SMDM_MOCAP, no ../shared: the clips shipped in the package."""
-    import os
-
     env = {k: v for k, v in os.environ.items() if k != "SMDM_MOCAP"}
     p = run("--quick", "--no-gif", "--out", str(tmp_path / "o"), cwd=tmp_path, env=env)
     assert p.returncode == 0, p.stderr[-3000:]
@@ -214,20 +208,17 @@ def test_no_bvh_message(tmp_path, capsys, monkeypatch):
     assert "SMDM_MOCAP=" in capsys.readouterr().err and not (tmp_path / "o").exists()
 
 
-def test_motion_source_order(tmp_path, monkeypatch):
+def test_motion_source_order(tmp_path, monkeypatch, request):
     """--bvh, else $SMDM_MOCAP, else the embedded clips."""
-    from conftest import MOCAP
-
     from smdm_plugin.io.embedded import embedded_clips
 
     monkeypatch.delenv("SMDM_MOCAP", raising=False)
     source, files, clips = demo.motion_source(None, max_clips=2)
     assert "embedded" in source and files == [] and [n for n, _ in clips] == [n for n, _ in embedded_clips()[:2]]
-    if not MOCAP.is_dir():
-        pytest.skip("../shared/data/cmu-mocap not available")
-    monkeypatch.setenv("SMDM_MOCAP", str(MOCAP))
+    mocap = request.getfixturevalue("mocap_files")  # skips here when the shared clips are absent
+    monkeypatch.setenv("SMDM_MOCAP", os.path.dirname(mocap[0]))
     source, files, clips = demo.motion_source(None, max_clips=1)
-    assert "$SMDM_MOCAP" in source and files == sorted(str(f) for f in MOCAP.glob("*.bvh")) and len(clips) == 1
+    assert "$SMDM_MOCAP" in source and files == mocap and len(clips) == 1
     one = tmp_path / "one"
     one.mkdir()
     shutil.copy(files[0], one / "x.bvh")
@@ -235,14 +226,11 @@ def test_motion_source_order(tmp_path, monkeypatch):
     assert source == f"--bvh {one}" and files == [str(one / "x.bvh")] and [n for n, _ in clips] == ["x"]
 
 
-def test_bvh_warning_is_shown(tmp_path):
+def test_bvh_warning_is_shown(tmp_path, mocap_files):
     """A tolerated oddity of a real file (one motion row too many) is shown with its category."""
-    from conftest import MOCAP
+    from pathlib import Path
 
-    if not MOCAP.is_dir():
-        pytest.skip("../shared/data/cmu-mocap not available")
-    src = sorted(MOCAP.glob("*.bvh"))[0]
-    lines = src.read_text().rstrip("\n").splitlines()
+    lines = Path(mocap_files[0]).read_text().rstrip("\n").splitlines()
     f = tmp_path / "extra.bvh"
     f.write_text("\n".join(lines + [lines[-1]]) + "\n")
     log = []

@@ -353,15 +353,13 @@ def model_folders(tmp_path_factory):
     return root
 
 
-def test_cli_bvh_keyframes_dense_and_sparse(model_folders, tmp_path):
+def test_cli_bvh_keyframes_dense_and_sparse(model_folders, tmp_path, mocap_files):
     from PIL import Image
 
     from smdm_plugin.apps.demo import find_bvh
     from smdm_plugin.io.bvh import load_cmu_clip
 
-    from conftest import MOCAP
-
-    files = find_bvh([str(MOCAP)]) if MOCAP.is_dir() else []
+    files = find_bvh([os.path.dirname(mocap_files[0])])
     if not files:
         pytest.skip("no CMU BVH clip available")
     out = tmp_path / "ib"

@@ -132,12 +132,10 @@ def test_render_command_on_every_input_kind(tmp_path, hml_dir, monkeypatch, caps
     assert not (tmp_path / "x.gif").exists()
 
 
-def test_render_bvh(tmp_path):
+def test_render_bvh(tmp_path, mocap_files):
     from smdm_plugin.apps.demo import find_bvh
 
-    from conftest import MOCAP
-
-    files = find_bvh([str(MOCAP)]) if MOCAP.is_dir() else []
+    files = find_bvh([os.path.dirname(mocap_files[0])])
     if not files:
         pytest.skip("no BVH clip available")
     p = render(os.path.abspath(files[0]), "--stride", "40", "--out", "c.gif", "--quiet", "--size", "1.5", cwd=tmp_path)

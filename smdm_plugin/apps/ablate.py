@@ -426,6 +426,7 @@ def run_variant(cfg: Dict[str, Any], variant: Dict[str, Any], data: MotionData, 
         "steps_per_s": steps / train_s if train_s > 0 else float("nan"), "train_s": train_s, "sample_s": sample_s,
         "keyframe_error_mm": keyframe_error_mm(data, sc, ev.get("keyframe_motions"), seed),
         "ees": _ees(motion, lengths, data), **quality, "losses": losses, "world_size": trainer.dist.world_size,
+        "max_divergence": result.max_divergence,
         "sparse_config": None if sc is None else sc.to_dict(),
     }
 

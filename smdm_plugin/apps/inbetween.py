@@ -224,7 +224,7 @@ def build_parser() -> argparse.ArgumentParser:
 def main(argv: Optional[List[str]] = None) -> int:
     from ..io.bundle import load_bundle
     from ..io.files import OutputExistsError, atomic_open, atomic_write_json, atomic_write_text, check_new_dir
-    from .bench import pick_device
+    from ._args import resolve_device
     from .motion_files import load_motion
 
     p = build_parser()
@@ -233,7 +233,7 @@ def main(argv: Optional[List[str]] = None) -> int:
         p.error("--frames and --every: give one of them")
     if a.threads:
         torch.set_num_threads(a.threads)
-    dev = pick_device(a.device)
+    dev = resolve_device(a.device)
     models = a.model or [d for d in DEFAULT_MODELS if os.path.isdir(d)]
     if not models:
         p.error("--model: no model folder given and none at " + " / ".join(DEFAULT_MODELS)
