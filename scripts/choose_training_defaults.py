@@ -34,7 +34,7 @@ import torch
 
 from smdm_plugin.apps import ablate
 from smdm_plugin.io.files import atomic_write_json, atomic_write_text
-from smdm_plugin.metrics import end_effector_speed, foot_skating_ratio, jitter, to_joint_positions
+from smdm_plugin.metrics import end_effector_speed, to_joint_positions
 
 METRICS = ("val_loss", "kf_interp_mm", "jitter", "foot_skating", "ees")
 HEADERS = {"val_loss": "val loss", "kf_interp_mm": "kf interp (mm)", "jitter": "jitter (m/s³)",
@@ -45,44 +45,24 @@ FORMATS = {"val_loss": ".4f", "kf_interp_mm": ".1f", "jitter": ".0f", "foot_skat
 # ----------------------------------------------------------------------------------------- one run
 def motion_quality(motion: torch.Tensor, lengths: torch.Tensor, data: "ablate.MotionData",
                    fps: float = 20.0) -> Dict[str, float]:
-    """Jitter, foot skating and EES of normalised HumanML3D features ``[B, N, 263]``."""
+    """Jitter, foot skating (as ``smdm ablate`` reports them) and EES of normalised HumanML3D
+    features ``[B, N, 263]``."""
     joints = to_joint_positions(motion, data.mean, data.std).double()
-    return {"jitter": float(jitter(joints, fps=fps, lengths=lengths)),
-            "foot_skating": float(foot_skating_ratio(joints, fps=fps, lengths=lengths)),
-            "ees": float(end_effector_speed(joints, lengths))}
+    return {**ablate.motion_quality(motion, lengths, data), "ees": float(end_effector_speed(joints, lengths))}
 
 
 def train_and_measure(cfg: Dict[str, Any], variant: Dict[str, Any], data: "ablate.MotionData",
                       seed: int, samples: int) -> Dict[str, Any]:
-    """Train one variant with one seed (CPU) and return its measurements."""
-    from smdm_plugin.adapters.mdm import sparsify
-    from smdm_plugin.reference.backbone import TinyMDM
-    from smdm_plugin.reference.diffusion import SimpleDiffusion
+    """Train one variant with one seed (CPU) through the in-package Trainer, as ``smdm ablate``
+    does, and return its measurements."""
+    from smdm_plugin.apps.trainer import TrainConfig, Trainer
 
     sc = ablate.sparse_config(cfg, variant)
-    torch.manual_seed(seed)
-    model = TinyMDM(njoints=263, nfeats=1, cond_mode="no_cond", **cfg["model"])
-    diffusion = SimpleDiffusion(int(cfg["diffusion_steps"]))
-    if sc is not None:
-        sparsify(model, sc, diffusion=diffusion, mean=data.mean, std=data.std)
-    opt = torch.optim.AdamW(model.parameters(), lr=float(cfg["lr"]))
-    train, frames = data.train, data.train["x"].shape[1]
-    order = ablate.batches(len(train["ids"]), int(cfg["batch"]), int(cfg["steps"]), seed)
-    timesteps = torch.randint(0, diffusion.num_timesteps, (len(order), int(cfg["batch"])),
-                              generator=torch.Generator().manual_seed(seed + 1))
-    torch.manual_seed(seed + 2)  # dropout and mask-noise streams start equal for every variant
-    model.train()
-    t0, losses = time.perf_counter(), []
-    for idx, t in zip(order, timesteps):
-        lengths = train["lengths"][idx]
-        valid = (torch.arange(frames) < lengths[:, None]).view(len(idx), 1, 1, frames)
-        x0 = train["x"][idx].transpose(1, 2).unsqueeze(2)              # [B, 263, 1, N]
-        loss = diffusion.training_losses(model, x0, t[:len(idx)], {"y": {"mask": valid, "lengths": lengths}})["loss"]
-        opt.zero_grad(set_to_none=True)
-        loss.mean().backward()
-        opt.step()
-        losses.append(loss.mean().item())
-    train_s = time.perf_counter() - t0
+    tc = TrainConfig(steps=int(cfg["steps"]), batch=int(cfg["batch"]), lr=float(cfg["lr"]),
+                     diffusion_steps=int(cfg["diffusion_steps"]), seed=seed, model=dict(cfg["model"]), sparse=sc)
+    trainer = Trainer(tc, ablate.motion_set(data.train, data), device="cpu")
+    result = trainer.train()
+    model, diffusion, losses, train_s = trainer.model, trainer.diffusion, result.losses, result.seconds
     model.eval()
     val = data.val
     lengths = val["lengths"].repeat((samples + len(val["ids"]) - 1) // len(val["ids"]))[:samples]

@@ -26,6 +26,15 @@ def hml_dir() -> Path:
 
 
 @pytest.fixture(scope="session")
+def mocap_files() -> list:
+    """The CMU BVH files of ../shared/data/cmu-mocap (sorted paths; skip when absent)."""
+    files = sorted(str(p) for p in MOCAP.glob("*.bvh")) if MOCAP.is_dir() else []
+    if not files:
+        pytest.skip("../shared/data/cmu-mocap not available")
+    return files
+
+
+@pytest.fixture(scope="session")
 def hml_batch(hml_dir):
     """Real HumanML3D-format motions: normalised ``x [B, 263, 1, N]``, ``lengths [B]``, mean, std."""
     mean = np.load(hml_dir / "Mean.npy")

@@ -91,7 +91,7 @@ class Recorder:
     def __init__(self):
         self.calls, self.fail, self.interrupt_at, self.total = [], set(), None, 0
 
-    def __call__(self, cfg, variant, data, device, progress=False):
+    def __call__(self, cfg, variant, data, device, progress=False, dist=None):
         name = variant["name"]
         if name == self.interrupt_at:
             raise KeyboardInterrupt
@@ -129,11 +129,13 @@ def snapshot(folder):
     return {str(p.relative_to(folder)): p.read_bytes() for p in sorted(Path(folder).rglob("*")) if p.is_file()}
 
 
-def table_rows(out):
-    """``{variant: [status, final loss, ..., wall]}`` from results.md's table."""
+def table_rows(out, reference=False):
+    """``{variant: [status, final loss, ..., wall]}`` from results.md's table (with ``reference``,
+    the real validation motion's row too)."""
     md = (out / "results.md").read_text()
     cells = [[c.strip() for c in ln.strip().strip("|").split("|")] for ln in md.splitlines() if ln.startswith("| ")]
-    return {c[0]: c[1:] for c in cells if c[0] not in ("variant", "---")}
+    skip = ("variant", "---") + (() if reference else (ablate.REFERENCE_ROW,))
+    return {c[0]: c[1:] for c in cells if c[0] not in skip}
 
 
 def test_results_record_provenance(tmp_path, data_dir, rec):
@@ -240,7 +242,7 @@ def test_only_updates_those_rows_and_keeps_the_others(tmp_path, data_dir, rec):
     assert rows["uniform"][0] == "stale" and set(rows["uniform"][1:7]) == {"—"}   # not mixed in
     md = (out / "results.md").read_text()
     assert "uniform: stale, not shown (settings changed: sparse_config.selector 'uniform' -> 'random'" in md
-    assert len((out / "results.csv").read_text().splitlines()) == 4
+    assert len((out / "results.csv").read_text().splitlines()) == 5  # header, 3 variants, real motion
     # the folder name works too; then every row is current again
     assert run(tmp_path, data_dir, "--only", "uniform", "--overwrite", config=changed) == 0
     assert rec.calls == ["dense", "uniform"] and table_rows(out)["uniform"][0] == "ok"
@@ -358,6 +360,15 @@ def test_quick_grid_on_real_motion(hml_dir, tmp_path, monkeypatch):
     dense = json.loads((out / "dense" / "result.json").read_text())
     assert res["keyframe_error_mm"] > 0 and dense["keyframe_error_mm"] is None
     assert len(res["losses"]) == 3 and res["ees"] is not None
+    # jitter and foot skating of the samples, and of the real validation motions as a reference row
+    for r in (res, dense):
+        assert np.isfinite(r["jitter"]) and r["jitter"] > 0 and 0 <= r["foot_skating"] <= 1
+    header = next(ln for ln in md.splitlines() if ln.startswith("| variant |"))
+    assert "| jitter (m/s³) | foot skating |" in header
+    cols = [c.strip() for c in header.strip("|").split("|")]
+    ref = table_rows(out, reference=True)[ablate.REFERENCE_ROW]
+    jit, skate = float(ref[cols.index("jitter (m/s³)") - 1]), float(ref[cols.index("foot skating") - 1])
+    assert jit > 0 and 0 <= skate <= 1 and ref[0] == "reference"
     assert 0 < res["val_loss"] < 100 and 0 < dense["val_loss"] < 100  # same fixed noise and timesteps
     assert res["provenance"]["steps"] == 3 and res["provenance"]["settings"]["sparse_config"]["reduction"] == 0.8
 

@@ -1,32 +1,189 @@
-"""`smdm demo --quick` on a real CMU clip (assimp-testmodels or ../shared/data/cmu-mocap)."""
+"""``smdm demo`` as a user runs it (subprocess): the quick run on real CMU clips with unusable BVH
+files beside them, the trained models it leaves, and bad options / an existing output folder as
+one-line errors with nothing touched."""
+from __future__ import annotations
+
 import json
+import os
+import shutil
+import subprocess
+import sys
+import warnings
 
 import numpy as np
 import pytest
 
 from smdm_plugin.apps import demo
 
+OTHER_SKELETON = """HIERARCHY
+ROOT Pelvis
+{
+  OFFSET 0 0 0
+  CHANNELS 6 Xposition Yposition Zposition Zrotation Xrotation Yrotation
+  JOINT Spine
+  {
+    OFFSET 0 10 0
+    CHANNELS 3 Zrotation Xrotation Yrotation
+    End Site
+    {
+      OFFSET 0 10 0
+    }
+  }
+}
+MOTION
+Frames: 2
+Frame Time: 0.0333333
+0 90 0 0 0 0 0 0 0
+0 91 0 0 0 0 0 0 0
+"""
+
+
+def run(*args, cwd=None, timeout=900, env=None):
+    return subprocess.run([sys.executable, "-m", "smdm_plugin", "demo", *args], capture_output=True, text=True,
+                          cwd=cwd, timeout=timeout, env=env)
+
 
 @pytest.fixture(scope="module")
-def bvh_files():
-    files = demo.find_bvh()
-    if not files:
-        pytest.skip("no BVH clip available (apt-get install assimp-testmodels)")
-    return files
+def bvh_files(mocap_files):
+    return mocap_files
 
 
-def test_quick_demo_writes_tables_and_figures(bvh_files, tmp_path, capsys):
+def test_quick_demo_skips_unusable_files_keeps_given_flags_and_leaves_models(bvh_files, tmp_path):
+    folder = tmp_path / "bvh"
+    folder.mkdir()
+    good = folder / "c_good.bvh"
+    shutil.copy(bvh_files[0], good)
+    text = good.read_text()
+    (folder / "a_truncated.bvh").write_text(text[: int(len(text) * 0.7)])
+    (folder / "b_other_skeleton.bvh").write_text(OTHER_SKELETON)
     out = tmp_path / "demo"
-    rc = demo.main(["--quick", "--out", str(out)])
-    assert rc == 0
-    text = capsys.readouterr().out
+    p = run("--quick", "--batch", "3", "--bvh", str(folder), "--out", str(out), "--every", "20")
+    assert p.returncode == 0, p.stderr[-3000:]
+    text = p.stdout
     assert "| vw |" in text and "sparse / dense training speed" in text and str(out) in text
-    for f in ("keyframes.md", "keyframes.csv", "keyframes.png", "training.md", "loss.png", "summary.json"):
+    assert f"smdm demo: motion from --bvh {folder}: 3 BVH file(s)" in text
+    # which files were skipped and why (the reader's whole message)
+    assert f"skipping {folder / 'a_truncated.bvh'}: read_bvh: {folder / 'a_truncated.bvh'}" in text and f"skipping {folder / 'b_other_skeleton.bvh'}: " in text
+    assert "not a CMU skeleton" in text and "skipped 2 of 3 file(s)" in text
+    # --quick applied its settings except the one given
+    assert "--batch" not in text.split("smdm demo --quick:")[1].splitlines()[0]
+    for f in ("keyframes.md", "keyframes.csv", "keyframes.png", "training.md", "loss.png", "summary.json",
+              "inbetween.md", "inbetween.gif"):
         assert (out / f).stat().st_size > 0, f
     s = json.loads((out / "summary.json").read_text())
+    assert s["options"]["batch"] == 3 and s["training"]["batch"] == 3 and s["options"]["latent"] == 32
     assert s["training"]["dense"]["steps"] == 3 and s["training"]["sparse"]["steps"] == 3
+    assert [f for f, _ in s["skipped"]] == [str(folder / "a_truncated.bvh"), str(folder / "b_other_skeleton.bvh")]
     err = s["keyframes"]["mpjpe_mm"]
     assert 0 < err["vw"]["0.8"] < 200 and err["random"]["0.8"] > 0
+    # jitter and foot skating of each model's samples and of the real motion: columns, finite
+    lines = (out / "training.md").read_text().splitlines()
+    assert lines[0].startswith("| model |") and lines[0].rstrip().endswith("| jitter (m/s³) | foot skating |")
+    rows = {ln.split("|")[1].strip(): ln.split("|")[-3:-1] for ln in lines if ln.startswith("| ") and "---" not in ln}
+    for name in ("dense", "sparse", "motion capture (training clips)"):
+        jit, skate = (float(v) for v in rows[name])
+        assert np.isfinite(jit) and jit >= 0 and 0 <= skate <= 1, (name, rows[name])
+    q = s["training"]["quality"]
+    assert q["motion capture"]["jitter"] > 0 and all(np.isfinite(q[m]["jitter"]) for m in ("dense", "sparse"))
+    # the in-betweening table: keyframes exact for both models
+    rows = [r for r in (out / "inbetween.md").read_text().splitlines() if r.startswith("| dense") or r.startswith("| sparse")]
+    assert len(rows) == 2 and all(r.split("|")[3].strip() == "0.0" for r in rows)
+    from PIL import Image
+
+    assert Image.open(out / "inbetween.gif").n_frames == 30  # 60 frames, every 2nd in --quick
+    # the trained models are folders smdm inbetween reads
+    from smdm_plugin.io.bundle import load_bundle
+
+    assert load_bundle(str(out / "sparse")).sparse and not load_bundle(str(out / "dense")).sparse
+    # a second run into the same folder is refused, nothing changes; --overwrite is accepted
+    before = {f.name: f.stat().st_mtime_ns for f in out.iterdir()}
+    p = run("--quick", "--bvh", str(good), "--out", str(out))
+    assert p.returncode == 2 and "--overwrite" in p.stderr and "Traceback" not in p.stderr
+    assert {f.name: f.stat().st_mtime_ns for f in out.iterdir()} == before
+
+
+@pytest.mark.parametrize("args, message", [
+    (["--minutes", "-1"], "argument --minutes: must be a finite number in (0, 1440], got -1"),
+    (["--minutes", "0"], "argument --minutes"),
+    (["--batch", "0"], "argument --batch: must be an integer in [1, 4096], got 0"),
+    (["--frames", "500"], "argument --frames"),
+    (["--reductions", "0.5", "1.0"], "argument --reductions"),
+    (["--train-reduction", "nan"], "argument --train-reduction"),
+    (["--latent", "30"], "argument --latent: must be a multiple of 4"),
+    (["--threads", "0"], "argument --threads"),
+    (["--seed", "-3"], "argument --seed"),
+    (["--device", "cuda:3"], "argument --device"),
+    (["--device", "tpu"], "argument --device"),
+])
+def test_bad_options_are_one_line_errors(args, message, tmp_path, capsys):
+    out = tmp_path / "never"
+    with pytest.raises(SystemExit) as e:
+        demo.main([*args, "--out", str(out)])
+    err = capsys.readouterr().err
+    assert e.value.code == 2
+    last = err.strip().splitlines()[-1]
+    assert last.startswith("smdm demo: error: ") and message in last, err
+    assert not out.exists()
+
+
+def test_quick_demo_runs_on_the_embedded_clips(tmp_path):
+    """No --bvh, no $SMDM_MOCAP, no ../shared: the clips shipped in the package."""
+    env = {k: v for k, v in os.environ.items() if k != "SMDM_MOCAP"}
+    p = run("--quick", "--no-gif", "--out", str(tmp_path / "o"), cwd=tmp_path, env=env)
+    assert p.returncode == 0, p.stderr[-3000:]
+    assert "smdm demo: motion from the 17 CMU clips embedded in the package" in p.stdout
+    assert (tmp_path / "o" / "training.md").exists() and "| motion capture (" in p.stdout
+
+
+def test_bad_options_as_a_user_runs_them(tmp_path):
+    for args, message in ((["--minutes", "-1"], "argument --minutes: must be a finite number in (0, 1440], got -1"),
+                          (["--device", "cuda:3"], "argument --device")):
+        p = run(*args, "--out", str(tmp_path / "never"))
+        assert p.returncode == 2 and "Traceback" not in p.stderr
+        assert p.stderr.strip().splitlines()[-1].startswith("smdm demo: error: ") and message in p.stderr
+    assert not (tmp_path / "never").exists()
+
+
+def test_existing_output_folder_is_refused(tmp_path):
+    out = tmp_path / "mine"
+    out.mkdir()
+    (out / "notes.txt").write_text("keep me")
+    p = run("--quick", "--out", str(out))
+    assert p.returncode == 2 and "exists and is not empty; pass --overwrite" in p.stderr
+    assert [f.name for f in out.iterdir()] == ["notes.txt"] and (out / "notes.txt").read_text() == "keep me"
+    (tmp_path / "file").write_text("x")
+    p = run("--out", str(tmp_path / "file"))
+    assert p.returncode == 2 and "is not a folder" in p.stderr
+
+
+def test_quick_keeps_given_flags():
+    p = __import__("argparse").ArgumentParser()
+    demo.add_arguments(p)
+    a = p.parse_args(["--quick", "--frames", "100", "--reductions", "0.5"])
+    applied = demo.apply_quick(a)
+    assert (a.frames, a.reductions, a.batch, a.latent, a.layers, a.max_clips) == (100, [0.5], 4, 32, 1, 1)
+    assert not any(s.startswith(("--frames", "--reductions")) for s in applied)
+    a = p.parse_args(["--batch", "8"])
+    assert demo.apply_quick(a) == [] and (a.frames, a.batch, a.latent) == (120, 8, 256)
+
+
+def test_load_clips_reports_warnings_and_skips(monkeypatch):
+    import smdm_plugin.io.bvh as bvh
+
+    def fake(path, fps=20):
+        if "odd" in path:
+            warnings.warn(f"{path}: one extra motion row ignored", UserWarning)
+        if "bad" in path:
+            raise ValueError(f"read_bvh: {path}: Frame Time must be > 0")
+        return np.zeros((40 if "short" not in path else 5, 22, 3))
+
+    monkeypatch.setattr(bvh, "load_cmu_clip", fake)
+    log, skipped = [], []
+    clips = demo.load_clips(["odd.bvh", "bad.bvh", "short.bvh", "ok.bvh"], log=log.append, skipped=skipped)
+    assert [n for n, _ in clips] == ["odd", "ok"]
+    assert log[0] == "  note: odd.bvh: one extra motion row ignored (UserWarning)"
+    assert skipped == [("bad.bvh", "read_bvh: bad.bvh: Frame Time must be > 0"),
+                       ("short.bvh", "only 5 frames at 20 fps (20 needed)")]
 
 
 def test_reconstruction_error_and_features():
@@ -39,8 +196,44 @@ def test_reconstruction_error_and_features():
     assert demo.reconstruction_error(j, np.ones(T, bool))[0] == 0
     f = demo.motion_features(j)
     assert f.shape == (T, 66) and np.allclose(f[:, 63], j[:, 0, 1])
+    assert np.allclose(f[0, 64:], 0) and np.allclose(f[:, 64:] + j[0, 0, [0, 2]], j[:, 0, [0, 2]], atol=1e-6)
 
 
-def test_no_bvh_message(tmp_path, capsys):
+def test_no_bvh_message(tmp_path, capsys, monkeypatch):
     rc = demo.main(["--bvh", str(tmp_path), "--out", str(tmp_path / "o")])
-    assert rc == 2 and "assimp-testmodels" in capsys.readouterr().err
+    err = capsys.readouterr().err
+    assert rc == 2 and f"no .bvh file in --bvh {tmp_path}" in err and "SMDM_MOCAP" in err
+    monkeypatch.setenv("SMDM_MOCAP", str(tmp_path / "absent"))
+    assert demo.main(["--out", str(tmp_path / "o")]) == 2
+    assert "SMDM_MOCAP=" in capsys.readouterr().err and not (tmp_path / "o").exists()
+
+
+def test_motion_source_order(tmp_path, monkeypatch, request):
+    """--bvh, else $SMDM_MOCAP, else the embedded clips."""
+    from smdm_plugin.io.embedded import embedded_clips
+
+    monkeypatch.delenv("SMDM_MOCAP", raising=False)
+    source, files, clips = demo.motion_source(None, max_clips=2)
+    assert "embedded" in source and files == [] and [n for n, _ in clips] == [n for n, _ in embedded_clips()[:2]]
+    mocap = request.getfixturevalue("mocap_files")  # skips here when the shared clips are absent
+    monkeypatch.setenv("SMDM_MOCAP", os.path.dirname(mocap[0]))
+    source, files, clips = demo.motion_source(None, max_clips=1)
+    assert "$SMDM_MOCAP" in source and files == mocap and len(clips) == 1
+    one = tmp_path / "one"
+    one.mkdir()
+    shutil.copy(files[0], one / "x.bvh")
+    source, files, clips = demo.motion_source([str(one)])
+    assert source == f"--bvh {one}" and files == [str(one / "x.bvh")] and [n for n, _ in clips] == ["x"]
+
+
+def test_bvh_warning_is_shown(tmp_path, mocap_files):
+    """A tolerated oddity of a real file (one motion row too many) is shown with its category."""
+    from pathlib import Path
+
+    lines = Path(mocap_files[0]).read_text().rstrip("\n").splitlines()
+    f = tmp_path / "extra.bvh"
+    f.write_text("\n".join(lines + [lines[-1]]) + "\n")
+    log = []
+    clips = demo.load_clips([str(f)], log=log.append)
+    assert len(clips) == 1 and len(log) == 1
+    assert log[0].startswith(f"  note: read_bvh: {f}") and log[0].endswith("(BVHWarning)")

@@ -2,15 +2,19 @@
 
 Every variant of a YAML grid (``smdm_plugin/configs/ablations/table1.yaml``: the paper's Table 1 set) trains the
 in-package backbone (:class:`~smdm_plugin.backbone.TinyMDM` + :class:`~smdm_plugin.diffusion.SimpleDiffusion`)
-with the *same* seed, initial weights, data order, diffusion steps ``t`` and step count, on
-HumanML3D-format motion (``--data``, default ``../shared/data/cmu-humanml3d``: ``new_joint_vecs``,
+through the one in-package :class:`~smdm_plugin.apps.trainer.Trainer` with the *same* seed,
+initial weights, data order, diffusion steps ``t`` and step count, on HumanML3D-format motion (``--data``, default ``../shared/data/cmu-humanml3d``: ``new_joint_vecs``,
 ``new_joints``, ``Mean.npy``/``Std.npy``, ``train.txt``/``val.txt``). Unconditional (no CLIP).
 
 Per variant: final and best training loss, steps/s, wall time, the keyframe reconstruction error
 (mean joint position error in mm of linearly interpolating the 22 joints of the validation motions
 from the keyframes the variant's selector picks; "—" for dense), and the End-Effector Speed (EES,
 cm/frame, :func:`smdm_plugin.metrics.end_effector_speed`) of motions sampled from the trained
-model next to the EES of the real validation motions.
+model, with their jitter (m/s³) and foot skating ratio (:mod:`smdm_plugin.metrics`, on the joints
+``recover_from_ric`` gives, 20 fps); a last row gives the real validation motions' EES, jitter and
+foot skating for reference. Under ``torchrun --nproc_per_node N -m smdm_plugin ablate ...`` every
+variant trains with DistributedDataParallel (``batch`` per process); rank 0 alone decides what to
+run, evaluates, writes and prints.
 
 Output (``--out``): ``results.md``, ``results.csv``, ``loss_curves.png``, ``config.yaml`` (the grid
 as run, with ``--steps``/``--data`` overrides), ``ablate.json`` (what the folder is, last run) and
@@ -62,7 +66,7 @@ import time
 import traceback
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Callable, Dict, List, Optional, Sequence, Set
+from typing import Any, Callable, Dict, List, Optional, Sequence, Set, Tuple
 
 import numpy as np
 import torch
@@ -299,20 +303,6 @@ class MotionData:
                 "joints": joints}
 
 
-def batches(n: int, batch: int, steps: int, seed: int) -> List[torch.Tensor]:
-    """The index batches of every step (epoch-wise permutations): identical for every variant."""
-    g = torch.Generator().manual_seed(seed)
-    out: List[torch.Tensor] = []
-    perm = torch.randperm(n, generator=g)
-    pos = 0
-    while len(out) < steps:
-        if pos + batch > n:
-            perm, pos = torch.randperm(n, generator=g), 0
-        out.append(perm[pos:pos + min(batch, n)])
-        pos += min(batch, n)
-    return out
-
-
 # ----------------------------------------------------------------------------------------- metrics
 def keyframe_error_mm(data: MotionData, sc, limit: Optional[int] = None, seed: int = 0) -> Optional[float]:
     """MPJPE (mm) of interpolating the validation joints from the variant's training keyframes
@@ -373,49 +363,47 @@ def validation_loss(model, diffusion, data: "MotionData", device: torch.device, 
 
 
 # ----------------------------------------------------------------------------------------- run
+def motion_set(split: Dict[str, Any], data: "MotionData"):
+    """A :class:`~smdm_plugin.apps.trainer.MotionSet` of a loaded split (already normalised)."""
+    from .trainer import MotionSet
+
+    frames = torch.cat([split["x"][i, :int(L)] for i, L in enumerate(split["lengths"].tolist())])
+    return MotionSet(frames, split["lengths"].long(), list(split["ids"]), data.mean, data.std, data.max_frames)
+
+
+def motion_quality(motion_norm: torch.Tensor, lengths: torch.Tensor, data: "MotionData") -> Dict[str, Optional[float]]:
+    """``{'jitter': m/s³, 'foot_skating': ratio}`` of normalised HumanML3D features ``[B, N, 263]``
+    (valid ``lengths [B]``), on the joints ``recover_from_ric`` gives, at 20 fps."""
+    from ..metrics import foot_skating_ratio, jitter, to_joint_positions
+
+    j = to_joint_positions(motion_norm.float(), data.mean, data.std)
+    L = lengths.long().cpu()
+    return {"jitter": float(jitter(j, fps=20, lengths=L)), "foot_skating": float(foot_skating_ratio(j, fps=20, lengths=L))}
+
+
 def run_variant(cfg: Dict[str, Any], variant: Dict[str, Any], data: MotionData, device: torch.device,
-                progress: bool = False) -> Dict[str, Any]:
-    from ..adapters.mdm import sparsify
-    from ..reference.backbone import TinyMDM
-    from ..reference.diffusion import SimpleDiffusion
+                progress: bool = False, dist=None) -> Dict[str, Any]:
+    """Train one variant with the in-package :class:`~smdm_plugin.apps.trainer.Trainer` (DDP when
+    ``dist`` is a torchrun context) and, on rank 0, evaluate it: validation loss, unconditional
+    samples (EES, jitter, foot skating), keyframe error. Other ranks return after training."""
+    from ..integrations.distributed import DistContext
+    from .trainer import TrainConfig, Trainer
 
     seed = int(cfg["seed"])
     sc = sparse_config(cfg, variant)
-    torch.manual_seed(seed)
-    model = TinyMDM(njoints=263, nfeats=1, cond_mode="no_cond", **cfg["model"]).to(device)
-    diffusion = SimpleDiffusion(int(cfg["diffusion_steps"]))
-    if sc is not None:
-        sparsify(model, sc, diffusion=diffusion, mean=data.mean, std=data.std)
-    opt = torch.optim.AdamW(model.parameters(), lr=float(cfg["lr"]))
-    tr = data.train
     steps = int(cfg["steps"])
-    order = batches(len(tr["ids"]), int(cfg["batch"]), steps, seed)
-    g_t = torch.Generator().manual_seed(seed + 1)
-    N = tr["x"].shape[1]
-    losses: List[float] = []
-    it = range(steps)
-    if progress:
-        from tqdm.auto import tqdm
-
-        it = tqdm(it, desc=variant["name"], leave=False)
-    model.train()
-    torch.manual_seed(seed + 2)  # dropout / mask noise streams start equal
-    t0 = time.perf_counter()
-    for s in it:
-        idx = order[s]
-        x = tr["x"][idx].permute(0, 2, 1).unsqueeze(2).to(device)  # [B, 263, 1, N]
-        L = tr["lengths"][idx]
-        y = {"mask": (torch.arange(N) < L[:, None]).view(-1, 1, 1, N).to(device), "lengths": L.to(device)}
-        t = torch.randint(0, diffusion.num_timesteps, (len(idx),), generator=g_t).to(device)
-        loss = diffusion.training_losses(model, x, t, {"y": y})["loss"].mean()
-        opt.zero_grad(set_to_none=True)
-        loss.backward()
-        opt.step()
-        v = loss.item()
-        if not math.isfinite(v):
-            raise FloatingPointError(f"loss became {v} at step {s}")
-        losses.append(v)
-    train_s = time.perf_counter() - t0
+    tc = TrainConfig(steps=steps, batch=int(cfg["batch"]), lr=float(cfg["lr"]),
+                     diffusion_steps=int(cfg["diffusion_steps"]), seed=seed, model=dict(cfg["model"]), sparse=sc)
+    trainer = Trainer(tc, motion_set(data.train, data), dist=dist or DistContext(device=device))
+    device = trainer.dist.device
+    try:
+        result = trainer.train(progress=progress)
+    except FloatingPointError as e:
+        raise FloatingPointError(str(e).replace("Trainer: the ", "")) from None
+    model, diffusion, losses, train_s = trainer.model, trainer.diffusion, result.losses, result.seconds
+    if not trainer.dist.is_main:
+        return {"name": variant["name"], "status": "ok", "steps": steps, "rank": trainer.dist.rank}
+    N = data.train["x"].shape[1]
 
     # evaluation: sample unconditionally (the variant's own sampling schedule), EES
     ev = cfg["eval"]
@@ -429,14 +417,16 @@ def run_variant(cfg: Dict[str, Any], variant: Dict[str, Any], data: MotionData, 
     sample = diffusion.p_sample_loop(model, (ns, 263, 1, nf), {"y": y}, device=device, generator=g)
     sample_s = time.perf_counter() - t1
     motion = sample.squeeze(2).permute(0, 2, 1).cpu()  # [B, N, 263] normalised
+    quality = motion_quality(motion, lengths, data)
     k = max(1, len(losses) // 10)
     smooth = np.convolve(losses, np.ones(k) / k, mode="valid") if losses else np.array([np.nan])
     return {
         "name": variant["name"], "status": "ok", "steps": steps,
         "final_loss": float(np.mean(losses[-k:])), "best_loss": float(np.min(smooth)), "val_loss": val_loss,
-        "steps_per_s": steps / train_s, "train_s": train_s, "sample_s": sample_s,
+        "steps_per_s": steps / train_s if train_s > 0 else float("nan"), "train_s": train_s, "sample_s": sample_s,
         "keyframe_error_mm": keyframe_error_mm(data, sc, ev.get("keyframe_motions"), seed),
-        "ees": _ees(motion, lengths, data), "losses": losses,
+        "ees": _ees(motion, lengths, data), **quality, "losses": losses, "world_size": trainer.dist.world_size,
+        "max_divergence": result.max_divergence,
         "sparse_config": None if sc is None else sc.to_dict(),
     }
 
@@ -529,7 +519,7 @@ def _remove(path: str) -> None:
 
 
 def run_one(cfg: Dict[str, Any], variant: Dict[str, Any], data: MotionData, dev: torch.device, vdir: str,
-            provenance: Dict[str, Any], progress: bool, log: Callable[[str], Any]) -> Dict[str, Any]:
+            provenance: Dict[str, Any], progress: bool, log: Callable[[str], Any], dist=None) -> Dict[str, Any]:
     """Run one variant and record it (atomically): ``result.json`` (its stale ``failed.json``
     removed) or, when it raises, ``failed.json`` (a previous ``result.json`` removed)."""
     name = variant["name"]
@@ -538,7 +528,7 @@ def run_one(cfg: Dict[str, Any], variant: Dict[str, Any], data: MotionData, dev:
     atomic_write_json(os.path.join(vdir, "config.json"), variant_settings(cfg, variant))
     t0 = time.perf_counter()
     try:
-        res = run_variant(cfg, variant, data, dev, progress)
+        res = run_variant(cfg, variant, data, dev, progress, dist)
     except Exception as e:  # recorded, the other variants go on
         rec = {"name": name, "status": "failed", "error": f"{type(e).__name__}: {e}",
                "traceback": traceback.format_exc(), "wall_s": time.perf_counter() - t0, "provenance": provenance}
@@ -556,8 +546,12 @@ def run_one(cfg: Dict[str, Any], variant: Dict[str, Any], data: MotionData, dev:
 
 def run_ablation(cfg: Dict[str, Any], out: str, data_root: str, device: str = "auto",
                  only: Optional[Sequence[str]] = None, progress: bool = True, log: Callable[[str], Any] = print,
-                 resume: bool = False, overwrite: bool = False) -> List[Dict[str, Any]]:
+                 resume: bool = False, overwrite: bool = False, dist=None) -> List[Dict[str, Any]]:
     """Run the grid ``cfg`` into ``out``; returns one row per variant of the grid, in its order.
+
+    ``dist``: a torchrun context (:func:`~smdm_plugin.integrations.distributed.init_distributed`):
+    every rank trains each variant with DDP; rank 0 alone decides what to run, evaluates, writes
+    and logs (the other ranks return ``[]``).
 
     ``only``: the variants to run (names or folder names), the others keep their rows. An existing
     non-empty ``out`` needs ``resume`` (reuse current results, run the missing / failed /
@@ -566,38 +560,57 @@ def run_ablation(cfg: Dict[str, Any], out: str, data_root: str, device: str = "a
     """
     import yaml
 
+    from ..integrations.distributed import DistContext
+
     if resume and overwrite:
         raise ValueError("run_ablation: resume and overwrite exclude each other")
+    ctx = dist or DistContext(device=resolve_device(device))
+    main_rank = ctx.is_main
+    if not main_rank:
+        log = _quiet
     selected = select_variants(cfg, only)
-    check_out_dir(out, resume, overwrite)
-    dev = resolve_device(device)
+    _on_main(ctx, lambda: check_out_dir(out, resume, overwrite))
+    dev = ctx.device
     data = MotionData(data_root, int(cfg["max_frames"]))
     log(f"ablate: {len(data.train['ids'])} training / {len(data.val['ids'])} validation motions from "
         f"{data_root} (fingerprint {data.fingerprint}); {cfg['steps']} steps x batch {cfg['batch']} per variant "
-        f"on {dev}")
-    plan, conflicts = [], []
-    for variant in cfg["variants"]:
-        name = variant["name"]
-        vdir = os.path.join(out, slug(name))
-        prov = variant_provenance(cfg, variant, data, dev)
-        cached = read_cached(vdir, prov)
-        if name not in selected:
-            action = "keep"
-        elif overwrite or cached.state in ("missing", "failed", "corrupt"):
-            action = "run"
-        elif cached.state == "current":
-            action = "keep"
-        else:
-            conflicts.append(f"{name!r} ({cached.reason})")
-            action = "conflict"
-        invalid = prov["settings"]["sparse_config"]
-        if action == "run" and isinstance(invalid, str):
-            log(f"  {name}: {invalid} -- it will be reported as failed")
-        plan.append((variant, vdir, prov, cached, action))
-    if conflicts:
-        raise StaleResultsError(
-            f"--out {out!r} holds {len(conflicts)} result(s) from another run: {'; '.join(conflicts)}. Pass "
-            "--overwrite to run them again (replacing them), leave them out with --only, or pick another --out")
+        f"on {dev}" + (f", {ctx.world_size} processes (DDP; batch per process)" if ctx.distributed else ""))
+
+    def make_plan() -> List[Tuple[Dict[str, Any], str, Dict[str, Any], Cached, str]]:
+        plan, conflicts = [], []
+        for variant in cfg["variants"]:
+            name = variant["name"]
+            vdir = os.path.join(out, slug(name))
+            prov = variant_provenance(cfg, variant, data, dev)
+            cached = read_cached(vdir, prov)
+            if name not in selected:
+                action = "keep"
+            elif overwrite or cached.state in ("missing", "failed", "corrupt"):
+                action = "run"
+            elif cached.state == "current":
+                action = "keep"
+            else:
+                conflicts.append(f"{name!r} ({cached.reason})")
+                action = "conflict"
+            invalid = prov["settings"]["sparse_config"]
+            if action == "run" and isinstance(invalid, str):
+                log(f"  {name}: {invalid} -- it will be reported as failed")
+            plan.append((variant, vdir, prov, cached, action))
+        if conflicts:
+            raise StaleResultsError(
+                f"--out {out!r} holds {len(conflicts)} result(s) from another run: {'; '.join(conflicts)}. Pass "
+                "--overwrite to run them again (replacing them), leave them out with --only, or pick another --out")
+        return plan
+
+    plan = _on_main(ctx, make_plan)  # rank 0 reads the folder; every rank follows its plan
+    if not main_rank:
+        for variant, vdir, prov, cached, action in plan:
+            if action == "run":
+                try:
+                    run_variant(cfg, variant, data, dev, False, ctx)
+                except Exception:  # rank 0 fails alike and records it
+                    pass
+        return []
 
     os.makedirs(out, exist_ok=True)
     from .. import __version__
@@ -607,7 +620,7 @@ def run_ablation(cfg: Dict[str, Any], out: str, data_root: str, device: str = "a
         "package_version": __version__, "data_root": os.path.abspath(data_root), "data_fingerprint": data.fingerprint,
         "device": dev.type, "updated": time.strftime("%Y-%m-%dT%H:%M:%S%z")})
     atomic_write_text(os.path.join(out, "config.yaml"), yaml.safe_dump(cfg, sort_keys=False))
-    real_ees = _ees(data.val["x"], data.val["lengths"], data)
+    real = {"ees": _ees(data.val["x"], data.val["lengths"], data), **motion_quality(data.val["x"], data.val["lengths"], data)}
     rows = [row_from_cache(v["name"], c) for v, _, _, c, _ in plan]
     try:
         for k, (variant, vdir, prov, cached, action) in enumerate(plan):
@@ -617,15 +630,39 @@ def run_ablation(cfg: Dict[str, Any], out: str, data_root: str, device: str = "a
                 continue
             if cached.state in ("corrupt", "stale"):
                 log(f"  {variant['name']}: replacing {cached.state} result ({cached.reason})")
-            rows[k] = run_one(cfg, variant, data, dev, vdir, prov, progress, log)
+            rows[k] = run_one(cfg, variant, data, dev, vdir, prov, progress, log, ctx)
     finally:  # the report is written even when interrupted (Ctrl-C): it then shows what is done
-        write_report(rows, out, real_ees, cfg, data.fingerprint)
+        write_report(rows, out, real["ees"], cfg, data.fingerprint, real=real)
     return rows
+
+
+def _quiet(*_: Any, **__: Any) -> None:
+    """The log of ranks > 0: nothing."""
+
+
+def _on_main(ctx, fn: Callable[[], Any]) -> Any:
+    """``fn()`` run on rank 0 only; its result, or the exception it raised, is handed to every rank
+    (so all ranks follow one decision, or all stop with the same error)."""
+    if not ctx.distributed:
+        return fn()
+    box: List[Any] = [None]
+    if ctx.is_main:
+        try:
+            box[0] = ("ok", fn())
+        except Exception as e:  # noqa: BLE001 - re-raised on every rank
+            box[0] = ("error", e)
+    torch.distributed.broadcast_object_list(box, src=0)
+    kind, value = box[0]
+    if kind == "error":
+        raise value
+    return value
 
 
 # ----------------------------------------------------------------------------------------- report
 COLUMNS = ("variant", "status", "final loss", "best loss", "val loss", "steps/s", "keyframe error (mm)", "EES (cm/frame)",
-           "wall (s)")
+           "jitter (m/s³)", "foot skating", "wall (s)")
+#: the report's reference row: the real validation motions
+REFERENCE_ROW = "real validation motion"
 
 
 def _fmt(v: Any, spec: str) -> str:
@@ -633,9 +670,11 @@ def _fmt(v: Any, spec: str) -> str:
 
 
 def write_report(results: List[Dict[str, Any]], out: str, real_ees: Optional[float], cfg: Dict[str, Any],
-                 data_fingerprint: Optional[str] = None) -> str:
+                 data_fingerprint: Optional[str] = None, real: Optional[Dict[str, Optional[float]]] = None) -> str:
     """``results.md`` / ``results.csv`` / ``loss_curves.png`` of ``results`` (one row per variant;
-    numbers only for ``ok`` rows); returns the markdown."""
+    numbers only for ``ok`` rows; jitter and foot skating of the variant's unconditional samples),
+    then, with ``real`` (``ees``, ``jitter``, ``foot_skating`` of the real validation motions), a
+    reference row; returns the markdown."""
     rows = []
     for r in results:
         ok = r.get("status") == "ok"
@@ -645,7 +684,12 @@ def write_report(results: List[Dict[str, Any]], out: str, real_ees: Optional[flo
                      _fmt(r.get("steps_per_s") if ok else None, ".2f"),
                      _fmt(r.get("keyframe_error_mm") if ok else None, ".1f"),
                      _fmt(r.get("ees") if ok else None, ".3f"),
+                     _fmt(r.get("jitter") if ok else None, ".0f"), _fmt(r.get("foot_skating") if ok else None, ".3f"),
                      _fmt(r.get("wall_s") if r.get("status") in ("ok", "failed") else None, ".0f")])
+    if real is not None:
+        rows.append([REFERENCE_ROW, "reference"] + ["—"] * 5 + [_fmt(real.get("ees"), ".3f"),
+                                                                 _fmt(real.get("jitter"), ".0f"),
+                                                                 _fmt(real.get("foot_skating"), ".3f"), "—"])
     with atomic_open(os.path.join(out, "results.csv"), "w", newline="") as f:
         w = csv.writer(f)
         w.writerow(COLUMNS)
@@ -754,21 +798,32 @@ def main(argv: Optional[List[str]] = None) -> int:
         torch.set_num_threads(a.threads)
     data_root = a.data or cfg.get("data") or DEFAULT_DATA
     cfg["data"] = data_root
+    from ..integrations.distributed import init_distributed, shutdown_distributed
+
     try:
-        results = run_ablation(cfg, a.out, data_root, a.device, a.only, progress=not a.no_progress,
-                               resume=a.resume, overwrite=a.overwrite)
-    except (OutputExistsError, FileNotFoundError, ValueError, PermissionError, NotADirectoryError) as e:
+        ctx = init_distributed(a.device)  # under torchrun: join the group (gloo on CPU, nccl on CUDA)
+    except ValueError as e:
         print(f"smdm ablate: error: {e}", file=sys.stderr)
+        return 2
+    try:
+        results = run_ablation(cfg, a.out, data_root, a.device, a.only, progress=not a.no_progress and ctx.is_main,
+                               resume=a.resume, overwrite=a.overwrite, dist=ctx)
+    except (OutputExistsError, FileNotFoundError, ValueError, PermissionError, NotADirectoryError) as e:
+        if ctx.is_main:
+            print(f"smdm ablate: error: {e}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:
         print(f"\nsmdm ablate: interrupted; finished variants are kept in {a.out} (results.md shows them). "
               "Rerun with --resume to continue.", file=sys.stderr)
         return 130
+    finally:
+        shutdown_distributed(ctx)
+    if not ctx.is_main:
+        return 0
     with open(os.path.join(a.out, "results.md")) as f:
         print("\n" + f.read())
     print(f"results: {os.path.abspath(a.out)}")
     return 0 if all(r.get("status") == "ok" for r in results if r["name"] in selected) else 1
-
 
 if __name__ == "__main__":
     sys.exit(main())

@@ -30,6 +30,9 @@ COMMANDS: Dict[str, Tuple[str, str]] = {
               "under torchrun: DistributedDataParallel"),
     "run": ("smdm_plugin.integrations.launcher:main_run",
             "run an upstream MDM / priorMDM / MotionDiffuse script in sparse mode"),
+    "inbetween": ("smdm_plugin.apps.inbetween",
+                  "in-betweening: a motion through your keyframes (BVH / .npy), dense and sparse, with a GIF"),
+    "render": ("smdm_plugin.apps.render", "a saved motion (.npy joints / HumanML3D features, BVH) as an animated GIF"),
     "keyframes": ("smdm_plugin.apps.keyframes", "keyframe reconstruction error of BVH clips per selection method and rate"),
 }
 

@@ -1,8 +1,9 @@
 """``smdm demo``: sparse keyframes on real motion capture, with nothing to download.
 
-1. **Keyframes.** Loads CMU motion capture from BVH files — ``--bvh PATH ...``, else the CMU clips
-   Debian/Ubuntu's ``assimp-testmodels`` package installs under ``/usr/share/assimp/models/BVH/``
-   (cgspeed's 2008 release), else ``../shared/data/cmu-mocap`` (or ``$SMDM_MOCAP``) — converts them
+1. **Keyframes.** Motion: the BVH files of ``--bvh PATH ...`` (files or folders), else those in
+   the folder ``$SMDM_MOCAP``, else the 17 CMU clips embedded in the package
+   (:func:`smdm_plugin.io.embedded.embedded_clips`; nothing to download); the source is printed. BVH
+   files are converts them
    to HumanML3D's 22 joints in metres at 20 fps and cuts them into windows of up to 196 frames
    (HumanML3D's longest motion). For every reduction rate it keeps the frames chosen by VW
    (Visvalingam–Whyatt), uniform spacing, random choice and MDO, interpolates all 22 joints
@@ -12,41 +13,53 @@
    VW beats uniform spacing at 0.1 m/frame but not at 0.01, so the table shows what it measures).
    A PNG shows one window: a joint trajectory with the VW keyframes marked and the VW / uniform
    reconstructions, and a stick-figure strip (original vs. VW reconstruction).
-2. **Training.** Trains the in-package backbone (:class:`~smdm_plugin.backbone.TinyMDM` +
-   :class:`~smdm_plugin.diffusion.SimpleDiffusion`) dense and sparse (80% reduction) on the same
-   windows for ``--minutes`` in total, time-sliced (each step goes to the model that has used less
-   time so far, so machine load hits both alike), and reports the measured speed ratio and both
-   loss curves. HumanML3D's 263-D features need foot contacts and rotations that BVH positions do
-   not give directly, so the demo trains on a simple representation computed from the joint
-   positions (66-D per frame): joints 1..21 relative to the root (63), root height (1) and the
-   root's planar velocity in x and z (2, metres per frame), normalised by the training-set mean /
-   std. Unconditional (no text).
+2. **Training.** Trains the in-package backbone (:class:`~smdm_plugin.reference.backbone.TinyMDM` +
+   :class:`~smdm_plugin.reference.diffusion.SimpleDiffusion`) dense and sparse (80% reduction) from
+   the same weights on the same random crops for ``--minutes`` in total, time-sliced (each step goes
+   to the model that has used less time so far, so machine load hits both alike), and reports the
+   measured speed ratio and both loss curves. Training goes through the one in-package
+   :class:`~smdm_plugin.apps.trainer.Trainer`, so under ``torchrun --nproc_per_node N -m smdm_plugin
+   demo`` both models train with DistributedDataParallel (``--batch`` per process) and only rank 0
+   writes files and prints tables. HumanML3D's 263-D features need foot contacts and
+   rotations that BVH positions do not give directly, so the demo trains on a representation
+   computed from the joint positions, ``joints66`` (:mod:`smdm_plugin.io.representation`): joints
+   1..21 relative to the root (63), root height (1) and root x, z (2; each crop starts at x = z = 0),
+   normalised by the training-set mean / std. Every channel depends on one frame's pose only, so a
+   keyframe given as a pose is imposed exactly. Unconditional (no text). With three clips or more
+   the last one is held out of training.
+3. **In-betweening.** Both models in-between a window of the held-out clip from keyframes every
+   ``--every`` frames (imposed by imputation; the sparse model also keeps them as keyframe tokens):
+   keyframe error, jitter near the keyframes and overall, against the motion capture, and an
+   animation of motion capture, dense and sparse side by side with the keyframes in red.
 
-Prints the output folder at the end: ``keyframes.md`` / ``keyframes.csv``, ``keyframes.png``,
-``training.md``, ``loss.png``, ``summary.json``.
+Writes to ``--out`` (refused when it exists and is not empty, unless ``--overwrite``):
+``keyframes.md`` / ``keyframes.csv``, ``keyframes.png``, ``training.md``, ``loss.png``,
+``inbetween.md``, ``inbetween.gif``, ``summary.json`` and the two trained models ``dense/`` and
+``sparse/`` (``smdm inbetween --model OUT/dense OUT/sparse`` samples from them). BVH files it cannot
+use are listed with the full reason, and the reader's warnings (``BVHWarning``) are shown.
 """
 from __future__ import annotations
 
 import argparse
 import glob
-import json
 import os
 import sys
 import time
+import warnings
 from pathlib import Path
 from typing import Any, Dict, List, Optional, Sequence, Tuple
 
 import numpy as np
 import torch
 
-ASSIMP_BVH = "/usr/share/assimp/models/BVH"
+from ..io.files import atomic_write_json, atomic_write_text
+from ._args import add_overwrite, device_type, float_range, int_range
+
 METHODS = ("vw", "uniform", "random", "mdo")
 NO_BVH = """smdm demo: no BVH motion capture found.
-  Pass one or more files:      smdm demo --bvh path/to/clip.bvh
-  or install CMU test clips:   sudo apt-get install assimp-testmodels
-                               (puts CMU BVH files under /usr/share/assimp/models/BVH/)
-  or download CMU clips in BVH form (cgspeed conversion of mocap.cs.cmu.edu) and pass them with --bvh,
-  or set SMDM_MOCAP to a folder of CMU .bvh files."""
+  Pass one or more files or folders:  smdm demo --bvh path/to/clips/
+  or set SMDM_MOCAP to a folder of CMU .bvh files (cgspeed's BVH conversion of mocap.cs.cmu.edu),
+  or give neither: smdm demo then uses the CMU clips embedded in the package."""
 
 # the 22-joint skeleton (HumanML3D / SMPL order) as parent indices, for the stick figures
 PARENTS22 = (-1, 0, 0, 0, 1, 2, 3, 4, 5, 6, 7, 8, 9, 9, 9, 12, 13, 14, 16, 17, 18, 19)
@@ -54,36 +67,73 @@ PARENTS22 = (-1, 0, 0, 0, 1, 2, 3, 4, 5, 6, 7, 8, 9, 9, 9, 12, 13, 14, 16, 17, 1
 
 # ----------------------------------------------------------------------------------------- data
 def find_bvh(paths: Optional[Sequence[str]] = None) -> List[str]:
-    """The BVH files to use: ``paths`` (files or folders), else the default locations."""
-    if paths:
-        out: List[str] = []
-        for p in paths:
-            out += sorted(glob.glob(os.path.join(p, "*.bvh"))) if os.path.isdir(p) else [p]
-        return out
-    for folder in (os.environ.get("SMDM_MOCAP"), ASSIMP_BVH, os.path.join("..", "shared", "data", "cmu-mocap"),
-                   str(Path(__file__).resolve().parents[2] / "shared" / "data" / "cmu-mocap")):
-        if folder and os.path.isdir(folder):
-            files = sorted(glob.glob(os.path.join(folder, "*.bvh")))
-            if files:
-                return files
-    return []
+    """The BVH files to use: ``paths`` (files, or folders: their ``*.bvh``), else the ``*.bvh`` of
+    the folder ``$SMDM_MOCAP``; ``[]`` when neither is given."""
+    if not paths:
+        env = os.environ.get("SMDM_MOCAP")
+        paths = [os.path.abspath(env)] if env else []
+    out: List[str] = []
+    for p in paths:
+        out += sorted(glob.glob(os.path.join(p, "*.bvh"))) if os.path.isdir(p) else [p]
+    return out
 
 
-def load_clips(files: Sequence[str], fps: int = 20, max_clips: Optional[int] = None,
-               log=print) -> List[Tuple[str, np.ndarray]]:
-    """``[(name, joints [T, 22, 3] metres)]``; files that are not CMU skeletons are skipped with a
-    note (the 22-joint mapping needs CMU's joint names; cgspeed 2008 and 2010 both work)."""
+def motion_source(bvh: Optional[Sequence[str]], max_clips: Optional[int] = None, log=print,
+                  skipped: Optional[List[Tuple[str, str]]] = None, min_frames: int = 20
+                  ) -> Tuple[str, List[str], List[Tuple[str, np.ndarray]]]:
+    """The demo's motion: ``(source, files, clips)`` — ``clips`` ``[(name, joints [T, 22, 3] metres,
+    20 fps)]`` from the BVH files of ``bvh`` (files or folders), else of the folder ``$SMDM_MOCAP``,
+    else the embedded CMU clips (``files`` empty; with ``max_clips``, the first that have
+    ``min_frames`` frames). Raises ``ValueError`` when a given source holds
+    no ``.bvh`` file; BVH files that cannot be used are logged and listed in ``skipped``."""
+    env = os.environ.get("SMDM_MOCAP")
+    if bvh:
+        source = "--bvh " + " ".join(bvh)
+    elif env:
+        if not os.path.isdir(env):
+            raise ValueError(f"SMDM_MOCAP={env!r} is not a folder (unset it to use the embedded clips)")
+        source = f"$SMDM_MOCAP ({os.path.abspath(env)})"
+    else:
+        from ..io.embedded import PATH, embedded_clips
+
+        clips = embedded_clips()
+        source = f"the {len(clips)} CMU clips embedded in the package ({PATH})"
+        if max_clips:
+            clips = [c for c in clips if len(c[1]) >= min_frames][:max_clips]
+        return source, [], clips
+    files = find_bvh(bvh or [env])
+    if not files:
+        raise ValueError(f"no .bvh file in {source}")
+    return source, files, load_clips(files, max_clips=max_clips, log=log, skipped=skipped)
+
+
+def load_clips(files: Sequence[str], fps: int = 20, max_clips: Optional[int] = None, log=print,
+               skipped: Optional[List[Tuple[str, str]]] = None) -> List[Tuple[str, np.ndarray]]:
+    """``[(name, joints [T, 22, 3] metres)]``. A file that cannot be used (unreadable, malformed,
+    not a CMU skeleton — the 22-joint mapping needs CMU's joint names —, too short) is skipped and
+    logged with the full reason (and appended to ``skipped`` as ``(file, reason)``); oddities the
+    reader tolerates (its warnings, ``BVHWarning``) are logged with their category."""
     from ..io.bvh import load_cmu_clip
 
     clips = []
     for f in files:
-        try:
-            j = load_cmu_clip(f, fps=fps)
-        except Exception as e:  # not a CMU skeleton, malformed file...
-            log(f"  skipping {f}: {str(e).splitlines()[0][:120]}")
-            continue
-        if len(j) < 20:
-            log(f"  skipping {f}: only {len(j)} frames at {fps} fps")
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always")
+            try:
+                j = load_cmu_clip(f, fps=fps)
+                reason = None if len(j) >= 20 else f"only {len(j)} frames at {fps} fps (20 needed)"
+            except (ValueError, OSError, IndexError, KeyError) as e:  # malformed, unreadable, not CMU
+                reason = " ".join(str(e).split()) or type(e).__name__
+        for w in caught:
+            if issubclass(w.category, UserWarning):
+                msg = " ".join(str(w.message).split())
+                log(f"  note: {msg if f in msg else f'{f}: {msg}'} ({w.category.__name__})")
+            else:  # not ours to judge: hand it back
+                warnings.warn_explicit(w.message, w.category, w.filename, w.lineno)
+        if reason is not None:
+            log(f"  skipping {f}: {reason}")
+            if skipped is not None:
+                skipped.append((f, reason))
             continue
         clips.append((Path(f).stem, j.astype(np.float32)))
         if max_clips and len(clips) >= max_clips:
@@ -208,104 +258,21 @@ def plot_keyframes(win: np.ndarray, title: str, reduction: float, path: str, joi
 
 # ----------------------------------------------------------------------------------------- training
 def motion_features(joints: np.ndarray) -> np.ndarray:
-    """The demo's training representation ``[T, 66]`` from joints ``[T, 22, 3]`` (metres):
-    joints 1..21 minus the root (63), root height (1), root planar velocity x, z (2, m/frame;
-    the last frame repeats the previous velocity)."""
-    T = joints.shape[0]
-    root = joints[:, 0]
-    rel = (joints[:, 1:] - root[:, None]).reshape(T, 63)
-    vel = np.diff(root[:, [0, 2]], axis=0)
-    vel = np.concatenate([vel, vel[-1:]], 0) if T > 1 else np.zeros((T, 2))
-    return np.concatenate([rel, root[:, 1:2], vel], 1).astype(np.float32)
+    """The demo's training representation ``[T, 66]`` (``joints66``, see
+    :mod:`smdm_plugin.io.representation`) from joints ``[T, 22, 3]`` (metres): joints 1..21 minus
+    the root (63), root height (1), root x, z (2) with the first frame's root moved to x = z = 0."""
+    from ..io.representation import canonical_xz, joints_to_joints66
+
+    return joints_to_joints66(canonical_xz(np.asarray(joints, np.float32))).astype(np.float32)
 
 
-def training_set(clips, length: int, stride: int) -> np.ndarray:
-    """All crops of ``length`` frames (every ``stride`` frames) as ``[M, length, 66]``."""
-    crops = []
-    for _, j in clips:
-        feats = motion_features(j)
-        for s in range(0, max(1, len(feats) - length + 1), stride):
-            c = feats[s:s + length]
-            if len(c) == length:
-                crops.append(c)
+def training_crops(clips, length: int, stride: int) -> List[np.ndarray]:
+    """All crops of ``length`` frames (every ``stride`` frames) as joints ``[length, 22, 3]``."""
+    crops = [j[s:s + length] for _, j in clips for s in range(0, max(1, len(j) - length + 1), stride)
+             if len(j[s:s + length]) == length]
     if not crops:
         raise ValueError(f"smdm demo: no clip has {length} frames; use --frames with a smaller value")
-    return np.stack(crops)
-
-
-def train_dense_vs_sparse(data: np.ndarray, seconds: float, batch: int = 32, reduction: float = 0.8,
-                          latent: int = 256, layers: int = 4, device: str = "cpu", seed: int = 0,
-                          max_steps: Optional[int] = None, progress: bool = True) -> Dict[str, Any]:
-    """Train dense and sparse copies of the same TinyMDM, time-sliced, for ``seconds`` in total."""
-    from ..adapters.mdm import sparsify
-    from ..reference.backbone import TinyMDM
-    from ..core.config import SparseConfig
-    from ..reference.diffusion import SimpleDiffusion
-
-    dev = torch.device(device)
-    mean, std = data.reshape(-1, data.shape[-1]).mean(0), data.reshape(-1, data.shape[-1]).std(0) + 1e-4
-    x_all = torch.from_numpy((data - mean) / std).float()  # [M, N, D]
-    M, N, D = x_all.shape
-    runs = {}
-    for name in ("dense", "sparse"):
-        torch.manual_seed(seed)
-        model = TinyMDM(njoints=D, nfeats=1, latent_dim=latent, ff_size=2 * latent, num_layers=layers,
-                        num_heads=4, cond_mode="no_cond", dropout=0.1).to(dev)
-        diffusion = SimpleDiffusion(100)
-        if name == "sparse":
-            sparsify(model, SparseConfig(reduction=reduction, feature="raw"), diffusion=diffusion)
-        runs[name] = {"model": model.train(), "diffusion": diffusion, "spent": 0.0, "steps": 0,
-                      "loss": [], "time": [], "opt": torch.optim.AdamW(model.parameters(), lr=2e-4),
-                      "gen": torch.Generator().manual_seed(seed)}
-    for r in runs.values():  # one untimed warm-up step each (allocations, lazy optimiser state)
-        x = x_all[:batch].permute(0, 2, 1).unsqueeze(2).to(dev)
-        mask = torch.ones(x.shape[0], 1, 1, N, dtype=torch.bool, device=dev)
-        t = torch.zeros(x.shape[0], dtype=torch.long, device=dev)
-        r["diffusion"].training_losses(r["model"], x, t, {"y": {"mask": mask}})["loss"].mean().backward()
-        r["model"].zero_grad(set_to_none=True)
-    bar = None
-    if progress:
-        from tqdm.auto import tqdm
-
-        bar = tqdm(total=round(seconds), desc="training dense + sparse (s)", mininterval=0.5,
-                   bar_format="{l_bar}{bar}| {n:.0f}/{total_fmt} s{postfix}")
-    mask = torch.ones(batch, 1, 1, N, dtype=torch.bool, device=dev)
-    while True:
-        live = [k for k, v in runs.items() if v["spent"] < seconds / 2 and not (max_steps and v["steps"] >= max_steps)]
-        if not live:
-            break
-        name = min(live, key=lambda k: runs[k]["spent"])
-        r = runs[name]
-        idx = torch.randint(0, M, (batch,), generator=r["gen"])  # same data order for both
-        t = torch.randint(0, r["diffusion"].num_timesteps, (batch,), generator=r["gen"]).to(dev)
-        x = x_all[idx].permute(0, 2, 1).unsqueeze(2).to(dev)
-        t0 = time.perf_counter()
-        loss = r["diffusion"].training_losses(r["model"], x, t, {"y": {"mask": mask}})["loss"].mean()
-        r["opt"].zero_grad(set_to_none=True)
-        loss.backward()
-        r["opt"].step()
-        dt = time.perf_counter() - t0
-        r["spent"] += dt
-        r["steps"] += 1
-        r["loss"].append(loss.item())
-        r["time"].append(r["spent"])
-        if bar is not None:
-            total = min(seconds, runs["dense"]["spent"] + runs["sparse"]["spent"])
-            bar.set_postfix_str(", ".join(f"{k} {v['steps']} steps loss {np.mean(v['loss'][-10:]):.3f}"
-                                          for k, v in runs.items() if v["loss"]), refresh=False)
-            bar.update(total - bar.n)  # refreshes at most every mininterval
-    if bar is not None:
-        bar.close()
-    out: Dict[str, Any] = {"frames": N, "batch": batch, "reduction": reduction, "latent": latent,
-                           "layers": layers, "crops": M}
-    for name, r in runs.items():
-        k = max(1, len(r["loss"]) // 10)
-        out[name] = {"steps": r["steps"], "seconds": r["spent"],
-                     "steps_per_s": r["steps"] / max(r["spent"], 1e-9),
-                     "final_loss": float(np.mean(r["loss"][-k:])) if r["loss"] else None,
-                     "loss": r["loss"], "time": r["time"]}
-    out["speed_ratio"] = out["sparse"]["steps_per_s"] / max(out["dense"]["steps_per_s"], 1e-9)
-    return out
+    return crops
 
 
 def plot_losses(train: Dict[str, Any], path: str) -> None:
@@ -331,108 +298,272 @@ def plot_losses(train: Dict[str, Any], path: str) -> None:
         ax.set_ylabel("diffusion loss (x0 MSE, normalised)")
         ax.set_yscale("log")
         ax.legend()
-    fig.suptitle(f"dense vs sparse ({int(round(train['reduction'] * 100))}% of frames dropped): "
+    fig.suptitle(f"dense vs sparse ({int(round(train['spec']['reduction'] * 100))}% of frames dropped): "
                  f"sparse runs {train['speed_ratio']:.2f}x the steps per second")
     fig.tight_layout()
     fig.savefig(path, dpi=110)
     plt.close(fig)
 
 
+# ----------------------------------------------------------------------------------------- in-betweening
+def inbetween_demo(bundles: Dict[str, Any], clip: Tuple[str, np.ndarray], length: int, every: int, out: str,
+                   seed: int, device: Any, gif: bool, progress: bool, stride: int = 1, note: str = "") -> str:
+    """In-between one window of ``clip`` (keyframes every ``every`` frames and the last) with each
+    model of ``bundles``; writes ``inbetween.md`` and ``inbetween.gif`` to ``out``; returns the table."""
+    from ..metrics.inbetween import keyframe_metrics
+    from .inbetween import plan_keyframes, run_inbetween, summary_markdown
+    from .motion_files import LoadedMotion
+
+    name, joints = clip
+    source = LoadedMotion(joints, "bvh", name, 20.0)
+    kf = plan_keyframes(len(joints), None, every, 0, length, length)
+    rows, results = [], {}
+    for label, b in bundles.items():
+        r = run_inbetween(b, source, kf, samples=1, seed=seed, device=device, progress=progress)
+        results[label] = r
+        given = np.zeros(length, bool)
+        given[kf.frames] = True
+        rows.append({"model": label, "feature_error": r.feature_error, "seconds": r.seconds,
+                     **keyframe_metrics(r.joints, r.target, given, 20.0, reference=True)})
+    table = (f"In-betweening {name} frames 0-{length - 1}{note}: {len(kf.frames)} keyframes (every {every} "
+             f"frames and the last) imposed by imputation; the sparse model also keeps them as keyframe tokens.\n\n"
+             + summary_markdown(rows))
+    atomic_write_text(os.path.join(out, "inbetween.md"), table + "\n")
+    if gif:
+        from .animation import Panel, render_gif
+
+        panels = [Panel(joints[:length], "motion capture", kf.frames)]
+        panels += [Panel(r.joints[0], f"{label} model", kf.frames) for label, r in results.items()]
+        render_gif(panels, os.path.join(out, "inbetween.gif"), fps=20.0, stride=stride, overwrite=True,
+                   progress=progress, suptitle=f"{name}: in-betweening {len(kf.frames)} keyframes (red)")
+    return table
+
+
 # ----------------------------------------------------------------------------------------- CLI
+#: options ``--quick`` shrinks, unless given: (normal default, quick value)
+QUICK = {"max_clips": (None, 1), "reductions": ([0.6, 0.7, 0.8, 0.9], [0.8]), "frames": (120, 60),
+         "batch": (32, 4), "latent": (256, 32), "layers": (4, 1)}
+
+
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--bvh", nargs="+", default=None, help="BVH files or folders (default: see above)")
     p.add_argument("--out", default=os.path.join("smdm_out", "demo"), help="output folder")
-    p.add_argument("--minutes", type=float, default=2.0, help="training time, dense + sparse together")
-    p.add_argument("--reductions", nargs="+", type=float, default=[0.6, 0.7, 0.8, 0.9])
-    p.add_argument("--train-reduction", type=float, default=0.8)
-    p.add_argument("--frames", type=int, default=120, help="training crop length (frames at 20 fps)")
-    p.add_argument("--batch", type=int, default=32)
-    p.add_argument("--latent", type=int, default=256)
-    p.add_argument("--layers", type=int, default=4)
-    p.add_argument("--device", default="auto")
-    p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--max-clips", type=int, default=None)
-    p.add_argument("--frame-index-scale", type=float, default=0.1,
+    add_overwrite(p)
+    p.add_argument("--minutes", type=float_range(0, 24 * 60, lo_open=True), default=2.0,
+                   help="training time, dense + sparse together")
+    p.add_argument("--reductions", nargs="+", type=float_range(0, 1, hi_open=True), default=None,
+                   help="keyframe study: fractions of frames dropped (default 0.6 0.7 0.8 0.9)")
+    p.add_argument("--train-reduction", type=float_range(0, 1, hi_open=True), default=0.8)
+    p.add_argument("--frames", type=int_range(20, 196), default=None,
+                   help="training crop and in-betweening length (frames at 20 fps; default 120)")
+    p.add_argument("--batch", type=int_range(1, 4096), default=None, help="default 32")
+    p.add_argument("--latent", type=int_range(4, 4096), default=None, help="a multiple of 4 (heads); default 256")
+    p.add_argument("--layers", type=int_range(1, 64), default=None, help="default 4")
+    p.add_argument("--every", type=int_range(2, 196), default=30, help="in-betweening: a keyframe every EVERY frames")
+    p.add_argument("--device", type=device_type, default="auto")
+    p.add_argument("--seed", type=int_range(0), default=0)
+    p.add_argument("--max-clips", type=int_range(1), default=None)
+    p.add_argument("--frame-index-scale", type=float_range(0, 100), default=0.1,
                    help="metres per frame appended to the joint positions for keyframe selection")
-    p.add_argument("--threads", type=int, default=None,
+    p.add_argument("--threads", type=int_range(1, 1024), default=None,
                    help="torch.set_num_threads (1 is faster on a CPU shared with other jobs)")
-    p.add_argument("--quick", action="store_true", help="a smoke run: 1 clip, 2 windows, a few steps")
+    p.add_argument("--no-gif", action="store_true", help="skip the in-betweening animation")
+    p.add_argument("--quick", action="store_true",
+                   help="a smoke run: 1 clip, 60 frames, a tiny model, 3 steps (options you give are kept)")
+
+
+def apply_quick(args: argparse.Namespace) -> List[str]:
+    """Fill the options of :data:`QUICK` the user did not give (None) with the quick or normal
+    value; returns the ``--quick`` settings that were applied, for the log."""
+    applied = []
+    for name, (normal, quick) in QUICK.items():
+        if getattr(args, name) is None:
+            setattr(args, name, quick if args.quick else normal)
+            if args.quick:
+                applied.append(f"--{name.replace('_', '-')} {' '.join(map(str, quick)) if isinstance(quick, list) else quick}")
+    return applied
 
 
 def main_demo(args: argparse.Namespace) -> int:
-    from .bench import pick_device
+    """Run the demo (options checked by :func:`main`); returns the exit status. Under torchrun every
+    rank reads the motion and trains; rank 0 alone writes files and prints the tables."""
+    from ..core.config import SparseConfig
+    from ..integrations.distributed import init_distributed, shutdown_distributed
+    from .trainer import MotionSet, TrainConfig, Trainer, feature_stats, race
 
     t_start = time.perf_counter()
     if args.threads:
         torch.set_num_threads(args.threads)
-    files = find_bvh(args.bvh)
-    if not files:
-        print(NO_BVH, file=sys.stderr)
+    try:
+        ctx = init_distributed(args.device)
+    except ValueError as e:
+        print(f"smdm demo: {e}", file=sys.stderr)
         return 2
-    if args.quick:
-        args.max_clips = 1
-        args.reductions = [0.8]
-        args.frames, args.batch, args.latent, args.layers = min(args.frames, 60), 4, 32, 1
-    print(f"smdm demo: reading {len(files)} BVH file(s) from {os.path.dirname(os.path.abspath(files[0]))}")
-    clips = load_clips(files, max_clips=args.max_clips)
-    if not clips:
-        print("smdm demo: none of the BVH files is a CMU skeleton this demo can map to 22 joints.\n" + NO_BVH,
-              file=sys.stderr)
-        return 2
-    os.makedirs(args.out, exist_ok=True)
-    print(f"  {len(clips)} clip(s): " + ", ".join(f"{n} ({len(j)} frames)" for n, j in clips))
+    main_rank = ctx.is_main
+    say = print if main_rank else (lambda *a, **k: None)
+    try:
+        quick = apply_quick(args)
+        if quick:
+            say("smdm demo --quick: " + ", ".join(quick) + ", 3 training steps each, 20 diffusion steps")
+        skipped: List[Tuple[str, str]] = []
+        try:
+            source, files, clips = motion_source(args.bvh, args.max_clips, log=say, skipped=skipped,
+                                                 min_frames=args.frames)
+        except ValueError as e:
+            print(f"smdm demo: {e}\n" + NO_BVH, file=sys.stderr)
+            return 2
+        say(f"smdm demo: motion from {source}" + (f": {len(files)} BVH file(s)" if files else ""))
+        if skipped:
+            say(f"  skipped {len(skipped)} of {len(files)} file(s) (reasons above)")
+        if not clips:
+            print("smdm demo: none of the BVH files is a CMU skeleton this demo can map to 22 joints.\n" + NO_BVH,
+                  file=sys.stderr)
+            return 2
+        say(f"  {len(clips)} clip(s): " + ", ".join(f"{n} ({len(j)} frames)" for n, j in clips))
+        if main_rank:
+            os.makedirs(args.out, exist_ok=True)
 
-    # 1. keyframes
-    wins = windows(clips, 196, max_windows=2 if args.quick else None)
-    study = keyframe_study(wins, args.reductions, seed=args.seed, frame_index_scale=args.frame_index_scale)
-    table = keyframe_markdown(study)
-    print("\n## Keyframes vs. reconstruction error\n\n" + table)
-    with open(os.path.join(args.out, "keyframes.md"), "w") as f:
-        f.write(table + "\n")
-    with open(os.path.join(args.out, "keyframes.csv"), "w") as f:
-        f.write("method," + ",".join(str(r) for r in study["reductions"]) + "\n")
-        for m in study["methods"]:
-            f.write(m + "," + ",".join(f"{study['mpjpe_mm'][m][r]:.3f}" for r in study["reductions"]) + "\n")
-    name, start, win = wins[0]
-    red_plot = 0.8 if 0.8 in args.reductions else args.reductions[0]
-    plot_keyframes(win, f"{name} frames {start}-{start + len(win) - 1}", red_plot,
-                   os.path.join(args.out, "keyframes.png"), frame_index_scale=args.frame_index_scale)
+        # 1. keyframes (rank 0)
+        wins = windows(clips, 196, max_windows=2 if args.quick else None)
+        study: Dict[str, Any] = {}
+        if main_rank:
+            study = keyframe_study(wins, args.reductions, seed=args.seed, frame_index_scale=args.frame_index_scale)
+            table = keyframe_markdown(study)
+            print("\n## Keyframes vs. reconstruction error\n\n" + table)
+            atomic_write_text(os.path.join(args.out, "keyframes.md"), table + "\n")
+            atomic_write_text(os.path.join(args.out, "keyframes.csv"), "method," + ",".join(
+                str(r) for r in study["reductions"]) + "\n" + "".join(m + "," + ",".join(
+                    f"{study['mpjpe_mm'][m][r]:.3f}" for r in study["reductions"]) + "\n" for m in study["methods"]))
+            name, start, win = wins[0]
+            red_plot = 0.8 if 0.8 in args.reductions else args.reductions[0]
+            plot_keyframes(win, f"{name} frames {start}-{start + len(win) - 1}", red_plot,
+                           os.path.join(args.out, "keyframes.png"), frame_index_scale=args.frame_index_scale)
 
-    # 2. training
-    dev = pick_device(args.device)
-    data = training_set(clips, args.frames, stride=max(1, args.frames // 4))
-    seconds = 60.0 * args.minutes
-    print(f"\n## Training dense vs. sparse ({int(round(args.train_reduction * 100))}% dropped) for "
-          f"{seconds:.0f} s in total on {dev}: {len(data)} crops of {args.frames} frames, 66-D features")
-    train = train_dense_vs_sparse(data, seconds, args.batch, args.train_reduction, args.latent, args.layers,
-                                  str(dev), args.seed, max_steps=3 if args.quick else None,
-                                  progress=not args.quick)
-    plot_losses(train, os.path.join(args.out, "loss.png"))
-    lines = ["| model | steps | seconds | steps/s | final loss |", "| --- | ---: | ---: | ---: | ---: |"]
+        # 2. training (the last clip is held out for in-betweening when there are three or more)
+        dev = ctx.device
+        held = clips[-1] if len(clips) >= 3 and len(clips[-1][1]) >= args.frames else None
+        train_clips = [c for c in clips if c is not held]
+        try:
+            crops = training_crops(train_clips, args.frames, stride=max(1, args.frames // 8))
+        except ValueError as e:
+            print(e, file=sys.stderr)
+            return 2
+        feats = [motion_features(c) for c in crops]
+        mean, std = feature_stats(feats)
+        data = MotionSet.from_motions(feats, mean, std, max_frames=args.frames)
+        model = {"latent_dim": args.latent, "ff_size": 2 * args.latent, "num_layers": args.layers, "num_heads": 4,
+                 "dropout": 0.1}
+        diffusion_steps = 20 if args.quick else 100
+        trainers = {
+            n: Trainer(TrainConfig(steps=0, batch=args.batch, lr=2e-4, diffusion_steps=diffusion_steps, seed=args.seed,
+                                   model=model, sparse=sc), data, dist=ctx)
+            for n, sc in (("dense", None), ("sparse", SparseConfig(reduction=args.train_reduction, feature="raw")))}
+        seconds = 60.0 * args.minutes
+        procs = f"{ctx.world_size} processes x " if ctx.world_size > 1 else ""
+        say(f"\n## Training dense vs. sparse ({int(round(args.train_reduction * 100))}% dropped) for "
+            f"{seconds:.0f} s in total on {dev}: {len(data)} crops of {args.frames} frames from {len(train_clips)} "
+            f"clip(s), 66-D joint features, batch {procs}{args.batch}")
+        train = race(trainers, seconds, max_steps=3 if args.quick else None, progress=not args.quick,
+                     desc="training dense + sparse")
+        train.update(spec={"reduction": args.train_reduction, **model, "diffusion_steps": diffusion_steps},
+                     batch=args.batch, world_size=ctx.world_size, global_batch=trainers["dense"].global_batch,
+                     seed=args.seed)
+        if not main_rank:
+            return 0
+        plot_losses(train, os.path.join(args.out, "loss.png"))
+        bundles = save_models(trainers, args.out, args.frames, mean, std, train, [c[0] for c in train_clips], dev)
+        ref_clips = [held] if held else train_clips
+        quality = generation_quality(bundles, np.stack(training_crops(ref_clips, args.frames, stride=args.frames)),
+                                     samples=4 if args.quick else 8, seed=args.seed, device=dev)
+        train["quality"] = quality
+        ttable = training_markdown(train, quality, ("held-out clip" if held else "training clips"))
+        ttable += (f"\n\nsparse / dense training speed: **{train['speed_ratio']:.2f}×** (TinyMDM latent "
+                   f"{args.latent}, {args.layers} layers, batch {procs}{args.batch}, {args.frames} frames)")
+        print(ttable)
+        atomic_write_text(os.path.join(args.out, "training.md"), ttable + "\n")
+
+        # 3. in-betweening
+        clip = held or clips[0]
+        note = " (held out from training)" if held else " (a training clip: too few clips to hold one out)"
+        print(f"\n## In-betweening {clip[0]}{note}")
+        itable = inbetween_demo(bundles, clip, args.frames, args.every, args.out, args.seed, dev,
+                                gif=not args.no_gif, progress=not args.quick, stride=2 if args.quick else 1, note=note)
+        print(itable)
+        summary = {"source": source, "files": files, "skipped": [list(x) for x in skipped],
+                   "clips": [[n, len(j)] for n, j in clips], "keyframes": study, "training": train,
+                   "seconds": time.perf_counter() - t_start, "options": {k: v for k, v in vars(args).items()}}
+        summary["keyframes"]["mpjpe_mm"] = {m: {str(r): v for r, v in d.items()} for m, d in study["mpjpe_mm"].items()}
+        atomic_write_json(os.path.join(args.out, "summary.json"), summary, indent=1)
+        print(f"\noutputs: {os.path.abspath(args.out)}")
+        return 0
+    finally:
+        shutdown_distributed(ctx)
+
+
+def generation_quality(bundles: Dict[str, Any], reference: np.ndarray, samples: int, seed: int,
+                       device: torch.device) -> Dict[str, Dict[str, float]]:
+    """Jitter (m/s³) and foot skating ratio (:mod:`smdm_plugin.metrics`, 20 fps) of ``samples``
+    unconditional samples of each model (as long as the reference windows), and of the real motion
+    ``reference`` joints ``[W, N, 22, 3]`` (metres) under ``'motion capture'``."""
+    from ..metrics import foot_skating_ratio, jitter
+
+    N = reference.shape[1]
+    out: Dict[str, Dict[str, float]] = {}
+    for name, b in bundles.items():
+        y = {"mask": torch.ones(samples, 1, 1, N, dtype=torch.bool, device=device),
+             "lengths": torch.full((samples,), N, dtype=torch.long, device=device)}
+        gen = torch.Generator(device=device).manual_seed(seed + 11)
+        x = b.diffusion.p_sample_loop(b.model, (samples, len(b.mean), 1, N), {"y": y}, device=device, generator=gen)
+        j = torch.as_tensor(b.representation.to_joints(b.denormalise(x.squeeze(2).permute(0, 2, 1).float().cpu())))
+        out[name] = {"jitter": float(jitter(j, fps=20)), "foot_skating": float(foot_skating_ratio(j, fps=20))}
+    ref = torch.from_numpy(np.asarray(reference, np.float32))
+    out["motion capture"] = {"jitter": float(jitter(ref, fps=20)), "foot_skating": float(foot_skating_ratio(ref, fps=20))}
+    return out
+
+
+def training_markdown(train: Dict[str, Any], quality: Dict[str, Dict[str, float]], reference: str) -> str:
+    """The training table: per model steps, time, speed, final loss, and the jitter / foot skating
+    of its samples; a last row with the real motion's (``reference`` says which)."""
+    lines = ["| model | steps | seconds | steps/s | final loss | jitter (m/s³) | foot skating |",
+             "| --- | ---: | ---: | ---: | ---: | ---: | ---: |"]
     for n in ("dense", "sparse"):
-        r = train[n]
+        r, q = train[n], quality[n]
         fl = "—" if r["final_loss"] is None else f"{r['final_loss']:.4f}"
-        lines.append(f"| {n} | {r['steps']} | {r['seconds']:.1f} | {r['steps_per_s']:.2f} | {fl} |")
-    lines.append(f"\nsparse / dense training speed: **{train['speed_ratio']:.2f}×** (TinyMDM latent "
-                 f"{args.latent}, {args.layers} layers, batch {args.batch}, {args.frames} frames)")
-    ttable = "\n".join(lines)
-    print(ttable)
-    with open(os.path.join(args.out, "training.md"), "w") as f:
-        f.write(ttable + "\n")
-    summary = {"files": files, "clips": [[n, len(j)] for n, j in clips], "keyframes": study,
-               "training": {k: v for k, v in train.items()}, "seconds": time.perf_counter() - t_start}
-    summary["keyframes"]["mpjpe_mm"] = {m: {str(r): v for r, v in d.items()}
-                                        for m, d in study["mpjpe_mm"].items()}
-    with open(os.path.join(args.out, "summary.json"), "w") as f:
-        json.dump(summary, f, indent=1)
-    print(f"\noutputs: {os.path.abspath(args.out)}")
-    return 0
+        lines.append(f"| {n} | {r['steps']} | {r['seconds']:.1f} | {r['steps_per_s']:.2f} | {fl} | "
+                     f"{q['jitter']:.0f} | {q['foot_skating']:.3f} |")
+    q = quality["motion capture"]
+    lines.append(f"| motion capture ({reference}) | — | — | — | — | {q['jitter']:.0f} | {q['foot_skating']:.3f} |")
+    return "\n".join(lines)
+
+
+def save_models(trainers: Dict[str, Any], out: str, frames: int, mean: np.ndarray, std: np.ndarray,
+                train: Dict[str, Any], clip_names: List[str], device: torch.device) -> Dict[str, Any]:
+    """Write ``out/dense`` and ``out/sparse`` (model folders ``smdm inbetween`` reads) and load them back."""
+    from ..io.bundle import load_bundle, save_bundle
+    from ..io.representation import Representation
+
+    bundles = {}
+    for n, tr in trainers.items():
+        save_bundle(os.path.join(out, n), tr.model.eval(), tr.diffusion, tr.backbone_args,
+                    Representation("joints66"), mean, std, fps=20, max_frames=frames, overwrite=True,
+                    info={"trained_by": "smdm demo", "clips": clip_names, "steps": train[n]["steps"],
+                          "world_size": train["world_size"]})
+        bundles[n] = load_bundle(os.path.join(out, n), device=device)
+    return bundles
 
 
 def main(argv: Optional[List[str]] = None) -> int:
     p = argparse.ArgumentParser(prog="smdm demo", description=__doc__.split("\n\n")[0])
     add_arguments(p)
-    return main_demo(p.parse_args(argv))
+    args = p.parse_args(argv)
+    if args.latent is not None and args.latent % 4:
+        p.error(f"argument --latent: must be a multiple of 4 (the attention heads), got {args.latent}")
+    first = os.environ.get("RANK", "0") == "0"  # under torchrun rank 0 checks (and alone writes)
+    if first and os.path.isdir(args.out) and os.listdir(args.out) and not args.overwrite:
+        p.error(f"argument --out: {args.out!r} exists and is not empty; pass --overwrite to write into it")
+    if first and os.path.exists(args.out) and not os.path.isdir(args.out):
+        p.error(f"argument --out: {args.out!r} exists and is not a folder")
+    return main_demo(args)
 
 
 if __name__ == "__main__":

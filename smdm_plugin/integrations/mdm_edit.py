@@ -1,6 +1,116 @@
-"""MDM's ``sample.edit`` in-between mode with user keyframes as forced keyframes of the sparse model."""
+"""MDM's ``sample.edit`` with a sparse checkpoint: the frames the edit keeps become forced keyframes.
+
+MDM's edit script passes the frames to keep as ``y['inpainting_mask']`` (bool ``[B, J, F, N]``, True =
+keep) and ``y['inpainted_motion']``, and its ``GaussianDiffusion.p_mean_variance`` imposes them by
+imputation of the clean prediction at every step. A sparse model additionally needs those frames
+among its keyframe tokens, or it may interpolate straight over the seam between kept and generated
+frames. :func:`forced_for_edit` adds ``y['keyframe_forced']`` (bool ``[B, N]``) for the whole frames
+the mask keeps, per a policy (:func:`smdm_plugin.adapters.inbetween.forced_keyframes`); the default
+``ends`` forces the two ends of every kept segment — for ``--edit_mode in_between`` the first and
+last frame of the motion and the two frames on either side of the generated gap — and leaves the
+keyframe budget to the selection. (``all`` would make MDM's 25% prefix + 25% suffix half of all
+frames tokens; docs/inbetween.md measures the policies.) ``upper_body`` keeps channels, not whole
+frames, so it forces nothing. Dense models, and ``y`` that already has ``keyframe_forced``, are left as
+they are. ``SMDM_EDIT_FORCED=ends|all|none`` picks the policy.
+
+Ways in: ``smdm run`` installs :func:`install_hooks` (wraps ``GaussianDiffusion.p_sample_loop`` as
+``diffusion.gaussian_diffusion`` is imported); patch users add two lines to ``sample/edit.py`` before
+the sampling loop::
+
+    from smdm_plugin.integrations.mdm_edit import add_forced_keyframes  # sMDM: kept frames are keyframes
+    add_forced_keyframes(model, model_kwargs)
+"""
 from __future__ import annotations
+
+import functools
+import inspect
+import os
+from typing import Any, Dict, Optional
+
+import torch
+
+ENV_POLICY = "SMDM_EDIT_FORCED"
+DEFAULT_POLICY = "ends"
+
+
+def _sparse_model(model: Any) -> Optional[Any]:
+    """The sparsified module inside ``model`` (ClassifierFreeSampleModel, DDP, respacing wrappers)."""
+    from ..adapters.state import find_sparse_model
+
+    seen = set()
+    while model is not None and id(model) not in seen:
+        seen.add(id(model))
+        if isinstance(model, torch.nn.Module):
+            found = find_sparse_model(model)
+            if found is not None:
+                return found
+        model = getattr(model, "model", None)
+    return None
+
+
+def policy_from_env() -> str:
+    from ..adapters.inbetween import POLICIES
+
+    policy = os.environ.get(ENV_POLICY, DEFAULT_POLICY).strip() or DEFAULT_POLICY
+    if policy not in POLICIES:
+        raise ValueError(f"{ENV_POLICY}={policy!r}: expected one of {POLICIES}")
+    return policy
+
+
+def forced_for_edit(model: Any, model_kwargs: Optional[Dict[str, Any]], policy: Optional[str] = None
+                    ) -> Optional[Dict[str, Any]]:
+    """``model_kwargs`` with ``y['keyframe_forced']`` added when ``model`` is sparse and ``y`` has
+    MDM's in-painting keys (a new dict; the caller's is not changed), else ``model_kwargs`` itself."""
+    from ..adapters.inbetween import forced_keyframes, frames_from_inpainting_mask
+
+    y = (model_kwargs or {}).get("y")
+    if (not isinstance(y, dict) or "keyframe_forced" in y or "inpainting_mask" not in y
+            or "inpainted_motion" not in y or _sparse_model(model) is None):
+        return model_kwargs
+    motion = y["inpainted_motion"]
+    B, N = motion.shape[0], motion.shape[-1]
+    frames = frames_from_inpainting_mask(y["inpainting_mask"], motion.shape)
+    if y.get("lengths") is not None:
+        lengths = torch.as_tensor(y["lengths"], device=frames.device)
+    elif isinstance(y.get("mask"), torch.Tensor) and y["mask"].shape[-1] == N:
+        lengths = y["mask"].reshape(B, N).to(frames.device).long().sum(1)
+    else:
+        lengths = None
+    forced = forced_keyframes(frames, lengths, policy or policy_from_env())
+    return {**model_kwargs, "y": {**y, "keyframe_forced": forced}}
+
+
+def add_forced_keyframes(model: Any, model_kwargs: Dict[str, Any], policy: Optional[str] = None) -> None:
+    """In place: ``model_kwargs['y']['keyframe_forced']`` for a sparse ``model`` (see
+    :func:`forced_for_edit`); the one call patch users add to ``sample/edit.py``."""
+    new = forced_for_edit(model, model_kwargs, policy)
+    if new is not model_kwargs:
+        model_kwargs["y"]["keyframe_forced"] = new["y"]["keyframe_forced"]
+
+
+def _patch_gaussian_diffusion(mod: Any) -> None:
+    cls = getattr(mod, "GaussianDiffusion", None)
+    original = getattr(cls, "p_sample_loop", None)
+    if original is None or getattr(original, "_smdm_wrapped", False):
+        return
+    signature = inspect.signature(original)
+
+    @functools.wraps(original)
+    def p_sample_loop(self, *args, **kwargs):
+        bound = signature.bind(self, *args, **kwargs)
+        kw = bound.arguments.get("model_kwargs")
+        new = forced_for_edit(bound.arguments.get("model"), kw)
+        if new is not kw:
+            bound.arguments["model_kwargs"] = new
+        return original(*bound.args, **bound.kwargs)
+
+    p_sample_loop._smdm_wrapped = True
+    cls.p_sample_loop = p_sample_loop
 
 
 def install_hooks() -> None:
-    """Register this extension's import hooks (called by :func:`smdm_plugin.integrations.mdm.install_hooks`)."""
+    """Wrap MDM's ``GaussianDiffusion.p_sample_loop`` as ``diffusion.gaussian_diffusion`` is
+    imported (idempotent; called by :func:`smdm_plugin.integrations.mdm.install_hooks`)."""
+    from ._hooks import on_import
+
+    on_import("diffusion.gaussian_diffusion", _patch_gaussian_diffusion)

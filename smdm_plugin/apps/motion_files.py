@@ -1,0 +1,125 @@
+"""Reading a motion from a file the way a user has it (``smdm render``, ``smdm inbetween``).
+
+Accepted (:func:`load_motion`):
+
+* ``.bvh`` — a CMU clip is mapped to HumanML3D's 22 joints in metres (:func:`~smdm_plugin.io.bvh.load_cmu_clip`);
+  any other skeleton keeps its own joints and units (drawable, not usable as 22-joint keyframes);
+* ``.npy`` of joint positions ``[N, J, 3]`` (y up; 22: HumanML3D / SMPL order, 21: KIT) or
+  ``[B, N, J, 3]`` (``sample`` picks one);
+* ``.npy`` of per-frame features, un-normalised: ``[N, 263]`` HumanML3D (``new_joint_vecs``),
+  ``[N, 251]`` KIT-ML, ``[N, 66]`` the in-package ``joints66`` representation;
+* MDM's ``results.npy`` (a pickled dict: ``motion [B, J, 3, N]``, ``lengths``) with ``allow_pickle``
+  (only for files you trust: unpickling can run code).
+"""
+from __future__ import annotations
+
+import argparse
+import os
+from dataclasses import dataclass
+from typing import Optional
+
+import numpy as np
+
+ACCEPTED = ("joints [N, 22|21, 3] or [B, N, J, 3], HumanML3D features [N, 263], KIT features [N, 251], "
+            "joints66 features [N, 66], MDM results.npy (with --allow-pickle), or a .bvh file")
+
+
+@dataclass
+class LoadedMotion:
+    """``joints [N, J, 3]`` (y up) and, when the file held features, ``features [N, D]`` of ``kind``
+    (``humanml3d`` | ``kit`` | ``joints66``; else ``joints``, ``bvh`` or ``mdm-results``). ``chains``
+    is set for a non-CMU BVH skeleton (None: the 22 / 21-joint default)."""
+
+    joints: np.ndarray
+    kind: str
+    source: str
+    fps: float
+    features: Optional[np.ndarray] = None
+    chains: Optional[tuple] = None
+
+    @property
+    def humanml22(self) -> bool:
+        """Whether the joints are HumanML3D's 22 (metres), usable as keyframes of a 22-joint model."""
+        return self.joints.shape[1] == 22 and self.chains is None
+
+
+def _load_bvh(path: str, fps: float) -> LoadedMotion:
+    from ..io.bvh import bvh_joint_positions, load_cmu_clip, read_bvh
+    from .animation import chains_from_parents
+
+    try:
+        return LoadedMotion(load_cmu_clip(path, fps=int(round(fps))), "bvh", path, fps)
+    except ValueError as e:
+        if "CMU joints" not in str(e):
+            raise
+    bvh = read_bvh(path)  # another skeleton: draw its own joints
+    step = max(1, int(round(bvh.fps / fps)))
+    pos = bvh_joint_positions(bvh)[::step]
+    return LoadedMotion(pos, "bvh", path, bvh.fps / step, chains=chains_from_parents(bvh.parents))
+
+
+def _load_pickled(path: str, sample: int) -> LoadedMotion:
+    obj = np.load(path, allow_pickle=True)
+    obj = obj.item() if obj.dtype == object and obj.shape == () else obj
+    if not isinstance(obj, dict) or "motion" not in obj:
+        raise ValueError(f"{path}: a pickled .npy without a 'motion' entry (expected MDM's results.npy)")
+    motion = np.asarray(obj["motion"])  # [B, J, 3, N]
+    if motion.ndim != 4 or motion.shape[2] != 3:
+        raise ValueError(f"{path}: 'motion' must be [B, J, 3, N] (MDM's results.npy), got {motion.shape}")
+    if not 0 <= sample < motion.shape[0]:
+        raise ValueError(f"{path}: sample must be in [0, {motion.shape[0]}), got {sample}")
+    lengths = obj.get("lengths")
+    n = int(lengths[sample]) if lengths is not None else motion.shape[-1]
+    return LoadedMotion(motion[sample].transpose(2, 0, 1)[:n], "mdm-results", path, 20.0)
+
+
+def load_motion(path: str, fps: float = 20.0, sample: int = 0, allow_pickle: bool = False) -> LoadedMotion:
+    """Read ``path`` (see the module docstring); ``fps`` is the rate a BVH is resampled to and
+    the rate assumed for ``.npy`` files. Raises ValueError / OSError with a one-line message."""
+    from ..io.representation import Representation
+
+    if not os.path.isfile(path):
+        raise FileNotFoundError(f"{path}: no such file")
+    if path.lower().endswith(".bvh"):
+        return _load_bvh(path, fps)
+    if not path.lower().endswith(".npy"):
+        raise ValueError(f"{path}: expected a .npy or .bvh file ({ACCEPTED})")
+    try:
+        arr = np.load(path, allow_pickle=False)
+    except ValueError as e:
+        if "allow_pickle" not in str(e):
+            raise ValueError(f"{path}: not a readable .npy file ({e})") from None
+        if not allow_pickle:
+            raise ValueError(f"{path} holds pickled Python objects (MDM's results.npy?); pass --allow-pickle "
+                             "to read it, only if you trust the file") from None
+        return _load_pickled(path, sample)
+    if not np.issubdtype(arr.dtype, np.number):
+        raise ValueError(f"{path}: expected numbers, got dtype {arr.dtype}")
+    arr = arr.astype(np.float64)
+    if arr.ndim == 4 and arr.shape[-1] == 3:
+        if not 0 <= sample < arr.shape[0]:
+            raise ValueError(f"{path}: sample must be in [0, {arr.shape[0]}) for a [B, N, J, 3] file, got {sample}")
+        arr = arr[sample]
+    if arr.ndim == 3 and arr.shape[-1] == 3 and arr.shape[1] in (21, 22):
+        out = LoadedMotion(arr, "joints", path, fps)
+    elif arr.ndim == 2 and arr.shape[1] in (263, 251):
+        from ..io.humanml3d import recover_from_ric
+
+        kind = "humanml3d" if arr.shape[1] == 263 else "kit"
+        out = LoadedMotion(recover_from_ric(arr, 22 if kind == "humanml3d" else 21), kind, path, fps, features=arr)
+    elif arr.ndim == 2 and arr.shape[1] == 66:
+        out = LoadedMotion(Representation("joints66").to_joints(arr), "joints66", path, fps, features=arr)
+    else:
+        raise ValueError(f"{path}: shape {arr.shape} is not a motion; expected {ACCEPTED}")
+    if len(out.joints) < 1 or not np.isfinite(out.joints).all():
+        raise ValueError(f"{path}: the motion is empty or holds NaN / inf")
+    return out
+
+
+def add_motion_file_options(p: argparse.ArgumentParser) -> None:
+    """``--sample`` and ``--allow-pickle``, the options of :func:`load_motion` a command exposes."""
+    from ._args import int_range
+
+    p.add_argument("--sample", type=int_range(0), default=0, help="which motion of a batched file")
+    p.add_argument("--allow-pickle", action="store_true",
+                   help="read pickled .npy files (MDM's results.npy); only for files you trust")

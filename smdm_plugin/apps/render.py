@@ -1,0 +1,78 @@
+"""``smdm render``: a saved motion as an animated GIF of the skeleton (no ffmpeg needed).
+
+    smdm render motion.npy                          # -> motion.gif
+    smdm render a.npy b.npy --titles dense sparse --keyframes 0 30 60 --out ab.gif
+    smdm render clip.bvh --stride 2                 # every 2nd frame, same speed
+    smdm render save/x/results.npy --allow-pickle --sample 1   # MDM's sample.generate output
+
+Motions given together are drawn side by side with one camera scale; ``--keyframes`` frames are
+highlighted in red (figure, timeline tick, ghost poses of the keyframes around the current frame).
+"""
+from __future__ import annotations
+
+import argparse
+import os
+import sys
+from typing import List, Optional
+
+from ._args import add_overwrite, float_range, int_range
+from .motion_files import ACCEPTED, add_motion_file_options
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(prog="smdm render", description=__doc__.split("\n\n")[0],
+                                epilog=f"accepted inputs: {ACCEPTED}")
+    p.add_argument("motions", nargs="+", metavar="MOTION", help=".npy or .bvh file(s), drawn side by side")
+    p.add_argument("--out", default=None, help="GIF path (default: the first input's name with .gif, here)")
+    p.add_argument("--keyframes", nargs="+", type=int_range(0), default=(), metavar="FRAME",
+                   help="frames to highlight (0-based)")
+    p.add_argument("--titles", nargs="+", default=None, help="one title per motion (default: file names)")
+    p.add_argument("--fps", type=float_range(0, lo_open=True, hi=1000), default=20.0,
+                   help="frames per second of .npy motions, and the rate BVH files are resampled to")
+    p.add_argument("--stride", type=int_range(1), default=1, help="draw every STRIDE-th frame (same speed)")
+    add_motion_file_options(p)
+    p.add_argument("--size", type=float_range(1, 20), default=3.0, help="panel size (inches at 80 dpi)")
+    p.add_argument("--quiet", action="store_true", help="no progress bar")
+    add_overwrite(p)
+    return p
+
+
+def main(argv: Optional[List[str]] = None) -> int:
+    from ..io.files import OutputExistsError
+    from .animation import Panel, render_gif
+    from .motion_files import load_motion
+
+    p = build_parser()
+    a = p.parse_args(argv)
+    if a.titles is not None and len(a.titles) != len(a.motions):
+        p.error(f"--titles: give one title per motion ({len(a.motions)}), got {len(a.titles)}")
+    out = a.out or os.path.splitext(os.path.basename(a.motions[0]))[0] + ".gif"
+    if not out.lower().endswith(".gif"):
+        p.error(f"--out must end in .gif, got {out!r}")
+    if os.path.exists(out) and not a.overwrite:
+        p.error(f"--out {out!r} exists; pass --overwrite to replace it")
+    panels, rates = [], []
+    for k, path in enumerate(a.motions):
+        try:
+            m = load_motion(path, fps=a.fps, sample=a.sample, allow_pickle=a.allow_pickle)
+        except (OSError, ValueError) as e:
+            p.error(str(e).splitlines()[0])
+        bad = [f for f in a.keyframes if f >= len(m.joints)]
+        if bad:
+            p.error(f"--keyframes {bad} beyond the {len(m.joints)} frames of {path}")
+        title = a.titles[k] if a.titles else os.path.basename(path)
+        panels.append(Panel(m.joints, title, a.keyframes, chains=m.chains))
+        rates.append(m.fps)
+        print(f"{path}: {len(m.joints)} frames, {m.joints.shape[1]} joints ({m.kind})")
+    try:
+        render_gif(panels, out, fps=rates[0], stride=a.stride, panel_size=a.size,
+                   overwrite=a.overwrite, progress=not a.quiet)
+    except OutputExistsError as e:
+        p.error(str(e))
+    frames = len(range(0, max(len(q.joints) for q in panels), a.stride))
+    print(f"wrote {out} ({frames} frames)")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
