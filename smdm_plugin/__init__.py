@@ -2,7 +2,7 @@
 
 Layers (each imports only from those below it; see ``docs/architecture.md``)::
 
-    apps/          smdm bench | ablate | demo | run (CLI)
+    apps/          smdm demo | train | bench | ablate | inbetween | render | run | keyframes (CLI)
     integrations/  upstream MDM / DiP, priorMDM, MotionDiffuse: launcher hooks, patch entry points
     adapters/      model surgery: sparsify / unsparsify per model family, diffusion wrapper
     core/          the method: selection, plan, keyframe transformer, interpolation, Lipschitz, FSQ
@@ -32,6 +32,7 @@ _EXPORTS: Dict[str, str] = {
     "available_backends": "core.attention_backends",
     "LipschitzMLP": "core.lipschitz", "lipschitz_loss": "core.lipschitz", "bake_lipschitz": "core.lipschitz",
     "FSQ": "core.fsq", "FSQMultiheadAttention": "core.fsq", "quantize_attention_keys": "core.fsq",
+    "unquantize_attention_keys": "core.fsq",
     "MaskSchedule": "core.schedule",
     "dense_loss": "core.losses", "keyframe_loss": "core.losses", "lipschitz_term": "core.losses",
     # adapters: model surgery
@@ -42,6 +43,11 @@ _EXPORTS: Dict[str, str] = {
     "swap_text_encoder": "adapters.text_encoder", "HFTextEncoder": "adapters.text_encoder",
     "install_text_cache": "adapters.text_cache", "TextEmbeddingCache": "adapters.text_cache",
     "ConfigTypeError": "core.config",
+    "sample_inbetween": "adapters.inbetween", "keyframe_constraint": "adapters.inbetween",
+    "forced_keyframes": "adapters.inbetween",
+    # metrics
+    "foot_skating_ratio": "metrics.quality", "jitter": "metrics.quality", "keyframe_error": "metrics.quality",
+    "end_effector_speed": "metrics.motion", "to_joint_positions": "metrics.motion",
     # io
     "read_bvh": "io.bvh", "bvh_joint_positions": "io.bvh", "load_cmu_clip": "io.bvh",
     "BVHError": "io.bvh", "BVHWarning": "io.bvh", "OutputExistsError": "io.files",
@@ -78,7 +84,10 @@ if TYPE_CHECKING:  # pragma: no cover - for type checkers and IDEs
     from .core.attention_backends import available_backends, get_backend, register_backend
     from .core.config import ConfigTypeError, SparseConfig, load_preset
     from .core.features import extract_selection_features
-    from .core.fsq import FSQ, FSQMultiheadAttention, quantize_attention_keys
+    from .core.fsq import FSQ, FSQMultiheadAttention, quantize_attention_keys, unquantize_attention_keys
+    from .adapters.inbetween import forced_keyframes, keyframe_constraint, sample_inbetween
+    from .metrics.motion import end_effector_speed, to_joint_positions
+    from .metrics.quality import foot_skating_ratio, jitter, keyframe_error
     from .core.interpolation import interpolate_keyframes
     from .core.keyframe_transformer import KeyframeTransformer
     from .core.lipschitz import LipschitzMLP, bake_lipschitz, lipschitz_loss
