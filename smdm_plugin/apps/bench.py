@@ -167,12 +167,11 @@ def build(arch: str, reduction: Optional[float], device: torch.device, quick: bo
     torch.manual_seed(seed)
     model = TinyMDM(arch=arch, **mdm_size(quick)).to(device)
     diffusion = SimpleDiffusion(steps)
-    config = SparseConfig(reduction=0.0 if reduction is None else reduction, attention_backend=backend,
-                          fsq=fsq != "off", **sparse)
     if reduction is not None:
-        sparsify(model, config, diffusion=diffusion)
+        sparsify(model, SparseConfig(reduction=reduction, attention_backend=backend, fsq=fsq != "off", **sparse),
+                 diffusion=diffusion)
     elif fsq == "both":
-        quantize_attention_keys(model, config.fsq_levels)
+        quantize_attention_keys(model, SparseConfig().fsq_levels)
     return model, diffusion
 
 

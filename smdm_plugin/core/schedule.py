@@ -120,9 +120,7 @@ class MaskSchedule:
         inside the budget) + mask noise (never dropping forced frames). ``checked=True``: ``lengths``
         is a validated long tensor on ``x0``'s device and ``forced`` a bool ``[B, N]`` or None."""
         B, N, _ = x0.shape
-        if not checked:
-            lengths = resolve_lengths(lengths, B, N, x0.device)
-            forced = as_mask(forced, B, N, x0.device, "forced keyframes")
+        lengths, forced = _checked_inputs(x0, lengths, forced, checked)
         c = self.config
         counts, _ = self.tables(N, x0.device)
         with torch.no_grad():
@@ -139,9 +137,7 @@ class MaskSchedule:
         budget. No host sync: the choice is made per sample on the device. ``checked``: as
         :meth:`training_mask`."""
         B, N, _ = x_t.shape
-        if not checked:
-            lengths = resolve_lengths(lengths, B, N, x_t.device)
-            forced = as_mask(forced, B, N, x_t.device, "forced keyframes")
+        lengths, forced = _checked_inputs(x_t, lengths, forced, checked)
         c = self.config
         counts, uniform = self.tables(N, x_t.device)
         with torch.no_grad():
@@ -160,3 +156,12 @@ class MaskSchedule:
                     sel = select_checked(feats, lengths, k, c.selector, forced=forced)
                 mask = torch.where(late[:, None], sel, mask)
         return mask
+
+
+def _checked_inputs(x: torch.Tensor, lengths, forced, checked: bool):
+    """``(lengths [B] long, forced [B, N] bool or None)`` on ``x``'s device for ``x [B, N, F]``;
+    validated unless ``checked`` (the caller already did)."""
+    if checked:
+        return lengths, forced
+    B, N, _ = x.shape
+    return resolve_lengths(lengths, B, N, x.device), as_mask(forced, B, N, x.device, "forced keyframes")
