@@ -153,4 +153,9 @@ def init_distributed(device: str = "auto") -> DistContext:
 def shutdown_distributed(ctx: DistContext) -> None:
     """Leave the process group if :func:`init_distributed` created it."""
     if ctx.owns_group and torch.distributed.is_initialized():
-        torch.distributed.destroy_process_group()
+        # all ranks leave together: a rank tearing gloo down while a peer is still in its last
+        # collective aborts the process ("terminate called without an active exception")
+        try:
+            torch.distributed.barrier()
+        finally:
+            torch.distributed.destroy_process_group()
