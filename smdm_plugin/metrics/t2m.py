@@ -81,7 +81,10 @@ def frechet_distance_from_stats(mu1: np.ndarray, sigma1: np.ndarray, mu2: np.nda
     inner = r1 @ sigma2 @ r1
     tr_covmean = float(np.sqrt(np.clip(np.linalg.eigvalsh((inner + inner.T) / 2), 0.0, None)).sum())
     diff = mu1 - mu2
-    return float(diff @ diff + np.trace(sigma1) + np.trace(sigma2) - 2.0 * tr_covmean)
+    fid = float(diff @ diff + np.trace(sigma1) + np.trace(sigma2) - 2.0 * tr_covmean)
+    # identical sets give 0 up to round-off (larger when N <= D: the square roots of ~0 eigenvalues);
+    # only that round-off, never a real negative, is clipped
+    return 0.0 if -1e-6 * (1.0 + np.trace(sigma1) + np.trace(sigma2)) < fid < 0.0 else fid
 
 
 def frechet_distance(a: ArrayLike, b: ArrayLike) -> float:
