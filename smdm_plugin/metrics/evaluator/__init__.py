@@ -3,6 +3,8 @@ layout, caption reading, loading either layout, scoring motions, training one on
 from .model import (Evaluator, EvaluatorConfig, evaluator_info, evaluator_layout, load_evaluator,
                     load_upstream_evaluator, save_evaluator)
 from .networks import MotionEncoderBiGRUCo, MovementConvEncoder, TextEncoderBiGRUCo
+from .score import EvalResult, embed_captions, embed_motions, motion_quality, score_embeddings, score_motions
 
 __all__ = ["Evaluator", "EvaluatorConfig", "load_evaluator", "load_upstream_evaluator", "save_evaluator",
-           "evaluator_layout", "evaluator_info", "MovementConvEncoder", "MotionEncoderBiGRUCo", "TextEncoderBiGRUCo"]
+           "evaluator_layout", "evaluator_info", "MovementConvEncoder", "MotionEncoderBiGRUCo", "TextEncoderBiGRUCo",
+           "EvalResult", "score_motions", "score_embeddings", "embed_motions", "embed_captions", "motion_quality"]
