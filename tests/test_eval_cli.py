@@ -142,3 +142,35 @@ def test_eval_missing_motions_and_wrong_evaluator(tmp_path):
                             "--motions", str(tmp_path / "m"), "--out", str(tmp_path / "r")], capture_output=True,
                            text=True, cwd=REPO, env={**os.environ, "PYTHONPATH": REPO})
         assert r.returncode == 2 and "reads joints66 [66] features" in r.stderr
+
+
+def test_resume_continues_exactly_and_glove(tmp_path):
+    """3 epochs in one go == 2 epochs, then --resume to 3 (same weights); --glove: frozen GloVe words."""
+    import pickle
+
+    import torch
+
+    a, b = tmp_path / "a", tmp_path / "b"
+    common = ["--no-progress", "--threads", "1", "--hidden", "16", "--dim", "8"]
+    assert smdm(["evaluator", "train", "--out", str(a), "--epochs", "3"] + common) == 0
+    assert smdm(["evaluator", "train", "--out", str(b), "--epochs", "2"] + common) == 0
+    assert smdm(["evaluator", "train", "--out", str(b), "--epochs", "3", "--resume"] + common) == 0
+    sa = torch.load(a / "evaluator.pt", weights_only=True)
+    sb = torch.load(b / "evaluator.pt", weights_only=True)
+    assert sa.keys() == sb.keys() and all(torch.equal(sa[k], sb[k]) for k in sa)
+    # other settings than the state was written with: refused
+    r = subprocess.run([sys.executable, "-m", "smdm_plugin", "evaluator", "train", "--out", str(b), "--epochs", "4",
+                        "--resume", "--dim", "16", "--no-progress"], capture_output=True, text=True, cwd=REPO,
+                       env={**os.environ, "PYTHONPATH": REPO})
+    assert r.returncode == 2 and "other settings" in r.stderr
+    glove = tmp_path / "glove"
+    glove.mkdir()
+    words = ["unk", "sos", "eos", "walk", "run", "jog", "jump"]
+    np.save(glove / "our_vab_data.npy", np.random.default_rng(0).normal(size=(len(words), 20)).astype(np.float32))
+    pickle.dump(words, open(glove / "our_vab_words.pkl", "wb"))
+    pickle.dump({w: i for i, w in enumerate(words)}, open(glove / "our_vab_idx.pkl", "wb"))
+    g = tmp_path / "g"
+    assert smdm(["evaluator", "train", "--out", str(g), "--epochs", "1", "--glove", str(glove)] + common) == 0
+    ev = load_evaluator(str(g))
+    assert not ev.config.learned_words and ev.config.dim_word == 20 and ev.config.vocab_size == len(words)
+    torch.testing.assert_close(ev.words.weight, torch.from_numpy(np.load(glove / "our_vab_data.npy")))

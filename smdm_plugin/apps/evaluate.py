@@ -208,8 +208,9 @@ def main(argv: Optional[List[str]] = None) -> int:
         torch.set_num_threads(a.threads)
     for name, path in (("--motions", a.motions), ("--model", a.model), ("--evaluator", a.evaluator),
                        ("--data", a.data)):
-        if path and os.path.abspath(a.out) == os.path.abspath(path):
-            p.error(f"argument --out: must not be {name} ({path!r})")
+        out = os.path.abspath(a.out)
+        if path and (out == os.path.abspath(path) or out.startswith(os.path.abspath(path) + os.sep)):
+            p.error(f"argument --out: must not be inside {name} ({path!r})")
     dev = resolve_device(a.device)
     try:
         real = load_split(a.data, a.split)

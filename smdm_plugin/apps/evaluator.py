@@ -79,6 +79,10 @@ def run(a: argparse.Namespace, p: argparse.ArgumentParser) -> int:
 
     if a.threads:
         torch.set_num_threads(a.threads)
+    out = os.path.abspath(a.out)
+    for name, path in (("--data", a.data), ("--glove", a.glove)):
+        if path and (out == os.path.abspath(path) or out.startswith(os.path.abspath(path) + os.sep)):
+            p.error(f"argument --out: must not be inside {name} ({path!r})")
     state_path = os.path.join(a.out, STATE_FILENAME)
     state = None
     if a.resume:
