@@ -48,6 +48,7 @@ _EXPORTS: Dict[str, str] = {
     # metrics
     "foot_skating_ratio": "metrics.quality", "jitter": "metrics.quality", "keyframe_error": "metrics.quality",
     "end_effector_speed": "metrics.motion", "to_joint_positions": "metrics.motion",
+    "jitter_per_speed": "metrics.quality", "mean_speed": "metrics.quality",
     # io
     "read_bvh": "io.bvh", "bvh_joint_positions": "io.bvh", "load_cmu_clip": "io.bvh",
     "BVHError": "io.bvh", "BVHWarning": "io.bvh", "OutputExistsError": "io.files",
@@ -88,6 +89,7 @@ if TYPE_CHECKING:  # pragma: no cover - for type checkers and IDEs
     from .adapters.inbetween import forced_keyframes, keyframe_constraint, sample_inbetween
     from .metrics.motion import end_effector_speed, to_joint_positions
     from .metrics.quality import foot_skating_ratio, jitter, keyframe_error
+    from .metrics.quality import jitter_per_speed, mean_speed
     from .core.interpolation import interpolate_keyframes
     from .core.keyframe_transformer import KeyframeTransformer
     from .core.lipschitz import LipschitzMLP, bake_lipschitz, lipschitz_loss

@@ -122,18 +122,19 @@ def call_plan(state: SparseState, x: torch.Tensor, timesteps: Any, y: Dict[str, 
         capacity = y.get("keyframe_capacity")
         if capacity is None:                               # a mask from elsewhere: size it safely
             capacity = int(mask.sum(1).max()) if host_checkable(mask) and B else N
-        check = True
+        check, cubic = True, None
     else:                                                  # sampling: the schedule on x_t
         t = timesteps if timesteps is not None else torch.zeros(B, dtype=torch.long, device=device)
         mask = state.schedule.sampling_mask(frames_layout(x), t, lengths, forced, checked=True)
         capacity = state.schedule.capacity(N, training=False, forced=protected_count(forced, lengths))
         check = False                                      # 2..capacity keyframes by construction
+        cubic = state.schedule.cubic_samples(t, B, device)
     capacity = max(1, min(int(capacity), N))
     prefix = state.variant.prefix_len
     if prefix:
         mask = torch.cat([mask.new_ones(B, prefix), mask], dim=1)
         capacity += prefix
-    return KeyframePlan.build(mask, capacity, check=check)
+    return KeyframePlan.build(mask, capacity, check=check, cubic=cubic)
 
 
 def _pre_hook(model: nn.Module, args: tuple, kwargs: dict):

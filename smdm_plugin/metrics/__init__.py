@@ -13,8 +13,9 @@ from .motion import (HUMANML3D_END_EFFECTORS, KIT_END_EFFECTORS, end_effector_sp
                      to_joint_positions)
 from .inbetween import keyframe_metrics, transition_frames
 from .quality import HUMANML3D_FEET, foot_skating_ratio, jitter, keyframe_error
+from .quality import jitter_per_speed, mean_speed
 
 __all__ = ["HUMANML3D_END_EFFECTORS", "KIT_END_EFFECTORS", "HUMANML3D_FEET", "end_effector_speed",
            "foot_skating_ratio", "jitter", "keyframe_error", "keyframe_metrics", "transition_frames", "to_joint_positions",
            "recover_from_ric", "recover_root", "doubletake_ees", "motion_transition_masks",
-           "unfolded_step_sizes"]
+           "unfolded_step_sizes", "jitter_per_speed", "mean_speed"]
