@@ -144,27 +144,3 @@ def test_cubic_per_sample_selection_and_gradients_reach_keyframes_only():
     with pytest.raises(ValueError, match="method must be one of"):
         interpolate_keyframes(f, mask, method="spline")
 
-
-def test_fill_frames_of_a_cubic_plan_equals_cubic_interpolation_of_the_keyframe_rows():
-    """The model path (rows of the backend, the plan's slots) against the plain function."""
-    from smdm_plugin.core.attention_backends import fill_frames
-    from smdm_plugin.core.interpolation import interpolate_keyframes_cubic
-    from smdm_plugin.core.plan import KeyframePlan
-
-    gen = torch.Generator().manual_seed(4)
-    B, N, d = 3, 25, 6
-    mask = torch.rand(B, N, generator=gen) < 0.3
-    mask[:, 0] = True
-    K = int(mask.sum(1).max())
-    which = torch.tensor([True, False, True])
-    plan = KeyframePlan.build(mask, K, cubic=which)
-    rows = torch.arange(K * B).view(K, B)                          # slot k of sample b: row k*B + b
-    h = torch.randn(K * B, d, generator=gen, dtype=torch.float64)
-    feats = torch.zeros(B, N, d, dtype=torch.float64)
-    for b in range(B):
-        for k in range(int(plan.count[b])):
-            feats[b, plan.index[b, k]] = h[k * B + b]
-    out = fill_frames(h, rows, plan, 0).transpose(0, 1)            # [B, N, d]
-    assert torch.allclose(out, interpolate_keyframes_cubic(feats, mask, which), atol=1e-12)
-    linear = fill_frames(h, rows, KeyframePlan.build(mask, K), 0).transpose(0, 1)
-    assert torch.allclose(linear, interpolate_keyframes(feats, mask), atol=1e-12)

@@ -174,9 +174,11 @@ def _sparse_forward(self, x, timesteps, length=None, text=None, xf_proj=None, xf
     src_mask = tok_valid.to(h.dtype).unsqueeze(-1)
     for block in self.temporal_decoder_blocks:
         hk = block(hk, xf_out, emb, src_mask)
-    h = scatter_keyframes(hk, tok_valid, mask)
-    h = interpolate_keyframes(h, mask) if cubic is None else interpolate_keyframes_cubic(h, mask, cubic)
-    return self.out(h).view(B, T, -1).contiguous()
+    h = interpolate_keyframes(scatter_keyframes(hk, tok_valid, mask), mask)
+    out = self.out(h).view(B, T, -1)
+    if cubic is not None:       # sample_interpolation="cubic": C¹ through the keyframe outputs
+        out = torch.where(cubic.view(B, 1, 1), interpolate_keyframes_cubic(out, mask), out)
+    return out.contiguous()
 
 
 # --------------------------------------------------------------------------- (un)sparsify

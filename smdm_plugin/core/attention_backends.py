@@ -35,7 +35,6 @@ import torch.nn.functional as F
 
 from .checks import static_shapes
 from .fsq import FSQMultiheadAttention, _disable_transformer_fast_path
-from .interpolation import catmull_rom_taps
 from .plan import KeyframePlan
 
 Backend = Callable[..., Tuple[torch.Tensor, torch.Tensor]]
@@ -193,22 +192,6 @@ class _LerpRows(torch.autograd.Function):
         grad = g.new_zeros(ctx.rows, *g.shape[1:])
         grad.index_add_(0, prev, g * (1 - w)).index_add_(0, nxt, g * w)
         return grad, None, None, None
-
-
-def cubic_rows(h: torch.Tensor, frame_rows: torch.Tensor, plan: KeyframePlan) -> torch.Tensor:
-    """``[N*B, d]`` frame-major rows: every frame of the samples in ``plan.cubic`` on the C¹
-    Catmull-Rom curve through their keyframe rows (:func:`catmull_rom_taps`), the other samples
-    linearly interpolated (the same four taps with weights ``0, 1-w, w, 0``). ``h [R, d]`` backend
-    rows, ``frame_rows [K, B]`` the row of each slot. Static shapes, no host sync."""
-    B, N = plan.mask.shape
-    slots, w = catmull_rom_taps(plan.index, plan.count, plan.prev_slot, plan.next_slot, plan.weight)
-    s = plan.weight
-    z = torch.zeros_like(s)
-    linear = torch.stack([z, 1 - s, s, z], dim=-1)
-    w = torch.where(plan.cubic.view(B, 1, 1), w, linear).to(h.dtype)    # [B, N, 4]
-    r = frame_rows.t().gather(1, slots.flatten(1)).view(B, N, 4)        # rows of the four taps
-    taps = h.index_select(0, r.transpose(0, 1).reshape(-1)).view(N, B, 4, -1)
-    return (taps * w.transpose(0, 1).unsqueeze(-1)).sum(2).reshape(N * B, -1)
 
 
 def lerp_rows(h: torch.Tensor, prev: torch.Tensor, nxt: torch.Tensor, w: torch.Tensor) -> torch.Tensor:
@@ -439,16 +422,13 @@ register_backend("varlen", varlen_backend, _varlen_available)
 def fill_frames(h: torch.Tensor, rows: torch.Tensor, plan: KeyframePlan, lead: int,
                 interpolate: bool = True) -> torch.Tensor:
     """Every output token ``[lead + N, B, d]`` from a backend's rows: lead tokens as they are,
-    frames linearly interpolated between the keyframe rows around them (C¹ Catmull-Rom for the
-    samples of ``plan.cubic``), or, with ``interpolate=False``, keyframes as they are and zeros
-    elsewhere."""
+    frames linearly interpolated between the keyframe rows around them (or, with
+    ``interpolate=False``, keyframes as they are and zeros elsewhere)."""
     d = h.shape[-1]
     B, N = plan.mask.shape
     frame_rows = rows[lead:]                                           # [K, B]
     prev = frame_rows.gather(0, plan.prev_slot.t())                    # [N, B]
-    if interpolate and plan.cubic is not None:
-        out = cubic_rows(h, frame_rows, plan)
-    elif interpolate:
+    if interpolate:
         out = lerp_rows(h, prev.reshape(-1), frame_rows.gather(0, plan.next_slot.t()).reshape(-1),
                         plan.weight.t().reshape(-1, 1).to(h.dtype))
     else:

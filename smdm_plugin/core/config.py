@@ -199,8 +199,9 @@ class SparseConfig:
         None, bool, "VW re-selection at sampling (None/auto: on iff diffusion_steps >= 100 and no DiP prefix, "
         "paper Table 2; false: uniform always)", optional=True)
     sample_interpolation: str = _field(
-        "linear", str, "sampling: how non-keyframe outputs are filled (linear: the paper; cubic: C1 Catmull-Rom "
-        "through the keyframe outputs, smoother motion)", choices=INTERPOLATIONS)
+        "linear", str, "sampling: how the non-keyframes of the model's output are filled (linear: the paper's "
+        "linear interpolation before the output layer only; cubic: then C1 Catmull-Rom through the output at "
+        "the keyframes, smooth motion)", choices=INTERPOLATIONS)
     sample_interpolation_steps: Optional[int] = _field(
         None, int, "sampling: the last this many steps use sample_interpolation, the others linear "
         "(None: every step)", range=Range(1), optional=True)

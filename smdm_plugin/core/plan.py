@@ -33,9 +33,9 @@ class KeyframePlan:
         count: ``[B]`` long, keyframes per sample (``1 <= count <= K``).
         prev_slot, next_slot: ``[B, N]`` long, slots of the keyframes around each frame.
         weight: ``[B, N]`` float32 in [0, 1], the interpolation weight of each frame.
-        cubic: ``[B]`` bool or None: samples whose frames are filled by C¹ Catmull-Rom curves
-            through the keyframes (:func:`~smdm_plugin.core.interpolation.catmull_rom_taps`) instead
-            of straight lines; None = linear everywhere (the paper).
+        cubic: ``[B]`` bool or None: samples whose output frames are filled by C¹ Catmull-Rom curves
+            through the output at the keyframes (:func:`~smdm_plugin.core.interpolation.catmull_rom_taps`;
+            sampling with ``sample_interpolation="cubic"``); None = the paper's linear fill only.
     """
 
     mask: torch.Tensor
@@ -65,7 +65,7 @@ class KeyframePlan:
         """The plan of bool ``mask [B, N]`` with ``capacity`` slots (None: ``N``, always enough).
         Every sample needs between 1 and ``capacity`` keyframes (checked without a host sync;
         ``check=False`` for masks that hold it by construction, e.g. the sampling schedule's).
-        ``cubic``: bool ``[B]``, samples filled by C¹ interpolation (None: none)."""
+        ``cubic``: bool ``[B]``, samples whose output is filled by C¹ interpolation (None: none)."""
         if mask.dim() != 2:
             raise ValueError(f"KeyframePlan: mask must be bool [B, N], got shape {tuple(mask.shape)}")
         mask = mask.to(torch.bool)
