@@ -35,11 +35,11 @@ import shutil
 import socket
 import sys
 import time
-from typing import Any, List, Mapping, Optional, Sequence
+from typing import Any, Callable, List, Mapping, Optional, Sequence
 
 from .files import OutputExistsError, PathLike, atomic_write_json
 
-__all__ = ["OutputDir", "OutputLockedError", "OutputOverlapError", "MANIFEST", "check_no_overlap",
+__all__ = ["OutputDir", "run_in_output_dir", "OutputLockedError", "OutputOverlapError", "MANIFEST", "check_no_overlap",
            "describe_os_error", "partial_path", "lock_path"]
 
 MANIFEST = ".smdm-manifest.json"
@@ -184,6 +184,7 @@ class OutputDir:
         self.path = partial_path(self.out)
         self.lock = lock_path(self.out)
         self._locked = False
+        self._abandoned = False
         self.resumed_from: Optional[str] = None
 
     # ------------------------------------------------------------------ checks (nothing written)
@@ -246,7 +247,11 @@ class OutputDir:
             self._locked = False
 
     # ------------------------------------------------------------------ enter / exit
-    def __enter__(self) -> "OutputDir":
+    def open(self) -> "OutputDir":
+        """Check, lock and prepare the partial folder (``with`` does it too; call it first to
+        report a refusal before the block)."""
+        if self._locked:
+            return self
         self.check()
         self._take_lock()
         try:
@@ -255,6 +260,9 @@ class OutputDir:
             self._release()
             raise
         return self
+
+    def __enter__(self) -> "OutputDir":
+        return self.open()
 
     def _prepare_partial(self) -> None:
         if os.path.lexists(self.path):
@@ -276,9 +284,14 @@ class OutputDir:
                     shutil.copy2(src, os.path.join(self.path, name))
             self.resumed_from = self.out
 
+    def abandon(self) -> None:
+        """Do not commit at the end of the block (the command failed without an exception): the
+        partial folder is removed (``resumable``: kept) and ``out`` stays as it was."""
+        self._abandoned = True
+
     def __exit__(self, exc_type: Any, exc: Any, tb: Any) -> None:
         try:
-            if exc_type is None:
+            if exc_type is None and not self._abandoned:
                 self.commit()
             elif not self.resumable:
                 shutil.rmtree(self.path, ignore_errors=True)
@@ -313,3 +326,22 @@ class OutputDir:
             os.rename(self.path, self.out)
         _fsync_dir(os.path.dirname(self.out))
 
+
+
+def run_in_output_dir(fn: Callable[[str], int], out: PathLike, overwrite: bool = False,
+                      inputs: Optional[Mapping[str, Optional[PathLike]]] = None, command: str = "smdm",
+                      **kwargs: Any) -> int:
+    """``fn(folder) -> exit status`` writing into an :class:`OutputDir` of ``out``: committed when it
+    returns 0, abandoned otherwise. A refused ``out`` (exists, locked, overlaps an input) is one
+    line on stderr and exit status 2."""
+    od = OutputDir(out, overwrite=overwrite, inputs=inputs, command=command, **kwargs)
+    try:
+        od.open()
+    except OutputExistsError as e:
+        print(f"{command}: error: {e}", file=sys.stderr)
+        return 2
+    with od:
+        status = int(fn(od.path) or 0)
+        if status != 0:
+            od.abandon()
+    return status
