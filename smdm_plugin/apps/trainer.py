@@ -599,16 +599,38 @@ def load_trained(folder: str, step: Optional[int] = None, map_location: Any = "c
                  ) -> Tuple[nn.Module, Optional[SparseConfig]]:
     """Reload a folder written by :meth:`Trainer.save` (the last ``model*.pt``, or ``step``'s),
     sparse mode re-created with the saved Mean/Std: ``(model, sparse config or None)``."""
-    from ..io.checkpoint import load_checkpoint
+    import re
 
-    names = sorted(n for n in os.listdir(folder) if n.startswith("model") and n.endswith(".pt"))
+    from ..io.checkpoint import load_checkpoint
+    from ..io.validate import check_stats, int_field, load_npy, read_json_object, require_fields
+
+    if not os.path.isdir(folder):
+        raise FileNotFoundError(f"load_trained: no such model folder: {folder!r}")
+    names = sorted(n for n in os.listdir(folder) if re.fullmatch(r"model\d{9}\.pt", n))
     if step is not None:
         names = [n for n in names if n == f"model{step:09d}.pt"]
     if not names:
         raise FileNotFoundError(f"load_trained: no model{'*' if step is None else f'{step:09d}'}.pt in {folder}")
-    mean = np.load(os.path.join(folder, "Mean.npy"))
-    std = np.load(os.path.join(folder, "Std.npy"))
-    return load_checkpoint(os.path.join(folder, names[-1]), map_location=map_location, mean=mean, std=std)
+    # every saved setting checked before it is used: a wrong one is an error naming file and field
+    bpath = os.path.join(folder, BACKBONE_FILENAME)
+    backbone = read_json_object(bpath)
+    D = int_field(backbone, "njoints", bpath) * int_field(backbone, "nfeats", bpath)
+    cpath = os.path.join(folder, TRAIN_CONFIG_FILENAME)
+    T: Optional[int] = None
+    if os.path.exists(cpath):
+        saved = read_json_object(cpath)
+        require_fields(saved, ("steps", "diffusion_steps", "seed", "model", "sparse"), cpath)
+        int_field(saved, "steps", cpath, lo=0)
+        T = int_field(saved, "diffusion_steps", cpath, lo=1)
+    mean = load_npy(os.path.join(folder, "Mean.npy"), "feature mean")
+    std = load_npy(os.path.join(folder, "Std.npy"), "feature std")
+    mean, _ = check_stats(mean, np.ones(D), D, os.path.join(folder, "Mean.npy"))
+    _, std = check_stats(mean, std, D, os.path.join(folder, "Std.npy"))
+    model, config = load_checkpoint(os.path.join(folder, names[-1]), map_location=map_location, mean=mean, std=std)
+    if config is not None and T is not None and int(config.diffusion_steps) != T:
+        raise ValueError(f"{cpath}: diffusion_steps={T} disagrees with {CONFIG_FILENAME}'s diffusion_steps="
+                         f"{config.diffusion_steps}")
+    return model, config
 
 
 # ----------------------------------------------------------------------------------------- CLI
