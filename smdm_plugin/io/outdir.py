@@ -39,7 +39,7 @@ from typing import Any, Callable, List, Mapping, Optional, Sequence
 
 from .files import OutputExistsError, PathLike, atomic_write_json
 
-__all__ = ["OutputDir", "run_in_output_dir", "OutputLockedError", "OutputOverlapError", "MANIFEST", "check_no_overlap",
+__all__ = ["OutputDir", "OutputLock", "run_in_output_dir", "OutputLockedError", "OutputOverlapError", "MANIFEST", "check_no_overlap",
            "describe_os_error", "partial_path", "lock_path"]
 
 MANIFEST = ".smdm-manifest.json"
@@ -156,6 +156,66 @@ def _fsync_dir(folder: str) -> None:
         os.close(fd)
 
 
+class OutputLock:
+    """The lock of output folder ``out`` for one run (``.<name>.lock`` beside it, ``O_EXCL``, with
+    pid, host and command); a context manager. A held lock is :class:`OutputLockedError` naming
+    the owner; a stale one (its process gone, same host) is reported, never taken over."""
+
+    def __init__(self, out: PathLike, command: str = "smdm", what: str = "--out") -> None:
+        self.out = os.path.abspath(os.fspath(out))
+        self.path, self.command, self.what = lock_path(self.out), command, what
+        self.held = False
+
+    def _shown(self) -> str:
+        rel = os.path.relpath(self.out)
+        return self.out if rel.startswith("..") else rel
+
+    def acquire(self) -> "OutputLock":
+        if self.held:
+            return self
+        os.makedirs(os.path.dirname(self.path), exist_ok=True)
+        info = {"pid": os.getpid(), "host": socket.gethostname(), "command": self.command,
+                "started": time.strftime("%Y-%m-%dT%H:%M:%S%z")}
+        try:
+            fd = os.open(self.path, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o644)
+        except FileExistsError:
+            raise OutputLockedError(self.message()) from None
+        with os.fdopen(fd, "w", encoding="utf-8") as f:
+            json.dump(info, f)
+        self.held = True
+        return self
+
+    def message(self) -> str:
+        """Why the folder cannot be locked: who holds it, or that the lock is stale."""
+        shown = self._shown()
+        try:
+            with open(self.path, encoding="utf-8") as f:
+                owner = json.load(f)
+            pid, host, cmd = int(owner["pid"]), str(owner["host"]), str(owner.get("command", "?"))
+        except (OSError, ValueError, KeyError, TypeError):
+            return (f"{self.what} {shown!r} is locked by {self.path} (unreadable: another run may be starting); "
+                    "if none is, remove that file and run again")
+        if host == socket.gethostname() and not _pid_alive(pid):
+            return (f"{self.what} {shown!r}: stale lock {self.path} left by {cmd} (pid {pid}, no longer running); "
+                    "if no other run writes there, remove that file and run again")
+        return (f"{self.what} {shown!r} is being written by {cmd} (pid {pid} on {host}); wait for it or pick "
+                f"another {self.what}")
+
+    def release(self) -> None:
+        if self.held:
+            try:
+                os.unlink(self.path)
+            except OSError:
+                pass
+            self.held = False
+
+    def __enter__(self) -> "OutputLock":
+        return self.acquire()
+
+    def __exit__(self, *exc: Any) -> None:
+        self.release()
+
+
 class OutputDir:
     """An output folder written as one unit, locked for the run, apart from the inputs.
 
@@ -182,8 +242,7 @@ class OutputDir:
         self.overwrite, self.inputs, self.command = overwrite, dict(inputs or {}), command
         self.owns, self.resumable, self.resume, self.what = tuple(owns), resumable, resume, what
         self.path = partial_path(self.out)
-        self.lock = lock_path(self.out)
-        self._locked = False
+        self.lock = OutputLock(self.out, command, what)
         self._abandoned = False
         self.resumed_from: Optional[str] = None
 
@@ -209,55 +268,20 @@ class OutputDir:
                     f"write there (no {MANIFEST} lists it); move it away or pick another {self.what}")
 
     def _shown(self) -> str:
-        return os.path.relpath(self.out) if not os.path.relpath(self.out).startswith("..") else self.out
-
-    # ------------------------------------------------------------------ lock
-    def _take_lock(self) -> None:
-        os.makedirs(os.path.dirname(self.lock), exist_ok=True)
-        info = {"pid": os.getpid(), "host": socket.gethostname(), "command": self.command,
-                "started": time.strftime("%Y-%m-%dT%H:%M:%S%z")}
-        try:
-            fd = os.open(self.lock, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o644)
-        except FileExistsError:
-            raise OutputLockedError(self._lock_message()) from None
-        with os.fdopen(fd, "w", encoding="utf-8") as f:
-            json.dump(info, f)
-        self._locked = True
-
-    def _lock_message(self) -> str:
-        shown = self._shown()
-        try:
-            with open(self.lock, encoding="utf-8") as f:
-                owner = json.load(f)
-            pid, host, cmd = int(owner["pid"]), str(owner["host"]), str(owner.get("command", "?"))
-        except (OSError, ValueError, KeyError, TypeError):
-            return (f"{self.what} {shown!r} is locked by {self.lock} (unreadable: another run may be starting); "
-                    "if none is, remove that file and run again")
-        if host == socket.gethostname() and not _pid_alive(pid):
-            return (f"{self.what} {shown!r}: stale lock {self.lock} left by {cmd} (pid {pid}, no longer running); "
-                    "if no other run writes there, remove that file and run again")
-        return f"{self.what} {shown!r} is being written by {cmd} (pid {pid} on {host}); wait for it or pick another {self.what}"
-
-    def _release(self) -> None:
-        if self._locked:
-            try:
-                os.unlink(self.lock)
-            except OSError:
-                pass
-            self._locked = False
+        return self.lock._shown()
 
     # ------------------------------------------------------------------ enter / exit
     def open(self) -> "OutputDir":
         """Check, lock and prepare the partial folder (``with`` does it too; call it first to
         report a refusal before the block)."""
-        if self._locked:
+        if self.lock.held:
             return self
         self.check()
-        self._take_lock()
+        self.lock.acquire()
         try:
             self._prepare_partial()
         except BaseException:
-            self._release()
+            self.lock.release()
             raise
         return self
 
@@ -296,7 +320,7 @@ class OutputDir:
             elif not self.resumable:
                 shutil.rmtree(self.path, ignore_errors=True)
         finally:
-            self._release()
+            self.lock.release()
 
     def commit(self) -> None:
         """Write the manifest and swap the partial folder in for ``out`` (foreign entries of an
