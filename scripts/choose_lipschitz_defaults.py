@@ -1,7 +1,7 @@
 #!/usr/bin/env python
 """Rough sweep to pick ``SparseConfig.sine_w0`` and ``SparseConfig.lipschitz_lambda``.
 
-On real HumanML3D-format motion (``/work/shared/data/cmu-humanml3d``: 263-D features, normalised
+On real HumanML3D-format motion (``--data``, default ``../shared/data/cmu-humanml3d`` beside the repository: 263-D features, normalised
 with its ``Mean.npy``/``Std.npy``), trains a per-frame auto-encoder made of sMDM's two Lipschitz
 layers, ``LipschitzMLP(263 -> 256)`` (input role) and ``LipschitzMLP(256 -> 263)`` (output role),
 for a fixed number of steps with ``loss = MSE + λ · lipschitz_loss``, for each ``w0`` and ``λ``.
@@ -23,7 +23,8 @@ import torch.nn.functional as F
 
 from smdm_plugin.core.lipschitz import LipschitzMLP, lipschitz_loss
 
-DATA = "/work/shared/data/cmu-humanml3d"
+DATA = os.path.join(os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__)))),
+                    "shared", "data", "cmu-humanml3d")
 
 
 def load_frames(root: str) -> Tuple[torch.Tensor, torch.Tensor]:

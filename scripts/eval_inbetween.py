@@ -22,9 +22,7 @@ import numpy as np
 import torch
 
 HERE = Path(__file__).resolve().parent
-DEFAULT_DATA = HERE.parent.parent / "shared" / "data" / "cmu-humanml3d"
-if not DEFAULT_DATA.exists():
-    DEFAULT_DATA = Path("/work/shared/data/cmu-humanml3d")
+DEFAULT_DATA = HERE.parent.parent / "shared" / "data" / "cmu-humanml3d"  # ../shared beside the repository
 FRAMES = 196
 
 

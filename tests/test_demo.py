@@ -205,9 +205,10 @@ def test_reconstruction_error_and_features():
 
 
 def test_no_bvh_message(tmp_path, capsys, monkeypatch):
-    rc = demo.main(["--bvh", str(tmp_path), "--out", str(tmp_path / "o")])
+    (tmp_path / "in").mkdir()  # an --out inside --bvh would be refused as overlapping the input
+    rc = demo.main(["--bvh", str(tmp_path / "in"), "--out", str(tmp_path / "o")])
     err = capsys.readouterr().err
-    assert rc == 2 and f"no .bvh file in --bvh {tmp_path}" in err and "SMDM_MOCAP" in err
+    assert rc == 2 and f"no .bvh file in --bvh {tmp_path / 'in'}" in err and "SMDM_MOCAP" in err
     monkeypatch.setenv("SMDM_MOCAP", str(tmp_path / "absent"))
     assert demo.main(["--out", str(tmp_path / "o")]) == 2
     assert "SMDM_MOCAP=" in capsys.readouterr().err and not (tmp_path / "o").exists()

@@ -9,10 +9,9 @@ import torch
 from smdm_plugin.metrics import (doubletake_ees, end_effector_speed, motion_transition_masks,
                                  recover_from_ric, to_joint_positions, unfolded_step_sizes)
 
+# the ../shared lookup of conftest.py (the shared data beside the repository)
 DATA = os.environ.get("SMDM_HUMANML3D_DIR", os.path.join(
-    os.path.dirname(__file__), "..", "..", "shared", "data", "cmu-humanml3d"))
-if not os.path.isdir(DATA):
-    DATA = "/work/shared/data/cmu-humanml3d"
+    os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__)))), "shared", "data", "cmu-humanml3d"))
 HAVE_DATA = os.path.isdir(os.path.join(DATA, "new_joint_vecs"))
 
 

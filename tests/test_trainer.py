@@ -198,7 +198,8 @@ def test_cli_writes_a_checkpoint_folder_and_never_overwrites(hml_dir, tmp_path, 
     names = set(os.listdir(out))
     assert {"model000000002.pt", "model000000003.pt", "backbone.json", "sparse_config.json", "Mean.npy",
             "Std.npy", "train_config.json", "losses.csv", "loss.png", "result.json"} <= names
-    assert not any(n.startswith(".") for n in names)  # no temporary file left behind
+    assert not any(n.startswith(".") for n in names - {".smdm-manifest.json"})  # no temporary file left behind
+    assert not any(n.startswith(".run.") for n in os.listdir(tmp_path))  # no lock or partial folder beside it
     result = json.loads((out / "result.json").read_text())
     lines = (out / "losses.csv").read_text().split()
     assert lines[0] == "step,loss" and [float(v.split(",")[1]) for v in lines[1:]] == pytest.approx(result["losses"])

@@ -558,8 +558,6 @@ def run_ablation(cfg: Dict[str, Any], out: str, data_root: str, device: str = "a
     unreadable ones; results from another run stop it with :class:`StaleResultsError` before
     anything trains) or ``overwrite`` (run every selected variant again). See the module docstring.
     """
-    import yaml
-
     from ..integrations.distributed import DistContext
 
     if resume and overwrite:
@@ -569,7 +567,24 @@ def run_ablation(cfg: Dict[str, Any], out: str, data_root: str, device: str = "a
     if not main_rank:
         log = _quiet
     selected = select_variants(cfg, only)
-    _on_main(ctx, lambda: check_out_dir(out, resume, overwrite))
+    from ..io.outdir import OutputLock, check_no_overlap
+
+    _on_main(ctx, lambda: (check_no_overlap(out, {"--data": data_root}), check_out_dir(out, resume, overwrite)))
+    # one writer: rank 0 locks --out for the whole run (the other ranks never write)
+    lock = OutputLock(out, "smdm ablate")
+    _on_main(ctx, lambda: bool(lock.acquire()))  # only rank 0's object holds it
+    try:
+        return _run_locked(cfg, out, data_root, ctx, selected, progress, log, resume, overwrite)
+    finally:
+        lock.release()
+
+
+def _run_locked(cfg: Dict[str, Any], out: str, data_root: str, ctx, selected: Set[str], progress: bool,
+                log: Callable[[str], Any], resume: bool, overwrite: bool) -> List[Dict[str, Any]]:
+    """:func:`run_ablation` once ``out`` is checked and locked."""
+    import yaml
+
+    main_rank = ctx.is_main
     dev = ctx.device
     data = MotionData(data_root, int(cfg["max_frames"]))
     log(f"ablate: {len(data.train['ids'])} training / {len(data.val['ids'])} validation motions from "

@@ -11,7 +11,8 @@
 Subcommand modules are imported lazily, so ``smdm --help`` is fast and ``smdm run`` does not
 import the benchmark code. Every command: bad arguments are one argparse line (exit status 2),
 outputs are never overwritten without ``--overwrite``, Ctrl-C ends with exit status 130 and no
-traceback.
+traceback, an ``OSError`` (a full disk, a read-only or forbidden path) is one line naming the path
+and the reason, exit status 1.
 """
 from __future__ import annotations
 
@@ -84,6 +85,11 @@ def main(argv: Optional[List[str]] = None) -> int:
     except BrokenPipeError:  # `smdm ... | head`: the reader left; no traceback (as the Python docs advise)
         devnull = os.open(os.devnull, os.O_WRONLY)
         os.dup2(devnull, sys.stdout.fileno())
+        return 1
+    except OSError as e:  # no space, read-only, permission denied ...: one line naming the path and the reason
+        from ..io.outdir import describe_os_error
+
+        print(f"smdm {cmd}: error: {describe_os_error(e)}", file=sys.stderr)
         return 1
 
 

@@ -505,10 +505,11 @@ def main_demo(args: argparse.Namespace) -> int:
         print(itable)
         summary = {"source": source, "files": files, "skipped": [list(x) for x in skipped],
                    "clips": [[n, len(j)] for n, j in clips], "keyframes": study, "training": train,
-                   "seconds": time.perf_counter() - t_start, "options": {k: v for k, v in vars(args).items()}}
+                   "seconds": time.perf_counter() - t_start, "options": {**{k: v for k, v in vars(args).items() if k != "folder"},
+                                                               "out": getattr(args, "folder", args.out)}}
         summary["keyframes"]["mpjpe_mm"] = {m: {str(r): v for r, v in d.items()} for m, d in study["mpjpe_mm"].items()}
         atomic_write_json(os.path.join(args.out, "summary.json"), summary, indent=1)
-        print(f"\noutputs: {os.path.abspath(args.out)}")
+        print(f"\noutputs: {os.path.abspath(getattr(args, 'folder', args.out))}")
         return 0
     finally:
         shutdown_distributed(ctx)
@@ -663,7 +664,14 @@ def main(argv: Optional[List[str]] = None) -> int:
         p.error(f"argument --out: {args.out!r} exists and is not empty; pass --overwrite to write into it")
     if first and os.path.exists(args.out) and not os.path.isdir(args.out):
         p.error(f"argument --out: {args.out!r} exists and is not a folder")
-    return main_demo(args)
+    if not first:
+        return main_demo(args)
+    from ..io.outdir import run_in_output_dir  # locked, apart from the inputs, swapped in as one unit
+
+    def write(part: str) -> int:  # main_demo writes into the partial folder; args.folder: where it ends up
+        return main_demo(argparse.Namespace(**{**vars(args), "out": part, "folder": args.out}))
+
+    return run_in_output_dir(write, args.out, args.overwrite, {f"--bvh {b}": b for b in args.bvh or ()}, "smdm demo")
 
 
 if __name__ == "__main__":

@@ -223,7 +223,8 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv: Optional[List[str]] = None) -> int:
     from ..io.bundle import load_bundle
-    from ..io.files import OutputExistsError, atomic_open, atomic_write_json, atomic_write_text, check_new_dir
+    from ..io.files import OutputExistsError
+    from ..io.outdir import OutputDir, check_no_overlap
     from ._args import resolve_device
     from .motion_files import load_motion
 
@@ -244,6 +245,11 @@ def main(argv: Optional[List[str]] = None) -> int:
         bundles = [load_bundle(m, device=dev) for m in models]
     except (OSError, ValueError, RuntimeError) as e:
         p.error(f"--model: {str(e).splitlines()[0]}")
+    inputs = {"--keyframes": a.keyframes, **{f"--model {m}": m for m in models}}
+    try:
+        check_no_overlap(a.out, inputs)
+    except OutputExistsError as e:
+        p.error(str(e))
     fps = bundles[0].fps
     try:
         source = load_motion(a.keyframes, fps=fps, sample=a.sample, allow_pickle=a.allow_pickle)
@@ -253,10 +259,22 @@ def main(argv: Optional[List[str]] = None) -> int:
             model_inputs(b, source, kf)  # every model can read these keyframes
     except (OSError, ValueError) as e:
         p.error(str(e).splitlines()[0])
+    # locked for the run, written in a partial folder, swapped in as one unit when everything is written
+    od = OutputDir(a.out, overwrite=a.overwrite, inputs=inputs, command="smdm inbetween")
     try:
-        check_new_dir(a.out, a.overwrite)
+        od.open()
     except OutputExistsError as e:
         p.error(str(e))
+    with od:
+        return _write(a, od.path, bundles, source, kf, dev, fps)
+
+
+def _write(a: argparse.Namespace, out: str, bundles: List[Any], source: Any, kf: Any, dev: torch.device,
+           fps: float) -> int:
+    """Run every model and write the outputs into ``out`` (the partial folder of ``--out``)."""
+    from ..io.files import atomic_open, atomic_write_json, atomic_write_text
+
+    models = a.model or [d for d in DEFAULT_MODELS if os.path.isdir(d)]
     names = [os.path.basename(os.path.normpath(m)) or f"model{i}" for i, m in enumerate(models)]
     names = [n if names.count(n) == 1 else f"{n}{i}" for i, n in enumerate(names)]
     how = f"placed at frames {kf.frames}" if kf.placed else f"from frames {kf.source_frames}"
@@ -276,13 +294,13 @@ def main(argv: Optional[List[str]] = None) -> int:
                **keyframe_metrics(res.joints, res.target, given, fps, reference=seg, global_error=known)}
         rows.append(row)
         for suffix, arr in (("joints", res.joints), ("features", res.features)):
-            with atomic_open(os.path.join(a.out, f"{name}_{suffix}.npy"), "wb") as f:
+            with atomic_open(os.path.join(out, f"{name}_{suffix}.npy"), "wb") as f:
                 np.save(f, arr)
     table = summary_markdown(rows)
     print(table)
-    atomic_write_text(os.path.join(a.out, "summary.md"), table + "\n")
-    atomic_write_json(os.path.join(a.out, "summary.json"), {"rows": rows, "settings": vars(a)})
-    atomic_write_json(os.path.join(a.out, "keyframes.json"), {
+    atomic_write_text(os.path.join(out, "summary.md"), table + "\n")
+    atomic_write_json(os.path.join(out, "summary.json"), {"rows": rows, "settings": vars(a)})
+    atomic_write_json(os.path.join(out, "keyframes.json"), {
         "source": a.keyframes, "kind": source.kind, "frames": kf.frames, "source_frames": kf.source_frames,
         "start": kf.start, "length": kf.length, "placed": kf.placed, "fps": fps})
     if not a.no_gif:
@@ -292,7 +310,7 @@ def main(argv: Optional[List[str]] = None) -> int:
         if kf.segment(len(source.joints)) is not None:
             panels.append(Panel(results[0].target, "keyframe source", kf.frames))
         panels += [Panel(r.joints[0], f"{n}: {r.label}", kf.frames) for n, r in zip(names, results)]
-        render_gif(panels, os.path.join(a.out, "inbetween.gif"), fps=fps, overwrite=True, progress=not a.quiet,
+        render_gif(panels, os.path.join(out, "inbetween.gif"), fps=fps, overwrite=True, progress=not a.quiet,
                    suptitle=f"in-betweening {len(kf.frames)} keyframes (red) of {os.path.basename(a.keyframes)}")
     print(f"outputs: {os.path.abspath(a.out)}")
     return 0

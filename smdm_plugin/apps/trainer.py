@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import json
 import math
 import os
 import time
@@ -39,6 +40,9 @@ from ..io.files import atomic_open, atomic_write_json, atomic_write_text
 DEFAULT_MODEL: Dict[str, Any] = {"latent_dim": 128, "num_layers": 4, "num_heads": 4, "ff_size": 256,
                                  "arch": "trans_enc", "dropout": 0.1}
 TRAIN_CONFIG_FILENAME = "train_config.json"
+#: optimiser, random streams and step of the last checkpoint (``smdm train --resume``)
+TRAIN_STATE_FILENAME = "train_state.pt"
+TRAIN_STATE_VERSION = 1
 
 
 # ----------------------------------------------------------------------------------------- data
@@ -125,12 +129,28 @@ def load_humanml3d(root: str, split: str = "train", max_frames: int = 196, min_f
         raise FileNotFoundError(f"data: {root} is not a HumanML3D-format folder (missing {', '.join(missing)})")
     if not 2 <= min_frames <= max_frames:
         raise ValueError(f"load_humanml3d: need 2 <= min_frames <= max_frames, got {min_frames}, {max_frames}")
+    from ..io.validate import check_array, check_stats, load_npy
+
+    mean = load_npy(str(base / "Mean.npy"), "feature mean")
+    std = load_npy(str(base / "Std.npy"), "feature std")
+    if mean.ndim != 1:
+        raise ValueError(f"data: {base / 'Mean.npy'}: expected a vector [D], got shape {list(mean.shape)}")
+    D = mean.shape[0]
+    mean, _ = check_stats(mean, np.ones(D), D, str(base / "Mean.npy"))
+    _, std = check_stats(mean, std, D, str(base / "Std.npy"))
+    try:
+        names = (base / f"{split}.txt").read_bytes().decode("utf-8-sig").split()
+    except UnicodeDecodeError as e:
+        raise ValueError(f"data: {base / f'{split}.txt'}: not UTF-8 text (byte {e.start}: {e.reason})") from None
+    except IsADirectoryError:
+        raise ValueError(f"data: {base / f'{split}.txt'}: is a folder, expected a text file") from None
     kept, motions, joints = [], [], []
-    for name in (base / f"{split}.txt").read_text().split():
+    for name in names:
         path = base / "new_joint_vecs" / f"{name}.npy"
         if not path.exists():
             continue
-        motion = np.load(path)
+        # checked before the first step: a bad file is one line naming it, not a nan loss later
+        motion = check_array(load_npy(str(path), "motion features [T, D]"), f"data: {path}", "motion", (-1, D))
         if len(motion) < min_frames:
             continue
         kept.append(name)
@@ -140,8 +160,23 @@ def load_humanml3d(root: str, split: str = "train", max_frames: int = 196, min_f
             joints.append(np.load(jpath)[:max_frames].astype(np.float32) if jpath.exists() else None)
     if not kept:
         raise ValueError(f"data: split {split!r} of {root} has no motion of >= {min_frames} frames")
-    return MotionSet.from_motions(motions, np.load(base / "Mean.npy"), np.load(base / "Std.npy"), kept,
-                                  max_frames, joints if with_joints else None)
+    return MotionSet.from_motions(motions, mean, std, kept, max_frames, joints if with_joints else None)
+
+
+def check_clip_lengths(data: MotionSet, sparse: SparseConfig, root: str) -> None:
+    """``ValueError`` naming the first clip so short that the ``sparse.reduction`` would keep fewer
+    than 2 keyframes (the selection would then keep 2, silently not the reduction asked for)."""
+    from ..core.selection import keyframe_count
+
+    r = float(sparse.reduction)
+    short = [(i, int(L)) for i, L in zip(data.ids, data.lengths.tolist()) if round((1.0 - r) * L) < 2]
+    if short:
+        need = next(L for L in range(2, 100000) if round((1.0 - r) * L) >= 2)
+        name, L = short[0]
+        raise ValueError(f"data: {os.path.join(root, 'new_joint_vecs', name + '.npy')} has {L} frames: at reduction "
+                         f"{r:g} it would keep {keyframe_count(L, r)} of the round({1 - r:g} x {L}) keyframes asked "
+                         f"for; pass --min-frames {need} (or more), or a smaller --sparse_reduction"
+                         + (f" ({len(short)} clips are that short)" if len(short) > 1 else ""))
 
 
 # ----------------------------------------------------------------------------------------- randomness
@@ -409,6 +444,61 @@ class Trainer:
     def checkpoint_name(self) -> str:
         return f"model{self.step_count:09d}.pt"
 
+    def state(self) -> Dict[str, Any]:
+        """What :meth:`load_state` needs to continue exactly where this trainer stands: step count,
+        losses, optimiser state, and every random stream (torch CPU / CUDA, numpy, Python's
+        ``random``); plain tensors and containers (loads with ``weights_only=True``). The data
+        order, diffusion steps and noise are functions of (seed, step) and need no state."""
+        import random
+
+        np_state = np.random.get_state()
+        py_state = random.getstate()
+        return {"format": TRAIN_STATE_VERSION, "step": self.step_count, "world_size": self.dist.world_size,
+                "config": json.dumps(self.config.to_dict(), sort_keys=True),
+                "losses": torch.tensor(self.losses, dtype=torch.float64),
+                "optimizer": self.optimizer.state_dict(),
+                "torch_rng": torch.get_rng_state(),
+                "cuda_rng": torch.cuda.get_rng_state(self.dist.device) if self.dist.device.type == "cuda" else None,
+                "numpy_rng": [np_state[0], torch.from_numpy(np_state[1].astype(np.int64)), int(np_state[2]),
+                              int(np_state[3]), float(np_state[4])],
+                "python_rng": [py_state[0], torch.tensor(py_state[1], dtype=torch.int64),
+                               py_state[2]]}
+
+    def load_state(self, state: Dict[str, Any], weights: Dict[str, torch.Tensor], where: str = "state") -> None:
+        """Continue from :meth:`state` (and the model ``weights`` of the same step). Raises
+        ``ValueError`` naming ``where`` when it does not belong to this run (another config, other
+        world size, a newer format)."""
+        import random
+
+        if not isinstance(state, dict) or state.get("format") != TRAIN_STATE_VERSION:
+            raise ValueError(f"{where}: not a training state of format {TRAIN_STATE_VERSION}")
+        missing = [k for k in ("step", "world_size", "config", "losses", "optimizer", "torch_rng", "numpy_rng",
+                               "python_rng") if k not in state]
+        if missing:
+            raise ValueError(f"{where}: missing field(s) {', '.join(missing)}")
+        saved = json.loads(state["config"])
+        now = self.config.to_dict()
+        differ = sorted(k for k in set(saved) | set(now) if k != "steps" and saved.get(k) != now.get(k))
+        if differ:
+            raise ValueError(f"{where}: saved by a run with other settings ({'; '.join(f'{k}: saved {saved.get(k)!r}, now {now.get(k)!r}' for k in differ)})")
+        if int(state["world_size"]) != self.dist.world_size:
+            raise ValueError(f"{where}: saved by {state['world_size']} process(es), resumed with {self.dist.world_size}")
+        step = int(state["step"])
+        losses = state["losses"]
+        if step < 0 or not isinstance(losses, torch.Tensor) or losses.shape != (step,):
+            raise ValueError(f"{where}: step {step} and {tuple(getattr(losses, 'shape', ()))} losses disagree")
+        self.model.load_state_dict(weights)
+        self.optimizer.load_state_dict(state["optimizer"])
+        torch.set_rng_state(state["torch_rng"])
+        if state.get("cuda_rng") is not None and self.dist.device.type == "cuda":
+            torch.cuda.set_rng_state(state["cuda_rng"], self.dist.device)
+        n = state["numpy_rng"]
+        np.random.set_state((n[0], n[1].numpy().astype(np.uint32), int(n[2]), int(n[3]), float(n[4])))
+        p = state["python_rng"]
+        random.setstate((p[0], tuple(int(v) for v in p[1].tolist()), p[2]))
+        self.step_count = step
+        self.losses = [float(v) for v in losses.tolist()]
+
     def save(self, folder: str, extra: Optional[Dict[str, Any]] = None) -> Optional[str]:
         """Write the checkpoint folder (rank 0 only; other ranks return None): ``model<step>.pt``
         (the plain model's state dict), ``backbone.json`` (TinyMDM arguments), ``sparse_config.json``
@@ -428,6 +518,9 @@ class Trainer:
         for name, value in (("Mean.npy", self.data.mean), ("Std.npy", self.data.std)):
             with atomic_open(os.path.join(folder, name), "wb") as f:
                 np.save(f, np.asarray(value, np.float32))
+        if self.dist.world_size == 1:  # after the weights: the state never runs ahead of a model file
+            with atomic_open(os.path.join(folder, TRAIN_STATE_FILENAME), "wb") as f:
+                torch.save(self.state(), f)
         atomic_write_json(os.path.join(folder, TRAIN_CONFIG_FILENAME),
                           {**self.config.to_dict(), "world_size": self.dist.world_size,
                            "global_batch": self.global_batch, "step": self.step_count, **(extra or {})})
@@ -603,16 +696,38 @@ def load_trained(folder: str, step: Optional[int] = None, map_location: Any = "c
                  ) -> Tuple[nn.Module, Optional[SparseConfig]]:
     """Reload a folder written by :meth:`Trainer.save` (the last ``model*.pt``, or ``step``'s),
     sparse mode re-created with the saved Mean/Std: ``(model, sparse config or None)``."""
-    from ..io.checkpoint import load_checkpoint
+    import re
 
-    names = sorted(n for n in os.listdir(folder) if n.startswith("model") and n.endswith(".pt"))
+    from ..io.checkpoint import load_checkpoint
+    from ..io.validate import check_stats, int_field, load_npy, read_json_object, require_fields
+
+    if not os.path.isdir(folder):
+        raise FileNotFoundError(f"load_trained: no such model folder: {folder!r}")
+    names = sorted(n for n in os.listdir(folder) if re.fullmatch(r"model\d{9}\.pt", n))
     if step is not None:
         names = [n for n in names if n == f"model{step:09d}.pt"]
     if not names:
         raise FileNotFoundError(f"load_trained: no model{'*' if step is None else f'{step:09d}'}.pt in {folder}")
-    mean = np.load(os.path.join(folder, "Mean.npy"))
-    std = np.load(os.path.join(folder, "Std.npy"))
-    return load_checkpoint(os.path.join(folder, names[-1]), map_location=map_location, mean=mean, std=std)
+    # every saved setting checked before it is used: a wrong one is an error naming file and field
+    bpath = os.path.join(folder, BACKBONE_FILENAME)
+    backbone = read_json_object(bpath)
+    D = int_field(backbone, "njoints", bpath) * int_field(backbone, "nfeats", bpath)
+    cpath = os.path.join(folder, TRAIN_CONFIG_FILENAME)
+    T: Optional[int] = None
+    if os.path.exists(cpath):
+        saved = read_json_object(cpath)
+        require_fields(saved, ("steps", "diffusion_steps", "seed", "model", "sparse"), cpath)
+        int_field(saved, "steps", cpath, lo=0)
+        T = int_field(saved, "diffusion_steps", cpath, lo=1)
+    mean = load_npy(os.path.join(folder, "Mean.npy"), "feature mean")
+    std = load_npy(os.path.join(folder, "Std.npy"), "feature std")
+    mean, _ = check_stats(mean, np.ones(D), D, os.path.join(folder, "Mean.npy"))
+    _, std = check_stats(mean, std, D, os.path.join(folder, "Std.npy"))
+    model, config = load_checkpoint(os.path.join(folder, names[-1]), map_location=map_location, mean=mean, std=std)
+    if config is not None and T is not None and int(config.diffusion_steps) != T:
+        raise ValueError(f"{cpath}: diffusion_steps={T} disagrees with {CONFIG_FILENAME}'s diffusion_steps="
+                         f"{config.diffusion_steps}")
+    return model, config
 
 
 # ----------------------------------------------------------------------------------------- CLI
@@ -636,6 +751,9 @@ def build_parser() -> argparse.ArgumentParser:
                    help="skip shorter motions (default: 40)")
     p.add_argument("--out", required=True, metavar="DIR", help="checkpoint folder to write")
     add_overwrite(p)
+    p.add_argument("--resume", action="store_true",
+                   help="continue the run in --out (interrupted, or finished and given more --steps) from its last "
+                        "checkpoint: weights, optimiser, random streams and step count, as if never stopped")
     t = p.add_argument_group("training")
     t.add_argument("--steps", type=int_range(1), default=1000, help="optimiser steps (default: 1000)")
     t.add_argument("--batch", type=int_range(1), default=16,
@@ -676,6 +794,8 @@ _NOT_CLI_SPARSE = {"sparse_diffusion_steps": "set from --diffusion-steps",
 def _parse(argv: Optional[List[str]]) -> Tuple[Any, TrainConfig]:
     p = build_parser()
     a = p.parse_args(argv)
+    if a.resume and a.overwrite:
+        p.error("argument --overwrite: not allowed with argument --resume")
     if a.min_frames > a.max_frames:
         p.error(f"--min-frames ({a.min_frames}) must be <= --max-frames ({a.max_frames})")
     if a.latent_dim % a.heads:
@@ -696,22 +816,27 @@ def _parse(argv: Optional[List[str]]) -> Tuple[Any, TrainConfig]:
 
 
 #: what ``smdm train`` writes besides ``model<step>.pt``
-OUTPUT_FILES = (BACKBONE_FILENAME, CONFIG_FILENAME, TRAIN_CONFIG_FILENAME, "Mean.npy", "Std.npy", "losses.csv",
-                "loss.png", "result.json")
+OUTPUT_FILES = (BACKBONE_FILENAME, CONFIG_FILENAME, TRAIN_CONFIG_FILENAME, TRAIN_STATE_FILENAME, "Mean.npy",
+                "Std.npy", "losses.csv", "loss.png", "result.json")
+#: the names ``smdm train`` writes (an ``--overwrite`` refuses such a file it did not write itself)
+OUTPUT_PATTERNS = OUTPUT_FILES + ("model[0-9][0-9][0-9][0-9][0-9][0-9][0-9][0-9][0-9].pt",)
 
 
-def _prepare_out(out: str, overwrite: bool) -> None:
-    """Refuse a non-empty ``out`` unless ``overwrite``; with it, remove what an earlier run wrote
-    there (its ``model*.pt`` and :data:`OUTPUT_FILES`: a stale ``sparse_config.json`` would make a
-    dense checkpoint load as sparse) and leave other files alone."""
-    import re
+def _resume(trainer: "Trainer", folder: str) -> str:
+    """Load ``folder``'s ``train_state.pt`` and the model of its step into ``trainer``; returns a
+    line saying what was resumed (nothing when the interrupted run saved no checkpoint yet)."""
+    path = os.path.join(folder, TRAIN_STATE_FILENAME)
+    if not os.path.exists(path):
+        return "no checkpoint saved yet; starting at step 0"
+    from ..io.checkpoint import read_state_dict
 
-    from ..io.files import check_new_dir
-
-    check_new_dir(out, overwrite, what="--out")
-    for name in os.listdir(out):
-        if name in OUTPUT_FILES or re.fullmatch(r"model\d{9}\.pt", name):
-            os.remove(os.path.join(out, name))
+    state = read_state_dict(path, what="training state")
+    step = int(state.get("step", -1)) if isinstance(state, dict) else -1
+    weights = read_state_dict(os.path.join(folder, f"model{step:09d}.pt"))
+    trainer.load_state(state, weights, where=path)
+    if trainer.step_count > trainer.config.steps:
+        raise ValueError(f"--resume: {path} is at step {trainer.step_count}, past --steps {trainer.config.steps}")
+    return f"resumed at step {trainer.step_count}"
 
 
 def write_logs(folder: str, losses: Sequence[float], result: Optional[TrainResult] = None) -> None:
@@ -744,57 +869,105 @@ def write_logs(folder: str, losses: Sequence[float], result: Optional[TrainResul
 def main(argv: Optional[List[str]] = None) -> int:
     """``smdm train``; returns the exit status (2: bad arguments, data or output folder)."""
     import sys
+    from contextlib import ExitStack
 
     from ..integrations.distributed import shutdown_distributed
     from ..io.files import OutputExistsError
+    from ..io.outdir import OutputDir
 
     a, cfg = _parse(argv)
     if a.threads:
         torch.set_num_threads(a.threads)
     try:
         data = load_humanml3d(a.data, a.split, a.max_frames, a.min_frames)
+        if cfg.sparse is not None:
+            check_clip_lengths(data, cfg.sparse, a.data)
         ctx = init_distributed(a.device)
     except (FileNotFoundError, ValueError) as e:
         print(f"smdm train: {e}", file=sys.stderr)
         return 2
+    if a.resume and ctx.distributed:
+        print("smdm train: --resume: not supported under torchrun yet (the random streams of every rank are not "
+              "saved); resume with one process", file=sys.stderr)
+        shutdown_distributed(ctx)
+        return 2
     try:
-        message = ""
-        if ctx.is_main:
-            try:
-                _prepare_out(a.out, a.overwrite)
-            except OutputExistsError as e:
-                message = str(e)
-        if not ctx.broadcast_flag(not message):
+        with ExitStack() as stack:
+            message, od = "", None
             if ctx.is_main:
-                print(f"smdm train: {message}", file=sys.stderr)
-            return 2
-        trainer = Trainer(cfg, data, dist=ctx)
-        if ctx.is_main:
-            kind = "sparse" if cfg.sparse is not None else "dense"
-            print(f"smdm train: {kind} TinyMDM, {len(data)} motions from {a.data} ({a.split}), {cfg.steps} steps "
-                  f"x global batch {trainer.global_batch} ({ctx.world_size} process(es) x {cfg.batch}) on "
-                  f"{ctx.device}" + (f", backend {torch.distributed.get_backend()}" if ctx.distributed else ""),
-                  flush=True)
-        extra = {"data": os.path.abspath(a.data), "split": a.split, "min_frames": a.min_frames,
-                 "max_frames": a.max_frames}
+                od = OutputDir(a.out, overwrite=a.overwrite, inputs={"--data": a.data}, command="smdm train",
+                               owns=OUTPUT_PATTERNS, resumable=True, resume=a.resume)
+                try:
+                    stack.enter_context(od)
+                    if a.resume and od.resumed_from is None:
+                        raise OutputExistsError(f"--resume: {a.out!r} holds no run to continue (no interrupted or "
+                                                "finished smdm train run there)")
+                except (OutputExistsError, OSError) as e:
+                    from ..io.outdir import describe_os_error
 
-        def every(tr: Trainer, loss: float) -> None:
-            if a.save_every and tr.step_count % a.save_every == 0 and tr.step_count < cfg.steps:
-                tr.save(a.out, extra)
+                    message = str(e) if isinstance(e, OutputExistsError) else describe_os_error(e)
+            if not ctx.broadcast_flag(not message):
                 if ctx.is_main:
-                    write_logs(a.out, tr.losses)
+                    print(f"smdm train: {message}", file=sys.stderr)
+                return 2
+            folder = od.path if od is not None else a.out  # other ranks write nothing
+            trainer = Trainer(cfg, data, dist=ctx)
+            extra = {"data": os.path.abspath(a.data), "split": a.split, "min_frames": a.min_frames,
+                     "max_frames": a.max_frames}
+            note = ""
+            if a.resume and od is not None:
+                try:
+                    note = "; " + _resume(trainer, folder)
+                    saved = _read_json(os.path.join(folder, TRAIN_CONFIG_FILENAME))
+                    if os.path.exists(os.path.join(folder, TRAIN_STATE_FILENAME)):
+                        differ = [k for k in extra if saved.get(k) != extra[k]]
+                        if differ:
+                            raise ValueError(f"--resume: {a.out} was trained on other data ("
+                                             + "; ".join(f"{k}: saved {saved.get(k)!r}, now {extra[k]!r}"
+                                                         for k in differ) + ")")
+                except ValueError as e:
+                    print(f"smdm train: {e}", file=sys.stderr)
+                    return 2
+            if ctx.is_main:
+                kind = "sparse" if cfg.sparse is not None else "dense"
+                print(f"smdm train: {kind} TinyMDM, {len(data)} motions from {a.data} ({a.split}), {cfg.steps} steps "
+                      f"x global batch {trainer.global_batch} ({ctx.world_size} process(es) x {cfg.batch}) on "
+                      f"{ctx.device}" + (f", backend {torch.distributed.get_backend()}" if ctx.distributed else "")
+                      + note, flush=True)
 
-        result = trainer.train(progress=not a.no_progress, callback=every)
-        path = trainer.save(a.out, extra)
+            def every(tr: Trainer, loss: float) -> None:
+                if a.save_every and tr.step_count % a.save_every == 0 and tr.step_count < cfg.steps:
+                    tr.save(folder, extra)
+                    if ctx.is_main:
+                        write_logs(folder, tr.losses)
+
+            result = trainer.train(progress=not a.no_progress, callback=every)
+            trainer.save(folder, extra)
+            if ctx.is_main:
+                write_logs(folder, trainer.losses, result)
+            ctx.barrier()
         if ctx.is_main:
-            write_logs(a.out, trainer.losses, result)
+            path = os.path.join(a.out, trainer.checkpoint_name())
             print(f"smdm train: {result.steps} steps in {result.seconds:.1f} s ({result.steps_per_s:.2f} steps/s, "
                   f"{result.samples_per_s:.1f} samples/s), final loss {result.final_loss:.4f}; ranks in sync: "
                   f"max |difference| {result.max_divergence:.3g}\nsaved {path}")
-        ctx.barrier()
         return 0
     finally:
         shutdown_distributed(ctx)
+
+
+def _read_json(path: str) -> Dict[str, Any]:
+    """A JSON object file (errors name it)."""
+    try:
+        with open(path, "rb") as f:
+            data = json.loads(f.read().decode("utf-8"))
+    except FileNotFoundError:
+        raise ValueError(f"{path}: missing") from None
+    except (UnicodeDecodeError, ValueError) as e:
+        raise ValueError(f"{path}: not valid UTF-8 JSON ({e})") from None
+    if not isinstance(data, dict):
+        raise ValueError(f"{path}: expected a JSON object, got {type(data).__name__}")
+    return data
 
 
 if __name__ == "__main__":

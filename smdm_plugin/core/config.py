@@ -16,12 +16,14 @@ import dataclasses
 import difflib
 import json
 import math
-import numbers
 import os
 from dataclasses import dataclass
 from typing import Any, Callable, Dict, Iterable, List, Mapping, Optional, Sequence, Tuple, Union
 
+import numpy as np
+
 from .atomic import atomic_write_text
+from .scalars import as_float, is_bool, is_int, scalar
 
 CONFIG_VERSION = 1
 CONFIG_FILENAME = "sparse_config.json"
@@ -405,10 +407,11 @@ def _check_field(name: str, spec: FieldSpec, v: Any) -> Any:
 
     if v is None and spec.optional:
         return None
+    v = scalar(v)  # numpy scalars and 0-d arrays are numbers like any other
     if spec.kind is bool:
-        if not isinstance(v, bool):
+        if not is_bool(v):
             raise bad(ConfigTypeError)
-        return v
+        return bool(v)
     if spec.kind is str:
         if not isinstance(v, str):
             raise bad(ConfigTypeError)
@@ -418,6 +421,8 @@ def _check_field(name: str, spec: FieldSpec, v: Any) -> Any:
             raise bad()
         return v
     if spec.kind is tuple:
+        if isinstance(v, np.ndarray) and v.ndim == 1:
+            v = list(v)
         if isinstance(v, (str, bytes)) or not isinstance(v, Sequence):
             raise bad(ConfigTypeError)
         if not v:
@@ -435,19 +440,16 @@ def _check_field(name: str, spec: FieldSpec, v: Any) -> Any:
             raise bad()
         return int(v)
     # float
-    if not isinstance(v, numbers.Real) or isinstance(v, bool):
+    x = as_float(v)
+    if x is None:
         raise bad(ConfigTypeError)
-    try:
-        x = float(v)
-    except OverflowError:
-        raise bad() from None
     if not math.isfinite(x) or x not in spec.range:
         raise bad()
     return x
 
 
 def _is_int(v: Any) -> bool:
-    return isinstance(v, numbers.Integral) and not isinstance(v, bool)
+    return is_int(v)
 
 
 def _argparse_type(spec: FieldSpec) -> Callable[[str], Any]:
@@ -528,6 +530,22 @@ def config_section(data: Any, where: Optional[str] = None) -> Dict[str, Any]:
                                   f"options, got {type(section).__name__}")
         return dict(section)
     return dict(data)
+
+
+def as_config(config: Any, what: str = "config") -> "SparseConfig":
+    """``config`` as a validated :class:`SparseConfig`: a ``SparseConfig`` (validated again: its
+    fields may have been assigned since), or a mapping of field names (converted, e.g. a parsed
+    YAML/JSON ``dict``). Anything else is a :class:`ConfigTypeError` naming ``what``."""
+    if isinstance(config, SparseConfig):
+        return config.validate()
+    if isinstance(config, Mapping):
+        try:
+            return SparseConfig.from_dict(config)
+        except ConfigTypeError as e:
+            raise ConfigTypeError(f"{what}: {e}") from None
+        except ValueError as e:
+            raise ValueError(f"{what}: {e}") from None
+    raise ConfigTypeError(f"{what} must be a SparseConfig or a mapping of its options, got {type(config).__name__}")
 
 
 def preset_dirs() -> List[str]:

@@ -29,6 +29,7 @@ import torch
 
 from .checks import LengthsLike, as_lengths, as_mask, require
 from .kernels.vw import vw_keyframes
+from .scalars import as_float
 
 METHODS = ("vw", "uniform", "random", "mdo")
 
@@ -74,9 +75,10 @@ def keyframe_capacity(n_frames: int, reduction: float, mask_noise: float = 0.0, 
 
 
 def _check_reduction(reduction: float, fn: str) -> float:
-    if isinstance(reduction, bool) or not isinstance(reduction, (int, float)) or not 0.0 <= float(reduction) < 1.0:
+    x = as_float(reduction)
+    if x is None or not 0.0 <= x < 1.0:
         raise ValueError(f"{fn}: reduction must be a float in [0, 1) (fraction of frames dropped), got {reduction!r}")
-    return float(reduction)
+    return x
 
 
 def _check(features, lengths: LengthsLike, reduction: float, fn: str
@@ -284,7 +286,7 @@ def perturb_mask(mask: torch.Tensor, lengths: LengthsLike = None, amount: float 
     if not isinstance(mask, torch.Tensor) or mask.dim() != 2:
         shape = tuple(mask.shape) if isinstance(mask, torch.Tensor) else type(mask).__name__
         raise ValueError(f"perturb_mask: mask must be a 2-D bool tensor [B, N], got {shape}")
-    if isinstance(amount, bool) or not isinstance(amount, (int, float)) or not 0.0 <= float(amount) <= 1.0:
+    if as_float(amount) is None or not 0.0 <= as_float(amount) <= 1.0:
         raise ValueError(f"perturb_mask: amount must be a float in [0, 1] (fraction of "
                          f"keyframes), got {amount!r}")
     B, N = mask.shape

@@ -9,7 +9,6 @@ Layout of the folder::
 """
 from __future__ import annotations
 
-import json
 import os
 from dataclasses import dataclass, field
 from typing import Any, Dict, Optional
@@ -18,10 +17,11 @@ import numpy as np
 import torch
 import torch.nn as nn
 
-from ..core.config import SparseConfig
+from ..core.config import CONFIG_FILENAME, SparseConfig
 from ..reference.diffusion import SimpleDiffusion
 from .checkpoint import BACKBONE_FILENAME, load_checkpoint, save_sparse_config
 from .files import atomic_open, atomic_write_json, check_new_dir
+from .validate import check_stats, float_field, int_field, read_json_object, require_fields
 from .representation import Representation
 
 WEIGHTS_FILENAME = "model.pt"
@@ -92,16 +92,39 @@ def load_bundle(directory: str, device: Any = "cpu") -> ModelBundle:
         raise FileNotFoundError(f"{directory!r} is not a model folder (no {MOTION_FILENAME}); train one with "
                                 "`smdm demo --out DIR` (writes DIR/dense and DIR/sparse) or "
                                 "scripts/eval_inbetween.py")
+    meta = read_json_object(meta_path)
+    # every setting present (no defaults for a versioned file), typed and in range
+    require_fields(meta, ("representation", "mean", "std", "fps", "max_frames", "diffusion_steps"), meta_path)
     try:
-        with open(meta_path) as f:
-            meta = json.load(f)
         rep = Representation(meta["representation"])
-        mean, std = np.asarray(meta["mean"], np.float32), np.asarray(meta["std"], np.float32)
-        steps = int(meta["diffusion_steps"])
     except (ValueError, KeyError, TypeError) as e:
-        raise ValueError(f"{meta_path}: not a valid {MOTION_FILENAME} ({e})") from None
+        raise ValueError(f"{meta_path}: representation={meta['representation']!r}: {e}") from None
+    steps = int_field(meta, "diffusion_steps", meta_path, lo=1)
+    fps = float_field(meta, "fps", meta_path, lo=0.0)
+    max_frames = int_field(meta, "max_frames", meta_path, lo=2)
+    mean, std = check_stats(_array(meta["mean"], meta_path, "mean"), _array(meta["std"], meta_path, "std"),
+                            rep.dim, meta_path)
     model, config = load_checkpoint(os.path.join(directory, WEIGHTS_FILENAME), mean=mean, std=std)
+    if config is not None and config.enabled and int(config.diffusion_steps) != steps:
+        raise ValueError(f"{meta_path}: diffusion_steps={steps} disagrees with {CONFIG_FILENAME}'s "
+                         f"diffusion_steps={config.diffusion_steps}")
+    backbone = read_json_object(os.path.join(directory, BACKBONE_FILENAME))
+    if backbone.get("njoints", rep.dim) * backbone.get("nfeats", 1) != rep.dim:
+        raise ValueError(f"{os.path.join(directory, BACKBONE_FILENAME)}: njoints x nfeats="
+                         f"{backbone.get('njoints')} x {backbone.get('nfeats', 1)} disagrees with {meta_path}'s "
+                         f"representation {rep.name} ({rep.dim} features)")
     model.to(device).eval()
     return ModelBundle(model=model, diffusion=SimpleDiffusion(steps), representation=rep, mean=mean, std=std,
-                       fps=float(meta.get("fps", 20.0)), max_frames=int(meta.get("max_frames", 196)),
+                       fps=fps, max_frames=max_frames,
                        config=config, path=directory, info=dict(meta.get("info", {})))
+
+
+def _array(v: Any, where: str, name: str) -> np.ndarray:
+    """A JSON list of numbers as an array (a ragged or non-numeric list names the file and field)."""
+    try:
+        arr = np.asarray(v)
+    except ValueError:
+        arr = None
+    if arr is None or arr.dtype.kind not in "biuf":
+        raise ValueError(f"{where}: {name} must be a list of numbers")
+    return arr

@@ -52,6 +52,12 @@ class BVH:
 _VALID_CHANNELS = {"Xposition", "Yposition", "Zposition", "Xrotation", "Yrotation", "Zrotation"}
 
 
+#: the largest |value| an OFFSET or motion channel may hold (cm or degrees; real data is far below)
+MAX_ABS_VALUE = 1e7
+#: Frame Time limits in seconds: 100 kHz to one frame a minute (the frame rate stays a normal float)
+MIN_FRAME_TIME, MAX_FRAME_TIME = 1e-5, 60.0
+
+
 class BVHError(ValueError):
     """A BVH file that cannot be read correctly; the message names the file (and the line)."""
 
@@ -114,6 +120,8 @@ def read_bvh(path: Union[str, Path]) -> BVH:
                            n) from None
         if not np.isfinite(v):
             raise BVHError(path, f"{what}: expected a finite number, got {t!r}", n)
+        if abs(v) > MAX_ABS_VALUE:
+            raise BVHError(path, f"{what}: {t} is beyond +-{MAX_ABS_VALUE:g} (not a real skeleton)", n)
         return v
 
     names: List[str] = []
@@ -202,6 +210,11 @@ def _motion_header(path: Union[str, Path], tok: Sequence[Tuple[str, int]]) -> Tu
         raise BVHError(path, f"Frame Time: expected a number (seconds), got {words[4]!r}", tok[5][1]) from None
     if not (np.isfinite(frame_time) and frame_time > 0):
         raise BVHError(path, f"Frame Time: must be a finite number of seconds > 0, got {words[4]}", tok[5][1])
+    if not MIN_FRAME_TIME <= frame_time <= MAX_FRAME_TIME:  # 1 / frame_time is the frame rate
+        raise BVHError(path, f"Frame Time: {words[4]} s is outside [{MIN_FRAME_TIME:g}, {MAX_FRAME_TIME:g}] s "
+                             f"(a frame rate of {1 / frame_time:.3g} fps)", tok[5][1])
+    if n_frames < 2:
+        raise BVHError(path, f"Frames: {n_frames}: a motion needs at least 2 frames", tok[2][1])
     return n_frames, frame_time, tok[5][1]  # rows start on the line after Frame Time
 
 
@@ -230,6 +243,9 @@ def _motion_rows(path: Union[str, Path], lines: Sequence[str], first: int, n_fra
     if not np.isfinite(motion).all():
         r = int(np.argwhere(~np.isfinite(motion))[0, 0])
         raise BVHError(path, "motion value is not finite (nan/inf)", rows[r][0])
+    if n_frames and np.abs(motion).max() > MAX_ABS_VALUE:
+        r = int(np.argwhere(np.abs(motion) > MAX_ABS_VALUE)[0, 0])
+        raise BVHError(path, f"motion value beyond +-{MAX_ABS_VALUE:g} (not a real motion)", rows[r][0])
     return motion
 
 

@@ -12,6 +12,7 @@ import torch.nn as nn
 
 from ..core.config import CONFIG_FILENAME, MARKER, SparseConfig
 from .files import OutputExistsError
+from .validate import read_json_object, require_fields
 
 BACKBONE_FILENAME = "backbone.json"
 
@@ -61,23 +62,69 @@ def find_sparse_config(checkpoint_path: str) -> Optional[SparseConfig]:
 
 def _find_config(checkpoint_path: str) -> Tuple[Optional[SparseConfig], Optional[str]]:
     """``(config, the file it came from)`` or ``(None, None)``; errors name the file."""
+    import dataclasses
+
     d = _dir_of(checkpoint_path)
     p = os.path.join(d, CONFIG_FILENAME)
-    if os.path.exists(p):
-        return SparseConfig.load(p), p
     args = os.path.join(d, "args.json")
+    config: Optional[SparseConfig] = None
+    if os.path.exists(p):
+        config = SparseConfig.load(p)
+        # a versioned file: every field must be there (a missing one is an error, never a default)
+        require_fields(read_json_object(p), [f.name for f in dataclasses.fields(SparseConfig)], p)
     if os.path.exists(args):
-        try:
-            with open(args) as f:
-                a = json.load(f)
-        except json.JSONDecodeError as e:
-            raise ValueError(f"{args}: not valid JSON: {e}") from None
-        if isinstance(a, dict) and a.get("sparse"):
+        a = read_json_object(args)
+        if a.get("sparse"):
             try:
-                return SparseConfig.from_args(a), args
+                from_args = SparseConfig.from_args(a)
             except ValueError as e:  # ConfigTypeError too
                 raise type(e)(f"{args}: {e}") from None
-    return None, None
+            if config is None:
+                return from_args, args
+            given = {f.name for f in dataclasses.fields(SparseConfig) if f"sparse_{f.name}" in a}
+            diff = {k: v for k, v in config.differences(from_args).items() if k in given}
+            if diff:  # the two files describe the same model: they must agree
+                raise ValueError(f"{args} and {p} disagree: " + "; ".join(
+                    f"{k}: args.json {b!r}, {CONFIG_FILENAME} {a_!r}" for k, (a_, b) in diff.items()))
+    return (config, p) if config is not None else (None, None)
+
+
+def read_state_dict(path: str, map_location: Any = "cpu", what: str = "checkpoint") -> Dict[str, Any]:
+    """``torch.load(path, weights_only=True)`` with one-line errors naming the file (missing,
+    empty, truncated or corrupt) and every floating tensor checked to be finite; complex tensors
+    are refused. ``what`` names the file's role in messages."""
+    if not os.path.exists(path):
+        raise FileNotFoundError(f"{path}: no such {what} file")
+    if os.path.isdir(path):
+        raise ValueError(f"{path}: is a folder, expected a {what} file")
+    if os.path.getsize(path) == 0:
+        raise ValueError(f"{path}: empty {what} file (an interrupted write?)")
+    try:
+        obj = torch.load(path, map_location=map_location, weights_only=True)
+    except Exception as e:  # torch raises RuntimeError, EOFError, UnpicklingError, zipfile errors ...
+        if isinstance(e, OSError) and not isinstance(e, EOFError):
+            raise
+        reason = " ".join(str(e).split())[:200] or type(e).__name__
+        raise ValueError(f"{path}: not a readable {what} (truncated or corrupt: {reason})") from None
+    if not isinstance(obj, Mapping):
+        raise ValueError(f"{path}: expected a dict of tensors, got {type(obj).__name__}")
+    for k, v in _tensors(obj):
+        if v.is_complex():
+            raise ValueError(f"{path}: tensor {k} is complex ({v.dtype}); expected real values")
+        if v.is_floating_point() and v.numel() and not bool(torch.isfinite(v).all()):
+            raise ValueError(f"{path}: tensor {k} holds non-finite values (nan/inf)")
+    return dict(obj)
+
+
+def _tensors(obj: Any, prefix: str = "") -> Iterable[Tuple[str, torch.Tensor]]:
+    if isinstance(obj, torch.Tensor):
+        yield prefix or "<root>", obj
+    elif isinstance(obj, Mapping):
+        for k, v in obj.items():
+            yield from _tensors(v, f"{prefix}.{k}" if prefix else str(k))
+    elif isinstance(obj, (list, tuple)):
+        for i, v in enumerate(obj):
+            yield from _tensors(v, f"{prefix}[{i}]")
 
 
 def state_dict_is_sparse(state_dict: Mapping[str, Any]) -> bool:
@@ -158,7 +205,7 @@ def load_checkpoint(path: str, model: Optional[nn.Module] = None, map_location: 
 
     if not os.path.isfile(path):
         raise FileNotFoundError(f"load_checkpoint: no such checkpoint file: {path!r}")
-    state = unwrap_state_dict(torch.load(path, map_location=map_location, weights_only=True))
+    state = unwrap_state_dict(read_state_dict(path, map_location=map_location))
     config, config_source = _find_config(path)
     if state_dict_is_sparse(state) and config is None:
         raise RuntimeError(f"load_checkpoint: {path} holds a sparse model but has no sparse config beside it "
@@ -171,9 +218,9 @@ def load_checkpoint(path: str, model: Optional[nn.Module] = None, map_location: 
                                     f"{path} to build the in-package TinyMDM")
         from ..reference.backbone import TinyMDM
 
+        backbone = read_json_object(bpath)
         try:
-            with open(bpath) as f:
-                model = TinyMDM(**json.load(f))
+            model = TinyMDM(**backbone)
         except (ValueError, TypeError) as e:
             raise ValueError(f"load_checkpoint: {bpath}: cannot build TinyMDM from it: {e}") from None
     if config is not None and config.text_encoder and getattr(model, "_smdm_text_encoder", None) != config.text_encoder:

@@ -32,6 +32,7 @@ import torch
 import torch.nn.functional as F
 
 from .motion import ArrayLike, _as_tensor
+from ..core.scalars import as_float, is_int
 
 #: HumanML3D 22-joint (SMPL order) feet: l_foot (10), r_foot (11).
 HUMANML3D_FEET: Tuple[int, ...] = (10, 11)
@@ -63,7 +64,7 @@ def _lengths(fn: str, lengths: Lengths, B: int, N: int, minimum: int, device: to
     if lengths is None:
         L = torch.full((B,), N, dtype=torch.long)
     else:
-        L = _as_tensor(lengths) if not isinstance(lengths, int) else torch.tensor([lengths])
+        L = _as_tensor(lengths) if not is_int(lengths) else torch.tensor([int(lengths)])
         if torch.is_floating_point(L) or L.dtype == torch.bool:
             raise TypeError(f"{fn}: lengths must be integers, got dtype {L.dtype}")
         L = L.reshape(-1).long()
@@ -78,9 +79,10 @@ def _lengths(fn: str, lengths: Lengths, B: int, N: int, minimum: int, device: to
 
 
 def _fps(fn: str, fps: float) -> float:
-    if isinstance(fps, bool) or not isinstance(fps, (int, float)) or not np.isfinite(fps) or fps <= 0:
+    x = as_float(fps)
+    if x is None or not np.isfinite(x) or x <= 0:
         raise ValueError(f"{fn}: fps must be a finite number > 0 (frames per second), got {fps!r}")
-    return float(fps)
+    return x
 
 
 def _joints(fn: str, joints: Optional[Sequence[int]], J: int, name: str = "joints") -> list:

@@ -4,7 +4,7 @@ the fixtures built on them are in ``conftest.py``.
 Every upstream test is skipped unless its ``SMDM_<NAME>_ROOT`` points at a checkout (read-only:
 the tests copy it into a temporary directory and patch the copy). Real motion comes from
 ``SMDM_HUMANML3D_DIR`` (default: ``shared/data/cmu-humanml3d`` beside this repository, or
-``/work/shared/data/cmu-humanml3d``), a small HumanML3D-format data set.
+``shared/data/cmu-humanml3d`` inside it), a small HumanML3D-format data set.
 """
 from __future__ import annotations
 
@@ -25,8 +25,7 @@ LAUNCHER = [sys.executable, "-m", "smdm_plugin.apps.cli", "run"]  # `smdm run`, 
 def find_humanml3d() -> Optional[str]:
     for cand in (os.environ.get("SMDM_HUMANML3D_DIR"),
                  os.path.join(os.path.dirname(REPO), "shared", "data", "cmu-humanml3d"),
-                 os.path.join(REPO, "shared", "data", "cmu-humanml3d"),
-                 "/work/shared/data/cmu-humanml3d"):
+                 os.path.join(REPO, "shared", "data", "cmu-humanml3d")):
         if cand and os.path.isdir(os.path.join(cand, "new_joint_vecs")):
             return os.path.abspath(cand)
     return None

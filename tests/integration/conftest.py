@@ -3,7 +3,7 @@
 Every upstream test is skipped unless its ``SMDM_<NAME>_ROOT`` points at a checkout (read-only:
 the tests copy it into a temporary directory and patch the copy). Real motion comes from
 ``SMDM_HUMANML3D_DIR`` (default: ``shared/data/cmu-humanml3d`` beside this repository, or
-``/work/shared/data/cmu-humanml3d``). Helpers: ``_upstream.py``.
+inside the repository). Helpers: ``_upstream.py``.
 """
 from __future__ import annotations
 

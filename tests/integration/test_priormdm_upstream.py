@@ -4,7 +4,7 @@ from it with upstream's ``sample.double_take``.
 
 Skipped unless ``SMDM_PRIORMDM_ROOT`` points at a priorMDM checkout (read-only; its committed
 files are copied to a temporary directory). ``SMDM_HUMANML3D_DIR`` overrides the data (default
-``shared/data/cmu-humanml3d`` beside the repo, or ``/work/shared/data/cmu-humanml3d``).
+``shared/data/cmu-humanml3d`` beside the repo,).
 Needs the upstream's Python deps (see docs/priormdm.md): blobfile, smplx, openai-clip (--no-deps),
 ftfy, pandas, matplotlib, scipy, tqdm. CLIP weights are random and its text transformer has 2
 layers (harness), SMPL files are not needed.
