@@ -74,6 +74,7 @@ import torch
 from ..core.config import ConfigTypeError, Range, closest
 from ..io.files import OutputExistsError, atomic_open, atomic_write_json, atomic_write_text
 from ._args import add_overwrite, device_type, existing_path, int_range, resolve_device
+from .threads import THREADS_HELP
 from .provenance import differences, fingerprint_files, make_provenance
 
 DEFAULT_DATA = os.path.join("..", "shared", "data", "cmu-humanml3d")
@@ -770,7 +771,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--only", nargs="+", default=None, metavar="VARIANT",
                    help="run only these variants (names or folder names); the other rows are kept")
     p.add_argument("--threads", type=int_range(1), default=None,
-                   help="torch.set_num_threads; 1 is much faster on a CPU shared with other jobs")
+                   help=THREADS_HELP)
     g = p.add_mutually_exclusive_group()
     g.add_argument("--resume", action="store_true",
                    help="continue in an existing --out: reuse results with the same provenance, run the rest")
@@ -794,8 +795,8 @@ def main(argv: Optional[List[str]] = None) -> int:
         selected = select_variants(cfg, a.only)
     except ValueError as e:
         p.error(f"argument --only: {e}")
-    if a.threads:
-        torch.set_num_threads(a.threads)
+    from .threads import apply_threads
+    apply_threads(a.threads)
     data_root = a.data or cfg.get("data") or DEFAULT_DATA
     cfg["data"] = data_root
     from ..integrations.distributed import init_distributed, shutdown_distributed

@@ -39,6 +39,7 @@ from typing import Any, Callable, Dict, List, Optional, Sequence
 import torch
 
 from ._args import add_overwrite, device_type, float_range, int_range, resolve_device
+from .threads import THREADS_HELP
 
 TARGETS = {"train": 4.0, "sample": 3.5, "loop": 3.0, "overhead": 0.10}  # at 80% reduction
 MODES = ("train", "sample", "loop")
@@ -462,7 +463,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--compile", dest="compile_mode", default="none",
                    choices=["none", "default", "reduce-overhead", "max-autotune"],
                    help="torch.compile dense and sparse models alike (fullgraph) with this mode")
-    p.add_argument("--threads", type=int_range(1), default=None, help="torch.set_num_threads (CPU)")
+    p.add_argument("--threads", type=int_range(1), default=None, help=THREADS_HELP)
     p.add_argument("--fastpath", action="store_true",
                    help="leave torch's MHA/Transformer fast path enabled (default: off for dense and sparse)")
     p.add_argument("--quick", action="store_true",
@@ -505,8 +506,8 @@ def main_bench(args: argparse.Namespace, parser: argparse.ArgumentParser) -> Dic
                 check_new_file(p, args.overwrite, "smdm bench: --out")
         except OutputExistsError as e:
             parser.error(str(e))
-    if args.threads:
-        torch.set_num_threads(args.threads)
+    from .threads import apply_threads
+    apply_threads(args.threads)
     note = busy_note(torch.get_num_threads()) if pick_device(args.device).type == "cpu" else None
     if note:
         print(note, file=sys.stderr)

@@ -7,6 +7,7 @@
 * ``smdm train``      — train TinyMDM (dense or --sparse) on HumanML3D-format motion; torchrun: DDP.
 * ``smdm run ...``    — run an upstream script (MDM, priorMDM, MotionDiffuse) in sparse mode.
 * ``smdm keyframes``  — keyframes of BVH clips (reconstruction error per method and rate).
+* ``smdm clips``      — the embedded CMU clips: list them, export one as a ``.npy`` motion file.
 
 Subcommand modules are imported lazily, so ``smdm --help`` is fast and ``smdm run`` does not
 import the benchmark code. Every command: bad arguments are one argparse line (exit status 2),
@@ -34,6 +35,7 @@ COMMANDS: Dict[str, Tuple[str, str]] = {
                   "in-betweening: a motion through your keyframes (BVH / .npy), dense and sparse, with a GIF"),
     "render": ("smdm_plugin.apps.render", "a saved motion (.npy joints / HumanML3D features, BVH) as an animated GIF"),
     "keyframes": ("smdm_plugin.apps.keyframes", "keyframe reconstruction error of BVH clips per selection method and rate"),
+    "clips": ("smdm_plugin.apps.clips", "list the embedded CMU clips, or export one as a .npy motion file"),
 }
 
 
@@ -71,6 +73,9 @@ def main(argv: Optional[List[str]] = None) -> int:
         print(f"smdm: error: unknown command {cmd!r}{closest(cmd, COMMANDS)} (commands: {', '.join(COMMANDS)}; "
               "'smdm --help' for more)", file=sys.stderr)
         return 2
+    from .threads import prepare_process
+
+    prepare_process()  # OMP_WAIT_POLICY=PASSIVE before torch loads OpenMP (docs/threads.md)
     try:
         return int(entry_point(cmd)(rest) or 0)
     except KeyboardInterrupt:

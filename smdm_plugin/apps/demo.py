@@ -54,6 +54,7 @@ import torch
 
 from ..io.files import atomic_write_json, atomic_write_text
 from ._args import add_overwrite, device_type, float_range, int_range
+from .threads import THREADS_HELP
 
 METHODS = ("vw", "uniform", "random", "mdo")
 NO_BVH = """smdm demo: no BVH motion capture found.
@@ -366,7 +367,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--frame-index-scale", type=float_range(0, 100), default=0.1,
                    help="metres per frame appended to the joint positions for keyframe selection")
     p.add_argument("--threads", type=int_range(1, 1024), default=None,
-                   help="torch.set_num_threads (1 is faster on a CPU shared with other jobs)")
+                   help=THREADS_HELP)
     p.add_argument("--no-gif", action="store_true", help="skip the in-betweening animation")
     p.add_argument("--quick", action="store_true",
                    help="a smoke run: 1 clip, 60 frames, a tiny model, 3 steps (options you give are kept)")
@@ -392,8 +393,8 @@ def main_demo(args: argparse.Namespace) -> int:
     from .trainer import MotionSet, TrainConfig, Trainer, feature_stats, race
 
     t_start = time.perf_counter()
-    if args.threads:
-        torch.set_num_threads(args.threads)
+    from .threads import apply_threads
+    apply_threads(args.threads)
     try:
         ctx = init_distributed(args.device)
     except ValueError as e:

@@ -38,6 +38,7 @@ from ..adapters.inbetween import POLICIES
 from ..reference.diffusion import IMPUTATIONS
 from ..metrics.inbetween import keyframe_metrics
 from ._args import add_overwrite, device_type, int_range
+from .threads import THREADS_HELP
 from .motion_files import ACCEPTED, LoadedMotion, add_motion_file_options
 
 DEFAULT_MODELS = (os.path.join("smdm_out", "demo", "dense"), os.path.join("smdm_out", "demo", "sparse"))
@@ -215,7 +216,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--out", default=os.path.join("smdm_out", "inbetween"), help="output folder")
     p.add_argument("--no-gif", action="store_true", help="skip the animation")
     p.add_argument("--device", type=device_type, default="auto")
-    p.add_argument("--threads", type=int_range(1, 256), default=None, help="torch.set_num_threads")
+    p.add_argument("--threads", type=int_range(1, 256), default=None, help=THREADS_HELP)
     p.add_argument("--quiet", action="store_true", help="no progress bars")
     add_overwrite(p)
     return p
@@ -231,8 +232,8 @@ def main(argv: Optional[List[str]] = None) -> int:
     a = p.parse_args(argv)
     if a.frames and a.every:
         p.error("--frames and --every: give one of them")
-    if a.threads:
-        torch.set_num_threads(a.threads)
+    from .threads import apply_threads
+    apply_threads(a.threads)
     dev = resolve_device(a.device)
     models = a.model or [d for d in DEFAULT_MODELS if os.path.isdir(d)]
     if not models:

@@ -521,6 +521,7 @@ def load_trained(folder: str, step: Optional[int] = None, map_location: Any = "c
 # ----------------------------------------------------------------------------------------- CLI
 def build_parser() -> argparse.ArgumentParser:
     from ._args import add_overwrite, device_type, float_range, int_range
+    from .threads import THREADS_HELP
 
     p = argparse.ArgumentParser(
         prog="smdm train",
@@ -566,7 +567,7 @@ def build_parser() -> argparse.ArgumentParser:
     r = p.add_argument_group("run")
     r.add_argument("--device", type=device_type, default="auto",
                    help="auto (cuda:LOCAL_RANK when CUDA is available), cpu, cuda, cuda:N, mps")
-    r.add_argument("--threads", type=int_range(1, 1024), default=None, help="torch.set_num_threads")
+    r.add_argument("--threads", type=int_range(1, 1024), default=None, help=THREADS_HELP)
     r.add_argument("--no-progress", action="store_true", help="no progress bar")
     return p
 
@@ -652,8 +653,8 @@ def main(argv: Optional[List[str]] = None) -> int:
     from ..io.files import OutputExistsError
 
     a, cfg = _parse(argv)
-    if a.threads:
-        torch.set_num_threads(a.threads)
+    from .threads import apply_threads
+    apply_threads(a.threads)
     try:
         data = load_humanml3d(a.data, a.split, a.max_frames, a.min_frames)
         ctx = init_distributed(a.device)
