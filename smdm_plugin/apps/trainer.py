@@ -39,6 +39,8 @@ from ..io.files import atomic_open, atomic_write_json, atomic_write_text
 DEFAULT_MODEL: Dict[str, Any] = {"latent_dim": 128, "num_layers": 4, "num_heads": 4, "ff_size": 256,
                                  "arch": "trans_enc", "dropout": 0.1}
 TRAIN_CONFIG_FILENAME = "train_config.json"
+#: feature width -> the representation written to motion.json (HumanML3D 263-D and joints66, both 20 fps)
+MOTION_REPRESENTATIONS: Dict[int, str] = {263: "humanml3d", 66: "joints66"}
 
 
 # ----------------------------------------------------------------------------------------- data
@@ -412,7 +414,8 @@ class Trainer:
     def save(self, folder: str, extra: Optional[Dict[str, Any]] = None) -> Optional[str]:
         """Write the checkpoint folder (rank 0 only; other ranks return None): ``model<step>.pt``
         (the plain model's state dict), ``backbone.json`` (TinyMDM arguments), ``sparse_config.json``
-        (sparse models), ``Mean.npy``/``Std.npy``, ``train_config.json`` (+ ``extra``); each file
+        (sparse models), ``Mean.npy``/``Std.npy``, ``train_config.json`` (+ ``extra``) and, for 263-D
+        or 66-D features, ``motion.json`` (so ``smdm inbetween --model`` reads the folder); each file
         written atomically. :func:`smdm_plugin.load_checkpoint` reloads it. The caller checks
         that ``folder`` may be written (``io.files.check_new_dir``)."""
         if not self.dist.is_main:
@@ -431,6 +434,14 @@ class Trainer:
         atomic_write_json(os.path.join(folder, TRAIN_CONFIG_FILENAME),
                           {**self.config.to_dict(), "world_size": self.dist.world_size,
                            "global_batch": self.global_batch, "step": self.step_count, **(extra or {})})
+        rep = MOTION_REPRESENTATIONS.get(self.data.feature_dim)
+        if rep is not None:  # motion.json: the folder is also a model smdm inbetween reads (io.bundle)
+            from ..io.bundle import write_motion_meta
+            from ..io.representation import Representation
+
+            write_motion_meta(folder, Representation(rep), self.data.mean, self.data.std, 20.0,
+                              self.data.max_frames, self.diffusion.num_timesteps,
+                              {"trained_by": "smdm train", "steps": self.step_count})
         return path
 
 
@@ -601,7 +612,7 @@ def _parse(argv: Optional[List[str]]) -> Tuple[Any, TrainConfig]:
 
 #: what ``smdm train`` writes besides ``model<step>.pt``
 OUTPUT_FILES = (BACKBONE_FILENAME, CONFIG_FILENAME, TRAIN_CONFIG_FILENAME, "Mean.npy", "Std.npy", "losses.csv",
-                "loss.png", "result.json")
+                "loss.png", "result.json", "motion.json")
 
 
 def _prepare_out(out: str, overwrite: bool) -> None:
