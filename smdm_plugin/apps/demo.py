@@ -8,9 +8,10 @@
    (HumanML3D's longest motion). For every reduction rate it keeps the frames chosen by VW
    (Visvalingam–Whyatt), uniform spacing, random choice and MDO, interpolates all 22 joints
    linearly in between and reports the mean joint position error (mm) of that reconstruction.
-   Selection features: the global joint positions (66-D, metres) plus ``frame index × 0.1 m``
-   (``--frame-index-scale``; the time axis' weight in VW's triangle areas. On the assimp CMU clips
-   VW beats uniform spacing at 0.1 m/frame but not at 0.01, so the table shows what it measures).
+   Selection features: the global joint positions (66-D, metres) plus ``frame index × 0.3 m``
+   (``--frame-index-scale``, the time axis' weight in VW's triangle areas; 0.3 m/frame is the
+   library's default, ``SparseConfig.frame_index_scale``, measured in docs/defaults.md, and the
+   sparse model trains with the same value).
    A PNG shows one window: a joint trajectory with the VW keyframes marked and the VW / uniform
    reconstructions, and a stick-figure strip (original vs. VW reconstruction).
 2. **Training.** Trains the in-package backbone (:class:`~smdm_plugin.reference.backbone.TinyMDM` +
@@ -52,9 +53,13 @@ from typing import Any, Dict, List, Optional, Sequence, Tuple
 import numpy as np
 import torch
 
+from ..core.config import SparseConfig as _SparseConfig
 from ..io.files import atomic_write_json, atomic_write_text
 from ._args import add_overwrite, device_type, float_range, int_range
 from .threads import THREADS_HELP
+
+#: metres per frame of VW's time axis: the library's default (SparseConfig.frame_index_scale, docs/defaults.md)
+FRAME_INDEX_SCALE: float = _SparseConfig.frame_index_scale
 
 METHODS = ("vw", "uniform", "random", "mdo")
 NO_BVH = """smdm demo: no BVH motion capture found.
@@ -156,7 +161,7 @@ def windows(clips: Sequence[Tuple[str, np.ndarray]], length: int = 196, min_len:
     return out
 
 
-def selection_features(joints: np.ndarray, frame_index_scale: float = 0.1) -> np.ndarray:
+def selection_features(joints: np.ndarray, frame_index_scale: float = FRAME_INDEX_SCALE) -> np.ndarray:
     """``[T, 67]``: the 22 global joint positions (metres) + frame index × scale."""
     T = joints.shape[0]
     return np.concatenate([joints.reshape(T, -1), (np.arange(T) * frame_index_scale)[:, None]], 1)
@@ -175,7 +180,7 @@ def reconstruction_error(joints: np.ndarray, mask: np.ndarray) -> Tuple[float, n
 
 
 def keyframe_study(wins, reductions: Sequence[float], methods: Sequence[str] = METHODS, seed: int = 0,
-                   frame_index_scale: float = 0.1) -> Dict[str, Any]:
+                   frame_index_scale: float = FRAME_INDEX_SCALE) -> Dict[str, Any]:
     """Reconstruction error (mm) per method and reduction, averaged over the windows."""
     from ..core.selection import select_keyframes
 
@@ -198,7 +203,7 @@ def keyframe_markdown(study: Dict[str, Any]) -> str:
     reds = study["reductions"]
     lines = [f"Mean joint position error (mm) of linear interpolation from the keyframes, "
              f"{study['windows']} windows, {study['frames']} frames at 20 fps (selection features: "
-             f"global joint positions + frame index × {study.get('frame_index_scale', 0.1)} m)",
+             f"global joint positions + frame index × {study.get('frame_index_scale', FRAME_INDEX_SCALE)} m)",
              "", "| method | " + " | ".join(f"{int(round(r * 100))}% dropped" for r in reds) + " |",
              "| --- |" + " ---: |" * len(reds)]
     for m in study["methods"]:
@@ -207,7 +212,7 @@ def keyframe_markdown(study: Dict[str, Any]) -> str:
 
 
 def plot_keyframes(win: np.ndarray, title: str, reduction: float, path: str, joint: int = 21,
-                   frame_index_scale: float = 0.1) -> None:
+                   frame_index_scale: float = FRAME_INDEX_SCALE) -> None:
     """Trajectory of ``joint`` (default: right wrist) with VW keyframes and reconstructions, and
     a stick-figure strip of the original vs. the VW reconstruction."""
     import matplotlib
@@ -364,8 +369,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--device", type=device_type, default="auto")
     p.add_argument("--seed", type=int_range(0), default=0)
     p.add_argument("--max-clips", type=int_range(1), default=None)
-    p.add_argument("--frame-index-scale", type=float_range(0, 100), default=0.1,
-                   help="metres per frame appended to the joint positions for keyframe selection")
+    p.add_argument("--frame-index-scale", type=float_range(0, 100), default=FRAME_INDEX_SCALE, metavar="M",
+                   help="metres per frame appended to the joint positions for VW selection, in the keyframe "
+                        f"table and in the sparse model's training (default {FRAME_INDEX_SCALE}, the library's)")
     p.add_argument("--threads", type=int_range(1, 1024), default=None,
                    help=THREADS_HELP)
     p.add_argument("--no-gif", action="store_true", help="skip the in-betweening animation")
@@ -458,7 +464,8 @@ def main_demo(args: argparse.Namespace) -> int:
         trainers = {
             n: Trainer(TrainConfig(steps=0, batch=args.batch, lr=2e-4, diffusion_steps=diffusion_steps, seed=args.seed,
                                    model=model, sparse=sc), data, dist=ctx)
-            for n, sc in (("dense", None), ("sparse", SparseConfig(reduction=args.train_reduction, feature="raw")))}
+            for n, sc in (("dense", None), ("sparse", SparseConfig(reduction=args.train_reduction, feature="raw",
+                                                 frame_index_scale=args.frame_index_scale)))}
         seconds = 60.0 * args.minutes
         procs = f"{ctx.world_size} processes x " if ctx.world_size > 1 else ""
         say(f"\n## Training dense vs. sparse ({int(round(args.train_reduction * 100))}% dropped) for "
