@@ -443,7 +443,8 @@ QUICK = {"batch": 4, "frames": 60, "repeats": 1, "warmup": 0}
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--arch", nargs="+", default=["trans_enc", "trans_dec"], choices=["trans_enc", "trans_dec"])
+    p.add_argument("--arch", nargs="+", default=["trans_enc", "trans_dec"], choices=["trans_enc", "trans_dec"],
+                   help="MDM architectures to time (default: both)")
     p.add_argument("--reductions", nargs="+", type=float_range(0.0, 1.0, hi_open=True), default=[0.6, 0.7, 0.8, 0.9],
                    help="fractions of frames dropped, each in [0, 1)")
     p.add_argument("--batch", type=int_range(1), default=None, help="motions per batch (default 64)")
@@ -456,7 +457,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--modes", nargs="+", default=["train", "sample"], choices=list(MODES),
                    help="train: one training step; sample: one CFG sampling step (VW on x_t); "
                         "loop: the whole T-step CFG sampling loop")
-    p.add_argument("--steps", type=int_range(1), default=50, help="diffusion steps T (paper recipe: 50)")
+    p.add_argument("--steps", type=int_range(1), default=50, help="diffusion steps T (default 50, the paper's recipe)")
     p.add_argument("--amp", choices=["fp32", "bf16"], default="fp32", help="bf16: torch.autocast for both")
     p.add_argument("--fsq", choices=list(FSQ_CHOICES), default="paper",
                    help="FSQ attention keys on: " + "; ".join(f"{k}: {v}" for k, v in FSQ_CHOICES.items()))
@@ -527,12 +528,14 @@ def main(argv: Optional[List[str]] = None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
     if argv and argv[0] == "keyframes":
         p = argparse.ArgumentParser(prog="smdm bench keyframes", description="time VW keyframe selection")
-        p.add_argument("--batch", type=int_range(1), default=64)
-        p.add_argument("--frames", type=int_range(2), default=196)
-        p.add_argument("--dims", type=int_range(1), default=64)
-        p.add_argument("--reduction", type=float_range(0.0, 1.0, hi_open=True), default=0.8)
-        p.add_argument("--repeats", type=int_range(1), default=5)
-        p.add_argument("--device", type=device_type, default="auto")
+        p.add_argument("--batch", type=int_range(1), default=64, help="motions per call (default 64)")
+        p.add_argument("--frames", type=int_range(2), default=196, help="frames per motion (default 196)")
+        p.add_argument("--dims", type=int_range(1), default=64,
+                       help="selection features per frame (default 64: 21 joints x 3 + frame index)")
+        p.add_argument("--reduction", type=float_range(0.0, 1.0, hi_open=True), default=0.8,
+                       help="fraction of frames dropped, in [0, 1) (default 0.8)")
+        p.add_argument("--repeats", type=int_range(1), default=5, help="timed calls, median reported (default 5)")
+        p.add_argument("--device", type=device_type, default="auto", help="auto (CUDA, else MPS, else CPU), cpu, cuda, cuda:N or mps (default auto)")
         a = p.parse_args(argv[1:])
         r = bench_keyframes(a.batch, a.frames, a.dims, a.reduction, a.repeats, a.device)
         print(f"VW keyframe selection on {r['shape']} (reduction {r['reduction']}, {r['device']}): "

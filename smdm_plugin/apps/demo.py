@@ -356,19 +356,20 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--out", default=os.path.join("smdm_out", "demo"), help="output folder")
     add_overwrite(p)
     p.add_argument("--minutes", type=float_range(0, 24 * 60, lo_open=True), default=2.0,
-                   help="training time, dense + sparse together")
+                   help="training time in minutes, dense + sparse together (default 2)")
     p.add_argument("--reductions", nargs="+", type=float_range(0, 1, hi_open=True), default=None,
                    help="keyframe study: fractions of frames dropped (default 0.6 0.7 0.8 0.9)")
-    p.add_argument("--train-reduction", type=float_range(0, 1, hi_open=True), default=0.8)
+    p.add_argument("--train-reduction", type=float_range(0, 1, hi_open=True), default=0.8,
+                   help="fraction of frames the sparse model drops in training, in [0, 1) (default 0.8)")
     p.add_argument("--frames", type=int_range(20, 196), default=None,
                    help="training crop and in-betweening length (frames at 20 fps; default 120)")
     p.add_argument("--batch", type=int_range(1, 4096), default=None, help="default 32")
     p.add_argument("--latent", type=int_range(4, 4096), default=None, help="a multiple of 4 (heads); default 256")
     p.add_argument("--layers", type=int_range(1, 64), default=None, help="default 4")
-    p.add_argument("--every", type=int_range(2, 196), default=30, help="in-betweening: a keyframe every EVERY frames")
-    p.add_argument("--device", type=device_type, default="auto")
-    p.add_argument("--seed", type=int_range(0), default=0)
-    p.add_argument("--max-clips", type=int_range(1), default=None)
+    p.add_argument("--every", type=int_range(2, 196), default=30, help="in-betweening: a keyframe every EVERY frames (default 30)")
+    p.add_argument("--device", type=device_type, default="auto", help="auto (CUDA, else MPS, else CPU), cpu, cuda, cuda:N or mps (default auto)")
+    p.add_argument("--seed", type=int_range(0), default=0, help="random seed (default 0)")
+    p.add_argument("--max-clips", type=int_range(1), default=None, help="use at most this many clips (default: all)")
     p.add_argument("--frame-index-scale", type=float_range(0, 100), default=FRAME_INDEX_SCALE, metavar="M",
                    help="metres per frame appended to the joint positions for VW selection, in the keyframe "
                         f"table and in the sparse model's training (default {FRAME_INDEX_SCALE}, the library's)")

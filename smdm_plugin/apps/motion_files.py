@@ -129,6 +129,6 @@ def add_motion_file_options(p: argparse.ArgumentParser) -> None:
     """``--sample`` and ``--allow-pickle``, the options of :func:`load_motion` a command exposes."""
     from ._args import int_range
 
-    p.add_argument("--sample", type=int_range(0), default=0, help="which motion of a batched file")
+    p.add_argument("--sample", type=int_range(0), default=0, help="which motion of a batched file, 0-based (default 0)")
     p.add_argument("--allow-pickle", action="store_true",
                    help="read pickled .npy files (MDM's results.npy); only for files you trust")

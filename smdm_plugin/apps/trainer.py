@@ -555,22 +555,28 @@ def build_parser() -> argparse.ArgumentParser:
     t.add_argument("--steps", type=int_range(1), default=1000, help="optimiser steps (default: 1000)")
     t.add_argument("--batch", type=int_range(1), default=16,
                    help="samples per process and step; global batch = batch x processes (default: 16)")
-    t.add_argument("--lr", type=float_range(0.0, lo_open=True), default=2e-4)
-    t.add_argument("--weight-decay", type=float_range(0.0), default=0.0)
-    t.add_argument("--grad-clip", type=float_range(0.0), default=0.0, help="max gradient norm (0: off)")
-    t.add_argument("--diffusion-steps", type=int_range(1, 100000), default=100)
-    t.add_argument("--seed", type=int_range(0), default=0)
+    t.add_argument("--lr", type=float_range(0.0, lo_open=True), default=2e-4, help="AdamW learning rate (default 2e-4)")
+    t.add_argument("--weight-decay", type=float_range(0.0), default=0.0, help="AdamW weight decay (default 0)")
+    t.add_argument("--grad-clip", type=float_range(0.0), default=0.0, help="max gradient norm (default 0: off)")
+    t.add_argument("--diffusion-steps", type=int_range(1, 100000), default=100, help="diffusion steps T (default 100)")
+    t.add_argument("--seed", type=int_range(0), default=0, help="random seed (default 0)")
     t.add_argument("--save-every", type=int_range(0), default=0,
-                   help="also save a checkpoint every this many steps (0: only at the end)")
+                   help="also save a checkpoint every this many steps (default 0: only at the end)")
     t.add_argument("--compile", action="store_true", help="torch.compile the model")
     t.add_argument("--compile-backend", default="inductor", help="torch.compile backend (default: inductor)")
     m = p.add_argument_group("model (TinyMDM)")
-    m.add_argument("--arch", choices=("trans_enc", "trans_dec"), default=DEFAULT_MODEL["arch"])
-    m.add_argument("--latent-dim", type=int_range(8, 65536), default=DEFAULT_MODEL["latent_dim"])
-    m.add_argument("--layers", type=int_range(1, 256), default=DEFAULT_MODEL["num_layers"])
-    m.add_argument("--heads", type=int_range(1, 256), default=DEFAULT_MODEL["num_heads"])
-    m.add_argument("--ff-size", type=int_range(1, 1 << 20), default=DEFAULT_MODEL["ff_size"])
-    m.add_argument("--dropout", type=float_range(0.0, 1.0, hi_open=True), default=DEFAULT_MODEL["dropout"])
+    m.add_argument("--arch", choices=("trans_enc", "trans_dec"), default=DEFAULT_MODEL["arch"],
+                   help=f"MDM architecture (default {DEFAULT_MODEL['arch']})")
+    m.add_argument("--latent-dim", type=int_range(8, 65536), default=DEFAULT_MODEL["latent_dim"],
+                   help=f"transformer width (default {DEFAULT_MODEL['latent_dim']}; MDM: 512)")
+    m.add_argument("--layers", type=int_range(1, 256), default=DEFAULT_MODEL["num_layers"],
+                   help=f"transformer layers (default {DEFAULT_MODEL['num_layers']}; MDM: 8)")
+    m.add_argument("--heads", type=int_range(1, 256), default=DEFAULT_MODEL["num_heads"],
+                   help=f"attention heads (default {DEFAULT_MODEL['num_heads']})")
+    m.add_argument("--ff-size", type=int_range(1, 1 << 20), default=DEFAULT_MODEL["ff_size"],
+                   help=f"feed-forward width (default {DEFAULT_MODEL['ff_size']}; MDM: 1024)")
+    m.add_argument("--dropout", type=float_range(0.0, 1.0, hi_open=True), default=DEFAULT_MODEL["dropout"],
+                   help=f"dropout probability (default {DEFAULT_MODEL['dropout']})")
     SparseConfig.add_argparse_args(p, "sparse keyframe mode (sMDM)")
     for action in p._actions:  # set by the trainer itself, or meaningless for an unconditional TinyMDM
         if action.dest in _NOT_CLI_SPARSE:
