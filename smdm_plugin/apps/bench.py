@@ -361,7 +361,7 @@ def _run_bench(archs, reductions, batch, frames, repeats, warmup, device, quick,
     return {
         "device": str(dev), "device_name": _device_name(dev), "torch": torch.__version__,
         "threads": torch.get_num_threads(), "batch": batch, "frames": frames,
-        "lengths": [int(v) for v in data["lengths"]], "model": mdm_size(quick), "repeats": repeats,
+        "lengths": [int(v) for v in data["lengths"]], "model": mdm_size(quick), "quick": bool(quick), "repeats": repeats,
         "warmup": warmup, "backend": backend, "sparse_backend": sparse_backend, "amp": amp,
         "compile": compile_mode, "fastpath": bool(fastpath), "diffusion_steps": steps, "fsq": fsq,
         "load_average": _loadavg(), "rows": rows, "targets": TARGETS,
@@ -405,12 +405,18 @@ def markdown(result: Dict[str, Any]) -> str:
         sel = f"{r['select_s'] * 1000:.1f}" if "select_s" in r else "—"
         itp = f"{r['interp_s'] * 1000:.1f}" if "interp_s" in r else "—"
         ov = f"{100 * r['overhead_share']:.1f}%" if "overhead_share" in r else "—"
-        mr = "—" if r["variant"] == "dense" or r.get("mem_ratio") is None else f"{r['mem_ratio']:.2f}"
+        mr = ("—" if r["variant"] == "dense" or r.get("mem_ratio") is None or result.get("quick")
+              else f"{r['mem_ratio']:.2f}")
         lines.append(f"| {r['arch']} | {r['mode']} | {r['variant']} | {r['median_s'] * 1000:.1f} | "
                      f"{r['speedup']:.2f}× | {r['cpu_s'] * 1000:.1f} | {r['cpu_speedup']:.2f}× | "
                      f"{sel} | {itp} | {ov} | {r['peak_mem_mib']:.0f} | {mr} |")
     at = [r for r in result["rows"] if abs(r["reduction"] - 0.8) < 1e-9]
-    if at:
+    if result.get("quick"):  # a smoke test: fixed costs dominate at this size, so targets would mislead
+        lines += ["", "--quick: a tiny model and batch, to check that the benchmark runs. At this size fixed "
+                  "costs (Python, selection, kernel launches) dominate, so the speed-ups say nothing about MDM "
+                  "size, and the targets and memory ratios are left out. For real numbers run `smdm bench` "
+                  "(MDM size, batch 64, 196 frames; minutes on a CPU) or `smdm bench --device cuda`."]
+    elif at:
         lines += ["", "at 80% reduction (targets: training ≥ 4×, sampling step ≥ 3.5×, sampling loop ≥ 3×, "
                   "selection + interpolation < 10% of the sparse step):"]
         for r in at:
