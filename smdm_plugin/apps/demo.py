@@ -317,7 +317,7 @@ def limits_note(args: argparse.Namespace, train: Dict[str, Any], crops: int) -> 
     steps = ", ".join(f"{n} {train[n]['steps']}" for n in ("dense", "sparse") if n in train)
     seconds = sum(float(train[n].get("seconds", 0.0)) for n in ("dense", "sparse") if n in train)
     return (f"**What this demo can and cannot show.** The models are TinyMDM {args.latent}-D × {args.layers} "
-            f"layer(s), trained for {seconds:.0f} s in total ({steps} steps) on {crops} crops of "
+            f"layer(s), trained for {seconds:.1f} s in total ({steps} steps) on {crops} crops of "
             f"{args.frames} frames{' (--quick)' if args.quick else ''}. MDM is 512-D × 8 layers, trained for days "
             "on HumanML3D's ~29,000 motions. So this run shows that dense and sparse train and sample through "
             "the same code on real motion capture, how well each keyframe selector rebuilds the motion, and the "
