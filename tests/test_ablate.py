@@ -352,7 +352,7 @@ def test_quick_grid_on_real_motion(hml_dir, tmp_path, monkeypatch):
     args = ["--config", str(QUICK), "--out", str(out), "--data", str(hml_dir), "--no-progress"]
     assert ablate.main(args) == 0
     md = (out / "results.md").read_text()
-    for name in ("dense", "sparse (VW)", "w/o interpolation", "FSQ keys"):
+    for name in ("dense", "sparse (VW)", "w/o interpolation", "FSQ off"):
         assert f"| {name} | ok |" in md
     assert (out / "results.csv").exists() and (out / "loss_curves.png").stat().st_size > 0
     assert (out / "config.yaml").exists() and (out / "dense" / "config.json").exists()
@@ -378,16 +378,16 @@ def test_quick_grid_on_real_motion(hml_dir, tmp_path, monkeypatch):
 
     def flaky(cfg, variant, *a, **k):
         calls.append(variant["name"])
-        if variant["name"] == "FSQ keys":
+        if variant["name"] == "FSQ off":
             raise RuntimeError("boom")
         return real(cfg, variant, *a, **k)
 
     monkeypatch.setattr(ablate, "run_variant", flaky)
     assert ablate.main(args + ["--resume"]) == 0 and calls == []
-    assert ablate.main(args + ["--overwrite", "--only", "FSQ keys"]) == 1 and calls == ["FSQ keys"]
-    assert "boom" in json.loads((out / "fsq-keys" / "failed.json").read_text())["error"]
+    assert ablate.main(args + ["--overwrite", "--only", "FSQ off"]) == 1 and calls == ["FSQ off"]
+    assert "boom" in json.loads((out / "fsq-off" / "failed.json").read_text())["error"]
     md = (out / "results.md").read_text()
-    assert "| FSQ keys | failed |" in md and "| dense | ok |" in md
+    assert "| FSQ off | failed |" in md and "| dense | ok |" in md
 
 
 def test_missing_data_is_a_clear_message(tmp_path, capsys):

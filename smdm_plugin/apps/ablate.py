@@ -3,7 +3,7 @@
 Every variant of a YAML grid (``smdm_plugin/configs/ablations/table1.yaml``: the paper's Table 1 set) trains the
 in-package backbone (:class:`~smdm_plugin.backbone.TinyMDM` + :class:`~smdm_plugin.diffusion.SimpleDiffusion`)
 through the one in-package :class:`~smdm_plugin.apps.trainer.Trainer` with the *same* seed,
-initial weights, data order, diffusion steps ``t`` and step count, on HumanML3D-format motion (``--data``, default ``../shared/data/cmu-humanml3d``: ``new_joint_vecs``,
+initial weights, data order, diffusion steps ``t`` and step count, on HumanML3D-format motion (``--data``, e.g. this project's ``../shared/data/cmu-humanml3d``: ``new_joint_vecs``,
 ``new_joints``, ``Mean.npy``/``Std.npy``, ``train.txt``/``val.txt``). Unconditional (no CLIP).
 
 Per variant: final and best training loss, steps/s, wall time, the keyframe reconstruction error
@@ -74,9 +74,10 @@ import torch
 from ..core.config import ConfigTypeError, Range, closest
 from ..io.files import OutputExistsError, atomic_open, atomic_write_json, atomic_write_text
 from ._args import add_overwrite, device_type, existing_path, int_range, resolve_device
+from .threads import THREADS_HELP
 from .provenance import differences, fingerprint_files, make_provenance
 
-DEFAULT_DATA = os.path.join("..", "shared", "data", "cmu-humanml3d")
+DEFAULT_DATA = os.path.join("..", "shared", "data", "cmu-humanml3d")  # the scripts/ default (this project's data)
 DEFAULTS: Dict[str, Any] = {
     "name": "ablation", "seed": 0, "steps": 200, "batch": 16, "max_frames": 196, "diffusion_steps": 100,
     "lr": 2e-4, "log_every": 1,
@@ -230,6 +231,7 @@ def sparse_config(cfg: Dict[str, Any], variant: Dict[str, Any]):
         return None
     d = dict(cfg.get("sparse") or {})
     d.update(variant.get("sparse") or {})
+    d.setdefault("diffusion_steps", int(cfg["diffusion_steps"]))  # what runs (config.json records it)
     return SparseConfig.from_dict(d)
 
 
@@ -779,18 +781,19 @@ def build_parser() -> argparse.ArgumentParser:
                    help="the grid: a YAML path or a packaged grid name (table1, defaults, quick)")
     p.add_argument("--out", default=os.path.join("results", "ablate"), help="results folder (default results/ablate)")
     p.add_argument("--data", type=existing_path("dir"), default=None,
-                   help=f"HumanML3D-format folder (default: config 'data' or {DEFAULT_DATA})")
+                   help="HumanML3D-format folder: new_joint_vecs/, Mean.npy, Std.npy, train.txt, val.txt or "
+                        "test.txt (default: the grid's 'data'; required when the grid has none)")
     p.add_argument("--steps", type=int_range(1), default=None, help="override the config's steps per variant (>= 1)")
     p.add_argument("--device", type=device_type, default="auto", help="auto (CUDA, else MPS, else CPU), cpu, cuda[:N], mps")
     p.add_argument("--only", nargs="+", default=None, metavar="VARIANT",
                    help="run only these variants (names or folder names); the other rows are kept")
     p.add_argument("--threads", type=int_range(1), default=None,
-                   help="torch.set_num_threads; 1 is much faster on a CPU shared with other jobs")
+                   help=THREADS_HELP)
     g = p.add_mutually_exclusive_group()
     g.add_argument("--resume", action="store_true",
                    help="continue in an existing --out: reuse results with the same provenance, run the rest")
     add_overwrite(g)
-    p.add_argument("--no-progress", action="store_true")
+    p.add_argument("--no-progress", action="store_true", help="no progress bars")
     return p
 
 
@@ -809,9 +812,13 @@ def main(argv: Optional[List[str]] = None) -> int:
         selected = select_variants(cfg, a.only)
     except ValueError as e:
         p.error(f"argument --only: {e}")
-    if a.threads:
-        torch.set_num_threads(a.threads)
-    data_root = a.data or cfg.get("data") or DEFAULT_DATA
+    from .threads import apply_threads
+    apply_threads(a.threads)
+    data_root = a.data or cfg.get("data")
+    if not data_root:
+        p.error("argument --data: give a HumanML3D-format folder (new_joint_vecs/, Mean.npy, Std.npy, train.txt, "
+                "val.txt or test.txt), e.g. HumanML3D itself; the embedded CMU clips are joint positions, not "
+                "263-D features: `smdm demo` compares dense and sparse on them")
     cfg["data"] = data_root
     from ..integrations.distributed import init_distributed, shutdown_distributed
 

@@ -167,7 +167,7 @@ class _PanelArtist:
             line.set_data(q[list(chain), 0], q[list(chain), 1])
             line.set_color(HIGHLIGHT if key else colour)
             line.set_linewidth(3.2 if key else 2.2)
-        self.label.set_text(f"frame {n + 1}/{len(j)}")
+        self.label.set_text(f"frame {n}/{len(j) - 1}")  # 0-based, like every other frame number
         self.kf_label.set_text("keyframe" if key else "")
         self.cursor.set_data([n], [0])
 

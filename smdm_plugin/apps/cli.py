@@ -7,6 +7,7 @@
 * ``smdm train``      — train TinyMDM (dense or --sparse) on HumanML3D-format motion; torchrun: DDP.
 * ``smdm run ...``    — run an upstream script (MDM, priorMDM, MotionDiffuse) in sparse mode.
 * ``smdm keyframes``  — keyframes of BVH clips (reconstruction error per method and rate).
+* ``smdm clips``      — the embedded CMU clips: list them, export one as a ``.npy`` motion file.
 
 Subcommand modules are imported lazily, so ``smdm --help`` is fast and ``smdm run`` does not
 import the benchmark code. Every command: bad arguments are one argparse line (exit status 2),
@@ -37,6 +38,7 @@ COMMANDS: Dict[str, Tuple[str, str]] = {
     "keyframes": ("smdm_plugin.apps.keyframes", "keyframe reconstruction error of BVH clips per selection method and rate"),
     "evaluator": ("smdm_plugin.apps.evaluator", "'evaluator train': train a T2M evaluator on your captioned motion"),
     "eval": ("smdm_plugin.apps.evaluate", "FID, R-precision, diversity, jitter, skating of motions or a model"),
+    "clips": ("smdm_plugin.apps.clips", "list the embedded CMU clips, or export one as a .npy motion file"),
 }
 
 
@@ -74,6 +76,9 @@ def main(argv: Optional[List[str]] = None) -> int:
         print(f"smdm: error: unknown command {cmd!r}{closest(cmd, COMMANDS)} (commands: {', '.join(COMMANDS)}; "
               "'smdm --help' for more)", file=sys.stderr)
         return 2
+    from .threads import prepare_process
+
+    prepare_process()  # OMP_WAIT_POLICY=PASSIVE before torch loads OpenMP (docs/threads.md)
     try:
         return int(entry_point(cmd)(rest) or 0)
     except KeyboardInterrupt:

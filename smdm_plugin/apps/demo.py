@@ -8,9 +8,10 @@
    (HumanML3D's longest motion). For every reduction rate it keeps the frames chosen by VW
    (Visvalingam–Whyatt), uniform spacing, random choice and MDO, interpolates all 22 joints
    linearly in between and reports the mean joint position error (mm) of that reconstruction.
-   Selection features: the global joint positions (66-D, metres) plus ``frame index × 0.1 m``
-   (``--frame-index-scale``; the time axis' weight in VW's triangle areas. On the assimp CMU clips
-   VW beats uniform spacing at 0.1 m/frame but not at 0.01, so the table shows what it measures).
+   Selection features: the global joint positions (66-D, metres) plus ``frame index × 0.3 m``
+   (``--frame-index-scale``, the time axis' weight in VW's triangle areas; 0.3 m/frame is the
+   library's default, ``SparseConfig.frame_index_scale``, measured in docs/defaults.md, and the
+   sparse model trains with the same value).
    A PNG shows one window: a joint trajectory with the VW keyframes marked and the VW / uniform
    reconstructions, and a stick-figure strip (original vs. VW reconstruction).
 2. **Training.** Trains the in-package backbone (:class:`~smdm_plugin.reference.backbone.TinyMDM` +
@@ -58,8 +59,13 @@ from typing import Any, Dict, List, Optional, Sequence, Tuple
 import numpy as np
 import torch
 
+from ..core.config import SparseConfig as _SparseConfig
 from ..io.files import atomic_write_json, atomic_write_text
 from ._args import add_overwrite, device_type, float_range, int_range
+from .threads import THREADS_HELP
+
+#: metres per frame of VW's time axis: the library's default (SparseConfig.frame_index_scale, docs/defaults.md)
+FRAME_INDEX_SCALE: float = _SparseConfig.frame_index_scale
 
 METHODS = ("vw", "uniform", "random", "mdo")
 NO_BVH = """smdm demo: no BVH motion capture found.
@@ -161,7 +167,7 @@ def windows(clips: Sequence[Tuple[str, np.ndarray]], length: int = 196, min_len:
     return out
 
 
-def selection_features(joints: np.ndarray, frame_index_scale: float = 0.1) -> np.ndarray:
+def selection_features(joints: np.ndarray, frame_index_scale: float = FRAME_INDEX_SCALE) -> np.ndarray:
     """``[T, 67]``: the 22 global joint positions (metres) + frame index × scale."""
     T = joints.shape[0]
     return np.concatenate([joints.reshape(T, -1), (np.arange(T) * frame_index_scale)[:, None]], 1)
@@ -180,7 +186,7 @@ def reconstruction_error(joints: np.ndarray, mask: np.ndarray) -> Tuple[float, n
 
 
 def keyframe_study(wins, reductions: Sequence[float], methods: Sequence[str] = METHODS, seed: int = 0,
-                   frame_index_scale: float = 0.1) -> Dict[str, Any]:
+                   frame_index_scale: float = FRAME_INDEX_SCALE) -> Dict[str, Any]:
     """Reconstruction error (mm) per method and reduction, averaged over the windows."""
     from ..core.selection import select_keyframes
 
@@ -203,7 +209,7 @@ def keyframe_markdown(study: Dict[str, Any]) -> str:
     reds = study["reductions"]
     lines = [f"Mean joint position error (mm) of linear interpolation from the keyframes, "
              f"{study['windows']} windows, {study['frames']} frames at 20 fps (selection features: "
-             f"global joint positions + frame index × {study.get('frame_index_scale', 0.1)} m)",
+             f"global joint positions + frame index × {study.get('frame_index_scale', FRAME_INDEX_SCALE)} m)",
              "", "| method | " + " | ".join(f"{int(round(r * 100))}% dropped" for r in reds) + " |",
              "| --- |" + " ---: |" * len(reds)]
     for m in study["methods"]:
@@ -212,7 +218,7 @@ def keyframe_markdown(study: Dict[str, Any]) -> str:
 
 
 def plot_keyframes(win: np.ndarray, title: str, reduction: float, path: str, joint: int = 21,
-                   frame_index_scale: float = 0.1) -> None:
+                   frame_index_scale: float = FRAME_INDEX_SCALE) -> None:
     """Trajectory of ``joint`` (default: right wrist) with VW keyframes and reconstructions, and
     a stick-figure strip of the original vs. the VW reconstruction."""
     import matplotlib
@@ -311,6 +317,24 @@ def plot_losses(train: Dict[str, Any], path: str) -> None:
     plt.close(fig)
 
 
+def limits_note(args: argparse.Namespace, train: Dict[str, Any], crops: int) -> str:
+    """What this run's model sizes and training time can and cannot show, and the commands for a real
+    run (appended to training.md and inbetween.md)."""
+    steps = ", ".join(f"{n} {train[n]['steps']}" for n in ("dense", "sparse") if n in train)
+    seconds = sum(float(train[n].get("seconds", 0.0)) for n in ("dense", "sparse") if n in train)
+    return (f"**What this demo can and cannot show.** The models are TinyMDM {args.latent}-D × {args.layers} "
+            f"layer(s), trained for {seconds:.1f} s in total ({steps} steps) on {crops} crops of "
+            f"{args.frames} frames{' (--quick)' if args.quick else ''}. MDM is 512-D × 8 layers, trained for days "
+            "on HumanML3D's ~29,000 motions. So this run shows that dense and sparse train and sample through "
+            "the same code on real motion capture, how well each keyframe selector rebuilds the motion, and the "
+            "relative cost of a step at this size. It cannot show the quality of a trained model: after minutes "
+            "of training the samples jitter, the in-betweens jump onto the keyframes instead of passing "
+            "through them smoothly, and at this size fixed costs make dense and sparse "
+            "sample in about the same time. For a real run: `smdm train --data DIR --sparse` on HumanML3D (or "
+            "MDM itself with `--sparse`, docs/mdm.md), `smdm bench` for speed at MDM size, and `smdm inbetween "
+            "--model DIR` on the trained folder.")
+
+
 # ----------------------------------------------------------------------------------------- in-betweening
 def inbetween_demo(bundles: Dict[str, Any], clip: Tuple[str, np.ndarray], length: int, every: int, out: str,
                    seed: int, device: Any, gif: bool, progress: bool, stride: int = 1, note: str = "") -> str:
@@ -356,23 +380,25 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--out", default=os.path.join("smdm_out", "demo"), help="output folder")
     add_overwrite(p)
     p.add_argument("--minutes", type=float_range(0, 24 * 60, lo_open=True), default=2.0,
-                   help="training time, dense + sparse together")
+                   help="training time in minutes, dense + sparse together (default 2)")
     p.add_argument("--reductions", nargs="+", type=float_range(0, 1, hi_open=True), default=None,
                    help="keyframe study: fractions of frames dropped (default 0.6 0.7 0.8 0.9)")
-    p.add_argument("--train-reduction", type=float_range(0, 1, hi_open=True), default=0.8)
+    p.add_argument("--train-reduction", type=float_range(0, 1, hi_open=True), default=0.8,
+                   help="fraction of frames the sparse model drops in training, in [0, 1) (default 0.8)")
     p.add_argument("--frames", type=int_range(20, 196), default=None,
                    help="training crop and in-betweening length (frames at 20 fps; default 120)")
     p.add_argument("--batch", type=int_range(1, 4096), default=None, help="default 32")
     p.add_argument("--latent", type=int_range(4, 4096), default=None, help="a multiple of 4 (heads); default 256")
     p.add_argument("--layers", type=int_range(1, 64), default=None, help="default 4")
-    p.add_argument("--every", type=int_range(2, 196), default=30, help="in-betweening: a keyframe every EVERY frames")
-    p.add_argument("--device", type=device_type, default="auto")
-    p.add_argument("--seed", type=int_range(0), default=0)
-    p.add_argument("--max-clips", type=int_range(1), default=None)
-    p.add_argument("--frame-index-scale", type=float_range(0, 100), default=0.1,
-                   help="metres per frame appended to the joint positions for keyframe selection")
+    p.add_argument("--every", type=int_range(2, 196), default=30, help="in-betweening: a keyframe every EVERY frames (default 30)")
+    p.add_argument("--device", type=device_type, default="auto", help="auto (CUDA, else MPS, else CPU), cpu, cuda, cuda:N or mps (default auto)")
+    p.add_argument("--seed", type=int_range(0), default=0, help="random seed (default 0)")
+    p.add_argument("--max-clips", type=int_range(1), default=None, help="use at most this many clips (default: all)")
+    p.add_argument("--frame-index-scale", type=float_range(0, 100), default=FRAME_INDEX_SCALE, metavar="M",
+                   help="metres per frame appended to the joint positions for VW selection, in the keyframe "
+                        f"table and in the sparse model's training (default {FRAME_INDEX_SCALE}, the library's)")
     p.add_argument("--threads", type=int_range(1, 1024), default=None,
-                   help="torch.set_num_threads (1 is faster on a CPU shared with other jobs)")
+                   help=THREADS_HELP)
     p.add_argument("--no-gif", action="store_true", help="skip the in-betweening animation")
     p.add_argument("--quick", action="store_true",
                    help="a smoke run: 1 clip, 60 frames, a tiny model, 3 steps (options you give are kept)")
@@ -398,8 +424,8 @@ def main_demo(args: argparse.Namespace) -> int:
     from .trainer import MotionSet, TrainConfig, Trainer, feature_stats, race_fair
 
     t_start = time.perf_counter()
-    if args.threads:
-        torch.set_num_threads(args.threads)
+    from .threads import apply_threads
+    apply_threads(args.threads)
     try:
         ctx = init_distributed(args.device)
     except ValueError as e:
@@ -463,7 +489,8 @@ def main_demo(args: argparse.Namespace) -> int:
         trainers = {
             n: Trainer(TrainConfig(steps=0, batch=args.batch, lr=2e-4, diffusion_steps=diffusion_steps, seed=args.seed,
                                    model=model, sparse=sc), data, dist=ctx)
-            for n, sc in (("dense", None), ("sparse", SparseConfig(reduction=args.train_reduction, feature="raw")))}
+            for n, sc in (("dense", None), ("sparse", SparseConfig(reduction=args.train_reduction, feature="raw",
+                                                 frame_index_scale=args.frame_index_scale)))}
         seconds = 60.0 * args.minutes
         procs = f"{ctx.world_size} processes x " if ctx.world_size > 1 else ""
         say(f"\n## Training dense vs. sparse ({int(round(args.train_reduction * 100))}% dropped) for "
@@ -493,6 +520,8 @@ def main_demo(args: argparse.Namespace) -> int:
                    f"Quality: {SCORED_SAMPLES} unconditional samples per model ({diffusion_steps} diffusion "
                    f"steps, sparse sampling: {sparse_sampling(trainers['sparse'].model)}); j/s = jitter / speed "
                    f"(1/s²), the jerk relative to how fast the motion moves.")
+        limits = limits_note(args, train, len(data))
+        ttable += "\n\n" + limits
         print(ttable)
         atomic_write_text(os.path.join(args.out, "training.md"), ttable + "\n")
 
@@ -502,6 +531,8 @@ def main_demo(args: argparse.Namespace) -> int:
         print(f"\n## In-betweening {clip[0]}{note}")
         itable = inbetween_demo({k: bundles[k] for k in ("dense", "sparse")}, clip, args.frames, args.every, args.out, args.seed, dev,
                                 gif=not args.no_gif, progress=not args.quick, stride=2 if args.quick else 1, note=note)
+        itable += "\n\n" + limits
+        atomic_write_text(os.path.join(args.out, "inbetween.md"), itable + "\n")
         print(itable)
         summary = {"source": source, "files": files, "skipped": [list(x) for x in skipped],
                    "clips": [[n, len(j)] for n, j in clips], "keyframes": study, "training": train,

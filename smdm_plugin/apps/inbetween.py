@@ -38,6 +38,7 @@ from ..adapters.inbetween import POLICIES
 from ..reference.diffusion import IMPUTATIONS
 from ..metrics.inbetween import keyframe_metrics
 from ._args import add_overwrite, device_type, int_range
+from .threads import THREADS_HELP
 from .motion_files import ACCEPTED, LoadedMotion, add_motion_file_options
 
 DEFAULT_MODELS = (os.path.join("smdm_out", "demo", "dense"), os.path.join("smdm_out", "demo", "sparse"))
@@ -203,8 +204,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--every", type=int_range(1), default=None, help="a keyframe every EVERY frames (default 20)")
     p.add_argument("--start", type=int_range(0), default=None, help="first frame of the file to in-between from")
     p.add_argument("--length", type=int_range(2, 1000), default=None, help="frames to generate")
-    p.add_argument("--samples", type=int_range(1, 64), default=1, help="in-betweens per model")
-    p.add_argument("--seed", type=int_range(0), default=0)
+    p.add_argument("--samples", type=int_range(1, 64), default=1, help="in-betweens per model (default 1)")
+    p.add_argument("--seed", type=int_range(0), default=0, help="random seed of the sampling noise (default 0)")
     p.add_argument("--imputation", choices=IMPUTATIONS, default="x0",
                    help="how keyframes are imposed at each step: x0 = the clean prediction (MDM's edit mode), "
                         "xt = the noisy motion")
@@ -214,8 +215,8 @@ def build_parser() -> argparse.ArgumentParser:
     add_motion_file_options(p)
     p.add_argument("--out", default=os.path.join("smdm_out", "inbetween"), help="output folder")
     p.add_argument("--no-gif", action="store_true", help="skip the animation")
-    p.add_argument("--device", type=device_type, default="auto")
-    p.add_argument("--threads", type=int_range(1, 256), default=None, help="torch.set_num_threads")
+    p.add_argument("--device", type=device_type, default="auto", help="auto (CUDA, else MPS, else CPU), cpu, cuda, cuda:N or mps (default auto)")
+    p.add_argument("--threads", type=int_range(1, 256), default=None, help=THREADS_HELP)
     p.add_argument("--quiet", action="store_true", help="no progress bars")
     add_overwrite(p)
     return p
@@ -232,8 +233,8 @@ def main(argv: Optional[List[str]] = None) -> int:
     a = p.parse_args(argv)
     if a.frames and a.every:
         p.error("--frames and --every: give one of them")
-    if a.threads:
-        torch.set_num_threads(a.threads)
+    from .threads import apply_threads
+    apply_threads(a.threads)
     dev = resolve_device(a.device)
     models = a.model or [d for d in DEFAULT_MODELS if os.path.isdir(d)]
     if not models:

@@ -16,7 +16,11 @@ import warnings
 from typing import List, Optional
 
 from ..io.files import OutputExistsError, check_new_file
+from ..core.config import SparseConfig
 from ._args import add_overwrite, existing_path, float_range
+
+#: the library's default (docs/defaults.md), as in smdm demo
+FRAME_INDEX_SCALE: float = SparseConfig.frame_index_scale
 
 PLOT_FORMATS = (".png", ".pdf", ".svg", ".jpg", ".jpeg")
 
@@ -24,12 +28,13 @@ PLOT_FORMATS = (".png", ".pdf", ".svg", ".jpg", ".jpeg")
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="smdm keyframes", description=__doc__.split("\n\n")[0])
     p.add_argument("bvh", nargs="*", type=existing_path("any"),
-                   help="BVH files or folders (default: as smdm demo: $SMDM_MOCAP, assimp-testmodels, "
-                        "../shared/data/cmu-mocap)")
+                   help="BVH files or folders (default: as smdm demo: the .bvh files of $SMDM_MOCAP when set, "
+                        "else the 17 CMU clips embedded in the package)")
     p.add_argument("--reductions", nargs="+", type=float_range(0.0, 1.0, hi_open=True), default=[0.6, 0.7, 0.8, 0.9],
                    metavar="R", help="fractions of frames dropped, each in [0, 1) (default 0.6 0.7 0.8 0.9)")
-    p.add_argument("--frame-index-scale", type=float_range(0.0), default=0.1, metavar="M",
-                   help="metres per frame appended to the joint positions for selection (>= 0; default 0.1)")
+    p.add_argument("--frame-index-scale", type=float_range(0.0), default=FRAME_INDEX_SCALE, metavar="M",
+                   help="metres per frame appended to the joint positions for selection (>= 0; default "
+                        f"{FRAME_INDEX_SCALE}, the library's SparseConfig default)")
     p.add_argument("--plot", default=None, metavar="FILE",
                    help=f"write the keyframe figure of the first window here ({', '.join(PLOT_FORMATS)})")
     add_overwrite(p)
@@ -51,18 +56,20 @@ def main(argv: Optional[List[str]] = None) -> int:
             p.error(f"argument --plot: the folder {folder!r} does not exist")
     from . import demo  # torch, numpy: after the arguments are checked
 
-    files = demo.find_bvh(a.bvh or None)
-    if not files:
-        print(f"smdm keyframes: no .bvh file in {', '.join(a.bvh)}" if a.bvh else demo.NO_BVH, file=sys.stderr)
-        return 2
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
-        clips = demo.load_clips(files, log=lambda m: print(m, file=sys.stderr))
+        try:  # as smdm demo: the given BVH files, else $SMDM_MOCAP, else the embedded CMU clips
+            source, _, clips = demo.motion_source(a.bvh or None, log=lambda m: print(m, file=sys.stderr))
+        except ValueError as e:
+            print(f"smdm keyframes: error: {e}", file=sys.stderr)
+            return 2
     for w in caught:  # tolerances applied while reading (e.g. one motion row too many)
         print(f"  note: {w.message}", file=sys.stderr)
     if not clips:
-        print("smdm keyframes: none of the BVH files could be used (see above).\n" + demo.NO_BVH, file=sys.stderr)
+        print(f"smdm keyframes: error: none of the BVH files of {source} could be used (see above); a CMU skeleton "
+              "is needed (22-joint mapping), or give no file to use the embedded CMU clips", file=sys.stderr)
         return 2
+    print(f"smdm keyframes: motion from {source}", file=sys.stderr)
     wins = demo.windows(clips, 196)
     print(demo.keyframe_markdown(demo.keyframe_study(wins, a.reductions, frame_index_scale=a.frame_index_scale)))
     if a.plot:

@@ -7,7 +7,8 @@ Accepted (:func:`load_motion`):
 * ``.npy`` of joint positions ``[N, J, 3]`` (y up; 22: HumanML3D / SMPL order, 21: KIT) or
   ``[B, N, J, 3]`` (``sample`` picks one);
 * ``.npy`` of per-frame features, un-normalised: ``[N, 263]`` HumanML3D (``new_joint_vecs``),
-  ``[N, 251]`` KIT-ML, ``[N, 66]`` the in-package ``joints66`` representation;
+  ``[N, 251]`` KIT-ML, ``[N, 66]`` the in-package ``joints66`` representation, or a batch of them
+  ``[S, N, D]`` (``sample`` picks one; ``smdm inbetween`` writes ``<model>_features.npy`` so);
 * MDM's ``results.npy`` (a pickled dict: ``motion [B, J, 3, N]``, ``lengths``) with ``allow_pickle``
   (only for files you trust: unpickling can run code).
 """
@@ -21,7 +22,10 @@ from typing import Optional
 import numpy as np
 
 ACCEPTED = ("joints [N, 22|21, 3] or [B, N, J, 3], HumanML3D features [N, 263], KIT features [N, 251], "
-            "joints66 features [N, 66], MDM results.npy (with --allow-pickle), or a .bvh file")
+            "joints66 features [N, 66] (features also batched [S, N, D], as smdm inbetween writes them), "
+            "MDM results.npy (with --allow-pickle), or a .bvh file")
+#: feature widths a .npy of per-frame features may have: HumanML3D, KIT-ML, joints66
+FEATURE_DIMS = (263, 251, 66)
 
 
 @dataclass
@@ -100,6 +104,11 @@ def load_motion(path: str, fps: float = 20.0, sample: int = 0, allow_pickle: boo
         if not 0 <= sample < arr.shape[0]:
             raise ValueError(f"{path}: sample must be in [0, {arr.shape[0]}) for a [B, N, J, 3] file, got {sample}")
         arr = arr[sample]
+    elif arr.ndim == 3 and arr.shape[-1] in FEATURE_DIMS:  # [S, N, D] features (smdm inbetween's *_features.npy)
+        if not 0 <= sample < arr.shape[0]:
+            raise ValueError(f"{path}: sample must be in [0, {arr.shape[0]}) for a [S, N, {arr.shape[-1]}] file, "
+                             f"got {sample}")
+        arr = arr[sample]
     if arr.ndim == 3 and arr.shape[-1] == 3 and arr.shape[1] in (21, 22):
         out = LoadedMotion(arr, "joints", path, fps)
     elif arr.ndim == 2 and arr.shape[1] in (263, 251):
@@ -120,6 +129,6 @@ def add_motion_file_options(p: argparse.ArgumentParser) -> None:
     """``--sample`` and ``--allow-pickle``, the options of :func:`load_motion` a command exposes."""
     from ._args import int_range
 
-    p.add_argument("--sample", type=int_range(0), default=0, help="which motion of a batched file")
+    p.add_argument("--sample", type=int_range(0), default=0, help="which motion of a batched file, 0-based (default 0)")
     p.add_argument("--allow-pickle", action="store_true",
                    help="read pickled .npy files (MDM's results.npy); only for files you trust")

@@ -28,10 +28,10 @@ def build_parser() -> argparse.ArgumentParser:
                    help="frames to highlight (0-based)")
     p.add_argument("--titles", nargs="+", default=None, help="one title per motion (default: file names)")
     p.add_argument("--fps", type=float_range(0, lo_open=True, hi=1000), default=20.0,
-                   help="frames per second of .npy motions, and the rate BVH files are resampled to")
-    p.add_argument("--stride", type=int_range(1), default=1, help="draw every STRIDE-th frame (same speed)")
+                   help="frames per second of .npy motions, and the rate BVH files are resampled to (default 20)")
+    p.add_argument("--stride", type=int_range(1), default=1, help="draw every STRIDE-th frame, same speed (default 1)")
     add_motion_file_options(p)
-    p.add_argument("--size", type=float_range(1, 20), default=3.0, help="panel size (inches at 80 dpi)")
+    p.add_argument("--size", type=float_range(1, 20), default=3.0, help="panel size in inches at 80 dpi (default 3)")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     add_overwrite(p)
     return p

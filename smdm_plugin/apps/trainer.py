@@ -43,6 +43,8 @@ TRAIN_CONFIG_FILENAME = "train_config.json"
 #: optimiser, random streams and step of the last checkpoint (``smdm train --resume``)
 TRAIN_STATE_FILENAME = "train_state.pt"
 TRAIN_STATE_VERSION = 1
+#: feature width -> the representation written to motion.json (HumanML3D 263-D and joints66, both 20 fps)
+MOTION_REPRESENTATIONS: Dict[int, str] = {263: "humanml3d", 66: "joints66"}
 
 
 # ----------------------------------------------------------------------------------------- data
@@ -502,7 +504,8 @@ class Trainer:
     def save(self, folder: str, extra: Optional[Dict[str, Any]] = None) -> Optional[str]:
         """Write the checkpoint folder (rank 0 only; other ranks return None): ``model<step>.pt``
         (the plain model's state dict), ``backbone.json`` (TinyMDM arguments), ``sparse_config.json``
-        (sparse models), ``Mean.npy``/``Std.npy``, ``train_config.json`` (+ ``extra``); each file
+        (sparse models), ``Mean.npy``/``Std.npy``, ``train_config.json`` (+ ``extra``) and, for 263-D
+        or 66-D features, ``motion.json`` (so ``smdm inbetween --model`` reads the folder); each file
         written atomically. :func:`smdm_plugin.load_checkpoint` reloads it. The caller checks
         that ``folder`` may be written (``io.files.check_new_dir``)."""
         if not self.dist.is_main:
@@ -524,6 +527,14 @@ class Trainer:
         atomic_write_json(os.path.join(folder, TRAIN_CONFIG_FILENAME),
                           {**self.config.to_dict(), "world_size": self.dist.world_size,
                            "global_batch": self.global_batch, "step": self.step_count, **(extra or {})})
+        rep = MOTION_REPRESENTATIONS.get(self.data.feature_dim)
+        if rep is not None:  # motion.json: the folder is also a model smdm inbetween reads (io.bundle)
+            from ..io.bundle import write_motion_meta
+            from ..io.representation import Representation
+
+            write_motion_meta(folder, Representation(rep), self.data.mean, self.data.std, 20.0,
+                              self.data.max_frames, self.diffusion.num_timesteps,
+                              {"trained_by": "smdm train", "steps": self.step_count})
         return path
 
 
@@ -733,6 +744,7 @@ def load_trained(folder: str, step: Optional[int] = None, map_location: Any = "c
 # ----------------------------------------------------------------------------------------- CLI
 def build_parser() -> argparse.ArgumentParser:
     from ._args import add_overwrite, device_type, float_range, int_range
+    from .threads import THREADS_HELP
 
     p = argparse.ArgumentParser(
         prog="smdm train",
@@ -758,22 +770,28 @@ def build_parser() -> argparse.ArgumentParser:
     t.add_argument("--steps", type=int_range(1), default=1000, help="optimiser steps (default: 1000)")
     t.add_argument("--batch", type=int_range(1), default=16,
                    help="samples per process and step; global batch = batch x processes (default: 16)")
-    t.add_argument("--lr", type=float_range(0.0, lo_open=True), default=2e-4)
-    t.add_argument("--weight-decay", type=float_range(0.0), default=0.0)
-    t.add_argument("--grad-clip", type=float_range(0.0), default=0.0, help="max gradient norm (0: off)")
-    t.add_argument("--diffusion-steps", type=int_range(1, 100000), default=100)
-    t.add_argument("--seed", type=int_range(0), default=0)
+    t.add_argument("--lr", type=float_range(0.0, lo_open=True), default=2e-4, help="AdamW learning rate (default 2e-4)")
+    t.add_argument("--weight-decay", type=float_range(0.0), default=0.0, help="AdamW weight decay (default 0)")
+    t.add_argument("--grad-clip", type=float_range(0.0), default=0.0, help="max gradient norm (default 0: off)")
+    t.add_argument("--diffusion-steps", type=int_range(1, 100000), default=100, help="diffusion steps T (default 100)")
+    t.add_argument("--seed", type=int_range(0), default=0, help="random seed (default 0)")
     t.add_argument("--save-every", type=int_range(0), default=0,
-                   help="also save a checkpoint every this many steps (0: only at the end)")
+                   help="also save a checkpoint every this many steps (default 0: only at the end)")
     t.add_argument("--compile", action="store_true", help="torch.compile the model")
     t.add_argument("--compile-backend", default="inductor", help="torch.compile backend (default: inductor)")
     m = p.add_argument_group("model (TinyMDM)")
-    m.add_argument("--arch", choices=("trans_enc", "trans_dec"), default=DEFAULT_MODEL["arch"])
-    m.add_argument("--latent-dim", type=int_range(8, 65536), default=DEFAULT_MODEL["latent_dim"])
-    m.add_argument("--layers", type=int_range(1, 256), default=DEFAULT_MODEL["num_layers"])
-    m.add_argument("--heads", type=int_range(1, 256), default=DEFAULT_MODEL["num_heads"])
-    m.add_argument("--ff-size", type=int_range(1, 1 << 20), default=DEFAULT_MODEL["ff_size"])
-    m.add_argument("--dropout", type=float_range(0.0, 1.0, hi_open=True), default=DEFAULT_MODEL["dropout"])
+    m.add_argument("--arch", choices=("trans_enc", "trans_dec"), default=DEFAULT_MODEL["arch"],
+                   help=f"MDM architecture (default {DEFAULT_MODEL['arch']})")
+    m.add_argument("--latent-dim", type=int_range(8, 65536), default=DEFAULT_MODEL["latent_dim"],
+                   help=f"transformer width (default {DEFAULT_MODEL['latent_dim']}; MDM: 512)")
+    m.add_argument("--layers", type=int_range(1, 256), default=DEFAULT_MODEL["num_layers"],
+                   help=f"transformer layers (default {DEFAULT_MODEL['num_layers']}; MDM: 8)")
+    m.add_argument("--heads", type=int_range(1, 256), default=DEFAULT_MODEL["num_heads"],
+                   help=f"attention heads (default {DEFAULT_MODEL['num_heads']})")
+    m.add_argument("--ff-size", type=int_range(1, 1 << 20), default=DEFAULT_MODEL["ff_size"],
+                   help=f"feed-forward width (default {DEFAULT_MODEL['ff_size']}; MDM: 1024)")
+    m.add_argument("--dropout", type=float_range(0.0, 1.0, hi_open=True), default=DEFAULT_MODEL["dropout"],
+                   help=f"dropout probability (default {DEFAULT_MODEL['dropout']})")
     SparseConfig.add_argparse_args(p, "sparse keyframe mode (sMDM)")
     for action in p._actions:  # set by the trainer itself, or meaningless for an unconditional TinyMDM
         if action.dest in _NOT_CLI_SPARSE:
@@ -781,7 +799,7 @@ def build_parser() -> argparse.ArgumentParser:
     r = p.add_argument_group("run")
     r.add_argument("--device", type=device_type, default="auto",
                    help="auto (cuda:LOCAL_RANK when CUDA is available), cpu, cuda, cuda:N, mps")
-    r.add_argument("--threads", type=int_range(1, 1024), default=None, help="torch.set_num_threads")
+    r.add_argument("--threads", type=int_range(1, 1024), default=None, help=THREADS_HELP)
     r.add_argument("--no-progress", action="store_true", help="no progress bar")
     return p
 
@@ -817,7 +835,7 @@ def _parse(argv: Optional[List[str]]) -> Tuple[Any, TrainConfig]:
 
 #: what ``smdm train`` writes besides ``model<step>.pt``
 OUTPUT_FILES = (BACKBONE_FILENAME, CONFIG_FILENAME, TRAIN_CONFIG_FILENAME, TRAIN_STATE_FILENAME, "Mean.npy",
-                "Std.npy", "losses.csv", "loss.png", "result.json")
+                "Std.npy", "losses.csv", "loss.png", "result.json", "motion.json")
 #: the names ``smdm train`` writes (an ``--overwrite`` refuses such a file it did not write itself)
 OUTPUT_PATTERNS = OUTPUT_FILES + ("model[0-9][0-9][0-9][0-9][0-9][0-9][0-9][0-9][0-9].pt",)
 
@@ -876,8 +894,8 @@ def main(argv: Optional[List[str]] = None) -> int:
     from ..io.outdir import OutputDir
 
     a, cfg = _parse(argv)
-    if a.threads:
-        torch.set_num_threads(a.threads)
+    from .threads import apply_threads
+    apply_threads(a.threads)
     try:
         data = load_humanml3d(a.data, a.split, a.max_frames, a.min_frames)
         if cfg.sparse is not None:

@@ -14,6 +14,7 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import difflib
+import functools
 import json
 import math
 import os
@@ -396,6 +397,23 @@ class SparseConfig:
             if k != "enabled":
                 out[f"sparse_{k}"] = v
         return out
+
+
+def _init_naming_unknown(init: Callable[..., None]) -> Callable[..., None]:
+    """Wrap the dataclass ``__init__``: an unknown keyword is a TypeError naming the closest field
+    (``SparseConfig(redution=0.8)`` -> "... did you mean 'reduction'?"), as :meth:`SparseConfig.from_dict` does."""
+    @functools.wraps(init)
+    def __init__(self: "SparseConfig", *args: Any, **kwargs: Any) -> None:
+        names = [f.name for f in dataclasses.fields(type(self))]
+        for k in kwargs:
+            if k not in names:
+                raise TypeError(f"SparseConfig: unknown option {k!r}{closest(k, names)} (known: {', '.join(names)})")
+        init(self, *args, **kwargs)
+
+    return __init__
+
+
+SparseConfig.__init__ = _init_naming_unknown(SparseConfig.__init__)  # type: ignore[method-assign]
 
 
 # ----------------------------------------------------------------------------------- helpers

@@ -2,7 +2,8 @@
 
 Layout of the folder::
 
-    model.pt            the state dict (sparse models carry the sparse marker buffer)
+    model.pt            the state dict (sparse models carry the sparse marker buffer); a folder of
+                        ``smdm train`` holds model<step>.pt instead, and the last one is read
     backbone.json       TinyMDM's constructor arguments (read by load_checkpoint)
     sparse_config.json  sparse models only: the SparseConfig (read by load_checkpoint)
     motion.json         representation, feature mean / std, fps, frames, diffusion steps, notes
@@ -10,6 +11,7 @@ Layout of the folder::
 from __future__ import annotations
 
 import os
+import re
 from dataclasses import dataclass, field
 from typing import Any, Dict, Optional
 
@@ -79,10 +81,29 @@ def save_bundle(directory: str, model: nn.Module, diffusion: SimpleDiffusion, ba
         save_sparse_config(model, directory, overwrite=True)
     elif os.path.exists(stale):  # overwrite=True over a sparse bundle with a dense model
         os.unlink(stale)
+    write_motion_meta(directory, representation, mean, std, fps, max_frames, diffusion.num_timesteps, info)
+    return directory
+
+
+def write_motion_meta(directory: str, representation: Representation, mean: np.ndarray, std: np.ndarray,
+                      fps: float, max_frames: int, diffusion_steps: int, info: Optional[Dict[str, Any]] = None) -> None:
+    """Write ``motion.json`` (what :func:`load_bundle` needs besides the weights) into ``directory``;
+    ``mean``/``std`` ``[D]`` of the representation's un-normalised features."""
+    mean, std = np.asarray(mean, np.float64).reshape(-1), np.asarray(std, np.float64).reshape(-1)
     atomic_write_json(os.path.join(directory, MOTION_FILENAME), {
         "representation": representation.name, "mean": mean.tolist(), "std": std.tolist(), "fps": float(fps),
-        "max_frames": int(max_frames), "diffusion_steps": int(diffusion.num_timesteps), "info": info or {}})
-    return directory
+        "max_frames": int(max_frames), "diffusion_steps": int(diffusion_steps), "info": info or {}})
+
+
+def weights_path(directory: str) -> str:
+    """``model.pt`` (:func:`save_bundle`), else the last ``model<step>.pt`` (``smdm train``)."""
+    path = os.path.join(directory, WEIGHTS_FILENAME)
+    if os.path.exists(path):
+        return path
+    steps = sorted(n for n in os.listdir(directory) if re.fullmatch(r"model\d+\.pt", n))
+    if not steps:
+        raise FileNotFoundError(f"{directory!r}: no {WEIGHTS_FILENAME} or model<step>.pt")
+    return os.path.join(directory, steps[-1])
 
 
 def load_bundle(directory: str, device: Any = "cpu") -> ModelBundle:
@@ -90,8 +111,8 @@ def load_bundle(directory: str, device: Any = "cpu") -> ModelBundle:
     meta_path = os.path.join(directory, MOTION_FILENAME)
     if not os.path.isdir(directory) or not os.path.exists(meta_path):
         raise FileNotFoundError(f"{directory!r} is not a model folder (no {MOTION_FILENAME}); train one with "
-                                "`smdm demo --out DIR` (writes DIR/dense and DIR/sparse) or "
-                                "scripts/eval_inbetween.py")
+                                "`smdm demo --out DIR` (writes DIR/dense and DIR/sparse), `smdm train --out DIR` "
+                                "or scripts/eval_inbetween.py")
     meta = read_json_object(meta_path)
     # every setting present (no defaults for a versioned file), typed and in range
     require_fields(meta, ("representation", "mean", "std", "fps", "max_frames", "diffusion_steps"), meta_path)
@@ -104,7 +125,7 @@ def load_bundle(directory: str, device: Any = "cpu") -> ModelBundle:
     max_frames = int_field(meta, "max_frames", meta_path, lo=2)
     mean, std = check_stats(_array(meta["mean"], meta_path, "mean"), _array(meta["std"], meta_path, "std"),
                             rep.dim, meta_path)
-    model, config = load_checkpoint(os.path.join(directory, WEIGHTS_FILENAME), mean=mean, std=std)
+    model, config = load_checkpoint(weights_path(directory), mean=mean, std=std)
     if config is not None and config.enabled and int(config.diffusion_steps) != steps:
         raise ValueError(f"{meta_path}: diffusion_steps={steps} disagrees with {CONFIG_FILENAME}'s "
                          f"diffusion_steps={config.diffusion_steps}")
