@@ -115,6 +115,14 @@ def test_eval_with_a_model_and_resume(tmp_path):
     assert len(res["metrics"]["fid"]["values"]) == 2 and res["metrics"]["fid"]["interval"] is not None
     assert res["multimodality"] is not None and res["protocol"]["multimodality_times"] == 2
     assert res["fid"] > 0
+    assert res["keyframe_error"] is None
+    # in-betweening through the real motions' frames 0, 10, 20, ... and the last: imposed exactly (x0 imputation)
+    r2 = tmp_path / "r2"
+    assert smdm(["eval", "--evaluator", str(ev), "--model", str(tmp_path / "model"), "--out", str(r2),
+                 "--replications", "1", "--mm-repeats", "0", "--inbetween-every", "10", "--threads", "1"]) == 0
+    res2 = json.load(open(r2 / "metrics.json"))
+    assert res2["keyframe_error"] is not None and res2["keyframe_error"] < 1e-4
+    assert res2["fid"] < res["metrics"]["fid"]["values"][0]  # through the real keyframes: closer to the real set
 
 
 @pytest.mark.parametrize("args,needle", [
@@ -122,6 +130,7 @@ def test_eval_with_a_model_and_resume(tmp_path):
     (["eval", "--evaluator", ".", "--out", "x"], "one of the arguments --motions --model is required"),
     (["evaluator", "train", "--out", "x", "--epochs", "0"], "--epochs"),
     (["evaluator", "fit"], "unknown subcommand"),
+    (["eval", "--evaluator", ".", "--motions", "docs", "--out", "x", "--inbetween-every", "5"], "needs --model"),
 ])
 def test_bad_input_is_one_line(args, needle):
     r = subprocess.run([sys.executable, "-m", "smdm_plugin"] + args, capture_output=True, text=True, cwd=REPO,

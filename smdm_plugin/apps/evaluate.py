@@ -23,7 +23,8 @@ COLUMNS = (("fid", "FID ↓", ".3f"), ("r_precision_top1", "R-prec. top-1 ↑", 
            ("r_precision_top2", "top-2 ↑", ".3f"), ("r_precision_top3", "top-3 ↑", ".3f"),
            ("matching_score", "matching score ↓", ".3f"), ("diversity", "diversity →", ".3f"),
            ("multimodality", "multimodality ↑", ".3f"), ("jitter", "jitter (m/s³)", ".1f"),
-           ("jitter_per_speed", "jitter / speed (1/s²)", ".1f"), ("foot_skating", "foot skating ↓", ".3f"))
+           ("jitter_per_speed", "jitter / speed (1/s²)", ".1f"), ("foot_skating", "foot skating ↓", ".3f"),
+           ("keyframe_error", "keyframe error (m) ↓", ".4f"))
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -52,6 +53,9 @@ def build_parser() -> argparse.ArgumentParser:
                    help="with --model: generations per caption for multimodality, over --mm-captions captions "
                         "(0: off; default 11, T2M: 30)")
     p.add_argument("--mm-captions", type=int_range(1, 100000), default=10, help="(default 10, T2M: 100)")
+    p.add_argument("--inbetween-every", type=int_range(0, 10000), default=0, metavar="K",
+                   help="with --model: in-betweening; every motion passes through the real motion's frames 0, K, "
+                        "2K, ... and its last frame, and keyframe_error (m, joints) is reported (0: off)")
     p.add_argument("--out", required=True, metavar="RDIR", help="results folder to write")
     add_overwrite(p)
     p.add_argument("--seed", type=int_range(0), default=0)
@@ -112,23 +116,61 @@ class Generator:
             self.max_frames = int(tc.get("max_frames", 196))
             self.label = "sparse" if config is not None else "dense"
 
-    def generate(self, lengths: List[int], seed: int, batch: int = 64) -> List[np.ndarray]:
-        """One motion ``[L_i, D]`` (raw features) per length (cut to the model's ``max_frames``)."""
+    def generate(self, lengths: List[int], seed: int, batch: int = 64, targets: Optional[List[np.ndarray]] = None,
+                 every: int = 0) -> List[np.ndarray]:
+        """One motion ``[L_i, D]`` (raw features) per length (cut to the model's ``max_frames``); with
+        ``targets`` (raw ``[L_i, D]``) and ``every`` > 0, in-betweening: each passes through its
+        target's :func:`keyframe_frames` (``smdm_plugin.sample_inbetween``)."""
         import torch
 
         out: List[np.ndarray] = []
         gen = torch.Generator(device=self.device).manual_seed(seed)
+        mean, std = torch.from_numpy(self.mean), torch.from_numpy(self.std)
         for s in range(0, len(lengths), batch):
             L = torch.tensor([min(int(v), self.max_frames) for v in lengths[s:s + batch]])
             N = int(L.max())
-            y = {"mask": (torch.arange(N)[None] < L[:, None]).view(len(L), 1, 1, N).to(self.device),
-                 "lengths": L.to(self.device)}
             with torch.no_grad():
-                x = self.diffusion.p_sample_loop(self.model, (len(L), len(self.mean), 1, N), {"y": y},
-                                                 device=self.device, generator=gen)
-            feats = x.squeeze(2).permute(0, 2, 1).float().cpu().numpy() * self.std + self.mean
+                if targets is not None and every > 0:
+                    from ..adapters.inbetween import keyframe_constraint, sample_inbetween
+
+                    tgt = torch.zeros(len(L), N, len(self.mean))
+                    for i, t in enumerate(targets[s:s + batch]):
+                        tgt[i, :int(L[i])] = (torch.from_numpy(t[:int(L[i])]) - mean) / std
+                    frames = keyframe_frames(L, N, every)
+                    c = keyframe_constraint(tgt.to(self.device), frames.to(self.device), L.to(self.device))
+                    x = sample_inbetween(self.model, self.diffusion, c, generator=gen)
+                else:
+                    y = {"mask": (torch.arange(N)[None] < L[:, None]).view(len(L), 1, 1, N).to(self.device),
+                         "lengths": L.to(self.device)}
+                    x = self.diffusion.p_sample_loop(self.model, (len(L), len(self.mean), 1, N), {"y": y},
+                                                     device=self.device, generator=gen)
+                    x = x.squeeze(2).permute(0, 2, 1)
+            feats = x.float().cpu().numpy() * self.std + self.mean
             out += [feats[i, :int(L[i])] for i in range(len(L))]
         return out
+
+
+def keyframe_frames(lengths, N: int, every: int):
+    """bool ``[B, N]``: frames ``0, every, 2 every, ...`` and the last valid frame of each motion."""
+    import torch
+
+    idx = torch.arange(N)[None]
+    return ((idx % every == 0) | (idx == lengths[:, None] - 1)) & (idx < lengths[:, None])
+
+
+def inbetween_error(motions: List[np.ndarray], targets: List[np.ndarray], every: int, representation: str) -> float:
+    """Mean joint position error (m) at :func:`keyframe_frames` between each motion and its target."""
+    import torch
+
+    from ..io.representation import Representation
+    from ..metrics.evaluator.score import as_padded
+    from ..metrics.quality import keyframe_error
+
+    x, L = as_padded(motions)
+    t, _ = as_padded([m[:len(g)] for m, g in zip(targets, motions)])
+    rep = Representation(representation)
+    return float(keyframe_error(torch.as_tensor(rep.to_joints(x)), torch.as_tensor(rep.to_joints(t)),
+                                keyframe_frames(L, x.shape[1], every), lengths=L))
 
 
 def _summary(values: List[Optional[float]]) -> Dict[str, Any]:
@@ -204,6 +246,8 @@ def main(argv: Optional[List[str]] = None) -> int:
     from ..metrics.evaluator.score import embed_captions, embed_motions, motion_quality, score_embeddings
     from ._args import resolve_device
 
+    if a.inbetween_every and not a.model:
+        p.error("argument --inbetween-every: needs --model (the motions are generated through the keyframes)")
     if a.threads:
         torch.set_num_threads(a.threads)
     for name, path in (("--motions", a.motions), ("--model", a.model), ("--evaluator", a.evaluator),
@@ -244,7 +288,9 @@ def main(argv: Optional[List[str]] = None) -> int:
     rows: List[Dict[str, Any]] = []
     res = None
     for r in range(R):
-        motions = given if given is not None else gen_model.generate(lengths, seed=a.seed * 1000 + r)
+        motions = given if given is not None else gen_model.generate(
+            lengths, seed=a.seed * 1000 + r, targets=real.motions if a.inbetween_every else None,
+            every=a.inbetween_every)
         text = embed_captions(ev, real.first_captions(seed=a.seed * 1000 + r))
         mm = None
         if gen_model is not None and a.mm_repeats >= 2:
@@ -254,14 +300,17 @@ def main(argv: Optional[List[str]] = None) -> int:
                            for c in range(k)])
         res = score_embeddings(real_emb, text, embed_motions(ev, motions), mm, seed=a.seed * 1000 + r)
         q = motion_quality(motions, fps=real.fps, representation=real.representation)
+        if gen_model is not None and a.inbetween_every:
+            q["keyframe_error"] = inbetween_error(motions, real.motions, a.inbetween_every, real.representation)
         rows.append({**res.to_dict(), **q})
         print(f"  replication {r + 1}/{R}: FID {res.fid:.3f}, R-precision top-3 {res.r_precision_top3:.3f}, "
               f"diversity {res.diversity:.3f}, jitter {q['jitter']:.1f} m/s³", flush=True)
     metrics = {k: _summary([row.get(k) for row in rows]) for k, _, _ in COLUMNS}
     rq = motion_quality(real.motions, fps=real.fps, representation=real.representation)
-    real_row = {"fid": 0.0, "r_precision_top1": res.real_r_precision_top1, "r_precision_top2": res.real_r_precision_top2,
-                "r_precision_top3": res.real_r_precision_top3, "matching_score": res.real_matching_score,
-                "diversity": res.real_diversity, "multimodality": None, **rq}
+    # the real row: the same caption draws and pairs as the generated rows, averaged over the replications
+    real_row = {"fid": 0.0, **{k: float(np.mean([row[f"real_{k}"] for row in rows]))
+                               for k in ("r_precision_top1", "r_precision_top2", "r_precision_top3", "matching_score",
+                                         "diversity")}, "multimodality": None, **rq, "keyframe_error": None}
     protocol = {"pool_size": res.pool_size, "n_scored": res.n_scored, "n_real": res.n_real,
                 "diversity_times": res.diversity_times, "multimodality_times": res.multimodality_times,
                 "evaluator": f"{layout} ({os.path.abspath(a.evaluator)})",

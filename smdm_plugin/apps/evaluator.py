@@ -21,7 +21,7 @@ OUTPUTS = ("evaluator.json", "evaluator.pt", "metrics.json", STATE_FILENAME)
 
 def build_parser() -> argparse.ArgumentParser:
     from ..metrics.evaluator.train import OWN_SIZES, TrainSettings
-    from ._args import add_overwrite, existing_path, float_range, int_range
+    from ._args import add_overwrite, device_type, existing_path, float_range, int_range
 
     d = TrainSettings()
     p = argparse.ArgumentParser(
@@ -47,6 +47,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help=f"hidden size of every encoder (default: {OWN_SIZES['dim_motion_hidden']}; upstream's: 512 / 1024)")
     p.add_argument("--resume", action="store_true", help=f"continue from --out/{STATE_FILENAME} (to --epochs)")
     add_overwrite(p)
+    p.add_argument("--device", type=device_type, default="auto", help="auto (CUDA, else MPS, else CPU), cpu, cuda, mps")
     p.add_argument("--threads", type=int_range(1, 1024), default=None, help="torch.set_num_threads")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     return p
@@ -104,7 +105,9 @@ def run(a: argparse.Namespace, p: argparse.ArgumentParser) -> int:
                  dim_motion_hidden=a.hidden, dim_text_hidden=a.hidden)
     settings = TrainSettings(epochs=a.epochs, batch=a.batch, lr=a.lr, seed=a.seed, sizes=sizes)
     try:
-        ev = build_evaluator(train, settings, glove=a.glove)
+        from ._args import resolve_device
+
+        ev = build_evaluator(train, settings, glove=a.glove).to(resolve_device(a.device))
     except (FileNotFoundError, ValueError) as e:
         print(f"smdm evaluator train: {e}", file=sys.stderr)
         return 2
@@ -115,7 +118,8 @@ def run(a: argparse.Namespace, p: argparse.ArgumentParser) -> int:
     print(f"smdm evaluator train: {len(train)} training motions ({train.representation}, "
           f"{train.motions[0].shape[1]}-D) from {source}; held out: "
           + (", ".join(f"{s} {len(d)}" for s, d in held.items()) or "none")
-          + f"; words: {'GloVe ' + a.glove if a.glove else f'learned ({ev.config.vocab_size} words)'}", flush=True)
+          + f"; words: {'GloVe ' + a.glove if a.glove else f'learned ({ev.config.vocab_size} words)'}; "
+          f"{ev.mean.device}", flush=True)
     val = held.get("val") or held.get("test")
 
     def save_state(st):

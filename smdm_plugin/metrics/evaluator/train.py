@@ -117,7 +117,7 @@ def train_evaluator(ev: Evaluator, train: CaptionedMotions, val: Optional[Captio
     opt = torch.optim.Adam(params, lr=settings.lr)
     st: Dict[str, Any] = {"epoch": 0, "history": [], "best": None, "seconds": 0.0}
     if state is not None:
-        ev.load_state_dict(state["model"])
+        ev.load_state_dict(state["model"])  # (load_state_dict copies onto ev's device)
         opt.load_state_dict(state["optimizer"])
         st = {k: state[k] for k in ("epoch", "history", "best", "seconds")}
     bar = None
