@@ -52,7 +52,7 @@ def main() -> None:
     frames_to_png(os.path.join(a.work, "dance.gif"), [60, 90], "render")
     smdm(a.work, "inbetween", "--model", "demo/dense", "demo/sparse", "--keyframes", "my_clip.bvh", "--every", "20",
          "--out", "ib", "--quiet")
-    frames_to_png(os.path.join(a.work, "ib", "inbetween.gif"), [40, 50], "inbetween")
+    frames_to_png(os.path.join(a.work, "ib", "inbetween.gif"), [20, 30], "inbetween")
 
 
 if __name__ == "__main__":
