@@ -58,7 +58,7 @@ def main() -> None:
     p.add_argument("--data", default=None, help="HumanML3D-format folder for the train row (optional)")
     p.add_argument("--baseline-pythonpath", default=None,
                    help="an older checkout to time its default as 'before' (optional)")
-    p.add_argument("--only", nargs="+", default=None, help="command labels' first word to run (inbetween demo train)")
+    p.add_argument("--only", nargs="+", default=None, help="commands to run, by their first word: inbetween, demo, train")
     a = p.parse_args()
     variants: List[Tuple[str, List[str], str]] = [("default", [], ROOT), ("--threads 1", ["--threads", "1"], ROOT),
                                                   ("--threads 2", ["--threads", "2"], ROOT)]
@@ -70,7 +70,7 @@ def main() -> None:
         try:
             time.sleep(1.0 if n else 0.0)
             for label, cmd in commands(a.data).items():
-                if a.only and label.split()[0] not in a.only:
+                if a.only and label.split()[0].rstrip(",") not in [o.rstrip(",") for o in a.only]:
                     continue
                 times: Dict[str, List[float]] = {v[0]: [] for v in variants}
                 loads: List[float] = []

@@ -56,6 +56,9 @@ def main(argv: Optional[List[str]] = None) -> int:
             p.error(f"argument --plot: the folder {folder!r} does not exist")
     from . import demo  # torch, numpy: after the arguments are checked
 
+    if a.bvh and not demo.find_bvh(a.bvh):
+        print(f"smdm keyframes: no .bvh file in {', '.join(a.bvh)}", file=sys.stderr)
+        return 2
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
         try:  # as smdm demo: the given BVH files, else $SMDM_MOCAP, else the embedded CMU clips
