@@ -131,13 +131,19 @@ def load_humanml3d(root: str, split: str = "train", max_frames: int = 196, min_f
         raise ValueError(f"load_humanml3d: need 2 <= min_frames <= max_frames, got {min_frames}, {max_frames}")
     from ..io.validate import check_array, check_stats, load_npy
 
-    mean = load_npy(str(base / "Mean.npy"), "feature mean")
-    std = load_npy(str(base / "Std.npy"), "feature std")
+    def npy(path: Path, what: str) -> np.ndarray:
+        try:
+            return load_npy(str(path), what)
+        except ValueError as e:
+            raise ValueError(f"data: {e}") from None
+
+    mean = npy(base / "Mean.npy", "feature mean")
+    std = npy(base / "Std.npy", "feature std")
     if mean.ndim != 1:
         raise ValueError(f"data: {base / 'Mean.npy'}: expected a vector [D], got shape {list(mean.shape)}")
     D = mean.shape[0]
-    mean, _ = check_stats(mean, np.ones(D), D, str(base / "Mean.npy"))
-    _, std = check_stats(mean, std, D, str(base / "Std.npy"))
+    mean, _ = check_stats(mean, np.ones(D), D, f"data: {base / 'Mean.npy'}")
+    _, std = check_stats(mean, std, D, f"data: {base / 'Std.npy'}")
     try:
         names = (base / f"{split}.txt").read_bytes().decode("utf-8-sig").split()
     except UnicodeDecodeError as e:
@@ -150,7 +156,7 @@ def load_humanml3d(root: str, split: str = "train", max_frames: int = 196, min_f
         if not path.exists():
             continue
         # checked before the first step: a bad file is one line naming it, not a nan loss later
-        motion = check_array(load_npy(str(path), "motion features [T, D]"), f"data: {path}", "motion", (-1, D))
+        motion = check_array(npy(path, "motion features [T, D]"), f"data: {path}", "motion", (-1, D))
         if len(motion) < min_frames:
             continue
         kept.append(name)

@@ -486,8 +486,12 @@ def _read_text(path: str) -> str:
         raise FileNotFoundError(f"SparseConfig: no such config file: {path!r}")
     if os.path.isdir(path):
         raise IsADirectoryError(f"SparseConfig: {path!r} is a folder without {CONFIG_FILENAME}")
-    with open(path, encoding="utf-8-sig") as f:
-        return f.read()
+    with open(path, "rb") as f:
+        raw = f.read()
+    try:
+        return raw.decode("utf-8-sig")
+    except UnicodeDecodeError as e:
+        raise ValueError(f"{path}: not UTF-8 text (byte {e.start}: {e.reason})") from None
 
 
 def _parse(text: str, fmt: str, where: Optional[str]) -> Any:

@@ -91,7 +91,8 @@ def describe_os_error(e: OSError) -> str:
     device``."""
     reason = e.strerror or (str(e.args[-1]) if e.args else type(e).__name__)
     paths = [p for p in (e.filename, e.filename2) if p is not None]
-    where = " -> ".join(os.fspath(p) if not isinstance(p, bytes) else p.decode(errors="replace") for p in paths)
+    where = " -> ".join(p.decode(errors="replace") if isinstance(p, bytes) else
+                        os.fspath(p) if isinstance(p, (str, os.PathLike)) else str(p) for p in paths)
     return f"{where}: {reason}" if where else f"{reason} ({type(e).__name__})"
 
 
