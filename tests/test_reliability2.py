@@ -167,38 +167,48 @@ def test_output_dir_swaps_in_one_unit(tmp_path):
 
 
 # ------------------------------------------------------------------------------ resumable training
-def test_resume_after_kill_9_is_bit_identical(tmp_path, data):
+def test_resume_after_kill_9_is_bit_identical(tmp_path, data, capsys):
     ref, run = tmp_path / "ref", tmp_path / "run"
-    steps = "300"
+    steps = 120
     common = ["--data", data, "--min-frames", "20", "--save-every", "20", "--sparse", *TINY]
-    assert _smdm("train", *common, "--out", ref, "--steps", steps).returncode == 0
+
+    def train(*args) -> int:  # in this process (fast); the run to kill is a child process
+        return T.main([*map(str, common), *map(str, args)])
+
+    assert train("--out", ref, "--steps", steps) == 0
     # the same run, killed with SIGKILL once a checkpoint is there, then resumed to the same step
     child = subprocess.Popen([sys.executable, "-m", "smdm_plugin", "train", *map(str, common), "--out", str(run),
                               "--steps", "100000"], env=_env(), stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     state = tmp_path / ".run.partial" / T.TRAIN_STATE_FILENAME
     deadline = time.time() + 120
     while not state.exists() and child.poll() is None and time.time() < deadline:
-        time.sleep(0.005)
+        time.sleep(0.002)
     os.kill(child.pid, signal.SIGKILL)
     child.wait()
     assert state.exists() and not run.exists()
     killed_at = torch.load(state, weights_only=True)["step"]
-    assert 20 <= killed_at < int(steps)
-    p = _smdm("train", *common, "--out", run, "--steps", steps)  # without --resume: refused, nothing lost
-    assert p.returncode == 2 and "pass --resume to continue it" in p.stderr and state.exists()
-    p = _smdm("train", *common, "--out", run, "--steps", steps, "--resume")
-    assert p.returncode == 0, p.stderr
-    assert "resumed at step" in p.stdout
-    a = torch.load(ref / f"model{int(steps):09d}.pt", weights_only=True)
-    b = torch.load(run / f"model{int(steps):09d}.pt", weights_only=True)
+    assert 20 <= killed_at < steps
+    capsys.readouterr()
+    # the killed run's lock is reported as stale, never taken over: the user removes it
+    assert train("--out", run, "--steps", steps, "--resume") == 2
+    assert f"stale lock {lock_path(run)} left by smdm train (pid {child.pid}" in capsys.readouterr().err
+    os.unlink(lock_path(run))
+    assert train("--out", run, "--steps", steps) == 2  # without --resume: refused, nothing lost
+    assert "pass --resume to continue it" in capsys.readouterr().err and state.exists()
+    assert train("--out", run, "--steps", steps, "--resume") == 0
+    assert f"resumed at step {killed_at}" in capsys.readouterr().out
+    a = torch.load(ref / f"model{steps:09d}.pt", weights_only=True)
+    b = torch.load(run / f"model{steps:09d}.pt", weights_only=True)
     assert a.keys() == b.keys() and all(torch.equal(a[k], b[k]) for k in a)
     assert (ref / "losses.csv").read_text() == (run / "losses.csv").read_text()
-    # a finished run continues to more steps the same way
-    assert _smdm("train", *common, "--out", run, "--steps", "320", "--resume").returncode == 0
-    assert (run / "model000000320.pt").exists() and (run / "model000000300.pt").exists()
-    # other settings: refused, naming what differs
-    p = _smdm("train", *common, "--out", run, "--steps", "340", "--resume", "--lr", "0.001")
-    assert p.returncode == 2 and "lr: saved 0.0002, now 0.001" in p.stderr
+    # a finished run continues to more steps the same way; its earlier checkpoints stay
+    assert train("--out", run, "--steps", steps + 20, "--resume") == 0
+    assert (run / f"model{steps + 20:09d}.pt").exists() and (run / f"model{steps:09d}.pt").exists()
+    # other settings: refused, naming what differs, the folder unchanged
+    before = _snapshot(run)
+    assert train("--out", run, "--steps", steps + 40, "--resume", "--lr", "0.001") == 2
+    assert "lr: saved 0.0002, now 0.001" in capsys.readouterr().err and _snapshot(run) == before
+    assert sorted(os.listdir(tmp_path)) == ["data", "ref", "run"]  # no partial folder, no lock left
 
 
 # ------------------------------------------------------------------------------ loads validate

@@ -524,12 +524,12 @@ class Trainer:
         for name, value in (("Mean.npy", self.data.mean), ("Std.npy", self.data.std)):
             with atomic_open(os.path.join(folder, name), "wb") as f:
                 np.save(f, np.asarray(value, np.float32))
-        if self.dist.world_size == 1:  # after the weights: the state never runs ahead of a model file
-            with atomic_open(os.path.join(folder, TRAIN_STATE_FILENAME), "wb") as f:
-                torch.save(self.state(), f)
         atomic_write_json(os.path.join(folder, TRAIN_CONFIG_FILENAME),
                           {**self.config.to_dict(), "world_size": self.dist.world_size,
                            "global_batch": self.global_batch, "step": self.step_count, **(extra or {})})
+        if self.dist.world_size == 1:  # last: its presence means the checkpoint of its step is complete
+            with atomic_open(os.path.join(folder, TRAIN_STATE_FILENAME), "wb") as f:
+                torch.save(self.state(), f)
         return path
 
 
@@ -836,6 +836,7 @@ def main(argv: Optional[List[str]] = None) -> int:
                                                          for k in differ) + ")")
                 except ValueError as e:
                     print(f"smdm train: {e}", file=sys.stderr)
+                    od.abandon(keep=od.resumed_from == od.path)  # an interrupted run's folder stays as it was
                     return 2
             if ctx.is_main:
                 kind = "sparse" if cfg.sparse is not None else "dense"

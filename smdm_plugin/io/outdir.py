@@ -245,6 +245,7 @@ class OutputDir:
         self.path = partial_path(self.out)
         self.lock = OutputLock(self.out, command, what)
         self._abandoned = False
+        self._keep = resumable
         self.resumed_from: Optional[str] = None
 
     # ------------------------------------------------------------------ checks (nothing written)
@@ -309,16 +310,18 @@ class OutputDir:
                     shutil.copy2(src, os.path.join(self.path, name))
             self.resumed_from = self.out
 
-    def abandon(self) -> None:
-        """Do not commit at the end of the block (the command failed without an exception): the
-        partial folder is removed (``resumable``: kept) and ``out`` stays as it was."""
+    def abandon(self, keep: Optional[bool] = None) -> None:
+        """Do not commit at the end of the block (the command failed without an exception): ``out``
+        stays as it was; the partial folder is kept when ``keep`` (default: ``resumable``), else
+        removed."""
         self._abandoned = True
+        self._keep = self.resumable if keep is None else keep
 
     def __exit__(self, exc_type: Any, exc: Any, tb: Any) -> None:
         try:
             if exc_type is None and not self._abandoned:
                 self.commit()
-            elif not self.resumable:
+            elif not (self._keep if self._abandoned else self.resumable):
                 shutil.rmtree(self.path, ignore_errors=True)
         finally:
             self.lock.release()
