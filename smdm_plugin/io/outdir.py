@@ -37,6 +37,7 @@ import sys
 import time
 from typing import Any, Callable, List, Mapping, Optional, Sequence
 
+from ..core.atomic import _fsync_dir
 from .files import OutputExistsError, PathLike, atomic_write_json
 
 __all__ = ["OutputDir", "OutputLock", "run_in_output_dir", "OutputLockedError", "OutputOverlapError", "MANIFEST", "check_no_overlap",
@@ -142,19 +143,6 @@ def _exchange(a: str, b: str) -> bool:
     if err in (errno.ENOSYS, errno.EINVAL, errno.ENOTSUP if hasattr(errno, "ENOTSUP") else errno.EINVAL):
         return False
     raise OSError(err, os.strerror(err), a, None, b)
-
-
-def _fsync_dir(folder: str) -> None:
-    try:
-        fd = os.open(folder, os.O_RDONLY)
-    except OSError:
-        return
-    try:
-        os.fsync(fd)
-    except OSError:
-        pass
-    finally:
-        os.close(fd)
 
 
 class OutputLock:
