@@ -375,3 +375,28 @@ def test_ablate_variant_resumes_with_the_trainers_mechanism(tmp_path):
     assert resumed["resumed_at"] == 12 and straight["resumed_at"] == 0
     assert resumed["losses"] == straight["losses"] and resumed["val_loss"] == straight["val_loss"]
     assert resumed["ees"] == straight["ees"]
+
+
+def test_resume_without_a_run_is_refused_and_leaves_nothing(tmp_path, data, capsys):
+    assert _train(data, tmp_path / "o", "--steps", "1", "--resume") == 2
+    assert "holds no run to continue" in capsys.readouterr().err
+    assert sorted(os.listdir(tmp_path)) == ["data"]
+
+
+def test_ctrl_c_keeps_the_checkpoint_for_resume(tmp_path, data, monkeypatch, capsys):
+    real_step = T.Trainer.step
+
+    def step(self):
+        if self.step_count == 3:
+            raise KeyboardInterrupt
+        return real_step(self)
+
+    monkeypatch.setattr(T.Trainer, "step", step)
+    rc = cli.main(["train", "--data", str(data), "--out", str(tmp_path / "o"), "--steps", "9", "--save-every", "2",
+                   "--min-frames", "20", *TINY])
+    assert rc == 130 and "rerun with --resume to continue from step 2" in capsys.readouterr().err
+    assert not (tmp_path / "o").exists() and (tmp_path / ".o.partial" / "model000000002.pt").exists()
+    assert not os.path.exists(lock_path(tmp_path / "o"))
+    monkeypatch.setattr(T.Trainer, "step", real_step)
+    assert _train(data, tmp_path / "o", "--steps", "9", "--save-every", "2", "--resume") == 0
+    assert (tmp_path / "o" / "model000000009.pt").exists() and not (tmp_path / ".o.partial").exists()

@@ -809,6 +809,7 @@ def main(argv: Optional[List[str]] = None) -> int:
                 try:
                     stack.enter_context(od)
                     if a.resume and od.resumed_from is None:
+                        od.abandon(keep=False)  # nothing written: leave no folder behind
                         raise OutputExistsError(f"--resume: {a.out!r} holds no run to continue (no interrupted or "
                                                 "finished smdm train run there)")
                 except (OutputExistsError, OSError) as e:
@@ -851,7 +852,15 @@ def main(argv: Optional[List[str]] = None) -> int:
                     if ctx.is_main:
                         write_logs(folder, tr.losses)
 
-            result = trainer.train(progress=not a.no_progress, callback=every)
+            try:
+                result = trainer.train(progress=not a.no_progress, callback=every)
+            except KeyboardInterrupt:
+                if ctx.is_main:
+                    done = (trainer.step_count // a.save_every) * a.save_every if a.save_every else 0
+                    print(f"\nsmdm train: interrupted at step {trainer.step_count}; " + (
+                        f"rerun with --resume to continue from step {done}" if done else
+                        "no checkpoint was saved (--save-every N saves one every N steps)"), file=sys.stderr)
+                raise
             trainer.save(folder, extra)
             if ctx.is_main:
                 write_logs(folder, trainer.losses, result)
