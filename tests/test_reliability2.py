@@ -400,3 +400,23 @@ def test_ctrl_c_keeps_the_checkpoint_for_resume(tmp_path, data, monkeypatch, cap
     monkeypatch.setattr(T.Trainer, "step", real_step)
     assert _train(data, tmp_path / "o", "--steps", "9", "--save-every", "2", "--resume") == 0
     assert (tmp_path / "o" / "model000000009.pt").exists() and not (tmp_path / ".o.partial").exists()
+
+
+def test_options_files_must_agree_with_the_saved_config(model_dir, tmp_path):
+    import argparse
+
+    from smdm_plugin.integrations.motiondiffuse import config_from_opt
+
+    # diffusion_steps is set from the diffusion when the model is built: a CLI default there is fine
+    (model_dir / "args.json").write_text('{"sparse": true, "sparse_diffusion_steps": 50, "sparse_reduction": 0.8}')
+    T.load_trained(str(model_dir))
+    # MotionDiffuse: opt.txt's sparse_* options (strings, as get_opt reads them) vs sparse_config.json
+    (tmp_path / "model").mkdir()
+    SparseConfig(reduction=0.7).save(tmp_path / "model")
+    opt = argparse.Namespace(is_train=False, model_dir=str(tmp_path / "model"), sparse="True", sparse_reduction="0.7",
+                             sparse_diffusion_steps="50")
+    assert config_from_opt(opt).reduction == 0.7
+    opt.sparse_reduction = "0.5"
+    with pytest.raises(ValueError, match=r"opt.txt and .*sparse_config.json disagree: reduction: opt.txt 0.5, "
+                                         r"sparse_config.json 0.7"):
+        config_from_opt(opt)
