@@ -91,7 +91,7 @@ class Recorder:
     def __init__(self):
         self.calls, self.fail, self.interrupt_at, self.total = [], set(), None, 0
 
-    def __call__(self, cfg, variant, data, device, progress=False, dist=None):
+    def __call__(self, cfg, variant, data, device, progress=False, dist=None, checkpoint_dir=None):
         name = variant["name"]
         if name == self.interrupt_at:
             raise KeyboardInterrupt

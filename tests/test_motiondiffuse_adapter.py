@@ -338,7 +338,12 @@ def test_config_from_get_opt_strings(tmp_path):
     cfg = config_from_opt(opt)
     assert cfg.enabled and cfg.lipschitz_lambda == 1e-6 and cfg.fsq_levels == (8, 8, 8, 5, 5, 5)
     SparseConfig(reduction=0.5).save(str(tmp_path))
-    assert config_from_opt(opt).reduction == 0.5  # the saved config wins
+    # opt.txt and sparse_config.json describe the same model: a disagreement is an error, not ignored
+    with pytest.raises(ValueError, match=r"opt.txt and .*sparse_config.json disagree: reduction: opt.txt 0.8, "
+                                         r"sparse_config.json 0.5; lipschitz_lambda"):
+        config_from_opt(opt)
+    opt.sparse_reduction, opt.sparse_lipschitz_lambda = "0.5", "0.0"
+    assert config_from_opt(opt).reduction == 0.5  # the saved config (it agrees)
 
 
 def test_training_mean_std():

@@ -25,7 +25,9 @@ data files' contents, the smdm-plugin version, steps, seed and device type.
 
 An existing non-empty ``--out`` is refused unless:
 
-* ``--resume``: results whose provenance matches are reused; missing, failed and unreadable ones
+* ``--resume``: results whose provenance matches are reused (a variant interrupted mid-training
+  continues from its ``<slug>/checkpoint/``, the mechanism of ``smdm train --resume``); missing,
+  failed and unreadable ones
   run; a result from other settings, data, version, steps, seed or device stops the run before
   anything trains, naming what differs (rerun those with ``--overwrite``, or pick another ``--out``);
 * ``--overwrite``: every selected variant runs again and replaces its result.
@@ -61,6 +63,7 @@ import json
 import math
 import os
 import re
+import shutil
 import sys
 import time
 import traceback
@@ -384,12 +387,17 @@ def motion_quality(motion_norm: torch.Tensor, lengths: torch.Tensor, data: "Moti
 
 
 def run_variant(cfg: Dict[str, Any], variant: Dict[str, Any], data: MotionData, device: torch.device,
-                progress: bool = False, dist=None) -> Dict[str, Any]:
+                progress: bool = False, dist=None, checkpoint_dir: Optional[str] = None) -> Dict[str, Any]:
     """Train one variant with the in-package :class:`~smdm_plugin.apps.trainer.Trainer` (DDP when
     ``dist`` is a torchrun context) and, on rank 0, evaluate it: validation loss, unconditional
-    samples (EES, jitter, foot skating), keyframe error. Other ranks return after training."""
+    samples (EES, jitter, foot skating), keyframe error. Other ranks return after training.
+
+    ``checkpoint_dir`` (one process only): the trainer's checkpoint is saved there every tenth of
+    the steps and, when one is there, training continues from it (``smdm train --resume``'s
+    mechanism: weights, optimiser, random streams, step), so an interrupted variant resumes
+    bit-identically instead of starting over."""
     from ..integrations.distributed import DistContext
-    from .trainer import TrainConfig, Trainer
+    from .trainer import TrainConfig, Trainer, _resume
 
     seed = int(cfg["seed"])
     sc = sparse_config(cfg, variant)
@@ -398,11 +406,21 @@ def run_variant(cfg: Dict[str, Any], variant: Dict[str, Any], data: MotionData, 
                      diffusion_steps=int(cfg["diffusion_steps"]), seed=seed, model=dict(cfg["model"]), sparse=sc)
     trainer = Trainer(tc, motion_set(data.train, data), dist=dist or DistContext(device=device))
     device = trainer.dist.device
+    callback = None
+    if checkpoint_dir is not None and trainer.dist.world_size == 1:
+        _resume(trainer, checkpoint_dir)  # nothing there: from step 0
+        every = max(1, steps // 10)
+
+        def callback(tr: Trainer, loss: float) -> None:
+            if tr.step_count % every == 0 and tr.step_count < steps:
+                tr.save(checkpoint_dir)
+
     try:
-        result = trainer.train(progress=progress)
+        result = trainer.train(progress=progress, callback=callback)
     except FloatingPointError as e:
         raise FloatingPointError(str(e).replace("Trainer: the ", "")) from None
-    model, diffusion, losses, train_s = trainer.model, trainer.diffusion, result.losses, result.seconds
+    # losses of the whole run (a resumed one included); speed: the steps this call made
+    model, diffusion, losses, train_s = trainer.model, trainer.diffusion, list(trainer.losses), result.seconds
     if not trainer.dist.is_main:
         return {"name": variant["name"], "status": "ok", "steps": steps, "rank": trainer.dist.rank}
     N = data.train["x"].shape[1]
@@ -425,7 +443,8 @@ def run_variant(cfg: Dict[str, Any], variant: Dict[str, Any], data: MotionData, 
     return {
         "name": variant["name"], "status": "ok", "steps": steps,
         "final_loss": float(np.mean(losses[-k:])), "best_loss": float(np.min(smooth)), "val_loss": val_loss,
-        "steps_per_s": steps / train_s if train_s > 0 else float("nan"), "train_s": train_s, "sample_s": sample_s,
+        "steps_per_s": result.steps / train_s if train_s > 0 else float("nan"), "train_s": train_s,
+        "sample_s": sample_s, "resumed_at": steps - result.steps,
         "keyframe_error_mm": keyframe_error_mm(data, sc, ev.get("keyframe_motions"), seed),
         "ees": _ees(motion, lengths, data), **quality, "losses": losses, "world_size": trainer.dist.world_size,
         "max_divergence": result.max_divergence,
@@ -520,17 +539,36 @@ def _remove(path: str) -> None:
         pass
 
 
+CHECKPOINT_DIR = "checkpoint"
+
+
+def _read_json_or_none(path: str) -> Any:
+    try:
+        with open(path, encoding="utf-8") as f:
+            return json.load(f)
+    except (OSError, ValueError):
+        return None
+
+
 def run_one(cfg: Dict[str, Any], variant: Dict[str, Any], data: MotionData, dev: torch.device, vdir: str,
-            provenance: Dict[str, Any], progress: bool, log: Callable[[str], Any], dist=None) -> Dict[str, Any]:
+            provenance: Dict[str, Any], progress: bool, log: Callable[[str], Any], dist=None,
+            resume: bool = False) -> Dict[str, Any]:
     """Run one variant and record it (atomically): ``result.json`` (its stale ``failed.json``
     removed) or, when it raises, ``failed.json`` (a previous ``result.json`` removed)."""
     name = variant["name"]
     res_path, fail_path = os.path.join(vdir, "result.json"), os.path.join(vdir, "failed.json")
     os.makedirs(vdir, exist_ok=True)
     atomic_write_json(os.path.join(vdir, "config.json"), variant_settings(cfg, variant))
+    # an interrupted variant's checkpoint (smdm train's mechanism), used only by the same provenance
+    ckpt = os.path.join(vdir, CHECKPOINT_DIR)
+    ckpt_prov = os.path.join(ckpt, "provenance.json")
+    if os.path.isdir(ckpt) and (not resume or _read_json_or_none(ckpt_prov) != json.loads(json.dumps(provenance))):
+        shutil.rmtree(ckpt)
+    os.makedirs(ckpt, exist_ok=True)
+    atomic_write_json(ckpt_prov, provenance)
     t0 = time.perf_counter()
     try:
-        res = run_variant(cfg, variant, data, dev, progress, dist)
+        res = run_variant(cfg, variant, data, dev, progress, dist, checkpoint_dir=ckpt)
     except Exception as e:  # recorded, the other variants go on
         rec = {"name": name, "status": "failed", "error": f"{type(e).__name__}: {e}",
                "traceback": traceback.format_exc(), "wall_s": time.perf_counter() - t0, "provenance": provenance}
@@ -542,6 +580,7 @@ def run_one(cfg: Dict[str, Any], variant: Dict[str, Any], data: MotionData, dev:
     res["provenance"] = provenance
     atomic_write_json(res_path, res, indent=None)
     _remove(fail_path)
+    shutil.rmtree(ckpt, ignore_errors=True)  # the result is recorded: the checkpoint has done its job
     log(f"  {name}: loss {res['final_loss']:.4f}, {res['steps_per_s']:.2f} steps/s, {res['wall_s']:.0f} s")
     return res
 
@@ -647,7 +686,7 @@ def _run_locked(cfg: Dict[str, Any], out: str, data_root: str, ctx, selected: Se
                 continue
             if cached.state in ("corrupt", "stale"):
                 log(f"  {variant['name']}: replacing {cached.state} result ({cached.reason})")
-            rows[k] = run_one(cfg, variant, data, dev, vdir, prov, progress, log, ctx)
+            rows[k] = run_one(cfg, variant, data, dev, vdir, prov, progress, log, ctx, resume=resume)
     finally:  # the report is written even when interrupted (Ctrl-C): it then shows what is done
         write_report(rows, out, real["ees"], cfg, data.fingerprint, real=real)
     return rows

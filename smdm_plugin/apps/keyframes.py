@@ -48,6 +48,9 @@ def main(argv: Optional[List[str]] = None) -> int:
         if not a.plot.lower().endswith(PLOT_FORMATS):
             p.error(f"argument --plot: expected a file name ending in {', '.join(PLOT_FORMATS)}, got {a.plot!r}")
         try:
+            from ..io.outdir import check_no_overlap
+
+            check_no_overlap(a.plot, {f"input {b}": b for b in a.bvh}, what="--plot")
             check_new_file(a.plot, a.overwrite, what="--plot")
         except OutputExistsError as e:
             p.error(str(e))

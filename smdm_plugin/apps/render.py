@@ -49,6 +49,12 @@ def main(argv: Optional[List[str]] = None) -> int:
     out = a.out or os.path.splitext(os.path.basename(a.motions[0]))[0] + ".gif"
     if not out.lower().endswith(".gif"):
         p.error(f"--out must end in .gif, got {out!r}")
+    from ..io.outdir import check_no_overlap
+
+    try:
+        check_no_overlap(out, {f"motion {m}": m for m in a.motions})
+    except OutputExistsError as e:
+        p.error(str(e))
     if os.path.exists(out) and not a.overwrite:
         p.error(f"--out {out!r} exists; pass --overwrite to replace it")
     panels, rates = [], []

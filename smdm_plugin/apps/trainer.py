@@ -133,13 +133,19 @@ def load_humanml3d(root: str, split: str = "train", max_frames: int = 196, min_f
         raise ValueError(f"load_humanml3d: need 2 <= min_frames <= max_frames, got {min_frames}, {max_frames}")
     from ..io.validate import check_array, check_stats, load_npy
 
-    mean = load_npy(str(base / "Mean.npy"), "feature mean")
-    std = load_npy(str(base / "Std.npy"), "feature std")
+    def npy(path: Path, what: str) -> np.ndarray:
+        try:
+            return load_npy(str(path), what)
+        except ValueError as e:
+            raise ValueError(f"data: {e}") from None
+
+    mean = npy(base / "Mean.npy", "feature mean")
+    std = npy(base / "Std.npy", "feature std")
     if mean.ndim != 1:
         raise ValueError(f"data: {base / 'Mean.npy'}: expected a vector [D], got shape {list(mean.shape)}")
     D = mean.shape[0]
-    mean, _ = check_stats(mean, np.ones(D), D, str(base / "Mean.npy"))
-    _, std = check_stats(mean, std, D, str(base / "Std.npy"))
+    mean, _ = check_stats(mean, np.ones(D), D, f"data: {base / 'Mean.npy'}")
+    _, std = check_stats(mean, std, D, f"data: {base / 'Std.npy'}")
     try:
         names = (base / f"{split}.txt").read_bytes().decode("utf-8-sig").split()
     except UnicodeDecodeError as e:
@@ -152,7 +158,7 @@ def load_humanml3d(root: str, split: str = "train", max_frames: int = 196, min_f
         if not path.exists():
             continue
         # checked before the first step: a bad file is one line naming it, not a nan loss later
-        motion = check_array(load_npy(str(path), "motion features [T, D]"), f"data: {path}", "motion", (-1, D))
+        motion = check_array(npy(path, "motion features [T, D]"), f"data: {path}", "motion", (-1, D))
         if len(motion) < min_frames:
             continue
         kept.append(name)
@@ -450,21 +456,29 @@ class Trainer:
         """What :meth:`load_state` needs to continue exactly where this trainer stands: step count,
         losses, optimiser state, and every random stream (torch CPU / CUDA, numpy, Python's
         ``random``); plain tensors and containers (loads with ``weights_only=True``). The data
-        order, diffusion steps and noise are functions of (seed, step) and need no state."""
+        order, diffusion steps and noise are functions of (seed, step) and need no state. Under
+        torchrun every rank must call it (the random streams of all ranks are gathered: ``rng``
+        holds one entry per rank)."""
+        rngs = [self._rng_state()]
+        if self.dist.distributed:
+            rngs = [None] * self.dist.world_size
+            torch.distributed.all_gather_object(rngs, self._rng_state())
+        return {"format": TRAIN_STATE_VERSION, "step": self.step_count, "world_size": self.dist.world_size,
+                "config": json.dumps(self.config.to_dict(), sort_keys=True),
+                "losses": torch.tensor(self.losses, dtype=torch.float64),
+                "optimizer": self.optimizer.state_dict(), "rng": rngs}
+
+    def _rng_state(self) -> Dict[str, Any]:
+        """This process's random streams as tensors and plain values."""
         import random
 
         np_state = np.random.get_state()
         py_state = random.getstate()
-        return {"format": TRAIN_STATE_VERSION, "step": self.step_count, "world_size": self.dist.world_size,
-                "config": json.dumps(self.config.to_dict(), sort_keys=True),
-                "losses": torch.tensor(self.losses, dtype=torch.float64),
-                "optimizer": self.optimizer.state_dict(),
-                "torch_rng": torch.get_rng_state(),
-                "cuda_rng": torch.cuda.get_rng_state(self.dist.device) if self.dist.device.type == "cuda" else None,
-                "numpy_rng": [np_state[0], torch.from_numpy(np_state[1].astype(np.int64)), int(np_state[2]),
-                              int(np_state[3]), float(np_state[4])],
-                "python_rng": [py_state[0], torch.tensor(py_state[1], dtype=torch.int64),
-                               py_state[2]]}
+        return {"torch": torch.get_rng_state(),
+                "cuda": torch.cuda.get_rng_state(self.dist.device) if self.dist.device.type == "cuda" else None,
+                "numpy": [np_state[0], torch.from_numpy(np_state[1].astype(np.int64)), int(np_state[2]),
+                          int(np_state[3]), float(np_state[4])],
+                "python": [py_state[0], torch.tensor(py_state[1], dtype=torch.int64), py_state[2]]}
 
     def load_state(self, state: Dict[str, Any], weights: Dict[str, torch.Tensor], where: str = "state") -> None:
         """Continue from :meth:`state` (and the model ``weights`` of the same step). Raises
@@ -474,8 +488,7 @@ class Trainer:
 
         if not isinstance(state, dict) or state.get("format") != TRAIN_STATE_VERSION:
             raise ValueError(f"{where}: not a training state of format {TRAIN_STATE_VERSION}")
-        missing = [k for k in ("step", "world_size", "config", "losses", "optimizer", "torch_rng", "numpy_rng",
-                               "python_rng") if k not in state]
+        missing = [k for k in ("step", "world_size", "config", "losses", "optimizer", "rng") if k not in state]
         if missing:
             raise ValueError(f"{where}: missing field(s) {', '.join(missing)}")
         saved = json.loads(state["config"])
@@ -483,7 +496,7 @@ class Trainer:
         differ = sorted(k for k in set(saved) | set(now) if k != "steps" and saved.get(k) != now.get(k))
         if differ:
             raise ValueError(f"{where}: saved by a run with other settings ({'; '.join(f'{k}: saved {saved.get(k)!r}, now {now.get(k)!r}' for k in differ)})")
-        if int(state["world_size"]) != self.dist.world_size:
+        if int(state["world_size"]) != self.dist.world_size or len(state["rng"]) != self.dist.world_size:
             raise ValueError(f"{where}: saved by {state['world_size']} process(es), resumed with {self.dist.world_size}")
         step = int(state["step"])
         losses = state["losses"]
@@ -491,12 +504,13 @@ class Trainer:
             raise ValueError(f"{where}: step {step} and {tuple(getattr(losses, 'shape', ()))} losses disagree")
         self.model.load_state_dict(weights)
         self.optimizer.load_state_dict(state["optimizer"])
-        torch.set_rng_state(state["torch_rng"])
-        if state.get("cuda_rng") is not None and self.dist.device.type == "cuda":
-            torch.cuda.set_rng_state(state["cuda_rng"], self.dist.device)
-        n = state["numpy_rng"]
+        rng = state["rng"][self.dist.rank]  # this rank's streams
+        torch.set_rng_state(rng["torch"])
+        if rng.get("cuda") is not None and self.dist.device.type == "cuda":
+            torch.cuda.set_rng_state(rng["cuda"], self.dist.device)
+        n = rng["numpy"]
         np.random.set_state((n[0], n[1].numpy().astype(np.uint32), int(n[2]), int(n[3]), float(n[4])))
-        p = state["python_rng"]
+        p = rng["python"]
         random.setstate((p[0], tuple(int(v) for v in p[1].tolist()), p[2]))
         self.step_count = step
         self.losses = [float(v) for v in losses.tolist()]
@@ -507,7 +521,9 @@ class Trainer:
         (sparse models), ``Mean.npy``/``Std.npy``, ``train_config.json`` (+ ``extra``) and, for 263-D
         or 66-D features, ``motion.json`` (so ``smdm inbetween --model`` reads the folder); each file
         written atomically. :func:`smdm_plugin.load_checkpoint` reloads it. The caller checks
-        that ``folder`` may be written (``io.files.check_new_dir``)."""
+        that ``folder`` may be written (``io.files.check_new_dir``). Under torchrun every rank
+        calls it (the training state gathers every rank's random streams)."""
+        state = self.state()
         if not self.dist.is_main:
             return None
         os.makedirs(folder, exist_ok=True)
@@ -521,9 +537,6 @@ class Trainer:
         for name, value in (("Mean.npy", self.data.mean), ("Std.npy", self.data.std)):
             with atomic_open(os.path.join(folder, name), "wb") as f:
                 np.save(f, np.asarray(value, np.float32))
-        if self.dist.world_size == 1:  # after the weights: the state never runs ahead of a model file
-            with atomic_open(os.path.join(folder, TRAIN_STATE_FILENAME), "wb") as f:
-                torch.save(self.state(), f)
         atomic_write_json(os.path.join(folder, TRAIN_CONFIG_FILENAME),
                           {**self.config.to_dict(), "world_size": self.dist.world_size,
                            "global_batch": self.global_batch, "step": self.step_count, **(extra or {})})
@@ -535,6 +548,9 @@ class Trainer:
             write_motion_meta(folder, Representation(rep), self.data.mean, self.data.std, 20.0,
                               self.data.max_frames, self.diffusion.num_timesteps,
                               {"trained_by": "smdm train", "steps": self.step_count})
+        # last: its presence means the checkpoint of its step is complete
+        with atomic_open(os.path.join(folder, TRAIN_STATE_FILENAME), "wb") as f:
+            torch.save(state, f)
         return path
 
 
@@ -904,11 +920,6 @@ def main(argv: Optional[List[str]] = None) -> int:
     except (FileNotFoundError, ValueError) as e:
         print(f"smdm train: {e}", file=sys.stderr)
         return 2
-    if a.resume and ctx.distributed:
-        print("smdm train: --resume: not supported under torchrun yet (the random streams of every rank are not "
-              "saved); resume with one process", file=sys.stderr)
-        shutdown_distributed(ctx)
-        return 2
     try:
         with ExitStack() as stack:
             message, od = "", None
@@ -918,6 +929,7 @@ def main(argv: Optional[List[str]] = None) -> int:
                 try:
                     stack.enter_context(od)
                     if a.resume and od.resumed_from is None:
+                        od.abandon(keep=False)  # nothing written: leave no folder behind
                         raise OutputExistsError(f"--resume: {a.out!r} holds no run to continue (no interrupted or "
                                                 "finished smdm train run there)")
                 except (OutputExistsError, OSError) as e:
@@ -928,12 +940,14 @@ def main(argv: Optional[List[str]] = None) -> int:
                 if ctx.is_main:
                     print(f"smdm train: {message}", file=sys.stderr)
                 return 2
-            folder = od.path if od is not None else a.out  # other ranks write nothing
+            from ..io.outdir import partial_path
+
+            folder = od.path if od is not None else partial_path(a.out)  # other ranks only read it (--resume)
             trainer = Trainer(cfg, data, dist=ctx)
             extra = {"data": os.path.abspath(a.data), "split": a.split, "min_frames": a.min_frames,
                      "max_frames": a.max_frames}
             note = ""
-            if a.resume and od is not None:
+            if a.resume:
                 try:
                     note = "; " + _resume(trainer, folder)
                     saved = _read_json(os.path.join(folder, TRAIN_CONFIG_FILENAME))
@@ -944,7 +958,9 @@ def main(argv: Optional[List[str]] = None) -> int:
                                              + "; ".join(f"{k}: saved {saved.get(k)!r}, now {extra[k]!r}"
                                                          for k in differ) + ")")
                 except ValueError as e:
-                    print(f"smdm train: {e}", file=sys.stderr)
+                    if od is not None:
+                        print(f"smdm train: {e}", file=sys.stderr)
+                        od.abandon(keep=od.resumed_from == od.path)  # an interrupted run's folder stays as it was
                     return 2
             if ctx.is_main:
                 kind = "sparse" if cfg.sparse is not None else "dense"
@@ -959,7 +975,15 @@ def main(argv: Optional[List[str]] = None) -> int:
                     if ctx.is_main:
                         write_logs(folder, tr.losses)
 
-            result = trainer.train(progress=not a.no_progress, callback=every)
+            try:
+                result = trainer.train(progress=not a.no_progress, callback=every)
+            except KeyboardInterrupt:
+                if ctx.is_main:
+                    done = (trainer.step_count // a.save_every) * a.save_every if a.save_every else 0
+                    print(f"\nsmdm train: interrupted at step {trainer.step_count}; " + (
+                        f"rerun with --resume to continue from step {done}" if done else
+                        "no checkpoint was saved (--save-every N saves one every N steps)"), file=sys.stderr)
+                raise
             trainer.save(folder, extra)
             if ctx.is_main:
                 write_logs(folder, trainer.losses, result)

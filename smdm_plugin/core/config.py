@@ -512,8 +512,12 @@ def _read_text(path: str) -> str:
         raise FileNotFoundError(f"SparseConfig: no such config file: {path!r}")
     if os.path.isdir(path):
         raise IsADirectoryError(f"SparseConfig: {path!r} is a folder without {CONFIG_FILENAME}")
-    with open(path, encoding="utf-8-sig") as f:
-        return f.read()
+    with open(path, "rb") as f:
+        raw = f.read()
+    try:
+        return raw.decode("utf-8-sig")
+    except UnicodeDecodeError as e:
+        raise ValueError(f"{path}: not UTF-8 text (byte {e.start}: {e.reason})") from None
 
 
 def _parse(text: str, fmt: str, where: Optional[str]) -> Any:
@@ -548,6 +552,27 @@ def config_section(data: Any, where: Optional[str] = None) -> Dict[str, Any]:
                                   f"options, got {type(section).__name__}")
         return dict(section)
     return dict(data)
+
+
+#: fields an adapter sets from the model when it attaches (a run's command-line value may differ)
+SET_WHEN_ATTACHED = ("diffusion_steps", "prefix_frames", "version")
+
+
+def disagreement(saved: "SparseConfig", options: Mapping[str, Any], config_file: str, options_file: str,
+                 ignore: Iterable[str] = SET_WHEN_ATTACHED) -> Optional[str]:
+    """None when a run's ``sparse_*`` options (``args.json``, ``opt.txt``: ``options``, with
+    ``sparse`` true) agree with its ``sparse_config.json`` (``saved``) on every field they give
+    (``ignore`` aside), else a one-line message naming both files and each differing field."""
+    try:
+        given = SparseConfig.from_args(options)
+    except ValueError as e:
+        return f"{options_file}: {e}"
+    keys = {f.name for f in dataclasses.fields(SparseConfig) if f"sparse_{f.name}" in options} - set(ignore)
+    diff = {k: v for k, v in saved.differences(given, ignore=tuple(ignore)).items() if k in keys}
+    if not diff:
+        return None
+    return f"{options_file} and {config_file} disagree: " + "; ".join(
+        f"{k}: {os.path.basename(options_file)} {b!r}, {os.path.basename(config_file)} {a!r}" for k, (a, b) in diff.items())
 
 
 def as_config(config: Any, what: str = "config") -> "SparseConfig":

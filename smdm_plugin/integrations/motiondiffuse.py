@@ -63,7 +63,20 @@ def config_from_opt(opt: Any) -> SparseConfig:
     if not getattr(opt, "is_train", False) and model_dir:
         path = os.path.join(model_dir, CONFIG_FILENAME)
         if os.path.exists(path) and not getattr(opt, "_smdm_cli_override", False):
-            return SparseConfig.load(path)
+            saved = SparseConfig.load(path)
+            if _coerce(getattr(opt, "sparse", False), False):  # opt.txt describes the same model: it must agree
+                from ..core.config import SET_WHEN_ATTACHED, disagreement
+
+                opt_file = os.path.join(os.path.dirname(os.path.normpath(model_dir)), "opt.txt")
+                why = disagreement(saved, _options(opt), path, opt_file, ignore=(*SET_WHEN_ATTACHED, "fsq"))
+                if why:
+                    raise ValueError(why)
+            return saved
+    return SparseConfig.from_args(_options(opt))
+
+
+def _options(opt: Any) -> dict:
+    """``opt``'s ``sparse``/``sparse_*`` options with their types restored."""
     d = dict(vars(opt))
     defaults = SparseConfig(enabled=False).to_dict()
     for k, v in defaults.items():
@@ -72,7 +85,7 @@ def config_from_opt(opt: Any) -> SparseConfig:
             d[key] = _coerce(d[key], tuple(v) if isinstance(v, list) else v)
     d["sparse"] = bool(_coerce(d.get("sparse", False), False))
     d.pop("sparse_version", None)
-    return SparseConfig.from_args(d)
+    return d
 
 
 def merge_sparse_options(opt: Any, args: Any) -> Any:

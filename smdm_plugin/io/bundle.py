@@ -22,7 +22,7 @@ import torch.nn as nn
 from ..core.config import CONFIG_FILENAME, SparseConfig
 from ..reference.diffusion import SimpleDiffusion
 from .checkpoint import BACKBONE_FILENAME, load_checkpoint, save_sparse_config
-from .files import atomic_open, atomic_write_json, check_new_dir
+from .files import atomic_open, atomic_write_json
 from .validate import check_stats, float_field, int_field, read_json_object, require_fields
 from .representation import Representation
 
@@ -71,17 +71,18 @@ def save_bundle(directory: str, model: nn.Module, diffusion: SimpleDiffusion, ba
     if mean.shape != (representation.dim,) or std.shape != (representation.dim,):
         raise ValueError(f"save_bundle: mean and std must be [{representation.dim}] for {representation.name}, "
                          f"got {mean.shape}, {std.shape}")
-    check_new_dir(directory, overwrite, what="model folder")
-    with atomic_open(os.path.join(directory, WEIGHTS_FILENAME), "wb") as f:
-        torch.save({k: v.detach().cpu() for k, v in model.state_dict().items()}, f)
-    atomic_write_json(os.path.join(directory, BACKBONE_FILENAME), dict(backbone))
-    config = getattr(model, "smdm_config", None)
-    stale = os.path.join(directory, "sparse_config.json")
-    if config is not None:
-        save_sparse_config(model, directory, overwrite=True)
-    elif os.path.exists(stale):  # overwrite=True over a sparse bundle with a dense model
-        os.unlink(stale)
-    write_motion_meta(directory, representation, mean, std, fps, max_frames, diffusion.num_timesteps, info)
+    from .outdir import OutputDir
+
+    # written complete in a partial folder and swapped in: a reader sees the old model or the new one
+    with OutputDir(directory, overwrite=overwrite, command="save_bundle", what="model folder",
+                   owns=(WEIGHTS_FILENAME, BACKBONE_FILENAME, CONFIG_FILENAME, MOTION_FILENAME)) as od:
+        part = od.path
+        with atomic_open(os.path.join(part, WEIGHTS_FILENAME), "wb") as f:
+            torch.save({k: v.detach().cpu() for k, v in model.state_dict().items()}, f)
+        atomic_write_json(os.path.join(part, BACKBONE_FILENAME), dict(backbone))
+        if getattr(model, "smdm_config", None) is not None:
+            save_sparse_config(model, part, overwrite=True)
+        write_motion_meta(part, representation, mean, std, fps, max_frames, diffusion.num_timesteps, info)
     return directory
 
 

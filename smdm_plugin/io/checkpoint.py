@@ -10,7 +10,7 @@ from typing import Any, Dict, Iterable, Mapping, Optional, Tuple, Union
 import torch
 import torch.nn as nn
 
-from ..core.config import CONFIG_FILENAME, MARKER, SparseConfig
+from ..core.config import CONFIG_FILENAME, MARKER, SparseConfig, disagreement
 from .files import OutputExistsError
 from .validate import read_json_object, require_fields
 
@@ -81,11 +81,9 @@ def _find_config(checkpoint_path: str) -> Tuple[Optional[SparseConfig], Optional
                 raise type(e)(f"{args}: {e}") from None
             if config is None:
                 return from_args, args
-            given = {f.name for f in dataclasses.fields(SparseConfig) if f"sparse_{f.name}" in a}
-            diff = {k: v for k, v in config.differences(from_args).items() if k in given}
-            if diff:  # the two files describe the same model: they must agree
-                raise ValueError(f"{args} and {p} disagree: " + "; ".join(
-                    f"{k}: args.json {b!r}, {CONFIG_FILENAME} {a_!r}" for k, (a_, b) in diff.items()))
+            why = disagreement(config, a, p, args)  # the two files describe the same model: they must agree
+            if why:
+                raise ValueError(why)
     return (config, p) if config is not None else (None, None)
 
 

@@ -37,6 +37,7 @@ import sys
 import time
 from typing import Any, Callable, List, Mapping, Optional, Sequence
 
+from ..core.atomic import _fsync_dir
 from .files import OutputExistsError, PathLike, atomic_write_json
 
 __all__ = ["OutputDir", "OutputLock", "run_in_output_dir", "OutputLockedError", "OutputOverlapError", "MANIFEST", "check_no_overlap",
@@ -91,7 +92,8 @@ def describe_os_error(e: OSError) -> str:
     device``."""
     reason = e.strerror or (str(e.args[-1]) if e.args else type(e).__name__)
     paths = [p for p in (e.filename, e.filename2) if p is not None]
-    where = " -> ".join(os.fspath(p) if not isinstance(p, bytes) else p.decode(errors="replace") for p in paths)
+    where = " -> ".join(p.decode(errors="replace") if isinstance(p, bytes) else
+                        os.fspath(p) if isinstance(p, (str, os.PathLike)) else str(p) for p in paths)
     return f"{where}: {reason}" if where else f"{reason} ({type(e).__name__})"
 
 
@@ -141,19 +143,6 @@ def _exchange(a: str, b: str) -> bool:
     if err in (errno.ENOSYS, errno.EINVAL, errno.ENOTSUP if hasattr(errno, "ENOTSUP") else errno.EINVAL):
         return False
     raise OSError(err, os.strerror(err), a, None, b)
-
-
-def _fsync_dir(folder: str) -> None:
-    try:
-        fd = os.open(folder, os.O_RDONLY)
-    except OSError:
-        return
-    try:
-        os.fsync(fd)
-    except OSError:
-        pass
-    finally:
-        os.close(fd)
 
 
 class OutputLock:
@@ -244,6 +233,7 @@ class OutputDir:
         self.path = partial_path(self.out)
         self.lock = OutputLock(self.out, command, what)
         self._abandoned = False
+        self._keep = resumable
         self.resumed_from: Optional[str] = None
 
     # ------------------------------------------------------------------ checks (nothing written)
@@ -308,16 +298,18 @@ class OutputDir:
                     shutil.copy2(src, os.path.join(self.path, name))
             self.resumed_from = self.out
 
-    def abandon(self) -> None:
-        """Do not commit at the end of the block (the command failed without an exception): the
-        partial folder is removed (``resumable``: kept) and ``out`` stays as it was."""
+    def abandon(self, keep: Optional[bool] = None) -> None:
+        """Do not commit at the end of the block (the command failed without an exception): ``out``
+        stays as it was; the partial folder is kept when ``keep`` (default: ``resumable``), else
+        removed."""
         self._abandoned = True
+        self._keep = self.resumable if keep is None else keep
 
     def __exit__(self, exc_type: Any, exc: Any, tb: Any) -> None:
         try:
             if exc_type is None and not self._abandoned:
                 self.commit()
-            elif not self.resumable:
+            elif not (self._keep if self._abandoned else self.resumable):
                 shutil.rmtree(self.path, ignore_errors=True)
         finally:
             self.lock.release()
