@@ -31,7 +31,7 @@ from ..core.attention_backends import gather_rows, scatter_rows
 from ..core.checks import host_checkable
 from ..core.config import MARKER, SparseConfig
 from ..core.fsq import quantize_attention_keys, unquantize_attention_keys
-from ..core.interpolation import interpolate_keyframes_cubic
+from ..core.interpolation import catmull_rom_fill
 from ..core.keyframe_transformer import KeyframeTransformer
 from ..core.lipschitz import LipschitzMLP
 from ..core.plan import KeyframePlan
@@ -162,7 +162,9 @@ def cubic_output(output: torch.Tensor, plan: KeyframePlan) -> torch.Tensor:
     (which it keeps exactly; a DiP prefix is the plan's first frames). Static shapes, no sync."""
     B, J, F_, N = output.shape
     frames = frames_layout(output)                                          # [B, N, J*F]
-    filled = interpolate_keyframes_cubic(frames, plan.mask[:, plan.frames - N:])
+    if plan.frames != N:                                                    # DiP: the output has no prefix
+        plan = KeyframePlan.build(plan.mask[:, plan.frames - N:], None, check=False, cubic=plan.cubic)
+    filled = catmull_rom_fill(frames, plan)
     filled = torch.where(plan.cubic.view(B, 1, 1), filled, frames)          # the others as they are
     return filled.reshape(B, N, J, F_).permute(0, 2, 3, 1)
 
