@@ -158,8 +158,10 @@ def _post_hook(model: nn.Module, args: tuple, kwargs: dict, output: Any) -> Any:
 
 def cubic_output(output: torch.Tensor, plan: KeyframePlan) -> torch.Tensor:
     """``sample_interpolation="cubic"``: the model's output ``[B, J, F, N]`` with every frame of the
-    samples in ``plan.cubic`` (the others unchanged) on the C¹ Catmull-Rom curve through the output at the plan's keyframes
-    (which it keeps exactly; a DiP prefix is the plan's first frames). Static shapes, no sync."""
+    samples in ``plan.cubic`` (the others unchanged) on the C¹ Catmull-Rom curve through the output
+    at the plan's keyframes, which it keeps exactly (a DiP prefix is the plan's first frames; the
+    output has none). Classifier-free guidance mixes two such curves on one mask: again one. Static
+    shapes, no host sync."""
     B, J, F_, N = output.shape
     frames = frames_layout(output)                                          # [B, N, J*F]
     if plan.frames != N:                                                    # DiP: the output has no prefix
