@@ -60,3 +60,22 @@ def test_defaults_grids_are_valid_ablation_grids(grid):
     assert base.dynamic_update is (cfg["diffusion_steps"] >= 100)     # Table 2's rule
     configs = [ablate.sparse_config(cfg, v).to_dict() for v in cfg["variants"]]
     assert all(configs.count(c) == 1 for c in configs)
+
+
+def test_measure_smooth_sampling_runs_on_the_embedded_clips(tmp_path, capsys):
+    """The script behind docs/defaults.md's smooth-sampling table, at toy size: one row per model and
+    variant and the real motion, j/s = jitter / speed; an existing --out needs --overwrite."""
+    script = _script("measure_smooth_sampling")
+    out = tmp_path / "smooth.md"
+    argv = ["--seeds", "1", "--steps", "1", "--samples", "2", "--frames", "40", "--latent", "16", "--layers", "1",
+            "--batch", "2", "--diffusion-steps", "4", "--variants", "cubic, dynamic off", "--out", str(out)]
+    assert script.main(argv) == 0
+    rows = [r for r in out.read_text().splitlines() if r.startswith("| ") and "---" not in r][1:]
+    assert [r.split("|")[1].strip() for r in rows][:2] == ["dense", "sparse: cubic, dynamic off"]
+    assert rows[2].startswith("| real motion (")
+    saved = json.loads(out.with_suffix(".json").read_text())
+    for r in saved["rows"]["dense"] + [saved["real"]]:
+        assert r["jps"] == pytest.approx(r["jitter"] / r["speed"]) and 0 <= r["skating"] <= 1
+    with pytest.raises(SystemExit):
+        script.main(argv)
+    assert "--overwrite" in capsys.readouterr().err

@@ -160,6 +160,11 @@ def test_the_sync_counter_sees_syncs():
 
 
 # ----------------------------------------------------------------------------- launch budget
+#: ops the C¹ output fill adds to a sampling call: tap slots and Hermite weights on [B, N] (about
+#: 25 elementwise ops that torch.compile fuses), two gathers, a product, a sum, a select
+CUBIC_FILL_OPS = 40
+
+
 @pytest.mark.parametrize("fsq", [False, True], ids=["fsq_off", "fsq_on"])
 @pytest.mark.parametrize("name", ["trans_enc", "trans_dec"])
 def test_launch_budget_of_the_static_path(name, fsq):
@@ -173,8 +178,9 @@ def test_launch_budget_of_the_static_path(name, fsq):
     y["lengths"] = torch.linspace(40, N, B).round().long()
     y["mask"] = (torch.arange(N) < y["lengths"][:, None]).view(B, 1, 1, N)
     counts = {}
-    for sparse in (False, True):
-        model, diffusion = make(name, sparse=sparse, layers=8, latent=64, fsq=fsq)
+    for sparse in (False, True, "cubic"):
+        kw = {} if not sparse else {"sample_interpolation": "cubic" if sparse == "cubic" else "linear"}
+        model, diffusion = make(name, sparse=bool(sparse), layers=8, latent=64, fsq=fsq, **kw)
         if fsq and not sparse:
             assert quantize_attention_keys(model, SparseConfig().fsq_levels) == 8
         t = torch.arange(B) * 6
@@ -194,6 +200,12 @@ def test_launch_budget_of_the_static_path(name, fsq):
     for what, budget in (("train", 1.5), ("sample t=40", 1.6), ("sample t=2", 1.6)):
         ratio = counts[what, True] / counts[what, False]
         assert ratio <= budget, f"{name} {what}: {counts[what, True]} vs {counts[what, False]} ops ({ratio:.2f}x)"
+    # the C¹ fill of the output (sample_interpolation="cubic", the default): a fixed number of small
+    # [B, N]-sized ops per sampling call on top of the paper's fill, none in training
+    assert counts["train", "cubic"] == counts["train", True]
+    for what in ("sample t=40", "sample t=2"):
+        extra = counts[what, "cubic"] - counts[what, True]
+        assert 0 < extra <= CUBIC_FILL_OPS, f"{name} {what}: the cubic fill adds {extra} ops"
 
 
 # ----------------------------------------------------------------------------- same results
@@ -229,11 +241,12 @@ def test_cubic_sampling_compiles_fullgraph_without_host_sync(name, steps=3):
     eager, no host sync on the static path, before (linear) and inside the cubic steps; and it does
     change the output there (only there)."""
     model, _ = make(name, sample_interpolation="cubic", sample_interpolation_steps=steps)
-    linear, _ = make(name)
+    linear, _ = make(name, sample_interpolation="linear")
     x, y = batch(name)
     B = x.shape[0]
     model.eval()
     linear.eval()
+    torch._dynamo.reset()          # earlier tests' compiled hooks count against the recompile limit
     compiled = torch.compile(model, fullgraph=True, backend="eager")
     with torch.no_grad():
         for step in (40, 2, 0):

@@ -59,7 +59,7 @@ def test_exactly_round_gamma_T_late_steps_use_vw(T, late):
 
 
 def test_sampling_mask_switches_per_sample_at_gamma_T():
-    cfg = SparseConfig(reduction=0.8, gamma=0.1, diffusion_steps=100, feature="raw")
+    cfg = SparseConfig(reduction=0.8, gamma=0.1, diffusion_steps=100, feature="raw", dynamic_update=True)
     sched = MaskSchedule(cfg)
     x = torch.randn(3, 60, 5)
     m = sched.sampling_mask(x, torch.tensor([50, 9, 10]))

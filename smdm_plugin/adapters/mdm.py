@@ -31,7 +31,7 @@ from ..core.attention_backends import gather_rows, scatter_rows
 from ..core.checks import host_checkable
 from ..core.config import MARKER, SparseConfig
 from ..core.fsq import quantize_attention_keys, unquantize_attention_keys
-from ..core.interpolation import interpolate_keyframes_cubic
+from ..core.interpolation import catmull_rom_fill
 from ..core.keyframe_transformer import KeyframeTransformer
 from ..core.lipschitz import LipschitzMLP
 from ..core.plan import KeyframePlan
@@ -158,11 +158,15 @@ def _post_hook(model: nn.Module, args: tuple, kwargs: dict, output: Any) -> Any:
 
 def cubic_output(output: torch.Tensor, plan: KeyframePlan) -> torch.Tensor:
     """``sample_interpolation="cubic"``: the model's output ``[B, J, F, N]`` with every frame of the
-    samples in ``plan.cubic`` (the others unchanged) on the C¹ Catmull-Rom curve through the output at the plan's keyframes
-    (which it keeps exactly; a DiP prefix is the plan's first frames). Static shapes, no sync."""
+    samples in ``plan.cubic`` (the others unchanged) on the C¹ Catmull-Rom curve through the output
+    at the plan's keyframes, which it keeps exactly (a DiP prefix is the plan's first frames; the
+    output has none). Classifier-free guidance mixes two such curves on one mask: again one. Static
+    shapes, no host sync."""
     B, J, F_, N = output.shape
     frames = frames_layout(output)                                          # [B, N, J*F]
-    filled = interpolate_keyframes_cubic(frames, plan.mask[:, plan.frames - N:])
+    if plan.frames != N:                                                    # DiP: the output has no prefix
+        plan = KeyframePlan.build(plan.mask[:, plan.frames - N:], None, check=False, cubic=plan.cubic)
+    filled = catmull_rom_fill(frames, plan)
     filled = torch.where(plan.cubic.view(B, 1, 1), filled, frames)          # the others as they are
     return filled.reshape(B, N, J, F_).permute(0, 2, 3, 1)
 

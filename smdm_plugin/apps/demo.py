@@ -485,7 +485,7 @@ def main_demo(args: argparse.Namespace) -> int:
         data = MotionSet.from_motions(feats, mean, std, max_frames=args.frames)
         model = {"latent_dim": args.latent, "ff_size": 2 * args.latent, "num_layers": args.layers, "num_heads": 4,
                  "dropout": 0.1}
-        diffusion_steps = 20 if args.quick else 100
+        diffusion_steps = 20 if args.quick else 50   # the paper's T (App. B.1)
         trainers = {
             n: Trainer(TrainConfig(steps=0, batch=args.batch, lr=2e-4, diffusion_steps=diffusion_steps, seed=args.seed,
                                    model=model, sparse=sc), data, dist=ctx)

@@ -4,7 +4,7 @@ motion; one process, or many under ``torchrun`` (DistributedDataParallel).
 
     trainer = Trainer(TrainConfig(steps=300, sparse=SparseConfig()), load_humanml3d(root))
     result = trainer.train()              # fixed step count (smdm ablate)
-    loss = trainer.step()                 # one optimiser step (smdm demo's time-sliced race)
+    loss = trainer.step()                 # one optimiser step (smdm demo's race_fair: equal steps, equal time)
     trainer.save("runs/smdm")             # model*.pt + backbone.json (+ sparse_config.json)
 
 Under ``torchrun --nproc_per_node N -m smdm_plugin train ...`` every process builds the same model
@@ -563,65 +563,6 @@ def feature_stats(features: Sequence[np.ndarray], eps: float = 1e-4) -> Tuple[np
     return allf.mean(0).astype(np.float32), (allf.std(0) + eps).astype(np.float32)
 
 
-def race(trainers: Dict[str, "Trainer"], seconds: float = float("inf"), max_steps: Optional[int] = None,
-         progress: bool = False, desc: str = "training") -> Dict[str, Any]:
-    """Train several :class:`Trainer` s (e.g. ``{'dense': ..., 'sparse': ...}``) time-sliced: each
-    optimiser step goes to the trainer that has spent the least time in :meth:`Trainer.step` so far,
-    until each has spent ``seconds / len(trainers)`` or made ``max_steps`` steps (machine load hits
-    all alike, so their steps/s compare fairly). Under torchrun the choice uses the time averaged
-    over the ranks, so every rank steps the same trainer (DDP needs that). Returns per trainer
-    ``{'steps', 'seconds', 'steps_per_s', 'final_loss', 'loss' [steps], 'time' [steps] (cumulative
-    s)}`` and ``speed_ratio`` (second / first trainer's steps per second)."""
-    if not trainers:
-        raise ValueError("race: no trainers given")
-    if not (seconds > 0) or (max_steps is not None and max_steps < 0) or (math.isinf(seconds) and max_steps is None):
-        raise ValueError(f"race: need seconds > 0 and max_steps >= 0 (one of them finite), got {seconds}, {max_steps}")
-    names = list(trainers)
-    dist = trainers[names[0]].dist
-    share = seconds / len(names)
-    spent = torch.zeros(len(names), dtype=torch.float64)
-    runs: Dict[str, Dict[str, Any]] = {n: {"steps": 0, "seconds": 0.0, "loss": [], "time": []} for n in names}
-    bar = None
-    if progress and dist.is_main:
-        from tqdm.auto import tqdm
-
-        if max_steps is not None and math.isinf(seconds):
-            bar = tqdm(total=len(names) * max_steps, desc=desc, unit="step", mininterval=0.5)
-        else:
-            bar = tqdm(total=round(seconds), desc=desc + " (s)", mininterval=0.5,
-                       bar_format="{l_bar}{bar}| {n:.0f}/{total_fmt} s [{elapsed}<{remaining}]{postfix}")
-    while True:
-        agreed = dist.mean(spent.to(dist.device)).cpu() if dist.distributed else spent
-        live = [i for i, n in enumerate(names)
-                if float(agreed[i]) < share and not (max_steps is not None and runs[n]["steps"] >= max_steps)]
-        if not live:
-            break
-        i = min(live, key=lambda k: float(agreed[k]))
-        r = runs[names[i]]
-        t0 = time.perf_counter()
-        r["loss"].append(trainers[names[i]].step())
-        dt = time.perf_counter() - t0
-        spent[i] += dt
-        r["steps"] += 1
-        r["seconds"] += dt
-        r["time"].append(r["seconds"])
-        if bar is not None:
-            bar.set_postfix_str(", ".join(f"{n} {v['steps']} steps loss {np.mean(v['loss'][-10:]):.3f}"
-                                          for n, v in runs.items() if v["loss"]), refresh=False)
-            done = sum(v["steps"] for v in runs.values()) if bar.unit == "step" else min(seconds, float(spent.sum()))
-            bar.update(done - bar.n)
-    if bar is not None:
-        bar.close()
-    out: Dict[str, Any] = {}
-    for n, r in runs.items():
-        k = max(1, len(r["loss"]) // 10)
-        out[n] = {**r, "steps_per_s": r["steps"] / max(r["seconds"], 1e-9),
-                  "final_loss": float(np.mean(r["loss"][-k:])) if r["loss"] else None}
-    if len(names) >= 2:
-        out["speed_ratio"] = out[names[1]]["steps_per_s"] / max(out[names[0]]["steps_per_s"], 1e-9)
-    return out
-
-
 def race_fair(trainers: Dict[str, "Trainer"], seconds: float = float("inf"), max_steps: Optional[int] = None,
               progress: bool = False, desc: str = "training") -> Dict[str, Any]:
     """Train several :class:`Trainer` s to **equal steps and equal time** (e.g. dense vs sparse).
@@ -636,8 +577,8 @@ def race_fair(trainers: Dict[str, "Trainer"], seconds: float = float("inf"), max
     whole run takes about ``seconds``. Phase 2 runs the faster trainers alone, so the load of the
     machine may differ from phase 1.
 
-    Returns per trainer what :func:`race` returns (the equal-time run: ``steps``, ``seconds``,
-    ``steps_per_s``, ``final_loss``, ``loss``, ``time``) plus ``equal_steps``: ``{'steps': S,
+    Returns per trainer the equal-time run: ``steps``, ``seconds``, ``steps_per_s``,
+    ``final_loss`` (mean of the last 10% of the losses), ``loss [steps]``, ``time [steps]`` (cumulative s) plus ``equal_steps``: ``{'steps': S,
     'seconds': {name: time at S}, 'final_loss': {name: loss over the last 10% of the S steps},
     'states': {name: state dict at S for the trainers that went on}}``, and ``speed_ratio``
     (second / first trainer's steps per second, phase 1)."""

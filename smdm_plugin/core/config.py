@@ -199,10 +199,11 @@ class SparseConfig:
     gamma: float = _field(0.1, float, "the last round(gamma * T) sampling steps re-select keyframes by VW on x_t",
                           range=Range(0.0, 1.0))
     dynamic_update: Optional[bool] = _field(
-        None, bool, "VW re-selection at sampling (None/auto: on iff diffusion_steps >= 100 and no DiP prefix, "
-        "paper Table 2; false: uniform always)", optional=True)
+        False, bool, "VW re-selection on x_t in the last steps of sampling (false: uniform always, smoother "
+        "motion, measured; None/auto: the paper's Table 2, on iff diffusion_steps >= 100 and no DiP prefix)",
+        optional=True)
     sample_interpolation: str = _field(
-        "linear", str, "sampling: how the non-keyframes of the model's output are filled (linear: the paper's "
+        "cubic", str, "sampling: how the non-keyframes of the model's output are filled (linear: the paper's "
         "linear interpolation before the output layer only; cubic: then C1 Catmull-Rom through the output at "
         "the keyframes, smooth motion)", choices=INTERPOLATIONS)
     sample_interpolation_steps: Optional[int] = _field(
@@ -243,9 +244,10 @@ class SparseConfig:
     @property
     def dynamic(self) -> bool:
         """Whether sampling re-selects keyframes by VW on x_t in the last ``round(gamma*T)`` steps
-        (``dynamic_update`` resolved). None (auto) follows the paper's Table 2: on when
-        ``diffusion_steps >= 100`` (where it helps), off at 50 and 10 steps (neutral to worse) and
-        for prefix completion (DiP)."""
+        (``dynamic_update`` resolved). The default, False, keeps the uniform mask (measured: the
+        re-selection on noisy x_t doubles the jitter per unit speed, docs/defaults.md). None (auto)
+        follows the paper's Table 2: on when ``diffusion_steps >= 100`` (where it helps FID), off at 50
+        and 10 steps (neutral to worse) and for prefix completion (DiP)."""
         if self.dynamic_update is not None:
             return bool(self.dynamic_update)
         return int(self.diffusion_steps) >= 100 and int(self.prefix_frames) == 0

@@ -8,6 +8,7 @@ import torch
 
 from .checks import require
 from .config import INTERPOLATIONS  # linear (the paper), cubic (C¹ Catmull-Rom)
+from .plan import KeyframePlan
 
 
 def neighbour_keyframes(mask: torch.Tensor, dtype: torch.dtype = torch.float32
@@ -89,21 +90,33 @@ def catmull_rom_taps(index: torch.Tensor, count: torch.Tensor, prev_slot: torch.
         ``slots [B, N, 4]`` long (slots of p0, p1, p2, p3) and ``weights [B, N, 4]`` in ``dtype``:
         ``f(n) = sum_i weights[..., i] * f(slot slots[..., i])``; the weights of a frame sum to 1.
     """
-    last = (count - 1).clamp_min(0)[:, None]                            # [B, 1]
-    s0 = (prev_slot - 1).clamp_min(0)
-    s3 = torch.minimum(next_slot + 1, last)
-    slots = torch.stack([s0, prev_slot, next_slot, s3], dim=-1)         # [B, N, 4]
-    t = index.gather(1, slots.flatten(1)).view(slots.shape).to(torch.float32)   # frames: exact
+    slots = torch.stack([(prev_slot - 1).clamp_min(0), prev_slot, next_slot,
+                         torch.minimum(next_slot + 1, count[:, None] - 1)], dim=-1)     # [B, N, 4]
+    t = index.gather(1, slots.flatten(1)).view(slots.shape).to(torch.float32)        # frames: exact
     t0, t1, t2, t3 = t.unbind(-1)
     s = weight.to(torch.float32)
     h = t2 - t1                                                         # 0 at a keyframe
-    s2, s3_ = s * s, s * s * s
-    h00, h10 = 2 * s3_ - 3 * s2 + 1, s3_ - 2 * s2 + s
-    h01, h11 = -2 * s3_ + 3 * s2, s3_ - s2
+    s2 = s * s
+    s3 = s2 * s
+    h11 = s3 - s2                                                       # Hermite basis
+    h10 = h11 - s2 + s
+    h01 = s2 - 2 * h11
     a = h10 * h / (t2 - t0).clamp_min(1)                                # weight of m1's difference
     b = h11 * h / (t3 - t1).clamp_min(1)                                # weight of m2's difference
-    w = torch.stack([-a, h00 - b, h01 + a, b], dim=-1)
+    w = torch.stack([-a, 1 - h01 - b, h01 + a, b], dim=-1)              # h00 = 1 - h01
     return slots, w.to(dtype)
+
+
+def catmull_rom_fill(features: torch.Tensor, plan: KeyframePlan) -> torch.Tensor:
+    """``features [B, N, D]`` refilled between the keyframes of ``plan`` (over the same ``N`` frames)
+    along C¹ Catmull-Rom curves (:func:`catmull_rom_taps`): equal at keyframes, constant before the
+    first and after the last. Reuses the plan's slots: no mask is scanned again."""
+    B, N, D = features.shape
+    slots, w = catmull_rom_taps(plan.index, plan.count, plan.prev_slot, plan.next_slot, plan.weight,
+                                features.dtype)
+    frames = plan.index.gather(1, slots.flatten(1))                     # [B, N*4]
+    taps = features.gather(1, frames.unsqueeze(-1).expand(B, N * 4, D)).view(B, N, 4, D)
+    return (taps * w.unsqueeze(-1)).sum(2)
 
 
 def interpolate_keyframes_cubic(features: torch.Tensor, mask: torch.Tensor,
@@ -112,18 +125,9 @@ def interpolate_keyframes_cubic(features: torch.Tensor, mask: torch.Tensor,
     of straight lines. ``features [B, N, D]``, bool ``mask [B, N]`` (>= 1 keyframe per row),
     ``cubic`` bool ``[B]`` (None: every sample; the others are filled linearly) -> ``[B, N, D]``,
     equal to ``features`` at keyframes. Static shapes, no host sync."""
-    from .plan import KeyframePlan
-
     features, mask = _checked(features, mask, "interpolate_keyframes_cubic")
-    B, N, D = features.shape
-    plan = KeyframePlan.build(mask, None, check=False)
-    slots, w = catmull_rom_taps(plan.index, plan.count, plan.prev_slot, plan.next_slot, plan.weight,
-                                features.dtype)
-    if cubic is not None:
-        s = plan.weight.to(features.dtype)
-        z = torch.zeros_like(s)
-        cubic = torch.as_tensor(cubic, device=features.device).to(torch.bool).reshape(-1).expand(B)
-        w = torch.where(cubic.view(B, 1, 1), w, torch.stack([z, 1 - s, s, z], dim=-1))
-    frames = plan.index.gather(1, slots.flatten(1))                     # [B, N*4]
-    taps = features.gather(1, frames.unsqueeze(-1).expand(B, N * 4, D)).view(B, N, 4, D)
-    return (taps * w.unsqueeze(-1)).sum(2)
+    out = catmull_rom_fill(features, KeyframePlan.build(mask, None, check=False))
+    if cubic is None:
+        return out
+    cubic = torch.as_tensor(cubic, device=features.device).to(torch.bool).reshape(-1)
+    return torch.where(cubic.view(-1, 1, 1), out, interpolate_keyframes(features, mask))
