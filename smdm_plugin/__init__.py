@@ -36,8 +36,10 @@ _EXPORTS: Dict[str, str] = {
     "MaskSchedule": "core.schedule",
     "dense_loss": "core.losses", "keyframe_loss": "core.losses", "lipschitz_term": "core.losses",
     # adapters: model surgery
-    "sparsify": "adapters.mdm", "unsparsify": "adapters.mdm", "is_sparse": "adapters.mdm",
-    "detect_variant": "adapters.mdm", "set_mean_std": "adapters.mdm",
+    "sparsify": "adapters.surgery", "unsparsify": "adapters.surgery", "is_sparse": "adapters.surgery",
+    "set_mean_std": "adapters.surgery", "detect_variant": "adapters.mdm",
+    "ModelFamily": "adapters.family", "register_family": "adapters.family", "families": "adapters.family",
+    "CallInputs": "adapters.family",
     "attach_diffusion": "adapters.diffusion", "detach_diffusion": "adapters.diffusion",
     "keyframe_collate": "adapters.diffusion",
     "swap_text_encoder": "adapters.text_encoder", "HFTextEncoder": "adapters.text_encoder",
@@ -51,7 +53,7 @@ _EXPORTS: Dict[str, str] = {
     # io
     "read_bvh": "io.bvh", "bvh_joint_positions": "io.bvh", "load_cmu_clip": "io.bvh",
     "BVHError": "io.bvh", "BVHWarning": "io.bvh", "OutputExistsError": "io.files",
-    "save_sparse_config": "io.checkpoint", "load_checkpoint": "io.checkpoint",
+    "save_sparse_config": "io.checkpoint", "load_checkpoint": "adapters.checkpoint",
     "check_state_dict": "io.checkpoint", "find_sparse_config": "io.checkpoint",
     # reference model
     "TinyMDM": "reference.backbone",
@@ -80,7 +82,9 @@ if TYPE_CHECKING:  # pragma: no cover - for type checkers and IDEs
     from .adapters.diffusion import attach_diffusion, detach_diffusion, keyframe_collate
     from .adapters.text_cache import TextEmbeddingCache, install_text_cache
     from .adapters.text_encoder import HFTextEncoder, swap_text_encoder
-    from .adapters.mdm import detect_variant, is_sparse, set_mean_std, sparsify, unsparsify
+    from .adapters.family import CallInputs, ModelFamily, families, register_family
+    from .adapters.mdm import detect_variant
+    from .adapters.surgery import is_sparse, set_mean_std, sparsify, unsparsify
     from .core.attention_backends import available_backends, get_backend, register_backend
     from .core.config import ConfigTypeError, SparseConfig, load_preset
     from .core.features import extract_selection_features
@@ -96,6 +100,7 @@ if TYPE_CHECKING:  # pragma: no cover - for type checkers and IDEs
     from .core.selection import keyframe_count, perturb_mask, select_keyframes, vw_reference
     from .io.bvh import BVHError, BVHWarning, bvh_joint_positions, load_cmu_clip, read_bvh
     from .io.files import OutputExistsError
-    from .io.checkpoint import check_state_dict, find_sparse_config, load_checkpoint, save_sparse_config
+    from .adapters.checkpoint import load_checkpoint
+    from .io.checkpoint import check_state_dict, find_sparse_config, save_sparse_config
     from .reference.backbone import TinyMDM
     from .reference.diffusion import ClassifierFreeGuidance, SimpleDiffusion

@@ -18,8 +18,8 @@ PKG = Path(smdm_plugin.__file__).resolve().parent
 ALLOWED = {
     "core": {"core"},
     "reference": {"reference", "core"},
-    "adapters": {"adapters", "core"},
-    "io": {"io", "core", "adapters", "reference"},
+    "adapters": {"adapters", "core", "io"},
+    "io": {"io", "core", "reference"},
     "metrics": {"metrics", "io", "core"},
     "integrations": {"integrations", "adapters", "core", "io", "reference", "metrics"},
     "apps": {"apps", "integrations", "adapters", "core", "io", "reference", "metrics"},

@@ -25,7 +25,6 @@ import torch
 import torch.nn as nn
 
 from ..core.config import SparseConfig
-from ..core.losses import add_lipschitz_term
 from .state import (find_sparse_model, forced_from_y, frames_layout, get_state, lengths_from_y,
                     protected_count)
 
@@ -67,31 +66,25 @@ def attach_diffusion(diffusion: Any, config: Optional[SparseConfig] = None,
     original = diffusion.training_losses
 
     @functools.wraps(original)
-    def training_losses(model_arg, x_start, t, model_kwargs=None, *args, **kwargs):
-        if isinstance(model_arg, nn.Module):
-            sparse = find_sparse_model(model_arg)
+    def training_losses(model, x_start, t, model_kwargs=None, *args, **kwargs):
+        # (parameter names as upstream's: MotionDiffuse's trainer passes model=..., x_start=...)
+        if isinstance(model, nn.Module):
+            sparse = find_sparse_model(model)
         else:  # a plain callable: the one attached sparse model, if there is exactly one
             live = _attached_models(diffusion)
             sparse = live[0] if len(live) == 1 else None
         if sparse is None:  # a dense model: exactly the upstream behaviour
-            return original(model_arg, x_start, t, model_kwargs, *args, **kwargs)
+            return original(model, x_start, t, model_kwargs, *args, **kwargs)
         state = get_state(sparse)
-        model_kwargs = dict(model_kwargs or {})
-        y = dict(model_kwargs.get("y", {}))
-        frames = frames_layout(x_start)
-        B, N = frames.shape[:2]
-        lengths = lengths_from_y(y, B, N, x_start.device)
-        forced = forced_from_y(y, B, N, x_start.device)
-        if y.get("keyframe_mask") is None:       # else: chosen in data loading (keyframe_collate)
-            y["keyframe_mask"] = state.schedule.training_mask(frames, lengths, forced, checked=True)
-            y["keyframe_capacity"] = state.schedule.capacity(N, training=True,
-                                                             forced=protected_count(forced, lengths))
-        mask = y["keyframe_mask"]
-        if not state.config.interpolate and isinstance(y.get("mask"), torch.Tensor):
-            y["mask"] = y["mask"] & mask.view(y["mask"].shape).to(y["mask"].dtype)
-        model_kwargs["y"] = y
-        terms = original(model_arg, x_start, t, model_kwargs, *args, **kwargs)
-        return add_lipschitz_term(terms, sparse, state.config, B)
+        family = state.family
+        frames, lengths, forced, mask, capacity = family.training_inputs(state, x_start, model_kwargs or {})
+        if mask is None:                         # else: chosen in data loading (keyframe_collate)
+            mask = state.schedule.training_mask(frames, lengths, forced, checked=True)
+            capacity = state.schedule.capacity(frames.shape[1], training=True,
+                                               forced=protected_count(forced, lengths))
+        model_kwargs = family.with_keyframes(state, model_kwargs or {}, mask, capacity)
+        terms = original(model, x_start, t, model_kwargs, *args, **kwargs)
+        return family.finish_losses(state, sparse, terms, mask)
 
     diffusion.training_losses = training_losses
     diffusion._smdm_attached = True

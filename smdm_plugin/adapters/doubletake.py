@@ -35,6 +35,10 @@ from typing import Any, Dict, Optional, Sequence
 import torch
 from torch import nn
 
+from .family import register_family
+from .mdm import MDMFamily
+from .state import MISSING, SparseState
+
 #: the paper's DoubleTake transition blending length, in seconds
 PAPER_BLEND_SECONDS = 0.25
 #: priorMDM's own ``--blend_len`` default (frames)
@@ -201,3 +205,30 @@ def detach_doubletake_forcing(model: nn.Module) -> nn.Module:
         handle.remove()
         model._smdm_doubletake_hook = None
     return model
+
+
+# --------------------------------------------------------------------------- the family
+class DoubleTakeFamily(MDMFamily):
+    """priorMDM's ``doubleTake_MDM``: an MDM whose calls also carry DoubleTake's forced keyframes
+    (``is_transition`` / ``inpainting_mask`` in ``y``), added by :func:`attach_doubletake_forcing`
+    when the model is sparsified (and removed again by ``unsparsify`` if it was added then)."""
+
+    name = "doubletake"
+    priority = 10   # asked before the plain MDM family
+
+    def matches(self, model: nn.Module) -> bool:
+        return super().matches(model) and "doubletake" in type(model).__name__.lower()
+
+    def mismatch(self, model: nn.Module) -> str:
+        return super().mismatch(model) if not super().matches(model) else "class name has no 'doubletake'"
+
+    def install(self, model: nn.Module, state: SparseState) -> None:
+        super().install(model, state)
+        if getattr(model, "_smdm_doubletake_hook", None) is None:
+            state.originals[(model, "_smdm_doubletake_hook")] = model.__dict__.get("_smdm_doubletake_hook",
+                                                                                   MISSING)
+            attach_doubletake_forcing(model)
+            state.handles.append(model._smdm_doubletake_hook)
+
+
+register_family(DoubleTakeFamily())

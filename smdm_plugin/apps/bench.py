@@ -158,7 +158,7 @@ def build(arch: str, reduction: Optional[float], device: torch.device, quick: bo
           backend: str = "auto", seed: int = 0, fsq: str = "paper", **sparse: Any):
     """(model, diffusion) — dense when ``reduction`` is None. ``fsq`` (:data:`FSQ_CHOICES`): which
     side gets FSQ-quantised attention keys."""
-    from ..adapters.mdm import sparsify
+    from ..adapters.surgery import sparsify
     from ..core.config import SparseConfig
     from ..core.fsq import quantize_attention_keys
     from ..reference.backbone import TinyMDM

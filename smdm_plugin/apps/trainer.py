@@ -307,7 +307,7 @@ class Trainer:
 
     def __init__(self, config: TrainConfig, data: MotionSet, dist: Optional[DistContext] = None,
                  device: str = "auto") -> None:
-        from ..adapters.mdm import sparsify
+        from ..adapters.surgery import sparsify
         from ..reference.backbone import TinyMDM
         from ..reference.diffusion import SimpleDiffusion
 
@@ -506,7 +506,7 @@ def load_trained(folder: str, step: Optional[int] = None, map_location: Any = "c
                  ) -> Tuple[nn.Module, Optional[SparseConfig]]:
     """Reload a folder written by :meth:`Trainer.save` (the last ``model*.pt``, or ``step``'s),
     sparse mode re-created with the saved Mean/Std: ``(model, sparse config or None)``."""
-    from ..io.checkpoint import load_checkpoint
+    from ..adapters.checkpoint import load_checkpoint
 
     names = sorted(n for n in os.listdir(folder) if n.startswith("model") and n.endswith(".pt"))
     if step is not None:

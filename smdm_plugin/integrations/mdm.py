@@ -93,7 +93,7 @@ def sparsify_mdm(model: Any, args: Any, data: Any = None, diffusion: Any = None,
        ``sparse_config.json`` beside the weights and warn if the run uses upstream's 1000 diffusion
        steps. Without ``--sparse`` (and no text option) the model is returned untouched, bit for bit.
     """
-    from ..adapters.mdm import is_sparse, sparsify
+    from ..adapters.surgery import is_sparse, sparsify
     from .mdm_text import apply_text_options
 
     config = config if config is not None else SparseConfig.from_args(args)

@@ -103,15 +103,15 @@ def mean_std_from_opt(opt: Any):
 def attach_trainer(trainer: Any, config: Optional[SparseConfig] = None) -> Any:
     """Sparsify ``trainer.encoder`` (or its ``.module``) and wrap ``trainer.diffusion`` according
     to ``trainer.opt``; training runs save the config beside the checkpoints."""
-    from ..adapters.motiondiffuse import is_sparse_motiondiffuse, sparsify_motiondiffuse
+    from ..adapters.surgery import is_sparse, sparsify
 
     opt = trainer.opt
     config = config if config is not None else config_from_opt(opt)
     enc = trainer.encoder
     core = getattr(enc, "module", enc)
-    if config.enabled and not is_sparse_motiondiffuse(core):
+    if config.enabled and not is_sparse(core):
         mean, std = mean_std_from_opt(opt)
-        sparsify_motiondiffuse(core, config, mean, std, diffusion=trainer.diffusion)
+        sparsify(core, config, mean=mean, std=std, diffusion=trainer.diffusion, family="motiondiffuse")
     if config.enabled and getattr(opt, "is_train", False) and getattr(opt, "model_dir", None):
         from ..io.checkpoint import save_sparse_config  # never replaces another config unasked
 

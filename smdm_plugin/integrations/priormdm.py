@@ -62,7 +62,7 @@ def sparsify_priormdm(model: Any, args: Any, data: Any = None, diffusion: Any = 
     :mod:`smdm_plugin.adapters.doubletake`) and a warning when ``--blend_len`` is not the paper's.
     Returns the model (changed in place)."""
     from ..adapters.doubletake import attach_doubletake_forcing
-    from ..adapters.mdm import is_sparse, sparsify
+    from ..adapters.surgery import is_sparse, sparsify
 
     config = config if config is not None else SparseConfig.from_args(args)
     if not config.enabled or is_sparse(model):

@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import json
 import os
-from typing import Any, Dict, Iterable, Mapping, Optional, Tuple, Union
+from typing import Any, Callable, Dict, Iterable, Mapping, Optional, Tuple, Union
 
 import torch
 import torch.nn as nn
@@ -14,6 +14,17 @@ from ..core.config import CONFIG_FILENAME, MARKER, SparseConfig
 from .files import OutputExistsError
 
 BACKBONE_FILENAME = "backbone.json"
+
+# How a freshly built model becomes what a saved config describes (text encoder, sparse mode). io
+# knows no model family: the adapters layer registers its family dispatch here when it is imported
+# (``smdm_plugin.adapters``), or a caller passes ``prepare=`` to :func:`load_checkpoint`.
+_PREPARE: Optional[Callable[..., nn.Module]] = None
+
+
+def register_model_preparer(fn: Callable[..., nn.Module]) -> None:
+    """Set the default ``prepare(model, config, **sparsify_kwargs) -> model`` of :func:`load_checkpoint`."""
+    global _PREPARE
+    _PREPARE = fn
 
 
 def _dir_of(path: str) -> str:
@@ -139,6 +150,7 @@ def check_config_matches(model: nn.Module, saved: SparseConfig, source: str,
 
 def load_checkpoint(path: str, model: Optional[nn.Module] = None, map_location: Any = "cpu",
                     strict: bool = True, allow_differences: Iterable[str] = (),
+                    prepare: Optional[Callable[..., nn.Module]] = None,
                     **sparsify_kwargs: Any) -> Tuple[nn.Module, Optional[SparseConfig]]:
     """Load ``path`` (a ``.pt`` state dict) re-creating sparse mode from the saved config.
 
@@ -150,11 +162,13 @@ def load_checkpoint(path: str, model: Optional[nn.Module] = None, map_location: 
             ``backbone.json`` beside the checkpoint.
         allow_differences: config fields an already-sparse ``model`` may set differently from the
             saved config on purpose (e.g. ``("gamma",)`` to sample with another schedule).
-        sparsify_kwargs: passed to :func:`sparsify` (``mean``, ``std``, ``diffusion``).
+        prepare: ``prepare(model, config, **sparsify_kwargs)`` makes a dense model what the saved
+            config describes (text encoder, sparse mode); None: the one the adapters layer registered
+            (:func:`register_model_preparer`; io knows no model family).
+        sparsify_kwargs: passed to ``prepare`` (``mean``, ``std``, ``diffusion``).
     Returns:
         ``(model, config)``; config is None for a dense checkpoint.
     """
-    from ..adapters.mdm import sparsify
 
     if not os.path.isfile(path):
         raise FileNotFoundError(f"load_checkpoint: no such checkpoint file: {path!r}")
@@ -176,15 +190,14 @@ def load_checkpoint(path: str, model: Optional[nn.Module] = None, map_location: 
                 model = TinyMDM(**json.load(f))
         except (ValueError, TypeError) as e:
             raise ValueError(f"load_checkpoint: {bpath}: cannot build TinyMDM from it: {e}") from None
-    if config is not None and config.text_encoder and getattr(model, "_smdm_text_encoder", None) != config.text_encoder:
-        from ..adapters.text_encoder import swap_text_encoder  # the encoder the weights were trained with
-
-        swap_text_encoder(model, config.text_encoder)
-    if config is not None and config.enabled:
-        if model_is_sparse(model):
-            check_config_matches(model, config, config_source or path, allow_differences)
-        else:
-            sparsify(model, config, **sparsify_kwargs)
+    if config is not None and config.enabled and model_is_sparse(model):
+        check_config_matches(model, config, config_source or path, allow_differences)
+    if config is not None and (config.text_encoder or (config.enabled and not model_is_sparse(model))):
+        prepare = prepare if prepare is not None else _PREPARE
+        if prepare is None:
+            raise RuntimeError(f"load_checkpoint: {path} needs the model converted to its saved config; "
+                               "use smdm_plugin.load_checkpoint (it knows the model families)")
+        model = prepare(model, config, **sparsify_kwargs)
     check_state_dict(model, state, path)
     missing, unexpected = model.load_state_dict(state, strict=False)
     missing = [k for k in missing if not k.startswith("clip_model.")]
