@@ -74,6 +74,12 @@ class ModelFamily(ABC):
     #: families with a higher priority are asked first (a specialisation before its base)
     priority: ClassVar[int] = 0
 
+    def __deepcopy__(self, memo: dict) -> "ModelFamily":   # one object per family (EMA copies share it)
+        return self
+
+    def __copy__(self) -> "ModelFamily":
+        return self
+
     # ------------------------------------------------------------------ recognising a model
     @abstractmethod
     def matches(self, model: nn.Module) -> bool:
@@ -109,7 +115,9 @@ class ModelFamily(ABC):
         failure part-way (and ``unsparsify``) can undo it exactly."""
 
     def uninstall(self, model: nn.Module, state: SparseState) -> None:
-        """Family-specific undo beyond ``state.originals`` and ``state.handles`` (default none)."""
+        """Before ``unsparsify`` restores ``state.originals``: carry weights trained in sparse mode
+        that have a dense equivalent into what will be restored (default nothing). Not called when a
+        failed ``sparsify`` is rolled back."""
 
     # ------------------------------------------------------------------ one model call
     @abstractmethod

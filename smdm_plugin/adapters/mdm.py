@@ -28,7 +28,7 @@ import torch.nn as nn
 from ..core.attention_backends import gather_rows, scatter_rows
 from ..core.checks import host_checkable
 from ..core.config import SparseConfig
-from ..core.fsq import quantize_attention_keys, unquantize_attention_keys
+from ..core.fsq import FSQMultiheadAttention, quantize_attention_keys
 from ..core.keyframe_transformer import KeyframeTransformer
 from ..core.losses import add_lipschitz_term
 from ..core.plan import KeyframePlan
@@ -183,21 +183,24 @@ class MDMFamily(ModelFamily):
             embed._smdm_rows_state = state
             state.handles += [embed.register_forward_pre_hook(_rows_pre_hook),
                               embed.register_forward_hook(_rows_post_hook)]
-        if config.fsq:                                    # last: undone here if it fails part-way
-            before = {m: m.self_attn for m in inner.modules() if isinstance(getattr(m, "self_attn", None),
-                                                                            nn.MultiheadAttention)}
-            try:
-                state.fsq_layers = quantize_attention_keys(inner, config.fsq_levels)
-            except BaseException:
-                for m, attn in before.items():
-                    m.self_attn = attn
-                unquantize_attention_keys(inner)
-                raise
+        if config.fsq:                                    # FSQ keys in the self-attention
+            for m in inner.modules():
+                if isinstance(getattr(m, "self_attn", None), nn.MultiheadAttention):
+                    state.originals[(m, "self_attn")] = m.self_attn
+            if isinstance(inner, nn.TransformerEncoder):
+                state.originals[(inner, "use_nested_tensor")] = inner.use_nested_tensor
+                state.originals[(inner, "_smdm_nested_tensor")] = inner.__dict__.get("_smdm_nested_tensor",
+                                                                                     MISSING)
+            state.fsq_layers = quantize_attention_keys(inner, config.fsq_levels)
 
     def uninstall(self, model: nn.Module, state: SparseState) -> None:
-        if state.fsq_layers and state.transformer is not None:   # trained weights kept
-            unquantize_attention_keys(state.transformer.inner)
-            state.fsq_layers = 0
+        """``unsparsify`` keeps the trained attention: each FSQ self-attention goes back as an
+        ``nn.MultiheadAttention`` with its current q/k/v/out weights (a rolled-back ``sparsify``
+        restores the original objects instead)."""
+        for (owner, name), old in list(state.originals.items()):
+            attn = getattr(owner, name, None)
+            if name == "self_attn" and isinstance(attn, FSQMultiheadAttention):
+                state.originals[(owner, name)] = attn.to_mha()
 
     def read_call(self, state: SparseState, args: tuple, kwargs: Dict[str, Any]) -> CallInputs:
         x, timesteps, y = _call_args(args, kwargs)

@@ -131,19 +131,21 @@ def sparsify(model: nn.Module, config: ConfigLike = None, *, diffusion: Any = No
         if diffusion is not None:
             attach_diffusion(diffusion, model=model)
     except BaseException:
-        _undo(model, state)
+        _undo(model, state, rollback=True)
         raise
     return model
 
 
-def _undo(model: nn.Module, state: SparseState) -> None:
-    """Everything :func:`sparsify` did, undone (also after a failure part-way)."""
+def _undo(model: nn.Module, state: SparseState, rollback: bool = False) -> None:
+    """Everything :func:`sparsify` did, undone: ``unsparsify`` (the family carries trained weights
+    into what is restored) or ``rollback`` after a failure part-way (the original objects back)."""
     if get_state(model) is state:
         release_diffusions(model)
     for h in state.handles:
         h.remove()
     state.handles.clear()
-    state.family.uninstall(model, state)
+    if not rollback:
+        state.family.uninstall(model, state)
     restore_originals(state.originals)
     state.originals.clear()
     model._buffers.pop(MARKER, None)
