@@ -125,3 +125,21 @@ def test_public_api_resolves_every_name():
         assert getattr(smdm_plugin, name) is not None, name
     with pytest.raises(AttributeError, match="no attribute 'nope'"):
         smdm_plugin.nope  # noqa: B018
+
+
+def test_architecture_doc_names_every_command_and_family():
+    """docs/architecture.md (the one-page map) lists every `smdm` command and every built-in family."""
+    from smdm_plugin import families
+    from smdm_plugin.apps.cli import COMMANDS
+
+    doc = (PKG.parent / "docs" / "architecture.md").read_text()
+    missing = [c for c in COMMANDS if c not in doc] + [f"`{f.name}`" for f in families() if f"`{f.name}`" not in doc]
+    assert not missing, f"docs/architecture.md does not mention {missing}"
+
+
+def test_io_knows_no_model_family():
+    """io sits below adapters: loading a sparse checkpoint reaches the families only through the
+    hook adapters register (no import of adapters anywhere in io, also not inside functions)."""
+    bad = [f"{p.relative_to(PKG)}:{line} {t}" for p in sorted((PKG / "io").rglob("*.py"))
+           for line, t in imports_of(p) if layer_of(t) == "adapters"]
+    assert not bad, bad
