@@ -23,7 +23,7 @@ __version__ = "0.2.0"
 _EXPORTS: Dict[str, str] = {
     # core: the method
     "SparseConfig": "core.config", "load_preset": "core.config",
-    "select_keyframes": "core.selection", "perturb_mask": "core.selection",
+    "select_keyframes": "core.selection", "register_selector": "core.selection", "perturb_mask": "core.selection",
     "vw_reference": "core.selection", "keyframe_count": "core.selection",
     "extract_selection_features": "core.features",
     "interpolate_keyframes": "core.interpolation",
@@ -97,6 +97,7 @@ if TYPE_CHECKING:  # pragma: no cover - for type checkers and IDEs
     from .core.lipschitz import LipschitzMLP, bake_lipschitz, lipschitz_loss
     from .core.losses import dense_loss, keyframe_loss, lipschitz_term
     from .core.schedule import MaskSchedule
+    from .core.selection import register_selector
     from .core.selection import keyframe_count, perturb_mask, select_keyframes, vw_reference
     from .io.bvh import BVHError, BVHWarning, bvh_joint_positions, load_cmu_clip, read_bvh
     from .io.files import OutputExistsError

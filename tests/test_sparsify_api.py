@@ -96,9 +96,9 @@ def test_a_new_family_is_one_subclass_and_a_registration():
         assert RenamedFamily.installed == 1 and model._smdm_state.family.name == "renamed-for-test"
         unsparsify(model)
     finally:
-        from smdm_plugin.adapters import family as registry
+        from smdm_plugin.adapters.family import FAMILIES
 
-        registry._REGISTRY.pop("renamed-for-test")
+        FAMILIES.unregister("renamed-for-test")
     with pytest.raises(TypeError, match="must be a ModelFamily"):
         register_family(object())
     assert issubclass(RenamedFamily, ModelFamily)

@@ -35,6 +35,7 @@ import torch.nn as nn
 
 from ..core.config import SparseConfig
 from ..core.plan import KeyframePlan
+from ..core.registry import Registry
 from .state import SparseState, Variant, keyframe_plan
 
 
@@ -143,8 +144,8 @@ class ModelFamily(ABC):
         return terms
 
 
-_REGISTRY: Dict[str, ModelFamily] = {}
-_BUILTINS_LOADED = False
+#: the model families by name; the built-in ones register themselves when their module is imported
+FAMILIES: Registry[ModelFamily] = Registry("model family", builtins="smdm_plugin.adapters._builtin_families")
 
 
 def register_family(family: ModelFamily, *, replace: bool = False) -> ModelFamily:
@@ -152,33 +153,16 @@ def register_family(family: ModelFamily, *, replace: bool = False) -> ModelFamil
     ``replace``). Returns it."""
     if not isinstance(family, ModelFamily):
         raise TypeError(f"register_family: family must be a ModelFamily instance, got {type(family).__name__}")
-    if not family.name:
-        raise ValueError("register_family: family.name must be a non-empty string")
-    if family.name in _REGISTRY and not replace:
-        raise ValueError(f"register_family: a family named {family.name!r} is already registered "
-                         "(pass replace=True)")
-    _REGISTRY[family.name] = family
-    return family
-
-
-def _load_builtins() -> None:
-    global _BUILTINS_LOADED
-    if not _BUILTINS_LOADED:
-        _BUILTINS_LOADED = True
-        from . import doubletake, mdm, motiondiffuse  # noqa: F401  (they register themselves)
+    return FAMILIES.register(family.name, family, replace=replace)
 
 
 def families() -> List[ModelFamily]:
     """The registered families, in the order they are asked (priority, then registration)."""
-    _load_builtins()
-    return sorted(_REGISTRY.values(), key=lambda f: -f.priority)
+    return sorted(FAMILIES.entries(), key=lambda f: -f.priority)
 
 
 def get_family(name: str) -> ModelFamily:
-    _load_builtins()
-    if name not in _REGISTRY:
-        raise ValueError(f"unknown model family {name!r}; registered: {sorted(_REGISTRY)}")
-    return _REGISTRY[name]
+    return FAMILIES.get(name)
 
 
 def family_for(model: nn.Module, fn: str = "sparsify") -> ModelFamily:

@@ -14,6 +14,7 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import difflib
+import importlib
 import json
 import math
 import numbers
@@ -22,15 +23,24 @@ from dataclasses import dataclass
 from typing import Any, Callable, Dict, Iterable, List, Mapping, Optional, Sequence, Tuple, Union
 
 from .atomic import atomic_write_text
+from .registry import Choices
 
 CONFIG_VERSION = 1
 CONFIG_FILENAME = "sparse_config.json"
 #: name of the persistent buffer that marks a state dict as sparse (its value: the config version)
 MARKER = "smdm_sparse_version"
 
-SELECTORS = ("vw", "uniform", "random", "mdo")
 FEATURES = ("auto", "humanml3d", "kit", "raw")
-BACKENDS = ("auto", "compact", "varlen", "masked")
+
+
+def _registered(module: str, registry: str, *extra: str) -> Choices:
+    """Live choices of a core registry (``selection.SELECTORS``, ``attention_backends.BACKENDS``;
+    its module imported on first read): an entry registered later is a valid value at once."""
+    return Choices(lambda: getattr(importlib.import_module(module), registry).names(), extra)
+
+
+SELECTORS = _registered("smdm_plugin.core.selection", "SELECTORS")
+BACKENDS = _registered("smdm_plugin.core.attention_backends", "BACKENDS", "auto")
 
 PathLike = Union[str, "os.PathLike[str]"]
 
