@@ -22,7 +22,7 @@ __version__ = "0.2.0"
 
 _EXPORTS: Dict[str, str] = {
     # core: the method
-    "SparseConfig": "core.config", "load_preset": "core.config",
+    "SparseConfig": "core.config", "load_preset": "core.config", "sparse_config_of": "core.config",
     "select_keyframes": "core.selection", "register_selector": "core.selection", "perturb_mask": "core.selection",
     "vw_reference": "core.selection", "keyframe_count": "core.selection",
     "extract_selection_features": "core.features",
@@ -86,7 +86,7 @@ if TYPE_CHECKING:  # pragma: no cover - for type checkers and IDEs
     from .adapters.mdm import detect_variant
     from .adapters.surgery import is_sparse, set_mean_std, sparsify, unsparsify
     from .core.attention_backends import available_backends, get_backend, register_backend
-    from .core.config import ConfigTypeError, SparseConfig, load_preset
+    from .core.config import ConfigTypeError, SparseConfig, load_preset, sparse_config_of
     from .core.features import extract_selection_features
     from .core.fsq import FSQ, FSQMultiheadAttention, quantize_attention_keys, unquantize_attention_keys
     from .adapters.inbetween import forced_keyframes, keyframe_constraint, sample_inbetween

@@ -76,7 +76,7 @@ def test_lipschitz_swap_and_unsparsify():
     sparsify_motiondiffuse(model, SparseConfig(feature="raw", lipschitz_layers=2))
     assert isinstance(model.joint_embed, LipschitzMLP) and isinstance(model.out, LipschitzMLP)
     assert "smdm_sparse_version" in model.state_dict()
-    assert SparseConfig().fsq and model.smdm_config.fsq is False      # linear attention: no FSQ keys
+    assert SparseConfig().fsq and model._smdm_state.config.fsq is False      # linear attention: no FSQ keys
     x, t, length, text = _inputs()
     out = model(x, t, length=length, text=text)
     assert out.shape == x.shape

@@ -48,7 +48,7 @@ def test_meta_tensors_are_clear_errors():
     model = tiny()
     with pytest.raises(ValueError, match="sparsify: mean is a 'meta' tensor"):
         sparsify(model, SparseConfig(), mean=torch.zeros(263, device="meta"), std=torch.ones(263))
-    assert not is_sparse(model) and not hasattr(model, "smdm_config")
+    assert not is_sparse(model) and not hasattr(model, "_smdm_state")
 
 
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a second device")

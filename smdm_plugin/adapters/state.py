@@ -15,11 +15,10 @@ import torch
 import torch.nn as nn
 
 from ..core.checks import as_lengths, as_mask, compiling, host_checkable, require
-from ..core.config import SparseConfig
+from ..core.config import STATE_ATTR, SparseConfig  # STATE_ATTR: the attribute the state lives under
 from ..core.plan import KeyframePlan
 from ..core.schedule import MaskSchedule
 
-STATE_ATTR = "_smdm_state"
 
 
 @dataclass(frozen=True)

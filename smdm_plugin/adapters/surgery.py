@@ -23,7 +23,7 @@ from ..core.lipschitz import LipschitzMLP
 from ..core.schedule import MaskSchedule
 from .diffusion import attach_diffusion, diffusion_steps, release_diffusions
 from .family import ModelFamily, family_for, get_family
-from .state import MISSING, STATE_ATTR, SparseState, get_state, restore_originals
+from .state import STATE_ATTR, SparseState, get_state, restore_originals
 
 ConfigLike = Union[SparseConfig, Mapping[str, Any], None]
 
@@ -124,8 +124,6 @@ def sparsify(model: nn.Module, config: ConfigLike = None, *, diffusion: Any = No
             state.originals[(owner, name)] = getattr(owner, name)
             setattr(owner, name, mlp)
         fam.install(model, state)
-        state.originals[(model, "smdm_config")] = model.__dict__.get("smdm_config", MISSING)
-        model.smdm_config = config
         model.register_buffer(MARKER, torch.tensor(config.version, device=device), persistent=True)
         setattr(model, STATE_ATTR, state)
         if diffusion is not None:

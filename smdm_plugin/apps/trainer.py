@@ -30,7 +30,7 @@ import numpy as np
 import torch
 import torch.nn as nn
 
-from ..core.config import CONFIG_FILENAME, SparseConfig
+from ..core.config import CONFIG_FILENAME, SparseConfig, sparse_config_of
 from ..integrations.distributed import DistContext, constant_buffers_kwargs, init_distributed
 from ..io.checkpoint import BACKBONE_FILENAME
 from ..io.files import atomic_open, atomic_write_json, atomic_write_text
@@ -422,7 +422,7 @@ class Trainer:
         with atomic_open(path, "wb") as f:
             torch.save({k: v.detach().cpu() for k, v in self.model.state_dict().items()}, f)
         atomic_write_json(os.path.join(folder, BACKBONE_FILENAME), self.backbone_args)
-        config = getattr(self.model, "smdm_config", None)
+        config = sparse_config_of(self.model)
         if config is not None:
             atomic_write_text(os.path.join(folder, CONFIG_FILENAME), config.to_json() + "\n")
         for name, value in (("Mean.npy", self.data.mean), ("Std.npy", self.data.std)):

@@ -115,7 +115,7 @@ def attach_trainer(trainer: Any, config: Optional[SparseConfig] = None) -> Any:
     if config.enabled and getattr(opt, "is_train", False) and getattr(opt, "model_dir", None):
         from ..io.checkpoint import save_sparse_config  # never replaces another config unasked
 
-        save_sparse_config(core.smdm_config, opt.model_dir)
+        save_sparse_config(core, opt.model_dir)
     return trainer
 
 

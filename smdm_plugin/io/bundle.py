@@ -18,7 +18,7 @@ import numpy as np
 import torch
 import torch.nn as nn
 
-from ..core.config import SparseConfig
+from ..core.config import SparseConfig, sparse_config_of
 from ..reference.diffusion import SimpleDiffusion
 from .checkpoint import BACKBONE_FILENAME, load_checkpoint, save_sparse_config
 from .files import atomic_open, atomic_write_json, check_new_dir
@@ -73,7 +73,7 @@ def save_bundle(directory: str, model: nn.Module, diffusion: SimpleDiffusion, ba
     with atomic_open(os.path.join(directory, WEIGHTS_FILENAME), "wb") as f:
         torch.save({k: v.detach().cpu() for k, v in model.state_dict().items()}, f)
     atomic_write_json(os.path.join(directory, BACKBONE_FILENAME), dict(backbone))
-    config = getattr(model, "smdm_config", None)
+    config = sparse_config_of(model)
     stale = os.path.join(directory, "sparse_config.json")
     if config is not None:
         save_sparse_config(model, directory, overwrite=True)

@@ -10,7 +10,7 @@ from typing import Any, Callable, Dict, Iterable, Mapping, Optional, Tuple, Unio
 import torch
 import torch.nn as nn
 
-from ..core.config import CONFIG_FILENAME, MARKER, SparseConfig
+from ..core.config import CONFIG_FILENAME, MARKER, SparseConfig, sparse_config_of
 from .files import OutputExistsError
 
 BACKBONE_FILENAME = "backbone.json"
@@ -37,10 +37,9 @@ def save_sparse_config(model_or_config: Union[nn.Module, SparseConfig], director
     path. An existing file holding the same config is left as it is (saving twice, or from every
     rank of a distributed run, is fine); one holding another config (or unreadable) is an
     :class:`~smdm_plugin.io.files.OutputExistsError` (a ``FileExistsError``) unless ``overwrite``."""
-    config = model_or_config if isinstance(model_or_config, SparseConfig) else getattr(
-        model_or_config, "smdm_config", None)
+    config = model_or_config if isinstance(model_or_config, SparseConfig) else sparse_config_of(model_or_config)
     if config is None:
-        raise ValueError("save_sparse_config: the model is not sparse (no smdm_config); sparsify it first")
+        raise ValueError("save_sparse_config: the model is not sparse; sparsify it first")
     os.makedirs(directory, exist_ok=True)
     path = os.path.join(directory, CONFIG_FILENAME)
     if os.path.isdir(path):
@@ -134,8 +133,7 @@ def check_config_matches(model: nn.Module, saved: SparseConfig, source: str,
     if unknown:
         raise ValueError(f"load_checkpoint: allow_differences names unknown SparseConfig field(s) {unknown}; "
                          f"known: {', '.join(fields)}")
-    current = next((m.smdm_config for m in model.modules()
-                    if isinstance(getattr(m, "smdm_config", None), SparseConfig)), None)
+    current = sparse_config_of(model)
     if current is None:
         return
     diff = saved.differences(current, ignore=("version", *allowed))
