@@ -16,7 +16,6 @@ from __future__ import annotations
 import importlib
 from typing import TYPE_CHECKING, Any, Dict, List
 
-from . import _compat
 
 __version__ = "0.2.0"
 
@@ -62,7 +61,6 @@ _EXPORTS: Dict[str, str] = {
 
 __all__: List[str] = sorted(_EXPORTS) + ["__version__"]
 
-_compat.install()
 
 
 def __getattr__(name: str) -> Any:

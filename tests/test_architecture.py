@@ -65,7 +65,7 @@ def imports_of(path: Path):
 
 
 def test_every_module_is_in_a_layer_folder():
-    loose = sorted(p.name for p in PKG.glob("*.py") if p.name not in ("__init__.py", "__main__.py", "_compat.py"))
+    loose = sorted(p.name for p in PKG.glob("*.py") if p.name not in ("__init__.py", "__main__.py"))
     assert loose == [], f"modules outside the layer folders: {loose}"
 
 
@@ -103,21 +103,14 @@ def test_importing_a_layer_pulls_in_only_what_it_may(layer):
             "print(json.dumps(sorted({m.split('.')[1] for m in sys.modules "
             "if m.startswith('smdm_plugin.') and len(m.split('.')) > 1})))")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
-    loaded = set(json.loads(out.strip().splitlines()[-1])) - {"_compat"}
+    loaded = set(json.loads(out.strip().splitlines()[-1]))
     assert loaded <= ALLOWED[layer], f"importing {layer} loaded {sorted(loaded - ALLOWED[layer])}"
 
 
-def test_old_module_paths_warn_and_return_the_new_module():
-    from smdm_plugin._compat import MOVED
-
-    for old, new in MOVED.items():
-        sys.modules.pop(old, None)
-        with warnings.catch_warnings(record=True) as caught:
-            warnings.simplefilter("always")
-            mod = importlib.import_module(old)
-        assert mod is importlib.import_module(new), old
-        assert any(issubclass(w.category, DeprecationWarning) and new in str(w.message) for w in caught), old
-    from smdm_plugin.selection import select_keyframes  # noqa: F401  (the common spelling)
+def test_old_flat_module_paths_are_gone():
+    """The 0.1 flat paths (smdm_plugin.selection, ...) were aliases until 0.3 (CHANGELOG.md)."""
+    with pytest.raises(ModuleNotFoundError):
+        importlib.import_module("smdm_plugin.selection")
 
 
 def test_public_api_resolves_every_name():

@@ -1,7 +1,7 @@
 """``smdm ablate``: A/B ablations of sparse keyframe mode on real motion, one results folder.
 
 Every variant of a YAML grid (``smdm_plugin/configs/ablations/table1.yaml``: the paper's Table 1 set) trains the
-in-package backbone (:class:`~smdm_plugin.backbone.TinyMDM` + :class:`~smdm_plugin.diffusion.SimpleDiffusion`)
+in-package backbone (:class:`~smdm_plugin.reference.backbone.TinyMDM` + :class:`~smdm_plugin.reference.diffusion.SimpleDiffusion`)
 through the one in-package :class:`~smdm_plugin.apps.trainer.Trainer` with the *same* seed,
 initial weights, data order, diffusion steps ``t`` and step count, on HumanML3D-format motion (``--data``, default ``../shared/data/cmu-humanml3d``: ``new_joint_vecs``,
 ``new_joints``, ``Mean.npy``/``Std.npy``, ``train.txt``/``val.txt``). Unconditional (no CLIP).

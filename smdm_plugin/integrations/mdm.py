@@ -125,7 +125,7 @@ def sparsify_mdm(model: Any, args: Any, data: Any = None, diffusion: Any = None,
 def check_mdm_state_dict(model: Any, state_dict: Any, model_path: Optional[str] = None) -> None:
     """Raise a clear error when a sparse checkpoint meets a dense MDM (``--sparse`` lost, e.g. an
     ``args.json`` without the ``sparse`` keys) or the reverse; see
-    :func:`smdm_plugin.checkpoint.check_state_dict`."""
+    :func:`smdm_plugin.io.checkpoint.check_state_dict`."""
     from ..io.checkpoint import check_state_dict, model_is_sparse, state_dict_is_sparse
 
     source = model_path or "checkpoint"
