@@ -110,8 +110,8 @@ def doubletake_forced_frames(lengths: Sequence[int], handshake_size: int,
     raise ValueError(f"doubletake_forced_frames: take must be 'first' or 'second', got {take!r}")
 
 
-def forced_from_y(y: Dict[str, Any], n_frames: int, batch_size: int,
-                  device=None) -> Optional[torch.Tensor]:
+def doubletake_forced_from_y(y: Dict[str, Any], batch_size: int, n_frames: int,
+                             device=None) -> Optional[torch.Tensor]:
     """The forced keyframes ``[B, N]`` of one DoubleTake model call, read from ``y``.
 
     Second take (``inpainting_mask`` present, frames with mask < 1 exist): the transition
@@ -172,7 +172,7 @@ def _doubletake_pre_hook(module: nn.Module, args, kwargs):
     if not isinstance(x, torch.Tensor):
         return None
     B, N = x.shape[0], x.shape[-1]
-    forced = forced_from_y(y, N, B, device=x.device)
+    forced = doubletake_forced_from_y(y, B, N, device=x.device)
     if forced is None:
         return None
     y = dict(y)  # never write into the caller's dict (DoubleTake reuses it across takes)

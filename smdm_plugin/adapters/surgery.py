@@ -14,10 +14,10 @@ from __future__ import annotations
 
 from typing import Any, Dict, Mapping, Optional, Tuple, Union
 
-import numpy as np
 import torch
 import torch.nn as nn
 
+from ..core.checks import module_device
 from ..core.config import MARKER, SparseConfig
 from ..core.lipschitz import LipschitzMLP
 from ..core.schedule import MaskSchedule
@@ -44,10 +44,7 @@ def as_config(config: ConfigLike, fn: str = "sparsify") -> SparseConfig:
 def model_device(model: nn.Module, fn: str = "sparsify") -> torch.device:
     """The device of ``model``'s parameters (CPU when it has none); the ``meta`` device is a
     ``ValueError`` (materialise the weights first: ``to_empty`` + ``load_state_dict``)."""
-    ref = next(model.parameters(), None)
-    if ref is None:
-        ref = next(model.buffers(), None)
-    device = ref.device if ref is not None else torch.device("cpu")
+    device = module_device(model)
     if device.type == "meta":
         raise ValueError(f"{fn}: the model's parameters are on the 'meta' device; materialise them "
                          "(model.to_empty(device=...) and load the weights) before converting it")

@@ -45,11 +45,6 @@ MODES = ("train", "sample", "loop")
 
 
 # ----------------------------------------------------------------------------------------- utils
-def pick_device(name: str = "auto") -> torch.device:
-    """``auto``: CUDA, else MPS, else the CPU (see :func:`smdm_plugin.apps._args.resolve_device`)."""
-    return resolve_device(name)
-
-
 def _sync(device: torch.device) -> None:
     if device.type == "cuda":
         torch.cuda.synchronize(device)
@@ -304,7 +299,7 @@ def _run_bench(archs, reductions, batch, frames, repeats, warmup, device, quick,
                modes, amp, compile_mode, progress, fsq) -> Dict[str, Any]:
     from ..core.attention_backends import resolve_backend_name
 
-    dev = pick_device(device)
+    dev = resolve_device(device)
     if dev.type == "cpu":
         _pin_malloc()
     data = make_batch(batch, frames, dev)
@@ -429,7 +424,7 @@ def bench_keyframes(batch: int = 64, frames: int = 196, dims: int = 64, reductio
     """VW selection (the fused op) on ``[batch, frames, dims]`` (random-walk features, full lengths)."""
     from ..core.selection import select_keyframes
 
-    dev = pick_device(device)
+    dev = resolve_device(device)
     g = torch.Generator().manual_seed(0)
     feats = torch.randn(batch, frames, dims, generator=g).cumsum(1).to(dev)
     times = time_it(lambda: select_keyframes(feats, None, reduction, "vw"), dev, repeats, 1)
@@ -507,7 +502,7 @@ def main_bench(args: argparse.Namespace, parser: argparse.ArgumentParser) -> Dic
             parser.error(str(e))
     if args.threads:
         torch.set_num_threads(args.threads)
-    note = busy_note(torch.get_num_threads()) if pick_device(args.device).type == "cpu" else None
+    note = busy_note(torch.get_num_threads()) if resolve_device(args.device).type == "cpu" else None
     if note:
         print(note, file=sys.stderr)
     result = run_bench(args.arch, args.reductions, args.batch, args.frames, args.repeats, args.warmup, args.device,
