@@ -21,7 +21,6 @@ import functools
 import weakref
 from typing import Any, Optional
 
-import torch
 import torch.nn as nn
 
 from ..core.config import SparseConfig

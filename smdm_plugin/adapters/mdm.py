@@ -33,7 +33,7 @@ from ..core.keyframe_transformer import KeyframeTransformer
 from ..core.losses import add_lipschitz_term
 from ..core.plan import KeyframePlan
 from .family import CallInputs, ModelFamily, register_family
-from .state import (MISSING, STATE_ATTR, SparseState, Variant, forced_from_y, frames_layout, get_state,
+from .state import (MISSING, STATE_ATTR, SparseState, Variant, forced_from_y, frames_layout,
                     lengths_from_y)
 
 

@@ -12,7 +12,7 @@ no buffer, no state) and a corrected retry works.
 """
 from __future__ import annotations
 
-from typing import Any, Dict, Mapping, Optional, Tuple, Union
+from typing import Any, Dict, Mapping, Tuple, Union
 
 import torch
 import torch.nn as nn

@@ -38,8 +38,9 @@ def is_mdm_repo(path: str) -> bool:
 
 
 def add_sparse_options(group: Any) -> Any:
-    """Add ``--sparse`` / ``--sparse_<field>`` to MDM's ``model`` argument group (idempotent:
-    the patch and the launcher may both call it)."""
+    """Add ``--sparse`` / ``--sparse_<field>`` to an argparse parser or group (MDM's ``model``
+    group, priorMDM's, MotionDiffuse's options parser); idempotent: the patch and the launcher may
+    both call it."""
     if "--sparse" in getattr(group, "_option_string_actions", {}):
         return group
     SparseConfig.add_argparse_args(group)

@@ -30,11 +30,7 @@ import numpy as np
 from ..core.config import CONFIG_FILENAME, SparseConfig
 
 
-def add_sparse_options(parser: Any) -> Any:
-    """``--sparse`` and ``--sparse_<field>`` (idempotent)."""
-    if "--sparse" not in getattr(parser, "_option_string_actions", {}):
-        SparseConfig.add_argparse_args(parser)
-    return parser
+from .mdm import add_sparse_options  # noqa: E402,F401  (the one --sparse* adder; patches import it here)
 
 
 def _coerce(value: Any, default: Any) -> Any:

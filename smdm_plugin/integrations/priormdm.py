@@ -22,12 +22,7 @@ from typing import Any, Optional
 from ..core.config import SparseConfig
 
 
-def add_sparse_options(group: Any) -> Any:
-    """Add ``--sparse`` / ``--sparse_<field>`` to an argparse parser or group (idempotent)."""
-    if "--sparse" in getattr(group, "_option_string_actions", {}):
-        return group
-    SparseConfig.add_argparse_args(group)
-    return group
+from .mdm import add_sparse_options  # noqa: E402,F401  (the one --sparse* adder; patches import it here)
 
 
 def _dataset_mean_std(data: Any):
