@@ -257,3 +257,26 @@ def test_launch_budget_of_motiondiffuse():
     for what, budget in (("train", 1.5), ("sample t=40", 1.6), ("sample t=2", 1.6)):
         ratio = counts[what, True] / counts[what, False]
         assert ratio <= budget, f"motiondiffuse {what}: {counts[what, True]} vs {counts[what, False]} ops ({ratio:.2f}x)"
+
+
+@pytest.mark.parametrize("name", VARIANTS)
+def test_no_recompile_after_the_first_compiled_sampling_call(name):
+    """The schedule's per-device tables are never filled while tracing (that would fail the traced
+    graph's guard on them), so the sampling calls after the first (early and late steps, new x_t)
+    run the first graph: dynamo compiles each traced frame once."""
+    from torch._dynamo.utils import counters
+
+    torch._dynamo.reset()
+    model, _ = make(name)
+    x, y = batch(name)
+    model.eval()
+    compiled = torch.compile(model, fullgraph=True, backend="eager")
+    try:
+        with torch.no_grad():
+            compiled(x, torch.full((3,), 40), dict(y))
+            frames = counters["stats"]["unique_graphs"]
+            for step in (2, 30, 1, 45):
+                compiled(x + step, torch.full((3,), step), dict(y))
+        assert counters["stats"]["unique_graphs"] == frames
+    finally:
+        torch._dynamo.reset()
