@@ -546,9 +546,14 @@ def config_section(data: Any, where: Optional[str] = None) -> Dict[str, Any]:
 
 
 def preset_dirs() -> List[str]:
-    """Where presets are looked up: the package's own ``smdm_plugin/configs/``."""
-    here = os.path.dirname(os.path.abspath(__file__))
-    return [os.path.join(os.path.dirname(here), "configs")]
+    """Where presets are looked up: the project's top-level ``configs/`` (a source checkout, ``pip
+    install -e .``), else where a regular install puts it (``<prefix>/share/smdm_plugin/configs``)."""
+    import sys
+
+    package = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+    candidates = [os.path.join(os.path.dirname(package), "configs"),
+                  os.path.join(sys.prefix, "share", "smdm_plugin", "configs")]
+    return [d for d in candidates if os.path.isdir(d)][:1] or candidates[:1]
 
 
 def preset_names() -> List[str]:
@@ -560,7 +565,7 @@ def preset_names() -> List[str]:
 def load_preset(name: str) -> SparseConfig:
     """A packaged preset by name or any YAML/JSON path.
 
-    Packaged (``smdm_plugin/configs/``): ``smdm_paper`` (App. B.1: trans_dec-ready, 50 steps, FSQ
+    Packaged (top-level ``configs/``): ``smdm_paper`` (App. B.1: trans_dec-ready, 50 steps, FSQ
     keys, lambda 0, no dynamic update), ``sdip_paper`` (App. B.2: 10 steps, 20 past + 40 future
     frames), ``smdm_humanml`` and ``sdip`` (earlier measured variants, kept by name),
     ``smotiondiffuse``; ``preset_names()`` lists them all."""
