@@ -38,6 +38,7 @@ from typing import Any, Callable, Dict, List, Optional, Sequence
 
 import torch
 
+from ..core.config import BACKENDS
 from ._args import add_overwrite, device_type, float_range, int_range, resolve_device
 
 TARGETS = {"train": 4.0, "sample": 3.5, "loop": 3.0, "overhead": 0.10}  # at 80% reduction
@@ -445,7 +446,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--repeats", type=int_range(1), default=None, help="timed runs per cell, median reported (default 3)")
     p.add_argument("--warmup", type=int_range(0), default=None, help="untimed runs before timing (default 1)")
     p.add_argument("--device", type=device_type, default="auto", help="auto (cuda if available) | cpu | cuda | cuda:N | mps")
-    p.add_argument("--backend", default="auto", choices=["auto", "compact", "varlen", "masked"],
+    p.add_argument("--backend", default="auto", choices=BACKENDS,
                    help="keyframe attention backend of the sparse model")
     p.add_argument("--modes", nargs="+", default=["train", "sample"], choices=list(MODES),
                    help="train: one training step; sample: one CFG sampling step (VW on x_t); "
