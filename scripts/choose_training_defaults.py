@@ -2,7 +2,7 @@
 """Choose the training-time defaults (frame-index scale, mask noise, FSQ levels) by training.
 
 For every variant of an ablation grid (``smdm ablate``'s YAML format; the grids written for this
-are ``smdm_plugin/configs/ablations/frame_index_scale.yaml`` and ``training_defaults.yaml``) and
+are ``configs/ablations/frame_index_scale.yaml`` and ``training_defaults.yaml``) and
 every seed, trains the in-package ``TinyMDM`` in sparse mode on the real HumanML3D-format clips
 (same data order, timesteps and initial weights for every variant of a seed) and measures:
 

@@ -16,14 +16,13 @@ from __future__ import annotations
 import importlib
 from typing import TYPE_CHECKING, Any, Dict, List
 
-from . import _compat
 
 __version__ = "0.2.0"
 
 _EXPORTS: Dict[str, str] = {
     # core: the method
-    "SparseConfig": "core.config", "load_preset": "core.config",
-    "select_keyframes": "core.selection", "perturb_mask": "core.selection",
+    "SparseConfig": "core.config", "load_preset": "core.config", "sparse_config_of": "core.config",
+    "select_keyframes": "core.selection", "register_selector": "core.selection", "perturb_mask": "core.selection",
     "vw_reference": "core.selection", "keyframe_count": "core.selection",
     "extract_selection_features": "core.features",
     "interpolate_keyframes": "core.interpolation",
@@ -36,8 +35,10 @@ _EXPORTS: Dict[str, str] = {
     "MaskSchedule": "core.schedule",
     "dense_loss": "core.losses", "keyframe_loss": "core.losses", "lipschitz_term": "core.losses",
     # adapters: model surgery
-    "sparsify": "adapters.mdm", "unsparsify": "adapters.mdm", "is_sparse": "adapters.mdm",
-    "detect_variant": "adapters.mdm", "set_mean_std": "adapters.mdm",
+    "sparsify": "adapters.surgery", "unsparsify": "adapters.surgery", "is_sparse": "adapters.surgery",
+    "set_mean_std": "adapters.surgery", "detect_variant": "adapters.mdm",
+    "ModelFamily": "adapters.family", "register_family": "adapters.family", "families": "adapters.family",
+    "CallInputs": "adapters.family",
     "attach_diffusion": "adapters.diffusion", "detach_diffusion": "adapters.diffusion",
     "keyframe_collate": "adapters.diffusion",
     "swap_text_encoder": "adapters.text_encoder", "HFTextEncoder": "adapters.text_encoder",
@@ -58,7 +59,7 @@ _EXPORTS: Dict[str, str] = {
     # io
     "read_bvh": "io.bvh", "bvh_joint_positions": "io.bvh", "load_cmu_clip": "io.bvh",
     "BVHError": "io.bvh", "BVHWarning": "io.bvh", "OutputExistsError": "io.files",
-    "save_sparse_config": "io.checkpoint", "load_checkpoint": "io.checkpoint",
+    "save_sparse_config": "io.checkpoint", "load_checkpoint": "adapters.checkpoint",
     "check_state_dict": "io.checkpoint", "find_sparse_config": "io.checkpoint",
     # reference model
     "TinyMDM": "reference.backbone",
@@ -67,7 +68,6 @@ _EXPORTS: Dict[str, str] = {
 
 __all__: List[str] = sorted(_EXPORTS) + ["__version__"]
 
-_compat.install()
 
 
 def __getattr__(name: str) -> Any:
@@ -88,9 +88,11 @@ if TYPE_CHECKING:  # pragma: no cover - for type checkers and IDEs
     from .adapters.diffusion import attach_diffusion, detach_diffusion, keyframe_collate
     from .adapters.text_cache import TextEmbeddingCache, install_text_cache
     from .adapters.text_encoder import HFTextEncoder, swap_text_encoder
-    from .adapters.mdm import detect_variant, is_sparse, set_mean_std, sparsify, unsparsify
+    from .adapters.family import CallInputs, ModelFamily, families, register_family
+    from .adapters.mdm import detect_variant
+    from .adapters.surgery import is_sparse, set_mean_std, sparsify, unsparsify
     from .core.attention_backends import available_backends, get_backend, register_backend
-    from .core.config import ConfigTypeError, SparseConfig, load_preset
+    from .core.config import ConfigTypeError, SparseConfig, load_preset, sparse_config_of
     from .core.features import extract_selection_features
     from .core.fsq import FSQ, FSQMultiheadAttention, quantize_attention_keys, unquantize_attention_keys
     from .adapters.inbetween import forced_keyframes, keyframe_constraint, sample_inbetween
@@ -106,9 +108,11 @@ if TYPE_CHECKING:  # pragma: no cover - for type checkers and IDEs
     from .core.lipschitz import LipschitzMLP, bake_lipschitz, lipschitz_loss
     from .core.losses import dense_loss, keyframe_loss, lipschitz_term
     from .core.schedule import MaskSchedule
+    from .core.selection import register_selector
     from .core.selection import keyframe_count, perturb_mask, select_keyframes, vw_reference
     from .io.bvh import BVHError, BVHWarning, bvh_joint_positions, load_cmu_clip, read_bvh
     from .io.files import OutputExistsError
-    from .io.checkpoint import check_state_dict, find_sparse_config, load_checkpoint, save_sparse_config
+    from .adapters.checkpoint import load_checkpoint
+    from .io.checkpoint import check_state_dict, find_sparse_config, save_sparse_config
     from .reference.backbone import TinyMDM
     from .reference.diffusion import ClassifierFreeGuidance, SimpleDiffusion

@@ -13,7 +13,7 @@ from smdm_plugin.apps import ablate
 from synthetic_data import write_humanml3d
 
 ROOT = Path(__file__).resolve().parents[1]
-QUICK = ROOT / "smdm_plugin" / "configs" / "ablations" / "quick.yaml"
+QUICK = ROOT / "configs" / "ablations" / "quick.yaml"
 
 GRID = """name: t
 seed: 0
@@ -31,7 +31,7 @@ variants:
 
 
 def test_table1_config_lists_the_paper_ablations():
-    cfg = ablate.load_config(str(ROOT / "smdm_plugin" / "configs" / "ablations" / "table1.yaml"))
+    cfg = ablate.load_config(str(ROOT / "configs" / "ablations" / "table1.yaml"))
     names = [v["name"] for v in cfg["variants"]]
     assert names[0] == "dense" and len(names) == 9
     for v in cfg["variants"]:

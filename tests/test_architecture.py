@@ -18,8 +18,8 @@ PKG = Path(smdm_plugin.__file__).resolve().parent
 ALLOWED = {
     "core": {"core"},
     "reference": {"reference", "core"},
-    "adapters": {"adapters", "core"},
-    "io": {"io", "core", "adapters", "reference"},
+    "adapters": {"adapters", "core", "io"},
+    "io": {"io", "core", "reference"},
     "metrics": {"metrics", "io", "core"},
     "integrations": {"integrations", "adapters", "core", "io", "reference", "metrics"},
     "apps": {"apps", "integrations", "adapters", "core", "io", "reference", "metrics"},
@@ -65,7 +65,7 @@ def imports_of(path: Path):
 
 
 def test_every_module_is_in_a_layer_folder():
-    loose = sorted(p.name for p in PKG.glob("*.py") if p.name not in ("__init__.py", "__main__.py", "_compat.py"))
+    loose = sorted(p.name for p in PKG.glob("*.py") if p.name not in ("__init__.py", "__main__.py"))
     assert loose == [], f"modules outside the layer folders: {loose}"
 
 
@@ -103,21 +103,14 @@ def test_importing_a_layer_pulls_in_only_what_it_may(layer):
             "print(json.dumps(sorted({m.split('.')[1] for m in sys.modules "
             "if m.startswith('smdm_plugin.') and len(m.split('.')) > 1})))")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
-    loaded = set(json.loads(out.strip().splitlines()[-1])) - {"_compat"}
+    loaded = set(json.loads(out.strip().splitlines()[-1]))
     assert loaded <= ALLOWED[layer], f"importing {layer} loaded {sorted(loaded - ALLOWED[layer])}"
 
 
-def test_old_module_paths_warn_and_return_the_new_module():
-    from smdm_plugin._compat import MOVED
-
-    for old, new in MOVED.items():
-        sys.modules.pop(old, None)
-        with warnings.catch_warnings(record=True) as caught:
-            warnings.simplefilter("always")
-            mod = importlib.import_module(old)
-        assert mod is importlib.import_module(new), old
-        assert any(issubclass(w.category, DeprecationWarning) and new in str(w.message) for w in caught), old
-    from smdm_plugin.selection import select_keyframes  # noqa: F401  (the common spelling)
+def test_old_flat_module_paths_are_gone():
+    """The 0.1 flat paths (smdm_plugin.selection, ...) were aliases until 0.3 (CHANGELOG.md)."""
+    with pytest.raises(ModuleNotFoundError):
+        importlib.import_module("smdm_plugin.selection")
 
 
 def test_public_api_resolves_every_name():
@@ -125,3 +118,21 @@ def test_public_api_resolves_every_name():
         assert getattr(smdm_plugin, name) is not None, name
     with pytest.raises(AttributeError, match="no attribute 'nope'"):
         smdm_plugin.nope  # noqa: B018
+
+
+def test_architecture_doc_names_every_command_and_family():
+    """docs/architecture.md (the one-page map) lists every `smdm` command and every built-in family."""
+    from smdm_plugin import families
+    from smdm_plugin.apps.cli import COMMANDS
+
+    doc = (PKG.parent / "docs" / "architecture.md").read_text()
+    missing = [c for c in COMMANDS if c not in doc] + [f"`{f.name}`" for f in families() if f"`{f.name}`" not in doc]
+    assert not missing, f"docs/architecture.md does not mention {missing}"
+
+
+def test_io_knows_no_model_family():
+    """io sits below adapters: loading a sparse checkpoint reaches the families only through the
+    hook adapters register (no import of adapters anywhere in io, also not inside functions)."""
+    bad = [f"{p.relative_to(PKG)}:{line} {t}" for p in sorted((PKG / "io").rglob("*.py"))
+           for line, t in imports_of(p) if layer_of(t) == "adapters"]
+    assert not bad, bad

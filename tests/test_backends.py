@@ -43,7 +43,7 @@ def run(fn, inner, x, keep, memory=None, memory_key_padding_mask=None, capacity=
 
 
 def registered():
-    return sorted(ab._REGISTRY)
+    return sorted(ab.BACKENDS.names())
 
 
 def reference(inner, x, keep, memory=None):
@@ -63,7 +63,7 @@ def test_backend_equals_masked_reference_eval(backend, kind, norm_first):
     x = torch.randn(S, B, d)
     memory = torch.randn(2, B, d) if kind == "decoder" else None
     keep = keyframes(B, S, [33, 30, 12, 33, 3], 7)
-    fn = ab._REGISTRY[backend][0]
+    fn = ab.BACKENDS.get(backend).fn
     with torch.no_grad():
         out = run(fn, inner, x, keep, memory=memory)
         ref = reference(inner, x, keep, memory)
@@ -81,7 +81,7 @@ def test_backend_equals_reference_in_training_without_dropout(backend):
     w = torch.randn(S, B, d)
     kt = keep.t().unsqueeze(-1).float()
     grads = {}
-    for name, fn in (("ref", None), (backend, ab._REGISTRY[backend][0])):
+    for name, fn in (("ref", None), (backend, ab.BACKENDS.get(backend).fn)):
         x.grad = None
         inner.zero_grad()
         out = reference(inner, x, keep) if fn is None else run(fn, inner, x, keep)
@@ -126,7 +126,7 @@ def test_backend_unavailable_on_device_falls_back_to_compact():
     try:
         assert get_backend("_never", torch.device("cpu")) is compact_backend
     finally:
-        del ab._REGISTRY["_never"]
+        ab.BACKENDS.unregister("_never")
 
 
 def test_forced_varlen_without_flash_attn_is_correct(monkeypatch):

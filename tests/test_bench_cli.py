@@ -51,7 +51,7 @@ def test_fsq_choice_decides_which_side_gets_fsq_keys(fsq, dense_fsq, sparse_fsq)
     dense, _ = bench.build("trans_enc", None, torch.device("cpu"), True, 4, fsq=fsq)
     sparse, _ = bench.build("trans_enc", 0.8, torch.device("cpu"), True, 4, fsq=fsq)
     assert (has_fsq(dense), has_fsq(sparse)) == (dense_fsq, sparse_fsq)
-    assert sparse.smdm_config.fsq is sparse_fsq
+    assert sparse._smdm_state.config.fsq is sparse_fsq
 
 
 def test_bench_keyframes_module_mode():

@@ -24,7 +24,7 @@ def save_run(tmp_path, sparse: bool, with_config: bool = True):
 def test_roundtrip_recreates_sparse_model(tmp_path):
     model = save_run(tmp_path, sparse=True)
     loaded, config = load_checkpoint(str(tmp_path / "model000001.pt"))
-    assert config == model.smdm_config and loaded.smdm_config.reduction == 0.7
+    assert config == model._smdm_state.config and loaded._smdm_state.config.reduction == 0.7
     x, t = torch.randn(2, 263, 1, 30), torch.tensor([1, 2])
     y = {"text_embed": torch.randn(1, 2, 512)}
     with torch.no_grad():
@@ -33,8 +33,8 @@ def test_roundtrip_recreates_sparse_model(tmp_path):
 
 def test_mdm_args_json_is_enough(tmp_path):
     model = save_run(tmp_path, sparse=True, with_config=False)
-    (tmp_path / "args.json").write_text(json.dumps({"arch": "trans_enc", **model.smdm_config.to_args_dict()}))
-    assert find_sparse_config(str(tmp_path / "model000001.pt")) == model.smdm_config
+    (tmp_path / "args.json").write_text(json.dumps({"arch": "trans_enc", **model._smdm_state.config.to_args_dict()}))
+    assert find_sparse_config(str(tmp_path / "model000001.pt")) == model._smdm_state.config
     loaded, _ = load_checkpoint(str(tmp_path / "model000001.pt"))
     assert hasattr(loaded, "_smdm_state")
 
@@ -100,20 +100,20 @@ def test_sparse_model_with_the_same_config_loads(tmp_path):
     model = save_run(tmp_path, sparse=True)
     target = sparsify(TinyMDM(**KW), SparseConfig(reduction=0.7))
     loaded, config = load_checkpoint(str(tmp_path / "model000001.pt"), model=target)
-    assert loaded is target and config == model.smdm_config
+    assert loaded is target and config == model._smdm_state.config
     for a, b in zip(model.state_dict().values(), loaded.state_dict().values()):
         assert torch.equal(a, b)
     # a field changed on purpose (e.g. sampling with another gamma) when named
     other = sparsify(TinyMDM(**KW), SparseConfig(reduction=0.7, gamma=0.3))
     load_checkpoint(str(tmp_path / "model000001.pt"), model=other, allow_differences=("gamma",))
-    assert other.smdm_config.gamma == 0.3
+    assert other._smdm_state.config.gamma == 0.3
     with pytest.raises(ValueError, match=r"allow_differences names unknown SparseConfig field\(s\) \['gama'\]"):
         load_checkpoint(str(tmp_path / "model000001.pt"), model=other, allow_differences=("gama",))
 
 
 def test_args_json_config_disagreeing_is_named_too(tmp_path):
     model = save_run(tmp_path, sparse=True, with_config=False)
-    (tmp_path / "args.json").write_text(json.dumps(model.smdm_config.to_args_dict()))
+    (tmp_path / "args.json").write_text(json.dumps(model._smdm_state.config.to_args_dict()))
     with pytest.raises(ValueError, match=r"args.json\) in 1 field\(s\): reduction: saved 0.7, model 0.5"):
         load_checkpoint(str(tmp_path / "model000001.pt"), model=sparsify(TinyMDM(**KW), SparseConfig(reduction=0.5)))
 

@@ -9,7 +9,7 @@ import torch
 from smdm_plugin import SparseConfig, TinyMDM, keyframe_count, sparsify
 from smdm_plugin.adapters.doubletake import (PAPER_BLEND_LEN, attach_doubletake_forcing,
                                              detach_doubletake_forcing, doubletake_forced_frames,
-                                             forced_from_y, paper_blend_len)
+                                             doubletake_forced_from_y, paper_blend_len)
 from smdm_plugin.integrations.priormdm import sparsify_priormdm
 from smdm_plugin.reference.diffusion import SimpleDiffusion
 
@@ -49,7 +49,7 @@ def test_forced_geometry_first_take():
     assert f[2].nonzero().flatten().tolist() == list(range(0, 6))
     tr = _first_take_transition([30, 40, 25], 40)
     assert torch.equal(f, tr.bool())
-    assert torch.equal(forced_from_y({"is_transition": tr}, 40, 3), f)
+    assert torch.equal(doubletake_forced_from_y({"is_transition": tr}, 3, 40), f)
 
 
 def test_forced_geometry_second_take():
@@ -62,11 +62,11 @@ def test_forced_geometry_second_take():
         assert f[i].nonzero().flatten().tolist() == list(range(b - BLEND, b + H + BLEND))
     y = {"inpainting_mask": _second_take_inpainting(lens, n2, 5),
          "is_transition": torch.zeros(2, n2)}
-    assert torch.equal(forced_from_y(y, n2, 2), f)
+    assert torch.equal(doubletake_forced_from_y(y, 2, n2), f)
 
 
 def test_no_forcing_without_doubletake_keys():
-    assert forced_from_y({"lengths": torch.tensor([3])}, 10, 1) is None
+    assert doubletake_forced_from_y({"lengths": torch.tensor([3])}, 1, 10) is None
 
 
 def _sparse_tiny(reduction=0.8):
@@ -159,7 +159,7 @@ def test_second_take_geometry_matches_priormdm_mask_for_every_blend(blend):
     n2 = (40 - 2 * H) * 2 + H
     geo = doubletake_forced_frames(lens, H, take="second", blend_len=blend)
     y = {"inpainting_mask": _second_take_inpainting(lens, n2, 3, blend), "is_transition": torch.zeros(2, n2)}
-    assert torch.equal(forced_from_y(y, n2, 2), geo)
+    assert torch.equal(doubletake_forced_from_y(y, 2, n2), geo)
     assert int(geo.sum()) == (0 if blend < 2 else 2 * (2 * blend + H))  # no ramp, nothing regenerated
 
 

@@ -270,3 +270,66 @@ def test_cubic_sampling_compiles_fullgraph_without_host_sync(name, steps=3):
                     out = model(x, ts, dict(y))
             assert not d.syncs, f"sampling t={step}: {dict(d.syncs)}"
             assert torch.allclose(out, ref, atol=1e-5), step
+
+
+def test_launch_budget_of_motiondiffuse():
+    """MotionDiffuse (the stand-in of tests/motiondiffuse_standin.py at its depth: 8 blocks), B=8,
+    196 frames, lengths 40..196: the sparse static path dispatches <= 1.5x the dense model's ops
+    for a training step (training_losses + backward) and <= 1.6x for each sampling call.
+    Its compile and zero-sync checks run in tests/test_family_conformance.py with every family."""
+    from motiondiffuse_standin import StandInDiffusion, StandInMotionTransformer
+
+    B, N = 8, 196
+    length = torch.linspace(40, N, B).round().long()
+    g = torch.Generator().manual_seed(0)
+    x, xf = torch.randn(B, N, 12, generator=g), torch.randn(B, 8, 16, generator=g)
+    t = torch.arange(B) * 6
+    counts = {}
+    for sparse in (False, True):
+        torch.manual_seed(0)
+        model, diffusion = StandInMotionTransformer(num_frames=N, latent_dim=64, num_layers=8), StandInDiffusion()
+        if sparse:
+            sparsify(model, SparseConfig(feature="raw", reduction=0.8, dynamic_update=True, fsq=False),
+                     diffusion=diffusion)
+
+        def kw():
+            return {"length": length, "xf_out": xf, "xf_proj": model.text_proj(xf.mean(1))}
+
+        with static_mode():
+            for _ in range(2):                                    # the second one is counted
+                with Dispatched() as d:
+                    out = diffusion.training_losses(model, x, t, kw())
+                    ((out["pred"] - out["target"]) ** 2).mean().backward()
+            counts["train", sparse] = d.count
+            with torch.no_grad():
+                model(x, torch.full((B,), 40), **kw())            # warm-up
+                for step in (40, 2):
+                    with Dispatched() as d:
+                        model(x + step, torch.full((B,), step), **kw())
+                    counts[f"sample t={step}", sparse] = d.count
+    for what, budget in (("train", 1.5), ("sample t=40", 1.6), ("sample t=2", 1.6)):
+        ratio = counts[what, True] / counts[what, False]
+        assert ratio <= budget, f"motiondiffuse {what}: {counts[what, True]} vs {counts[what, False]} ops ({ratio:.2f}x)"
+
+
+@pytest.mark.parametrize("name", VARIANTS)
+def test_no_recompile_after_the_first_compiled_sampling_call(name):
+    """The schedule's per-device tables are never filled while tracing (that would fail the traced
+    graph's guard on them), so the sampling calls after the first (early and late steps, new x_t)
+    run the first graph: dynamo compiles each traced frame once."""
+    from torch._dynamo.utils import counters
+
+    torch._dynamo.reset()
+    model, _ = make(name)
+    x, y = batch(name)
+    model.eval()
+    compiled = torch.compile(model, fullgraph=True, backend="eager")
+    try:
+        with torch.no_grad():
+            compiled(x, torch.full((3,), 40), dict(y))
+            frames = counters["stats"]["unique_graphs"]
+            for step in (2, 30, 1, 45):
+                compiled(x + step, torch.full((3,), step), dict(y))
+        assert counters["stats"]["unique_graphs"] == frames
+    finally:
+        torch._dynamo.reset()

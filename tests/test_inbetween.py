@@ -14,7 +14,7 @@ import pytest
 import torch
 
 from smdm_plugin.adapters import inbetween as ib
-from smdm_plugin.adapters.mdm import sparsify
+from smdm_plugin.adapters.surgery import sparsify
 from smdm_plugin.adapters.state import get_state
 from smdm_plugin.core.config import SparseConfig
 from smdm_plugin.reference.backbone import TinyMDM

@@ -100,3 +100,23 @@ def test_upstream_flags_parse_with_mdm(name):
             add(gen)
         sargs = gen.parse_args(_argv(up["sample_flags"]) + ["--model_path", "unused"])
         assert all(getattr(sargs, k) == v for k, v in up["sample_flags"].items())
+
+
+def test_presets_live_in_the_top_level_configs_folder_and_are_installed():
+    """The presets are the project's top-level configs/ (a checkout, `pip install -e .`); setup.cfg
+    installs every one of them as data files (<prefix>/share/smdm_plugin/configs), where
+    preset_dirs() looks in a regular install."""
+    import configparser
+    from pathlib import Path
+
+    from smdm_plugin.core.config import preset_dirs
+
+    root = Path(__file__).resolve().parents[1]
+    assert Path(preset_dirs()[0]) == root / "configs"
+    cfg = configparser.ConfigParser()
+    cfg.read(root / "setup.cfg")
+    installed = {k: v.split() for k, v in cfg["options.data_files"].items()}
+    files = sorted(p.relative_to(root).as_posix() for p in (root / "configs").rglob("*.yaml"))
+    covered = sorted(f for f in files for dest, globs in installed.items() for g in globs
+                     if Path(f).match(g) and dest == "share/smdm_plugin/" + str(Path(f).parent))
+    assert covered == files

@@ -120,10 +120,10 @@ def test_sampling_schedule_uniform_early_vw_late():
     from smdm_plugin import select_keyframes
     from smdm_plugin.core.schedule import MaskSchedule
     uniform = select_keyframes(torch.zeros(2, 60, 1), None, 0.8, "uniform")
-    vw = select_keyframes(MaskSchedule(model.smdm_config).features(x.squeeze(2).transpose(1, 2)), None, 0.8, "vw")
+    vw = select_keyframes(MaskSchedule(model._smdm_state.config).features(x.squeeze(2).transpose(1, 2)), None, 0.8, "vw")
     assert torch.equal(seen[0], uniform) and torch.equal(seen[2], uniform)
     assert torch.equal(seen[4], vw) and not torch.equal(vw, uniform)
-    model.smdm_config.dynamic_update = False
+    model._smdm_state.config.dynamic_update = False
     with torch.no_grad():
         model(x + 1, torch.tensor([4, 4]), y)
     assert torch.equal(seen[6], uniform)
@@ -185,14 +185,14 @@ def test_training_losses_use_x0_mask_and_add_lipschitz_term():
     model = tiny()
     diffusion = SimpleDiffusion(50)
     sparsify(model, SparseConfig(lipschitz_lambda=0.5, mask_noise=0.0), diffusion=diffusion)
-    assert model.smdm_config.diffusion_steps == 50
+    assert model._smdm_state.config.diffusion_steps == 50
     seen = record_keyframes(model)
     x, _, y = batch(model)
     t = torch.tensor([49, 49, 49])
     torch.manual_seed(1)
     terms = diffusion.training_losses(model, x, t, {"y": y})
     from smdm_plugin.core.schedule import MaskSchedule
-    expected = MaskSchedule(model.smdm_config).training_mask(x.squeeze(2).transpose(1, 2), y["lengths"])
+    expected = MaskSchedule(model._smdm_state.config).training_mask(x.squeeze(2).transpose(1, 2), y["lengths"])
     assert torch.equal(seen[0], expected)  # from x0, not from the (pure-noise) x_t
     assert torch.allclose(terms["loss"] - terms["mse"], 0.5 * terms["lip"])
     assert "keyframe_mask" not in y  # the caller's dict is not mutated

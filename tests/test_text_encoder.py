@@ -260,7 +260,7 @@ def test_checkpoint_roundtrip_rebuilds_the_encoder_from_its_id(bert_dir, tmp_pat
     swap_text_encoder(model, bert_dir)
     sparsify(model, SparseConfig(text_encoder=bert_dir))
     torch.save(model.state_dict(), tmp_path / "model.pt")
-    model.smdm_config.save(str(tmp_path))
+    model._smdm_state.config.save(str(tmp_path))
     # what a loader does: the config names the encoder; rebuild, swap, then load the weights
     cfg = SparseConfig.load(str(tmp_path))
     fresh = tiny_model()
@@ -345,7 +345,7 @@ def test_text_encoder_also_applies_to_a_dense_run(bert_dir, tmp_path):
     model = tiny_model()
     sparsify_mdm(model, mdm_args(tmp_path, sparse=False, sparse_text_encoder=bert_dir))
     assert isinstance(text_encoder_of(model), HFTextEncoder)
-    assert not hasattr(model, "smdm_config")
+    assert not hasattr(model, "_smdm_state")
 
 
 def test_environment_options():
@@ -378,7 +378,7 @@ def test_sparse_training_at_1000_steps_warns_and_changes_nothing(tmp_path, steps
     assert bool(hit) == warns
     if warns:
         assert "Table 2" in str(hit[0].message) and "--diffusion_steps 50" in str(hit[0].message)
-        assert model.smdm_config.diffusion_steps == 1000  # warned, not overridden
+        assert model._smdm_state.config.diffusion_steps == 1000  # warned, not overridden
     with pytest.warns(UserWarning, match="1000 diffusion steps"):
         assert warn_if_upstream_steps(SparseConfig(), 1000)
     assert not warn_if_upstream_steps(SparseConfig(), 50)

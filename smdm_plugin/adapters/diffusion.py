@@ -19,13 +19,12 @@ from __future__ import annotations
 
 import functools
 import weakref
-from typing import Any, Optional
+from dataclasses import dataclass, field
+from typing import Any, List, Optional
 
-import torch
 import torch.nn as nn
 
 from ..core.config import SparseConfig
-from ..core.losses import add_lipschitz_term
 from .state import (find_sparse_model, forced_from_y, frames_layout, get_state, lengths_from_y,
                     protected_count)
 
@@ -39,10 +38,25 @@ def diffusion_steps(diffusion: Any) -> int:
                      "(expected num_timesteps or original_num_steps)")
 
 
-def _attached_models(diffusion: Any) -> list:
-    """The live sparse models attached to ``diffusion``."""
-    refs = getattr(diffusion, "_smdm_models", [])
-    return [m for m in (r() for r in refs) if m is not None and get_state(m) is not None]
+#: the one attribute a wrapped diffusion carries
+HOOK_ATTR = "_smdm_diffusion"
+
+
+@dataclass
+class DiffusionHook:
+    """What :func:`attach_diffusion` keeps on a diffusion: its own ``training_losses`` (restored
+    by :func:`detach_diffusion`) and weak references to the sparse models attached to it."""
+
+    original: Any
+    models: List["weakref.ref"] = field(default_factory=list)
+
+    def live(self, but: Optional[nn.Module] = None) -> list:
+        """The attached models that are alive and still sparse (``but`` left out)."""
+        return [m for m in (r() for r in self.models) if m is not None and m is not but and get_state(m) is not None]
+
+
+def _hook(diffusion: Any) -> Optional[DiffusionHook]:
+    return diffusion.__dict__.get(HOOK_ATTR)
 
 
 def attach_diffusion(diffusion: Any, config: Optional[SparseConfig] = None,
@@ -56,57 +70,49 @@ def attach_diffusion(diffusion: Any, config: Optional[SparseConfig] = None,
             to ``training_losses`` is not an ``nn.Module`` containing it, and remembered so that
             ``unsparsify`` can restore the diffusion.
     """
+    hook = _hook(diffusion)
+    if hook is None:
+        hook = DiffusionHook(diffusion.training_losses)
     if model is not None:
-        refs = [r for r in getattr(diffusion, "_smdm_models", []) if r() is not None and r() is not model]
-        diffusion._smdm_models = refs + [weakref.ref(model)]
+        hook.models = [r for r in hook.models if r() is not None and r() is not model] + [weakref.ref(model)]
         state = get_state(model)
         if state is not None and not any(r() is diffusion for r in state.diffusions):
             state.diffusions.append(weakref.ref(diffusion))
-    if getattr(diffusion, "_smdm_attached", False):
+    if _hook(diffusion) is not None:
         return diffusion
-    original = diffusion.training_losses
+    original = hook.original
 
     @functools.wraps(original)
-    def training_losses(model_arg, x_start, t, model_kwargs=None, *args, **kwargs):
-        if isinstance(model_arg, nn.Module):
-            sparse = find_sparse_model(model_arg)
+    def training_losses(model, x_start, t, model_kwargs=None, *args, **kwargs):
+        # (parameter names as upstream's: MotionDiffuse's trainer passes model=..., x_start=...)
+        if isinstance(model, nn.Module):
+            sparse = find_sparse_model(model)
         else:  # a plain callable: the one attached sparse model, if there is exactly one
-            live = _attached_models(diffusion)
+            live = hook.live()
             sparse = live[0] if len(live) == 1 else None
         if sparse is None:  # a dense model: exactly the upstream behaviour
-            return original(model_arg, x_start, t, model_kwargs, *args, **kwargs)
+            return original(model, x_start, t, model_kwargs, *args, **kwargs)
         state = get_state(sparse)
-        model_kwargs = dict(model_kwargs or {})
-        y = dict(model_kwargs.get("y", {}))
-        frames = frames_layout(x_start)
-        B, N = frames.shape[:2]
-        lengths = lengths_from_y(y, B, N, x_start.device)
-        forced = forced_from_y(y, B, N, x_start.device)
-        if y.get("keyframe_mask") is None:       # else: chosen in data loading (keyframe_collate)
-            y["keyframe_mask"] = state.schedule.training_mask(frames, lengths, forced, checked=True)
-            y["keyframe_capacity"] = state.schedule.capacity(N, training=True,
-                                                             forced=protected_count(forced, lengths))
-        mask = y["keyframe_mask"]
-        if not state.config.interpolate and isinstance(y.get("mask"), torch.Tensor):
-            y["mask"] = y["mask"] & mask.view(y["mask"].shape).to(y["mask"].dtype)
-        model_kwargs["y"] = y
-        terms = original(model_arg, x_start, t, model_kwargs, *args, **kwargs)
-        return add_lipschitz_term(terms, sparse, state.config, B)
+        family = state.family
+        frames, lengths, forced, mask, capacity = family.training_inputs(state, x_start, model_kwargs or {})
+        if mask is None:                         # else: chosen in data loading (keyframe_collate)
+            mask = state.schedule.training_mask(frames, lengths, forced, checked=True)
+            capacity = state.schedule.capacity(frames.shape[1], training=True,
+                                               forced=protected_count(forced, lengths))
+        model_kwargs = family.with_keyframes(state, model_kwargs or {}, mask, capacity)
+        terms = original(model, x_start, t, model_kwargs, *args, **kwargs)
+        return family.finish_losses(state, sparse, terms, mask)
 
     diffusion.training_losses = training_losses
-    diffusion._smdm_attached = True
-    diffusion._smdm_original_training_losses = original
+    setattr(diffusion, HOOK_ATTR, hook)
     return diffusion
 
 
 def detach_diffusion(diffusion: Any) -> Any:
     """Undo :func:`attach_diffusion`: the original ``training_losses`` again."""
-    if getattr(diffusion, "_smdm_attached", False):
+    if _hook(diffusion) is not None:
         del diffusion.training_losses
-        del diffusion._smdm_attached
-        del diffusion._smdm_original_training_losses
-    if hasattr(diffusion, "_smdm_models"):
-        del diffusion._smdm_models
+        delattr(diffusion, HOOK_ATTR)
     return diffusion
 
 
@@ -118,13 +124,11 @@ def release_diffusions(model: nn.Module) -> None:
         return
     for ref in state.diffusions:
         diffusion = ref()
-        if diffusion is None:
+        hook = None if diffusion is None else _hook(diffusion)
+        if hook is None:
             continue
-        diffusion._smdm_models = [r for r in getattr(diffusion, "_smdm_models", [])
-                                  if r() is not None and r() is not model]
-        others = [m for m in (r() for r in diffusion._smdm_models)
-                  if m is not None and get_state(m) is not None]
-        if not others:
+        hook.models = [r for r in hook.models if r() is not None and r() is not model]
+        if not hook.live(but=model):
             detach_diffusion(diffusion)
     state.diffusions.clear()
 

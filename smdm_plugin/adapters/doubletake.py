@@ -35,6 +35,10 @@ from typing import Any, Dict, Optional, Sequence
 import torch
 from torch import nn
 
+from .family import register_family
+from .mdm import MDMFamily
+from .state import MISSING, SparseState
+
 #: the paper's DoubleTake transition blending length, in seconds
 PAPER_BLEND_SECONDS = 0.25
 #: priorMDM's own ``--blend_len`` default (frames)
@@ -106,8 +110,8 @@ def doubletake_forced_frames(lengths: Sequence[int], handshake_size: int,
     raise ValueError(f"doubletake_forced_frames: take must be 'first' or 'second', got {take!r}")
 
 
-def forced_from_y(y: Dict[str, Any], n_frames: int, batch_size: int,
-                  device=None) -> Optional[torch.Tensor]:
+def doubletake_forced_from_y(y: Dict[str, Any], batch_size: int, n_frames: int,
+                             device=None) -> Optional[torch.Tensor]:
     """The forced keyframes ``[B, N]`` of one DoubleTake model call, read from ``y``.
 
     Second take (``inpainting_mask`` present, frames with mask < 1 exist): the transition
@@ -168,7 +172,7 @@ def _doubletake_pre_hook(module: nn.Module, args, kwargs):
     if not isinstance(x, torch.Tensor):
         return None
     B, N = x.shape[0], x.shape[-1]
-    forced = forced_from_y(y, N, B, device=x.device)
+    forced = doubletake_forced_from_y(y, B, N, device=x.device)
     if forced is None:
         return None
     y = dict(y)  # never write into the caller's dict (DoubleTake reuses it across takes)
@@ -201,3 +205,30 @@ def detach_doubletake_forcing(model: nn.Module) -> nn.Module:
         handle.remove()
         model._smdm_doubletake_hook = None
     return model
+
+
+# --------------------------------------------------------------------------- the family
+class DoubleTakeFamily(MDMFamily):
+    """priorMDM's ``doubleTake_MDM``: an MDM whose calls also carry DoubleTake's forced keyframes
+    (``is_transition`` / ``inpainting_mask`` in ``y``), added by :func:`attach_doubletake_forcing`
+    when the model is sparsified (and removed again by ``unsparsify`` if it was added then)."""
+
+    name = "doubletake"
+    priority = 10   # asked before the plain MDM family
+
+    def matches(self, model: nn.Module) -> bool:
+        return super().matches(model) and "doubletake" in type(model).__name__.lower()
+
+    def mismatch(self, model: nn.Module) -> str:
+        return super().mismatch(model) if not super().matches(model) else "class name has no 'doubletake'"
+
+    def install(self, model: nn.Module, state: SparseState) -> None:
+        super().install(model, state)
+        if getattr(model, "_smdm_doubletake_hook", None) is None:
+            state.originals[(model, "_smdm_doubletake_hook")] = model.__dict__.get("_smdm_doubletake_hook",
+                                                                                   MISSING)
+            attach_doubletake_forcing(model)
+            state.handles.append(model._smdm_doubletake_hook)
+
+
+register_family(DoubleTakeFamily())

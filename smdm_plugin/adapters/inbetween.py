@@ -205,15 +205,6 @@ def impute(x: torch.Tensor, mask: torch.Tensor, target: torch.Tensor) -> torch.T
     return torch.where(mask.to(x.device).expand_as(x), target.to(x), x)
 
 
-def impute_noised(x_t: torch.Tensor, mask: torch.Tensor, target: torch.Tensor, t: torch.Tensor,
-                  q_sample: Callable[..., torch.Tensor], generator: Optional[torch.Generator] = None
-                  ) -> torch.Tensor:
-    """Replace the given entries of ``x_t`` by the target noised to step ``t [B]``:
-    ``q_sample(target, t, noise)`` (a diffusion's forward process), for custom sampling loops."""
-    noise = torch.randn(x_t.shape, generator=generator, device=x_t.device, dtype=x_t.dtype)
-    return impute(x_t, mask, q_sample(target.to(x_t), t, noise))
-
-
 def _motion_dims(model: Any, D: int) -> Tuple[int, int]:
     """``(njoints, nfeats)`` of an MDM-family model (looked up through wrappers), else ``(D, 1)``."""
     seen = set()

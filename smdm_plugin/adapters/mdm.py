@@ -1,8 +1,7 @@
-"""``sparsify``: turn an MDM-family model (MDM trans_enc / trans_dec, DiP, priorMDM's
-doubleTake_MDM, the in-package ``TinyMDM``) into its sparse keyframe version, in place.
+"""The MDM family: MDM trans_enc / trans_dec, DiP, the in-package ``TinyMDM`` (priorMDM's
+doubleTake_MDM: :mod:`smdm_plugin.adapters.doubletake`, a specialisation of this one).
 
-No wrapper class: the model keeps its type and attributes (``rot2xyz``, ``njoints``,
-``parameters_wo_clip()``...). What changes:
+What ``sparsify`` (:mod:`smdm_plugin.adapters.surgery`) changes on such a model:
 
 * ``input_process.poseEmbedding`` / ``output_process.poseFinal`` (and ``velEmbedding`` /
   ``velFinal`` when present) become Lipschitz sine MLPs (``config.lipschitz``);
@@ -13,8 +12,7 @@ No wrapper class: the model keeps its type and attributes (``rot2xyz``, ``njoint
   the diffusion wrapper selects it from x0 and passes its capacity as ``y['keyframe_capacity']``),
   else the sampling schedule on ``(x_t, timesteps)``; ``y['keyframe_forced']`` frames are always
   keyframes (inside the budget); DiP's ``context_len`` prefix frames are always kept. The input
-  embedding, the keyframe transformer and the interpolation all read that one plan;
-* a persistent buffer ``smdm_sparse_version`` marks the state dict as sparse.
+  embedding, the keyframe transformer and the interpolation all read that one plan.
 
 A call has static shapes and no host synchronisation (unless forced keyframes live on an
 accelerator: their count is read once to size the plan), so ``torch.compile(model,
@@ -22,41 +20,43 @@ fullgraph=True)`` and CUDA graphs work on the sparse model as on the dense one.
 """
 from __future__ import annotations
 
-from typing import Any, Dict, Optional, Tuple
+from typing import Any, Dict, List, Optional
 
 import torch
 import torch.nn as nn
 
 from ..core.attention_backends import gather_rows, scatter_rows
 from ..core.checks import host_checkable
-from ..core.config import MARKER, SparseConfig
-from ..core.fsq import quantize_attention_keys, unquantize_attention_keys
+from ..core.config import SparseConfig
+from ..core.fsq import FSQMultiheadAttention, quantize_attention_keys
 from ..core.interpolation import catmull_rom_fill
 from ..core.keyframe_transformer import KeyframeTransformer
-from ..core.lipschitz import LipschitzMLP
+from ..core.losses import add_lipschitz_term
 from ..core.plan import KeyframePlan
-from ..core.schedule import MaskSchedule
-from .diffusion import attach_diffusion, diffusion_steps, release_diffusions
-from .state import (STATE_ATTR, SparseState, Variant, forced_from_y, frames_layout, get_state,
-                    lengths_from_y, protected_count)
-
-_TRANSFORMERS = ("seqTransEncoder", "seqTransDecoder")
+from .family import CallInputs, ModelFamily, register_family
+from .state import (MISSING, STATE_ATTR, SparseState, Variant, forced_from_y, frames_layout,
+                    lengths_from_y)
 
 
-def detect_variant(model: nn.Module) -> Variant:
-    """Recognise an MDM-family model by its structure; a clear error lists what is missing."""
-    required = ["input_process", "output_process", "arch"]
-    missing = [a for a in required if not hasattr(model, a)]
+
+def _missing_attrs(model: nn.Module) -> List[str]:
+    """The MDM attributes ``model`` lacks (empty: it has MDM's structure)."""
+    missing = [a for a in ("input_process", "output_process", "arch") if not hasattr(model, a)]
     if not missing:
         if not hasattr(model.input_process, "poseEmbedding"):
             missing.append("input_process.poseEmbedding")
         if not hasattr(model.output_process, "poseFinal"):
             missing.append("output_process.poseFinal")
+    return missing
+
+
+def detect_variant(model: nn.Module) -> Variant:
+    """Recognise an MDM-family model by its structure; a clear error lists what is missing."""
+    missing = _missing_attrs(model)
     if missing:
         raise TypeError(f"sparsify: {type(model).__name__} is not an MDM-family model; missing "
                         f"attribute(s) {missing}. Supported: MDM (trans_enc/trans_dec), DiP, "
-                        "priorMDM doubleTake_MDM, smdm_plugin.TinyMDM; MotionDiffuse: "
-                        "smdm_plugin.adapters.motiondiffuse.sparsify_motiondiffuse")
+                        "priorMDM doubleTake_MDM, smdm_plugin.TinyMDM")
     arch = model.arch
     if arch == "trans_enc" and isinstance(getattr(model, "seqTransEncoder", None), nn.TransformerEncoder):
         attr = "seqTransEncoder"
@@ -76,28 +76,6 @@ def detect_variant(model: nn.Module) -> Variant:
     return Variant(arch=arch, transformer=attr, prefix_len=prefix, name=name)
 
 
-def is_sparse(model: nn.Module) -> bool:
-    """Whether ``model`` itself was sparsified (see :func:`sparsify`)."""
-    return get_state(model) is not None
-
-
-def _swap_lipschitz(model: nn.Module, config: SparseConfig, originals: Dict[Tuple[nn.Module, str], nn.Module]
-                    ) -> None:
-    latent = int(getattr(model, "latent_dim", model.output_process.poseFinal.in_features))
-    hidden = config.lipschitz_hidden or latent
-    for owner, names in ((model.input_process, ("poseEmbedding", "velEmbedding")),
-                         (model.output_process, ("poseFinal", "velFinal"))):
-        for name in names:
-            old = getattr(owner, name, None)
-            if not isinstance(old, nn.Linear):
-                continue
-            new = LipschitzMLP(old.in_features, old.out_features, hidden=hidden,
-                               layers=config.lipschitz_layers, w0=config.sine_w0)
-            new.to(device=old.weight.device, dtype=old.weight.dtype)
-            originals[(owner, name)] = old
-            setattr(owner, name, new)
-
-
 def _call_args(args: tuple, kwargs: dict):
     x = args[0] if args else kwargs["x"]
     timesteps = args[1] if len(args) > 1 else kwargs.get("timesteps")
@@ -107,35 +85,7 @@ def _call_args(args: tuple, kwargs: dict):
 
 def call_plan(state: SparseState, x: torch.Tensor, timesteps: Any, y: Dict[str, Any]) -> KeyframePlan:
     """The keyframe plan of one call ``model(x [B, J, F, N], timesteps [B], y)``."""
-    B, N = x.shape[0], x.shape[-1]
-    device = x.device
-    lengths = lengths_from_y(y, B, N, device)
-    forced = forced_from_y(y, B, N, device)
-    valid = torch.arange(N, device=device)[None] < lengths[:, None]
-    mask = y.get("keyframe_mask")
-    if mask is not None:                                   # training (or a caller's own mask)
-        mask = torch.as_tensor(mask, device=device)
-        if tuple(mask.shape) != (B, N):
-            raise ValueError(f"y['keyframe_mask'] must be bool [B, N]=[{B}, {N}], got {tuple(mask.shape)}")
-        mask = mask.to(torch.bool) & valid
-        if forced is not None:
-            mask = mask | (forced & valid)
-        capacity = y.get("keyframe_capacity")
-        if capacity is None:                               # a mask from elsewhere: size it safely
-            capacity = int(mask.sum(1).max()) if host_checkable(mask) and B else N
-        check, cubic = True, None
-    else:                                                  # sampling: the schedule on x_t
-        t = timesteps if timesteps is not None else torch.zeros(B, dtype=torch.long, device=device)
-        mask = state.schedule.sampling_mask(frames_layout(x), t, lengths, forced, checked=True)
-        capacity = state.schedule.capacity(N, training=False, forced=protected_count(forced, lengths))
-        check = False                                      # 2..capacity keyframes by construction
-        cubic = state.schedule.cubic_samples(t, B, device)
-    capacity = max(1, min(int(capacity), N))
-    prefix = state.variant.prefix_len
-    if prefix:
-        mask = torch.cat([mask.new_ones(B, prefix), mask], dim=1)
-        capacity += prefix
-    return KeyframePlan.build(mask, capacity, check=check, cubic=cubic)
+    return state.family.read_call(state, (x, timesteps, y), {}).plan(state)
 
 
 def _pre_hook(model: nn.Module, args: tuple, kwargs: dict):
@@ -206,88 +156,100 @@ def _rows_post_hook(module: nn.Module, args: tuple, output: torch.Tensor):
     return scatter_rows(output, idx, N * B).view(N, B, output.shape[-1])
 
 
-def sparsify(model: nn.Module, config: Optional[SparseConfig] = None, *, diffusion: Any = None,
-             mean: Any = None, std: Any = None) -> nn.Module:
-    """Convert ``model`` to sparse keyframe mode in place and return it.
+class MDMFamily(ModelFamily):
+    """MDM's ``forward(x [B, J, F, N], timesteps [B], y)``; lengths in ``y['mask']`` /
+    ``y['lengths']``, forced frames in ``y['keyframe_forced']``, training keyframes in
+    ``y['keyframe_mask']`` / ``y['keyframe_capacity']``; DiP's prefix frames kept dense."""
 
-    Args:
-        model: an MDM-family model (see module docstring).
-        config: the options; ``config.enabled=False`` returns ``model`` untouched.
-        diffusion: if given, its ``training_losses`` is wrapped (:func:`attach_diffusion`) so that
-            training masks come from x0 and ``lipschitz_lambda * L_lip`` joins the loss; its step
-            count becomes ``config.diffusion_steps``.
-        mean, std: ``[D]`` dataset statistics used to de-normalise motions for VW (HumanML3D/KIT).
-    """
-    config = config if config is not None else SparseConfig()
-    if not config.enabled:
-        return model
-    if is_sparse(model):
-        raise ValueError(f"sparsify: {type(model).__name__} is already sparse (unsparsify it first)")
-    variant = detect_variant(model)
-    if variant.prefix_len and config.prefix_frames not in (0, variant.prefix_len):
-        raise ValueError(f"sparsify: config.prefix_frames={config.prefix_frames} but the DiP model has "
-                         f"context_len={variant.prefix_len}")
-    if diffusion is not None:
-        config = config.replace(diffusion_steps=diffusion_steps(diffusion))
-    if variant.prefix_len:
-        config = config.replace(prefix_frames=variant.prefix_len)
-    originals: Dict[Tuple[nn.Module, str], nn.Module] = {}
-    if config.lipschitz:
-        _swap_lipschitz(model, config, originals)
-    inner = getattr(model, variant.transformer)
-    n_fsq = 0
-    if config.fsq:
-        n_fsq = quantize_attention_keys(inner, config.fsq_levels)
-    # always interpolate: the "w/o interpolation" ablation (config.interpolate=False) changes the
-    # training loss (keyframes only, adapters/diffusion.py), sampling still returns every frame
-    wrapper = KeyframeTransformer(inner, interpolate=True, backend=config.attention_backend)
-    originals[(model, variant.transformer)] = inner
-    setattr(model, variant.transformer, wrapper)
-    ref = next(model.parameters())
-    model.register_buffer(MARKER, torch.tensor(config.version, device=ref.device), persistent=True)
-    model.smdm_config = config
-    state = SparseState(config=config, variant=variant, transformer=wrapper,
-                        schedule=MaskSchedule(config, mean, std), originals=originals, fsq_layers=n_fsq)
-    setattr(model, STATE_ATTR, state)
-    state.handles += [model.register_forward_pre_hook(_pre_hook, with_kwargs=True),
-                      model.register_forward_hook(_post_hook, with_kwargs=True)]
-    embed = getattr(model.input_process, "poseEmbedding", None)
-    if isinstance(embed, nn.Module):
-        embed._smdm_rows_state = state
-        state.handles += [embed.register_forward_pre_hook(_rows_pre_hook),
-                          embed.register_forward_hook(_rows_post_hook)]
-    if diffusion is not None:
-        attach_diffusion(diffusion, config, model=model)
-    return model
+    name = "mdm"
+
+    def matches(self, model: nn.Module) -> bool:
+        return not _missing_attrs(model)
+
+    def mismatch(self, model: nn.Module) -> str:
+        return f"missing attribute(s) {_missing_attrs(model)}"
+
+    def variant(self, model: nn.Module) -> Variant:
+        return detect_variant(model)
+
+    def prepare_config(self, model: nn.Module, config: SparseConfig, variant: Variant) -> SparseConfig:
+        if variant.prefix_len and config.prefix_frames not in (0, variant.prefix_len):
+            raise ValueError(f"sparsify: config.prefix_frames={config.prefix_frames} but the DiP model has "
+                             f"context_len={variant.prefix_len}")
+        return config.replace(prefix_frames=variant.prefix_len) if variant.prefix_len else config
+
+    def io_layers(self, model: nn.Module):
+        return [(model.input_process, "poseEmbedding"), (model.input_process, "velEmbedding"),
+                (model.output_process, "poseFinal"), (model.output_process, "velFinal")]
+
+    def latent_dim(self, model: nn.Module) -> int:
+        return int(getattr(model, "latent_dim", model.output_process.poseFinal.in_features))
+
+    def install(self, model: nn.Module, state: SparseState) -> None:
+        config, attr = state.config, state.variant.transformer
+        inner = getattr(model, attr)
+        # always interpolate: the "w/o interpolation" ablation (config.interpolate=False) changes the
+        # training loss (keyframes only, with_keyframes below), sampling still returns every frame
+        wrapper = KeyframeTransformer(inner, interpolate=True, backend=config.attention_backend)
+        state.originals[(model, attr)] = inner
+        setattr(model, attr, wrapper)
+        state.transformer = wrapper
+        state.handles += [model.register_forward_pre_hook(_pre_hook, with_kwargs=True),
+                          model.register_forward_hook(_post_hook, with_kwargs=True)]
+        embed = getattr(model.input_process, "poseEmbedding", None)
+        if isinstance(embed, nn.Module):
+            state.originals[(embed, "_smdm_rows_state")] = embed.__dict__.get("_smdm_rows_state", MISSING)
+            embed._smdm_rows_state = state
+            state.handles += [embed.register_forward_pre_hook(_rows_pre_hook),
+                              embed.register_forward_hook(_rows_post_hook)]
+        if config.fsq:                                    # FSQ keys in the self-attention
+            for m in inner.modules():
+                if isinstance(getattr(m, "self_attn", None), nn.MultiheadAttention):
+                    state.originals[(m, "self_attn")] = m.self_attn
+            if isinstance(inner, nn.TransformerEncoder):
+                state.originals[(inner, "use_nested_tensor")] = inner.use_nested_tensor
+                state.originals[(inner, "_smdm_nested_tensor")] = inner.__dict__.get("_smdm_nested_tensor",
+                                                                                     MISSING)
+            state.fsq_layers = quantize_attention_keys(inner, config.fsq_levels)
+
+    def uninstall(self, model: nn.Module, state: SparseState) -> None:
+        """``unsparsify`` keeps the trained attention: each FSQ self-attention goes back as an
+        ``nn.MultiheadAttention`` with its current q/k/v/out weights (a rolled-back ``sparsify``
+        restores the original objects instead)."""
+        for (owner, name), old in list(state.originals.items()):
+            attn = getattr(owner, name, None)
+            if name == "self_attn" and isinstance(attn, FSQMultiheadAttention):
+                state.originals[(owner, name)] = attn.to_mha()
+
+    def read_call(self, state: SparseState, args: tuple, kwargs: Dict[str, Any]) -> CallInputs:
+        x, timesteps, y = _call_args(args, kwargs)
+        B, N = x.shape[0], x.shape[-1]
+        lengths = lengths_from_y(y, B, N, x.device)
+        return CallInputs(frames_layout(x), timesteps, lengths, forced_from_y(y, B, N, x.device),
+                          y.get("keyframe_mask"), y.get("keyframe_capacity"), "y['keyframe_mask']")
+
+    def training_inputs(self, state: SparseState, x_start: torch.Tensor, model_kwargs: Dict[str, Any]):
+        y = (model_kwargs or {}).get("y", {})
+        frames = frames_layout(x_start)
+        B, N = frames.shape[:2]
+        return (frames, lengths_from_y(y, B, N, x_start.device), forced_from_y(y, B, N, x_start.device),
+                y.get("keyframe_mask"), y.get("keyframe_capacity"))
+
+    def with_keyframes(self, state: SparseState, model_kwargs: Dict[str, Any], mask: torch.Tensor,
+                       capacity: Optional[int]) -> Dict[str, Any]:
+        model_kwargs = dict(model_kwargs or {})
+        y = dict(model_kwargs.get("y", {}))
+        y["keyframe_mask"] = mask
+        if capacity is not None:
+            y["keyframe_capacity"] = capacity
+        if not state.config.interpolate and isinstance(y.get("mask"), torch.Tensor):
+            y["mask"] = y["mask"] & mask.view(y["mask"].shape).to(y["mask"].dtype)   # keyframes-only loss
+        model_kwargs["y"] = y
+        return model_kwargs
+
+    def finish_losses(self, state: SparseState, model: nn.Module, terms: Dict[str, Any],
+                      mask: torch.Tensor) -> Dict[str, Any]:
+        return add_lipschitz_term(terms, model, state.config, mask.shape[0])
 
 
-def unsparsify(model: nn.Module) -> nn.Module:
-    """Undo :func:`sparsify`: put back the original dense layers and remove the hooks.
-
-    The dense input/output layers come back with the weights they had when the model was
-    sparsified; weights learned in sparse mode by the Lipschitz MLPs are dropped (they have no
-    dense equivalent). FSQ-quantised self-attention layers become ``nn.MultiheadAttention`` again
-    with their current (trained) q/k/v/out weights; the key codebook projections are dropped.
-    """
-    if not is_sparse(model):
-        return model
-    state = get_state(model)
-    release_diffusions(model)
-    for h in state.handles:
-        h.remove()
-    embed = getattr(model.input_process, "poseEmbedding", None)
-    if embed is not None and hasattr(embed, "_smdm_rows_state"):
-        del embed._smdm_rows_state
-    for (owner, name), module in state.originals.items():
-        setattr(owner, name, module)
-    if state.fsq_layers:
-        unquantize_attention_keys(getattr(model, state.variant.transformer))
-    del model._buffers[MARKER]
-    delattr(model, STATE_ATTR)
-    del model.smdm_config
-    return model
-
-
-def set_mean_std(model: nn.Module, mean: Any, std: Any) -> None:
-    """Give a sparse model the dataset Mean/Std after the fact (e.g. once the data is loaded)."""
-    get_state(model).schedule = MaskSchedule(model.smdm_config, mean, std)
+register_family(MDMFamily())

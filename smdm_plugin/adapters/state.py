@@ -14,48 +14,78 @@ from typing import Any, Dict, List, Optional, Tuple
 import torch
 import torch.nn as nn
 
-from ..core.checks import as_lengths, as_mask, compiling, require
-from ..core.config import SparseConfig
+from ..core.checks import as_lengths, as_mask, compiling, host_checkable, require
+from ..core.config import STATE_ATTR, SparseConfig  # STATE_ATTR: the attribute the state lives under
 from ..core.plan import KeyframePlan
 from ..core.schedule import MaskSchedule
 
-STATE_ATTR = "_smdm_state"
 
 
 @dataclass(frozen=True)
 class Variant:
-    """What :func:`smdm_plugin.adapters.mdm.detect_variant` found."""
+    """What a family's :meth:`~smdm_plugin.adapters.family.ModelFamily.variant` found."""
 
-    arch: str               # trans_enc | trans_dec
-    transformer: str        # attribute name of the transformer (seqTransEncoder | seqTransDecoder)
+    arch: str               # trans_enc | trans_dec | motiondiffuse
+    transformer: str        # attribute of the keyframe-only blocks (seqTransEncoder | seqTransDecoder |
+                            # temporal_decoder_blocks)
     prefix_len: int         # DiP context frames kept dense (0 otherwise)
-    name: str               # mdm-trans_enc, mdm-trans_dec(-emb), dip, doubletake
+    name: str               # mdm-trans_enc, mdm-trans_dec(-emb), dip, doubletake, motiondiffuse
 
 
 @dataclass
 class SparseState:
     """Everything sparse mode keeps on one model.
 
-    Set once by ``sparsify``: ``config``, ``variant``, ``transformer`` (the
-    :class:`~smdm_plugin.core.keyframe_transformer.KeyframeTransformer` that replaced the dense
-    one), ``schedule``, ``originals`` (the replaced modules, for ``unsparsify``), ``handles`` (hooks
-    to remove), ``diffusions`` (weak references to the diffusions whose loss was wrapped for this
+    Set once by ``sparsify``: ``config``, ``family`` (the registered
+    :class:`~smdm_plugin.adapters.family.ModelFamily` that converted the model), ``variant``,
+    ``transformer`` (MDM: the :class:`~smdm_plugin.core.keyframe_transformer.KeyframeTransformer`
+    that replaced the dense one; None where the family runs its blocks itself), ``schedule``,
+    ``originals`` (what was replaced, ``(owner, attribute) -> old value`` — :data:`MISSING` when
+    the attribute did not exist on the instance — for ``unsparsify``), ``handles`` (hooks to
+    remove), ``diffusions`` (weak references to the diffusions whose loss was wrapped for this
     model). Per call: ``plan``, the :class:`~smdm_plugin.core.plan.KeyframePlan` of the call (over
     the model's frames, DiP prefix included), written by the model's forward pre-hook and cleared
     by its forward hook; ``embed_rows`` (the frame-major rows the input embedding ran on), written
-    and cleared by the embedding hooks.
+    and cleared by the embedding hooks; ``last_mask`` (bool ``[B, N]``, the keyframes of the latest
+    call, for families whose trainer reads them after the call: MotionDiffuse's keyframe-only loss);
+    ``extra``: family-specific data fixed at ``sparsify`` (MotionDiffuse: its timestep embedding).
     """
 
     config: SparseConfig
     variant: Variant
-    transformer: nn.Module
+    transformer: Optional[nn.Module]
     schedule: MaskSchedule
-    originals: Dict[Tuple[nn.Module, str], nn.Module] = field(default_factory=dict)
+    originals: Dict[Tuple[Any, str], Any] = field(default_factory=dict)
     handles: List[Any] = field(default_factory=list)
     fsq_layers: int = 0
     diffusions: List["weakref.ref"] = field(default_factory=list)
     plan: Optional[KeyframePlan] = None
     embed_rows: Optional[Tuple[torch.Tensor, int, int]] = None
+    family: Any = None
+    last_mask: Optional[torch.Tensor] = None
+    extra: Any = None
+
+
+class _Missing:
+    def __repr__(self) -> str:
+        return "MISSING"
+
+
+#: marks, in :attr:`SparseState.originals`, an instance attribute that did not exist before
+MISSING = _Missing()
+
+
+def restore_originals(originals: Dict[Tuple[Any, str], Any]) -> None:
+    """Put back what :attr:`SparseState.originals` recorded (newest first); :data:`MISSING`
+    deletes the instance attribute again."""
+    for (owner, name), old in reversed(list(originals.items())):
+        if old is MISSING:
+            if name in owner.__dict__:
+                delattr(owner, name)
+            elif isinstance(owner, nn.Module) and name in owner._modules:
+                del owner._modules[name]
+        else:
+            setattr(owner, name, old)
 
 
 def get_state(model: nn.Module) -> Optional[SparseState]:
@@ -109,6 +139,49 @@ def lengths_from_y(y: Dict[str, Any], B: int, N: int, device: torch.device) -> t
 def forced_from_y(y: Dict[str, Any], B: int, N: int, device: torch.device) -> Optional[torch.Tensor]:
     """``y['keyframe_forced']`` as bool ``[B, N]`` on ``device`` (shape checked), or None."""
     return as_mask(y.get("keyframe_forced"), B, N, device, "y['keyframe_forced']")
+
+
+def keyframe_plan(state: SparseState, frames: torch.Tensor, timesteps: Any, lengths: torch.Tensor,
+                  forced: Optional[torch.Tensor], mask: Any = None, capacity: Any = None,
+                  mask_name: str = "keyframe_mask") -> KeyframePlan:
+    """The keyframe plan of one model call, for every family.
+
+    Args:
+        frames: the call's motion ``[B, N, D]`` (x_t while sampling).
+        timesteps: ``[B]`` (or a scalar) diffusion step; None = 0.
+        lengths: ``[B]`` long, validated (``2 <= L <= N``).
+        forced: bool ``[B, N]`` frames that must be keyframes, or None.
+        mask: bool ``[B, N]`` keyframes chosen by the caller (training: the diffusion wrapper from
+            x0), else None: the sampling schedule on ``(frames, timesteps)``.
+        capacity: the slot count that goes with a given ``mask`` (a Python int); None: the largest
+            row of ``mask`` when it can be read without a sync, else ``N``.
+        mask_name: how the caller passed ``mask`` (error messages).
+    """
+    B, N = frames.shape[:2]
+    device = frames.device
+    valid = torch.arange(N, device=device)[None] < lengths[:, None]
+    if mask is not None:                                   # training (or a caller's own mask)
+        mask = torch.as_tensor(mask, device=device)
+        if tuple(mask.shape) != (B, N):
+            raise ValueError(f"{mask_name} must be bool [B, N]=[{B}, {N}], got {tuple(mask.shape)}")
+        mask = mask.to(torch.bool) & valid
+        if forced is not None:
+            mask = mask | (forced & valid)
+        if capacity is None:                               # a mask from elsewhere: size it safely
+            capacity = int(mask.sum(1).max()) if host_checkable(mask) and B else N
+        check, cubic = True, None
+    else:                                                  # sampling: the schedule on x_t
+        t = timesteps if timesteps is not None else torch.zeros(B, dtype=torch.long, device=device)
+        mask = state.schedule.sampling_mask(frames, t, lengths, forced, checked=True)
+        capacity = state.schedule.capacity(N, training=False, forced=protected_count(forced, lengths))
+        check = False                                      # 2..capacity keyframes by construction
+        cubic = state.schedule.cubic_samples(t, B, device)  # sample_interpolation="cubic": [B] bool
+    capacity = max(1, min(int(capacity), N))
+    prefix = state.variant.prefix_len
+    if prefix:
+        mask = torch.cat([mask.new_ones(B, prefix), mask], dim=1)
+        capacity += prefix
+    return KeyframePlan.build(mask, capacity, check=check, cubic=cubic)
 
 
 def protected_count(forced: Optional[torch.Tensor], lengths: torch.Tensor) -> int:

@@ -62,15 +62,11 @@ def device_type(text: str) -> str:
 
 def resolve_device(name: str = "auto") -> "torch.device":
     """The ``torch.device`` of a ``--device`` value (checked by :func:`device_type`): ``auto`` is
-    CUDA when available, else MPS when available, else the CPU."""
-    import torch
+    CUDA when available, else MPS when available, else the CPU (one rule for every command:
+    :func:`smdm_plugin.integrations.distributed.resolve_device`)."""
+    from ..integrations.distributed import resolve_device as resolve
 
-    if name != "auto":
-        return torch.device(device_type(name))
-    if torch.cuda.is_available():
-        return torch.device("cuda")
-    mps = getattr(torch.backends, "mps", None)
-    return torch.device("mps" if mps is not None and mps.is_available() else "cpu")
+    return resolve(name if name == "auto" else device_type(name))
 
 
 def add_overwrite(p: argparse.ArgumentParser) -> None:

@@ -1,7 +1,7 @@
 """``smdm ablate``: A/B ablations of sparse keyframe mode on real motion, one results folder.
 
-Every variant of a YAML grid (``smdm_plugin/configs/ablations/table1.yaml``: the paper's Table 1 set) trains the
-in-package backbone (:class:`~smdm_plugin.backbone.TinyMDM` + :class:`~smdm_plugin.diffusion.SimpleDiffusion`)
+Every variant of a YAML grid (``configs/ablations/table1.yaml``: the paper's Table 1 set) trains the
+in-package backbone (:class:`~smdm_plugin.reference.backbone.TinyMDM` + :class:`~smdm_plugin.reference.diffusion.SimpleDiffusion`)
 through the one in-package :class:`~smdm_plugin.apps.trainer.Trainer` with the *same* seed,
 initial weights, data order, diffusion steps ``t`` and step count, on HumanML3D-format motion (``--data``, e.g. this project's ``../shared/data/cmu-humanml3d``: ``new_joint_vecs``,
 ``new_joints``, ``Mean.npy``/``Std.npy``, ``train.txt``/``val.txt``). Unconditional (no CLIP).
@@ -74,7 +74,7 @@ from typing import Any, Callable, Dict, List, Optional, Sequence, Set, Tuple
 import numpy as np
 import torch
 
-from ..core.config import ConfigTypeError, Range, closest
+from ..core.config import ConfigTypeError, Range, closest, preset_dirs
 from ..io.files import OutputExistsError, atomic_open, atomic_write_json, atomic_write_text
 from ._args import add_overwrite, device_type, existing_path, int_range, resolve_device
 from .threads import THREADS_HELP
@@ -108,7 +108,7 @@ class StaleResultsError(OutputExistsError):
 
 
 # ----------------------------------------------------------------------------------------- config
-ABLATIONS_DIR = os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))), "configs", "ablations")
+ABLATIONS_DIR = os.path.join(preset_dirs()[0], "ablations")
 
 
 def packaged_grids() -> List[str]:
@@ -117,7 +117,7 @@ def packaged_grids() -> List[str]:
 
 def config_path(name_or_path: str) -> str:
     """A grid's YAML file: a path, or the name of a packaged grid (``table1``, ``defaults``,
-    ``quick``: ``smdm_plugin/configs/ablations/<name>.yaml``)."""
+    ``quick``: ``configs/ablations/<name>.yaml``)."""
     if os.path.isfile(name_or_path):
         return name_or_path
     packaged = os.path.join(ABLATIONS_DIR, os.path.basename(name_or_path))

@@ -38,6 +38,7 @@ from typing import Any, Callable, Dict, List, Optional, Sequence
 
 import torch
 
+from ..core.config import BACKENDS
 from ._args import add_overwrite, device_type, float_range, int_range, resolve_device
 from .threads import THREADS_HELP
 
@@ -46,11 +47,6 @@ MODES = ("train", "sample", "loop")
 
 
 # ----------------------------------------------------------------------------------------- utils
-def pick_device(name: str = "auto") -> torch.device:
-    """``auto``: CUDA, else MPS, else the CPU (see :func:`smdm_plugin.apps._args.resolve_device`)."""
-    return resolve_device(name)
-
-
 def _sync(device: torch.device) -> None:
     if device.type == "cuda":
         torch.cuda.synchronize(device)
@@ -159,7 +155,7 @@ def build(arch: str, reduction: Optional[float], device: torch.device, quick: bo
           backend: str = "auto", seed: int = 0, fsq: str = "paper", **sparse: Any):
     """(model, diffusion) — dense when ``reduction`` is None. ``fsq`` (:data:`FSQ_CHOICES`): which
     side gets FSQ-quantised attention keys."""
-    from ..adapters.mdm import sparsify
+    from ..adapters.surgery import sparsify
     from ..core.config import SparseConfig
     from ..core.fsq import quantize_attention_keys
     from ..reference.backbone import TinyMDM
@@ -305,7 +301,7 @@ def _run_bench(archs, reductions, batch, frames, repeats, warmup, device, quick,
                modes, amp, compile_mode, progress, fsq) -> Dict[str, Any]:
     from ..core.attention_backends import resolve_backend_name
 
-    dev = pick_device(device)
+    dev = resolve_device(device)
     if dev.type == "cpu":
         _pin_malloc()
     data = make_batch(batch, frames, dev)
@@ -436,7 +432,7 @@ def bench_keyframes(batch: int = 64, frames: int = 196, dims: int = 64, reductio
     """VW selection (the fused op) on ``[batch, frames, dims]`` (random-walk features, full lengths)."""
     from ..core.selection import select_keyframes
 
-    dev = pick_device(device)
+    dev = resolve_device(device)
     g = torch.Generator().manual_seed(0)
     feats = torch.randn(batch, frames, dims, generator=g).cumsum(1).to(dev)
     times = time_it(lambda: select_keyframes(feats, None, reduction, "vw"), dev, repeats, 1)
@@ -458,7 +454,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--repeats", type=int_range(1), default=None, help="timed runs per cell, median reported (default 3)")
     p.add_argument("--warmup", type=int_range(0), default=None, help="untimed runs before timing (default 1)")
     p.add_argument("--device", type=device_type, default="auto", help="auto (cuda if available) | cpu | cuda | cuda:N | mps")
-    p.add_argument("--backend", default="auto", choices=["auto", "compact", "varlen", "masked"],
+    p.add_argument("--backend", default="auto", choices=BACKENDS,
                    help="keyframe attention backend of the sparse model")
     p.add_argument("--modes", nargs="+", default=["train", "sample"], choices=list(MODES),
                    help="train: one training step; sample: one CFG sampling step (VW on x_t); "
@@ -515,7 +511,7 @@ def main_bench(args: argparse.Namespace, parser: argparse.ArgumentParser) -> Dic
             parser.error(str(e))
     from .threads import apply_threads
     apply_threads(args.threads)
-    note = busy_note(torch.get_num_threads()) if pick_device(args.device).type == "cpu" else None
+    note = busy_note(torch.get_num_threads()) if resolve_device(args.device).type == "cpu" else None
     if note:
         print(note, file=sys.stderr)
     result = run_bench(args.arch, args.reductions, args.batch, args.frames, args.repeats, args.warmup, args.device,

@@ -2,7 +2,7 @@
 
 * ``smdm bench``      — wall-clock of dense vs sparse training / sampling steps (MDM size);
   ``smdm bench keyframes`` times batched VW alone.
-* ``smdm ablate``     — A/B ablation runner (``smdm_plugin/configs/ablations/*.yaml``) on real motion.
+* ``smdm ablate``     — A/B ablation runner (``configs/ablations/*.yaml``) on real motion.
 * ``smdm demo``       — keyframes and dense-vs-sparse training on CMU motion capture (BVH).
 * ``smdm train``      — train TinyMDM (dense or --sparse) on HumanML3D-format motion; torchrun: DDP.
 * ``smdm run ...``    — run an upstream script (MDM, priorMDM, MotionDiffuse) in sparse mode.

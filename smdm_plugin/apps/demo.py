@@ -615,7 +615,9 @@ def evaluator_scores(generated: Dict[str, GeneratedSet], reference: np.ndarray,
 
 def sparse_sampling(model: Any) -> str:
     """The sparse sampling settings of ``model`` in words (interpolation, dynamic update)."""
-    c = getattr(model, "smdm_config", None)
+    from ..core.config import sparse_config_of
+
+    c = sparse_config_of(model)
     if c is None:
         return "dense"
     steps = "" if c.sample_interpolation_steps is None else f" in the last {c.sample_interpolation_steps} steps"

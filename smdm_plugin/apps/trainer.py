@@ -31,7 +31,7 @@ import numpy as np
 import torch
 import torch.nn as nn
 
-from ..core.config import CONFIG_FILENAME, SparseConfig
+from ..core.config import CONFIG_FILENAME, SparseConfig, sparse_config_of
 from ..integrations.distributed import DistContext, constant_buffers_kwargs, init_distributed
 from ..io.checkpoint import BACKBONE_FILENAME
 from ..io.files import atomic_open, atomic_write_json, atomic_write_text
@@ -350,7 +350,7 @@ class Trainer:
 
     def __init__(self, config: TrainConfig, data: MotionSet, dist: Optional[DistContext] = None,
                  device: str = "auto") -> None:
-        from ..adapters.mdm import sparsify
+        from ..adapters.surgery import sparsify
         from ..reference.backbone import TinyMDM
         from ..reference.diffusion import SimpleDiffusion
 
@@ -531,7 +531,7 @@ class Trainer:
         with atomic_open(path, "wb") as f:
             torch.save({k: v.detach().cpu() for k, v in self.model.state_dict().items()}, f)
         atomic_write_json(os.path.join(folder, BACKBONE_FILENAME), self.backbone_args)
-        config = getattr(self.model, "smdm_config", None)
+        config = sparse_config_of(self.model)
         if config is not None:
             atomic_write_text(os.path.join(folder, CONFIG_FILENAME), config.to_json() + "\n")
         for name, value in (("Mean.npy", self.data.mean), ("Std.npy", self.data.std)):
@@ -665,8 +665,8 @@ def load_trained(folder: str, step: Optional[int] = None, map_location: Any = "c
     """Reload a folder written by :meth:`Trainer.save` (the last ``model*.pt``, or ``step``'s),
     sparse mode re-created with the saved Mean/Std: ``(model, sparse config or None)``."""
     import re
+    from ..adapters.checkpoint import load_checkpoint
 
-    from ..io.checkpoint import load_checkpoint
     from ..io.validate import check_stats, int_field, load_npy, read_json_object, require_fields
 
     if not os.path.isdir(folder):

@@ -27,6 +27,7 @@ anywhere valid). The keyframe transformer interpolates every frame from these ro
 """
 from __future__ import annotations
 
+from dataclasses import dataclass
 from typing import Callable, Dict, Optional, Tuple
 
 import torch
@@ -34,41 +35,63 @@ import torch.nn as nn
 import torch.nn.functional as F
 
 from .checks import static_shapes
+from .registry import Registry
 from .fsq import FSQMultiheadAttention, _disable_transformer_fast_path
 from .plan import KeyframePlan
 
 Backend = Callable[..., Tuple[torch.Tensor, torch.Tensor]]
-_REGISTRY: Dict[str, Tuple[Backend, Callable[[torch.device], bool]]] = {}
 
 
-def register_backend(name: str, fn: Backend, available: Callable[[torch.device], bool] = lambda d: True
-                     ) -> None:
-    """Register ``fn`` under ``name``; ``available(device)`` says whether it can run there."""
-    _REGISTRY[name] = (fn, available)
+@dataclass(frozen=True)
+class AttentionBackend:
+    """A registered backend and its capabilities: ``available(device)`` (it can run there),
+    ``static_shapes`` (no data-dependent shapes or host syncs: usable under ``torch.compile`` and
+    on the static path), ``supports(inner)`` (it can run that wrapped module's layers)."""
+
+    fn: Backend
+    available: Callable[[torch.device], bool] = lambda d: True
+    static_shapes: bool = True
+    supports: Callable[[nn.Module], bool] = lambda inner: True
+
+
+#: the attention backends by name (``SparseConfig.attention_backend`` is validated against it + auto)
+BACKENDS: Registry[AttentionBackend] = Registry("attention backend")
+#: where a backend cannot run (capability check failed): the backend that always can
+FALLBACK = "compact"
+
+
+def register_backend(name: str, fn: Backend, available: Callable[[torch.device], bool] = lambda d: True, *,
+                     static_shapes: bool = True, supports: Callable[[nn.Module], bool] = lambda inner: True,
+                     replace: bool = True) -> AttentionBackend:
+    """Register ``fn`` (signature in the module docstring) under ``name`` with its capabilities
+    (see :class:`AttentionBackend`)."""
+    return BACKENDS.register(name, AttentionBackend(fn, available, static_shapes, supports), replace=replace)
 
 
 def available_backends(device: torch.device) -> list:
-    return [n for n, (_, ok) in _REGISTRY.items() if ok(torch.device(device))]
+    return [n for n in BACKENDS.names() if BACKENDS.get(n).available(torch.device(device))]
 
 
-def resolve_backend_name(name: str, device: torch.device) -> str:
-    """The backend a call uses: ``auto`` is ``varlen`` in eager mode on the CPU and ``compact``
-    elsewhere (accelerators, where launches and syncs cost more than padded rows, and under
-    ``torch.compile``, which needs static shapes); a named backend that cannot run on ``device``
-    or under ``torch.compile`` (``varlen``) becomes ``compact``."""
+def resolve_backend_name(name: str, device: torch.device, inner: Optional[nn.Module] = None) -> str:
+    """The backend a call uses — the one dispatch: ``auto`` is ``varlen`` in eager mode on the CPU
+    and ``compact`` elsewhere (accelerators, where launches and syncs cost more than padded rows,
+    and under ``torch.compile``, which needs static shapes); a backend whose capabilities do not
+    fit (not available on ``device``, dynamic shapes while tracing or on the static path, cannot
+    run ``inner``'s layers) becomes :data:`FALLBACK`."""
     device = torch.device(device)
     if name == "auto":
-        name = "varlen" if device.type == "cpu" and not static_shapes() else "compact"
-    if name not in _REGISTRY:
-        raise ValueError(f"attention backend {name!r} unknown; registered: {sorted(_REGISTRY)}")
-    if not _REGISTRY[name][1](device) or (name == "varlen" and static_shapes()):
-        return "compact"
+        name = "varlen" if device.type == "cpu" and not static_shapes() else FALLBACK
+    b = BACKENDS.get(name)
+    if (not b.available(device) or (static_shapes() and not b.static_shapes)
+            or (inner is not None and not b.supports(inner))):
+        return FALLBACK
     return name
 
 
-def get_backend(name: str, device: torch.device, training: bool = False) -> Backend:
+def get_backend(name: str, device: torch.device, training: bool = False,
+                inner: Optional[nn.Module] = None) -> Backend:
     """The backend function :func:`resolve_backend_name` picks for ``name`` on ``device``."""
-    return _REGISTRY[resolve_backend_name(name, device)][0]
+    return BACKENDS.get(resolve_backend_name(name, device, inner)).fn
 
 
 # ---------------------------------------------------------------------------------- helpers
@@ -416,7 +439,7 @@ def supports_packed(inner: nn.Module) -> bool:
 
 register_backend("masked", masked_backend)
 register_backend("compact", compact_backend)
-register_backend("varlen", varlen_backend, _varlen_available)
+register_backend("varlen", varlen_backend, _varlen_available, static_shapes=False, supports=supports_packed)
 
 
 def fill_frames(h: torch.Tensor, rows: torch.Tensor, plan: KeyframePlan, lead: int,

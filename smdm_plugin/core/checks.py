@@ -50,6 +50,15 @@ def host_checkable(t: torch.Tensor) -> bool:
     return t.device.type == "cpu" and not static_shapes()
 
 
+def module_device(module: "torch.nn.Module") -> torch.device:
+    """The device of ``module``'s first parameter (else buffer; the CPU when it has neither)."""
+    for t in module.parameters():
+        return t.device
+    for t in module.buffers():
+        return t.device
+    return torch.device("cpu")
+
+
 def require(cond: torch.Tensor, message: str) -> None:
     """Raise ``ValueError(message)`` unless every element of bool ``cond`` is True (host check on
     the CPU in eager mode; ``torch._assert_async`` otherwise)."""

@@ -15,6 +15,7 @@ import argparse
 import dataclasses
 import difflib
 import functools
+import importlib
 import json
 import math
 import os
@@ -25,15 +26,37 @@ import numpy as np
 
 from .atomic import atomic_write_text
 from .scalars import as_float, is_bool, is_int, scalar
+from .registry import Choices
 
 CONFIG_VERSION = 1
 CONFIG_FILENAME = "sparse_config.json"
 #: name of the persistent buffer that marks a state dict as sparse (its value: the config version)
 MARKER = "smdm_sparse_version"
+#: the attribute a sparsified model carries its one state object under (``adapters.state.SparseState``)
+STATE_ATTR = "_smdm_state"
 
-SELECTORS = ("vw", "uniform", "random", "mdo")
+
+def sparse_config_of(model: Any) -> Optional["SparseConfig"]:
+    """The :class:`SparseConfig` of a sparsified ``model`` (an ``nn.Module``; or of its first
+    sparsified submodule: DDP, EMA wrappers), else None. The one place a model's config lives is its
+    state (``model._smdm_state.config``)."""
+    for m in model.modules():
+        config = getattr(getattr(m, STATE_ATTR, None), "config", None)
+        if isinstance(config, SparseConfig):
+            return config
+    return None
+
 FEATURES = ("auto", "humanml3d", "kit", "raw")
-BACKENDS = ("auto", "compact", "varlen", "masked")
+
+
+def _registered(module: str, registry: str, *extra: str) -> Choices:
+    """Live choices of a core registry (``selection.SELECTORS``, ``attention_backends.BACKENDS``;
+    its module imported on first read): an entry registered later is a valid value at once."""
+    return Choices(lambda: getattr(importlib.import_module(module), registry).names(), extra)
+
+
+SELECTORS = _registered("smdm_plugin.core.selection", "SELECTORS")
+BACKENDS = _registered("smdm_plugin.core.attention_backends", "BACKENDS", "auto")
 INTERPOLATIONS = ("linear", "cubic")
 
 PathLike = Union[str, "os.PathLike[str]"]
@@ -594,9 +617,14 @@ def as_config(config: Any, what: str = "config") -> "SparseConfig":
 
 
 def preset_dirs() -> List[str]:
-    """Where presets are looked up: the package's own ``smdm_plugin/configs/``."""
-    here = os.path.dirname(os.path.abspath(__file__))
-    return [os.path.join(os.path.dirname(here), "configs")]
+    """Where presets are looked up: the project's top-level ``configs/`` (a source checkout, ``pip
+    install -e .``), else where a regular install puts it (``<prefix>/share/smdm_plugin/configs``)."""
+    import sys
+
+    package = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+    candidates = [os.path.join(os.path.dirname(package), "configs"),
+                  os.path.join(sys.prefix, "share", "smdm_plugin", "configs")]
+    return [d for d in candidates if os.path.isdir(d)][:1] or candidates[:1]
 
 
 def preset_names() -> List[str]:
@@ -608,7 +636,7 @@ def preset_names() -> List[str]:
 def load_preset(name: str) -> SparseConfig:
     """A packaged preset by name or any YAML/JSON path.
 
-    Packaged (``smdm_plugin/configs/``): ``smdm_paper`` (App. B.1: trans_dec-ready, 50 steps, FSQ
+    Packaged (top-level ``configs/``): ``smdm_paper`` (App. B.1: trans_dec-ready, 50 steps, FSQ
     keys, lambda 0, no dynamic update), ``sdip_paper`` (App. B.2: 10 steps, 20 past + 40 future
     frames), ``smdm_humanml`` and ``sdip`` (earlier measured variants, kept by name),
     ``smotiondiffuse``; ``preset_names()`` lists them all."""

@@ -22,7 +22,7 @@ import torch.nn.functional as F
 from torch import Tensor, nn
 from torch.nn.utils import parametrize
 
-from .checks import compiling as _compiling
+from .checks import compiling as _compiling, module_device
 
 __all__ = [
     "LipschitzWeight",
@@ -204,14 +204,6 @@ class LipschitzMLP(nn.Module):
                 f"hidden={self.hidden}, layers={self.num_layers}, w0={self.w0}")
 
 
-def _module_device(module: nn.Module) -> torch.device:
-    for t in module.parameters():
-        return t.device
-    for t in module.buffers():
-        return t.device
-    return torch.device("cpu")
-
-
 def lipschitz_loss(module: nn.Module) -> Tensor:
     """``Σ_MLPs ∏_i softplus(c_i)`` over every (unbaked) :class:`LipschitzMLP` in ``module``.
 
@@ -222,7 +214,7 @@ def lipschitz_loss(module: nn.Module) -> Tensor:
               if isinstance(m, LipschitzMLP) and not m.baked]
     groups = [g for g in groups if g]
     if not groups:
-        return torch.zeros((), device=_module_device(module))
+        return torch.zeros((), device=module_device(module))
     # one softplus over every c; per-MLP products by log-sum (softplus(c) > 0); a few ops, whatever
     # the number of layers
     log_b = torch.log(F.softplus(torch.stack([c.reshape(()) for g in groups for c in g])))

@@ -15,7 +15,7 @@ from typing import Dict, Optional, Sequence, Tuple, Union
 import numpy as np
 import torch
 
-from .checks import as_lengths, as_mask
+from .checks import as_lengths, as_mask, compiling
 from .config import SparseConfig
 from .features import KINDS, ric_slice
 from .selection import (keyframe_capacity, keyframe_count_table, perturb_checked, select_checked,
@@ -83,8 +83,10 @@ class MaskSchedule:
         key = (int(n_frames), torch.device(device))
         if key not in self._tables:
             r = self.config.reduction
-            self._tables[key] = (keyframe_count_table(n_frames, r).to(device),
-                                 uniform_table(n_frames, r).to(device))
+            tables = (keyframe_count_table(n_frames, r).to(device), uniform_table(n_frames, r).to(device))
+            if compiling():       # constants of the traced graph; filling the cache while tracing
+                return tables     # would fail the graph's guard on it and recompile the next call
+            self._tables[key] = tables
         return self._tables[key]
 
     def _kind(self, D: int) -> str:
@@ -109,7 +111,8 @@ class MaskSchedule:
         x = x.detach()
         x = x if x.dtype in (torch.float32, torch.float64) else x.float()
         key = (kind, N, D, x.device, x.dtype)
-        if key not in self._consts:
+        consts = self._consts.get(key)
+        if consts is None:
             cols = slice(0, D) if kind == "raw" else ric_slice(kind)
             if kind != "raw" and D != KINDS[kind][0]:
                 raise ValueError(f"MaskSchedule: feature={kind!r} needs D={KINDS[kind][0]} features, got D={D}")
@@ -117,8 +120,10 @@ class MaskSchedule:
             std = self.std[cols].to(x.device, x.dtype) if use and self.std is not None else None
             mean = self.mean[cols].to(x.device, x.dtype) if use and self.mean is not None else None
             col = (torch.arange(N, dtype=x.dtype) * float(self.config.frame_index_scale)).view(1, N, 1).to(x.device)
-            self._consts[key] = (cols, mean, std, col)
-        cols, mean, std, col = self._consts[key]
+            consts = (cols, mean, std, col)
+            if not compiling():   # (as in tables: no cache write while tracing)
+                self._consts[key] = consts
+        cols, mean, std, col = consts
         pos = x[..., cols]
         if std is not None:
             pos = pos * std

@@ -22,7 +22,8 @@ needs ``max K`` on the host): shapes are static, and value checks use
 from __future__ import annotations
 
 import heapq
-from typing import Optional, Tuple
+from dataclasses import dataclass
+from typing import Callable, Optional, Tuple
 
 import numpy as np
 import torch
@@ -30,8 +31,40 @@ import torch
 from .checks import LengthsLike, as_lengths, as_mask, require
 from .kernels.vw import vw_keyframes
 from .scalars import as_float
+from .registry import Registry
 
-METHODS = ("vw", "uniform", "random", "mdo")
+
+@dataclass(frozen=True)
+class Selector:
+    """A registered keyframe selector.
+
+    ``fn(features [B, N, F], lengths [B] long, counts [B] long, generator, forced [B, N] bool | None,
+    active [B] bool | None) -> [B, N] bool``: inputs already checked; ``counts`` keyframes per sample
+    (both ends included, ``forced`` frames count inside the budget). ``handles_forced``: ``fn`` keeps
+    the forced frames itself; otherwise it is called without them, with ``counts`` reduced by the
+    forced interior frames, and they are added to its mask. ``supports_active``: ``fn`` honours
+    ``active`` (rows not selected at all); otherwise ``active`` is an error. ``host_sync``: it reads
+    device values on the host (an ablation selector, e.g. MDO), not for the GPU hot path."""
+
+    fn: Callable[..., torch.Tensor]
+    handles_forced: bool = False
+    supports_active: bool = False
+    host_sync: bool = False
+
+
+#: the selectors by name (``SparseConfig.selector`` is validated against it)
+SELECTORS: Registry[Selector] = Registry("keyframe selector")
+
+
+def register_selector(name: str, fn: Callable[..., torch.Tensor], *, handles_forced: bool = False,
+                      supports_active: bool = False, host_sync: bool = False, replace: bool = False) -> Selector:
+    """Register a keyframe selector ``fn`` (signature: :class:`Selector`) under ``name``: then
+    ``select_keyframes(..., method=name)`` and ``SparseConfig(selector=name)`` use it."""
+    return SELECTORS.register(name, Selector(fn, handles_forced, supports_active, host_sync), replace=replace)
+
+
+def selector_names() -> Tuple[str, ...]:
+    return SELECTORS.names()
 
 
 def keyframe_count(length: int, reduction: float) -> int:
@@ -128,13 +161,13 @@ def select_keyframes(features: torch.Tensor, lengths: LengthsLike = None, reduct
     methods pick ``K - |forced interior frames|`` frames of their own). ``active [B]`` bool (VW
     only): rows to select at all; inactive rows come back all False and cost nothing.
     """
-    if method not in METHODS:
-        raise ValueError(f"select_keyframes: unknown method {method!r}; known: {METHODS}")
+    if method not in SELECTORS:
+        raise ValueError(f"select_keyframes: unknown method {method!r}; known: {SELECTORS.names()}")
     features, lengths_t = _check(features, lengths, reduction, "select_keyframes")
     B, N, _ = features.shape
     forced = as_mask(forced, B, N, features.device, "select_keyframes: forced")
-    if active is not None and method != "vw":
-        raise ValueError("select_keyframes: active rows are supported by method='vw' only")
+    if active is not None and not SELECTORS.get(method).supports_active:
+        raise ValueError(f"select_keyframes: active rows are not supported by method={method!r}")
     if B == 0:
         return torch.zeros(B, N, dtype=torch.bool, device=features.device)
     return select_checked(features, lengths_t, keyframe_counts(lengths_t, reduction), method, generator,
@@ -146,21 +179,16 @@ def select_checked(features: torch.Tensor, lengths: torch.Tensor, counts: torch.
                    active: Optional[torch.Tensor] = None) -> torch.Tensor:
     """:func:`select_keyframes` on inputs already checked, with the keyframe ``counts [B]`` given
     (the hot path: validation and counts happen once per call, upstream of this)."""
+    sel = SELECTORS.get(method)
     with torch.no_grad():
-        N = features.shape[1]
-        if method == "vw":
-            return vw_keyframes(features, lengths, counts, forced, active)
-        idx = torch.arange(N, device=features.device)[None]
+        if sel.handles_forced:
+            return sel.fn(features, lengths, counts, generator, forced, active)
+        idx = torch.arange(features.shape[1], device=features.device)[None]
         k = counts
         if forced is not None:
             interior = forced & (idx > 0) & (idx < (lengths - 1)[:, None])
             k = torch.clamp_min(k - interior.sum(1), 2)               # the forced frames' share of K
-        if method == "uniform":
-            mask = _uniform(lengths, k, N)
-        elif method == "random":
-            mask = _random(lengths, k, N, generator)
-        else:
-            mask = _mdo(features.detach(), lengths, k)
+        mask = sel.fn(features, lengths, k, generator, None, active)
         return mask if forced is None else mask | (forced & (idx < lengths[:, None]))
 
 
@@ -220,6 +248,15 @@ def _mdo(features: torch.Tensor, lengths: torch.Tensor, k_t: torch.Tensor) -> to
         cur = torch.where((k <= k_t)[:, None], prev, cur)
         mask.scatter_(1, cur, True)
     return mask
+
+
+register_selector("vw", lambda f, lengths, k, g, forced, active: vw_keyframes(f, lengths, k, forced, active),
+                  handles_forced=True, supports_active=True)
+register_selector("uniform", lambda f, lengths, k, g, forced, active: _uniform(lengths, k, f.shape[1]))
+register_selector("random", lambda f, lengths, k, g, forced, active: _random(lengths, k, f.shape[1], g))
+register_selector("mdo", lambda f, lengths, k, g, forced, active: _mdo(f.detach(), lengths, k), host_sync=True)
+#: the built-in selectors' names (the registry may hold more: :func:`selector_names`)
+METHODS = ("vw", "uniform", "random", "mdo")
 
 
 # ----------------------------------------------------------------------------- reference

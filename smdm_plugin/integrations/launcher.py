@@ -179,7 +179,7 @@ def parse_run_args(argv: Sequence[str]) -> Tuple[argparse.Namespace, List[str]]:
 
 
 def main_run(argv: Optional[Sequence[str]] = None) -> int:
-    """Entry point of ``smdm run`` (called by ``smdm_plugin.cli``); returns the exit code: the
+    """Entry point of ``smdm run`` (called by ``smdm_plugin.apps.cli``); returns the exit code: the
     command's own, or 2 for a bad ``--repo`` / missing command (one argparse-style line)."""
     parser = build_parser()
     args, command = parse_run_args(sys.argv[1:] if argv is None else argv)

@@ -38,8 +38,9 @@ def is_mdm_repo(path: str) -> bool:
 
 
 def add_sparse_options(group: Any) -> Any:
-    """Add ``--sparse`` / ``--sparse_<field>`` to MDM's ``model`` argument group (idempotent:
-    the patch and the launcher may both call it)."""
+    """Add ``--sparse`` / ``--sparse_<field>`` to an argparse parser or group (MDM's ``model``
+    group, priorMDM's, MotionDiffuse's options parser); idempotent: the patch and the launcher may
+    both call it."""
     if "--sparse" in getattr(group, "_option_string_actions", {}):
         return group
     SparseConfig.add_argparse_args(group)
@@ -93,7 +94,7 @@ def sparsify_mdm(model: Any, args: Any, data: Any = None, diffusion: Any = None,
        ``sparse_config.json`` beside the weights and warn if the run uses upstream's 1000 diffusion
        steps. Without ``--sparse`` (and no text option) the model is returned untouched, bit for bit.
     """
-    from ..adapters.mdm import is_sparse, sparsify
+    from ..adapters.surgery import is_sparse, sparsify
     from .mdm_text import apply_text_options
 
     config = config if config is not None else SparseConfig.from_args(args)
@@ -125,7 +126,7 @@ def sparsify_mdm(model: Any, args: Any, data: Any = None, diffusion: Any = None,
 def check_mdm_state_dict(model: Any, state_dict: Any, model_path: Optional[str] = None) -> None:
     """Raise a clear error when a sparse checkpoint meets a dense MDM (``--sparse`` lost, e.g. an
     ``args.json`` without the ``sparse`` keys) or the reverse; see
-    :func:`smdm_plugin.checkpoint.check_state_dict`."""
+    :func:`smdm_plugin.io.checkpoint.check_state_dict`."""
     from ..io.checkpoint import check_state_dict, model_is_sparse, state_dict_is_sparse
 
     source = model_path or "checkpoint"

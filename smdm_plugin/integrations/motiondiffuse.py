@@ -30,11 +30,7 @@ import numpy as np
 from ..core.config import CONFIG_FILENAME, SparseConfig
 
 
-def add_sparse_options(parser: Any) -> Any:
-    """``--sparse`` and ``--sparse_<field>`` (idempotent)."""
-    if "--sparse" not in getattr(parser, "_option_string_actions", {}):
-        SparseConfig.add_argparse_args(parser)
-    return parser
+from .mdm import add_sparse_options  # noqa: E402,F401  (the one --sparse* adder; patches import it here)
 
 
 def _coerce(value: Any, default: Any) -> Any:
@@ -116,19 +112,19 @@ def mean_std_from_opt(opt: Any):
 def attach_trainer(trainer: Any, config: Optional[SparseConfig] = None) -> Any:
     """Sparsify ``trainer.encoder`` (or its ``.module``) and wrap ``trainer.diffusion`` according
     to ``trainer.opt``; training runs save the config beside the checkpoints."""
-    from ..adapters.motiondiffuse import is_sparse_motiondiffuse, sparsify_motiondiffuse
+    from ..adapters.surgery import is_sparse, sparsify
 
     opt = trainer.opt
     config = config if config is not None else config_from_opt(opt)
     enc = trainer.encoder
     core = getattr(enc, "module", enc)
-    if config.enabled and not is_sparse_motiondiffuse(core):
+    if config.enabled and not is_sparse(core):
         mean, std = mean_std_from_opt(opt)
-        sparsify_motiondiffuse(core, config, mean, std, diffusion=trainer.diffusion)
+        sparsify(core, config, mean=mean, std=std, diffusion=trainer.diffusion, family="motiondiffuse")
     if config.enabled and getattr(opt, "is_train", False) and getattr(opt, "model_dir", None):
         from ..io.checkpoint import save_sparse_config  # never replaces another config unasked
 
-        save_sparse_config(core.smdm_config, opt.model_dir)
+        save_sparse_config(core, opt.model_dir)
     return trainer
 
 

@@ -22,12 +22,7 @@ from typing import Any, Optional
 from ..core.config import SparseConfig
 
 
-def add_sparse_options(group: Any) -> Any:
-    """Add ``--sparse`` / ``--sparse_<field>`` to an argparse parser or group (idempotent)."""
-    if "--sparse" in getattr(group, "_option_string_actions", {}):
-        return group
-    SparseConfig.add_argparse_args(group)
-    return group
+from .mdm import add_sparse_options  # noqa: E402,F401  (the one --sparse* adder; patches import it here)
 
 
 def _dataset_mean_std(data: Any):
@@ -62,7 +57,7 @@ def sparsify_priormdm(model: Any, args: Any, data: Any = None, diffusion: Any = 
     :mod:`smdm_plugin.adapters.doubletake`) and a warning when ``--blend_len`` is not the paper's.
     Returns the model (changed in place)."""
     from ..adapters.doubletake import attach_doubletake_forcing
-    from ..adapters.mdm import is_sparse, sparsify
+    from ..adapters.surgery import is_sparse, sparsify
 
     config = config if config is not None else SparseConfig.from_args(args)
     if not config.enabled or is_sparse(model):

@@ -19,7 +19,7 @@ import numpy as np
 import torch
 import torch.nn as nn
 
-from ..core.config import CONFIG_FILENAME, SparseConfig
+from ..core.config import CONFIG_FILENAME, SparseConfig, sparse_config_of
 from ..reference.diffusion import SimpleDiffusion
 from .checkpoint import BACKBONE_FILENAME, load_checkpoint, save_sparse_config
 from .files import atomic_open, atomic_write_json
@@ -80,7 +80,7 @@ def save_bundle(directory: str, model: nn.Module, diffusion: SimpleDiffusion, ba
         with atomic_open(os.path.join(part, WEIGHTS_FILENAME), "wb") as f:
             torch.save({k: v.detach().cpu() for k, v in model.state_dict().items()}, f)
         atomic_write_json(os.path.join(part, BACKBONE_FILENAME), dict(backbone))
-        if getattr(model, "smdm_config", None) is not None:
+        if sparse_config_of(model) is not None:
             save_sparse_config(model, part, overwrite=True)
         write_motion_meta(part, representation, mean, std, fps, max_frames, diffusion.num_timesteps, info)
     return directory

@@ -5,16 +5,27 @@ from __future__ import annotations
 
 import json
 import os
-from typing import Any, Dict, Iterable, Mapping, Optional, Tuple, Union
+from typing import Any, Callable, Dict, Iterable, Mapping, Optional, Tuple, Union
 
 import torch
 import torch.nn as nn
 
-from ..core.config import CONFIG_FILENAME, MARKER, SparseConfig, disagreement
+from ..core.config import CONFIG_FILENAME, MARKER, SparseConfig, disagreement, sparse_config_of
 from .files import OutputExistsError
 from .validate import read_json_object, require_fields
 
 BACKBONE_FILENAME = "backbone.json"
+
+# How a freshly built model becomes what a saved config describes (text encoder, sparse mode). io
+# knows no model family: the adapters layer registers its family dispatch here when it is imported
+# (``smdm_plugin.adapters``), or a caller passes ``prepare=`` to :func:`load_checkpoint`.
+_PREPARE: Optional[Callable[..., nn.Module]] = None
+
+
+def register_model_preparer(fn: Callable[..., nn.Module]) -> None:
+    """Set the default ``prepare(model, config, **sparsify_kwargs) -> model`` of :func:`load_checkpoint`."""
+    global _PREPARE
+    _PREPARE = fn
 
 
 def _dir_of(path: str) -> str:
@@ -27,10 +38,9 @@ def save_sparse_config(model_or_config: Union[nn.Module, SparseConfig], director
     path. An existing file holding the same config is left as it is (saving twice, or from every
     rank of a distributed run, is fine); one holding another config (or unreadable) is an
     :class:`~smdm_plugin.io.files.OutputExistsError` (a ``FileExistsError``) unless ``overwrite``."""
-    config = model_or_config if isinstance(model_or_config, SparseConfig) else getattr(
-        model_or_config, "smdm_config", None)
+    config = model_or_config if isinstance(model_or_config, SparseConfig) else sparse_config_of(model_or_config)
     if config is None:
-        raise ValueError("save_sparse_config: the model is not sparse (no smdm_config); sparsify it first")
+        raise ValueError("save_sparse_config: the model is not sparse; sparsify it first")
     os.makedirs(directory, exist_ok=True)
     path = os.path.join(directory, CONFIG_FILENAME)
     if os.path.isdir(path):
@@ -168,8 +178,7 @@ def check_config_matches(model: nn.Module, saved: SparseConfig, source: str,
     if unknown:
         raise ValueError(f"load_checkpoint: allow_differences names unknown SparseConfig field(s) {unknown}; "
                          f"known: {', '.join(fields)}")
-    current = next((m.smdm_config for m in model.modules()
-                    if isinstance(getattr(m, "smdm_config", None), SparseConfig)), None)
+    current = sparse_config_of(model)
     if current is None:
         return
     diff = saved.differences(current, ignore=("version", *allowed))
@@ -184,6 +193,7 @@ def check_config_matches(model: nn.Module, saved: SparseConfig, source: str,
 
 def load_checkpoint(path: str, model: Optional[nn.Module] = None, map_location: Any = "cpu",
                     strict: bool = True, allow_differences: Iterable[str] = (),
+                    prepare: Optional[Callable[..., nn.Module]] = None,
                     **sparsify_kwargs: Any) -> Tuple[nn.Module, Optional[SparseConfig]]:
     """Load ``path`` (a ``.pt`` state dict) re-creating sparse mode from the saved config.
 
@@ -195,11 +205,13 @@ def load_checkpoint(path: str, model: Optional[nn.Module] = None, map_location: 
             ``backbone.json`` beside the checkpoint.
         allow_differences: config fields an already-sparse ``model`` may set differently from the
             saved config on purpose (e.g. ``("gamma",)`` to sample with another schedule).
-        sparsify_kwargs: passed to :func:`sparsify` (``mean``, ``std``, ``diffusion``).
+        prepare: ``prepare(model, config, **sparsify_kwargs)`` makes a dense model what the saved
+            config describes (text encoder, sparse mode); None: the one the adapters layer registered
+            (:func:`register_model_preparer`; io knows no model family).
+        sparsify_kwargs: passed to ``prepare`` (``mean``, ``std``, ``diffusion``).
     Returns:
         ``(model, config)``; config is None for a dense checkpoint.
     """
-    from ..adapters.mdm import sparsify
 
     if not os.path.isfile(path):
         raise FileNotFoundError(f"load_checkpoint: no such checkpoint file: {path!r}")
@@ -221,15 +233,14 @@ def load_checkpoint(path: str, model: Optional[nn.Module] = None, map_location: 
             model = TinyMDM(**backbone)
         except (ValueError, TypeError) as e:
             raise ValueError(f"load_checkpoint: {bpath}: cannot build TinyMDM from it: {e}") from None
-    if config is not None and config.text_encoder and getattr(model, "_smdm_text_encoder", None) != config.text_encoder:
-        from ..adapters.text_encoder import swap_text_encoder  # the encoder the weights were trained with
-
-        swap_text_encoder(model, config.text_encoder)
-    if config is not None and config.enabled:
-        if model_is_sparse(model):
-            check_config_matches(model, config, config_source or path, allow_differences)
-        else:
-            sparsify(model, config, **sparsify_kwargs)
+    if config is not None and config.enabled and model_is_sparse(model):
+        check_config_matches(model, config, config_source or path, allow_differences)
+    if config is not None and (config.text_encoder or (config.enabled and not model_is_sparse(model))):
+        prepare = prepare if prepare is not None else _PREPARE
+        if prepare is None:
+            raise RuntimeError(f"load_checkpoint: {path} needs the model converted to its saved config; "
+                               "use smdm_plugin.load_checkpoint (it knows the model families)")
+        model = prepare(model, config, **sparsify_kwargs)
     check_state_dict(model, state, path)
     missing, unexpected = model.load_state_dict(state, strict=False)
     missing = [k for k in missing if not k.startswith("clip_model.")]

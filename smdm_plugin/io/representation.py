@@ -75,11 +75,6 @@ class Representation:
     def dim(self) -> int:
         return {"joints66": 66, "humanml3d": 263}[self.name]
 
-    @property
-    def accepts_joints(self) -> bool:
-        """Whether keyframes given as joint positions (BVH, ``[N, 22, 3]``) can be converted."""
-        return self.name == "joints66"
-
     def to_joints(self, features: ArrayLike) -> ArrayLike:
         """Un-normalised features ``[..., N, dim]`` -> joint positions ``[..., N, 22, 3]`` (metres)."""
         if features.shape[-1] != self.dim:

@@ -213,16 +213,20 @@ def install_recorder(path: str) -> None:
     # MotionDiffuse: the tokens that reach the decoder blocks, with the mask of that call
     import smdm_plugin.adapters.motiondiffuse as md_adapter
 
-    original_sparsify = md_adapter.sparsify_motiondiffuse
+    import smdm_plugin.adapters.surgery as surgery
+
+    original_sparsify = surgery.sparsify
 
     def sparsify_motiondiffuse(model, *a, **k):
         out = original_sparsify(model, *a, **k)
         blocks = getattr(model, "temporal_decoder_blocks", None)
+        if not md_adapter.MotionDiffuseFamily().matches(model):
+            return out
         if blocks is not None and len(blocks) and not getattr(model, "_smdm_recorded", False):
             model._smdm_recorded = True
 
             def pre_hook(module, args):
-                mask = getattr(getattr(model, "_smdm_md_state", None), "last_mask", None)
+                mask = getattr(getattr(model, "_smdm_state", None), "last_mask", None)
                 records.append({"kind": "blocks", "tokens": int(args[0].shape[1]),
                                 "mask": None if mask is None else mask.detach().cpu().numpy().copy(),
                                 "lengths": None, "forced": None})
@@ -230,7 +234,7 @@ def install_recorder(path: str) -> None:
             blocks[0].register_forward_pre_hook(pre_hook)
         return out
 
-    md_adapter.sparsify_motiondiffuse = sparsify_motiondiffuse
+    surgery.sparsify = sparsify_motiondiffuse
 
     def dump():
         with open(path, "wb") as f:

@@ -1,0 +1,178 @@
+"""The model-family protocol: what ``sparsify`` needs to know about one kind of model.
+
+In the way PEFT registers a tuner per method or diffusers an attention processor, every model
+family (MDM trans_enc / trans_dec, DiP, priorMDM's DoubleTake, MotionDiffuse, ...) is one
+:class:`ModelFamily` registered with :func:`register_family`. The generic surgery
+(:mod:`smdm_plugin.adapters.surgery`: ``sparsify``, ``unsparsify``, ``set_mean_std``), the diffusion
+wrapper (:mod:`smdm_plugin.adapters.diffusion`) and ``load_checkpoint`` only talk to a model through
+its family. A family says:
+
+* :meth:`~ModelFamily.matches` — whether a model is one of its own (by structure);
+* :meth:`~ModelFamily.variant` — what kind it is (arch, prefix frames kept dense, a name);
+* :meth:`~ModelFamily.io_layers` — the input and output ``nn.Linear`` layers that become Lipschitz
+  sine MLPs;
+* :meth:`~ModelFamily.install` — which blocks become keyframe-only and how (MDM: the
+  ``seqTransEncoder``/``Decoder`` wrapped by ``KeyframeTransformer`` plus forward hooks;
+  MotionDiffuse: its ``forward``), recording every replacement in ``state.originals``;
+* :meth:`~ModelFamily.read_call` — how one model call's frames, timesteps, lengths, forced frames and
+  (training) keyframes arrive: a typed :class:`CallInputs`;
+* :meth:`~ModelFamily.training_inputs` / :meth:`~ModelFamily.with_keyframes` /
+  :meth:`~ModelFamily.finish_losses` — how the family's diffusion ``training_losses`` is hooked:
+  where x0's lengths and forced frames are, how the chosen keyframes reach the model, what is
+  added to the returned terms.
+
+A new family is one module defining a subclass and calling ``register_family(MyFamily())``;
+``docs/architecture.md`` shows an example.
+"""
+from __future__ import annotations
+
+from abc import ABC, abstractmethod
+from dataclasses import dataclass
+from typing import Any, ClassVar, Dict, List, Optional, Sequence, Tuple
+
+import torch
+import torch.nn as nn
+
+from ..core.config import SparseConfig
+from ..core.plan import KeyframePlan
+from ..core.registry import Registry
+from .state import SparseState, Variant, keyframe_plan
+
+
+@dataclass
+class CallInputs:
+    """One model call as the family reads it (batch-major).
+
+    Attributes:
+        frames: ``[B, N, D]`` the motion of the call (x_t while sampling, x_t in training).
+        timesteps: ``[B]`` diffusion steps (or None).
+        lengths: ``[B]`` long, valid frames (validated, ``2 <= L <= N``).
+        forced: bool ``[B, N]`` frames that must be keyframes, or None.
+        mask: bool ``[B, N]`` keyframes chosen by the caller (training), or None (sampling).
+        capacity: the slot count chosen with ``mask`` (a Python int), or None.
+        mask_name: how the family's calls pass ``mask`` (for error messages).
+    """
+
+    frames: torch.Tensor
+    timesteps: Any
+    lengths: torch.Tensor
+    forced: Optional[torch.Tensor] = None
+    mask: Optional[torch.Tensor] = None
+    capacity: Optional[int] = None
+    mask_name: str = "keyframe_mask"
+
+    def plan(self, state: SparseState) -> KeyframePlan:
+        """The call's :class:`~smdm_plugin.core.plan.KeyframePlan` (see :func:`keyframe_plan`)."""
+        return keyframe_plan(state, self.frames, self.timesteps, self.lengths, self.forced, self.mask,
+                             self.capacity, self.mask_name)
+
+
+class ModelFamily(ABC):
+    """One kind of model ``sparsify`` can convert. Subclass, then :func:`register_family`."""
+
+    #: a short unique name (``mdm``, ``doubletake``, ``motiondiffuse``)
+    name: ClassVar[str] = ""
+    #: families with a higher priority are asked first (a specialisation before its base)
+    priority: ClassVar[int] = 0
+
+    def __deepcopy__(self, memo: dict) -> "ModelFamily":   # one object per family (EMA copies share it)
+        return self
+
+    def __copy__(self) -> "ModelFamily":
+        return self
+
+    # ------------------------------------------------------------------ recognising a model
+    @abstractmethod
+    def matches(self, model: nn.Module) -> bool:
+        """Whether ``model`` belongs to this family (by its structure; no side effects)."""
+
+    def mismatch(self, model: nn.Module) -> str:
+        """Why ``model`` does not match (for the error message), e.g. the missing attributes."""
+        return "does not match"
+
+    @abstractmethod
+    def variant(self, model: nn.Module) -> Variant:
+        """What ``model`` is (raises ``TypeError`` for an unsupported configuration)."""
+
+    def prepare_config(self, model: nn.Module, config: SparseConfig, variant: Variant) -> SparseConfig:
+        """The config this family runs with (e.g. DiP's prefix). A setting the user asked for that
+        cannot apply must be a warning or an error, never dropped silently."""
+        return config
+
+    # ------------------------------------------------------------------ surgery
+    @abstractmethod
+    def io_layers(self, model: nn.Module) -> Sequence[Tuple[nn.Module, str]]:
+        """``(owner, attribute)`` of the ``nn.Linear`` input / output layers that become Lipschitz
+        sine MLPs when ``config.lipschitz`` (attributes that are absent or not linear are skipped)."""
+
+    def latent_dim(self, model: nn.Module) -> int:
+        """Hidden width of the Lipschitz MLPs when ``config.lipschitz_hidden`` is None."""
+        return int(model.latent_dim)
+
+    @abstractmethod
+    def install(self, model: nn.Module, state: SparseState) -> None:
+        """Make the blocks keyframe-only and hook the calls. Record every replaced attribute in
+        ``state.originals`` *before* replacing it and every hook in ``state.handles``, so that a
+        failure part-way (and ``unsparsify``) can undo it exactly."""
+
+    def uninstall(self, model: nn.Module, state: SparseState) -> None:
+        """Before ``unsparsify`` restores ``state.originals``: carry weights trained in sparse mode
+        that have a dense equivalent into what will be restored (default nothing). Not called when a
+        failed ``sparsify`` is rolled back."""
+
+    # ------------------------------------------------------------------ one model call
+    @abstractmethod
+    def read_call(self, state: SparseState, args: tuple, kwargs: Dict[str, Any]) -> CallInputs:
+        """The frames, timesteps, lengths, forced frames and given keyframes of one call."""
+
+    # ------------------------------------------------------------------ the diffusion's loss
+    @abstractmethod
+    def training_inputs(self, state: SparseState, x_start: torch.Tensor, model_kwargs: Dict[str, Any]
+                        ) -> Tuple[torch.Tensor, torch.Tensor, Optional[torch.Tensor], Optional[torch.Tensor],
+                                   Optional[int]]:
+        """``(frames [B, N, D], lengths [B], forced [B, N] | None, given mask | None, given
+        capacity | None)`` of a ``training_losses(model, x_start, t, model_kwargs)`` call."""
+
+    @abstractmethod
+    def with_keyframes(self, state: SparseState, model_kwargs: Dict[str, Any], mask: torch.Tensor,
+                       capacity: Optional[int]) -> Dict[str, Any]:
+        """A copy of ``model_kwargs`` that hands the training keyframes to the model."""
+
+    def finish_losses(self, state: SparseState, model: nn.Module, terms: Dict[str, Any],
+                      mask: torch.Tensor) -> Dict[str, Any]:
+        """What sparse mode adds to the diffusion's returned ``terms`` (default: nothing)."""
+        return terms
+
+
+#: the model families by name; the built-in ones register themselves when their module is imported
+FAMILIES: Registry[ModelFamily] = Registry("model family", builtins="smdm_plugin.adapters._builtin_families")
+
+
+def register_family(family: ModelFamily, *, replace: bool = False) -> ModelFamily:
+    """Register ``family`` under ``family.name`` (a name taken is a ``ValueError`` unless
+    ``replace``). Returns it."""
+    if not isinstance(family, ModelFamily):
+        raise TypeError(f"register_family: family must be a ModelFamily instance, got {type(family).__name__}")
+    return FAMILIES.register(family.name, family, replace=replace)
+
+
+def families() -> List[ModelFamily]:
+    """The registered families, in the order they are asked (priority, then registration)."""
+    return sorted(FAMILIES.entries(), key=lambda f: -f.priority)
+
+
+def get_family(name: str) -> ModelFamily:
+    return FAMILIES.get(name)
+
+
+def family_for(model: nn.Module, fn: str = "sparsify") -> ModelFamily:
+    """The first registered family that matches ``model``; a ``TypeError`` says why none does."""
+    if not isinstance(model, nn.Module):
+        raise TypeError(f"{fn}: model must be a torch.nn.Module, got {type(model).__name__}")
+    fams = families()
+    for fam in fams:
+        if fam.matches(model):
+            return fam
+    why = "; ".join(f"{f.name}: {f.mismatch(model)}" for f in fams)
+    raise TypeError(f"{fn}: {type(model).__name__} belongs to no registered model family ({why}). "
+                    "Register one with smdm_plugin.register_family")

@@ -1,0 +1,174 @@
+"""``sparsify`` / ``unsparsify`` for every registered model family (PEFT-style, in place, reversible).
+
+No wrapper class: the model keeps its type and attributes. The model's
+:class:`~smdm_plugin.adapters.family.ModelFamily` says which layers change; the steps are the same
+for all: Lipschitz sine MLPs in place of the input/output linears (``config.lipschitz``), the
+family's keyframe-only blocks and hooks, a persistent buffer ``smdm_sparse_version`` marking the
+state dict as sparse, one :class:`~smdm_plugin.adapters.state.SparseState` as ``model._smdm_state``.
+
+``sparsify`` is transactional: the new modules are built first and every replacement is recorded
+before it is made, so on any error the model is exactly as before (same module objects, no hook,
+no buffer, no state) and a corrected retry works.
+"""
+from __future__ import annotations
+
+from typing import Any, Dict, Mapping, Tuple, Union
+
+import torch
+import torch.nn as nn
+
+from ..core.checks import module_device
+from ..core.config import MARKER, SparseConfig
+from ..core.lipschitz import LipschitzMLP
+from ..core.schedule import MaskSchedule
+from .diffusion import attach_diffusion, diffusion_steps, release_diffusions
+from .family import ModelFamily, family_for, get_family
+from .state import STATE_ATTR, SparseState, get_state, restore_originals
+
+ConfigLike = Union[SparseConfig, Mapping[str, Any], None]
+
+
+def as_config(config: ConfigLike, fn: str = "sparsify") -> SparseConfig:
+    """``config`` as a validated :class:`SparseConfig`: None = the defaults; a mapping of field names
+    is converted (unknown names or bad values are a ``ValueError``); anything else a ``TypeError``."""
+    if config is None:
+        return SparseConfig()
+    if isinstance(config, SparseConfig):
+        return config
+    if isinstance(config, Mapping):
+        return SparseConfig.from_dict(config)
+    raise TypeError(f"{fn}: config must be a SparseConfig, a dict of its fields or None, "
+                    f"got {type(config).__name__}")
+
+
+def model_device(model: nn.Module, fn: str = "sparsify") -> torch.device:
+    """The device of ``model``'s parameters (CPU when it has none); the ``meta`` device is a
+    ``ValueError`` (materialise the weights first: ``to_empty`` + ``load_state_dict``)."""
+    device = module_device(model)
+    if device.type == "meta":
+        raise ValueError(f"{fn}: the model's parameters are on the 'meta' device; materialise them "
+                         "(model.to_empty(device=...) and load the weights) before converting it")
+    return device
+
+
+def _check_stats(name: str, value: Any, device: torch.device, fn: str) -> None:
+    """Dataset statistics may be host data (numpy, lists, CPU tensors) or tensors on the model's
+    device; ``meta`` tensors or another accelerator are a ``ValueError``."""
+    if not isinstance(value, torch.Tensor):
+        return
+    if value.device.type == "meta":
+        raise ValueError(f"{fn}: {name} is a 'meta' tensor (no values); pass the [D] statistics as data")
+    if value.device.type != "cpu" and value.device != device:
+        raise ValueError(f"{fn}: {name} is on {value.device} but the model is on {device}; pass it on "
+                         f"the CPU or on {device}")
+
+
+def is_sparse(model: nn.Module) -> bool:
+    """Whether ``model`` itself was sparsified (see :func:`sparsify`)."""
+    return get_state(model) is not None
+
+
+def _lipschitz_layers(family: ModelFamily, model: nn.Module, config: SparseConfig
+                      ) -> Dict[Tuple[nn.Module, str], nn.Module]:
+    """The new Lipschitz MLPs, built (not installed): ``(owner, attribute) -> MLP``."""
+    new: Dict[Tuple[nn.Module, str], nn.Module] = {}
+    hidden = config.lipschitz_hidden or family.latent_dim(model)
+    for owner, name in family.io_layers(model):
+        old = getattr(owner, name, None)
+        if not isinstance(old, nn.Linear):
+            continue
+        mlp = LipschitzMLP(old.in_features, old.out_features, hidden=hidden,
+                           layers=config.lipschitz_layers, w0=config.sine_w0)
+        new[(owner, name)] = mlp.to(device=old.weight.device, dtype=old.weight.dtype)
+    return new
+
+
+def sparsify(model: nn.Module, config: ConfigLike = None, *, diffusion: Any = None,
+             mean: Any = None, std: Any = None, family: Union[str, ModelFamily, None] = None) -> nn.Module:
+    """Convert ``model`` to sparse keyframe mode in place and return it.
+
+    Args:
+        model: a model of a registered family (MDM trans_enc / trans_dec, DiP, priorMDM
+            doubleTake_MDM, MotionDiffuse's MotionTransformer, the in-package ``TinyMDM``).
+        config: a :class:`SparseConfig` or a dict of its fields; ``enabled=False`` returns ``model``
+            untouched.
+        diffusion: if given, its ``training_losses`` is wrapped (:func:`attach_diffusion`) so that
+            training keyframes come from x0 and ``lipschitz_lambda * L_lip`` joins the loss; its
+            step count becomes ``config.diffusion_steps``.
+        mean, std: ``[D]`` dataset statistics used to de-normalise motions for VW (HumanML3D/KIT).
+        family: the family's name or object; None = the first registered family that matches.
+    """
+    config = as_config(config)
+    if not config.enabled:
+        return model
+    if is_sparse(model):
+        raise ValueError(f"sparsify: {type(model).__name__} is already sparse (unsparsify it first)")
+    fam = (get_family(family) if isinstance(family, str) else family) if family is not None else family_for(model)
+    if family is not None and not fam.matches(model):
+        raise TypeError(f"sparsify: {type(model).__name__} is not a {fam.name} model: {fam.mismatch(model)}")
+    device = model_device(model)
+    _check_stats("mean", mean, device, "sparsify")
+    _check_stats("std", std, device, "sparsify")
+    variant = fam.variant(model)
+    if diffusion is not None:
+        config = config.replace(diffusion_steps=diffusion_steps(diffusion))
+    config = fam.prepare_config(model, config, variant)
+    schedule = MaskSchedule(config, mean, std)
+    lipschitz = _lipschitz_layers(fam, model, config) if config.lipschitz else {}
+    state = SparseState(config=config, variant=variant, transformer=None, schedule=schedule, family=fam)
+    try:                                               # swap: every change recorded before it is made
+        for (owner, name), mlp in lipschitz.items():
+            state.originals[(owner, name)] = getattr(owner, name)
+            setattr(owner, name, mlp)
+        fam.install(model, state)
+        model.register_buffer(MARKER, torch.tensor(config.version, device=device), persistent=True)
+        setattr(model, STATE_ATTR, state)
+        if diffusion is not None:
+            attach_diffusion(diffusion, model=model)
+    except BaseException:
+        _undo(model, state, rollback=True)
+        raise
+    return model
+
+
+def _undo(model: nn.Module, state: SparseState, rollback: bool = False) -> None:
+    """Everything :func:`sparsify` did, undone: ``unsparsify`` (the family carries trained weights
+    into what is restored) or ``rollback`` after a failure part-way (the original objects back)."""
+    if get_state(model) is state:
+        release_diffusions(model)
+    for h in state.handles:
+        h.remove()
+    state.handles.clear()
+    if not rollback:
+        state.family.uninstall(model, state)
+    restore_originals(state.originals)
+    state.originals.clear()
+    model._buffers.pop(MARKER, None)
+    model.__dict__.pop(STATE_ATTR, None)
+
+
+def unsparsify(model: nn.Module) -> nn.Module:
+    """Undo :func:`sparsify`: the original dense layers back, hooks removed, the diffusions it was
+    attached to restored (when no other sparse model uses them).
+
+    The dense input/output layers come back with the weights they had when the model was
+    sparsified; weights learned in sparse mode by the Lipschitz MLPs are dropped (they have no
+    dense equivalent). Family-specific changes with a dense equivalent keep their trained weights
+    (MDM: FSQ self-attention becomes ``nn.MultiheadAttention`` with its current q/k/v/out weights).
+    """
+    state = get_state(model)
+    if state is None:
+        return model
+    _undo(model, state)
+    return model
+
+
+def set_mean_std(model: nn.Module, mean: Any, std: Any) -> None:
+    """Give a sparse model the dataset Mean/Std after the fact (e.g. once the data is loaded)."""
+    state = get_state(model)
+    if state is None:
+        raise ValueError(f"set_mean_std: {type(model).__name__} is not sparse (sparsify it first)")
+    device = model_device(model, "set_mean_std")
+    _check_stats("mean", mean, device, "set_mean_std")
+    _check_stats("std", std, device, "set_mean_std")
+    state.schedule = MaskSchedule(state.config, mean, std)

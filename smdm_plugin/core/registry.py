@@ -1,0 +1,98 @@
+"""One small registry type for every extension point (selectors, attention backends, model families).
+
+A :class:`Registry` maps names to entries. The built-in entries are registered by the module that
+defines them, imported on the first read (``builtins``), so that reading a registry never depends on
+what happened to be imported before. :meth:`Registry.choices` is a live view of the names for
+validation (``SparseConfig`` checks ``selector`` / ``attention_backend`` against it, argparse uses it
+as ``choices``): a newly registered entry is a valid value at once.
+"""
+from __future__ import annotations
+
+import importlib
+from typing import Callable, Dict, Generic, Iterator, List, Optional, Tuple, TypeVar
+
+T = TypeVar("T")
+
+
+class Registry(Generic[T]):
+    """Entries of one kind (``what``, for messages) by name; ``builtins``: the module (dotted path)
+    that registers the built-in entries, imported on first read."""
+
+    def __init__(self, what: str, builtins: Optional[str] = None) -> None:
+        self.what = what
+        self._items: Dict[str, T] = {}
+        self._builtins = builtins
+
+    def _load(self) -> None:
+        if self._builtins is not None:
+            module, self._builtins = self._builtins, None
+            importlib.import_module(module)
+
+    def register(self, name: str, entry: T, *, replace: bool = False) -> T:
+        """Add ``entry`` under ``name`` (a taken name is a ``ValueError`` unless ``replace``)."""
+        if not isinstance(name, str) or not name.strip():
+            raise ValueError(f"register {self.what}: name must be a non-empty string, got {name!r}")
+        if name in self._items and not replace:
+            raise ValueError(f"register {self.what}: {name!r} is already registered (pass replace=True)")
+        self._items[name] = entry
+        return entry
+
+    def unregister(self, name: str) -> None:
+        self._items.pop(name, None)
+
+    def get(self, name: str) -> T:
+        """The entry named ``name``; an unknown name is a ``ValueError`` listing the registered ones."""
+        self._load()
+        if name not in self._items:
+            raise ValueError(f"unknown {self.what} {name!r}; registered: {', '.join(self._items)}")
+        return self._items[name]
+
+    def names(self) -> Tuple[str, ...]:
+        self._load()
+        return tuple(self._items)
+
+    def entries(self) -> List[T]:
+        self._load()
+        return list(self._items.values())
+
+    def __contains__(self, name: object) -> bool:
+        self._load()
+        return name in self._items
+
+    def choices(self, *extra: str) -> "Choices":
+        """A live tuple-like view of ``extra`` + the registered names (for validation)."""
+        return Choices(self.names, extra)
+
+
+class Choices:
+    """Tuple-like, always current: ``extra`` names (e.g. ``auto``) then ``names()``."""
+
+    def __init__(self, names: Callable[[], Tuple[str, ...]], extra: Tuple[str, ...] = ()) -> None:
+        self.names, self.extra = names, tuple(extra)
+
+    def _names(self) -> Tuple[str, ...]:
+        return self.extra + tuple(n for n in self.names() if n not in self.extra)
+
+    def __iter__(self) -> Iterator[str]:
+        return iter(self._names())
+
+    def __len__(self) -> int:
+        return len(self._names())
+
+    def __getitem__(self, i):
+        return self._names()[i]
+
+    def __contains__(self, name: object) -> bool:
+        return name in self._names()
+
+    def __bool__(self) -> bool:
+        return True
+
+    def __eq__(self, other: object) -> bool:
+        return tuple(self) == tuple(other) if isinstance(other, (tuple, list, Choices)) else NotImplemented
+
+    def __hash__(self) -> int:
+        return id(self)
+
+    def __repr__(self) -> str:
+        return repr(self._names())

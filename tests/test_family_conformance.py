@@ -1,0 +1,299 @@
+"""One conformance suite run over every registered model family (PEFT's common-tester idea).
+
+Cases: MDM trans_enc, MDM trans_dec, DiP (TinyMDM with a dense prefix), priorMDM's DoubleTake (a
+TinyMDM subclass named like doubleTake_MDM) and MotionDiffuse (the stand-in of
+tests/motiondiffuse_standin.py). Each case must pass every test: the family detected;
+sparsify/unsparsify round trip with a bit-identical state dict; all keyframes equals dense;
+save/load through ``load_checkpoint``; every sparse call under ``torch.compile(fullgraph=True)``;
+no host sync on the static path; the lifecycle with the diffusion in any order; a failed
+``sparsify`` leaves the model exactly as before.
+"""
+import copy
+import warnings
+
+import pytest
+import torch
+
+from motiondiffuse_standin import StandInDiffusion, StandInMotionTransformer
+from smdm_plugin import (SimpleDiffusion, SparseConfig, TinyMDM, attach_diffusion, families, is_sparse,
+                         load_checkpoint, save_sparse_config, sparsify, unsparsify)
+from smdm_plugin.adapters.family import family_for
+from smdm_plugin.core.checks import static_mode
+from test_gpu_path import Dispatched
+
+
+STEPS = torch.tensor([1, 30, 45])   # made once: a tensor from host data is a host-to-device copy
+
+
+class DoubleTakeTinyMDM(TinyMDM):
+    """priorMDM's doubleTake_MDM is an MDM subclass; the family is recognised by the class name."""
+
+
+class MDMCase:
+    """TinyMDM variants: ``forward(x [B, 263, 1, N], t, y)``; SimpleDiffusion's loss."""
+
+    def __init__(self, name, family, cls=TinyMDM, **kw):
+        self.name, self.family, self.cls, self.kw = name, family, cls, kw
+        self.N = 40 if kw.get("context_len") else 48
+
+    def build(self):
+        torch.manual_seed(0)
+        return self.cls(latent_dim=32, ff_size=64, num_layers=2, dropout=0.0, cond_mask_prob=0.0, **self.kw)
+
+    def diffusion(self):
+        return SimpleDiffusion(50)
+
+    def config(self, **kw):
+        return SparseConfig(**{"reduction": 0.8, "dynamic_update": True, **kw})
+
+    def inputs(self, seed=0):
+        g = torch.Generator().manual_seed(seed)
+        B, N = 3, self.N
+        lengths = torch.tensor([N, N - 7, N // 2]) if not self.kw.get("context_len") else torch.full((B,), N)
+        y = {"mask": (torch.arange(N) < lengths[:, None]).view(B, 1, 1, N), "lengths": lengths,
+             "text_embed": torch.randn(1, B, 512, generator=g)}
+        if self.kw.get("context_len"):
+            y["prefix"] = torch.randn(B, 263, 1, self.kw["context_len"], generator=g)
+        return torch.randn(B, 263, 1, N, generator=g), y
+
+    def valid(self, y):
+        return y["mask"].reshape(y["mask"].shape[0], -1)
+
+    def call(self, model, x, t, y):
+        return model(x, t, dict(y))
+
+    def out_frames(self, out):                       # [B, 263, 1, N] -> [B, N, 263]
+        return out.squeeze(2).transpose(1, 2)
+
+    def loss(self, diffusion, model, x, y, seed=3):
+        torch.manual_seed(seed)
+        t = STEPS
+        return diffusion.training_losses(model, x, t, {"y": dict(y)}, noise=torch.ones_like(x))["loss"].mean()
+
+
+class MotionDiffuseCase:
+    """The stand-in MotionTransformer: ``forward(x [B, T, D], t, length, text, xf_proj, xf_out)``."""
+
+    name, family = "motiondiffuse", "motiondiffuse"
+
+    def build(self):
+        torch.manual_seed(0)
+        return StandInMotionTransformer()
+
+    def diffusion(self):
+        return StandInDiffusion()
+
+    def config(self, **kw):
+        return SparseConfig(**{"reduction": 0.8, "dynamic_update": True, "feature": "raw", "fsq": False, **kw})
+
+    def inputs(self, seed=0):
+        g = torch.Generator().manual_seed(seed)
+        text = torch.randn(3, 8, 16, generator=g)             # precomputed text features (xf_out)
+        return torch.randn(3, 40, 12, generator=g), {"length": torch.tensor([40, 31, 17]), "xf_out": text}
+
+    def _kw(self, model, y):
+        xf_out = y["xf_out"]
+        return {"length": y["length"], "xf_out": xf_out, "xf_proj": model.text_proj(xf_out.mean(1))}
+
+    def valid(self, y):
+        return torch.arange(40)[None] < y["length"][:, None]
+
+    def call(self, model, x, t, y):
+        return model(x, t, **self._kw(model, y))
+
+    def out_frames(self, out):
+        return out
+
+    def loss(self, diffusion, model, x, y, seed=3):
+        torch.manual_seed(seed)
+        t = STEPS
+        inner = getattr(model, "_orig_mod", model)
+        terms = diffusion.training_losses(model, x, t, self._kw(inner, y), noise=torch.ones_like(x))
+        w = self.valid(y).to(x.dtype)[..., None]
+        return (((terms["pred"] - terms["target"]) ** 2) * w).sum() / w.sum()
+
+
+CASES = {c.name: c for c in (
+    MDMCase("mdm-trans_enc", "mdm", arch="trans_enc"),
+    MDMCase("mdm-trans_dec", "mdm", arch="trans_dec"),
+    MDMCase("dip", "mdm", arch="trans_dec", emb_trans_dec=True, context_len=20, pred_len=40),
+    MDMCase("doubletake", "doubletake", cls=DoubleTakeTinyMDM, arch="trans_enc"),
+    MotionDiffuseCase(),
+)}
+
+
+@pytest.fixture(params=list(CASES))
+def case(request):
+    return CASES[request.param]
+
+
+def snapshot(model):
+    return ({k: v.clone() for k, v in model.state_dict().items()}, dict(model.named_modules()),
+            {k: v for k, v in model.__dict__.items() if not k.startswith("_")},
+            [len(m._forward_pre_hooks) + len(m._forward_hooks) for m in model.modules()])
+
+
+def assert_same(model, snap, same_objects=True):
+    """State dict bit-identical, attributes and hooks as before; ``same_objects``: every module the
+    same object (unsparsify rebuilds FSQ self-attention as a new ``nn.MultiheadAttention`` with the
+    trained weights, so only a rolled-back sparsify keeps every object)."""
+    sd, modules, attrs, hooks = snap
+    now = model.state_dict()
+    assert list(now) == list(sd)
+    for k, v in sd.items():
+        assert torch.equal(now[k], v), k
+    assert list(dict(model.named_modules())) == list(modules)
+    assert [type(m) for m in model.modules()] == [type(m) for m in modules.values()]
+    if same_objects:
+        assert dict(model.named_modules()) == modules
+    assert {k: v for k, v in model.__dict__.items() if not k.startswith("_")} == attrs
+    assert [len(m._forward_pre_hooks) + len(m._forward_hooks) for m in model.modules()] == hooks
+    assert not is_sparse(model) and not hasattr(model, "_smdm_state")
+
+
+def test_every_builtin_family_is_registered_and_detected(case):
+    assert {f.name for f in families()} >= {"mdm", "doubletake", "motiondiffuse"}
+    assert family_for(case.build()).name == case.family
+
+
+def test_round_trip_is_bit_identical(case):
+    model = case.build()
+    snap = snapshot(model)
+    diffusion = case.diffusion()
+    sparsify(model, case.config(), diffusion=diffusion)
+    assert is_sparse(model) and "smdm_sparse_version" in model.state_dict()
+    unsparsify(model)
+    assert_same(model, snap, same_objects=False)
+    assert "training_losses" not in vars(diffusion)                     # the diffusion restored
+
+
+def test_all_keyframes_equals_dense(case):
+    model = case.build().eval()
+    x, y = case.inputs()
+    t = torch.tensor([40, 20, 2])
+    with torch.no_grad():
+        dense = case.out_frames(case.call(model, x, t, y))
+        sparsify(model, case.config(reduction=0.0, lipschitz=False, fsq=False, mask_noise=0.0))
+        out = case.out_frames(case.call(model, x, t, y))
+    valid = case.valid(y)
+    assert (out - dense)[valid].abs().max() < 1e-5
+
+
+def test_save_and_load_checkpoint(case, tmp_path):
+    model = case.build().eval()
+    sparsify(model, case.config(), diffusion=case.diffusion())
+    with torch.no_grad():
+        for p in model.parameters():                     # weights that differ from a fresh model
+            p.add_(0.01 * torch.randn_like(p))
+    torch.save(model.state_dict(), tmp_path / "model.pt")
+    save_sparse_config(model, str(tmp_path))
+    loaded, config = load_checkpoint(str(tmp_path / "model.pt"), case.build().eval())
+    assert is_sparse(loaded) and config == model._smdm_state.config
+    x, y = case.inputs(1)
+    with torch.no_grad():
+        for step in (40, 2):
+            t = torch.full((3,), step)
+            assert torch.equal(case.call(loaded, x, t, y), case.call(model, x, t, y)), step
+
+
+@pytest.fixture
+def fresh_dynamo():
+    """Compiled frames of one model class accumulate across tests (dynamo's recompile limit counts
+    per code object): start and leave clean."""
+    torch._dynamo.reset()
+    yield
+    torch._dynamo.reset()
+
+
+def test_every_sparse_call_compiles_fullgraph(case, fresh_dynamo):
+    model = case.build()
+    diffusion = case.diffusion()
+    sparsify(model, case.config(mask_noise=0.1), diffusion=diffusion)
+    compiled = torch.compile(model, fullgraph=True, backend="eager")
+    x, y = case.inputs()
+    model.train()
+    assert torch.allclose(case.loss(diffusion, compiled, x, y), case.loss(diffusion, model, x, y), atol=1e-5)
+    model.eval()
+    with torch.no_grad():
+        for step in (40, 2):                             # uniform mask / VW on x_t in the late steps
+            t = torch.full((3,), step)
+            assert torch.allclose(case.call(compiled, x, t, y), case.call(model, x, t, y), atol=1e-5), step
+
+
+def test_static_path_has_no_host_sync(case):
+    model = case.build()
+    diffusion = case.diffusion()
+    sparsify(model, case.config(), diffusion=diffusion)
+    x, y = case.inputs()
+    with static_mode():
+        model.train()
+        case.loss(diffusion, model, x, y).backward()                 # warm-up: per-device tables
+        with Dispatched() as d:
+            case.loss(diffusion, model, x, y).backward()
+        assert not d.syncs, f"training step: {dict(d.syncs)}"
+        model.eval()
+        for step in (40, 2):
+            with torch.no_grad(), Dispatched() as d:
+                case.call(model, x, torch.full((3,), step), y)
+            assert not d.syncs, f"sampling t={step}: {dict(d.syncs)}"
+
+
+def test_lifecycle_with_the_diffusion_in_any_order(case):
+    x, y = case.inputs()
+    reference = case.loss(case.diffusion(), case.build(), x, y)      # dense, never sparsified
+    model, diffusion = case.build(), case.diffusion()
+    # attached at sparsify, unsparsified, trained dense with the same diffusion: upstream's loss
+    torch.manual_seed(7)                                             # the same new Lipschitz layers
+    sparsify(model, case.config(), diffusion=diffusion)
+    sparse_loss = case.loss(diffusion, model, x, y)
+    unsparsify(model)
+    assert torch.equal(case.loss(diffusion, model, x, y), reference)
+    # sparsified without the diffusion, attached afterwards; re-sparsified with another config
+    torch.manual_seed(7)
+    sparsify(model, case.config())
+    attach_diffusion(diffusion, model=model)
+    assert torch.equal(case.loss(diffusion, model, x, y), sparse_loss)
+    unsparsify(model)
+    torch.manual_seed(7)
+    sparsify(model, case.config(reduction=0.5), diffusion=diffusion)
+    assert not torch.equal(case.loss(diffusion, model, x, y), sparse_loss)
+    unsparsify(model)
+    assert torch.equal(case.loss(diffusion, model, x, y), reference)
+    assert "training_losses" not in vars(diffusion)
+
+
+class BrokenDiffusion:
+    """Has a step count (read first) but no ``training_losses`` (needed last, when attaching)."""
+
+    num_timesteps = 50
+
+
+def test_failed_sparsify_leaves_the_model_as_before_and_a_retry_works(case):
+    model = case.build()
+    snap = snapshot(model)
+    with pytest.raises(AttributeError):
+        sparsify(model, case.config(lipschitz=True), diffusion=BrokenDiffusion())
+    assert_same(model, snap)
+    sparsify(model, case.config(), diffusion=case.diffusion())
+    assert is_sparse(model)
+
+
+def test_motiondiffuse_fsq_request_is_a_warning_not_silent():
+    model = MotionDiffuseCase().build()
+    with warnings.catch_warnings(record=True) as seen:
+        warnings.simplefilter("always")
+        sparsify(model, SparseConfig(feature="raw", fsq=True))
+    assert any("fsq=True cannot apply" in str(w.message) for w in seen)
+    assert model._smdm_state.config.fsq is False
+
+
+def test_sparse_state_is_deep_copied_with_the_model(case):
+    model = case.build()
+    sparsify(model, case.config())
+    twin = copy.deepcopy(model)
+    assert twin._smdm_state is not model._smdm_state and twin._smdm_state.family is model._smdm_state.family
+    x, y = case.inputs()
+    model.eval(), twin.eval()
+    with torch.no_grad():
+        t = torch.full((3,), 40)
+        assert torch.equal(case.call(twin, x, t, y), case.call(model, x, t, y))
