@@ -94,7 +94,6 @@ def set_sampling(model, mean, std, **changes) -> None:
     state = get_state(model)
     config = state.config.replace(**changes)
     state.config = config
-    model.smdm_config = config
     state.schedule = MaskSchedule(config, mean, std)
 
 
