@@ -48,6 +48,9 @@ _EXPORTS: Dict[str, str] = {
     # metrics
     "foot_skating_ratio": "metrics.quality", "jitter": "metrics.quality", "keyframe_error": "metrics.quality",
     "end_effector_speed": "metrics.motion", "to_joint_positions": "metrics.motion",
+    "frechet_distance": "metrics.t2m", "diversity": "metrics.t2m", "multimodality": "metrics.t2m",
+    "r_precision": "metrics.t2m", "matching_score": "metrics.t2m", "retrieval": "metrics.t2m",
+    "Retrieval": "metrics.t2m", "mean_interval": "metrics.t2m",
     # io
     "read_bvh": "io.bvh", "bvh_joint_positions": "io.bvh", "load_cmu_clip": "io.bvh",
     "BVHError": "io.bvh", "BVHWarning": "io.bvh", "OutputExistsError": "io.files",
@@ -88,6 +91,8 @@ if TYPE_CHECKING:  # pragma: no cover - for type checkers and IDEs
     from .adapters.inbetween import forced_keyframes, keyframe_constraint, sample_inbetween
     from .metrics.motion import end_effector_speed, to_joint_positions
     from .metrics.quality import foot_skating_ratio, jitter, keyframe_error
+    from .metrics.t2m import (Retrieval, diversity, frechet_distance, matching_score, mean_interval, multimodality,
+                              r_precision, retrieval)
     from .core.interpolation import interpolate_keyframes
     from .core.keyframe_transformer import KeyframeTransformer
     from .core.lipschitz import LipschitzMLP, bake_lipschitz, lipschitz_loss

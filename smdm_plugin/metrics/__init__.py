@@ -5,7 +5,9 @@
   in-betweening literature (GMD, CondMDI, DNO) computes them;
 * :mod:`.inbetween` — in-betweening: transitions between given and generated frames, and one
   dict of keyframe error, jitter (overall, at the transitions) and foot skating (from :mod:`.quality`);
-* :mod:`.doubletake` — the motion/transition split of DoubleTake's long sequences.
+* :mod:`.doubletake` — the motion/transition split of DoubleTake's long sequences;
+* :mod:`.t2m` — the text-to-motion metrics of Guo et al. 2022 on evaluator embeddings: FID,
+  diversity, multimodality, R-precision and matching score (T2M's protocol).
 """
 from ..io.humanml3d import recover_from_ric, recover_root
 from .doubletake import doubletake_ees, motion_transition_masks, unfolded_step_sizes
@@ -13,8 +15,11 @@ from .motion import (HUMANML3D_END_EFFECTORS, KIT_END_EFFECTORS, end_effector_sp
                      to_joint_positions)
 from .inbetween import keyframe_metrics, transition_frames
 from .quality import HUMANML3D_FEET, foot_skating_ratio, jitter, keyframe_error
+from .t2m import (Retrieval, diversity, frechet_distance, matching_score, mean_interval, multimodality,
+                  r_precision, retrieval)
 
 __all__ = ["HUMANML3D_END_EFFECTORS", "KIT_END_EFFECTORS", "HUMANML3D_FEET", "end_effector_speed",
            "foot_skating_ratio", "jitter", "keyframe_error", "keyframe_metrics", "transition_frames", "to_joint_positions",
            "recover_from_ric", "recover_root", "doubletake_ees", "motion_transition_masks",
-           "unfolded_step_sizes"]
+           "unfolded_step_sizes", "Retrieval", "diversity", "frechet_distance", "matching_score", "mean_interval",
+           "multimodality", "r_precision", "retrieval"]

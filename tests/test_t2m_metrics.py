@@ -1,0 +1,136 @@
+"""T2M metrics (smdm_plugin.metrics.t2m) against slow, obviously correct references."""
+import numpy as np
+import pytest
+import torch
+
+from smdm_plugin.metrics import (diversity, frechet_distance, matching_score, mean_interval, multimodality,
+                                 r_precision, retrieval)
+
+
+def _fid_reference(a, b):
+    """FID with the matrix square root of S1 S2 itself: scipy.linalg.sqrtm when installed, else
+    the eigenvalues of the (non-symmetric) product S1 S2, whose square roots sum to Tr sqrt(S1 S2)."""
+    mu1, mu2 = a.mean(0), b.mean(0)
+    s1, s2 = np.cov(a, rowvar=False), np.cov(b, rowvar=False)
+    try:
+        from scipy import linalg
+
+        tr = np.trace(linalg.sqrtm(s1 @ s2)).real
+    except ImportError:
+        tr = np.sqrt(np.clip(np.linalg.eigvals(s1 @ s2).real, 0, None)).sum()
+    return float(((mu1 - mu2) ** 2).sum() + np.trace(s1) + np.trace(s2) - 2 * tr)
+
+
+def _fid_eig_reference(a, b):
+    mu1, mu2 = a.mean(0), b.mean(0)
+    s1, s2 = np.cov(a, rowvar=False), np.cov(b, rowvar=False)
+    tr = np.sqrt(np.clip(np.linalg.eigvals(s1 @ s2).real, 0, None)).sum()
+    return float(((mu1 - mu2) ** 2).sum() + np.trace(s1) + np.trace(s2) - 2 * tr)
+
+
+@pytest.mark.parametrize("n1,n2,d", [(200, 150, 8), (64, 80, 16), (40, 40, 64)])
+def test_fid_matches_references(n1, n2, d):
+    rng = np.random.default_rng(n1 + d)
+    mix = rng.normal(size=(d, d))
+    a = rng.normal(size=(n1, d)) @ mix
+    b = rng.normal(size=(n2, d)) @ (mix + 0.3 * rng.normal(size=(d, d))) + 0.5
+    got = frechet_distance(a, b)
+    assert got == pytest.approx(_fid_eig_reference(a, b), rel=1e-6, abs=1e-6)
+    if n1 > d and n2 > d:  # sqrtm of a full-rank product is well conditioned
+        assert got == pytest.approx(_fid_reference(a, b), rel=1e-6, abs=1e-6)
+    assert frechet_distance(torch.from_numpy(a).float(), torch.from_numpy(b).float()) == pytest.approx(got, rel=1e-4)
+
+
+def test_fid_closed_form_and_identity():
+    # diagonal covariances: FID = |mu1 - mu2|^2 + sum (sqrt(v1) - sqrt(v2))^2
+    rng = np.random.default_rng(0)
+    a = rng.normal(size=(5000, 3))
+    a = (a - a.mean(0)) / a.std(0, ddof=1)
+    # decorrelate exactly so the sample covariance is diagonal
+    w, v = np.linalg.eigh(np.cov(a, rowvar=False))
+    a = a @ v / np.sqrt(w)
+    scale = np.array([1.0, 2.0, 0.5])
+    b = a * scale + np.array([1.0, 0.0, -2.0])
+    expected = 1.0 + 4.0 + sum((1.0 - s) ** 2 for s in scale)
+    assert frechet_distance(a, b) == pytest.approx(expected, rel=1e-9)
+    assert abs(frechet_distance(a, a)) < 1e-9
+
+
+def test_diversity_and_multimodality_follow_t2m_draws():
+    rng = np.random.default_rng(1)
+    a = rng.normal(size=(50, 4))
+    got, n = diversity(a, times=20, seed=7)
+    r = np.random.default_rng(7)
+    i, j = r.choice(50, 20, replace=False), r.choice(50, 20, replace=False)
+    ref = np.mean([np.sqrt(((a[p] - a[q]) ** 2).sum()) for p, q in zip(i, j)])
+    assert n == 20 and got == pytest.approx(ref)
+    assert diversity(a, times=300)[1] == 49  # fewer motions than pairs: N - 1
+    mm = rng.normal(size=(6, 12, 4))
+    got, n = multimodality(mm, times=10, seed=3)
+    r = np.random.default_rng(3)
+    i, j = r.choice(12, 10, replace=False), r.choice(12, 10, replace=False)
+    ref = np.mean([np.sqrt(((mm[c, p] - mm[c, q]) ** 2).sum()) for c in range(6) for p, q in zip(i, j)])
+    assert n == 10 and got == pytest.approx(ref)
+    # identical generations: no multimodality; spread-out set: diversity near sqrt(2 D)
+    assert multimodality(np.repeat(mm[:, :1], 12, 1))[0] == 0.0
+    big = rng.normal(size=(4000, 16))
+    assert diversity(big)[0] == pytest.approx(np.sqrt(2 * 16), rel=0.05)
+
+
+def _retrieval_reference(t, m, pool, order):
+    """Brute force: every caption against every motion of its batch, one by one."""
+    n_batches = len(order) // pool if len(order) >= pool else 1
+    size = pool if len(order) >= pool else len(order)
+    hits, match, count = [0, 0, 0], 0.0, 0
+    for b in range(n_batches):
+        idx = order[b * size:(b + 1) * size]
+        for i in idx:
+            d_true = np.sqrt(((t[i] - m[i]) ** 2).sum())
+            nearer = 0
+            for j in idx:
+                if j != i and np.sqrt(((t[i] - m[j]) ** 2).sum()) < d_true:
+                    nearer += 1
+            for k in range(3):
+                hits[k] += nearer <= k
+            match += d_true
+            count += 1
+    return [h / count for h in hits], match / count, size, count
+
+
+@pytest.mark.parametrize("n", [100, 64, 20])
+def test_retrieval_matches_brute_force(n):
+    rng = np.random.default_rng(n)
+    m = rng.normal(size=(n, 6))
+    t = m + 0.9 * rng.normal(size=(n, 6))  # captions near their motion, not always nearest
+    r = retrieval(t, m, seed=5)
+    order = np.random.default_rng(5).permutation(n)
+    tops, match, size, count = _retrieval_reference(t, m, 32, order)
+    assert (r.top1, r.top2, r.top3) == pytest.approx(tops)
+    assert r.matching_score == pytest.approx(match)
+    assert (r.pool_size, r.n_scored) == (size, count)
+    assert r.pool_size == min(32, n) and r.n_scored == ((n // 32) * 32 if n >= 32 else n)
+    assert 0 < r.top1 < r.top2 <= r.top3 < 1
+    assert r_precision(t, m, seed=5) == (r.top1, r.top2, r.top3)
+    assert matching_score(t, m, seed=5) == r.matching_score
+
+
+def test_retrieval_extremes():
+    rng = np.random.default_rng(0)
+    m = rng.normal(size=(64, 8)) * 10
+    assert retrieval(m, m).top1 == 1.0  # captions on their motions
+    t = rng.normal(size=(64, 8))
+    chance = np.mean([retrieval(rng.normal(size=(64, 8)), t, seed=s).top1 for s in range(30)])
+    assert chance == pytest.approx(1 / 32, abs=0.02)
+
+
+def test_errors_and_interval():
+    with pytest.raises(ValueError, match=r"frechet_distance: a must be embeddings \[N, D\]"):
+        frechet_distance(np.zeros(5), np.zeros((5, 2)))
+    with pytest.raises(ValueError, match="same D"):
+        frechet_distance(np.zeros((5, 2)), np.zeros((5, 3)))
+    with pytest.raises(ValueError, match="retrieval: text and motion"):
+        retrieval(np.zeros((5, 2)), np.zeros((6, 2)))
+    with pytest.raises(ValueError, match="non-finite"):
+        diversity(np.full((5, 2), np.nan))
+    mean, ci = mean_interval([1.0, 2.0, 3.0, 4.0])
+    assert mean == 2.5 and ci == pytest.approx(1.96 * np.std([1, 2, 3, 4]) / 2)
