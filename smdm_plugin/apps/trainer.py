@@ -34,6 +34,7 @@ from ..core.config import CONFIG_FILENAME, SparseConfig
 from ..integrations.distributed import DistContext, constant_buffers_kwargs, init_distributed
 from ..io.checkpoint import BACKBONE_FILENAME
 from ..io.files import atomic_open, atomic_write_json, atomic_write_text
+from ..reference.text import TextConfig, save_text_config
 
 #: TinyMDM size of ``smdm train`` / ``smdm ablate`` (MDM's HumanML3D size is 512-D, 8 layers, ff 1024)
 DEFAULT_MODEL: Dict[str, Any] = {"latent_dim": 128, "num_layers": 4, "num_heads": 4, "ff_size": 256,
@@ -47,7 +48,8 @@ class MotionSet:
     """Normalised motions, stored unpadded: ``frames [sum(lengths), D]`` float32 (sample ``i`` is
     rows ``offsets[i]:offsets[i + 1]``), ``lengths [M]`` long, ``ids`` (M names), ``mean``/``std``
     ``[D]`` (the normalisation, needed to select keyframes on de-normalised features), ``joints``
-    (optional, per sample ``[L, 22, 3]`` metres), ``max_frames`` N (batches are padded to it)."""
+    (optional, per sample ``[L, 22, 3]`` metres), ``max_frames`` N (batches are padded to it),
+    ``captions`` (optional, per sample its caption texts, for text conditioning)."""
 
     frames: torch.Tensor
     lengths: torch.Tensor
@@ -56,6 +58,7 @@ class MotionSet:
     std: np.ndarray
     max_frames: int
     joints: Optional[List[Optional[np.ndarray]]] = None
+    captions: Optional[List[List[str]]] = None
     offsets: torch.Tensor = field(init=False)
 
     def __post_init__(self) -> None:
@@ -74,6 +77,9 @@ class MotionSet:
         for name in ("mean", "std"):
             if np.shape(getattr(self, name)) != (D,):
                 raise ValueError(f"MotionSet: {name} must be [D]=[{D}], got {np.shape(getattr(self, name))}")
+        if self.captions is not None and (len(self.captions) != len(self.ids) or not all(self.captions)):
+            raise ValueError(f"MotionSet: captions must hold a non-empty list of texts for each of the "
+                             f"{len(self.ids)} motions, got {len(self.captions)} entries")
         self.offsets = torch.cat([torch.zeros(1, dtype=torch.long), self.lengths.long().cumsum(0)])
 
     def __len__(self) -> int:
@@ -114,11 +120,12 @@ class MotionSet:
 
 
 def load_humanml3d(root: str, split: str = "train", max_frames: int = 196, min_frames: int = 40,
-                   with_joints: bool = False) -> MotionSet:
+                   with_joints: bool = False, with_captions: bool = False) -> MotionSet:
     """The ``split`` (``<root>/<split>.txt``) of a HumanML3D-format folder (``new_joint_vecs/*.npy``
     ``[T, 263]``, ``Mean.npy``/``Std.npy``; ``new_joints/*.npy`` ``[T, 22, 3]`` with
     ``with_joints``), normalised; motions shorter than ``min_frames`` are skipped, longer ones cut
-    to their first ``max_frames`` frames."""
+    to their first ``max_frames`` frames. ``with_captions``: each motion's captions from
+    ``texts/<id>.txt`` (:mod:`smdm_plugin.io.captions`; a missing file is an error)."""
     base = Path(root)
     missing = [n for n in ("Mean.npy", "Std.npy", "new_joint_vecs", f"{split}.txt") if not (base / n).exists()]
     if missing:
@@ -140,8 +147,14 @@ def load_humanml3d(root: str, split: str = "train", max_frames: int = 196, min_f
             joints.append(np.load(jpath)[:max_frames].astype(np.float32) if jpath.exists() else None)
     if not kept:
         raise ValueError(f"data: split {split!r} of {root} has no motion of >= {min_frames} frames")
-    return MotionSet.from_motions(motions, np.load(base / "Mean.npy"), np.load(base / "Std.npy"), kept,
-                                  max_frames, joints if with_joints else None)
+    out = MotionSet.from_motions(motions, np.load(base / "Mean.npy"), np.load(base / "Std.npy"), kept,
+                                 max_frames, joints if with_joints else None)
+    if with_captions:
+        from ..io.captions import load_captions
+
+        caps = load_captions(root, kept)
+        out = dataclasses.replace(out, captions=[caps[i] for i in kept])
+    return out
 
 
 # ----------------------------------------------------------------------------------------- randomness
@@ -188,13 +201,23 @@ def diffusion_draws(seed: int, step: int, sample_ids: Sequence[int], num_timeste
     return torch.cat(ts), torch.stack(noise)
 
 
+def caption_draws(seed: int, step: int, sample_ids: Sequence[int], counts: Sequence[int]) -> List[int]:
+    """Which caption each sample uses at ``step``: ``[b]`` indices in ``[0, counts[k])``, a function of
+    ``(seed, step, global sample index)`` only (as :func:`diffusion_draws`)."""
+    return [int(torch.randint(0, int(c), (1,), generator=torch.Generator().manual_seed(mix_seed(seed, 5, step, int(i)))))
+            for i, c in zip(sample_ids, counts)]
+
+
 # ----------------------------------------------------------------------------------------- config
 @dataclass
 class TrainConfig:
     """What to train and how. ``batch`` is per process (global batch = ``batch * world_size``);
     ``model``: :class:`TinyMDM` keyword arguments (``njoints`` comes from the data); ``sparse``:
     None trains the dense model. ``grad_clip`` 0 = off. ``compile``: ``torch.compile`` the
-    (DDP-wrapped) model with ``compile_backend``."""
+    (DDP-wrapped) model with ``compile_backend``. ``text``: a
+    :class:`~smdm_plugin.reference.text.TextConfig` trains text-conditioned (the data needs
+    captions; one caption drawn per sample per step; condition dropout for classifier-free
+    guidance); None (default) trains unconditionally."""
 
     steps: int = 1000
     batch: int = 16
@@ -207,6 +230,7 @@ class TrainConfig:
     sparse: Optional[SparseConfig] = None
     compile: bool = False
     compile_backend: str = "inductor"
+    text: Optional[TextConfig] = None
 
     def __post_init__(self) -> None:
         checks = {"steps": self.steps >= 0, "batch": self.batch >= 1, "lr": self.lr > 0,
@@ -220,6 +244,8 @@ class TrainConfig:
                 raise ValueError(f"TrainConfig.{name}={getattr(self, name)!r}: expected {expected[name]}")
         if self.sparse is not None and not isinstance(self.sparse, SparseConfig):
             raise TypeError(f"TrainConfig.sparse must be a SparseConfig or None, got {type(self.sparse).__name__}")
+        if self.text is not None and not isinstance(self.text, TextConfig):
+            raise TypeError(f"TrainConfig.text must be a TextConfig or None, got {type(self.text).__name__}")
         unknown = set(self.model) - set(_TINYMDM_ARGS)
         if unknown:
             raise ValueError(f"TrainConfig.model: unknown TinyMDM option(s) {sorted(unknown)}")
@@ -234,6 +260,8 @@ class TrainConfig:
         d = dict(d)
         if d.get("sparse") is not None and not isinstance(d["sparse"], SparseConfig):
             d["sparse"] = SparseConfig.from_dict(d["sparse"])
+        if d.get("text") is not None and not isinstance(d["text"], TextConfig):
+            d["text"] = TextConfig.from_dict(d["text"])
         return cls(**d)
 
 
@@ -319,6 +347,15 @@ class Trainer:
         torch.manual_seed(config.seed)  # initial weights: equal on every rank
         self.backbone_args: Dict[str, Any] = {"njoints": data.feature_dim, "nfeats": 1, "cond_mode": "no_cond",
                                               **config.model}
+        self.text_embeddings: Optional[List[torch.Tensor]] = None
+        if config.text is not None:
+            if data.captions is None:
+                raise ValueError("Trainer: config.text needs captions in the data (load_humanml3d(..., "
+                                 "with_captions=True))")
+            self.backbone_args.update(cond_mode="text", clip_dim=config.text.dim,
+                                      cond_mask_prob=config.text.cond_mask_prob)
+            enc = config.text.build()  # frozen: every caption embedded once, [n_captions_i, dim] per motion
+            self.text_embeddings = [enc(caps) for caps in data.captions]
         self.model = TinyMDM(**self.backbone_args).to(dev)
         self.diffusion = SimpleDiffusion(config.diffusion_steps)
         if config.sparse is not None:
@@ -362,6 +399,10 @@ class Trainer:
         t, noise = diffusion_draws(self.config.seed, self.step_count, sample_ids, self.diffusion.num_timesteps,
                                    tuple(x.shape[1:]), dev)
         y = {"mask": (torch.arange(N, device=dev) < lengths[:, None]).view(b, 1, 1, N), "lengths": lengths}
+        if self.text_embeddings is not None:
+            embs = [self.text_embeddings[i] for i in ids.tolist()]
+            pick = caption_draws(self.config.seed, self.step_count, sample_ids, [len(e) for e in embs])
+            y["text_embed"] = torch.stack([e[k] for e, k in zip(embs, pick)]).unsqueeze(0).to(dev)  # [1, b, dim]
         loss = self.diffusion.training_losses(self.forward_model, x, t, {"y": y}, noise=noise)["loss"].mean()
         self.optimizer.zero_grad(set_to_none=True)
         loss.backward()
@@ -425,6 +466,8 @@ class Trainer:
         config = getattr(self.model, "smdm_config", None)
         if config is not None:
             atomic_write_text(os.path.join(folder, CONFIG_FILENAME), config.to_json() + "\n")
+        if self.config.text is not None:
+            save_text_config(folder, self.config.text)
         for name, value in (("Mean.npy", self.data.mean), ("Std.npy", self.data.std)):
             with atomic_open(os.path.join(folder, name), "wb") as f:
                 np.save(f, np.asarray(value, np.float32))
