@@ -2,7 +2,7 @@
 
 Layers (each imports only from those below it; see ``docs/architecture.md``)::
 
-    apps/          smdm demo | train | bench | ablate | inbetween | render | run | keyframes (CLI)
+    apps/          smdm demo | train | bench | ablate | eval | evaluator | inbetween | render | run | keyframes
     integrations/  upstream MDM / DiP, priorMDM, MotionDiffuse: launcher hooks, patch entry points
     adapters/      model surgery: sparsify / unsparsify per model family, diffusion wrapper
     core/          the method: selection, plan, keyframe transformer, interpolation, Lipschitz, FSQ
@@ -51,6 +51,9 @@ _EXPORTS: Dict[str, str] = {
     "frechet_distance": "metrics.t2m", "diversity": "metrics.t2m", "multimodality": "metrics.t2m",
     "r_precision": "metrics.t2m", "matching_score": "metrics.t2m", "retrieval": "metrics.t2m",
     "Retrieval": "metrics.t2m", "mean_interval": "metrics.t2m",
+    "Evaluator": "metrics.evaluator", "EvaluatorConfig": "metrics.evaluator", "load_evaluator": "metrics.evaluator",
+    "save_evaluator": "metrics.evaluator", "score_motions": "metrics.evaluator", "EvalResult": "metrics.evaluator",
+    "motion_quality": "metrics.evaluator",
     # io
     "read_bvh": "io.bvh", "bvh_joint_positions": "io.bvh", "load_cmu_clip": "io.bvh",
     "BVHError": "io.bvh", "BVHWarning": "io.bvh", "OutputExistsError": "io.files",
@@ -91,6 +94,8 @@ if TYPE_CHECKING:  # pragma: no cover - for type checkers and IDEs
     from .adapters.inbetween import forced_keyframes, keyframe_constraint, sample_inbetween
     from .metrics.motion import end_effector_speed, to_joint_positions
     from .metrics.quality import foot_skating_ratio, jitter, keyframe_error
+    from .metrics.evaluator import (EvalResult, Evaluator, EvaluatorConfig, load_evaluator, motion_quality,
+                                    save_evaluator, score_motions)
     from .metrics.t2m import (Retrieval, diversity, frechet_distance, matching_score, mean_interval, multimodality,
                               r_precision, retrieval)
     from .core.interpolation import interpolate_keyframes

@@ -1,4 +1,7 @@
 """T2M metrics (smdm_plugin.metrics.t2m) against slow, obviously correct references."""
+import importlib.util
+import os
+
 import numpy as np
 import pytest
 import torch
@@ -134,3 +137,35 @@ def test_errors_and_interval():
         diversity(np.full((5, 2), np.nan))
     mean, ci = mean_interval([1.0, 2.0, 3.0, 4.0])
     assert mean == 2.5 and ci == pytest.approx(1.96 * np.std([1, 2, 3, 4]) / 2)
+
+
+# ----------------------------------------------------------------------------------------- upstream
+MDM_ROOT = os.environ.get("SMDM_MDM_ROOT")
+
+
+@pytest.mark.skipif(not MDM_ROOT, reason="SMDM_MDM_ROOT (an MDM checkout) not set")
+def test_same_numbers_as_upstream_metrics():
+    """MDM's data_loaders/humanml/utils/metrics.py (needs scipy): calculate_frechet_distance on the
+    activation statistics, and eval_humanml's matching-score loop (euclidean_distance_matrix, argsort,
+    calculate_top_k, trace) over batches of 32 in order, against frechet_distance / retrieval."""
+    pytest.importorskip("scipy")
+    spec = importlib.util.spec_from_file_location(
+        "mdm_metrics", os.path.join(MDM_ROOT, "data_loaders", "humanml", "utils", "metrics.py"))
+    up = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(up)
+    rng = np.random.default_rng(11)
+    a = rng.normal(size=(300, 16)) @ rng.normal(size=(16, 16))
+    b = rng.normal(size=(250, 16)) @ rng.normal(size=(16, 16)) + 0.2
+    ref = up.calculate_frechet_distance(*up.calculate_activation_statistics(b), *up.calculate_activation_statistics(a))
+    assert frechet_distance(a, b) == pytest.approx(ref, rel=1e-6)
+    t = a[:96] + rng.normal(size=(96, 16)) * 3.0
+    m = a[:96]
+    top, match, size = np.zeros(3), 0.0, 0
+    for s in range(0, 96, 32):
+        dist = up.euclidean_distance_matrix(t[s:s + 32], m[s:s + 32])
+        match += dist.trace()
+        top += up.calculate_top_k(np.argsort(dist, axis=1), top_k=3).sum(axis=0)
+        size += 32
+    r = retrieval(t, m, shuffle=False)
+    assert (r.top1, r.top2, r.top3) == pytest.approx(tuple(top / size))
+    assert r.matching_score == pytest.approx(match / size)

@@ -34,6 +34,8 @@ COMMANDS: Dict[str, Tuple[str, str]] = {
                   "in-betweening: a motion through your keyframes (BVH / .npy), dense and sparse, with a GIF"),
     "render": ("smdm_plugin.apps.render", "a saved motion (.npy joints / HumanML3D features, BVH) as an animated GIF"),
     "keyframes": ("smdm_plugin.apps.keyframes", "keyframe reconstruction error of BVH clips per selection method and rate"),
+    "evaluator": ("smdm_plugin.apps.evaluator", "'evaluator train': train a T2M evaluator on your captioned motion"),
+    "eval": ("smdm_plugin.apps.evaluate", "FID, R-precision, diversity, jitter, skating of motions or a model"),
 }
 
 

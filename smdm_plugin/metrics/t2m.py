@@ -81,7 +81,10 @@ def frechet_distance_from_stats(mu1: np.ndarray, sigma1: np.ndarray, mu2: np.nda
     inner = r1 @ sigma2 @ r1
     tr_covmean = float(np.sqrt(np.clip(np.linalg.eigvalsh((inner + inner.T) / 2), 0.0, None)).sum())
     diff = mu1 - mu2
-    return float(diff @ diff + np.trace(sigma1) + np.trace(sigma2) - 2.0 * tr_covmean)
+    fid = float(diff @ diff + np.trace(sigma1) + np.trace(sigma2) - 2.0 * tr_covmean)
+    # identical sets give 0 up to round-off (larger when N <= D: the square roots of ~0 eigenvalues);
+    # only that round-off, never a real negative, is clipped
+    return 0.0 if -1e-6 * (1.0 + np.trace(sigma1) + np.trace(sigma2)) < fid < 0.0 else fid
 
 
 def frechet_distance(a: ArrayLike, b: ArrayLike) -> float:
@@ -100,13 +103,19 @@ def diversity(embeddings: ArrayLike, times: int = DIVERSITY_TIMES,
     replacement), mean distance of the paired rows. Upstream needs ``N > times``; with fewer motions
     ``times`` becomes ``N - 1``. Returns ``(diversity, times used)``."""
     a = _matrix("diversity", embeddings, "embeddings", min_rows=2)
+    i, j = _pair_draws("diversity", a.shape[0], times, seed)
+    return float(np.linalg.norm(a[i] - a[j], axis=1).mean()), len(i)
+
+
+def _pair_draws(fn: str, n: int, times: int, seed: Union[int, np.random.Generator, None]
+                ) -> Tuple[np.ndarray, np.ndarray]:
+    """T2M's random pairs: two independent draws of ``min(times, n - 1)`` of ``n`` indices, each
+    without replacement."""
     if isinstance(times, bool) or not isinstance(times, int) or times < 1:
-        raise ValueError(f"diversity: times must be an int >= 1, got {times!r}")
-    n = min(times, a.shape[0] - 1)
+        raise ValueError(f"{fn}: times must be an int >= 1, got {times!r}")
+    k = min(times, n - 1)
     rng = _rng(seed)
-    i = rng.choice(a.shape[0], n, replace=False)
-    j = rng.choice(a.shape[0], n, replace=False)
-    return float(np.linalg.norm(a[i] - a[j], axis=1).mean()), n
+    return rng.choice(n, k, replace=False), rng.choice(n, k, replace=False)
 
 
 def multimodality(embeddings: ArrayLike, times: int = MULTIMODALITY_TIMES,
@@ -118,13 +127,8 @@ def multimodality(embeddings: ArrayLike, times: int = MULTIMODALITY_TIMES,
     if a.shape[1] < 2:
         raise ValueError(f"multimodality: embeddings must be [C, R, D] with R >= 2 generations per caption, "
                          f"got {a.shape}")
-    if isinstance(times, bool) or not isinstance(times, int) or times < 1:
-        raise ValueError(f"multimodality: times must be an int >= 1, got {times!r}")
-    n = min(times, a.shape[1] - 1)
-    rng = _rng(seed)
-    i = rng.choice(a.shape[1], n, replace=False)
-    j = rng.choice(a.shape[1], n, replace=False)
-    return float(np.linalg.norm(a[:, i] - a[:, j], axis=2).mean()), n
+    i, j = _pair_draws("multimodality", a.shape[1], times, seed)
+    return float(np.linalg.norm(a[:, i] - a[:, j], axis=2).mean()), len(i)
 
 
 # ----------------------------------------------------------------------------------------- retrieval

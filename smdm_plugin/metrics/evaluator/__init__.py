@@ -1,0 +1,10 @@
+"""The T2M text-to-motion evaluator (Guo et al. 2022): networks with the published checkpoint's
+layout, caption reading, loading either layout, scoring motions, training one on your own data."""
+from .model import (Evaluator, EvaluatorConfig, evaluator_info, evaluator_layout, load_evaluator,
+                    load_upstream_evaluator, save_evaluator)
+from .networks import MotionEncoderBiGRUCo, MovementConvEncoder, TextEncoderBiGRUCo
+from .score import EvalResult, embed_captions, embed_motions, motion_quality, score_embeddings, score_motions
+
+__all__ = ["Evaluator", "EvaluatorConfig", "load_evaluator", "load_upstream_evaluator", "save_evaluator",
+           "evaluator_layout", "evaluator_info", "MovementConvEncoder", "MotionEncoderBiGRUCo", "TextEncoderBiGRUCo",
+           "EvalResult", "score_motions", "score_embeddings", "embed_motions", "embed_captions", "motion_quality"]

@@ -1,0 +1,125 @@
+"""Captioned motion for training and scoring evaluators: :class:`CaptionedMotions` from a
+HumanML3D-format folder (``new_joint_vecs/<id>.npy`` ``[T, D]``, ``texts/<id>.txt``, ``Mean.npy``,
+``Std.npy``, ``<split>.txt``) or from the CMU clips embedded in the package (``joints66`` features,
+the representation ``smdm demo`` trains on, captioned with CMU's one-line descriptions).
+
+As HumanML3D's loader: a caption line with a ``from#to`` span (seconds) is a motion of its own (the
+span, cut at 20 fps); motions shorter than ``min_frames`` (40) are left out, longer ones are cut to
+their first ``max_frames`` (196) by the evaluator.
+"""
+from __future__ import annotations
+
+import os
+from dataclasses import dataclass
+from typing import List, Optional, Tuple
+
+import numpy as np
+
+from .vocab import Caption, plain_tokens, read_captions
+
+
+@dataclass
+class CaptionedMotions:
+    """``ids`` (M names), ``motions`` (raw features ``[L_i, D]``), ``captions`` (per motion, >= 1),
+    ``mean``/``std`` ``[D]`` (the data set's normalisation), ``representation`` (``humanml3d`` or
+    ``joints66``), ``fps``."""
+
+    ids: List[str]
+    motions: List[np.ndarray]
+    captions: List[List[Caption]]
+    mean: np.ndarray
+    std: np.ndarray
+    representation: str = "humanml3d"
+    fps: float = 20.0
+
+    def __len__(self) -> int:
+        return len(self.ids)
+
+    def first_captions(self, seed: Optional[int] = None) -> List[List[str]]:
+        """One caption per motion (token lists): the first, or a seeded random one (as upstream draws)."""
+        if seed is None:
+            return [c[0].tokens for c in self.captions]
+        rng = np.random.default_rng(seed)
+        return [c[int(rng.integers(len(c)))].tokens for c in self.captions]
+
+
+def load_captioned(root: str, split: str = "test", min_frames: int = 40, fps: float = 20.0) -> CaptionedMotions:
+    """The ``split`` of a HumanML3D-format folder (see the module docstring)."""
+    need = ["Mean.npy", "Std.npy", "new_joint_vecs", "texts", f"{split}.txt"]
+    missing = [n for n in need if not os.path.exists(os.path.join(root, n))]
+    if missing:
+        raise FileNotFoundError(f"--data {root!r}: not a HumanML3D-format folder with captions (missing "
+                                f"{', '.join(missing)})")
+    mean, std = np.load(os.path.join(root, "Mean.npy")), np.load(os.path.join(root, "Std.npy"))
+    ids, motions, captions = [], [], []
+    with open(os.path.join(root, f"{split}.txt")) as f:
+        names = [l.strip() for l in f if l.strip()]
+    for name in names:
+        mpath, tpath = os.path.join(root, "new_joint_vecs", f"{name}.npy"), os.path.join(root, "texts", f"{name}.txt")
+        if not (os.path.isfile(mpath) and os.path.isfile(tpath)):
+            continue
+        motion = np.load(mpath).astype(np.float32)
+        if motion.ndim != 2 or motion.shape[1] != mean.shape[-1]:
+            raise ValueError(f"{mpath}: expected [T, {mean.shape[-1]}] features, got {motion.shape}")
+        whole: List[Caption] = []
+        for k, c in enumerate(read_captions(tpath)):
+            if c.start == 0.0 and c.end == 0.0:
+                whole.append(c)
+                continue
+            part = motion[int(c.start * fps):int(c.end * fps)]
+            if len(part) >= min_frames:
+                ids.append(f"{name}#{k}")
+                motions.append(part)
+                captions.append([c])
+        if whole and len(motion) >= min_frames:
+            ids.append(name)
+            motions.append(motion)
+            captions.append(whole)
+    if not ids:
+        raise ValueError(f"--data {root!r}: split {split!r} has no captioned motion of >= {min_frames} frames")
+    return CaptionedMotions(ids, motions, captions, mean.astype(np.float32), std.astype(np.float32))
+
+
+def embedded_captioned(split: str, window: int = 40, stride: int = 8) -> CaptionedMotions:
+    """The embedded CMU clips as ``joints66`` windows of ``window`` frames, captioned with CMU's
+    description. The split is by time inside each clip (every clip's motion style is in train): the
+    first 60% of a clip's frames give ``train`` windows, the next 20% ``val``, the last 20% ``test``
+    (windows never cross those borders; a clip too short for a window in a part gives none there)."""
+    from ...io.embedded import embedded_clips, embedded_descriptions
+    from ...io.representation import canonical_xz, joints_to_joints66
+
+    if split not in ("train", "val", "test"):
+        raise ValueError(f"embedded data: split must be train, val or test, got {split!r}")
+    desc = embedded_descriptions()
+    clips = embedded_clips()
+    feats_all = {n: joints_to_joints66(canonical_xz(np.asarray(j, np.float32))).astype(np.float32) for n, j in clips}
+    allf = np.concatenate(list(feats_all.values()))
+    mean, std = allf.mean(0).astype(np.float32), (allf.std(0) + 1e-4).astype(np.float32)
+    ids, motions, captions = [], [], []
+    for name, j in clips:
+        T = len(j)
+        a, b = {"train": (0, int(0.6 * T)), "val": (int(0.6 * T), int(0.8 * T)), "test": (int(0.8 * T), T)}[split]
+        w = min(window, b - a)
+        if w < 40:
+            continue
+        for s in range(a, b - w + 1, stride):
+            seg = np.asarray(j[s:s + w], np.float32)
+            ids.append(f"{name}@{s}")
+            motions.append(joints_to_joints66(canonical_xz(seg)).astype(np.float32))
+            text = desc[name]
+            captions.append([Caption(text, plain_tokens(text))])
+    if not ids:
+        raise ValueError(f"embedded data: no {split} window")
+    return CaptionedMotions(ids, motions, captions, mean, std, representation="joints66")
+
+
+def load_split(data: Optional[str], split: str) -> CaptionedMotions:
+    """``load_captioned(data, split)``, or the embedded clips when ``data`` is None."""
+    return embedded_captioned(split) if data is None else load_captioned(data, split)
+
+
+def split_names(data: Optional[str]) -> Tuple[str, ...]:
+    """The held-out splits present: ``val`` and/or ``test``."""
+    if data is None:
+        return ("val", "test")
+    return tuple(s for s in ("val", "test") if os.path.isfile(os.path.join(data, f"{s}.txt")))

@@ -1,0 +1,170 @@
+"""Captions for the T2M evaluator: HumanML3D caption lines, parts of speech, word vectors.
+
+A HumanML3D caption line is ``caption#word/POS word/POS ...#from#to`` (seconds; ``0#0``: the whole
+motion); the words are lemmas with their spaCy part of speech. The evaluator reads a caption as
+``sos``, its first ``max_text_len`` (20) tokens, ``eos``; each token is a word vector (``unk``'s for
+a word not in the vocabulary, with part of speech ``OTHER``) and a one-hot of 15 categories: the 9
+spaCy tags below, ``OTHER``, and 5 "very important" word classes that override a word's tag
+(locations, body parts, objects, actions, manners) — the T2M protocol's categories and word lists.
+
+GloVe vocabulary files (``our_vab_data.npy`` ``[V, 300]``, ``our_vab_words.pkl`` a list of words,
+``our_vab_idx.pkl`` a dict word -> row) are read with :func:`safe_pickle_load`, which builds only
+plain Python containers and refuses any pickled class or function (no code runs on load).
+"""
+from __future__ import annotations
+
+import io
+import os
+import pickle
+import re
+from dataclasses import dataclass
+from typing import Dict, List, Sequence, Tuple
+
+import numpy as np
+
+POS_CATEGORIES: Tuple[str, ...] = ("VERB", "NOUN", "DET", "ADP", "NUM", "AUX", "PRON", "ADJ", "ADV",
+                                   "Loc_VIP", "Body_VIP", "Obj_VIP", "Act_VIP", "Desc_VIP", "OTHER")
+POS_INDEX: Dict[str, int] = {p: i for i, p in enumerate(POS_CATEGORIES)}
+
+#: word classes whose part of speech is replaced by the class (checked in this order)
+VIP_WORDS: Tuple[Tuple[str, frozenset], ...] = (
+    ("Loc_VIP", frozenset("left right clockwise counterclockwise anticlockwise forward back backward up down "
+                          "straight curve".split())),
+    ("Body_VIP", frozenset("arm chin foot feet face hand mouth leg waist eye knee shoulder thigh".split())),
+    ("Obj_VIP", frozenset("stair dumbbell chair window floor car ball handrail baseball basketball".split())),
+    ("Act_VIP", frozenset("walk run swing pick bring kick put squat throw hop dance jump turn stumble stop sit "
+                          "lift lower raise wash stand kneel stroll rub bend balance flap jog shuffle lean rotate "
+                          "spin spread climb".split())),
+    ("Desc_VIP", frozenset("slowly carefully fast careful slow quickly happy angry sad happily angrily "
+                           "sadly".split())),
+)
+SPECIAL_WORDS: Tuple[str, ...] = ("unk", "sos", "eos")
+MAX_TEXT_LEN = 20
+
+
+# ----------------------------------------------------------------------------------------- files
+class _PlainUnpickler(pickle.Unpickler):
+    def find_class(self, module: str, name: str):  # noqa: D102 - refuse every global
+        raise pickle.UnpicklingError(f"refusing to load {module}.{name}: only lists, dicts, str and numbers")
+
+
+def safe_pickle_load(path: str) -> object:
+    """Unpickle ``path`` allowing only built-in containers and scalars (no classes, no functions)."""
+    with open(path, "rb") as f:
+        data = f.read()
+    try:
+        return _PlainUnpickler(io.BytesIO(data)).load()
+    except (pickle.UnpicklingError, EOFError, ValueError, TypeError) as e:
+        raise ValueError(f"{path}: not a plain pickle of words / indices ({e})") from None
+
+
+@dataclass
+class Caption:
+    """One caption: ``text``, ``tokens`` (``word/POS``), and the motion span ``start``/``end`` in seconds
+    (both 0: the whole motion)."""
+
+    text: str
+    tokens: List[str]
+    start: float = 0.0
+    end: float = 0.0
+
+
+def parse_caption_line(line: str, where: str = "caption") -> Caption:
+    """``caption#word/POS ...#from#to`` -> :class:`Caption` (a line with no ``#``: the words, POS ``OTHER``)."""
+    parts = line.strip().split("#")
+    if len(parts) == 1:
+        return Caption(parts[0], plain_tokens(parts[0]))
+    if len(parts) < 2:
+        raise ValueError(f"{where}: expected 'caption#word/POS ...#from#to', got {line.strip()!r}")
+    tokens = [t for t in parts[1].split(" ") if t]
+    if not tokens:
+        tokens = plain_tokens(parts[0])
+    tokens = [t if "/" in t else f"{t}/OTHER" for t in tokens]
+    start = end = 0.0
+    if len(parts) >= 4:
+        try:
+            start, end = float(parts[2]), float(parts[3])
+        except ValueError:
+            raise ValueError(f"{where}: from/to must be numbers (seconds), got {parts[2]!r}, {parts[3]!r}") from None
+        start, end = (0.0 if np.isnan(start) else start), (0.0 if np.isnan(end) else end)
+    return Caption(parts[0], tokens, start, end)
+
+
+def plain_tokens(text: str) -> List[str]:
+    """Lower-case words of ``text`` as ``word/OTHER`` tokens (captions without POS tags)."""
+    return [f"{w}/OTHER" for w in re.findall(r"[a-z0-9']+", text.lower())]
+
+
+def read_captions(path: str) -> List[Caption]:
+    """Every caption of a HumanML3D ``texts/<id>.txt`` file (blank lines skipped)."""
+    with open(path, encoding="utf-8") as f:
+        return [parse_caption_line(l, f"{path}:{i + 1}") for i, l in enumerate(f) if l.strip()]
+
+
+# ----------------------------------------------------------------------------------------- tokens
+def token_pos(word: str, pos: str, known: bool) -> int:
+    """Row of the one-hot part of speech: a VIP class for a known VIP word, else the tag (``OTHER``
+    when unknown or the word is not in the vocabulary)."""
+    if not known:
+        return POS_INDEX["OTHER"]
+    for name, words in VIP_WORDS:
+        if word in words:
+            return POS_INDEX[name]
+    return POS_INDEX.get(pos, POS_INDEX["OTHER"])
+
+
+def caption_tokens(tokens: Sequence[str], max_text_len: int = MAX_TEXT_LEN) -> List[str]:
+    """``sos``, the first ``max_text_len`` tokens, ``eos`` (the evaluator's reading of a caption)."""
+    return ["sos/OTHER"] + list(tokens[:max_text_len]) + ["eos/OTHER"]
+
+
+def encode_tokens(tokens: Sequence[str], vocab: Dict[str, int], max_text_len: int = MAX_TEXT_LEN
+                  ) -> Tuple[List[int], List[int]]:
+    """Word rows and part-of-speech rows of a caption read as :func:`caption_tokens`; a word missing
+    from ``vocab`` takes ``unk``'s row and ``OTHER``."""
+    words, pos = [], []
+    unk = vocab["unk"]
+    for tok in caption_tokens(tokens, max_text_len):
+        word, _, tag = tok.partition("/")
+        row = vocab.get(word)
+        words.append(unk if row is None else row)
+        pos.append(token_pos(word, tag, row is not None))
+    return words, pos
+
+
+def load_glove(folder: str, prefix: str = "our_vab") -> Tuple[np.ndarray, Dict[str, int]]:
+    """``(vectors [V, W] float32, word -> row)`` from T2M's GloVe files in ``folder``
+    (``<prefix>_data.npy``, ``<prefix>_words.pkl``, ``<prefix>_idx.pkl``), read without running code."""
+    paths = [os.path.join(folder, f"{prefix}_{s}") for s in ("data.npy", "words.pkl", "idx.pkl")]
+    missing = [p for p in paths if not os.path.isfile(p)]
+    if missing:
+        raise FileNotFoundError(f"GloVe folder {folder!r}: missing {', '.join(os.path.basename(p) for p in missing)} "
+                                "(T2M's glove.zip from the text-to-motion / MDM download scripts)")
+    vectors = np.load(paths[0], allow_pickle=False)
+    words, index = safe_pickle_load(paths[1]), safe_pickle_load(paths[2])
+    if vectors.ndim != 2 or not isinstance(words, list) or not isinstance(index, dict):
+        raise ValueError(f"GloVe folder {folder!r}: expected {prefix}_data.npy [V, W], a list of words and a "
+                         f"dict word -> row; got shape {vectors.shape}, {type(words).__name__}, {type(index).__name__}")
+    vocab: Dict[str, int] = {}
+    for w in words:
+        row = index.get(w)
+        if not isinstance(w, str) or isinstance(row, bool) or not isinstance(row, (int, np.integer)) \
+                or not 0 <= row < len(vectors):
+            raise ValueError(f"GloVe folder {folder!r}: word {w!r} has row {row!r}, expected an int in "
+                             f"[0, {len(vectors)})")
+        vocab[w] = int(row)
+    if "unk" not in vocab:
+        raise ValueError(f"GloVe folder {folder!r}: the vocabulary has no 'unk' word")
+    return vectors.astype(np.float32), vocab
+
+
+def build_vocabulary(token_lists: Sequence[Sequence[str]], min_count: int = 1) -> Dict[str, int]:
+    """Word -> row for word embeddings learned from a data set's own captions: ``unk``, ``sos``,
+    ``eos`` then every word seen at least ``min_count`` times (sorted, so the table is reproducible)."""
+    counts: Dict[str, int] = {}
+    for tokens in token_lists:
+        for tok in tokens:
+            w = tok.partition("/")[0]
+            counts[w] = counts.get(w, 0) + 1
+    words = list(SPECIAL_WORDS) + sorted(w for w, c in counts.items() if c >= min_count and w not in SPECIAL_WORDS)
+    return {w: i for i, w in enumerate(words)}
