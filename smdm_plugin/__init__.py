@@ -54,6 +54,7 @@ _EXPORTS: Dict[str, str] = {
     "Evaluator": "metrics.evaluator", "EvaluatorConfig": "metrics.evaluator", "load_evaluator": "metrics.evaluator",
     "save_evaluator": "metrics.evaluator", "score_motions": "metrics.evaluator", "EvalResult": "metrics.evaluator",
     "motion_quality": "metrics.evaluator",
+    "jitter_per_speed": "metrics.quality", "mean_speed": "metrics.quality",
     # io
     "read_bvh": "io.bvh", "bvh_joint_positions": "io.bvh", "load_cmu_clip": "io.bvh",
     "BVHError": "io.bvh", "BVHWarning": "io.bvh", "OutputExistsError": "io.files",
@@ -98,6 +99,7 @@ if TYPE_CHECKING:  # pragma: no cover - for type checkers and IDEs
                                     save_evaluator, score_motions)
     from .metrics.t2m import (Retrieval, diversity, frechet_distance, matching_score, mean_interval, multimodality,
                               r_precision, retrieval)
+    from .metrics.quality import jitter_per_speed, mean_speed
     from .core.interpolation import interpolate_keyframes
     from .core.keyframe_transformer import KeyframeTransformer
     from .core.lipschitz import LipschitzMLP, bake_lipschitz, lipschitz_loss

@@ -76,15 +76,20 @@ def test_quick_demo_skips_unusable_files_keeps_given_flags_and_leaves_models(bvh
     assert [f for f, _ in s["skipped"]] == [str(folder / "a_truncated.bvh"), str(folder / "b_other_skeleton.bvh")]
     err = s["keyframes"]["mpjpe_mm"]
     assert 0 < err["vw"]["0.8"] < 200 and err["random"]["0.8"] > 0
-    # jitter and foot skating of each model's samples and of the real motion: columns, finite
+    # j/s beside the speed it is relative to, jitter and foot skating of each model's samples and of
+    # the real motion: columns, finite, consistent; --quick stops both at 3 steps: one row each
     lines = (out / "training.md").read_text().splitlines()
-    assert lines[0].startswith("| model |") and lines[0].rstrip().endswith("| jitter (m/s³) | foot skating |")
-    rows = {ln.split("|")[1].strip(): ln.split("|")[-3:-1] for ln in lines if ln.startswith("| ") and "---" not in ln}
-    for name in ("dense", "sparse", "motion capture (training clips)"):
-        jit, skate = (float(v) for v in rows[name])
-        assert np.isfinite(jit) and jit >= 0 and 0 <= skate <= 1, (name, rows[name])
+    assert lines[0].startswith("| model |") and lines[0].rstrip().endswith(
+        "| j/s (1/s²) | jitter (m/s³) | speed (m/s) | foot skating |")
+    rows = {ln.split("|")[1].strip(): ln.split("|")[-5:-1] for ln in lines[2:] if ln.startswith("| ")}
+    assert set(rows) == {"dense, equal steps and time", "sparse, equal steps and time", "motion capture (training clips)"}
+    for name, cells in rows.items():
+        jps, jit, speed, skate = (float(v) for v in cells)
+        assert np.isfinite(jit) and jit >= 0 and speed > 0 and 0 <= skate <= 1, (name, cells)
+        assert jps == pytest.approx(jit / speed, rel=0.02, abs=1), (name, cells)
     q = s["training"]["quality"]
-    assert q["motion capture"]["jitter"] > 0 and all(np.isfinite(q[m]["jitter"]) for m in ("dense", "sparse"))
+    assert q["motion capture"]["jitter"] > 0 and all(np.isfinite(q[m]["jps"]) for m in ("dense", "sparse"))
+    assert s["training"]["equal_steps"]["steps"] == 3 and "32 unconditional samples per model" in text
     # the in-betweening table: keyframes exact for both models
     rows = [r for r in (out / "inbetween.md").read_text().splitlines() if r.startswith("| dense") or r.startswith("| sparse")]
     assert len(rows) == 2 and all(r.split("|")[3].strip() == "0.0" for r in rows)
@@ -237,3 +242,44 @@ def test_bvh_warning_is_shown(tmp_path, mocap_files):
     clips = demo.load_clips([str(f)], log=log.append)
     assert len(clips) == 1 and len(log) == 1
     assert log[0].startswith(f"  note: read_bvh: {f}") and log[0].endswith("(BVHWarning)")
+
+
+class _FakeDist:
+    distributed, is_main, device = False, True, "cpu"
+
+
+class _FakeTrainer:
+    """Steps that take ``cost`` seconds (slept), a 'model' whose weight counts the steps."""
+
+    def __init__(self, cost):
+        import torch
+
+        self.cost, self.dist, self.model = cost, _FakeDist(), torch.nn.Linear(1, 1, bias=False)
+        self.model.weight.data.zero_()
+
+    def step(self):
+        import time
+
+        time.sleep(self.cost)
+        self.model.weight.data += 1
+        return float(self.model.weight)
+
+
+def test_race_fair_gives_equal_steps_then_equal_time():
+    from smdm_plugin.apps.trainer import race_fair
+
+    slow, fast = _FakeTrainer(0.02), _FakeTrainer(0.005)
+    r = race_fair({"dense": slow, "sparse": fast}, seconds=0.6)
+    eq = r["equal_steps"]
+    S = eq["steps"]
+    assert r["dense"]["steps"] == S and r["sparse"]["steps"] > 2 * S            # fast trains on
+    assert float(eq["states"]["sparse"]["weight"]) == S                        # its weights at S steps
+    assert float(fast.model.weight) == r["sparse"]["steps"] and "dense" not in eq["states"]
+    assert r["sparse"]["seconds"] == pytest.approx(r["dense"]["seconds"], rel=0.2)   # equal time
+    assert r["dense"]["seconds"] >= 0.3 and eq["seconds"]["sparse"] < 0.5 * eq["seconds"]["dense"]
+    assert r["speed_ratio"] > 2
+    capped = race_fair({"dense": _FakeTrainer(0.0), "sparse": _FakeTrainer(0.0)}, max_steps=4)
+    assert capped["equal_steps"]["steps"] == 4 and capped["equal_steps"]["states"] == {}
+    assert capped["dense"]["steps"] == capped["sparse"]["steps"] == 4
+    with pytest.raises(ValueError, match="race_fair: need seconds > 0"):
+        race_fair({"dense": slow}, seconds=0)

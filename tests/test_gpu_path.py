@@ -217,3 +217,43 @@ def test_static_path_equals_default_cpu_path(name):
     with static_mode():
         out = loss(diffusion, model, x, y)
     assert torch.allclose(out, ref, atol=1e-5)
+
+
+# ----------------------------------------------------------------------------- C¹ sampling fill
+@pytest.mark.parametrize("name", VARIANTS)
+def test_cubic_sampling_compiles_fullgraph_without_host_sync(name, steps=3):
+    from smdm_plugin import interpolate_keyframes
+    from smdm_plugin.adapters.mdm import call_plan
+
+    """``sample_interpolation="cubic"`` in the last 3 steps: traced with fullgraph, same result as
+    eager, no host sync on the static path, before (linear) and inside the cubic steps; and it does
+    change the output there (only there)."""
+    model, _ = make(name, sample_interpolation="cubic", sample_interpolation_steps=steps)
+    linear, _ = make(name)
+    x, y = batch(name)
+    B = x.shape[0]
+    model.eval()
+    linear.eval()
+    compiled = torch.compile(model, fullgraph=True, backend="eager")
+    with torch.no_grad():
+        for step in (40, 2, 0):
+            ts = torch.full((B,), step)
+            ref = model(x, ts, dict(y))
+            assert torch.allclose(compiled(x, ts, dict(y)), ref, atol=1e-4), step
+            lin = linear(x, ts, dict(y))
+            if step >= steps:                                     # the paper's output, bit for bit
+                assert torch.equal(ref, lin), step
+            else:                                                 # C¹ through the keyframe outputs
+                plan = call_plan(model._smdm_state, x, ts, dict(y))
+                N = x.shape[-1]
+                kf = plan.mask[:, plan.frames - N:]
+                frames, lin_frames = ref.squeeze(2).transpose(1, 2), lin.squeeze(2).transpose(1, 2)
+                assert torch.allclose(frames[kf], lin_frames[kf], atol=1e-6)     # exact at keyframes
+                assert torch.allclose(frames, interpolate_keyframes(lin_frames, kf, "cubic"), atol=1e-5)
+                assert not torch.allclose(frames, lin_frames, atol=1e-3)
+            with static_mode():
+                model(x, ts, dict(y))                             # warm-up: per-device tables
+                with Dispatched() as d:
+                    out = model(x, ts, dict(y))
+            assert not d.syncs, f"sampling t={step}: {dict(d.syncs)}"
+            assert torch.allclose(out, ref, atol=1e-5), step

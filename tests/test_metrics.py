@@ -283,3 +283,36 @@ def test_quality_metrics_on_real_motion():
     assert float(keyframe_error(rec, pos, mask, lengths=lengths)) < 1e-9
     # ... and interpolation is smoother than the real motion, with less skating
     assert float(jitter(rec, lengths=lengths)) < float(jit.mean())
+
+
+def _loop_speed_and_jitter(motion: np.ndarray, fps: float = 20.0):
+    """Plain loops over frames and joints: mean |velocity| (m/s) and mean |jerk| (m/s³)."""
+    N, J, _ = motion.shape
+    v = [np.linalg.norm((motion[k + 1, j] - motion[k, j]) * fps) for k in range(N - 1) for j in range(J)]
+    jerk = [np.linalg.norm((motion[k + 3, j] - 3 * motion[k + 2, j] + 3 * motion[k + 1, j] - motion[k, j]) * fps ** 3)
+            for k in range(N - 3) for j in range(J)]
+    return float(np.mean(v)), float(np.mean(jerk))
+
+
+def test_mean_speed_and_jitter_per_speed_match_a_loop_reference():
+    from smdm_plugin.metrics import jitter_per_speed, mean_speed
+
+    pos = _random_motions(B=3, N=30)
+    lengths = [30, 17, 4]
+    ref = [_loop_speed_and_jitter(pos[b, :L].numpy()) for b, L in enumerate(lengths)]
+    speed = mean_speed(pos, lengths=lengths, reduce="none")
+    assert speed.tolist() == pytest.approx([r[0] for r in ref], rel=1e-10)
+    per = jitter_per_speed(pos, lengths=lengths, reduce="none")
+    assert per.tolist() == pytest.approx([r[1] / r[0] for r in ref], rel=1e-10)
+    # the set's value is the ratio of the set's means (not the mean of the ratios)
+    want = np.mean([r[1] for r in ref]) / np.mean([r[0] for r in ref])
+    assert float(jitter_per_speed(pos, lengths=lengths)) == pytest.approx(want, rel=1e-10)
+    # invariant to playing the same path faster in space: scaling positions leaves j/s unchanged
+    assert float(jitter_per_speed(3 * pos)) == pytest.approx(float(jitter_per_speed(pos)), rel=1e-10)
+    # a walker at constant velocity: speed known, no jerk
+    walk = _walker(40, foot_speed=1.0)
+    assert float(jitter_per_speed(walk)) == pytest.approx(0.0, abs=1e-6)
+    with pytest.raises(ValueError, match="jitter_per_speed: lengths must be in"):
+        jitter_per_speed(pos, lengths=[30, 17, 3])
+    with pytest.raises(ValueError, match="reduce must be"):
+        jitter_per_speed(pos, reduce="sum")

@@ -31,6 +31,7 @@ from ..core.attention_backends import gather_rows, scatter_rows
 from ..core.checks import host_checkable
 from ..core.config import MARKER, SparseConfig
 from ..core.fsq import quantize_attention_keys, unquantize_attention_keys
+from ..core.interpolation import interpolate_keyframes_cubic
 from ..core.keyframe_transformer import KeyframeTransformer
 from ..core.lipschitz import LipschitzMLP
 from ..core.plan import KeyframePlan
@@ -122,18 +123,19 @@ def call_plan(state: SparseState, x: torch.Tensor, timesteps: Any, y: Dict[str, 
         capacity = y.get("keyframe_capacity")
         if capacity is None:                               # a mask from elsewhere: size it safely
             capacity = int(mask.sum(1).max()) if host_checkable(mask) and B else N
-        check = True
+        check, cubic = True, None
     else:                                                  # sampling: the schedule on x_t
         t = timesteps if timesteps is not None else torch.zeros(B, dtype=torch.long, device=device)
         mask = state.schedule.sampling_mask(frames_layout(x), t, lengths, forced, checked=True)
         capacity = state.schedule.capacity(N, training=False, forced=protected_count(forced, lengths))
         check = False                                      # 2..capacity keyframes by construction
+        cubic = state.schedule.cubic_samples(t, B, device)
     capacity = max(1, min(int(capacity), N))
     prefix = state.variant.prefix_len
     if prefix:
         mask = torch.cat([mask.new_ones(B, prefix), mask], dim=1)
         capacity += prefix
-    return KeyframePlan.build(mask, capacity, check=check)
+    return KeyframePlan.build(mask, capacity, check=check, cubic=cubic)
 
 
 def _pre_hook(model: nn.Module, args: tuple, kwargs: dict):
@@ -144,11 +146,25 @@ def _pre_hook(model: nn.Module, args: tuple, kwargs: dict):
     return None
 
 
-def _post_hook(model: nn.Module, args: tuple, kwargs: dict, output: Any) -> None:
+def _post_hook(model: nn.Module, args: tuple, kwargs: dict, output: Any) -> Any:
     state: SparseState = getattr(model, STATE_ATTR)
+    plan = state.plan
     state.transformer.set_plan(None)
     state.plan = None
-    return None
+    if plan is None or plan.cubic is None or not isinstance(output, torch.Tensor) or output.dim() != 4:
+        return None
+    return cubic_output(output, plan)
+
+
+def cubic_output(output: torch.Tensor, plan: KeyframePlan) -> torch.Tensor:
+    """``sample_interpolation="cubic"``: the model's output ``[B, J, F, N]`` with every frame of the
+    samples in ``plan.cubic`` (the others unchanged) on the C¹ Catmull-Rom curve through the output at the plan's keyframes
+    (which it keeps exactly; a DiP prefix is the plan's first frames). Static shapes, no sync."""
+    B, J, F_, N = output.shape
+    frames = frames_layout(output)                                          # [B, N, J*F]
+    filled = interpolate_keyframes_cubic(frames, plan.mask[:, plan.frames - N:])
+    filled = torch.where(plan.cubic.view(B, 1, 1), filled, frames)          # the others as they are
+    return filled.reshape(B, N, J, F_).permute(0, 2, 3, 1)
 
 
 # Input embedding on keyframe rows only (speed; outputs unchanged). Only keyframe tokens enter the

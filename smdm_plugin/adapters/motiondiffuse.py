@@ -45,7 +45,7 @@ import torch
 import torch.nn as nn
 
 from ..core.config import MARKER, SparseConfig
-from ..core.interpolation import interpolate_keyframes
+from ..core.interpolation import interpolate_keyframes, interpolate_keyframes_cubic
 from ..core.lipschitz import LipschitzMLP, lipschitz_loss
 from ..core.schedule import MaskSchedule
 
@@ -150,10 +150,12 @@ def _sparse_forward(self, x, timesteps, length=None, text=None, xf_proj=None, xf
     h = h + self.sequence_embedding.unsqueeze(0)[:, :T, :]
 
     valid = valid_frames(length, B, T, x.device)
+    cubic = None
     if keyframe_mask is None:
         lengths = valid.long().sum(1).clamp(2, T) if T >= 2 else valid.long().sum(1)
         t = timesteps if timesteps is not None else torch.zeros(B, device=x.device)
         mask = state.schedule.sampling_mask(x.detach(), t, lengths, keyframe_forced)
+        cubic = state.schedule.cubic_samples(t, B, x.device)
     else:
         mask = torch.as_tensor(keyframe_mask, device=x.device).bool()
         if mask.shape != (B, T):
@@ -173,7 +175,10 @@ def _sparse_forward(self, x, timesteps, length=None, text=None, xf_proj=None, xf
     for block in self.temporal_decoder_blocks:
         hk = block(hk, xf_out, emb, src_mask)
     h = interpolate_keyframes(scatter_keyframes(hk, tok_valid, mask), mask)
-    return self.out(h).view(B, T, -1).contiguous()
+    out = self.out(h).view(B, T, -1)
+    if cubic is not None:       # sample_interpolation="cubic": C¹ through the keyframe outputs
+        out = torch.where(cubic.view(B, 1, 1), interpolate_keyframes_cubic(out, mask), out)
+    return out.contiguous()
 
 
 # --------------------------------------------------------------------------- (un)sparsify

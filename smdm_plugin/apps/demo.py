@@ -15,9 +15,14 @@
    reconstructions, and a stick-figure strip (original vs. VW reconstruction).
 2. **Training.** Trains the in-package backbone (:class:`~smdm_plugin.reference.backbone.TinyMDM` +
    :class:`~smdm_plugin.reference.diffusion.SimpleDiffusion`) dense and sparse (80% reduction) from
-   the same weights on the same random crops for ``--minutes`` in total, time-sliced (each step goes
-   to the model that has used less time so far, so machine load hits both alike), and reports the
-   measured speed ratio and both loss curves. Training goes through the one in-package
+   the same weights on the same random crops for ``--minutes`` in total, to **equal steps and equal
+   time** (:func:`~smdm_plugin.apps.trainer.race_fair`: both step in turn, so machine load hits both
+   alike, until the slower has used half the time; the faster one is saved at that step count
+   (``sparse_equal_steps/``) and trains on for as long as the slower took), and reports the measured
+   speed ratio and the loss curves. Each model then draws 32 unconditional samples (same noise),
+   scored by jitter per unit speed (j/s, 1/s²) beside the speed (m/s) it is relative to, jitter
+   (m/s³) and foot skating; :func:`evaluator_scores` is where FID and the other evaluator metrics
+   join them. Training goes through the one in-package
    :class:`~smdm_plugin.apps.trainer.Trainer`, so under ``torchrun --nproc_per_node N -m smdm_plugin
    demo`` both models train with DistributedDataParallel (``--batch`` per process) and only rank 0
    writes files and prints tables. HumanML3D's 263-D features need foot contacts and
@@ -34,8 +39,8 @@
 
 Writes to ``--out`` (refused when it exists and is not empty, unless ``--overwrite``):
 ``keyframes.md`` / ``keyframes.csv``, ``keyframes.png``, ``training.md``, ``loss.png``,
-``inbetween.md``, ``inbetween.gif``, ``summary.json`` and the two trained models ``dense/`` and
-``sparse/`` (``smdm inbetween --model OUT/dense OUT/sparse`` samples from them). BVH files it cannot
+``inbetween.md``, ``inbetween.gif``, ``summary.json`` and the trained models ``dense/``, ``sparse/`` and
+``sparse_equal_steps/`` (``smdm inbetween --model OUT/dense OUT/sparse`` samples from them). BVH files it cannot
 use are listed with the full reason, and the reader's warnings (``BVHWarning``) are shown.
 """
 from __future__ import annotations
@@ -46,6 +51,7 @@ import os
 import sys
 import time
 import warnings
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Dict, List, Optional, Sequence, Tuple
 
@@ -389,7 +395,7 @@ def main_demo(args: argparse.Namespace) -> int:
     rank reads the motion and trains; rank 0 alone writes files and prints the tables."""
     from ..core.config import SparseConfig
     from ..integrations.distributed import init_distributed, shutdown_distributed
-    from .trainer import MotionSet, TrainConfig, Trainer, feature_stats, race
+    from .trainer import MotionSet, TrainConfig, Trainer, feature_stats, race_fair
 
     t_start = time.perf_counter()
     if args.threads:
@@ -463,22 +469,30 @@ def main_demo(args: argparse.Namespace) -> int:
         say(f"\n## Training dense vs. sparse ({int(round(args.train_reduction * 100))}% dropped) for "
             f"{seconds:.0f} s in total on {dev}: {len(data)} crops of {args.frames} frames from {len(train_clips)} "
             f"clip(s), 66-D joint features, batch {procs}{args.batch}")
-        train = race(trainers, seconds, max_steps=3 if args.quick else None, progress=not args.quick,
-                     desc="training dense + sparse")
+        train = race_fair(trainers, seconds, max_steps=3 if args.quick else None, progress=not args.quick,
+                          desc="training dense + sparse")
+        snapshots = train.pop("equal_steps")
+        train["equal_steps"] = {k: v for k, v in snapshots.items() if k != "states"}
         train.update(spec={"reduction": args.train_reduction, **model, "diffusion_steps": diffusion_steps},
                      batch=args.batch, world_size=ctx.world_size, global_batch=trainers["dense"].global_batch,
                      seed=args.seed)
         if not main_rank:
             return 0
         plot_losses(train, os.path.join(args.out, "loss.png"))
-        bundles = save_models(trainers, args.out, args.frames, mean, std, train, [c[0] for c in train_clips], dev)
+        bundles = save_models(trainers, args.out, args.frames, mean, std, train, [c[0] for c in train_clips], dev,
+                              snapshots["states"])
         ref_clips = [held] if held else train_clips
-        quality = generation_quality(bundles, np.stack(training_crops(ref_clips, args.frames, stride=args.frames)),
-                                     samples=4 if args.quick else 8, seed=args.seed, device=dev)
+        reference = np.stack(training_crops(ref_clips, args.frames, stride=args.frames))
+        generated = generate_samples(bundles, args.frames, SCORED_SAMPLES, args.seed, dev)
+        quality = generation_quality(generated, reference)
+        quality.update(evaluator_scores(generated, reference))
         train["quality"] = quality
         ttable = training_markdown(train, quality, ("held-out clip" if held else "training clips"))
         ttable += (f"\n\nsparse / dense training speed: **{train['speed_ratio']:.2f}×** (TinyMDM latent "
-                   f"{args.latent}, {args.layers} layers, batch {procs}{args.batch}, {args.frames} frames)")
+                   f"{args.latent}, {args.layers} layers, batch {procs}{args.batch}, {args.frames} frames). "
+                   f"Quality: {SCORED_SAMPLES} unconditional samples per model ({diffusion_steps} diffusion "
+                   f"steps, sparse sampling: {sparse_sampling(trainers['sparse'].model)}); j/s = jitter / speed "
+                   f"(1/s²), the jerk relative to how fast the motion moves.")
         print(ttable)
         atomic_write_text(os.path.join(args.out, "training.md"), ttable + "\n")
 
@@ -486,7 +500,7 @@ def main_demo(args: argparse.Namespace) -> int:
         clip = held or clips[0]
         note = " (held out from training)" if held else " (a training clip: too few clips to hold one out)"
         print(f"\n## In-betweening {clip[0]}{note}")
-        itable = inbetween_demo(bundles, clip, args.frames, args.every, args.out, args.seed, dev,
+        itable = inbetween_demo({k: bundles[k] for k in ("dense", "sparse")}, clip, args.frames, args.every, args.out, args.seed, dev,
                                 gif=not args.no_gif, progress=not args.quick, stride=2 if args.quick else 1, note=note)
         print(itable)
         summary = {"source": source, "files": files, "skipped": [list(x) for x in skipped],
@@ -500,55 +514,141 @@ def main_demo(args: argparse.Namespace) -> int:
         shutdown_distributed(ctx)
 
 
-def generation_quality(bundles: Dict[str, Any], reference: np.ndarray, samples: int, seed: int,
-                       device: torch.device) -> Dict[str, Dict[str, float]]:
-    """Jitter (m/s³) and foot skating ratio (:mod:`smdm_plugin.metrics`, 20 fps) of ``samples``
-    unconditional samples of each model (as long as the reference windows), and of the real motion
-    ``reference`` joints ``[W, N, 22, 3]`` (metres) under ``'motion capture'``."""
-    from ..metrics import foot_skating_ratio, jitter
+#: unconditional samples scored per model (jitter, speed, foot skating; FID once an evaluator is given)
+SCORED_SAMPLES = 32
 
-    N = reference.shape[1]
-    out: Dict[str, Dict[str, float]] = {}
+
+@dataclass
+class GeneratedSet:
+    """Samples of one model, in every form a scorer needs: ``features [B, N, D]`` (the model's
+    representation, de-normalised; ``representation`` names it), ``lengths [B]`` (valid frames) and
+    ``joints [B, N, 22, 3]`` (metres, 20 fps)."""
+
+    features: torch.Tensor
+    lengths: torch.Tensor
+    joints: torch.Tensor
+    representation: str
+
+
+def generate_samples(bundles: Dict[str, Any], frames: int, samples: int, seed: int, device: torch.device
+                     ) -> Dict[str, GeneratedSet]:
+    """``samples`` unconditional motions of ``frames`` frames from each model of ``bundles``, with the
+    same noise for every model."""
+    out: Dict[str, GeneratedSet] = {}
     for name, b in bundles.items():
-        y = {"mask": torch.ones(samples, 1, 1, N, dtype=torch.bool, device=device),
-             "lengths": torch.full((samples,), N, dtype=torch.long, device=device)}
+        y = {"mask": torch.ones(samples, 1, 1, frames, dtype=torch.bool, device=device),
+             "lengths": torch.full((samples,), frames, dtype=torch.long, device=device)}
         gen = torch.Generator(device=device).manual_seed(seed + 11)
-        x = b.diffusion.p_sample_loop(b.model, (samples, len(b.mean), 1, N), {"y": y}, device=device, generator=gen)
-        j = torch.as_tensor(b.representation.to_joints(b.denormalise(x.squeeze(2).permute(0, 2, 1).float().cpu())))
-        out[name] = {"jitter": float(jitter(j, fps=20)), "foot_skating": float(foot_skating_ratio(j, fps=20))}
-    ref = torch.from_numpy(np.asarray(reference, np.float32))
-    out["motion capture"] = {"jitter": float(jitter(ref, fps=20)), "foot_skating": float(foot_skating_ratio(ref, fps=20))}
+        x = b.diffusion.p_sample_loop(b.model, (samples, len(b.mean), 1, frames), {"y": y}, device=device,
+                                      generator=gen)
+        feats = b.denormalise(x.squeeze(2).permute(0, 2, 1).float().cpu())
+        out[name] = GeneratedSet(torch.as_tensor(feats), y["lengths"].cpu(),
+                                 torch.as_tensor(b.representation.to_joints(feats)), b.representation.name)
     return out
 
 
+def motion_scores(joints: torch.Tensor) -> Dict[str, float]:
+    """Jitter (m/s³), mean joint speed (m/s), jitter per unit speed ``jps`` (1/s², the ratio of the
+    set's means) and foot skating ratio of joints ``[B, N, 22, 3]`` (metres, 20 fps)."""
+    from ..metrics import foot_skating_ratio, jitter, mean_speed
+
+    j = torch.as_tensor(joints)
+    jit, speed = float(jitter(j, fps=20)), float(mean_speed(j, fps=20))
+    return {"jitter": jit, "speed": speed, "jps": jit / speed if speed > 0 else float("nan"),
+            "foot_skating": float(foot_skating_ratio(j, fps=20))}
+
+
+def generation_quality(generated: Dict[str, GeneratedSet], reference: np.ndarray) -> Dict[str, Dict[str, float]]:
+    """:func:`motion_scores` of every model's samples and of the real motion ``reference`` joints
+    ``[W, N, 22, 3]`` (metres) under ``'motion capture'``."""
+    out = {name: motion_scores(g.joints) for name, g in generated.items()}
+    out["motion capture"] = motion_scores(torch.from_numpy(np.asarray(reference, np.float32)))
+    return out
+
+
+def evaluator_scores(generated: Dict[str, GeneratedSet], reference: np.ndarray,
+                     evaluator: Optional[Any] = None) -> Dict[str, Dict[str, float]]:
+    """The field's distribution metrics (FID, R-precision, diversity) of each model's samples
+    against the real motion — **the place where the demo calls a motion evaluator** (issue 19, item
+    2). Without one (today) it returns ``{}`` and the tables show jitter, speed and skating only.
+
+    An evaluator scores features of the representation it was trained on: ``generated[name].features``
+    ``[B, N, D]`` with ``.lengths [B]`` (and ``.representation``: the demo trains on ``joints66``, an
+    evaluator for HumanML3D's 263-D features needs a model trained on HumanML3D data). It returns
+    ``{name: {'fid': ..., ...}}``, merged into the quality table by the caller."""
+    if evaluator is None:
+        return {}
+    return evaluator(generated, reference)
+
+
+def sparse_sampling(model: Any) -> str:
+    """The sparse sampling settings of ``model`` in words (interpolation, dynamic update)."""
+    c = getattr(model, "smdm_config", None)
+    if c is None:
+        return "dense"
+    steps = "" if c.sample_interpolation_steps is None else f" in the last {c.sample_interpolation_steps} steps"
+    return f"{c.sample_interpolation} fill{steps}, dynamic VW update {'on' if c.dynamic else 'off'}"
+
+
 def training_markdown(train: Dict[str, Any], quality: Dict[str, Dict[str, float]], reference: str) -> str:
-    """The training table: per model steps, time, speed, final loss, and the jitter / foot skating
-    of its samples; a last row with the real motion's (``reference`` says which)."""
-    lines = ["| model | steps | seconds | steps/s | final loss | jitter (m/s³) | foot skating |",
-             "| --- | ---: | ---: | ---: | ---: | ---: | ---: |"]
-    for n in ("dense", "sparse"):
-        r, q = train[n], quality[n]
-        fl = "—" if r["final_loss"] is None else f"{r['final_loss']:.4f}"
-        lines.append(f"| {n} | {r['steps']} | {r['seconds']:.1f} | {r['steps_per_s']:.2f} | {fl} | "
-                     f"{q['jitter']:.0f} | {q['foot_skating']:.3f} |")
-    q = quality["motion capture"]
-    lines.append(f"| motion capture ({reference}) | — | — | — | — | {q['jitter']:.0f} | {q['foot_skating']:.3f} |")
+    """The training table: per model steps, time, final loss, and the jitter per unit speed (j/s),
+    jitter, speed and foot skating of its samples (plus FID etc. when an evaluator gave them). A
+    model that trained on after the equal-steps point has two rows: at that step count
+    (``<name>_equal_steps`` in ``quality``: "equal steps") and at the end ("equal time"); the other
+    model's one row is both. A last row with the real motion's (``reference`` says which)."""
+    extra = sorted({k for q in quality.values() for k in q} - {"jitter", "speed", "jps", "foot_skating"})
+    lines = ["| model | steps | seconds | final loss | j/s (1/s²) | jitter (m/s³) | speed (m/s) | foot skating |"
+             + "".join(f" {k} |" for k in extra),
+             "| --- | ---: | ---: | ---: | ---: | ---: | ---: | ---: |" + " ---: |" * len(extra)]
+    eq = train["equal_steps"]
+
+    def cells(q: Dict[str, float]) -> str:
+        return (f"{q['jps']:.0f} | {q['jitter']:.0f} | {q['speed']:.2f} | {q['foot_skating']:.3f} |"
+                + "".join(f" {q[k]:.3f} |" if k in q else " — |" for k in extra))
+
+    for key in quality:
+        if key == "motion capture":
+            continue
+        if key.endswith("_equal_steps"):
+            run = key[:-len("_equal_steps")]
+            label, steps, secs, fl = f"{run}, equal steps", eq["steps"], eq["seconds"][run], eq["final_loss"][run]
+        else:
+            r = train[key]
+            both = f"{key}_equal_steps" not in quality
+            label = f"{key}, equal {'steps and time' if both else 'time'}"
+            steps, secs, fl = r["steps"], r["seconds"], r["final_loss"]
+        fl = "—" if fl is None else f"{fl:.4f}"
+        lines.append(f"| {label} | {steps} | {secs:.1f} | {fl} | " + cells(quality[key]))
+    lines.append(f"| motion capture ({reference}) | — | — | — | " + cells(quality["motion capture"]))
     return "\n".join(lines)
 
 
 def save_models(trainers: Dict[str, Any], out: str, frames: int, mean: np.ndarray, std: np.ndarray,
-                train: Dict[str, Any], clip_names: List[str], device: torch.device) -> Dict[str, Any]:
-    """Write ``out/dense`` and ``out/sparse`` (model folders ``smdm inbetween`` reads) and load them back."""
+                train: Dict[str, Any], clip_names: List[str], device: torch.device,
+                equal_steps: Optional[Dict[str, Dict[str, torch.Tensor]]] = None) -> Dict[str, Any]:
+    """Write ``out/dense`` and ``out/sparse`` (model folders ``smdm inbetween`` reads) and, for a
+    model that trained on after the equal-steps point, ``out/<name>_equal_steps`` (its weights at
+    that step, from ``equal_steps``); load them back."""
     from ..io.bundle import load_bundle, save_bundle
     from ..io.representation import Representation
 
     bundles = {}
     for n, tr in trainers.items():
-        save_bundle(os.path.join(out, n), tr.model.eval(), tr.diffusion, tr.backbone_args,
-                    Representation("joints66"), mean, std, fps=20, max_frames=frames, overwrite=True,
-                    info={"trained_by": "smdm demo", "clips": clip_names, "steps": train[n]["steps"],
-                          "world_size": train["world_size"]})
-        bundles[n] = load_bundle(os.path.join(out, n), device=device)
+        jobs = [(n, None, train[n]["steps"])]
+        if equal_steps and n in equal_steps:
+            jobs.insert(0, (f"{n}_equal_steps", equal_steps[n], train["equal_steps"]["steps"]))
+        for folder, state, steps in jobs:
+            current = None
+            if state is not None:
+                current = {k: v.detach().clone() for k, v in tr.model.state_dict().items()}
+                tr.model.load_state_dict(state)
+            save_bundle(os.path.join(out, folder), tr.model.eval(), tr.diffusion, tr.backbone_args,
+                        Representation("joints66"), mean, std, fps=20, max_frames=frames, overwrite=True,
+                        info={"trained_by": "smdm demo", "clips": clip_names, "steps": steps,
+                              "world_size": train["world_size"]})
+            if current is not None:
+                tr.model.load_state_dict(current)
+            bundles[folder] = load_bundle(os.path.join(out, folder), device=device)
     return bundles
 
 

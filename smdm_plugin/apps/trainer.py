@@ -545,6 +545,103 @@ def race(trainers: Dict[str, "Trainer"], seconds: float = float("inf"), max_step
     return out
 
 
+def race_fair(trainers: Dict[str, "Trainer"], seconds: float = float("inf"), max_steps: Optional[int] = None,
+              progress: bool = False, desc: str = "training") -> Dict[str, Any]:
+    """Train several :class:`Trainer` s to **equal steps and equal time** (e.g. dense vs sparse).
+
+    Phase 1, equal steps: every trainer makes one step in turn (so machine load hits all alike)
+    until the slowest has spent ``seconds / len(trainers)`` in :meth:`Trainer.step` (or made
+    ``max_steps``); all now have ``S`` steps. The state of every other trainer at ``S`` steps is kept
+    (``out['equal_steps']['states'][name]``, a CPU copy of ``model.state_dict()``). Phase 2, equal
+    time: each faster trainer trains on until it has spent as long as the slowest (or made
+    ``max_steps``). Under torchrun the times are averaged over the ranks, so every rank steps the
+    same trainers (DDP needs that). Every trainer spends about ``seconds / len(trainers)``, so the
+    whole run takes about ``seconds``. Phase 2 runs the faster trainers alone, so the load of the
+    machine may differ from phase 1.
+
+    Returns per trainer what :func:`race` returns (the equal-time run: ``steps``, ``seconds``,
+    ``steps_per_s``, ``final_loss``, ``loss``, ``time``) plus ``equal_steps``: ``{'steps': S,
+    'seconds': {name: time at S}, 'final_loss': {name: loss over the last 10% of the S steps},
+    'states': {name: state dict at S for the trainers that went on}}``, and ``speed_ratio``
+    (second / first trainer's steps per second, phase 1)."""
+    if not trainers:
+        raise ValueError("race_fair: no trainers given")
+    if not (seconds > 0) or (max_steps is not None and max_steps < 0) or (math.isinf(seconds) and max_steps is None):
+        raise ValueError(f"race_fair: need seconds > 0 and max_steps >= 0 (one of them finite), got {seconds}, "
+                         f"{max_steps}")
+    names = list(trainers)
+    dist = trainers[names[0]].dist
+    share = seconds / len(names)
+    spent = torch.zeros(len(names), dtype=torch.float64)
+    runs: Dict[str, Dict[str, Any]] = {n: {"steps": 0, "seconds": 0.0, "loss": [], "time": []} for n in names}
+    bar = None
+    if progress and dist.is_main:
+        from tqdm.auto import tqdm
+
+        bar = tqdm(total=round(seconds) if math.isfinite(seconds) else len(names) * max_steps,
+                   desc=desc + (" (s)" if math.isfinite(seconds) else ""), mininterval=0.5,
+                   bar_format="{l_bar}{bar}| {n:.0f}/{total_fmt} [{elapsed}<{remaining}]{postfix}")
+
+    def agreed() -> torch.Tensor:
+        return dist.mean(spent.to(dist.device)).cpu() if dist.distributed else spent
+
+    def step(i: int) -> None:
+        r = runs[names[i]]
+        t0 = time.perf_counter()
+        r["loss"].append(trainers[names[i]].step())
+        dt = time.perf_counter() - t0
+        spent[i] += dt
+        r["steps"] += 1
+        r["seconds"] += dt
+        r["time"].append(r["seconds"])
+        if bar is not None:
+            bar.set_postfix_str(", ".join(f"{n} {v['steps']} steps loss {np.mean(v['loss'][-10:]):.3f}"
+                                          for n, v in runs.items() if v["loss"]), refresh=False)
+            done = min(seconds, float(spent.sum())) if math.isfinite(seconds) else sum(
+                v["steps"] for v in runs.values())
+            bar.update(done - bar.n)
+
+    # phase 1: equal steps (lockstep, alternating who goes first)
+    S = 0
+    while float(agreed().max()) < share and not (max_steps is not None and S >= max_steps):
+        for i in (range(len(names)) if S % 2 == 0 else reversed(range(len(names)))):
+            step(i)
+        S += 1
+    at_s = {n: {"seconds": runs[n]["seconds"], "final_loss": _tail_mean(runs[n]["loss"])} for n in names}
+    limit = float(agreed().max())
+    slowest = int(agreed().argmax())
+    states = {}
+    for i, n in enumerate(names):
+        if i != slowest and float(agreed()[i]) < limit and not (max_steps is not None and S >= max_steps):
+            states[n] = {k: v.detach().cpu().clone() for k, v in trainers[n].model.state_dict().items()}
+    # phase 2: equal time
+    for i, n in enumerate(names):
+        if n not in states:
+            continue
+        while float(agreed()[i]) < limit and not (max_steps is not None and runs[n]["steps"] >= max_steps):
+            step(i)
+    if bar is not None:
+        bar.close()
+    out: Dict[str, Any] = {}
+    for n, r in runs.items():
+        out[n] = {**r, "steps_per_s": r["steps"] / max(r["seconds"], 1e-9),
+                  "final_loss": _tail_mean(r["loss"]) if r["loss"] else None}
+    out["equal_steps"] = {"steps": S, "seconds": {n: v["seconds"] for n, v in at_s.items()},
+                          "final_loss": {n: v["final_loss"] for n, v in at_s.items()}, "states": states}
+    if len(names) >= 2:
+        rate = [S / max(at_s[n]["seconds"], 1e-9) for n in names[:2]]
+        out["speed_ratio"] = rate[1] / max(rate[0], 1e-9)
+    return out
+
+
+def _tail_mean(losses: Sequence[float]) -> Optional[float]:
+    """Mean of the last 10% of ``losses`` (None when empty)."""
+    if not losses:
+        return None
+    k = max(1, len(losses) // 10)
+    return float(np.mean(losses[-k:]))
+
+
 def load_trained(folder: str, step: Optional[int] = None, map_location: Any = "cpu"
                  ) -> Tuple[nn.Module, Optional[SparseConfig]]:
     """Reload a folder written by :meth:`Trainer.save` (the last ``model*.pt``, or ``step``'s),

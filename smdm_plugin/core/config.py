@@ -31,6 +31,7 @@ MARKER = "smdm_sparse_version"
 SELECTORS = ("vw", "uniform", "random", "mdo")
 FEATURES = ("auto", "humanml3d", "kit", "raw")
 BACKENDS = ("auto", "compact", "varlen", "masked")
+INTERPOLATIONS = ("linear", "cubic")
 
 PathLike = Union[str, "os.PathLike[str]"]
 
@@ -197,6 +198,13 @@ class SparseConfig:
     dynamic_update: Optional[bool] = _field(
         None, bool, "VW re-selection at sampling (None/auto: on iff diffusion_steps >= 100 and no DiP prefix, "
         "paper Table 2; false: uniform always)", optional=True)
+    sample_interpolation: str = _field(
+        "linear", str, "sampling: how the non-keyframes of the model's output are filled (linear: the paper's "
+        "linear interpolation before the output layer only; cubic: then C1 Catmull-Rom through the output at "
+        "the keyframes, smooth motion)", choices=INTERPOLATIONS)
+    sample_interpolation_steps: Optional[int] = _field(
+        None, int, "sampling: the last this many steps use sample_interpolation, the others linear "
+        "(None: every step)", range=Range(1), optional=True)
     diffusion_steps: int = _field(50, int, "T (overwritten from the diffusion when attached)", range=Range(1))
     prefix_frames: int = _field(0, int, "leading frames kept dense (DiP context)", range=Range(0))
     # --- model ---------------------------------------------------------------------------

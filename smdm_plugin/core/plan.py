@@ -33,6 +33,9 @@ class KeyframePlan:
         count: ``[B]`` long, keyframes per sample (``1 <= count <= K``).
         prev_slot, next_slot: ``[B, N]`` long, slots of the keyframes around each frame.
         weight: ``[B, N]`` float32 in [0, 1], the interpolation weight of each frame.
+        cubic: ``[B]`` bool or None: samples whose output frames are filled by C¹ Catmull-Rom curves
+            through the output at the keyframes (:func:`~smdm_plugin.core.interpolation.catmull_rom_taps`;
+            sampling with ``sample_interpolation="cubic"``); None = the paper's linear fill only.
     """
 
     mask: torch.Tensor
@@ -42,6 +45,7 @@ class KeyframePlan:
     prev_slot: torch.Tensor
     next_slot: torch.Tensor
     weight: torch.Tensor
+    cubic: Optional[torch.Tensor] = None
 
     @property
     def capacity(self) -> int:
@@ -56,10 +60,12 @@ class KeyframePlan:
         return self.mask.shape[1]
 
     @classmethod
-    def build(cls, mask: torch.Tensor, capacity: Optional[int] = None, check: bool = True) -> "KeyframePlan":
+    def build(cls, mask: torch.Tensor, capacity: Optional[int] = None, check: bool = True,
+              cubic: Optional[torch.Tensor] = None) -> "KeyframePlan":
         """The plan of bool ``mask [B, N]`` with ``capacity`` slots (None: ``N``, always enough).
         Every sample needs between 1 and ``capacity`` keyframes (checked without a host sync;
-        ``check=False`` for masks that hold it by construction, e.g. the sampling schedule's)."""
+        ``check=False`` for masks that hold it by construction, e.g. the sampling schedule's).
+        ``cubic``: bool ``[B]``, samples whose output is filled by C¹ interpolation (None: none)."""
         if mask.dim() != 2:
             raise ValueError(f"KeyframePlan: mask must be bool [B, N], got shape {tuple(mask.shape)}")
         mask = mask.to(torch.bool)
@@ -84,7 +90,9 @@ class KeyframePlan:
         next_f = index.gather(1, next_slot)
         gap = (next_f - prev_f).clamp_min(1).to(torch.float32)
         weight = ((idx[None] - prev_f).to(torch.float32) / gap).clamp(0.0, 1.0)
-        return cls(mask, index, valid, count, prev_slot, next_slot, weight)
+        if cubic is not None:
+            cubic = torch.as_tensor(cubic, device=mask.device).to(torch.bool).reshape(-1).expand(B)
+        return cls(mask, index, valid, count, prev_slot, next_slot, weight, cubic)
 
     def slot_frames(self) -> torch.Tensor:
         """``[K, B]`` long: the frame of every slot, frame-major (rows of a ``[N, B, ...]`` tensor

@@ -17,9 +17,10 @@ from .inbetween import keyframe_metrics, transition_frames
 from .quality import HUMANML3D_FEET, foot_skating_ratio, jitter, keyframe_error
 from .t2m import (Retrieval, diversity, frechet_distance, matching_score, mean_interval, multimodality,
                   r_precision, retrieval)
+from .quality import jitter_per_speed, mean_speed
 
 __all__ = ["HUMANML3D_END_EFFECTORS", "KIT_END_EFFECTORS", "HUMANML3D_FEET", "end_effector_speed",
            "foot_skating_ratio", "jitter", "keyframe_error", "keyframe_metrics", "transition_frames", "to_joint_positions",
            "recover_from_ric", "recover_root", "doubletake_ees", "motion_transition_masks",
            "unfolded_step_sizes", "Retrieval", "diversity", "frechet_distance", "matching_score", "mean_interval",
-           "multimodality", "r_precision", "retrieval"]
+           "multimodality", "r_precision", "retrieval", "jitter_per_speed", "mean_speed"]

@@ -1,4 +1,5 @@
-"""Motion quality on joint positions: foot skating ratio, jitter (mean jerk), keyframe error.
+"""Motion quality on joint positions: foot skating ratio, jitter (mean jerk), mean speed, jitter per
+unit speed, keyframe error.
 
 The sMDM paper evaluates its in-betweening model (sCondMDI) with the metrics of the keyframe
 in-betweening literature it builds on; these are those metrics, written so that they agree with
@@ -205,6 +206,40 @@ def jitter(motion: ArrayLike, *, fps: float = 20.0, lengths: Lengths = None,
     if reduce == "mean":
         return per_motion[n > 0].mean()
     return _reduce(fn, per_motion, reduce)
+
+
+# --------------------------------------------------------------------------- speed, jitter per speed
+def mean_speed(motion: ArrayLike, *, fps: float = 20.0, lengths: Lengths = None,
+               joints: Optional[Sequence[int]] = None, reduce: str = "mean") -> torch.Tensor:
+    """Mean joint speed in m/s: the norm of the first finite difference
+    ``(p_j(k+1) - p_j(k)) * fps`` averaged over the steps ``k = 0 .. L-2`` and the ``joints``
+    (default: all). Arguments as :func:`jitter` (``lengths`` each >= 2)."""
+    fn = "mean_speed"
+    pos, rate, L, idx = _inputs(fn, motion, fps, lengths, 2, joints)
+    B, N = pos.shape[:2]
+    p = pos[:, :, idx]
+    mag = ((p[:, 1:] - p[:, :-1]) * rate).norm(dim=-1).mean(dim=-1)      # [B, N-1]
+    w = (torch.arange(N - 1, device=pos.device)[None] < (L - 1)[:, None]).to(mag.dtype)
+    return _reduce(fn, (mag * w).sum(dim=1) / w.sum(dim=1), reduce)
+
+
+def jitter_per_speed(motion: ArrayLike, *, fps: float = 20.0, lengths: Lengths = None,
+                     joints: Optional[Sequence[int]] = None, reduce: str = "mean") -> torch.Tensor:
+    """Jitter relative to how fast the motion moves, in 1/s² ("j/s"): :func:`jitter` (m/s³) over
+    :func:`mean_speed` (m/s). Raw jitter grows with the speed of the motion (a model that moves
+    more jitters more in m/s³), so sets of motions are compared by this ratio, reported beside the
+    speed it is relative to.
+
+    ``reduce="mean"``: the ratio of the set's means, ``mean_b jitter_b / mean_b speed_b`` (one
+    near-still motion cannot blow it up); ``reduce="none"``: per motion ``jitter_b / speed_b``
+    ``[B]``. Arguments as :func:`jitter` (``lengths`` each >= 4)."""
+    fn = "jitter_per_speed"
+    if reduce not in ("mean", "none"):
+        raise ValueError(f"{fn}: reduce must be 'mean' or 'none', got {reduce!r}")
+    pos, rate, L, idx = _inputs(fn, motion, fps, lengths, 4, joints)
+    j = jitter(pos, fps=rate, lengths=L, joints=idx, reduce="none")
+    v = mean_speed(pos, fps=rate, lengths=L, joints=idx, reduce="none")
+    return j.mean() / v.mean() if reduce == "mean" else j / v
 
 
 # --------------------------------------------------------------------------- keyframe error
