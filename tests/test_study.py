@@ -14,7 +14,6 @@ import torch
 from smdm_plugin.apps import ablate, study
 from smdm_plugin.apps.trainer import MotionSet, TrainConfig, Trainer, caption_draws
 from smdm_plugin.integrations.distributed import DistContext
-from smdm_plugin.io.captions import parse_caption_line
 from smdm_plugin.reference.diffusion import SimpleDiffusion
 from smdm_plugin.reference.text import (HashedBagOfWords, TextConfig, load_text_config, sample_with_text,
                                         words)
@@ -27,18 +26,6 @@ def large_dir() -> Path:
     if not (LARGE / "Mean.npy").exists() or not (LARGE / "texts").is_dir():
         pytest.skip("../shared/data/cmu-humanml3d-large not available")
     return LARGE
-
-
-# ----------------------------------------------------------------------------------------- captions
-def test_caption_line_parsing():
-    c = parse_caption_line("a man walks.#a/DET man/NOUN walk/VERB#0.5#3.0\n")
-    assert c.text == "a man walks." and c.tokens == (("a", "DET"), ("man", "NOUN"), ("walk", "VERB"))
-    assert (c.start, c.end) == (0.5, 3.0)
-    assert parse_caption_line("just text").tokens == ()
-    with pytest.raises(ValueError, match="empty caption"):
-        parse_caption_line("#a/DET#0#0")
-    with pytest.raises(ValueError, match="must be numbers"):
-        parse_caption_line("x#x/NOUN#zero#1")
 
 
 # ----------------------------------------------------------------------------------------- text encoder

@@ -18,7 +18,8 @@ classifier-free guidance (``text.guidance_scale``), the same noise for every var
 the evaluator (:mod:`smdm_plugin.apps.study_evaluator`, trained once on the train split, cached in
 ``DIR/evaluator/<key>/``) embeds them; scores: FID against the real motions of the split, diversity,
 R-precision top-1/2/3 and matching score (T2M's protocol, :mod:`smdm_plugin.metrics.t2m`), jitter
-(m/s³), jitter per unit speed (each motion's jitter over its mean joint speed, 1/s², then averaged)
+(m/s³), mean joint speed (m/s), jitter per unit speed (the set's mean jitter over its mean joint speed,
+1/s², as :func:`smdm_plugin.metrics.jitter_per_speed` reduces it)
 and foot skating ratio, on the joints ``recover_from_ric`` gives at 20 fps.
 
 Outputs (each file written atomically): ``<variant>/seed<k>/result.json`` (or ``failed.json``) with
@@ -67,7 +68,7 @@ DEFAULTS: Dict[str, Any] = {
 RUN_SETTINGS = ("batch", "max_frames", "min_frames", "diffusion_steps", "lr", "model", "text", "sparse", "snapshots",
                 "clock", "eval")
 METRICS = ("fid", "r_precision_top1", "r_precision_top2", "r_precision_top3", "matching_score", "diversity",
-           "jitter", "jitter_per_speed", "foot_skating")
+           "jitter", "speed", "jitter_per_speed", "foot_skating")
 MANIFEST = "ablate.json"
 
 
@@ -189,7 +190,7 @@ class StudyData:
     (raw features ``[M, N, 263]``, lengths, first captions), with a fingerprint of every file read."""
 
     def __init__(self, root: str, cfg: Dict[str, Any]) -> None:
-        from ..io.captions import load_captions
+        from ..metrics.evaluator.vocab import read_captions
         from .trainer import load_humanml3d
 
         N, lo = int(cfg["max_frames"]), int(cfg["min_frames"])
@@ -204,28 +205,33 @@ class StudyData:
         self.lengths = lengths  # [M]
         self.norm = x  # [M, N, 263] normalised, zero-padded
         self.raw = x * torch.from_numpy(self.std) + torch.from_numpy(self.mean)
-        self.captions = [ev.captions[i][0] for i in keep]
+        self.captions = [ev.captions[i][0] for i in keep]  # texts: what the generator is given
+        #: the same captions as :class:`~smdm_plugin.metrics.evaluator.vocab.Caption` (text + word/POS tokens)
+        self.caption_objs = [read_captions(os.path.join(root, "texts", f"{i}.txt"))[0] for i in self.ids]
+        self.split = cfg["eval"]["split"]
         files = [os.path.join(root, n) for n in ("Mean.npy", "Std.npy", "train.txt", f"{cfg['eval']['split']}.txt")]
-        for i in list(self.train.ids) + self.ids:
+        val_ids: List[str] = []
+        if os.path.exists(os.path.join(root, "val.txt")):  # an evaluator may select its weights on val
+            files.append(os.path.join(root, "val.txt"))
+            with open(os.path.join(root, "val.txt")) as f:
+                val_ids = [v for v in f.read().split() if os.path.exists(os.path.join(root, "new_joint_vecs", f"{v}.npy"))]
+        for i in list(self.train.ids) + self.ids + val_ids:
             files += [os.path.join(root, "new_joint_vecs", f"{i}.npy"), os.path.join(root, "texts", f"{i}.txt")]
         self.fingerprint = fingerprint_files(root, files)
         self.train_raw = [(self.train.frames[self.train.offsets[i]:self.train.offsets[i + 1]].numpy() * self.std
                            + self.mean) for i in range(len(self.train))]
-        _ = load_captions  # captions come through load_humanml3d
 
 
 # ----------------------------------------------------------------------------------------- scoring
 def motion_scores(norm: torch.Tensor, lengths: torch.Tensor, mean: np.ndarray, std: np.ndarray) -> Dict[str, np.ndarray]:
     """Per motion ``[M]``: jitter (m/s³), mean joint speed (m/s), jitter per unit speed (1/s²) and
     foot skating ratio of normalised features ``norm [M, N, 263]`` with valid ``lengths [M]``."""
-    from ..metrics import foot_skating_ratio, jitter, to_joint_positions
+    from ..metrics import foot_skating_ratio, jitter, mean_speed, to_joint_positions
 
     j = to_joint_positions(norm.float(), mean, std)  # [M, N, 22, 3]
     L = lengths.long()
     jit = jitter(j, fps=20, lengths=L, reduce="none").double()
-    v = (j[:, 1:] - j[:, :-1]).norm(dim=-1).mean(-1) * 20.0  # [M, N-1] m/s
-    valid = (torch.arange(v.shape[1])[None] < (L - 1)[:, None]).to(v.dtype)
-    speed = ((v * valid).sum(1) / valid.sum(1)).double()
+    speed = mean_speed(j, fps=20, lengths=L, reduce="none").double()
     skate = foot_skating_ratio(j, fps=20, lengths=L, reduce="none").double()
     return {"jitter": jit.numpy(), "speed": speed.numpy(), "jitter_per_speed": (jit / speed.clamp_min(1e-6)).numpy(),
             "foot_skating": skate.numpy()}
@@ -241,7 +247,9 @@ def score_set(evaluator, raw: torch.Tensor, norm: torch.Tensor, lengths: torch.T
     q = motion_scores(norm, lengths, mean, std)
     return {"fid": frechet_distance(emb, real_emb), "r_precision_top1": r.top1, "r_precision_top2": r.top2,
             "r_precision_top3": r.top3, "matching_score": r.matching_score, "diversity": diversity(emb, seed=0)[0],
-            "jitter": float(np.nanmean(q["jitter"])), "jitter_per_speed": float(np.nanmean(q["jitter_per_speed"])),
+            "jitter": float(np.nanmean(q["jitter"])), "speed": float(np.nanmean(q["speed"])),
+            # the set's j/s as smdm_plugin.metrics.jitter_per_speed reduces it: mean jitter / mean speed
+            "jitter_per_speed": float(np.nanmean(q["jitter"]) / max(np.nanmean(q["speed"]), 1e-9)),
             "foot_skating": float(np.nanmean(q["foot_skating"])), "retrieval_pool": r.pool_size,
             "retrieval_scored": r.n_scored}
 
@@ -378,10 +386,10 @@ def _fmt(m: Dict[str, Any], spec: str) -> str:
 
 TABLE_COLUMNS = (("step", ".0f"), ("train_s", ".1f"), ("fid", ".3f"), ("r_precision_top1", ".3f"),
                  ("r_precision_top3", ".3f"), ("matching_score", ".3f"), ("diversity", ".3f"),
-                 ("jitter_per_speed", ".0f"), ("jitter", ".0f"), ("foot_skating", ".3f"))
+                 ("jitter_per_speed", ".0f"), ("speed", ".2f"), ("jitter", ".0f"), ("foot_skating", ".3f"))
 HEADERS = {"step": "steps", "train_s": "train s", "fid": "FID ↓", "r_precision_top1": "R@1 ↑",
            "r_precision_top3": "R@3 ↑", "matching_score": "MM-Dist ↓", "diversity": "diversity →",
-           "jitter_per_speed": "j/s (1/s²) →", "jitter": "jitter (m/s³)", "foot_skating": "skating ↓"}
+           "jitter_per_speed": "j/s (1/s²) →", "speed": "speed (m/s)", "jitter": "jitter (m/s³)", "foot_skating": "skating ↓"}
 
 
 def write_outputs(cfg: Dict[str, Any], out: str, runs: Dict[str, List[Dict[str, Any]]], reference: Dict[str, Any],
@@ -427,7 +435,7 @@ def write_outputs(cfg: Dict[str, Any], out: str, runs: Dict[str, List[Dict[str, 
     lines += ["## Real motion (reference)", "",
               f"Real {cfg['eval']['split']} motions scored as the generated ones: R@1 {ref['r_precision_top1']:.3f}, "
               f"R@3 {ref['r_precision_top3']:.3f}, MM-Dist {ref['matching_score']:.3f}, diversity {ref['diversity']:.3f}, "
-              f"j/s {ref['jitter_per_speed']:.0f} 1/s², jitter {ref['jitter']:.0f} m/s³, skating {ref['foot_skating']:.3f}; "
+              f"j/s {ref['jitter_per_speed']:.0f} 1/s² at speed {ref['speed']:.2f} m/s, jitter {ref['jitter']:.0f} m/s³, skating {ref['foot_skating']:.3f}; "
               f"FID of the real train motions against them: {ref['fid_train_vs_eval']:.3f} (FID of the set against "
               f"itself is 0). Retrieval pool {ref['retrieval_pool']} ({ref['retrieval_scored']} motions scored; "
               f"chance R@1 {1 / ref['retrieval_pool']:.3f}).", ""]
@@ -489,10 +497,8 @@ def build_evaluator(cfg: Dict[str, Any], data: StudyData, out: str, log: Callabl
     folder = os.path.join(out, "evaluator", f"{kind}-{key}")
 
     def build():
-        log(f"  training the {kind} evaluator on {len(data.train)} motions (cached in {folder})")
-        held = ([data.raw[i, :int(data.lengths[i])].numpy() for i in range(len(data.ids))],
-                [[c] for c in data.captions])
-        return train(data.train_raw, data.train.captions, data.mean, data.std, settings, held_out=held, log=log)
+        log(f"  training the {kind} evaluator on the train split (cached in {folder})")
+        return train(data, settings, log)
 
     return cached_evaluator(folder, build, load), key, folder
 
@@ -526,7 +532,7 @@ def run_study(cfg: Dict[str, Any], out: str, data_root: str, device: str = "cpu"
         "updated": time.strftime("%Y-%m-%dT%H:%M:%S%z")})
     atomic_write_text(os.path.join(out, "config.yaml"), yaml.safe_dump(cfg, sort_keys=False))
     evaluator, ev_key, ev_folder = build_evaluator(cfg, data, out, log)
-    text_emb = evaluator.embed_text(data.captions).double().numpy()
+    text_emb = evaluator.embed_text(data.caption_objs).double().numpy()
     real_emb = evaluator.embed_motion(data.raw, data.lengths).double().numpy()
     reference = score_set(evaluator, data.raw, data.norm, data.lengths, text_emb, real_emb, data.mean, data.std)
     train_x, train_L = data.train.padded()

@@ -6,8 +6,9 @@ HumanML3D features ``[B, N, 263]`` + ``lengths [B]`` -> ``[B, D]``) and ``embed_
 :mod:`smdm_plugin.metrics.t2m`. Providers are registered in :data:`EVALUATORS` by name and
 trained once per (data fingerprint, settings), cached in the study's output folder.
 
-``pooled`` (built in, a stand-in until a T2M-architecture evaluator trained on the same data is
-available): a small contrastive pair of encoders trained on the train split —
+``t2m`` (default of the shipped configs): the T2M architecture of :mod:`smdm_plugin.metrics.evaluator`
+(movement encoder, motion and text BiGRUs, word/POS inputs, words learned from the captions) trained
+as ``smdm evaluator train`` trains it. ``pooled`` (a lighter stand-in, written before that landed): a small contrastive pair of encoders trained on the train split —
 motion: normalised features -> two strided 1-D convolutions (×4 temporal downsampling, as T2M's
 movement encoder) -> masked mean and max pooling -> linear; text: word embeddings learned from the
 train captions (words as :func:`smdm_plugin.reference.text.words` splits them; unknown words map to
@@ -42,8 +43,12 @@ class MotionTextEvaluator(Protocol):
     def embed_motion(self, motion: torch.Tensor, lengths: torch.Tensor) -> torch.Tensor:
         """``motion [B, N, 263]`` raw (un-normalised) features, ``lengths [B]`` -> ``[B, D]``."""
 
-    def embed_text(self, captions: Sequence[str]) -> torch.Tensor:
-        """``captions [B]`` -> ``[B, D]``."""
+    def embed_text(self, captions: Sequence[Any]) -> torch.Tensor:
+        """``captions [B]`` (:class:`~smdm_plugin.metrics.evaluator.vocab.Caption`: ``text``,
+        ``tokens``) -> ``[B, D]``."""
+
+    def save(self, folder: str) -> None:
+        """Write it to ``folder`` (``evaluator.json`` + weights)."""
 
 
 @dataclass(frozen=True)
@@ -111,8 +116,8 @@ class PooledEvaluator:
         return self.net.motion(x, L)
 
     @torch.no_grad()
-    def embed_text(self, captions: Sequence[str]) -> torch.Tensor:
-        return self.net.text(*self._ids(list(captions)))
+    def embed_text(self, captions: Sequence[Any]) -> torch.Tensor:
+        return self.net.text(*self._ids([c if isinstance(c, str) else c.text for c in captions]))
 
     def save(self, folder: str) -> None:
         torch.save(self.net.state_dict(), os.path.join(folder, "evaluator.pt"))
@@ -135,13 +140,15 @@ class PooledEvaluator:
         return cls(net, meta["vocab"], mean, std, s, meta.get("report", {}))
 
 
-def train_pooled(train_motions: List[np.ndarray], train_captions: List[List[str]], mean: np.ndarray,
-                 std: np.ndarray, settings: PooledSettings, held_out: Any = None,
-                 log: Callable[[str], Any] = print) -> PooledEvaluator:
-    """Train the ``pooled`` evaluator on raw motions ``[L_i, 263]`` and their captions;
-    ``held_out``: ``(motions, captions)`` whose retrieval accuracy (first caption, one pool of all)
-    goes into ``report``."""
+def train_pooled(data: Any, settings: PooledSettings, log: Callable[[str], Any] = print) -> PooledEvaluator:
+    """Train the ``pooled`` evaluator on the train split of a :class:`~smdm_plugin.apps.study.StudyData`
+    (raw motions and their captions); its retrieval accuracy on the evaluation split (first caption,
+    one pool of all) goes into ``report``."""
     from ..metrics.t2m import retrieval
+
+    train_motions, train_captions, mean, std = data.train_raw, data.train.captions, data.mean, data.std
+    held_out = ([data.raw[i, :int(data.lengths[i])].numpy() for i in range(len(data.ids))],
+                [[c] for c in data.captions])
 
     g = torch.Generator().manual_seed(settings.seed)
     torch.manual_seed(settings.seed)
@@ -212,5 +219,74 @@ def cached_evaluator(folder: str, build: Callable[[], PooledEvaluator], load: Ca
     return ev
 
 
-#: evaluator providers: name -> (settings type, trainer, loader)
-EVALUATORS: Dict[str, Any] = {"pooled": (PooledSettings, train_pooled, PooledEvaluator.load)}
+# ----------------------------------------------------------------------------------------- T2M (branch eval)
+@dataclass(frozen=True)
+class T2MSettings:
+    """Training of the T2M-architecture evaluator (:mod:`smdm_plugin.metrics.evaluator`, as
+    ``smdm evaluator train`` does it): ``epochs``, ``batch``, ``lr``, ``temperature``, ``seed``."""
+
+    epochs: int = 60
+    batch: int = 32
+    lr: float = 1e-3
+    temperature: float = 0.1
+    seed: int = 0
+
+
+class T2MEvaluator:
+    """The T2M evaluator (movement encoder + motion BiGRU + text BiGRU with word/POS inputs, Guo et
+    al. 2022) trained on the study's train split, behind :class:`MotionTextEvaluator`."""
+
+    name = "t2m"
+
+    def __init__(self, ev: Any, report: Dict[str, Any]) -> None:
+        self.ev, self.report = ev.eval(), report
+        self.dim = int(ev.config.dim_coemb)
+
+    @torch.no_grad()
+    def embed_motion(self, motion: torch.Tensor, lengths: torch.Tensor) -> torch.Tensor:
+        return self.ev.encode_motion(torch.as_tensor(motion, dtype=torch.float32), torch.as_tensor(lengths).long())
+
+    @torch.no_grad()
+    def embed_text(self, captions: Sequence[Any]) -> torch.Tensor:
+        return self.ev.encode_text([c.tokens for c in captions])
+
+    def save(self, folder: str) -> None:
+        from ..metrics.evaluator import save_evaluator
+
+        save_evaluator(self.ev, folder, extra={"kind": self.name, "report": self.report})
+
+    @classmethod
+    def load(cls, folder: str) -> "T2MEvaluator":
+        from ..metrics.evaluator import load_evaluator
+
+        with open(os.path.join(folder, "evaluator.json"), encoding="utf-8") as f:
+            meta = json.load(f)
+        if meta.get("kind") != cls.name:
+            raise ValueError(f"{folder}/evaluator.json: kind {meta.get('kind')!r}, expected {cls.name!r}")
+        return cls(load_evaluator(folder), meta.get("report", {}))
+
+
+def train_t2m(data: Any, settings: T2MSettings, log: Callable[[str], Any] = print) -> T2MEvaluator:
+    """Train the T2M evaluator on ``data.root``'s train split (weights chosen on val when it exists),
+    with :mod:`smdm_plugin.metrics.evaluator.train`; held-out accuracy on the evaluation split in
+    ``report``."""
+    from ..metrics.evaluator.data import load_captioned
+    from ..metrics.evaluator.train import TrainSettings, build_evaluator, held_out_accuracy, train_evaluator
+
+    ts = TrainSettings(epochs=settings.epochs, batch=settings.batch, lr=settings.lr,
+                       temperature=settings.temperature, seed=settings.seed)
+    train = load_captioned(data.root, "train")
+    val = load_captioned(data.root, "val") if os.path.exists(os.path.join(data.root, "val.txt")) else None
+    ev = build_evaluator(train, ts)
+    st = train_evaluator(ev, train, val, ts)
+    acc = held_out_accuracy(ev, load_captioned(data.root, data.split), seed=settings.seed)
+    report = {"kept_epoch": st["best"]["epoch"], "train_seconds": st["seconds"], "held_out": acc,
+              "train_motions": len(train)}
+    log(f"  evaluator (t2m): held-out {data.split} top-1 {acc['top1']:.3f}, top-3 {acc['top3']:.3f} (pool "
+        f"{acc['pool_size']}; chance top-1 {acc['chance_top1']:.3f}), kept epoch {st['best']['epoch']}")
+    return T2MEvaluator(ev, report)
+
+
+#: evaluator providers: name -> (settings type, trainer ``(StudyData, settings, log)``, loader ``(folder)``)
+EVALUATORS: Dict[str, Any] = {"pooled": (PooledSettings, train_pooled, PooledEvaluator.load),
+                              "t2m": (T2MSettings, train_t2m, T2MEvaluator.load)}

@@ -125,7 +125,7 @@ def load_humanml3d(root: str, split: str = "train", max_frames: int = 196, min_f
     ``[T, 263]``, ``Mean.npy``/``Std.npy``; ``new_joints/*.npy`` ``[T, 22, 3]`` with
     ``with_joints``), normalised; motions shorter than ``min_frames`` are skipped, longer ones cut
     to their first ``max_frames`` frames. ``with_captions``: each motion's captions from
-    ``texts/<id>.txt`` (:mod:`smdm_plugin.io.captions`; a missing file is an error)."""
+    ``texts/<id>.txt`` (every caption line's text, spans ignored; a missing file is an error)."""
     base = Path(root)
     missing = [n for n in ("Mean.npy", "Std.npy", "new_joint_vecs", f"{split}.txt") if not (base / n).exists()]
     if missing:
@@ -150,10 +150,16 @@ def load_humanml3d(root: str, split: str = "train", max_frames: int = 196, min_f
     out = MotionSet.from_motions(motions, np.load(base / "Mean.npy"), np.load(base / "Std.npy"), kept,
                                  max_frames, joints if with_joints else None)
     if with_captions:
-        from ..io.captions import load_captions
+        from ..metrics.evaluator.vocab import read_captions
 
-        caps = load_captions(root, kept)
-        out = dataclasses.replace(out, captions=[caps[i] for i in kept])
+        caps = []
+        for name in kept:
+            path = base / "texts" / f"{name}.txt"
+            texts = [c.text for c in read_captions(str(path))] if path.is_file() else []
+            if not texts:
+                raise FileNotFoundError(f"{path}: missing or empty (text conditioning needs captions for every motion)")
+            caps.append(texts)
+        out = dataclasses.replace(out, captions=caps)
     return out
 
 
