@@ -246,3 +246,20 @@ def test_quick_study_end_to_end(large_dir, tmp_path, capsys, monkeypatch):
     assert ablate.main(args + ["--resume"]) == 0 and calls == []
     capsys.readouterr()
     assert ablate.main(args) == 2 and "--resume" in capsys.readouterr().err
+
+
+def test_smdm_train_text_flag(large_dir, tmp_path, capsys):
+    from smdm_plugin.apps import trainer
+
+    out = tmp_path / "m"
+    base = ["--data", str(large_dir), "--steps", "2", "--batch", "2", "--max-frames", "48", "--diffusion-steps", "4",
+            "--latent-dim", "16", "--layers", "1", "--heads", "2", "--ff-size", "32", "--no-progress", "--threads", "1"]
+    assert trainer.main(base + ["--out", str(out), "--text", "--guidance-scale", "3"]) == 0
+    assert load_text_config(str(out)) == TextConfig(guidance_scale=3.0)
+    assert json.loads((out / "backbone.json").read_text())["cond_mode"] == "text"
+    with pytest.raises(SystemExit) as e:
+        trainer.main(base + ["--out", str(tmp_path / "n"), "--guidance-scale", "3"])
+    assert e.value.code == 2 and "only with --text" in capsys.readouterr().err
+    assert trainer.main(base + ["--out", str(tmp_path / "u")]) == 0  # default: unconditional
+    assert load_text_config(str(tmp_path / "u")) is None
+    assert json.loads((tmp_path / "u" / "backbone.json").read_text())["cond_mode"] == "no_cond"

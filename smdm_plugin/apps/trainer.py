@@ -705,6 +705,14 @@ def build_parser() -> argparse.ArgumentParser:
     m.add_argument("--heads", type=int_range(1, 256), default=DEFAULT_MODEL["num_heads"])
     m.add_argument("--ff-size", type=int_range(1, 1 << 20), default=DEFAULT_MODEL["ff_size"])
     m.add_argument("--dropout", type=float_range(0.0, 1.0, hi_open=True), default=DEFAULT_MODEL["dropout"])
+    c = p.add_argument_group("text conditioning (off by default: unconditional)")
+    c.add_argument("--text", action="store_true",
+                   help="train text-conditioned on texts/<id>.txt with the frozen hashed bag-of-words encoder "
+                        "(reference/text.py; saved as text_encoder.json) and classifier-free-guidance dropout")
+    c.add_argument("--cond-mask-prob", type=float_range(0.0, 1.0, hi_open=True), default=0.1,
+                   help="with --text: fraction of samples trained without their caption (default 0.1, as MDM)")
+    c.add_argument("--guidance-scale", type=float_range(0.0), default=2.5,
+                   help="with --text: classifier-free guidance scale saved for sampling (default 2.5, as MDM)")
     SparseConfig.add_argparse_args(p, "sparse keyframe mode (sMDM)")
     for action in p._actions:  # set by the trainer itself, or meaningless for an unconditional TinyMDM
         if action.dest in _NOT_CLI_SPARSE:
@@ -729,6 +737,9 @@ def _parse(argv: Optional[List[str]]) -> Tuple[Any, TrainConfig]:
         p.error(f"--min-frames ({a.min_frames}) must be <= --max-frames ({a.max_frames})")
     if a.latent_dim % a.heads:
         p.error(f"--latent-dim ({a.latent_dim}) must be a multiple of --heads ({a.heads})")
+    for dest in ("cond_mask_prob", "guidance_scale"):
+        if not a.text and getattr(a, dest) != p.get_default(dest):
+            p.error(f"--{dest.replace('_', '-')}: applies only with --text (text-conditioned training)")
     for dest in _NOT_CLI_SPARSE:
         if getattr(a, dest) != p.get_default(dest):
             p.error(f"--{dest}: not an option of smdm train ({_NOT_CLI_SPARSE[dest]})")
@@ -740,13 +751,14 @@ def _parse(argv: Optional[List[str]]) -> Tuple[Any, TrainConfig]:
              "arch": a.arch, "dropout": a.dropout}
     cfg = TrainConfig(steps=a.steps, batch=a.batch, lr=a.lr, weight_decay=a.weight_decay, grad_clip=a.grad_clip,
                       diffusion_steps=a.diffusion_steps, seed=a.seed, model=model, sparse=sparse,
-                      compile=a.compile, compile_backend=a.compile_backend)
+                      compile=a.compile, compile_backend=a.compile_backend,
+                      text=TextConfig(cond_mask_prob=a.cond_mask_prob, guidance_scale=a.guidance_scale) if a.text else None)
     return a, cfg
 
 
 #: what ``smdm train`` writes besides ``model<step>.pt``
 OUTPUT_FILES = (BACKBONE_FILENAME, CONFIG_FILENAME, TRAIN_CONFIG_FILENAME, "Mean.npy", "Std.npy", "losses.csv",
-                "loss.png", "result.json")
+                "loss.png", "result.json", "text_encoder.json")
 
 
 def _prepare_out(out: str, overwrite: bool) -> None:
@@ -801,7 +813,7 @@ def main(argv: Optional[List[str]] = None) -> int:
     if a.threads:
         torch.set_num_threads(a.threads)
     try:
-        data = load_humanml3d(a.data, a.split, a.max_frames, a.min_frames)
+        data = load_humanml3d(a.data, a.split, a.max_frames, a.min_frames, with_captions=a.text)
         ctx = init_distributed(a.device)
     except (FileNotFoundError, ValueError) as e:
         print(f"smdm train: {e}", file=sys.stderr)
