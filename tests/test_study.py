@@ -244,6 +244,11 @@ def test_quick_study_end_to_end(large_dir, tmp_path, capsys, monkeypatch):
     calls = []
     monkeypatch.setattr(study, "run_seed", lambda *a, **k: calls.append(a[1]["name"]))
     assert ablate.main(args + ["--resume"]) == 0 and calls == []
+    # a report rebuilt from part of the runs: the missing ones are not trained, their rows count fewer seeds
+    (out / "dense" / "seed1" / "result.json").unlink()
+    assert ablate.main(args + ["--resume", "--report-only"]) == 0 and calls == []
+    rows = json.loads((out / "results.json").read_text())["rows"]
+    assert {r["seeds"] for r in rows if r["variant"] == "dense"} == {1}
     capsys.readouterr()
     assert ablate.main(args) == 2 and "--resume" in capsys.readouterr().err
 

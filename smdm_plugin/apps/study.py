@@ -505,8 +505,10 @@ def build_evaluator(cfg: Dict[str, Any], data: StudyData, out: str, log: Callabl
 
 def run_study(cfg: Dict[str, Any], out: str, data_root: str, device: str = "cpu", only: Optional[Sequence[str]] = None,
               seeds: Optional[Sequence[int]] = None, resume: bool = False, overwrite: bool = False,
-              log: Callable[[str], Any] = print) -> Dict[str, List[Dict[str, Any]]]:
-    """Run the study ``cfg`` into ``out`` (see the module docstring); returns ``{variant: [run per seed]}``."""
+              log: Callable[[str], Any] = print, report_only: bool = False) -> Dict[str, List[Dict[str, Any]]]:
+    """Run the study ``cfg`` into ``out`` (see the module docstring); returns ``{variant: [run per seed]}``.
+    ``report_only`` (with ``resume``): train nothing, rebuild the report from the current results
+    (e.g. while other processes, each with its own ``--only``/``--seeds``, still run)."""
     import yaml
 
     if resume and overwrite:
@@ -562,7 +564,8 @@ def run_study(cfg: Dict[str, Any], out: str, data_root: str, device: str = "cpu"
             prov = make_provenance(settings, data.fingerprint, max(cfg["snapshots"]["steps"] or [0]), s, dev.type,
                                    clock=cfg["clock"])
             cached = read_cached(vdir, prov)
-            run_it = v["name"] in selected and s in run_seeds and (overwrite or cached.state != "current")
+            run_it = (not report_only and v["name"] in selected and s in run_seeds
+                      and (overwrite or cached.state != "current"))
             if run_it and cached.state == "stale" and not overwrite:
                 conflicts.append(f"{v['name']!r} seed {s} ({cached.reason})")
             plan.append((v, s, vdir, prov, cached, run_it, settings))
@@ -629,6 +632,8 @@ def build_parser() -> argparse.ArgumentParser:
     g = p.add_mutually_exclusive_group()
     g.add_argument("--resume", action="store_true", help="reuse (variant, seed) results with the same provenance")
     add_overwrite(g)
+    p.add_argument("--report-only", action="store_true",
+                   help="with --resume: train nothing, rebuild the report from the finished runs in --out")
     p.add_argument("--no-progress", action="store_true", help="(accepted for smdm ablate compatibility)")
     return p
 
@@ -636,6 +641,8 @@ def build_parser() -> argparse.ArgumentParser:
 def main(argv: Optional[List[str]] = None) -> int:
     p = build_parser()
     a = p.parse_args(argv)
+    if a.report_only and not a.resume:
+        p.error("argument --report-only: needs --resume (an existing results folder)")
     if a.threads < 1:
         p.error(f"argument --threads: expected an int >= 1, got {a.threads}")
     name = a.config
@@ -653,7 +660,8 @@ def main(argv: Optional[List[str]] = None) -> int:
     data_root = a.data or cfg.get("data") or DEFAULT_DATA
     cfg["data"] = data_root
     try:
-        runs = run_study(cfg, a.out, data_root, a.device, a.only, a.seeds, a.resume, a.overwrite)
+        runs = run_study(cfg, a.out, data_root, a.device, a.only, a.seeds, a.resume, a.overwrite,
+                         report_only=a.report_only)
     except (OutputExistsError, FileNotFoundError, ValueError, PermissionError, NotADirectoryError) as e:
         print(f"smdm ablate: error: {e}", file=sys.stderr)
         return 2
