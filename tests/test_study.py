@@ -268,3 +268,22 @@ def test_smdm_train_text_flag(large_dir, tmp_path, capsys):
     assert trainer.main(base + ["--out", str(tmp_path / "u")]) == 0  # default: unconditional
     assert load_text_config(str(tmp_path / "u")) is None
     assert json.loads((tmp_path / "u" / "backbone.json").read_text())["cond_mode"] == "no_cond"
+
+
+@pytest.mark.parametrize("kind, settings", [("pooled", {"steps": 3, "dim": 8, "hidden": 16}), ("t2m", {"epochs": 1})])
+def test_evaluator_is_cached_and_reloads_to_the_same_embeddings(large_dir, tmp_path, kind, settings):
+    cfg = study.load_study("quality_compute_quick")
+    cfg["evaluator"] = {"kind": kind, **settings}
+    data = study.StudyData(str(large_dir), cfg)
+    logs = []
+    ev, key, folder = study.build_evaluator(cfg, data, str(tmp_path), logs.append)
+    again, key2, _ = study.build_evaluator(cfg, data, str(tmp_path), logs.append)
+    assert key == key2 and sum("training the" in m for m in logs) == 1  # trained once, then loaded
+    assert type(again) is type(ev) and Path(folder).is_dir()
+    m1, m2 = ev.embed_motion(data.raw, data.lengths), again.embed_motion(data.raw, data.lengths)
+    t1, t2 = ev.embed_text(data.caption_objs), again.embed_text(data.caption_objs)
+    assert m1.shape == (len(data.ids), ev.dim) and t1.shape == m1.shape
+    torch.testing.assert_close(m1, m2)
+    torch.testing.assert_close(t1, t2)
+    cfg["evaluator"] = {"kind": kind, **settings, "seed": 1}  # other settings: another cache entry
+    assert study.build_evaluator(cfg, data, str(tmp_path), logs.append)[1] != key
