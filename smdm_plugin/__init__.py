@@ -64,6 +64,7 @@ _EXPORTS: Dict[str, str] = {
     # reference model
     "TinyMDM": "reference.backbone",
     "SimpleDiffusion": "reference.diffusion", "ClassifierFreeGuidance": "reference.diffusion",
+    "TextConfig": "reference.text", "HashedBagOfWords": "reference.text", "sample_with_text": "reference.text",
 }
 
 __all__: List[str] = sorted(_EXPORTS) + ["__version__"]
@@ -116,3 +117,4 @@ if TYPE_CHECKING:  # pragma: no cover - for type checkers and IDEs
     from .io.checkpoint import check_state_dict, find_sparse_config, save_sparse_config
     from .reference.backbone import TinyMDM
     from .reference.diffusion import ClassifierFreeGuidance, SimpleDiffusion
+    from .reference.text import HashedBagOfWords, TextConfig, sample_with_text

@@ -38,8 +38,10 @@ def test_table1_config_lists_the_paper_ablations():
         ablate.sparse_config(cfg, v)  # every variant is a valid SparseConfig
     sels = {ablate.sparse_config(cfg, v).selector for v in cfg["variants"] if not v.get("dense")}
     assert sels == {"vw", "random", "uniform", "mdo"}
-    for name in ablate.packaged_grids():
-        ablate.load_config(name)  # every packaged grid resolves
+    from smdm_plugin.apps import study
+
+    for name in ablate.packaged_grids():  # every packaged grid resolves (a study config as a study)
+        (study.load_study if study.is_study_config(name) else ablate.load_config)(name)
 
 
 @pytest.mark.parametrize("cfg,match", [

@@ -817,7 +817,8 @@ def build_parser() -> argparse.ArgumentParser:
                "or --overwrite (run the selected variants again). Exit status: 0 all selected variants ok, "
                "1 one failed, 2 bad arguments or a refused --out, 130 interrupted.")
     p.add_argument("--config", default="table1",
-                   help="the grid: a YAML path or a packaged grid name (table1, defaults, quick)")
+                   help="the grid: a YAML path or a packaged grid name (table1, defaults, quick; quality_compute runs "
+                        "the quality-versus-compute study)")
     p.add_argument("--out", default=os.path.join("results", "ablate"), help="results folder (default results/ablate)")
     p.add_argument("--data", type=existing_path("dir"), default=None,
                    help="HumanML3D-format folder: new_joint_vecs/, Mean.npy, Std.npy, train.txt, val.txt or "
@@ -833,10 +834,16 @@ def build_parser() -> argparse.ArgumentParser:
                    help="continue in an existing --out: reuse results with the same provenance, run the rest")
     add_overwrite(g)
     p.add_argument("--no-progress", action="store_true", help="no progress bars")
+    p.add_argument("--quick", action="store_true",
+                   help="the quick (seconds) variant of a study config (quality_compute): see smdm_plugin.apps.study")
     return p
 
 
 def main(argv: Optional[List[str]] = None) -> int:
+    from . import study
+
+    if study.wants_study(argv):  # kind: quality_compute (or --quick): the quality-versus-compute study
+        return study.main(argv)
     p = build_parser()
     a = p.parse_args(argv)
     if not a.out.strip():

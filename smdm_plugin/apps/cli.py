@@ -26,7 +26,8 @@ from typing import Callable, Dict, List, Optional, Tuple
 COMMANDS: Dict[str, Tuple[str, str]] = {
     "bench": ("smdm_plugin.apps.bench",
               "time dense vs sparse training / sampling steps (MDM size); 'bench keyframes': VW alone"),
-    "ablate": ("smdm_plugin.apps.ablate", "run an ablation grid (YAML) on real motion; table, CSV, loss curves"),
+    "ablate": ("smdm_plugin.apps.ablate", "run an ablation grid (YAML) on real motion; table, CSV, loss curves; "
+               "--config quality_compute: the quality-versus-compute study"),
     "demo": ("smdm_plugin.apps.demo", "keyframes + dense-vs-sparse training on CMU motion capture (BVH), no download"),
     "train": ("smdm_plugin.apps.trainer", "train TinyMDM (dense or --sparse) on HumanML3D-format motion; "
               "under torchrun: DistributedDataParallel"),

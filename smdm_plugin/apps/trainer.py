@@ -35,6 +35,7 @@ from ..core.config import CONFIG_FILENAME, SparseConfig, sparse_config_of
 from ..integrations.distributed import DistContext, constant_buffers_kwargs, init_distributed
 from ..io.checkpoint import BACKBONE_FILENAME
 from ..io.files import atomic_open, atomic_write_json, atomic_write_text
+from ..reference.text import TextConfig, save_text_config
 
 #: TinyMDM size of ``smdm train`` / ``smdm ablate`` (MDM's HumanML3D size is 512-D, 8 layers, ff 1024)
 DEFAULT_MODEL: Dict[str, Any] = {"latent_dim": 128, "num_layers": 4, "num_heads": 4, "ff_size": 256,
@@ -53,7 +54,8 @@ class MotionSet:
     """Normalised motions, stored unpadded: ``frames [sum(lengths), D]`` float32 (sample ``i`` is
     rows ``offsets[i]:offsets[i + 1]``), ``lengths [M]`` long, ``ids`` (M names), ``mean``/``std``
     ``[D]`` (the normalisation, needed to select keyframes on de-normalised features), ``joints``
-    (optional, per sample ``[L, 22, 3]`` metres), ``max_frames`` N (batches are padded to it)."""
+    (optional, per sample ``[L, 22, 3]`` metres), ``max_frames`` N (batches are padded to it),
+    ``captions`` (optional, per sample its caption texts, for text conditioning)."""
 
     frames: torch.Tensor
     lengths: torch.Tensor
@@ -62,6 +64,7 @@ class MotionSet:
     std: np.ndarray
     max_frames: int
     joints: Optional[List[Optional[np.ndarray]]] = None
+    captions: Optional[List[List[str]]] = None
     offsets: torch.Tensor = field(init=False)
 
     def __post_init__(self) -> None:
@@ -80,6 +83,9 @@ class MotionSet:
         for name in ("mean", "std"):
             if np.shape(getattr(self, name)) != (D,):
                 raise ValueError(f"MotionSet: {name} must be [D]=[{D}], got {np.shape(getattr(self, name))}")
+        if self.captions is not None and (len(self.captions) != len(self.ids) or not all(self.captions)):
+            raise ValueError(f"MotionSet: captions must hold a non-empty list of texts for each of the "
+                             f"{len(self.ids)} motions, got {len(self.captions)} entries")
         self.offsets = torch.cat([torch.zeros(1, dtype=torch.long), self.lengths.long().cumsum(0)])
 
     def __len__(self) -> int:
@@ -120,11 +126,12 @@ class MotionSet:
 
 
 def load_humanml3d(root: str, split: str = "train", max_frames: int = 196, min_frames: int = 40,
-                   with_joints: bool = False) -> MotionSet:
+                   with_joints: bool = False, with_captions: bool = False) -> MotionSet:
     """The ``split`` (``<root>/<split>.txt``) of a HumanML3D-format folder (``new_joint_vecs/*.npy``
     ``[T, 263]``, ``Mean.npy``/``Std.npy``; ``new_joints/*.npy`` ``[T, 22, 3]`` with
     ``with_joints``), normalised; motions shorter than ``min_frames`` are skipped, longer ones cut
-    to their first ``max_frames`` frames."""
+    to their first ``max_frames`` frames. ``with_captions``: each motion's captions from
+    ``texts/<id>.txt`` (every caption line's text, spans ignored; a missing file is an error)."""
     base = Path(root)
     missing = [n for n in ("Mean.npy", "Std.npy", "new_joint_vecs", f"{split}.txt") if not (base / n).exists()]
     if missing:
@@ -168,7 +175,19 @@ def load_humanml3d(root: str, split: str = "train", max_frames: int = 196, min_f
             joints.append(np.load(jpath)[:max_frames].astype(np.float32) if jpath.exists() else None)
     if not kept:
         raise ValueError(f"data: split {split!r} of {root} has no motion of >= {min_frames} frames")
-    return MotionSet.from_motions(motions, mean, std, kept, max_frames, joints if with_joints else None)
+    out = MotionSet.from_motions(motions, mean, std, kept, max_frames, joints if with_joints else None)
+    if with_captions:
+        from ..metrics.evaluator.vocab import read_captions
+
+        caps = []
+        for name in kept:
+            path = base / "texts" / f"{name}.txt"
+            texts = [c.text for c in read_captions(str(path))] if path.is_file() else []
+            if not texts:
+                raise FileNotFoundError(f"{path}: missing or empty (text conditioning needs captions for every motion)")
+            caps.append(texts)
+        out = dataclasses.replace(out, captions=caps)
+    return out
 
 
 def check_clip_lengths(data: MotionSet, sparse: SparseConfig, root: str) -> None:
@@ -231,13 +250,23 @@ def diffusion_draws(seed: int, step: int, sample_ids: Sequence[int], num_timeste
     return torch.cat(ts), torch.stack(noise)
 
 
+def caption_draws(seed: int, step: int, sample_ids: Sequence[int], counts: Sequence[int]) -> List[int]:
+    """Which caption each sample uses at ``step``: ``[b]`` indices in ``[0, counts[k])``, a function of
+    ``(seed, step, global sample index)`` only (as :func:`diffusion_draws`)."""
+    return [int(torch.randint(0, int(c), (1,), generator=torch.Generator().manual_seed(mix_seed(seed, 5, step, int(i)))))
+            for i, c in zip(sample_ids, counts)]
+
+
 # ----------------------------------------------------------------------------------------- config
 @dataclass
 class TrainConfig:
     """What to train and how. ``batch`` is per process (global batch = ``batch * world_size``);
     ``model``: :class:`TinyMDM` keyword arguments (``njoints`` comes from the data); ``sparse``:
     None trains the dense model. ``grad_clip`` 0 = off. ``compile``: ``torch.compile`` the
-    (DDP-wrapped) model with ``compile_backend``."""
+    (DDP-wrapped) model with ``compile_backend``. ``text``: a
+    :class:`~smdm_plugin.reference.text.TextConfig` trains text-conditioned (the data needs
+    captions; one caption drawn per sample per step; condition dropout for classifier-free
+    guidance); None (default) trains unconditionally."""
 
     steps: int = 1000
     batch: int = 16
@@ -250,6 +279,7 @@ class TrainConfig:
     sparse: Optional[SparseConfig] = None
     compile: bool = False
     compile_backend: str = "inductor"
+    text: Optional[TextConfig] = None
 
     def __post_init__(self) -> None:
         checks = {"steps": self.steps >= 0, "batch": self.batch >= 1, "lr": self.lr > 0,
@@ -263,6 +293,8 @@ class TrainConfig:
                 raise ValueError(f"TrainConfig.{name}={getattr(self, name)!r}: expected {expected[name]}")
         if self.sparse is not None and not isinstance(self.sparse, SparseConfig):
             raise TypeError(f"TrainConfig.sparse must be a SparseConfig or None, got {type(self.sparse).__name__}")
+        if self.text is not None and not isinstance(self.text, TextConfig):
+            raise TypeError(f"TrainConfig.text must be a TextConfig or None, got {type(self.text).__name__}")
         unknown = set(self.model) - set(_TINYMDM_ARGS)
         if unknown:
             raise ValueError(f"TrainConfig.model: unknown TinyMDM option(s) {sorted(unknown)}")
@@ -277,6 +309,8 @@ class TrainConfig:
         d = dict(d)
         if d.get("sparse") is not None and not isinstance(d["sparse"], SparseConfig):
             d["sparse"] = SparseConfig.from_dict(d["sparse"])
+        if d.get("text") is not None and not isinstance(d["text"], TextConfig):
+            d["text"] = TextConfig.from_dict(d["text"])
         return cls(**d)
 
 
@@ -362,6 +396,15 @@ class Trainer:
         torch.manual_seed(config.seed)  # initial weights: equal on every rank
         self.backbone_args: Dict[str, Any] = {"njoints": data.feature_dim, "nfeats": 1, "cond_mode": "no_cond",
                                               **config.model}
+        self.text_embeddings: Optional[List[torch.Tensor]] = None
+        if config.text is not None:
+            if data.captions is None:
+                raise ValueError("Trainer: config.text needs captions in the data (load_humanml3d(..., "
+                                 "with_captions=True))")
+            self.backbone_args.update(cond_mode="text", clip_dim=config.text.dim,
+                                      cond_mask_prob=config.text.cond_mask_prob)
+            enc = config.text.build()  # frozen: every caption embedded once, [n_captions_i, dim] per motion
+            self.text_embeddings = [enc(caps) for caps in data.captions]
         self.model = TinyMDM(**self.backbone_args).to(dev)
         self.diffusion = SimpleDiffusion(config.diffusion_steps)
         if config.sparse is not None:
@@ -405,6 +448,10 @@ class Trainer:
         t, noise = diffusion_draws(self.config.seed, self.step_count, sample_ids, self.diffusion.num_timesteps,
                                    tuple(x.shape[1:]), dev)
         y = {"mask": (torch.arange(N, device=dev) < lengths[:, None]).view(b, 1, 1, N), "lengths": lengths}
+        if self.text_embeddings is not None:
+            embs = [self.text_embeddings[i] for i in ids.tolist()]
+            pick = caption_draws(self.config.seed, self.step_count, sample_ids, [len(e) for e in embs])
+            y["text_embed"] = torch.stack([e[k] for e, k in zip(embs, pick)]).unsqueeze(0).to(dev)  # [1, b, dim]
         loss = self.diffusion.training_losses(self.forward_model, x, t, {"y": y}, noise=noise)["loss"].mean()
         self.optimizer.zero_grad(set_to_none=True)
         loss.backward()
@@ -534,6 +581,8 @@ class Trainer:
         config = sparse_config_of(self.model)
         if config is not None:
             atomic_write_text(os.path.join(folder, CONFIG_FILENAME), config.to_json() + "\n")
+        if self.config.text is not None:
+            save_text_config(folder, self.config.text)
         for name, value in (("Mean.npy", self.data.mean), ("Std.npy", self.data.std)):
             with atomic_open(os.path.join(folder, name), "wb") as f:
                 np.save(f, np.asarray(value, np.float32))
@@ -749,6 +798,14 @@ def build_parser() -> argparse.ArgumentParser:
                    help=f"feed-forward width (default {DEFAULT_MODEL['ff_size']}; MDM: 1024)")
     m.add_argument("--dropout", type=float_range(0.0, 1.0, hi_open=True), default=DEFAULT_MODEL["dropout"],
                    help=f"dropout probability (default {DEFAULT_MODEL['dropout']})")
+    c = p.add_argument_group("text conditioning (off by default: unconditional)")
+    c.add_argument("--text", action="store_true",
+                   help="train text-conditioned on texts/<id>.txt with the frozen hashed bag-of-words encoder "
+                        "(reference/text.py; saved as text_encoder.json) and classifier-free-guidance dropout")
+    c.add_argument("--cond-mask-prob", type=float_range(0.0, 1.0, hi_open=True), default=0.1,
+                   help="with --text: fraction of samples trained without their caption (default 0.1, as MDM)")
+    c.add_argument("--guidance-scale", type=float_range(0.0), default=2.5,
+                   help="with --text: classifier-free guidance scale saved for sampling (default 2.5, as MDM)")
     SparseConfig.add_argparse_args(p, "sparse keyframe mode (sMDM)")
     for action in p._actions:  # set by the trainer itself, or meaningless for an unconditional TinyMDM
         if action.dest in _NOT_CLI_SPARSE:
@@ -775,6 +832,9 @@ def _parse(argv: Optional[List[str]]) -> Tuple[Any, TrainConfig]:
         p.error(f"--min-frames ({a.min_frames}) must be <= --max-frames ({a.max_frames})")
     if a.latent_dim % a.heads:
         p.error(f"--latent-dim ({a.latent_dim}) must be a multiple of --heads ({a.heads})")
+    for dest in ("cond_mask_prob", "guidance_scale"):
+        if not a.text and getattr(a, dest) != p.get_default(dest):
+            p.error(f"--{dest.replace('_', '-')}: applies only with --text (text-conditioned training)")
     for dest in _NOT_CLI_SPARSE:
         if getattr(a, dest) != p.get_default(dest):
             p.error(f"--{dest}: not an option of smdm train ({_NOT_CLI_SPARSE[dest]})")
@@ -786,13 +846,15 @@ def _parse(argv: Optional[List[str]]) -> Tuple[Any, TrainConfig]:
              "arch": a.arch, "dropout": a.dropout}
     cfg = TrainConfig(steps=a.steps, batch=a.batch, lr=a.lr, weight_decay=a.weight_decay, grad_clip=a.grad_clip,
                       diffusion_steps=a.diffusion_steps, seed=a.seed, model=model, sparse=sparse,
-                      compile=a.compile, compile_backend=a.compile_backend)
+                      compile=a.compile, compile_backend=a.compile_backend,
+                      text=TextConfig(cond_mask_prob=a.cond_mask_prob, guidance_scale=a.guidance_scale) if a.text else None)
     return a, cfg
 
 
 #: what ``smdm train`` writes besides ``model<step>.pt``
 OUTPUT_FILES = (BACKBONE_FILENAME, CONFIG_FILENAME, TRAIN_CONFIG_FILENAME, TRAIN_STATE_FILENAME, "Mean.npy",
-                "Std.npy", "losses.csv", "loss.png", "result.json", "motion.json")
+                "Std.npy", "losses.csv", "loss.png", "result.json", "motion.json",
+                "text_encoder.json")
 #: the names ``smdm train`` writes (an ``--overwrite`` refuses such a file it did not write itself)
 OUTPUT_PATTERNS = OUTPUT_FILES + ("model[0-9][0-9][0-9][0-9][0-9][0-9][0-9][0-9][0-9].pt",)
 
@@ -854,7 +916,7 @@ def main(argv: Optional[List[str]] = None) -> int:
     from .threads import apply_threads
     apply_threads(a.threads)
     try:
-        data = load_humanml3d(a.data, a.split, a.max_frames, a.min_frames)
+        data = load_humanml3d(a.data, a.split, a.max_frames, a.min_frames, with_captions=a.text)
         if cfg.sparse is not None:
             check_clip_lengths(data, cfg.sparse, a.data)
         ctx = init_distributed(a.device)

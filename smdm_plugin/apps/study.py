@@ -1,0 +1,674 @@
+"""The quality-versus-compute study: dense vs sparse variants trained to equal compute budgets and
+equal step counts, text-conditioned, scored with a text-motion evaluator trained on the same data.
+
+``smdm ablate --config quality_compute --out DIR`` (``--quick``: the ``quality_compute_quick`` grid,
+seconds, for CI) runs a config with ``kind: quality_compute``
+(``smdm_plugin/configs/ablations/quality_compute.yaml``). Design: ONE training run per (variant,
+seed), evaluated at snapshots along the run — at given optimiser step counts (``snapshots.steps``:
+equal steps) and at given training-time budgets (``snapshots.seconds``: equal compute); a run ends
+when it has passed every snapshot. Training time is the **process CPU time** spent in
+:meth:`~smdm_plugin.apps.trainer.Trainer.step` (``clock: cpu``; torch runs with one thread): on a
+shared machine, wall time counts other users' work too, CPU time does not; evaluation is never
+counted. ``clock: wall`` uses wall time of the steps instead (on a dedicated machine). Both are
+recorded at every snapshot.
+
+At a snapshot the model (eval mode) generates one motion per id of the evaluation split (``eval.split``,
+default ``test``), for its first caption and its length (cut to ``max_frames``), with
+classifier-free guidance (``text.guidance_scale``), the same noise for every variant of a seed;
+the evaluator (:mod:`smdm_plugin.apps.study_evaluator`, trained once on the train split, cached in
+``DIR/evaluator/<key>/``) embeds them; scores: FID against the real motions of the split, diversity,
+R-precision top-1/2/3 and matching score (T2M's protocol, :mod:`smdm_plugin.metrics.t2m`), jitter
+(m/s³), mean joint speed (m/s), jitter per unit speed (the set's mean jitter over its mean joint speed,
+1/s², as :func:`smdm_plugin.metrics.jitter_per_speed` reduces it)
+and foot skating ratio, on the joints ``recover_from_ric`` gives at 20 fps.
+
+Outputs (each file written atomically): ``<variant>/seed<k>/result.json`` (or ``failed.json``) with
+every snapshot and its provenance; ``results.json`` (per-seed values, means and 95% intervals,
+real-motion references), ``results.csv`` (one row per variant × snapshot × metric), ``results.md``
+and ``fid_vs_time.png``. Intervals: Student-t, ``mean ± t(0.975, n-1) · sd / sqrt(n)`` over seeds
+(sd with ddof 1). ``--resume`` reuses every (variant, seed) whose provenance matches;
+``--overwrite`` reruns them.
+"""
+from __future__ import annotations
+
+import argparse
+import csv
+import json
+import math
+import os
+import sys
+import time
+import traceback
+from typing import Any, Callable, Dict, List, Optional, Sequence, Tuple
+
+import numpy as np
+import torch
+
+from ..core.config import closest
+from ..io.files import OutputExistsError, atomic_open, atomic_write_json, atomic_write_text
+from ._args import add_overwrite, device_type, existing_path, resolve_device
+from .ablate import (AblateConfigError, _check, _check_keys, check_out_dir, config_path, read_cached, select_variants,
+                     slug, sparse_config)
+from .provenance import fingerprint_files, make_provenance, stable_hash
+
+KIND = "quality_compute"
+DEFAULT_DATA = os.path.join("..", "shared", "data", "cmu-humanml3d-large")
+DEFAULTS: Dict[str, Any] = {
+    "name": KIND, "kind": KIND, "seeds": [0, 1, 2], "batch": 16, "max_frames": 120, "min_frames": 40,
+    "diffusion_steps": 50, "lr": 3e-4,
+    "model": {"latent_dim": 128, "num_layers": 2, "num_heads": 4, "ff_size": 256, "arch": "trans_enc", "dropout": 0.1},
+    "text": {"encoder": "hashed_bow", "dim": 512, "seed": 0, "cond_mask_prob": 0.1, "guidance_scale": 2.5},
+    "sparse": {"reduction": 0.8},
+    "snapshots": {"steps": [100, 250], "seconds": [8.0, 16.0, 32.0]},
+    "clock": "cpu",
+    "eval": {"split": "test", "limit": None, "batch": 16},
+    "evaluator": {"kind": "pooled"},
+}
+#: the settings that shape every run's result (with the variant, its SparseConfig and the evaluator key)
+RUN_SETTINGS = ("batch", "max_frames", "min_frames", "diffusion_steps", "lr", "model", "text", "sparse", "snapshots",
+                "clock", "eval")
+METRICS = ("fid", "r_precision_top1", "r_precision_top2", "r_precision_top3", "matching_score", "diversity",
+           "jitter", "speed", "jitter_per_speed", "foot_skating")
+MANIFEST = "ablate.json"
+
+
+# ----------------------------------------------------------------------------------------- config
+def is_study_config(name_or_path: str) -> bool:
+    """Whether the grid ``name_or_path`` is a quality-versus-compute study (``kind: quality_compute``)."""
+    import yaml
+
+    try:
+        with open(config_path(name_or_path), encoding="utf-8-sig") as f:
+            cfg = yaml.safe_load(f)
+    except (OSError, ValueError, yaml.YAMLError):
+        return False
+    return isinstance(cfg, dict) and cfg.get("kind") == KIND
+
+
+def resolve_study(cfg: Dict[str, Any]) -> Dict[str, Any]:
+    """``cfg`` over :data:`DEFAULTS` (mapping sections one level deep), validated."""
+    from ..reference.text import TextConfig
+    from .study_evaluator import EVALUATORS
+
+    if not isinstance(cfg, dict):
+        raise AblateConfigError(f"expected a mapping, got {type(cfg).__name__}")
+    _check_keys("study config", cfg, [*DEFAULTS, "variants", "data"])
+    out = json.loads(json.dumps(DEFAULTS))
+    for k, v in cfg.items():
+        if isinstance(v, dict) and isinstance(out.get(k), dict):
+            out[k].update(v)
+        else:
+            out[k] = v
+    if out["kind"] != KIND:
+        raise AblateConfigError(f"kind={out['kind']!r}: expected {KIND!r}")
+    _check("name", out["name"], str)
+    for k, lo in (("batch", 1), ("max_frames", 8), ("min_frames", 4), ("diffusion_steps", 1)):
+        _check(k, out[k], int, _range(lo))
+    _check("lr", out["lr"], float)
+    _check("data", out.get("data"), str, optional=True)
+    seeds = out["seeds"]
+    if not isinstance(seeds, list) or not seeds or len(set(map(str, seeds))) != len(seeds):
+        raise AblateConfigError(f"seeds={seeds!r}: expected a non-empty list of distinct ints >= 0")
+    for s in seeds:
+        _check("seeds[]", s, int, _range(0))
+    for section in ("model", "text", "sparse", "snapshots", "eval", "evaluator"):
+        _check(section, out[section], dict)
+    try:
+        TextConfig.from_dict(out["text"])
+    except (TypeError, ValueError) as e:
+        raise AblateConfigError(f"text: {e}") from None
+    _check_keys("snapshots", out["snapshots"], ["steps", "seconds"])
+    steps, secs = out["snapshots"].get("steps") or [], out["snapshots"].get("seconds") or []
+    if not isinstance(steps, list) or not isinstance(secs, list) or not (steps or secs):
+        raise AblateConfigError("snapshots: expected lists steps and/or seconds, at least one entry")
+    for s in steps:
+        _check("snapshots.steps[]", s, int, _range(1))
+    for s in secs:
+        _check("snapshots.seconds[]", s, float)
+        if s <= 0:
+            raise AblateConfigError(f"snapshots.seconds[]={s!r}: expected a float > 0")
+    out["snapshots"] = {"steps": sorted(set(steps)), "seconds": sorted(set(float(s) for s in secs))}
+    if out["clock"] not in CLOCKS:
+        raise AblateConfigError(f"clock={out['clock']!r}: expected one of {sorted(CLOCKS)}")
+    _check_keys("eval", out["eval"], list(DEFAULTS["eval"]))
+    _check("eval.split", out["eval"]["split"], str)
+    _check("eval.limit", out["eval"]["limit"], int, _range(2), optional=True)
+    _check("eval.batch", out["eval"]["batch"], int, _range(1))
+    kind = out["evaluator"].get("kind")
+    if kind not in EVALUATORS:
+        raise AblateConfigError(f"evaluator.kind={kind!r}: expected one of {sorted(EVALUATORS)}{closest(str(kind), list(EVALUATORS))}")
+    settings_type = EVALUATORS[kind][0]
+    try:
+        settings_type(**{k: v for k, v in out["evaluator"].items() if k != "kind"})
+    except TypeError as e:
+        raise AblateConfigError(f"evaluator: {e}") from None
+    variants = out.get("variants")
+    if not isinstance(variants, list) or not variants:
+        raise AblateConfigError("the config lists no variants")
+    seen = set()
+    for i, v in enumerate(variants):
+        if not isinstance(v, dict) or not isinstance(v.get("name"), str) or not v["name"].strip():
+            raise AblateConfigError(f"variants[{i}]={v!r}: expected a mapping with a name")
+        _check_keys(f"variants[{i}]", v, ["name", "dense", "sparse"])
+        if slug(v["name"]) in seen:
+            raise AblateConfigError(f"variants[{i}]: the name {v['name']!r} (folder {slug(v['name'])!r}) is used twice")
+        seen.add(slug(v["name"]))
+    return out
+
+
+def _range(lo: float):
+    from ..core.config import Range
+
+    return Range(lo)
+
+
+def load_study(name_or_path: str) -> Dict[str, Any]:
+    """The resolved study config of a YAML file or packaged grid name; errors name the file."""
+    import yaml
+
+    p = config_path(name_or_path)
+    try:
+        with open(p, encoding="utf-8-sig") as f:
+            cfg = yaml.safe_load(f)
+    except (OSError, yaml.YAMLError) as e:
+        raise AblateConfigError(f"{p}: cannot read it as YAML ({' '.join(str(e).split())})") from None
+    try:
+        return resolve_study(cfg if cfg is not None else {})
+    except ValueError as e:
+        raise type(e)(f"{p}: {e}") from None
+
+
+# ----------------------------------------------------------------------------------------- clocks
+#: how training time is measured: process CPU time (default; robust to other load on a shared
+#: machine, torch on one thread) or wall time
+CLOCKS: Dict[str, Callable[[], float]] = {"cpu": time.process_time, "wall": time.perf_counter}
+
+
+# ----------------------------------------------------------------------------------------- data
+class StudyData:
+    """The train split (captions, for training and the evaluator) and the evaluation split
+    (raw features ``[M, N, 263]``, lengths, first captions), with a fingerprint of every file read."""
+
+    def __init__(self, root: str, cfg: Dict[str, Any]) -> None:
+        from ..metrics.evaluator.vocab import read_captions
+        from .trainer import load_humanml3d
+
+        N, lo = int(cfg["max_frames"]), int(cfg["min_frames"])
+        self.root = root
+        self.train = load_humanml3d(root, "train", N, lo, with_captions=True)
+        ev = load_humanml3d(root, cfg["eval"]["split"], N, lo, with_captions=True)
+        limit = cfg["eval"]["limit"]
+        keep = list(range(len(ev)))[: limit or None]
+        x, lengths = ev.padded(keep)
+        self.mean, self.std = ev.mean, ev.std
+        self.ids = [ev.ids[i] for i in keep]
+        self.lengths = lengths  # [M]
+        self.norm = x  # [M, N, 263] normalised, zero-padded
+        self.raw = x * torch.from_numpy(self.std) + torch.from_numpy(self.mean)
+        self.captions = [ev.captions[i][0] for i in keep]  # texts: what the generator is given
+        #: the same captions as :class:`~smdm_plugin.metrics.evaluator.vocab.Caption` (text + word/POS tokens)
+        self.caption_objs = [read_captions(os.path.join(root, "texts", f"{i}.txt"))[0] for i in self.ids]
+        self.split = cfg["eval"]["split"]
+        files = [os.path.join(root, n) for n in ("Mean.npy", "Std.npy", "train.txt", f"{cfg['eval']['split']}.txt")]
+        val_ids: List[str] = []
+        if os.path.exists(os.path.join(root, "val.txt")):  # an evaluator may select its weights on val
+            files.append(os.path.join(root, "val.txt"))
+            with open(os.path.join(root, "val.txt")) as f:
+                val_ids = [v for v in f.read().split() if os.path.exists(os.path.join(root, "new_joint_vecs", f"{v}.npy"))]
+        for i in list(self.train.ids) + self.ids + val_ids:
+            files += [os.path.join(root, "new_joint_vecs", f"{i}.npy"), os.path.join(root, "texts", f"{i}.txt")]
+        self.fingerprint = fingerprint_files(root, files)
+        self.train_raw = [(self.train.frames[self.train.offsets[i]:self.train.offsets[i + 1]].numpy() * self.std
+                           + self.mean) for i in range(len(self.train))]
+
+
+# ----------------------------------------------------------------------------------------- scoring
+def motion_scores(norm: torch.Tensor, lengths: torch.Tensor, mean: np.ndarray, std: np.ndarray) -> Dict[str, np.ndarray]:
+    """Per motion ``[M]``: jitter (m/s³), mean joint speed (m/s), jitter per unit speed (1/s²) and
+    foot skating ratio of normalised features ``norm [M, N, 263]`` with valid ``lengths [M]``."""
+    from ..metrics import foot_skating_ratio, jitter, mean_speed, to_joint_positions
+
+    j = to_joint_positions(norm.float(), mean, std)  # [M, N, 22, 3]
+    L = lengths.long()
+    jit = jitter(j, fps=20, lengths=L, reduce="none").double()
+    speed = mean_speed(j, fps=20, lengths=L, reduce="none").double()
+    skate = foot_skating_ratio(j, fps=20, lengths=L, reduce="none").double()
+    return {"jitter": jit.numpy(), "speed": speed.numpy(), "jitter_per_speed": (jit / speed.clamp_min(1e-6)).numpy(),
+            "foot_skating": skate.numpy()}
+
+
+def score_set(evaluator, raw: torch.Tensor, norm: torch.Tensor, lengths: torch.Tensor, text_emb: np.ndarray,
+              real_emb: np.ndarray, mean: np.ndarray, std: np.ndarray) -> Dict[str, float]:
+    """Every metric of one set of motions (one per caption, row ``i`` for caption ``i``)."""
+    from ..metrics.t2m import diversity, frechet_distance, retrieval
+
+    emb = evaluator.embed_motion(raw, lengths).double().numpy()
+    r = retrieval(text_emb, emb, seed=0)
+    q = motion_scores(norm, lengths, mean, std)
+    return {"fid": frechet_distance(emb, real_emb), "r_precision_top1": r.top1, "r_precision_top2": r.top2,
+            "r_precision_top3": r.top3, "matching_score": r.matching_score, "diversity": diversity(emb, seed=0)[0],
+            "jitter": float(np.nanmean(q["jitter"])), "speed": float(np.nanmean(q["speed"])),
+            # the set's j/s as smdm_plugin.metrics.jitter_per_speed reduces it: mean jitter / mean speed
+            "jitter_per_speed": float(np.nanmean(q["jitter"]) / max(np.nanmean(q["speed"]), 1e-9)),
+            "foot_skating": float(np.nanmean(q["foot_skating"])), "retrieval_pool": r.pool_size,
+            "retrieval_scored": r.n_scored}
+
+
+def generate(model, diffusion, text_cfg, data: StudyData, seed: int, batch: int, device: torch.device) -> torch.Tensor:
+    """One motion per caption of the evaluation split, normalised ``[M, N, 263]`` (zero past each
+    length): batches of ``batch`` in order of length (each batch as long as its longest motion),
+    noise from a generator seeded by ``seed`` alone (the same for every variant)."""
+    from ..reference.text import sample_with_text
+    from .trainer import mix_seed
+
+    was_training = model.training
+    model.eval()
+    M, N, D = data.norm.shape
+    out = torch.zeros(M, N, D)
+    order = sorted(range(M), key=lambda i: int(data.lengths[i]))
+    g = torch.Generator(device=device).manual_seed(mix_seed(seed, 7))
+    for s in range(0, M, batch):
+        idx = order[s:s + batch]
+        L = data.lengths[idx]
+        n = int(L.max())
+        x = sample_with_text(model, diffusion, text_cfg, [data.captions[i] for i in idx], L, n, device, g)
+        x = x.squeeze(2).permute(0, 2, 1).cpu()  # [b, n, D]
+        x = x * (torch.arange(n)[None, :, None] < L[:, None, None]).to(x.dtype)
+        out[idx, :n] = x
+    model.train(was_training)
+    return out
+
+
+# ----------------------------------------------------------------------------------------- one run
+def run_seed(cfg: Dict[str, Any], variant: Dict[str, Any], seed: int, data: StudyData, evaluator, text_emb: np.ndarray,
+             real_emb: np.ndarray, device: torch.device, log: Callable[[str], Any] = print) -> Dict[str, Any]:
+    """Train ``variant`` with ``seed`` until every snapshot is passed, scoring at each; returns the
+    run's record (``snapshots``: one entry per snapshot, with ``kind`` steps|seconds, ``at``,
+    ``step``, ``train_s`` (the configured clock), ``train_cpu_s``, ``train_wall_s``, metrics)."""
+    from ..integrations.distributed import DistContext
+    from ..reference.text import TextConfig
+    from .trainer import TrainConfig, Trainer
+
+    text_cfg = TextConfig.from_dict(cfg["text"])
+    sc = sparse_config(cfg, variant)
+    step_marks = list(cfg["snapshots"]["steps"])
+    time_marks = list(cfg["snapshots"]["seconds"])
+    tc = TrainConfig(steps=max(step_marks or [1]), batch=int(cfg["batch"]), lr=float(cfg["lr"]),
+                     diffusion_steps=int(cfg["diffusion_steps"]), seed=int(seed), model=dict(cfg["model"]),
+                     sparse=sc, text=text_cfg)
+    trainer = Trainer(tc, data.train, dist=DistContext(device=device))
+    clock = CLOCKS[cfg["clock"]]
+    spent = {"cpu": 0.0, "wall": 0.0}
+    snaps: List[Dict[str, Any]] = []
+    eval_s = 0.0
+    while step_marks or time_marks:
+        c0, w0 = time.process_time(), time.perf_counter()
+        trainer.step()
+        spent["cpu"] += time.process_time() - c0
+        spent["wall"] += time.perf_counter() - w0
+        t_now = spent[cfg["clock"]]
+        hits = []
+        if step_marks and trainer.step_count >= step_marks[0]:
+            hits.append(("steps", step_marks.pop(0)))
+        while time_marks and t_now >= time_marks[0]:
+            hits.append(("seconds", time_marks.pop(0)))
+        if not hits:
+            continue
+        e0 = time.perf_counter()
+        gen = generate(trainer.model, trainer.diffusion, text_cfg, data, seed, int(cfg["eval"]["batch"]), device)
+        raw = gen * torch.from_numpy(data.std) + torch.from_numpy(data.mean)
+        m = score_set(evaluator, raw, gen, data.lengths, text_emb, real_emb, data.mean, data.std)
+        eval_s += time.perf_counter() - e0
+        recent = trainer.losses[-max(1, min(50, len(trainer.losses) // 10)):]
+        for kind, at in hits:
+            snaps.append({"kind": kind, "at": at, "step": trainer.step_count, "train_s": t_now,
+                          "train_cpu_s": spent["cpu"], "train_wall_s": spent["wall"],
+                          "loss": float(np.mean(recent)), **m})
+        log(f"    {variant['name']} seed {seed}: {', '.join(f'{a:g} {k}' for k, a in hits)} -> step "
+            f"{trainer.step_count}, {t_now:.1f} s {cfg['clock']}, FID {m['fid']:.3f}, R@3 {m['r_precision_top3']:.3f}, "
+            f"j/s {m['jitter_per_speed']:.0f}")
+    _ = clock
+    return {"name": variant["name"], "seed": int(seed), "status": "ok", "steps": trainer.step_count,
+            "steps_per_cpu_s": trainer.step_count / max(spent["cpu"], 1e-9), "train_cpu_s": spent["cpu"],
+            "train_wall_s": spent["wall"], "eval_wall_s": eval_s, "snapshots": snaps,
+            "sparse_config": None if sc is None else sc.to_dict(), "losses": trainer.losses}
+
+
+# ----------------------------------------------------------------------------------------- aggregation
+#: Student-t quantiles t(0.975, df) for df = 1..30 (beyond: 1.96)
+_T975 = (12.706, 4.303, 3.182, 2.776, 2.571, 2.447, 2.365, 2.306, 2.262, 2.228, 2.201, 2.179, 2.160, 2.145, 2.131,
+         2.120, 2.110, 2.101, 2.093, 2.086, 2.080, 2.074, 2.069, 2.064, 2.060, 2.056, 2.052, 2.048, 2.045, 2.042)
+
+
+def t_interval(values: Sequence[float]) -> Tuple[float, float, int]:
+    """``(mean, half-width, n)`` of the 95% Student-t interval over finite ``values``
+    (``t(0.975, n-1) * sd / sqrt(n)``, sd with ddof 1); half-width NaN for n < 2."""
+    v = np.asarray([x for x in values if x is not None and math.isfinite(x)], np.float64)
+    if v.size == 0:
+        return float("nan"), float("nan"), 0
+    if v.size < 2:
+        return float(v.mean()), float("nan"), 1
+    t = _T975[v.size - 2] if v.size - 1 <= len(_T975) else 1.96
+    return float(v.mean()), float(t * v.std(ddof=1) / math.sqrt(v.size)), int(v.size)
+
+
+def snapshot_label(kind: str, at: float, clock: str) -> str:
+    return f"{int(at)} steps" if kind == "steps" else f"{at:g} s {clock}"
+
+
+def aggregate(cfg: Dict[str, Any], runs: Dict[str, List[Dict[str, Any]]]) -> List[Dict[str, Any]]:
+    """One row per variant × snapshot: per metric (and step / train time) the per-seed values, mean,
+    95% t-interval half-width and n."""
+    rows = []
+    marks = [("steps", a) for a in cfg["snapshots"]["steps"]] + [("seconds", a) for a in cfg["snapshots"]["seconds"]]
+    for v in cfg["variants"]:
+        recs = [r for r in runs.get(v["name"], []) if r.get("status") == "ok"]
+        for kind, at in marks:
+            snaps = [s for r in recs for s in r["snapshots"] if s["kind"] == kind and s["at"] == at]
+            row: Dict[str, Any] = {"variant": v["name"], "kind": kind, "at": at,
+                                   "snapshot": snapshot_label(kind, at, cfg["clock"]), "seeds": len(snaps)}
+            for k in ("step", "train_s", "loss") + METRICS:
+                vals = [float(s[k]) for s in snaps]
+                mean, hw, n = t_interval(vals)
+                row[k] = {"mean": mean, "ci95": hw, "n": n, "values": vals}
+            rows.append(row)
+    return rows
+
+
+# ----------------------------------------------------------------------------------------- report
+def _fmt(m: Dict[str, Any], spec: str) -> str:
+    if m["n"] == 0 or not math.isfinite(m["mean"]):
+        return "—"
+    if not math.isfinite(m["ci95"]):
+        return format(m["mean"], spec)
+    return f"{format(m['mean'], spec)} ± {format(m['ci95'], spec)}"
+
+
+TABLE_COLUMNS = (("step", ".0f"), ("train_s", ".1f"), ("fid", ".3f"), ("r_precision_top1", ".3f"),
+                 ("r_precision_top3", ".3f"), ("matching_score", ".3f"), ("diversity", ".3f"),
+                 ("jitter_per_speed", ".0f"), ("speed", ".2f"), ("jitter", ".0f"), ("foot_skating", ".3f"))
+HEADERS = {"step": "steps", "train_s": "train s", "fid": "FID ↓", "r_precision_top1": "R@1 ↑",
+           "r_precision_top3": "R@3 ↑", "matching_score": "MM-Dist ↓", "diversity": "diversity →",
+           "jitter_per_speed": "j/s (1/s²) →", "speed": "speed (m/s)", "jitter": "jitter (m/s³)", "foot_skating": "skating ↓"}
+
+
+def write_outputs(cfg: Dict[str, Any], out: str, runs: Dict[str, List[Dict[str, Any]]], reference: Dict[str, Any],
+                  meta: Dict[str, Any]) -> str:
+    """``results.json``, ``results.csv``, ``results.md`` and ``fid_vs_time.png``; returns the markdown."""
+    rows = aggregate(cfg, runs)
+    clock = cfg["clock"]
+    atomic_write_json(os.path.join(out, "results.json"), {
+        "config": cfg, "interval": "95% Student-t over seeds: mean ± t(0.975, n-1)·sd/√n (sd ddof 1)",
+        "clock": clock, "reference": reference, "rows": rows, **meta,
+        "runs": {k: [{kk: vv for kk, vv in r.items() if kk != "losses"} for r in v] for k, v in runs.items()}})
+    with atomic_open(os.path.join(out, "results.csv"), "w", newline="") as f:
+        w = csv.writer(f)
+        w.writerow(["variant", "snapshot", "kind", "at", "metric", "mean", "ci95", "n", "values"])
+        for r in rows:
+            for k in ("step", "train_s", "loss") + METRICS:
+                m = r[k]
+                w.writerow([r["variant"], r["snapshot"], r["kind"], r["at"], k, m["mean"], m["ci95"], m["n"],
+                            " ".join(f"{x:.6g}" for x in m["values"])])
+    head = "| variant | snapshot | " + " | ".join(HEADERS[k] for k, _ in TABLE_COLUMNS) + " |"
+    sep = "| --- | --- |" + " ---: |" * len(TABLE_COLUMNS)
+    lines = [f"# {cfg['name']}: quality versus training compute", "",
+             f"Data {meta.get('data')} (fingerprint {meta.get('data_fingerprint')}): {meta.get('train_motions')} training "
+             f"motions, {meta.get('eval_motions')} evaluated ({cfg['eval']['split']} split, first caption each, "
+             f"length cut to {cfg['max_frames']} frames). TinyMDM {cfg['model']}, {cfg['diffusion_steps']} diffusion steps, "
+             f"batch {cfg['batch']}, lr {cfg['lr']}, text {cfg['text']}; seeds {cfg['seeds']}. Training time: "
+             f"{'process CPU time of the training steps (1 thread)' if clock == 'cpu' else 'wall time of the training steps'}"
+             ", evaluation excluded. Values: mean ± 95% Student-t half-width over seeds.", "",
+             f"Evaluator: {meta.get('evaluator')}.", ""]
+    by_kind = {"steps": "Equal optimiser steps", "seconds": f"Equal training time ({clock} seconds)"}
+    for kind in ("steps", "seconds"):
+        sel = [r for r in rows if r["kind"] == kind]
+        if not sel:
+            continue
+        lines += [f"## {by_kind[kind]}", "", head, sep]
+        for at in sorted({r["at"] for r in sel}):
+            for r in sel:
+                if r["at"] == at:
+                    lines.append(f"| {r['variant']} | {r['snapshot']} | "
+                                 + " | ".join(_fmt(r[k], spec) for k, spec in TABLE_COLUMNS) + " |")
+        lines.append("")
+    ref = reference
+    lines += ["## Real motion (reference)", "",
+              f"Real {cfg['eval']['split']} motions scored as the generated ones: R@1 {ref['r_precision_top1']:.3f}, "
+              f"R@3 {ref['r_precision_top3']:.3f}, MM-Dist {ref['matching_score']:.3f}, diversity {ref['diversity']:.3f}, "
+              f"j/s {ref['jitter_per_speed']:.0f} 1/s² at speed {ref['speed']:.2f} m/s, jitter {ref['jitter']:.0f} m/s³, skating {ref['foot_skating']:.3f}; "
+              f"FID of the real train motions against them: {ref['fid_train_vs_eval']:.3f} (FID of the set against "
+              f"itself is 0). Retrieval pool {ref['retrieval_pool']} ({ref['retrieval_scored']} motions scored; "
+              f"chance R@1 {1 / ref['retrieval_pool']:.3f}).", ""]
+    failed = [(n, r) for n, rs in runs.items() for r in rs if r.get("status") == "failed"]
+    for n, r in failed:
+        lines.append(f"{n} seed {r.get('seed')} failed: {r.get('error')}")
+    lines.append("Plot: fid_vs_time.png (FID against training time, mean ± 95% interval over seeds).")
+    text = "\n".join(lines)
+    atomic_write_text(os.path.join(out, "results.md"), text + "\n")
+    plot_fid_vs_time(cfg, rows, reference, os.path.join(out, "fid_vs_time.png"))
+    return text
+
+
+def plot_fid_vs_time(cfg: Dict[str, Any], rows: List[Dict[str, Any]], reference: Dict[str, Any], path: str) -> None:
+    """FID against training time: each variant's time snapshots (mean over seeds, 95% bars), dense
+    and sparse on one plot; the equal-step snapshots as hollow markers at their mean time."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(8, 5))
+    for k, v in enumerate(cfg["variants"]):
+        color = f"C{k}"
+        pts = sorted(((r["train_s"]["mean"], r["fid"]["mean"], r["fid"]["ci95"]) for r in rows
+                      if r["variant"] == v["name"] and r["kind"] == "seconds" and r["fid"]["n"]), key=lambda p: p[0])
+        if pts:
+            x, y, e = map(np.asarray, zip(*pts))
+            ax.errorbar(x, y, yerr=np.nan_to_num(e), color=color, marker="o", capsize=3,
+                        lw=2 if v.get("dense") or v["name"].startswith("sparse (VW)") else 1, label=v["name"])
+        st = [(r["train_s"]["mean"], r["fid"]["mean"]) for r in rows
+              if r["variant"] == v["name"] and r["kind"] == "steps" and r["fid"]["n"]]
+        if st:
+            ax.scatter(*zip(*st), facecolors="none", edgecolors=color, marker="s", s=50)
+    ax.axhline(reference["fid_train_vs_eval"], color="gray", ls="--", lw=1, label="real train vs eval motions")
+    ax.set_xlabel(f"training time ({'process CPU' if cfg['clock'] == 'cpu' else 'wall'} seconds, evaluation excluded)")
+    ax.set_ylabel("FID (study evaluator) ↓")
+    ax.set_title(f"{cfg['name']}: FID vs training time (squares: equal-step snapshots {cfg['snapshots']['steps']})",
+                 fontsize=9)
+    ax.legend(fontsize=8)
+    fig.tight_layout()
+    with atomic_open(path, "wb") as f:
+        fig.savefig(f, format="png", dpi=110)
+    plt.close(fig)
+
+
+# ----------------------------------------------------------------------------------------- the study
+def build_evaluator(cfg: Dict[str, Any], data: StudyData, out: str, log: Callable[[str], Any]):
+    """The evaluator of ``cfg['evaluator']``, trained on the train split once and cached in
+    ``out/evaluator/<key>/`` (key: data fingerprint + settings + package version)."""
+    from .. import __version__
+    from .study_evaluator import EVALUATORS, cached_evaluator
+
+    kind = cfg["evaluator"]["kind"]
+    settings_type, train, load = EVALUATORS[kind]
+    settings = settings_type(**{k: v for k, v in cfg["evaluator"].items() if k != "kind"})
+    key = stable_hash({"kind": kind, "settings": cfg["evaluator"], "data": data.fingerprint,
+                       "max_frames": cfg["max_frames"], "min_frames": cfg["min_frames"], "version": __version__})
+    folder = os.path.join(out, "evaluator", f"{kind}-{key}")
+
+    def build():
+        log(f"  training the {kind} evaluator on the train split (cached in {folder})")
+        return train(data, settings, log)
+
+    return cached_evaluator(folder, build, load), key, folder
+
+
+def run_study(cfg: Dict[str, Any], out: str, data_root: str, device: str = "cpu", only: Optional[Sequence[str]] = None,
+              seeds: Optional[Sequence[int]] = None, resume: bool = False, overwrite: bool = False,
+              log: Callable[[str], Any] = print, report_only: bool = False) -> Dict[str, List[Dict[str, Any]]]:
+    """Run the study ``cfg`` into ``out`` (see the module docstring); returns ``{variant: [run per seed]}``.
+    ``report_only`` (with ``resume``): train nothing, rebuild the report from the current results
+    (e.g. while other processes, each with its own ``--only``/``--seeds``, still run)."""
+    import yaml
+
+    if resume and overwrite:
+        raise ValueError("run_study: resume and overwrite exclude each other")
+    selected = select_variants(cfg, only)
+    run_seeds = [int(s) for s in (seeds if seeds is not None else cfg["seeds"])]
+    unknown = [s for s in run_seeds if s not in cfg["seeds"]]
+    if unknown:
+        raise ValueError(f"--seeds {unknown}: not among the config's seeds {cfg['seeds']}")
+    check_out_dir(out, resume, overwrite)
+    dev = resolve_device(device)
+    data = StudyData(data_root, cfg)
+    log(f"study {cfg['name']}: {len(data.train)} training / {len(data.ids)} evaluation motions from {data_root} "
+        f"(fingerprint {data.fingerprint}); snapshots at {cfg['snapshots']['steps']} steps and "
+        f"{cfg['snapshots']['seconds']} s ({cfg['clock']}); seeds {run_seeds}; device {dev}")
+    os.makedirs(out, exist_ok=True)
+    from .. import __version__
+
+    atomic_write_json(os.path.join(out, MANIFEST), {
+        "tool": "smdm ablate", "kind": KIND, "format": 1, "grid": cfg["name"],
+        "variants": [v["name"] for v in cfg["variants"]], "seeds": cfg["seeds"], "package_version": __version__,
+        "data_root": os.path.abspath(data_root), "data_fingerprint": data.fingerprint, "device": dev.type,
+        "updated": time.strftime("%Y-%m-%dT%H:%M:%S%z")})
+    atomic_write_text(os.path.join(out, "config.yaml"), yaml.safe_dump(cfg, sort_keys=False))
+    evaluator, ev_key, ev_folder = build_evaluator(cfg, data, out, log)
+    text_emb = evaluator.embed_text(data.caption_objs).double().numpy()
+    real_emb = evaluator.embed_motion(data.raw, data.lengths).double().numpy()
+    reference = score_set(evaluator, data.raw, data.norm, data.lengths, text_emb, real_emb, data.mean, data.std)
+    train_x, train_L = data.train.padded()
+    train_emb = evaluator.embed_motion(train_x * torch.from_numpy(data.std) + torch.from_numpy(data.mean),
+                                       train_L).double().numpy()
+    from ..metrics.t2m import frechet_distance
+
+    reference["fid_train_vs_eval"] = frechet_distance(train_emb, real_emb)
+    meta = {"data": data_root, "data_fingerprint": data.fingerprint, "train_motions": len(data.train),
+            "eval_motions": len(data.ids), "evaluator_key": ev_key,
+            "evaluator": f"{cfg['evaluator']['kind']} {getattr(evaluator, 'report', {})}", "device": dev.type,
+            "package_version": __version__, "torch_threads": torch.get_num_threads()}
+
+    runs: Dict[str, List[Dict[str, Any]]] = {}
+    plan = []
+    conflicts = []
+    for v in cfg["variants"]:
+        runs[v["name"]] = []
+        for s in cfg["seeds"]:
+            vdir = os.path.join(out, slug(v["name"]), f"seed{s}")
+            settings = {**{k: cfg[k] for k in RUN_SETTINGS}, "variant": v, "evaluator_key": ev_key}
+            try:
+                sc = sparse_config(cfg, v)
+                settings["sparse_config"] = None if sc is None else sc.to_dict()
+            except (TypeError, ValueError) as e:
+                settings["sparse_config"] = f"invalid: {e}"
+            prov = make_provenance(settings, data.fingerprint, max(cfg["snapshots"]["steps"] or [0]), s, dev.type,
+                                   clock=cfg["clock"])
+            cached = read_cached(vdir, prov)
+            run_it = (not report_only and v["name"] in selected and s in run_seeds
+                      and (overwrite or cached.state != "current"))
+            if run_it and cached.state == "stale" and not overwrite:
+                conflicts.append(f"{v['name']!r} seed {s} ({cached.reason})")
+            plan.append((v, s, vdir, prov, cached, run_it, settings))
+    if conflicts:
+        raise OutputExistsError(f"--out {out!r} holds {len(conflicts)} result(s) from another run: "
+                                f"{'; '.join(conflicts)}. Pass --overwrite to run them again, or pick another --out")
+    try:
+        for v, s, vdir, prov, cached, run_it, settings in plan:
+            if not run_it:
+                if cached.state == "current":
+                    runs[v["name"]].append({**cached.record, "reused": True})
+                continue
+            os.makedirs(vdir, exist_ok=True)
+            atomic_write_json(os.path.join(vdir, "config.json"), settings)
+            log(f"  {v['name']} seed {s}: training")
+            t0 = time.perf_counter()
+            try:
+                rec = run_seed(cfg, v, s, data, evaluator, text_emb, real_emb, dev, log)
+            except Exception as e:  # recorded; the other runs go on
+                rec = {"name": v["name"], "seed": s, "status": "failed", "error": f"{type(e).__name__}: {e}",
+                       "traceback": traceback.format_exc(), "provenance": prov}
+                atomic_write_json(os.path.join(vdir, "failed.json"), rec)
+                if os.path.exists(os.path.join(vdir, "result.json")):
+                    os.remove(os.path.join(vdir, "result.json"))
+                log(f"  {v['name']} seed {s}: FAILED ({rec['error']})")
+                runs[v["name"]].append(rec)
+                continue
+            rec["wall_s"] = time.perf_counter() - t0
+            rec["provenance"] = prov
+            atomic_write_json(os.path.join(vdir, "result.json"), rec, indent=None)
+            if os.path.exists(os.path.join(vdir, "failed.json")):
+                os.remove(os.path.join(vdir, "failed.json"))
+            runs[v["name"]].append(rec)
+    finally:  # the report is written even when interrupted: it shows what is done
+        write_outputs(cfg, out, runs, reference, meta)
+    return runs
+
+
+# ----------------------------------------------------------------------------------------- CLI
+def wants_study(argv: Optional[Sequence[str]]) -> bool:
+    """Whether ``smdm ablate`` arguments ask for the study (``--quick``, or a ``--config`` of kind
+    ``quality_compute``)."""
+    p = argparse.ArgumentParser(add_help=False)
+    p.add_argument("--config", default=None)
+    p.add_argument("--quick", action="store_true")
+    a, _ = p.parse_known_args(list(sys.argv[1:] if argv is None else argv))
+    return a.quick or (a.config is not None and is_study_config(a.config))
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(
+        prog="smdm ablate", description="The quality-versus-compute study (a config with kind: quality_compute).",
+        epilog="Exit status: 0 every run ok, 1 a run failed, 2 bad arguments or a refused --out, 130 interrupted.")
+    p.add_argument("--config", default=KIND, help=f"the study config: a YAML path or packaged name (default {KIND})")
+    p.add_argument("--quick", action="store_true", help=f"run the config's quick variant (<config>_quick: seconds)")
+    p.add_argument("--out", default=os.path.join("results", KIND), help=f"results folder (default results/{KIND})")
+    p.add_argument("--data", type=existing_path("dir"), default=None,
+                   help=f"HumanML3D-format folder with texts/ (default: config 'data' or {DEFAULT_DATA})")
+    p.add_argument("--device", type=device_type, default="cpu", help="cpu (default), cuda[:N], mps, auto")
+    p.add_argument("--only", nargs="+", default=None, metavar="VARIANT", help="run only these variants")
+    p.add_argument("--seeds", nargs="+", type=int, default=None, help="run only these seeds of the config")
+    p.add_argument("--threads", type=int, default=1,
+                   help="torch.set_num_threads (default 1: the CPU-time clock then measures one core's work)")
+    g = p.add_mutually_exclusive_group()
+    g.add_argument("--resume", action="store_true", help="reuse (variant, seed) results with the same provenance")
+    add_overwrite(g)
+    p.add_argument("--report-only", action="store_true",
+                   help="with --resume: train nothing, rebuild the report from the finished runs in --out")
+    p.add_argument("--no-progress", action="store_true", help="(accepted for smdm ablate compatibility)")
+    return p
+
+
+def main(argv: Optional[List[str]] = None) -> int:
+    p = build_parser()
+    a = p.parse_args(argv)
+    if a.report_only and not a.resume:
+        p.error("argument --report-only: needs --resume (an existing results folder)")
+    if a.threads < 1:
+        p.error(f"argument --threads: expected an int >= 1, got {a.threads}")
+    name = a.config
+    if a.quick and not name.endswith("_quick"):
+        base = name[:-5] if name.endswith(".yaml") else name
+        name = base + "_quick" + (".yaml" if name.endswith(".yaml") else "")
+    try:
+        if not is_study_config(name):
+            p.error(f"argument --config: {name!r} is not a study config (kind: {KIND})"
+                    if os.path.exists(config_path(name)) else f"argument --config: {name!r} not found")
+        cfg = load_study(name)
+    except (FileNotFoundError, ValueError) as e:
+        p.error(str(e))
+    torch.set_num_threads(a.threads)
+    data_root = a.data or cfg.get("data") or DEFAULT_DATA
+    cfg["data"] = data_root
+    try:
+        runs = run_study(cfg, a.out, data_root, a.device, a.only, a.seeds, a.resume, a.overwrite,
+                         report_only=a.report_only)
+    except (OutputExistsError, FileNotFoundError, ValueError, PermissionError, NotADirectoryError) as e:
+        print(f"smdm ablate: error: {e}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print(f"\nsmdm ablate: interrupted; finished runs are kept in {a.out}; rerun with --resume.", file=sys.stderr)
+        return 130
+    with open(os.path.join(a.out, "results.md"), encoding="utf-8") as f:
+        print("\n" + f.read())
+    print(f"results: {os.path.abspath(a.out)}")
+    return 0 if all(r.get("status") == "ok" for rs in runs.values() for r in rs) else 1
