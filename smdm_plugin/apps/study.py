@@ -3,7 +3,7 @@ equal step counts, text-conditioned, scored with a text-motion evaluator trained
 
 ``smdm ablate --config quality_compute --out DIR`` (``--quick``: the ``quality_compute_quick`` grid,
 seconds, for CI) runs a config with ``kind: quality_compute``
-(``smdm_plugin/configs/ablations/quality_compute.yaml``). Design: ONE training run per (variant,
+(``configs/ablations/quality_compute.yaml``). Design: ONE training run per (variant,
 seed), evaluated at snapshots along the run — at given optimiser step counts (``snapshots.steps``:
 equal steps) and at given training-time budgets (``snapshots.seconds``: equal compute); a run ends
 when it has passed every snapshot. Training time is the **process CPU time** spent in
