@@ -18,6 +18,8 @@ from typing import Any, Dict, List, Optional, Tuple
 
 import numpy as np
 
+from .threads import THREADS_HELP
+
 #: metrics.json keys, in table order: (key, label, format)
 COLUMNS = (("fid", "FID ↓", ".3f"), ("r_precision_top1", "R-prec. top-1 ↑", ".3f"),
            ("r_precision_top2", "top-2 ↑", ".3f"), ("r_precision_top3", "top-3 ↑", ".3f"),
@@ -25,6 +27,7 @@ COLUMNS = (("fid", "FID ↓", ".3f"), ("r_precision_top1", "R-prec. top-1 ↑", 
            ("multimodality", "multimodality ↑", ".3f"), ("jitter", "jitter (m/s³)", ".1f"),
            ("jitter_per_speed", "jitter / speed (1/s²)", ".1f"), ("foot_skating", "foot skating ↓", ".3f"),
            ("keyframe_error", "keyframe error (m) ↓", ".4f"))
+
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -55,12 +58,13 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--mm-captions", type=int_range(1, 100000), default=10, help="(default 10, T2M: 100)")
     p.add_argument("--inbetween-every", type=int_range(0, 10000), default=0, metavar="K",
                    help="with --model: in-betweening; every motion passes through the real motion's frames 0, K, "
-                        "2K, ... and its last frame, and keyframe_error (m, joints) is reported (0: off)")
+                        "2K, ... and its last frame, and keyframe_error (m, joints) is reported (default 0: off)")
     p.add_argument("--out", required=True, metavar="RDIR", help="results folder to write")
     add_overwrite(p)
-    p.add_argument("--seed", type=int_range(0), default=0)
-    p.add_argument("--device", type=device_type, default="auto")
-    p.add_argument("--threads", type=int_range(1, 1024), default=None, help="torch.set_num_threads")
+    p.add_argument("--seed", type=int_range(0), default=0,
+                   help="seed of the caption draws, the generation noise and T2M's random pairs (default 0)")
+    p.add_argument("--device", type=device_type, default="auto", help="auto (CUDA, else MPS, else CPU), cpu, cuda, mps")
+    p.add_argument("--threads", type=int_range(1, 1024), default=None, help=THREADS_HELP)
     return p
 
 
@@ -248,8 +252,9 @@ def main(argv: Optional[List[str]] = None) -> int:
 
     if a.inbetween_every and not a.model:
         p.error("argument --inbetween-every: needs --model (the motions are generated through the keyframes)")
-    if a.threads:
-        torch.set_num_threads(a.threads)
+    from .threads import apply_threads
+
+    apply_threads(a.threads)
     for name, path in (("--motions", a.motions), ("--model", a.model), ("--evaluator", a.evaluator),
                        ("--data", a.data)):
         out = os.path.abspath(a.out)

@@ -19,6 +19,9 @@ STATE_FILENAME = "train_state.pt"
 OUTPUTS = ("evaluator.json", "evaluator.pt", "metrics.json", STATE_FILENAME)
 
 
+from .threads import THREADS_HELP
+
+
 def build_parser() -> argparse.ArgumentParser:
     from ..metrics.evaluator.train import OWN_SIZES, TrainSettings
     from ._args import add_overwrite, device_type, existing_path, float_range, int_range
@@ -37,10 +40,11 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--glove", type=existing_path("dir"), default=None, metavar="DIR",
                    help="T2M's GloVe folder (our_vab_data.npy, our_vab_words.pkl, our_vab_idx.pkl); default: word "
                         "embeddings learned from the training captions")
-    p.add_argument("--epochs", type=int_range(1, 100000), default=d.epochs, help=f"(default: {d.epochs})")
+    p.add_argument("--epochs", type=int_range(1, 100000), default=d.epochs, help=f"passes over the train split (default: {d.epochs})")
     p.add_argument("--batch", type=int_range(2, 4096), default=d.batch, help=f"motions per step (default: {d.batch})")
     p.add_argument("--lr", type=float_range(0.0, lo_open=True), default=d.lr, help=f"Adam (default: {d.lr})")
-    p.add_argument("--seed", type=int_range(0), default=d.seed)
+    p.add_argument("--seed", type=int_range(0), default=d.seed,
+                   help=f"seed of the initial weights, the batch order and the caption draws (default: {d.seed})")
     p.add_argument("--dim", type=int_range(4, 4096), default=OWN_SIZES["dim_coemb"],
                    help=f"co-embedding size (default: {OWN_SIZES['dim_coemb']}; upstream's: 512)")
     p.add_argument("--hidden", type=int_range(4, 8192), default=OWN_SIZES["dim_motion_hidden"],
@@ -48,17 +52,23 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--resume", action="store_true", help=f"continue from --out/{STATE_FILENAME} (to --epochs)")
     add_overwrite(p)
     p.add_argument("--device", type=device_type, default="auto", help="auto (CUDA, else MPS, else CPU), cpu, cuda, mps")
-    p.add_argument("--threads", type=int_range(1, 1024), default=None, help="torch.set_num_threads")
+    p.add_argument("--threads", type=int_range(1, 1024), default=None, help=THREADS_HELP)
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     return p
 
 
 def main(argv: Optional[List[str]] = None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
-    if not argv or argv[0] in ("-h", "--help"):
+    if not argv:
         print("usage: smdm evaluator train [options]   ('smdm evaluator train --help' for the options)",
-              file=sys.stderr if not argv else sys.stdout)
-        return 2 if not argv else 0
+              file=sys.stderr)
+        return 2
+    if argv[0] in ("-h", "--help"):
+        top = argparse.ArgumentParser(prog="smdm evaluator", description="T2M-style text-motion evaluators")
+        sub = top.add_subparsers(dest="command", metavar="train")
+        sub.add_parser("train", parents=[build_parser()], add_help=False,
+                       help="train an evaluator on a HumanML3D-format folder (or the embedded clips)")
+        top.parse_args(argv)      # prints the help and exits 0
     if argv[0] != "train":
         print(f"smdm evaluator: error: unknown subcommand {argv[0]!r} (expected: train)", file=sys.stderr)
         return 2
@@ -78,8 +88,9 @@ def run(a: argparse.Namespace, p: argparse.ArgumentParser) -> int:
     from ..metrics.evaluator.train import (OWN_SIZES, TrainSettings, build_evaluator, held_out_accuracy,
                                            train_evaluator)
 
-    if a.threads:
-        torch.set_num_threads(a.threads)
+    from .threads import apply_threads
+
+    apply_threads(a.threads)
     out = os.path.abspath(a.out)
     for name, path in (("--data", a.data), ("--glove", a.glove)):
         if path and (out == os.path.abspath(path) or out.startswith(os.path.abspath(path) + os.sep)):

@@ -609,8 +609,8 @@ def wants_study(argv: Optional[Sequence[str]]) -> bool:
     """Whether ``smdm ablate`` arguments ask for the study (``--quick``, or a ``--config`` of kind
     ``quality_compute``)."""
     p = argparse.ArgumentParser(add_help=False)
-    p.add_argument("--config", default=None)
-    p.add_argument("--quick", action="store_true")
+    p.add_argument("--config", default=None, help="the grid (only read to tell a study from an ablation grid)")
+    p.add_argument("--quick", action="store_true", help="the study's quick variant")
     a, _ = p.parse_known_args(list(sys.argv[1:] if argv is None else argv))
     return a.quick or (a.config is not None and is_study_config(a.config))
 
