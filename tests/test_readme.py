@@ -19,6 +19,7 @@ within about a minute on 2 cores; they change sizes and speed, never which files
 * ``smdm inbetween``: ``--no-gif --quiet`` (the GIF is the renderer's, tested in test_render.py);
 * ``smdm render``: ``--stride 10 --quiet`` (every 10th frame);
 * ``smdm bench``: ``--quick``; ``smdm ablate``: ``--steps 2``; ``smdm train``: ``--steps 2``;
+  ``smdm evaluator train``: ``--epochs 2``; ``smdm eval``: ``--replications 1 --mm-repeats 0``;
   every command: ``--threads 1`` where it has the option.
 """
 from __future__ import annotations
@@ -44,6 +45,8 @@ SMALL = {
     "bench": ["--quick", "--threads", "1"],
     "ablate": ["--steps", "2", "--threads", "1", "--no-progress"],
     "train": ["--steps", "2", "--threads", "1", "--no-progress"],
+    "evaluator": ["--epochs", "2", "--threads", "1", "--no-progress"],
+    "eval": ["--replications", "1", "--mm-repeats", "0", "--threads", "1"],
 }
 
 #: (rule, reason): a command matching the regular expression is not run

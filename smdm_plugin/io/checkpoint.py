@@ -28,6 +28,18 @@ def register_model_preparer(fn: Callable[..., nn.Module]) -> None:
     _PREPARE = fn
 
 
+def default_preparer() -> Optional[Callable[..., nn.Module]]:
+    """The registered preparer; when none is yet, the package's own (the adapters' family dispatch,
+    which registers itself on import) is loaded by name, as a plugin would be: io still imports no
+    family code statically, and a model folder loads the same whether or not the caller imported
+    the adapters first."""
+    if _PREPARE is None:
+        import importlib
+
+        importlib.import_module("smdm_plugin.adapters")
+    return _PREPARE
+
+
 def _dir_of(path: str) -> str:
     return path if os.path.isdir(path) else os.path.dirname(os.path.abspath(path))
 
@@ -236,7 +248,7 @@ def load_checkpoint(path: str, model: Optional[nn.Module] = None, map_location: 
     if config is not None and config.enabled and model_is_sparse(model):
         check_config_matches(model, config, config_source or path, allow_differences)
     if config is not None and (config.text_encoder or (config.enabled and not model_is_sparse(model))):
-        prepare = prepare if prepare is not None else _PREPARE
+        prepare = prepare if prepare is not None else default_preparer()
         if prepare is None:
             raise RuntimeError(f"load_checkpoint: {path} needs the model converted to its saved config; "
                                "use smdm_plugin.load_checkpoint (it knows the model families)")
