@@ -175,19 +175,26 @@ def _check_keys(where: str, d: Dict[str, Any], known: Sequence[str]) -> None:
             raise AblateConfigError(f"{where}: unknown key {k!r}{closest(str(k), known)} (known: {', '.join(known)})")
 
 
-def resolve(cfg: Dict[str, Any]) -> Dict[str, Any]:
-    """``cfg`` over :data:`DEFAULTS` (one level deep for the mapping sections), validated: known
-    keys only, types and ranges, every variant named, names and their folder names unique.
-    Variants' ``sparse`` values are checked when the variant runs (an invalid one fails alone)."""
+def over_defaults(cfg: Any, defaults: Dict[str, Any], what: str, expected: str) -> Dict[str, Any]:
+    """A grid's mapping ``cfg`` laid over a copy of ``defaults`` (mapping sections one level deep);
+    only ``defaults``' keys, ``variants`` and ``data`` are known."""
     if not isinstance(cfg, dict):
-        raise AblateConfigError(f"expected a mapping (name, seed, steps, ..., variants), got {type(cfg).__name__}")
-    _check_keys("ablate config", cfg, [*DEFAULTS, "variants", "data"])
-    out = json.loads(json.dumps(DEFAULTS))
+        raise AblateConfigError(f"expected a mapping ({expected}), got {type(cfg).__name__}")
+    _check_keys(what, cfg, [*defaults, "variants", "data"])
+    out = json.loads(json.dumps(defaults))
     for k, v in cfg.items():
         if isinstance(v, dict) and isinstance(out.get(k), dict):
             out[k].update(v)
         else:
             out[k] = v
+    return out
+
+
+def resolve(cfg: Dict[str, Any]) -> Dict[str, Any]:
+    """``cfg`` over :data:`DEFAULTS` (one level deep for the mapping sections), validated: known
+    keys only, types and ranges, every variant named, names and their folder names unique.
+    Variants' ``sparse`` values are checked when the variant runs (an invalid one fails alone)."""
+    out = over_defaults(cfg, DEFAULTS, "ablate config", "name, seed, steps, ..., variants")
     _check("name", out["name"], str)
     for k, lo in (("seed", 0), ("steps", 1), ("batch", 1), ("max_frames", 2), ("diffusion_steps", 1), ("log_every", 1)):
         _check(k, out[k], int, Range(lo))

@@ -33,7 +33,6 @@ from __future__ import annotations
 
 import argparse
 import csv
-import json
 import math
 import os
 import sys
@@ -47,7 +46,7 @@ import torch
 from ..core.config import closest
 from ..io.files import OutputExistsError, atomic_open, atomic_write_json, atomic_write_text
 from ._args import add_overwrite, device_type, existing_path, resolve_device
-from .ablate import (AblateConfigError, _check, _check_keys, check_out_dir, config_path, read_cached, select_variants,
+from .ablate import (AblateConfigError, _check, _check_keys, check_out_dir, over_defaults, config_path, read_cached, select_variants,
                      slug, sparse_config)
 from .provenance import fingerprint_files, make_provenance, stable_hash
 
@@ -62,7 +61,7 @@ DEFAULTS: Dict[str, Any] = {
     "snapshots": {"steps": [100, 250], "seconds": [8.0, 16.0, 32.0]},
     "clock": "cpu",
     "eval": {"split": "test", "limit": None, "batch": 16},
-    "evaluator": {"kind": "pooled"},
+    "evaluator": {"kind": "t2m"},
 }
 #: the settings that shape every run's result (with the variant, its SparseConfig and the evaluator key)
 RUN_SETTINGS = ("batch", "max_frames", "min_frames", "diffusion_steps", "lr", "model", "text", "sparse", "snapshots",
@@ -90,15 +89,7 @@ def resolve_study(cfg: Dict[str, Any]) -> Dict[str, Any]:
     from ..reference.text import TextConfig
     from .study_evaluator import EVALUATORS
 
-    if not isinstance(cfg, dict):
-        raise AblateConfigError(f"expected a mapping, got {type(cfg).__name__}")
-    _check_keys("study config", cfg, [*DEFAULTS, "variants", "data"])
-    out = json.loads(json.dumps(DEFAULTS))
-    for k, v in cfg.items():
-        if isinstance(v, dict) and isinstance(out.get(k), dict):
-            out[k].update(v)
-        else:
-            out[k] = v
+    out = over_defaults(cfg, DEFAULTS, "study config", "kind, name, seeds, ..., variants")
     if out["kind"] != KIND:
         raise AblateConfigError(f"kind={out['kind']!r}: expected {KIND!r}")
     _check("name", out["name"], str)
@@ -620,7 +611,7 @@ def build_parser() -> argparse.ArgumentParser:
         prog="smdm ablate", description="The quality-versus-compute study (a config with kind: quality_compute).",
         epilog="Exit status: 0 every run ok, 1 a run failed, 2 bad arguments or a refused --out, 130 interrupted.")
     p.add_argument("--config", default=KIND, help=f"the study config: a YAML path or packaged name (default {KIND})")
-    p.add_argument("--quick", action="store_true", help=f"run the config's quick variant (<config>_quick: seconds)")
+    p.add_argument("--quick", action="store_true", help="run the config's quick variant (<config>_quick: seconds)")
     p.add_argument("--out", default=os.path.join("results", KIND), help=f"results folder (default results/{KIND})")
     p.add_argument("--data", type=existing_path("dir"), default=None,
                    help=f"HumanML3D-format folder with texts/ (default: config 'data' or {DEFAULT_DATA})")
