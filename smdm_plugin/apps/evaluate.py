@@ -14,7 +14,7 @@ from __future__ import annotations
 import argparse
 import os
 import sys
-from typing import Any, Dict, List, Optional, Tuple
+from typing import Any, Dict, List, Optional
 
 import numpy as np
 
@@ -245,7 +245,7 @@ def main(argv: Optional[List[str]] = None) -> int:
     p = build_parser()
     a = p.parse_args(argv)
     from ..io.files import OutputExistsError
-    from ..io.outdir import OutputDir
+    from ..io.outdir import OutputDir, run_in_output_dir
     from ..metrics.evaluator.data import load_split
     from ..metrics.evaluator.model import evaluator_layout, load_evaluator
     from ._args import resolve_device
@@ -256,11 +256,11 @@ def main(argv: Optional[List[str]] = None) -> int:
 
     apply_threads(a.threads)
     # locked for the run, apart from every input, written in a partial folder and swapped in as one unit
-    od = OutputDir(a.out, overwrite=a.overwrite, command="smdm eval", owns=OUTPUT_FILES,
-                   inputs={"--motions": a.motions, "--model": a.model, "--evaluator": a.evaluator, "--data": a.data,
-                           "--glove": a.glove})
+    out_kw = dict(overwrite=a.overwrite, command="smdm eval", owns=OUTPUT_FILES,
+                  inputs={"--motions": a.motions, "--model": a.model, "--evaluator": a.evaluator, "--data": a.data,
+                          "--glove": a.glove})
     try:
-        od.check()  # refused before anything is loaded or written
+        OutputDir(a.out, **out_kw).check()  # refused before anything is loaded or written
     except OutputExistsError as e:
         print(f"smdm eval: error: {e}", file=sys.stderr)
         return 2
@@ -284,21 +284,17 @@ def main(argv: Optional[List[str]] = None) -> int:
     except (FileNotFoundError, ValueError) as e:
         print(f"smdm eval: {e}", file=sys.stderr)
         return 2
-    try:
-        od.open()
-    except OutputExistsError as e:
-        print(f"smdm eval: error: {e}", file=sys.stderr)
-        return 2
-    with od:
-        _evaluate(a, od.path, dev, real, layout, ev, gen_model, given)
-    print(f"outputs: {os.path.abspath(a.out)}")
-    return 0
+    status = run_in_output_dir(lambda folder: _evaluate(a, folder, dev, real, layout, ev, gen_model, given),
+                               a.out, **out_kw)
+    if status == 0:
+        print(f"outputs: {os.path.abspath(a.out)}")
+    return status
 
 
 def _evaluate(a: argparse.Namespace, folder: str, dev: Any, real: Any, layout: str, ev: Any,
-              gen_model: Optional[Generator], given: Optional[List[np.ndarray]]) -> None:
+              gen_model: Optional[Generator], given: Optional[List[np.ndarray]]) -> int:
     """Score the motions (``given``, or ``gen_model``'s for ``a.replications``) and write
-    :data:`OUTPUT_FILES` into ``folder`` (the partial folder of ``--out``)."""
+    :data:`OUTPUT_FILES` into ``folder`` (the partial folder of ``--out``); returns 0."""
     from ..io.files import atomic_write_json, atomic_write_text
     from ..metrics.evaluator.model import evaluator_info
     from ..metrics.evaluator.score import embed_captions, embed_motions, motion_quality, score_embeddings
@@ -356,6 +352,7 @@ def _evaluate(a: argparse.Namespace, folder: str, dev: Any, real: Any, layout: s
     atomic_write_text(os.path.join(folder, "metrics.md"), table)
     plot(metrics, real_row, label.split(" (")[0], os.path.join(folder, "metrics.png"))
     print("\n" + table)
+    return 0
 
 
 if __name__ == "__main__":
