@@ -14,7 +14,7 @@ from __future__ import annotations
 import argparse
 import os
 import sys
-from typing import Any, Dict, List, Optional, Tuple
+from typing import Any, Dict, List, Optional
 
 import numpy as np
 
@@ -27,6 +27,8 @@ COLUMNS = (("fid", "FID ↓", ".3f"), ("r_precision_top1", "R-prec. top-1 ↑", 
            ("multimodality", "multimodality ↑", ".3f"), ("jitter", "jitter (m/s³)", ".1f"),
            ("jitter_per_speed", "jitter / speed (1/s²)", ".1f"), ("foot_skating", "foot skating ↓", ".3f"),
            ("keyframe_error", "keyframe error (m) ↓", ".4f"))
+#: what ``smdm eval`` writes into ``--out`` (``--overwrite`` replaces these, nothing else)
+OUTPUT_FILES = ("metrics.json", "metrics.md", "metrics.png")
 
 
 
@@ -242,12 +244,10 @@ def plot(metrics: Dict[str, Dict[str, Any]], real: Dict[str, Any], label: str, p
 def main(argv: Optional[List[str]] = None) -> int:
     p = build_parser()
     a = p.parse_args(argv)
-    import torch
-
-    from ..io.files import OutputExistsError, atomic_write_json, atomic_write_text, check_new_dir
+    from ..io.files import OutputExistsError
+    from ..io.outdir import OutputDir, run_in_output_dir
     from ..metrics.evaluator.data import load_split
-    from ..metrics.evaluator.model import evaluator_info, evaluator_layout, load_evaluator
-    from ..metrics.evaluator.score import embed_captions, embed_motions, motion_quality, score_embeddings
+    from ..metrics.evaluator.model import evaluator_layout, load_evaluator
     from ._args import resolve_device
 
     if a.inbetween_every and not a.model:
@@ -255,11 +255,15 @@ def main(argv: Optional[List[str]] = None) -> int:
     from .threads import apply_threads
 
     apply_threads(a.threads)
-    for name, path in (("--motions", a.motions), ("--model", a.model), ("--evaluator", a.evaluator),
-                       ("--data", a.data)):
-        out = os.path.abspath(a.out)
-        if path and (out == os.path.abspath(path) or out.startswith(os.path.abspath(path) + os.sep)):
-            p.error(f"argument --out: must not be inside {name} ({path!r})")
+    # locked for the run, apart from every input, written in a partial folder and swapped in as one unit
+    out_kw = dict(overwrite=a.overwrite, command="smdm eval", owns=OUTPUT_FILES,
+                  inputs={"--motions": a.motions, "--model": a.model, "--evaluator": a.evaluator, "--data": a.data,
+                          "--glove": a.glove})
+    try:
+        OutputDir(a.out, **out_kw).check()  # refused before anything is loaded or written
+    except OutputExistsError as e:
+        print(f"smdm eval: error: {e}", file=sys.stderr)
+        return 2
     dev = resolve_device(a.device)
     try:
         real = load_split(a.data, a.split)
@@ -280,10 +284,21 @@ def main(argv: Optional[List[str]] = None) -> int:
     except (FileNotFoundError, ValueError) as e:
         print(f"smdm eval: {e}", file=sys.stderr)
         return 2
-    try:
-        check_new_dir(a.out, a.overwrite, what="--out")
-    except OutputExistsError as e:
-        p.error(f"argument --out: {e}")
+    status = run_in_output_dir(lambda folder: _evaluate(a, folder, dev, real, layout, ev, gen_model, given),
+                               a.out, **out_kw)
+    if status == 0:
+        print(f"outputs: {os.path.abspath(a.out)}")
+    return status
+
+
+def _evaluate(a: argparse.Namespace, folder: str, dev: Any, real: Any, layout: str, ev: Any,
+              gen_model: Optional[Generator], given: Optional[List[np.ndarray]]) -> int:
+    """Score the motions (``given``, or ``gen_model``'s for ``a.replications``) and write
+    :data:`OUTPUT_FILES` into ``folder`` (the partial folder of ``--out``); returns 0."""
+    from ..io.files import atomic_write_json, atomic_write_text
+    from ..metrics.evaluator.model import evaluator_info
+    from ..metrics.evaluator.score import embed_captions, embed_motions, motion_quality, score_embeddings
+
     R = a.replications or (3 if a.model else 1)
     lengths = [len(m) for m in real.motions]
     label = (f"{gen_model.label} model" if gen_model else "motions") + f" ({os.path.basename(os.path.normpath(a.model or a.motions))})"
@@ -329,14 +344,14 @@ def main(argv: Optional[List[str]] = None) -> int:
            "evaluator_info": {k: v for k, v in evaluator_info(a.evaluator).items() if k != "history"}}
     for k, _, _ in COLUMNS:  # flat means for readers that want one number per metric
         out[k] = metrics[k]["mean"]
-    atomic_write_json(os.path.join(a.out, "metrics.json"), out)
+    atomic_write_json(os.path.join(folder, "metrics.json"), out)
     table = markdown(metrics, real_row, label, R, protocol)
     if gen_model is not None:
         table += ("* The in-package TinyMDM is trained without text: its R-precision and matching score measure how "
                   "close its motions are to the split's captions, not text conditioning.\n")
-    atomic_write_text(os.path.join(a.out, "metrics.md"), table)
-    plot(metrics, real_row, label.split(" (")[0], os.path.join(a.out, "metrics.png"))
-    print("\n" + table + f"\noutputs: {os.path.abspath(a.out)}")
+    atomic_write_text(os.path.join(folder, "metrics.md"), table)
+    plot(metrics, real_row, label.split(" (")[0], os.path.join(folder, "metrics.png"))
+    print("\n" + table)
     return 0
 
 

@@ -13,7 +13,7 @@ from __future__ import annotations
 import argparse
 import os
 import sys
-from typing import List, Optional
+from typing import Any, Dict, List, Optional
 
 STATE_FILENAME = "train_state.pt"
 OUTPUTS = ("evaluator.json", "evaluator.pt", "metrics.json", STATE_FILENAME)
@@ -78,34 +78,25 @@ def main(argv: Optional[List[str]] = None) -> int:
 
 
 def run(a: argparse.Namespace, p: argparse.ArgumentParser) -> int:
-    import time
-
-    import torch
-
-    from ..io.files import OutputExistsError, atomic_open, atomic_write_json, check_new_dir
+    from ..io.files import OutputExistsError
+    from ..io.outdir import OutputDir
     from ..metrics.evaluator.data import load_split, split_names
-    from ..metrics.evaluator.model import save_evaluator
-    from ..metrics.evaluator.train import (OWN_SIZES, TrainSettings, build_evaluator, held_out_accuracy,
-                                           train_evaluator)
+    from ..metrics.evaluator.train import OWN_SIZES, TrainSettings, build_evaluator
 
     from .threads import apply_threads
 
+    if a.resume and a.overwrite:
+        p.error("argument --overwrite: not allowed with argument --resume")
     apply_threads(a.threads)
-    out = os.path.abspath(a.out)
-    for name, path in (("--data", a.data), ("--glove", a.glove)):
-        if path and (out == os.path.abspath(path) or out.startswith(os.path.abspath(path) + os.sep)):
-            p.error(f"argument --out: must not be inside {name} ({path!r})")
-    state_path = os.path.join(a.out, STATE_FILENAME)
-    state = None
-    if a.resume:
-        if not os.path.isfile(state_path):
-            p.error(f"argument --resume: no {STATE_FILENAME} in {a.out!r} to resume from")
-        state = torch.load(state_path, map_location="cpu", weights_only=True)
-    else:
-        try:
-            check_new_dir(a.out, a.overwrite, what="--out")
-        except OutputExistsError as e:
-            p.error(f"argument --out: {e}")
+    # as smdm train: locked, apart from the inputs, written in .<name>.partial (kept when interrupted, for
+    # --resume) and swapped in as one unit; --resume continues an interrupted or a finished run
+    od = OutputDir(a.out, overwrite=a.overwrite, inputs={"--data": a.data, "--glove": a.glove},
+                   command="smdm evaluator train", owns=OUTPUTS, resumable=True, resume=a.resume)
+    try:
+        od.check()  # refused before anything is loaded or written
+    except OutputExistsError as e:
+        print(f"smdm evaluator train: error: {e}", file=sys.stderr)
+        return 2
     try:
         train = load_split(a.data, "train")
         held = {s: load_split(a.data, s) for s in split_names(a.data)}
@@ -122,9 +113,53 @@ def run(a: argparse.Namespace, p: argparse.ArgumentParser) -> int:
     except (FileNotFoundError, ValueError) as e:
         print(f"smdm evaluator train: {e}", file=sys.stderr)
         return 2
-    if state is not None and state.get("settings") != _settings_dict(settings, a):
-        p.error(f"argument --resume: {state_path} was written with other settings ({state.get('settings')}); "
-                "use the same options (only --epochs may grow)")
+    try:
+        od.open()
+    except OutputExistsError as e:
+        print(f"smdm evaluator train: error: {e}", file=sys.stderr)
+        return 2
+    with od:
+        if a.resume and od.resumed_from is None:
+            od.abandon(keep=False)  # nothing written: leave no folder behind
+            print(f"smdm evaluator train: error: --resume: {a.out!r} holds no run to continue (no interrupted or "
+                  "finished smdm evaluator train run there)", file=sys.stderr)
+            return 2
+        status = _train(a, od, settings, ev, train, held)
+    if status == 0:
+        print(f"saved {os.path.abspath(a.out)}")
+    return status
+
+
+def _train(a: argparse.Namespace, od: Any, settings: Any, ev: Any, train: Any, held: Dict[str, Any]) -> int:
+    """Train ``ev`` (with ``--resume``: from the state in ``od.path``) and write :data:`OUTPUTS` into
+    ``od.path``, the partial folder of ``--out`` (an :class:`~smdm_plugin.io.outdir.OutputDir`);
+    a refused resume abandons ``od`` and returns 2."""
+    import time
+
+    import torch
+
+    from ..io.checkpoint import read_state_dict
+    from ..io.files import atomic_open, atomic_write_json
+    from ..metrics.evaluator.model import save_evaluator
+    from ..metrics.evaluator.train import held_out_accuracy, train_evaluator
+
+    folder = od.path
+    state_path = os.path.join(folder, STATE_FILENAME)
+    state = None
+    if a.resume:
+        try:
+            if not os.path.isfile(state_path):
+                raise ValueError(f"--resume: no {STATE_FILENAME} in {a.out!r} to resume from")
+            state = read_state_dict(state_path, what="evaluator training state")
+            if state.get("settings") != _settings_dict(settings, a):
+                raise ValueError(f"--resume: {STATE_FILENAME} in {a.out!r} was written with other settings "
+                                 f"({state.get('settings')}); use the same options (only --epochs may grow)")
+            if int(state.get("epoch", 0)) > settings.epochs:
+                raise ValueError(f"--resume: {a.out!r} is at epoch {state['epoch']}, past --epochs {settings.epochs}")
+        except ValueError as e:
+            print(f"smdm evaluator train: error: {e}", file=sys.stderr)
+            od.abandon(keep=od.resumed_from == od.path)  # an interrupted run's folder stays as it was
+            return 2
     source = a.data or "the embedded CMU clips"
     print(f"smdm evaluator train: {len(train)} training motions ({train.representation}, "
           f"{train.motions[0].shape[1]}-D) from {source}; held out: "
@@ -133,12 +168,21 @@ def run(a: argparse.Namespace, p: argparse.ArgumentParser) -> int:
           f"{ev.mean.device}", flush=True)
     val = held.get("val") or held.get("test")
 
+    saved = [state["epoch"] if state else 0]
+
     def save_state(st):
         with atomic_open(state_path, "wb") as f:
             torch.save({**st, "settings": _settings_dict(settings, a)}, f)
+        saved[0] = st["epoch"]
 
     t0 = time.perf_counter()
-    st = train_evaluator(ev, train, val, settings, state=state, progress=not a.no_progress, on_epoch=save_state)
+    try:
+        st = train_evaluator(ev, train, val, settings, state=state, progress=not a.no_progress, on_epoch=save_state)
+    except KeyboardInterrupt:
+        print("\nsmdm evaluator train: interrupted; " + (
+            f"rerun with --resume to continue from epoch {saved[0]}" if saved[0] else "no epoch was finished"),
+            file=sys.stderr)
+        raise
     metrics = {s: held_out_accuracy(ev, d, settings.eval_draws, seed=a.seed) for s, d in held.items()}
     metrics["train"] = held_out_accuracy(ev, train, settings.eval_draws, seed=a.seed)
     info = {"data": os.path.abspath(a.data) if a.data else "embedded CMU clips", "representation": train.representation,
@@ -146,8 +190,8 @@ def run(a: argparse.Namespace, p: argparse.ArgumentParser) -> int:
             "train_seconds": st["seconds"], "settings": _settings_dict(settings, a),
             "selected_on": "val" if "val" in held else ("test" if held else "last epoch"),
             "metrics": metrics, "history": st["history"]}
-    save_evaluator(ev, a.out, info)
-    atomic_write_json(os.path.join(a.out, "metrics.json"), {k: info[k] for k in ("metrics", "best_epoch", "epochs",
+    save_evaluator(ev, folder, info)
+    atomic_write_json(os.path.join(folder, "metrics.json"), {k: info[k] for k in ("metrics", "best_epoch", "epochs",
                                                                                   "train_seconds", "selected_on")})
     print(f"trained {st['epoch']} epochs in {st['seconds']:.1f} s (kept epoch {st['best']['epoch']}, "
           f"chosen on {info['selected_on']}); wall {time.perf_counter() - t0:.1f} s")
@@ -158,7 +202,6 @@ def run(a: argparse.Namespace, p: argparse.ArgumentParser) -> int:
               f"{m['chance_top1']:.3f} / {m['chance_top3']:.3f} | {m['matching_score']:.3f} |")
     if "val" in held and "test" in held:
         print("(the weights were chosen on val: test is the unbiased number)")
-    print(f"saved {os.path.abspath(a.out)}")
     return 0
 
 
