@@ -508,8 +508,8 @@ def main_demo(args: argparse.Namespace) -> int:
                              f"{ev_info['n_train']} windows of {ev_info['window']} frames, {ev_info['captions']} captions)")
                 held_acc = ev_info["metrics"].get("val")
                 say(f"evaluator: {ev_info['epochs']} epochs, {ev_info['n_train']} windows, {ev_info['seconds']:.1f} s"
-                    + (f"; held-out R-precision top-3 {held_acc['top3']:.2f} (pool {held_acc['pool_size']}, chance "
-                       f"{held_acc['chance_top3']:.2f})" if held_acc else "; no held-out windows"))
+                    + (f"; held-out caption retrieval top-1 {held_acc['top1']:.2f} among {held_acc['pool_size']} "
+                       f"captions (chance {held_acc['chance_top1']:.2f}, {held_acc['n_motions']} windows)" if held_acc else "; no held-out windows"))
         feats = [motion_features(c) for c in crops]
         mean, std = feature_stats(feats)
         data = MotionSet.from_motions(feats, mean, std, max_frames=args.frames)
@@ -777,7 +777,7 @@ def main(argv: Optional[List[str]] = None) -> int:
         try:
             load_demo_evaluator(args.evaluator)
         except (ValueError, FileNotFoundError) as e:
-            p.error(str(e) if str(e).startswith("--evaluator") else f"argument --evaluator: {e}")
+            p.error(f"argument --evaluator: {' '.join(str(e).split())}")
     if not first:
         return main_demo(args)
     from ..io.outdir import run_in_output_dir  # locked, apart from the inputs, swapped in as one unit

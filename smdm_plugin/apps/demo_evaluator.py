@@ -40,8 +40,8 @@ def load_demo_evaluator(path: str, device: Any = "cpu") -> Any:
     try:
         ev = load_evaluator(path, device=device)
     except (OSError, RuntimeError, KeyError) as e:
-        raise ValueError(f"--evaluator {path!r}: cannot be read ({' '.join(str(e).split())})") from None
-    check_demo_evaluator(ev, f"--evaluator {path!r}")
+        raise ValueError(f"{path!r} cannot be read ({' '.join(str(e).split())})") from None
+    check_demo_evaluator(ev, repr(path))
     return ev
 
 
