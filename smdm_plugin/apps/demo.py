@@ -22,8 +22,11 @@
    (``sparse_equal_steps/``) and trains on for as long as the slower took), and reports the measured
    speed ratio and the loss curves. Each model then draws 32 unconditional samples (same noise),
    scored by jitter per unit speed (j/s, 1/s²) beside the speed (m/s) it is relative to, jitter
-   (m/s³) and foot skating; :func:`evaluator_scores` is where FID and the other evaluator metrics
-   join them. Training goes through the one in-package
+   (m/s³) and foot skating, and by FID against the real training crops and diversity
+   (:func:`evaluator_scores`) in the co-embedding of a ``joints66`` motion evaluator: ``--evaluator
+   EDIR``, else one trained at start on the training clips (:mod:`smdm_plugin.apps.demo_evaluator`,
+   a few seconds) and saved as ``evaluator/``; ``--no-evaluator`` skips it. Unconditional models: no
+   R-precision. Training goes through the one in-package
    :class:`~smdm_plugin.apps.trainer.Trainer`, so under ``torchrun --nproc_per_node N -m smdm_plugin
    demo`` both models train with DistributedDataParallel (``--batch`` per process) and only rank 0
    writes files and prints tables. HumanML3D's 263-D features need foot contacts and
@@ -40,7 +43,8 @@
 
 Writes to ``--out`` (refused when it exists and is not empty, unless ``--overwrite``):
 ``keyframes.md`` / ``keyframes.csv``, ``keyframes.png``, ``training.md``, ``loss.png``,
-``inbetween.md``, ``inbetween.gif``, ``summary.json`` and the trained models ``dense/``, ``sparse/`` and
+``inbetween.md``, ``inbetween.gif``, ``summary.json``, the evaluator ``evaluator/`` (unless ``--evaluator`` or
+``--no-evaluator``) and the trained models ``dense/``, ``sparse/`` and
 ``sparse_equal_steps/`` (``smdm inbetween --model OUT/dense OUT/sparse`` samples from them). BVH files it cannot
 use are listed with the full reason, and the reader's warnings (``BVHWarning``) are shown.
 """
@@ -558,7 +562,8 @@ def main_demo(args: argparse.Namespace) -> int:
             floor = scores.pop("floor")["fid"] if floor_set else None
             for k, v in scores.items():
                 quality[k].update(v)
-            ev_note = evaluator_note(ev_info, ev_source, len(pool), [c[0] for c in train_clips], SCORED_SAMPLES, floor)
+            pool_clips = [n for n, j in train_clips if len(j) >= args.frames]   # the clips training_crops used
+            ev_note = evaluator_note(ev_info, ev_source, len(pool), pool_clips, SCORED_SAMPLES, floor)
             train["evaluator"] = {"source": args.evaluator or "OUT/evaluator", "fid_pool": len(pool),
                                   "fid_floor": floor, "info": {k: v for k, v in ev_info.items() if k != "history"}}
         train["quality"] = quality
