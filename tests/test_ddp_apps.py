@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 
+import numpy as np
 import torch
 
 from test_ablate import GRID
@@ -26,7 +27,9 @@ def test_demo_under_torchrun_trains_with_ddp_and_writes_one_output_set(tmp_path)
     assert s["training"]["dense"]["steps"] == 3 and s["training"]["sparse"]["steps"] == 3
     assert sorted(f.name for f in out.iterdir() if f.name != ".smdm-manifest.json") == sorted(
         ["dense", "sparse", "keyframes.md", "keyframes.csv", "keyframes.png", "training.md", "loss.png",
-         "inbetween.md", "summary.json"])
+         "inbetween.md", "summary.json", "evaluator"])
+    # rank 0 alone trained the FID evaluator (once) and scored the samples with it
+    assert log.count("## Evaluator (FID)") == 1 and np.isfinite(s["training"]["quality"]["dense"]["fid"])
     from smdm_plugin.io.bundle import load_bundle
 
     assert load_bundle(str(out / "sparse")).sparse and not load_bundle(str(out / "dense")).sparse

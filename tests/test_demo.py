@@ -80,11 +80,14 @@ def test_quick_demo_skips_unusable_files_keeps_given_flags_and_leaves_models(bvh
     # the real motion: columns, finite, consistent; --quick stops both at 3 steps: one row each
     lines = (out / "training.md").read_text().splitlines()
     assert lines[0].startswith("| model |") and lines[0].rstrip().endswith(
-        "| j/s (1/s²) | jitter (m/s³) | speed (m/s) | foot skating |")
-    rows = {ln.split("|")[1].strip(): ln.split("|")[-5:-1] for ln in lines[2:] if ln.startswith("| ")}
+        "| j/s (1/s²) | jitter (m/s³) | speed (m/s) | foot skating | fid | diversity |")
+    rows = {ln.split("|")[1].strip(): ln.split("|")[-7:-1] for ln in lines[2:] if ln.startswith("| ")}
     assert set(rows) == {"dense, equal steps and time", "sparse, equal steps and time", "motion capture (training clips)"}
     for name, cells in rows.items():
-        jps, jit, speed, skate = (float(v) for v in cells)
+        if name != "motion capture (training clips)":  # (one real window in --quick: no FID for it)
+            fid, div = float(cells[-2]), float(cells[-1])
+            assert np.isfinite(fid) and fid >= 0 and np.isfinite(div) and div > 0, (name, cells)
+        jps, jit, speed, skate = (float(v) for v in cells[:4])
         assert np.isfinite(jit) and jit >= 0 and speed > 0 and 0 <= skate <= 1, (name, cells)
         assert jps == pytest.approx(jit / speed, rel=0.02, abs=1), (name, cells)
     q = s["training"]["quality"]
@@ -138,6 +141,26 @@ def test_quick_demo_runs_on_the_embedded_clips(tmp_path):
     assert p.returncode == 0, p.stderr[-3000:]
     assert "smdm demo: motion from the 17 CMU clips embedded in the package" in p.stdout
     assert (tmp_path / "o" / "training.md").exists() and "| motion capture (" in p.stdout
+    # FID and diversity of each model's samples against the real crops, from the evaluator the demo
+    # trained on its clips and left in OUT/evaluator (a joints66 evaluator smdm eval / the demo reuse)
+    q = json.loads((tmp_path / "o" / "summary.json").read_text())["training"]["quality"]
+    for m in ("dense", "sparse"):
+        assert np.isfinite(q[m]["fid"]) and q[m]["fid"] >= 0 and np.isfinite(q[m]["diversity"]) and q[m]["diversity"] > 0
+    assert "R-precision and matching score are not reported" in p.stdout
+    from smdm_plugin.metrics.evaluator.model import load_evaluator
+
+    ev = load_evaluator(str(tmp_path / "o" / "evaluator"))
+    assert (ev.config.representation, ev.config.dim_pose) == ("joints66", 66)
+    # reused with --evaluator: same FID for the same seed; --no-evaluator: no FID
+    p = run("--quick", "--no-gif", "--evaluator", str(tmp_path / "o" / "evaluator"), "--out", str(tmp_path / "r"),
+            cwd=tmp_path, env=env)
+    assert p.returncode == 0, p.stderr[-3000:]
+    assert not (tmp_path / "r" / "evaluator").exists() and "## Evaluator" not in p.stdout
+    q2 = json.loads((tmp_path / "r" / "summary.json").read_text())["training"]["quality"]
+    assert q2["dense"]["fid"] == pytest.approx(q["dense"]["fid"], rel=1e-4, abs=1e-4)
+    p = run("--quick", "--no-gif", "--no-evaluator", "--out", str(tmp_path / "n"), cwd=tmp_path, env=env)
+    assert p.returncode == 0 and "fid" not in json.loads((tmp_path / "n" / "summary.json").read_text())["training"][
+        "quality"]["dense"] and not (tmp_path / "n" / "evaluator").exists()
 
 
 def test_bad_options_as_a_user_runs_them(tmp_path):
@@ -284,3 +307,64 @@ def test_race_fair_gives_equal_steps_then_equal_time():
     assert capped["dense"]["steps"] == capped["sparse"]["steps"] == 4
     with pytest.raises(ValueError, match="race_fair: need seconds > 0"):
         race_fair({"dense": slow}, seconds=0)
+
+
+def _random_joints66_evaluator():
+    """An untrained joints66 evaluator (random weights: FID is a distance in any fixed embedding)."""
+    from smdm_plugin.io.embedded import embedded_clips
+    from smdm_plugin.metrics.evaluator.data import clips_captioned
+    from smdm_plugin.metrics.evaluator.train import TrainSettings, build_evaluator
+
+    train = clips_captioned(embedded_clips()[:3], {}, (0.0, 1.0))
+    return build_evaluator(train, TrainSettings(seed=0)).eval()
+
+
+def test_evaluator_scores_real_against_itself_is_zero_and_noise_is_not():
+    """The demo's FID hook: real crops scored against themselves give FID 0 (same embeddings),
+    a noised copy a clearly positive FID; the hook embeds the real joints as joints66 features."""
+    from smdm_plugin.io.embedded import embedded_clips
+    from smdm_plugin.metrics import frechet_distance
+    from smdm_plugin.metrics.evaluator.score import embed_motions
+
+    ev = _random_joints66_evaluator()
+    clips = embedded_clips()
+    ref = np.stack(demo.training_crops([c for c in clips if len(c[1]) >= 120], 120, stride=30))   # [W, 120, 22, 3]
+    real = demo.real_set(ref)
+    assert real.features.shape == (len(ref), 120, 66) and real.representation == "joints66"
+    assert np.allclose(real.features[3].numpy(), demo.motion_features(ref[3]))
+    rng = np.random.default_rng(0)
+    noisy = demo.real_set(ref + rng.normal(0, 0.05, ref.shape).astype(np.float32))
+    s = demo.evaluator_scores({"real": real, "noisy": noisy}, ref, ev)
+    assert s["real"]["fid"] == pytest.approx(0.0, abs=1e-6) and s["noisy"]["fid"] > 1e-3
+    # the same number as FID of the embeddings computed directly
+    direct = frechet_distance(embed_motions(ev, [demo.motion_features(w) for w in ref]),
+                              embed_motions(ev, noisy.features.numpy()))
+    assert s["noisy"]["fid"] == pytest.approx(direct, rel=1e-9)
+    assert s["real"]["diversity"] > 0 and demo.evaluator_scores({"real": real}, ref, None) == {}
+
+
+def test_mismatched_evaluator_is_one_line(tmp_path, capsys):
+    """An evaluator for another representation (HumanML3D's 263-D) or a folder that is none: one
+    line, exit 2, nothing written; the hook refuses a set in another representation."""
+    import torch
+
+    from smdm_plugin.metrics.evaluator.model import Evaluator, EvaluatorConfig, save_evaluator
+
+    cfg = EvaluatorConfig(dim_pose=263, dim_word=8, dim_movement_hidden=8, dim_movement_latent=8, dim_motion_hidden=8,
+                          dim_text_hidden=8, dim_coemb=8, vocab_size=4, learned_words=True, source="own")
+    ev = Evaluator(cfg, {"unk": 0, "a": 1, "sos/OTHER": 2, "eos/OTHER": 3}, np.zeros(263), np.ones(263))
+    save_evaluator(ev, str(tmp_path / "hml"))
+    for path, message in ((tmp_path / "hml", "reads humanml3d features of width 263; the demo's models generate "
+                                             "joints66 of width 66"), (tmp_path / "none", "argument --evaluator: ")):
+        out = tmp_path / "never"
+        with pytest.raises(SystemExit) as e:
+            demo.main(["--evaluator", str(path), "--out", str(out)])
+        err = capsys.readouterr().err.strip().splitlines()
+        assert e.value.code == 2 and err[-1].startswith("smdm demo: error: argument --evaluator: ")
+        assert message in err[-1] and not out.exists()
+    with pytest.raises(SystemExit):
+        demo.main(["--evaluator", str(tmp_path / "hml"), "--no-evaluator", "--out", str(tmp_path / "never")])
+    assert "not allowed with argument --evaluator" in capsys.readouterr().err
+    g = demo.GeneratedSet(torch.zeros(2, 60, 66), torch.full((2,), 60), torch.zeros(2, 60, 22, 3), "joints66")
+    with pytest.raises(ValueError, match="evaluator reads humanml3d"):
+        demo.evaluator_scores({"dense": g}, np.zeros((2, 60, 22, 3), np.float32), ev)

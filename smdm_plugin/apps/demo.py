@@ -22,8 +22,11 @@
    (``sparse_equal_steps/``) and trains on for as long as the slower took), and reports the measured
    speed ratio and the loss curves. Each model then draws 32 unconditional samples (same noise),
    scored by jitter per unit speed (j/s, 1/s²) beside the speed (m/s) it is relative to, jitter
-   (m/s³) and foot skating; :func:`evaluator_scores` is where FID and the other evaluator metrics
-   join them. Training goes through the one in-package
+   (m/s³) and foot skating, and by FID against the real training crops and diversity
+   (:func:`evaluator_scores`) in the co-embedding of a ``joints66`` motion evaluator: ``--evaluator
+   EDIR``, else one trained at start on the training clips (:mod:`smdm_plugin.apps.demo_evaluator`,
+   a few seconds) and saved as ``evaluator/``; ``--no-evaluator`` skips it. Unconditional models: no
+   R-precision. Training goes through the one in-package
    :class:`~smdm_plugin.apps.trainer.Trainer`, so under ``torchrun --nproc_per_node N -m smdm_plugin
    demo`` both models train with DistributedDataParallel (``--batch`` per process) and only rank 0
    writes files and prints tables. HumanML3D's 263-D features need foot contacts and
@@ -40,7 +43,8 @@
 
 Writes to ``--out`` (refused when it exists and is not empty, unless ``--overwrite``):
 ``keyframes.md`` / ``keyframes.csv``, ``keyframes.png``, ``training.md``, ``loss.png``,
-``inbetween.md``, ``inbetween.gif``, ``summary.json`` and the trained models ``dense/``, ``sparse/`` and
+``inbetween.md``, ``inbetween.gif``, ``summary.json``, the evaluator ``evaluator/`` (unless ``--evaluator`` or
+``--no-evaluator``) and the trained models ``dense/``, ``sparse/`` and
 ``sparse_equal_steps/`` (``smdm inbetween --model OUT/dense OUT/sparse`` samples from them). BVH files it cannot
 use are listed with the full reason, and the reader's warnings (``BVHWarning``) are shown.
 """
@@ -400,6 +404,11 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--threads", type=int_range(1, 1024), default=None,
                    help=THREADS_HELP)
     p.add_argument("--no-gif", action="store_true", help="skip the in-betweening animation")
+    p.add_argument("--evaluator", default=None, metavar="EDIR",
+                   help="motion evaluator folder for FID and diversity: one that reads joints66 features (66-D), e.g. "
+                        "from 'smdm evaluator train' or a previous demo's OUT/evaluator (default: train a small one "
+                        "on the demo's training clips at start, about 15-30 s, and save it to OUT/evaluator)")
+    p.add_argument("--no-evaluator", action="store_true", help="no FID / diversity: skip the evaluator (default: off)")
     p.add_argument("--quick", action="store_true",
                    help="a smoke run: 1 clip, 60 frames, a tiny model, 3 steps (options you give are kept)")
 
@@ -480,6 +489,31 @@ def main_demo(args: argparse.Namespace) -> int:
         except ValueError as e:
             print(e, file=sys.stderr)
             return 2
+        evaluator, ev_info, ev_source = None, {}, None
+        if main_rank and not args.no_evaluator:
+            from .demo_evaluator import load_demo_evaluator, train_demo_evaluator
+
+            if args.evaluator:
+                from ..metrics.evaluator.model import evaluator_info
+
+                evaluator, ev_info = load_demo_evaluator(args.evaluator, dev), evaluator_info(args.evaluator)
+                ev_source = f"the evaluator {args.evaluator}"
+                say(f"\nevaluator: {args.evaluator}")
+            else:
+                say(f"\n## Evaluator (FID): training a small one on the {len(train_clips)} training clip(s)")
+                try:
+                    evaluator, ev_info = train_demo_evaluator(train_clips, os.path.join(args.out, "evaluator"),
+                                                              args.seed, quick=args.quick, device=dev,
+                                                              progress=not args.quick)
+                except ValueError as e:
+                    print(e, file=sys.stderr)
+                    return 2
+                ev_source = (f"the demo's own evaluator (OUT/evaluator: {ev_info['epochs']} epochs on "
+                             f"{ev_info['n_train']} windows of {ev_info['window']} frames, {ev_info['captions']} captions)")
+                held_acc = ev_info["metrics"].get("val")
+                say(f"evaluator: {ev_info['epochs']} epochs, {ev_info['n_train']} windows, {ev_info['seconds']:.1f} s"
+                    + (f"; held-out caption retrieval top-1 {held_acc['top1']:.2f} among {held_acc['pool_size']} "
+                       f"captions (chance {held_acc['chance_top1']:.2f}, {held_acc['n_motions']} windows)" if held_acc else "; no held-out windows"))
         feats = [motion_features(c) for c in crops]
         mean, std = feature_stats(feats)
         data = MotionSet.from_motions(feats, mean, std, max_frames=args.frames)
@@ -512,7 +546,26 @@ def main_demo(args: argparse.Namespace) -> int:
         reference = np.stack(training_crops(ref_clips, args.frames, stride=args.frames))
         generated = generate_samples(bundles, args.frames, SCORED_SAMPLES, args.seed, dev)
         quality = generation_quality(generated, reference)
-        quality.update(evaluator_scores(generated, reference))
+        ev_note = ""
+        if evaluator is not None and len(crops) < 2:
+            say("no FID: fewer than 2 real training crops to compare with")
+        elif evaluator is not None:
+            from .demo_evaluator import evaluator_note
+
+            pool = np.stack(crops)   # the real crops the models trained on: FID's reference
+            real = {"motion capture": real_set(reference)} if len(reference) >= 2 else {}
+            floor_set = {}
+            if len(pool) > SCORED_SAMPLES:  # FID of as many real crops as samples: the floor at this size
+                pick = np.sort(np.random.default_rng(args.seed).choice(len(pool), SCORED_SAMPLES, replace=False))
+                floor_set = {"floor": real_set(pool[pick])}
+            scores = evaluator_scores({**generated, **real, **floor_set}, pool, evaluator)
+            floor = scores.pop("floor")["fid"] if floor_set else None
+            for k, v in scores.items():
+                quality[k].update(v)
+            pool_clips = [n for n, j in train_clips if len(j) >= args.frames]   # the clips training_crops used
+            ev_note = evaluator_note(ev_info, ev_source, len(pool), pool_clips, SCORED_SAMPLES, floor)
+            train["evaluator"] = {"source": args.evaluator or "OUT/evaluator", "fid_pool": len(pool),
+                                  "fid_floor": floor, "info": {k: v for k, v in ev_info.items() if k != "history"}}
         train["quality"] = quality
         ttable = training_markdown(train, quality, ("held-out clip" if held else "training clips"))
         ttable += (f"\n\nsparse / dense training speed: **{train['speed_ratio']:.2f}×** (TinyMDM latent "
@@ -520,6 +573,8 @@ def main_demo(args: argparse.Namespace) -> int:
                    f"Quality: {SCORED_SAMPLES} unconditional samples per model ({diffusion_steps} diffusion "
                    f"steps, sparse sampling: {sparse_sampling(trainers['sparse'].model)}); j/s = jitter / speed "
                    f"(1/s²), the jerk relative to how fast the motion moves.")
+        if ev_note:
+            ttable += "\n\n" + ev_note
         limits = limits_note(args, train, len(data))
         ttable += "\n\n" + limits
         print(ttable)
@@ -598,19 +653,40 @@ def generation_quality(generated: Dict[str, GeneratedSet], reference: np.ndarray
     return out
 
 
+def real_set(joints: np.ndarray) -> GeneratedSet:
+    """Real motion ``joints [W, N, 22, 3]`` (metres, 20 fps) as a :class:`GeneratedSet` of the demo's
+    representation (``joints66``, :func:`motion_features` per window), to score it as a model's samples."""
+    j = np.asarray(joints, np.float32)
+    feats = torch.from_numpy(np.stack([motion_features(w) for w in j]))
+    return GeneratedSet(feats, torch.full((len(j),), j.shape[1], dtype=torch.long), torch.from_numpy(j), "joints66")
+
+
 def evaluator_scores(generated: Dict[str, GeneratedSet], reference: np.ndarray,
                      evaluator: Optional[Any] = None) -> Dict[str, Dict[str, float]]:
-    """The field's distribution metrics (FID, R-precision, diversity) of each model's samples
-    against the real motion — **the place where the demo calls a motion evaluator** (issue 19, item
-    2). Without one (today) it returns ``{}`` and the tables show jitter, speed and skating only.
-
-    An evaluator scores features of the representation it was trained on: ``generated[name].features``
-    ``[B, N, D]`` with ``.lengths [B]`` (and ``.representation``: the demo trains on ``joints66``, an
-    evaluator for HumanML3D's 263-D features needs a model trained on HumanML3D data). It returns
-    ``{name: {'fid': ..., ...}}``, merged into the quality table by the caller."""
+    """The field's distribution metrics of each set of samples against real motion, in the
+    co-embedding of ``evaluator`` (an :class:`~smdm_plugin.metrics.evaluator.model.Evaluator` reading
+    ``generated[name].representation``; ``None``: ``{}``): ``{name: {'fid': ..., 'diversity': ...}}``
+    — FID of ``generated[name].features [B, N, D]`` (valid frames ``.lengths [B]``) against the real
+    joints ``reference [W, N, 22, 3]`` (metres; as ``joints66`` features), diversity of the samples
+    (:func:`~smdm_plugin.metrics.diversity`, 300 or B − 1 random pairs). The demo's models are
+    unconditional: no R-precision. ValueError (one line) when a set is not in the evaluator's
+    representation."""
     if evaluator is None:
         return {}
-    return evaluator(generated, reference)
+    from ..metrics.evaluator.score import embed_motions
+    from ..metrics.t2m import diversity, frechet_distance
+
+    rep = evaluator.config.representation
+    for name, g in generated.items():
+        if g.representation != rep or g.features.shape[-1] != evaluator.config.dim_pose:
+            raise ValueError(f"evaluator_scores: {name!r} is {g.representation} [.., {g.features.shape[-1]}], the "
+                             f"evaluator reads {rep} [.., {evaluator.config.dim_pose}]")
+    real = embed_motions(evaluator, real_set(reference).features)
+    out: Dict[str, Dict[str, float]] = {}
+    for name, g in generated.items():
+        emb = embed_motions(evaluator, g.features, g.lengths)
+        out[name] = {"fid": float(frechet_distance(real, emb)), "diversity": float(diversity(emb, seed=0)[0])}
+    return out
 
 
 def sparse_sampling(model: Any) -> str:
@@ -630,7 +706,8 @@ def training_markdown(train: Dict[str, Any], quality: Dict[str, Dict[str, float]
     model that trained on after the equal-steps point has two rows: at that step count
     (``<name>_equal_steps`` in ``quality``: "equal steps") and at the end ("equal time"); the other
     model's one row is both. A last row with the real motion's (``reference`` says which)."""
-    extra = sorted({k for q in quality.values() for k in q} - {"jitter", "speed", "jps", "foot_skating"})
+    extra = sorted({k for q in quality.values() for k in q} - {"jitter", "speed", "jps", "foot_skating"},
+                   key=lambda k: (k != "fid", k))   # FID first
     lines = ["| model | steps | seconds | final loss | j/s (1/s²) | jitter (m/s³) | speed (m/s) | foot skating |"
              + "".join(f" {k} |" for k in extra),
              "| --- | ---: | ---: | ---: | ---: | ---: | ---: | ---: |" + " ---: |" * len(extra)]
@@ -697,6 +774,15 @@ def main(argv: Optional[List[str]] = None) -> int:
         p.error(f"argument --out: {args.out!r} exists and is not empty; pass --overwrite to write into it")
     if first and os.path.exists(args.out) and not os.path.isdir(args.out):
         p.error(f"argument --out: {args.out!r} exists and is not a folder")
+    if args.evaluator is not None and args.no_evaluator:
+        p.error("argument --no-evaluator: not allowed with argument --evaluator")
+    if first and args.evaluator is not None:
+        from .demo_evaluator import load_demo_evaluator
+
+        try:
+            load_demo_evaluator(args.evaluator)
+        except (ValueError, FileNotFoundError) as e:
+            p.error(f"argument --evaluator: {' '.join(str(e).split())}")
     if not first:
         return main_demo(args)
     from ..io.outdir import run_in_output_dir  # locked, apart from the inputs, swapped in as one unit
@@ -704,7 +790,10 @@ def main(argv: Optional[List[str]] = None) -> int:
     def write(part: str) -> int:  # main_demo writes into the partial folder; args.folder: where it ends up
         return main_demo(argparse.Namespace(**{**vars(args), "out": part, "folder": args.out}))
 
-    return run_in_output_dir(write, args.out, args.overwrite, {f"--bvh {b}": b for b in args.bvh or ()}, "smdm demo")
+    inputs = {f"--bvh {b}": b for b in args.bvh or ()}
+    if args.evaluator is not None:
+        inputs["--evaluator"] = args.evaluator
+    return run_in_output_dir(write, args.out, args.overwrite, inputs, "smdm demo")
 
 
 if __name__ == "__main__":

@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import os
 from dataclasses import dataclass
-from typing import List, Optional, Tuple
+from typing import Dict, List, Optional, Sequence, Tuple
 
 import numpy as np
 
@@ -86,30 +86,41 @@ def embedded_captioned(split: str, window: int = 40, stride: int = 8) -> Caption
     first 60% of a clip's frames give ``train`` windows, the next 20% ``val``, the last 20% ``test``
     (windows never cross those borders; a clip too short for a window in a part gives none there)."""
     from ...io.embedded import embedded_clips, embedded_descriptions
-    from ...io.representation import canonical_xz, joints_to_joints66
 
     if split not in ("train", "val", "test"):
         raise ValueError(f"embedded data: split must be train, val or test, got {split!r}")
-    desc = embedded_descriptions()
-    clips = embedded_clips()
-    feats_all = {n: joints_to_joints66(canonical_xz(np.asarray(j, np.float32))).astype(np.float32) for n, j in clips}
-    allf = np.concatenate(list(feats_all.values()))
+    parts = {"train": (0.0, 0.6), "val": (0.6, 0.8), "test": (0.8, 1.0)}
+    return clips_captioned(embedded_clips(), embedded_descriptions(), parts[split], window, stride,
+                           what=f"embedded data: no {split} window")
+
+
+def clips_captioned(clips: Sequence[Tuple[str, np.ndarray]], descriptions: Dict[str, str],
+                    part: Tuple[float, float], window: int = 40, stride: int = 8,
+                    what: str = "clips: no window") -> CaptionedMotions:
+    """``joints66`` windows of ``window`` frames (every ``stride``) of the part ``part`` (fractions
+    ``(from, to)`` of each clip's frames; windows never cross its borders, a part shorter than 40
+    frames gives none) of ``clips`` ``[(name, joints [T, 22, 3] metres, 20 fps)]``, each captioned
+    with ``descriptions[name]`` (the name itself when absent). Mean/std: over all frames of all clips."""
+    from ...io.representation import canonical_xz, joints_to_joints66
+
+    feats_all = [joints_to_joints66(canonical_xz(np.asarray(j, np.float32))) for _, j in clips]
+    allf = np.concatenate(feats_all)
     mean, std = allf.mean(0).astype(np.float32), (allf.std(0) + 1e-4).astype(np.float32)
     ids, motions, captions = [], [], []
     for name, j in clips:
         T = len(j)
-        a, b = {"train": (0, int(0.6 * T)), "val": (int(0.6 * T), int(0.8 * T)), "test": (int(0.8 * T), T)}[split]
+        a, b = int(part[0] * T), int(part[1] * T)
         w = min(window, b - a)
         if w < 40:
             continue
+        text = descriptions.get(name) or name
         for s in range(a, b - w + 1, stride):
             seg = np.asarray(j[s:s + w], np.float32)
             ids.append(f"{name}@{s}")
             motions.append(joints_to_joints66(canonical_xz(seg)).astype(np.float32))
-            text = desc[name]
             captions.append([Caption(text, plain_tokens(text))])
     if not ids:
-        raise ValueError(f"embedded data: no {split} window")
+        raise ValueError(what)
     return CaptionedMotions(ids, motions, captions, mean, std, representation="joints66")
 
 
