@@ -123,6 +123,18 @@ def _lead_keep(plan: KeyframePlan, lead: int, lead_padding: Optional[torch.Tenso
     return plan.mask.new_ones(plan.batch, lead)
 
 
+def _key_bias(plan: KeyframePlan, lead: int, lead_padding: Optional[torch.Tensor], dtype: torch.dtype
+              ) -> torch.Tensor:
+    """Additive key padding mask ``[B, lead + K]`` (0 kept / -inf padded lead tokens and empty
+    slots), made once per call: a float mask goes through every layer's attention as it is (a
+    bool one is converted again in each layer)."""
+    pad = ~plan.valid
+    if lead:
+        lead_pad = plan.valid.new_zeros(plan.batch, lead) if lead_padding is None else lead_padding.to(torch.bool)
+        pad = torch.cat([lead_pad, pad], 1)
+    return torch.zeros(pad.shape, dtype=dtype, device=pad.device).masked_fill_(pad, float("-inf"))
+
+
 # ---------------------------------------------------------------------------------- masked
 def masked_backend(inner: nn.Module, x: torch.Tensor, plan: KeyframePlan, lead: int,
                    memory: Optional[torch.Tensor] = None, memory_key_padding_mask: Optional[torch.Tensor] = None,
@@ -142,8 +154,7 @@ def compact_backend(inner: nn.Module, x: torch.Tensor, plan: KeyframePlan, lead:
     src = _slot_positions(plan, lead) * B + torch.arange(B, device=x.device)   # [lead + K, B]
     R = src.shape[0]
     xc = gather_rows(x.reshape(S * B, d), src.reshape(-1)).view(R, B, d)
-    pad = torch.cat([~_lead_keep(plan, lead, lead_padding), ~plan.valid], 1)  # [B, lead + K]
-    out = _call_inner(inner, xc, pad, memory, memory_key_padding_mask)
+    out = _call_inner(inner, xc, _key_bias(plan, lead, lead_padding, x.dtype), memory, memory_key_padding_mask)
     rows = torch.arange(R * B, device=x.device).view(R, B)
     return out.reshape(R * B, d), rows
 

@@ -19,6 +19,19 @@ from torch import Tensor, nn
 __all__ = ["FSQ", "FSQMultiheadAttention", "quantize_attention_keys"]
 
 
+class _RoundSTE(torch.autograd.Function):
+    """``torch.round`` whose gradient is the identity (straight-through): one op forward, none
+    backward (``b + (round(b) - b).detach()`` costs three)."""
+
+    @staticmethod
+    def forward(ctx, b: Tensor) -> Tensor:
+        return torch.round(b)
+
+    @staticmethod
+    def backward(ctx, g: Tensor) -> Tensor:
+        return g
+
+
 class FSQ(nn.Module):
     """Finite scalar quantiser. ``[..., d] -> [..., d]`` with ``d = len(levels)``.
 
@@ -67,9 +80,10 @@ class FSQ(nn.Module):
         if z.shape[-1] != self.dim:
             raise ValueError(f"FSQ: input must be [..., {self.dim}], got {tuple(z.shape)}")
         b = self.bound(z)
-        r = torch.round(b)
         if torch.is_grad_enabled() and b.requires_grad:
-            r = b + (r - b).detach()                            # straight-through rounding
+            r = _RoundSTE.apply(b)                              # straight-through rounding
+        else:
+            r = torch.round(b)
         return r / self._half_width.to(z.dtype)
 
     def codes_to_indices(self, codes: Tensor) -> Tensor:
