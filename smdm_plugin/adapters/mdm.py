@@ -141,7 +141,7 @@ def _rows_pre_hook(module: nn.Module, args: tuple):
     if host_checkable(plan.mask):                          # exact keyframe rows (data-dependent size)
         rows = plan.mask.t().reshape(-1).nonzero(as_tuple=True)[0]
     else:                                                  # every slot's frame: K*B rows, distinct
-        rows = (plan.slot_frames() * B + torch.arange(B, device=x.device)).reshape(-1)
+        rows = plan.rows.view(-1)
     state.embed_rows = (rows, N, B)
     return (gather_rows(x.reshape(N * B, F_), rows),)
 

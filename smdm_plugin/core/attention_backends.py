@@ -109,11 +109,14 @@ def _call_inner(inner: nn.Module, x: torch.Tensor, pad: Optional[torch.Tensor], 
     return out.transpose(0, 1) if bf else out
 
 
-def _slot_positions(plan: KeyframePlan, lead: int) -> torch.Tensor:
-    """``[lead + K, B]`` long: the sequence position of every lead token and plan slot."""
+def _slot_rows(plan: KeyframePlan, lead: int) -> torch.Tensor:
+    """``[lead + K, B]`` long: the row ``position * B + b`` of every lead token and plan slot in a
+    sequence-first ``[(lead + N) * B, ...]`` tensor."""
+    if not lead:
+        return plan.rows
     B = plan.batch
-    lead_pos = torch.arange(lead, device=plan.index.device)[:, None].expand(lead, B)
-    return torch.cat([lead_pos, lead + plan.slot_frames()], 0)
+    lead_rows = torch.arange(lead * B, device=plan.rows.device).view(lead, B)
+    return torch.cat([lead_rows, plan.rows + lead * B], 0)
 
 
 def _lead_keep(plan: KeyframePlan, lead: int, lead_padding: Optional[torch.Tensor]) -> torch.Tensor:
@@ -142,7 +145,7 @@ def masked_backend(inner: nn.Module, x: torch.Tensor, plan: KeyframePlan, lead: 
     S, B, d = x.shape
     keep = torch.cat([_lead_keep(plan, lead, lead_padding), plan.mask], 1)
     out = _call_inner(inner, x, ~keep, memory, memory_key_padding_mask)
-    rows = _slot_positions(plan, lead) * B + torch.arange(B, device=x.device)
+    rows = _slot_rows(plan, lead)
     return out.reshape(S * B, d), rows
 
 
@@ -151,7 +154,7 @@ def compact_backend(inner: nn.Module, x: torch.Tensor, plan: KeyframePlan, lead:
                     memory: Optional[torch.Tensor] = None, memory_key_padding_mask: Optional[torch.Tensor] = None,
                     lead_padding: Optional[torch.Tensor] = None) -> Tuple[torch.Tensor, torch.Tensor]:
     S, B, d = x.shape
-    src = _slot_positions(plan, lead) * B + torch.arange(B, device=x.device)   # [lead + K, B]
+    src = _slot_rows(plan, lead)                                               # [lead + K, B]
     R = src.shape[0]
     xc = gather_rows(x.reshape(S * B, d), src.reshape(-1)).view(R, B, d)
     out = _call_inner(inner, xc, _key_bias(plan, lead, lead_padding, x.dtype), memory, memory_key_padding_mask)

@@ -33,6 +33,9 @@ class KeyframePlan:
         count: ``[B]`` long, keyframes per sample (``1 <= count <= K``).
         prev_slot, next_slot: ``[B, N]`` long, slots of the keyframes around each frame.
         weight: ``[B, N]`` float32 in [0, 1], the interpolation weight of each frame.
+        rows: ``[K, B]`` long, contiguous: the row ``frame * B + b`` of each slot's frame in a
+            frame-major ``[N * B, ...]`` tensor (made once per call, read by the input embedding
+            and the compact backend).
         cubic: ``[B]`` bool or None: samples whose output frames are filled by C¹ Catmull-Rom curves
             through the output at the keyframes (:func:`~smdm_plugin.core.interpolation.catmull_rom_taps`;
             sampling with ``sample_interpolation="cubic"``); None = the paper's linear fill only.
@@ -45,6 +48,7 @@ class KeyframePlan:
     prev_slot: torch.Tensor
     next_slot: torch.Tensor
     weight: torch.Tensor
+    rows: torch.Tensor
     cubic: Optional[torch.Tensor] = None
 
     @property
@@ -84,17 +88,14 @@ class KeyframePlan:
         index = torch.sort(torch.where(mask, idx, idx + N), dim=1).indices[:, :K]
         valid = idx[:K] < count[:, None]
         seen = torch.cumsum(mask, 1)                                   # keyframes at or before n
-        prev_slot = (seen - 1).clamp_min(0)
-        next_slot = torch.minimum(torch.where(mask, seen - 1, seen), (count - 1).clamp_min(0)[:, None])
+        before = seen - 1
+        prev_slot = before.clamp_min(0)
+        next_slot = torch.minimum(torch.where(mask, before, seen), (count - 1).clamp_min(0)[:, None])
         prev_f = index.gather(1, prev_slot)
         next_f = index.gather(1, next_slot)
-        gap = (next_f - prev_f).clamp_min(1).to(torch.float32)
-        weight = ((idx[None] - prev_f).to(torch.float32) / gap).clamp(0.0, 1.0)
+        # a true division of ints: float32 (exact frame differences, one rounding)
+        weight = torch.div(idx[None] - prev_f, (next_f - prev_f).clamp_min(1)).to(torch.float32).clamp(0.0, 1.0)
+        rows = torch.add(torch.arange(B, device=mask.device)[:, None], index, alpha=B).t().contiguous()
         if cubic is not None:
             cubic = torch.as_tensor(cubic, device=mask.device).to(torch.bool).reshape(-1).expand(B)
-        return cls(mask, index, valid, count, prev_slot, next_slot, weight, cubic)
-
-    def slot_frames(self) -> torch.Tensor:
-        """``[K, B]`` long: the frame of every slot, frame-major (rows of a ``[N, B, ...]`` tensor
-        are ``frame * B + b``)."""
-        return self.index.t()
+        return cls(mask, index, valid, count, prev_slot, next_slot, weight, rows, cubic)
