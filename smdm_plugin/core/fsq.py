@@ -206,10 +206,17 @@ class FSQMultiheadAttention(nn.Module):
         return x.unflatten(-1, (self.num_heads, self.head_dim)).transpose(1, 2)
 
     def quantize_keys(self, k: Tensor) -> Tensor:
-        """``[..., head_dim] -> [..., head_dim]`` through the FSQ bottleneck (the linear layers run on
-        rows ``[-1, head_dim]``: one fused multiply-add each)."""
-        rows = k.reshape(-1, k.shape[-1])
-        return self.key_up(self.fsq(self.key_down(rows))).view(k.shape)
+        """``[..., S, head_dim] -> [..., S, head_dim]`` through the FSQ bottleneck. ``key_down``
+        runs as one batched matmul over dim ``-2`` (the heads, for the layout ``[.., H, head_dim]``
+        of the in-projection's keys), which reads strided keys in place (no copy); ``key_up`` as
+        one fused multiply-add on the rows. The result has ``k``'s shape (strides may differ)."""
+        S, hd = k.shape[-2:]
+        kb = k.movedim(-2, 0).reshape(S, -1, hd)                        # [S, M, hd]: a view for the keys
+        down = self.key_down                                            # of F.linear(...).chunk(3)
+        w = down.weight.t().expand(S, hd, self.fsq.dim)
+        z = torch.bmm(kb, w) if down.bias is None else torch.baddbmm(down.bias, kb, w)   # [S, M, d]
+        out = self.key_up(self.fsq(z).view(-1, self.fsq.dim))            # [S*M, hd]
+        return out.view(S, *k.shape[:-2], hd).movedim(0, -2)
 
     def forward(self, query: Tensor, key: Tensor, value: Tensor,
                 key_padding_mask: Optional[Tensor] = None, need_weights: bool = True,
@@ -236,9 +243,12 @@ class FSQMultiheadAttention(nn.Module):
             q, k, v = F.linear(query, w_q, b_q), F.linear(key, w_k, b_k), F.linear(value, w_v, b_v)
         B = q.shape[0] if bf else q.shape[1]
         L, S = q.shape[1 if bf else 0], k.shape[1 if bf else 0]
-        if self.quantize:
-            k = self.quantize_keys(k.reshape(*k.shape[:2], H, hd)).reshape(k.shape)
-        q, k, v = (self._heads(t, bf) for t in (q, k, v))           # [B, H, T, hd]
+        q, v = self._heads(q, bf), self._heads(v, bf)               # [B, H, T, hd]
+        if self.quantize:                                           # [T, B, H, hd] or [B, T, H, hd]
+            k = self.quantize_keys(k.unflatten(-1, (H, hd)))
+            k = (k if bf else k.transpose(0, 1)).transpose(1, 2)
+        else:
+            k = self._heads(k, bf)
         # combined additive mask, broadcastable to [B, H, L, S]
         dt = q.dtype
         mask = _to_float_mask(attn_mask, dt)
