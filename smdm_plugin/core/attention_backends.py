@@ -221,18 +221,22 @@ class _LerpRows(torch.autograd.Function):
     def forward(ctx, h: torch.Tensor, prev: torch.Tensor, nxt: torch.Tensor, w: torch.Tensor) -> torch.Tensor:
         ctx.save_for_backward(prev, nxt, w)
         ctx.rows = h.shape[0]
-        return torch.lerp(h.index_select(0, prev), h.index_select(0, nxt), w)
+        shape = (*w.shape[:-1], -1)                       # w [..., 1] may be a strided view
+        out = torch.lerp(h.index_select(0, prev).view(shape), h.index_select(0, nxt).view(shape), w)
+        return out.reshape(prev.shape[0], *h.shape[1:])
 
     @staticmethod
     def backward(ctx, g: torch.Tensor):
         prev, nxt, w = ctx.saved_tensors
         grad = g.new_zeros(ctx.rows, *g.shape[1:])
-        grad.index_add_(0, prev, g * (1 - w)).index_add_(0, nxt, g * w)
+        gw = g.view(*w.shape[:-1], -1)
+        grad.index_add_(0, prev, (gw * (1 - w)).reshape(g.shape)).index_add_(0, nxt, (gw * w).reshape(g.shape))
         return grad, None, None, None
 
 
 def lerp_rows(h: torch.Tensor, prev: torch.Tensor, nxt: torch.Tensor, w: torch.Tensor) -> torch.Tensor:
-    """Row ``r`` of the result is ``lerp(h[prev[r]], h[nxt[r]], w[r])``; ``w [R, 1]``."""
+    """Row ``r`` of the result is ``lerp(h[prev[r]], h[nxt[r]], w[r])``; ``w [R, 1]`` (or any
+    ``[..., 1]`` whose leading dims flatten to the ``R`` rows, e.g. a transposed ``[N, B, 1]``)."""
     return _LerpRows.apply(h, prev, nxt, w)
 
 
@@ -467,7 +471,7 @@ def fill_frames(h: torch.Tensor, rows: torch.Tensor, plan: KeyframePlan, lead: i
     prev = frame_rows.gather(0, plan.prev_slot.t())                    # [N, B]
     if interpolate:
         out = lerp_rows(h, prev.reshape(-1), frame_rows.gather(0, plan.next_slot.t()).reshape(-1),
-                        plan.weight.t().reshape(-1, 1).to(h.dtype))
+                        plan.weight.t().unsqueeze(-1).to(h.dtype))
     else:
         out = h.index_select(0, prev.reshape(-1)) * plan.mask.t().reshape(-1, 1).to(h.dtype)
     out = out.view(N, B, d)
