@@ -16,6 +16,8 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
+from .checks import compiling
+
 __all__ = ["FSQ", "FSQMultiheadAttention", "quantize_attention_keys"]
 
 
@@ -70,21 +72,22 @@ class FSQ(nn.Module):
     def codebook_size(self) -> int:
         return int(math.prod(self.levels_list))
 
-    def bound(self, z: Tensor) -> Tensor:
+    def bound(self, z: Tensor, shifted: bool = False) -> Tensor:
         """``[..., d]``: each channel squashed into ``(-floor(L/2) - 0.5, ceil(L/2) - 0.5)``
-        (``tanh(z + shift) * half_l - offset``, as one fused multiply-add)."""
-        return torch.addcmul(self._neg_offset.to(z.dtype), torch.tanh(z + self._shift.to(z.dtype)),
-                             self._half_l.to(z.dtype))
+        (``tanh(z + shift) * half_l - offset``, as one fused multiply-add; ``shifted``: ``z``
+        already holds ``+ shift``)."""
+        t = torch.tanh(z if shifted else z + self._shift.to(z.dtype))
+        return torch.addcmul(self._neg_offset.to(z.dtype), t, self._half_l.to(z.dtype))
+
+    @staticmethod
+    def round(b: Tensor) -> Tensor:
+        """Integer levels of bounded ``b``; straight-through under autograd (identity gradient)."""
+        return _RoundSTE.apply(b) if torch.is_grad_enabled() and b.requires_grad else torch.round(b)
 
     def forward(self, z: Tensor) -> Tensor:
         if z.shape[-1] != self.dim:
             raise ValueError(f"FSQ: input must be [..., {self.dim}], got {tuple(z.shape)}")
-        b = self.bound(z)
-        if torch.is_grad_enabled() and b.requires_grad:
-            r = _RoundSTE.apply(b)                              # straight-through rounding
-        else:
-            r = torch.round(b)
-        return r / self._half_width.to(z.dtype)
+        return self.round(self.bound(z)) / self._half_width.to(z.dtype)
 
     def codes_to_indices(self, codes: Tensor) -> Tensor:
         """``[..., d]`` grid codes (as returned by ``forward``) -> ``[...]`` long in
@@ -164,6 +167,7 @@ class FSQMultiheadAttention(nn.Module):
         self.key_down = nn.Linear(self.head_dim, self.fsq.dim, **fk)
         self.key_up = nn.Linear(self.fsq.dim, self.head_dim, **fk)
         self.quantize = True
+        self._fold_cache: Optional[Tuple[tuple, Tuple[Tensor, Tensor]]] = None
         self._reset_parameters()
         self.register_forward_pre_hook(_disable_transformer_fast_path)
 
@@ -212,11 +216,26 @@ class FSQMultiheadAttention(nn.Module):
         one fused multiply-add on the rows. The result has ``k``'s shape (strides may differ)."""
         S, hd = k.shape[-2:]
         kb = k.movedim(-2, 0).reshape(S, -1, hd)                        # [S, M, hd]: a view for the keys
-        down = self.key_down                                            # of F.linear(...).chunk(3)
-        w = down.weight.t().expand(S, hd, self.fsq.dim)
-        z = torch.bmm(kb, w) if down.bias is None else torch.baddbmm(down.bias, kb, w)   # [S, M, d]
-        out = self.key_up(self.fsq(z).view(-1, self.fsq.dim))            # [S*M, hd]
+        down_bias, up_weight = self._folded()                            # of F.linear(...).chunk(3)
+        z = torch.baddbmm(down_bias, kb, self.key_down.weight.t().expand(S, hd, self.fsq.dim))
+        r = self.fsq.round(self.fsq.bound(z, shifted=True))              # [S, M, d] integer levels
+        out = F.linear(r.view(-1, self.fsq.dim), up_weight, self.key_up.bias)   # [S*M, hd]
         return out.view(S, *k.shape[:-2], hd).movedim(0, -2)
+
+    def _folded(self) -> Tuple[Tensor, Tensor]:
+        """FSQ's constant affine steps folded into the two projections: ``(key_down.bias + shift
+        [d], key_up.weight / floor(L/2) [head_dim, d])``. Without autograd (sampling) and outside
+        tracing, cached: keyed on the parameters' storage and version, as the Lipschitz layers."""
+        bias, weight, fsq = self.key_down.bias, self.key_up.weight, self.fsq
+        key = None
+        if not torch.is_grad_enabled() and not compiling():
+            key = (bias.data_ptr(), bias._version, weight.data_ptr(), weight._version,
+                   fsq._shift.data_ptr(), fsq._half_width.data_ptr())
+            if self._fold_cache is not None and self._fold_cache[0] == key:
+                return self._fold_cache[1]
+        out = (bias + fsq._shift.to(bias.dtype), weight / fsq._half_width.to(weight.dtype))
+        self._fold_cache = None if key is None else (key, out)
+        return out
 
     def forward(self, query: Tensor, key: Tensor, value: Tensor,
                 key_padding_mask: Optional[Tensor] = None, need_weights: bool = True,
