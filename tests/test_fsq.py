@@ -142,10 +142,10 @@ def test_sampling_cache_of_the_folded_projections_follows_weight_updates():
     _, fsq = _pair(True)
     q, k, v, kpm = _inputs(True)
     for _ in range(2):
+        ref, _ = fsq(q, k, v, key_padding_mask=kpm, need_weights=False)        # autograd: not cached
         with torch.no_grad():
             cached, _ = fsq(q, k, v, key_padding_mask=kpm, need_weights=False)
             cached2, _ = fsq(q, k, v, key_padding_mask=kpm, need_weights=False)
-        ref, _ = fsq(q, k, v, key_padding_mask=kpm, need_weights=False)        # autograd: not cached
         torch.testing.assert_close(cached, ref.detach(), rtol=1e-5, atol=1e-5)
         assert torch.equal(cached, cached2)
         with torch.no_grad():
