@@ -83,9 +83,8 @@ class KeyframePlan:
             require((count >= 1) & (count <= K),
                     f"KeyframePlan: every sample needs 1..{K} keyframes (capacity {K}); a keyframe mask "
                     "has more than the capacity or none")
-        # keyframes first (frame order), then the other frames: one sort of distinct keys, whose
-        # positions are the frames
-        index = torch.sort(torch.where(mask, idx, idx + N), dim=1).indices[:, :K]
+        # keyframes first (frame order), then the other frames (frame order): one stable sort
+        index = torch.sort(mask, dim=1, descending=True, stable=True).indices[:, :K]
         valid = idx[:K] < count[:, None]
         seen = torch.cumsum(mask, 1)                                   # keyframes at or before n
         before = seen - 1
