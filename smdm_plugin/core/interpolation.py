@@ -118,6 +118,15 @@ def catmull_rom_fill(features: torch.Tensor, plan: KeyframePlan) -> torch.Tensor
     return (taps * w.unsqueeze(-1)).sum(2)
 
 
+def catmull_rom_refill(features: torch.Tensor, plan: KeyframePlan) -> torch.Tensor:
+    """``features [B, N, D]`` with the samples in ``plan.cubic`` (``True``: every sample) refilled by
+    :func:`catmull_rom_fill`, the others as they are."""
+    filled = catmull_rom_fill(features, plan)
+    if plan.cubic is True:
+        return filled
+    return torch.where(plan.cubic.view(-1, 1, 1), filled, features)
+
+
 def interpolate_keyframes_cubic(features: torch.Tensor, mask: torch.Tensor,
                                 cubic: Optional[torch.Tensor] = None) -> torch.Tensor:
     """:func:`interpolate_keyframes` with C¹ Catmull-Rom curves (:func:`catmull_rom_taps`) in place

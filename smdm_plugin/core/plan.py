@@ -15,7 +15,7 @@ first / last keyframe (constant extension).
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Optional
+from typing import Optional, Union
 
 import torch
 
@@ -36,9 +36,10 @@ class KeyframePlan:
         rows: ``[K, B]`` long, contiguous: the row ``frame * B + b`` of each slot's frame in a
             frame-major ``[N * B, ...]`` tensor (made once per call, read by the input embedding
             and the compact backend).
-        cubic: ``[B]`` bool or None: samples whose output frames are filled by C¹ Catmull-Rom curves
-            through the output at the keyframes (:func:`~smdm_plugin.core.interpolation.catmull_rom_taps`;
-            sampling with ``sample_interpolation="cubic"``); None = the paper's linear fill only.
+        cubic: ``[B]`` bool, ``True`` (every sample) or None: samples whose output frames are filled by
+            C¹ Catmull-Rom curves through the output at the keyframes
+            (:func:`~smdm_plugin.core.interpolation.catmull_rom_refill`; sampling with
+            ``sample_interpolation="cubic"``); None = the paper's linear fill only.
     """
 
     mask: torch.Tensor
@@ -49,7 +50,7 @@ class KeyframePlan:
     next_slot: torch.Tensor
     weight: torch.Tensor
     rows: torch.Tensor
-    cubic: Optional[torch.Tensor] = None
+    cubic: Union[None, bool, torch.Tensor] = None
 
     @property
     def capacity(self) -> int:
@@ -69,7 +70,8 @@ class KeyframePlan:
         """The plan of bool ``mask [B, N]`` with ``capacity`` slots (None: ``N``, always enough).
         Every sample needs between 1 and ``capacity`` keyframes (checked without a host sync;
         ``check=False`` for masks that hold it by construction, e.g. the sampling schedule's).
-        ``cubic``: bool ``[B]``, samples whose output is filled by C¹ interpolation (None: none)."""
+        ``cubic``: bool ``[B]``, samples whose output is filled by C¹ interpolation (True: all, None:
+        none)."""
         if mask.dim() != 2:
             raise ValueError(f"KeyframePlan: mask must be bool [B, N], got shape {tuple(mask.shape)}")
         mask = mask.to(torch.bool)
@@ -95,6 +97,6 @@ class KeyframePlan:
         # a true division of ints: float32 (exact frame differences, one rounding)
         weight = torch.div(idx[None] - prev_f, (next_f - prev_f).clamp_min(1)).to(torch.float32).clamp(0.0, 1.0)
         rows = torch.add(torch.arange(B, device=mask.device)[:, None], index, alpha=B).t().contiguous()
-        if cubic is not None:
+        if cubic is not None and cubic is not True:
             cubic = torch.as_tensor(cubic, device=mask.device).to(torch.bool).reshape(-1).expand(B)
         return cls(mask, index, valid, count, prev_slot, next_slot, weight, rows, cubic)
