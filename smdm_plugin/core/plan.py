@@ -80,7 +80,8 @@ class KeyframePlan:
         if not 1 <= K <= N:
             raise ValueError(f"KeyframePlan: capacity must be in [1, N={N}], got {capacity}")
         idx = torch.arange(N, device=mask.device)
-        count = mask.sum(1)
+        seen = torch.cumsum(mask, 1)                                   # keyframes at or before n
+        count = seen[:, -1]
         if check:
             require((count >= 1) & (count <= K),
                     f"KeyframePlan: every sample needs 1..{K} keyframes (capacity {K}); a keyframe mask "
@@ -88,10 +89,9 @@ class KeyframePlan:
         # keyframes first (frame order), then the other frames (frame order): one stable sort
         index = torch.sort(mask, dim=1, descending=True, stable=True).indices[:, :K]
         valid = idx[:K] < count[:, None]
-        seen = torch.cumsum(mask, 1)                                   # keyframes at or before n
         before = seen - 1
         prev_slot = before.clamp_min(0)
-        next_slot = torch.minimum(torch.where(mask, before, seen), (count - 1).clamp_min(0)[:, None])
+        next_slot = torch.minimum(torch.where(mask, before, seen), before[:, -1:].clamp_min(0))   # <= count - 1
         prev_f = index.gather(1, prev_slot)
         next_f = index.gather(1, next_slot)
         # a true division of ints: float32 (exact frame differences, one rounding)
