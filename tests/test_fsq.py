@@ -136,6 +136,26 @@ def test_quantised_matches_reference_computation():
     assert not torch.allclose(out, dense, atol=1e-3)                # quantiser is active
 
 
+def test_sampling_cache_of_the_folded_projections_follows_weight_updates():
+    """Without autograd the FSQ steps folded into key_down / key_up are cached; an in-place update
+    of those weights (an optimizer step, load_state_dict) is seen by the next call."""
+    _, fsq = _pair(True)
+    q, k, v, kpm = _inputs(True)
+    for _ in range(2):
+        ref, _ = fsq(q, k, v, key_padding_mask=kpm, need_weights=False)        # autograd: not cached
+        with torch.no_grad():
+            cached, _ = fsq(q, k, v, key_padding_mask=kpm, need_weights=False)
+            cached2, _ = fsq(q, k, v, key_padding_mask=kpm, need_weights=False)
+        torch.testing.assert_close(cached, ref.detach(), rtol=1e-5, atol=1e-5)
+        assert torch.equal(cached, cached2)
+        with torch.no_grad():
+            fsq.key_up.weight.mul_(-2.0)
+            fsq.key_down.bias.add_(0.7)
+        with torch.no_grad():
+            changed, _ = fsq(q, k, v, key_padding_mask=kpm, need_weights=False)
+        assert not torch.allclose(changed, cached, atol=1e-3)
+
+
 def test_is_causal_and_weights_shape():
     _, fsq = _pair(True)
     x = torch.randn(2, 6, 32)

@@ -161,51 +161,81 @@ def test_the_sync_counter_sees_syncs():
 
 # ----------------------------------------------------------------------------- launch budget
 #: ops the C¹ output fill adds to a sampling call: tap slots and Hermite weights on [B, N] (about
-#: 25 elementwise ops that torch.compile fuses), two gathers, a product, a sum, a select
+#: 20 elementwise ops that torch.compile fuses), two gathers, a product, a sum (26 in all now)
 CUBIC_FILL_OPS = 40
+
+
+def static_path_counts(name, sparse, fsq=None, **cfg):
+    """Ops dispatched on the static path by MDM-depth TinyMDM (8 layers), B=8, 196 frames, lengths
+    40..196: ``{"train": loss + backward, "sample t=40": early step, "sample t=2": late step (VW)}``
+    (the second call of each is counted). ``fsq`` with ``sparse=False``: the dense model gets the
+    same FSQ attention (``quantize_attention_keys``). The optimizer step is the same for both and
+    is left out."""
+    B, N = 8, 196
+    x, y = batch(name, B=B, N=N)
+    y["lengths"] = torch.linspace(40, N, B).round().long()
+    y["mask"] = (torch.arange(N) < y["lengths"][:, None]).view(B, 1, 1, N)
+    model, diffusion = make(name, sparse=sparse, layers=8, latent=64, fsq=fsq if sparse else None, **cfg)
+    if fsq and not sparse:
+        assert quantize_attention_keys(model, SparseConfig().fsq_levels) == 8
+    t = torch.arange(B) * 6
+    counts = {}
+    with static_mode():
+        model.train()
+        for _ in range(2):                                    # the second one is counted
+            with Dispatched() as d:
+                diffusion.training_losses(model, x, t, {"y": dict(y)})["loss"].mean().backward()
+        counts["train"] = d.count
+        model.eval()
+        with torch.no_grad():
+            model(x, torch.full((B,), 40), dict(y))           # warm-up
+            for step in (40, 2):
+                with Dispatched() as d:
+                    model(x + step, torch.full((B,), step), dict(y))
+                counts[f"sample t={step}"] = d.count
+    return counts
+
+
+BUDGET = {"train": 1.5, "sample t=40": 1.6, "sample t=2": 1.6}
 
 
 @pytest.mark.parametrize("fsq", [False, True], ids=["fsq_off", "fsq_on"])
 @pytest.mark.parametrize("name", ["trans_enc", "trans_dec"])
 def test_launch_budget_of_the_static_path(name, fsq):
-    """MDM-depth TinyMDM (8 layers), B=8, 196 frames, lengths 40..196: ops dispatched by the
-    sparse model <= 1.5x the dense model's for a training step (loss + backward) and <= 1.6x for
-    each sampling call (a new x_t, before and inside the late steps). Like is compared with like:
-    with FSQ on, the dense model gets the same FSQ attention (``quantize_attention_keys``). The
-    optimizer step is the same for both and is left out."""
-    B, N = 8, 196
-    x, y = batch(name, B=B, N=N)
-    y["lengths"] = torch.linspace(40, N, B).round().long()
-    y["mask"] = (torch.arange(N) < y["lengths"][:, None]).view(B, 1, 1, N)
-    counts = {}
-    for sparse in (False, True, "cubic"):
-        kw = {} if not sparse else {"sample_interpolation": "cubic" if sparse == "cubic" else "linear"}
-        model, diffusion = make(name, sparse=bool(sparse), layers=8, latent=64, fsq=fsq, **kw)
-        if fsq and not sparse:
-            assert quantize_attention_keys(model, SparseConfig().fsq_levels) == 8
-        t = torch.arange(B) * 6
-        with static_mode():
-            model.train()
-            for _ in range(2):                                    # the second one is counted
-                with Dispatched() as d:
-                    diffusion.training_losses(model, x, t, {"y": dict(y)})["loss"].mean().backward()
-            counts["train", sparse] = d.count
-            model.eval()
-            with torch.no_grad():
-                model(x, torch.full((B,), 40), dict(y))           # warm-up
-                for step in (40, 2):
-                    with Dispatched() as d:
-                        model(x + step, torch.full((B,), step), dict(y))
-                    counts[f"sample t={step}", sparse] = d.count
-    for what, budget in (("train", 1.5), ("sample t=40", 1.6), ("sample t=2", 1.6)):
-        ratio = counts[what, True] / counts[what, False]
-        assert ratio <= budget, f"{name} {what}: {counts[what, True]} vs {counts[what, False]} ops ({ratio:.2f}x)"
+    """Like with like: ops dispatched by the sparse model (the paper's linear fill) <= 1.5x the
+    dense model's for a training step and <= 1.6x for each sampling call, with FSQ keys on both or
+    on neither."""
+    dense = static_path_counts(name, False, fsq)
+    sparse = static_path_counts(name, True, fsq, sample_interpolation="linear")
+    cubic = static_path_counts(name, True, fsq, sample_interpolation="cubic")
+    for what, budget in BUDGET.items():
+        ratio = sparse[what] / dense[what]
+        assert ratio <= budget, f"{name} {what}: {sparse[what]} vs {dense[what]} ops ({ratio:.2f}x)"
     # the C¹ fill of the output (sample_interpolation="cubic", the default): a fixed number of small
     # [B, N]-sized ops per sampling call on top of the paper's fill, none in training
-    assert counts["train", "cubic"] == counts["train", True]
+    assert cubic["train"] == sparse["train"]
     for what in ("sample t=40", "sample t=2"):
-        extra = counts[what, "cubic"] - counts[what, True]
+        extra = cubic[what] - sparse[what]
         assert 0 < extra <= CUBIC_FILL_OPS, f"{name} {what}: the cubic fill adds {extra} ops"
+
+
+@pytest.mark.parametrize("call", ["train", "sample"])
+@pytest.mark.parametrize("name", ["trans_enc", "trans_dec"])
+def test_launch_budget_of_fsq_keys_against_the_dense_upstream_model(name, call, request):
+    """Issue 21's budget: the sparse model as the paper trains it (FSQ keys, the default config:
+    C¹ ``cubic`` sampling fill) against the dense upstream model WITHOUT FSQ: <= 1.5x its ops per
+    training step, <= 1.6x per sampling call (early and late step)."""
+    if (name, call) == ("trans_enc", "sample"):
+        request.applymarker(pytest.mark.xfail(strict=True, reason=(
+            "not met yet: trans_enc sampling with FSQ keys and the cubic fill is 1.74x the dense "
+            "model without FSQ (1.6x budget); see docs/gpu.md")))
+    assert SparseConfig().fsq and SparseConfig().sample_interpolation == "cubic"     # the defaults
+    dense = static_path_counts(name, False)
+    sparse = static_path_counts(name, True, True)
+    for what, budget in BUDGET.items():
+        if what.startswith(call):
+            ratio = sparse[what] / dense[what]
+            assert ratio <= budget, f"{name} {what}: {sparse[what]} vs {dense[what]} ops ({ratio:.2f}x)"
 
 
 # ----------------------------------------------------------------------------- same results

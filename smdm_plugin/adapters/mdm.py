@@ -29,7 +29,7 @@ from ..core.attention_backends import gather_rows, scatter_rows
 from ..core.checks import host_checkable
 from ..core.config import SparseConfig
 from ..core.fsq import FSQMultiheadAttention, quantize_attention_keys
-from ..core.interpolation import catmull_rom_fill
+from ..core.interpolation import catmull_rom_refill
 from ..core.keyframe_transformer import KeyframeTransformer
 from ..core.losses import add_lipschitz_term
 from ..core.plan import KeyframePlan
@@ -116,8 +116,7 @@ def cubic_output(output: torch.Tensor, plan: KeyframePlan) -> torch.Tensor:
     frames = frames_layout(output)                                          # [B, N, J*F]
     if plan.frames != N:                                                    # DiP: the output has no prefix
         plan = KeyframePlan.build(plan.mask[:, plan.frames - N:], None, check=False, cubic=plan.cubic)
-    filled = catmull_rom_fill(frames, plan)
-    filled = torch.where(plan.cubic.view(B, 1, 1), filled, frames)          # the others as they are
+    filled = catmull_rom_refill(frames, plan)                               # the others as they are
     return filled.reshape(B, N, J, F_).permute(0, 2, 3, 1)
 
 
@@ -141,7 +140,7 @@ def _rows_pre_hook(module: nn.Module, args: tuple):
     if host_checkable(plan.mask):                          # exact keyframe rows (data-dependent size)
         rows = plan.mask.t().reshape(-1).nonzero(as_tuple=True)[0]
     else:                                                  # every slot's frame: K*B rows, distinct
-        rows = (plan.slot_frames() * B + torch.arange(B, device=x.device)).reshape(-1)
+        rows = plan.rows.view(-1)
     state.embed_rows = (rows, N, B)
     return (gather_rows(x.reshape(N * B, F_), rows),)
 

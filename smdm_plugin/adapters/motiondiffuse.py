@@ -47,7 +47,7 @@ import torch.nn as nn
 from ..core.attention_backends import fill_frames, gather_rows
 from ..core.checks import as_lengths, as_mask
 from ..core.config import SparseConfig
-from ..core.interpolation import catmull_rom_fill
+from ..core.interpolation import catmull_rom_refill
 from ..core.lipschitz import lipschitz_loss
 from .family import CallInputs, ModelFamily, register_family
 from .state import MISSING, SparseState, Variant, find_sparse_model, get_state
@@ -112,7 +112,7 @@ def _sparse_forward(self, x, timesteps, length=None, text=None, xf_proj=None, xf
     h = fill_frames(hk.reshape(B * K, D), rows, plan, 0).transpose(0, 1)  # [B, T, D]
     out = self.out(h).view(B, T, -1)
     if plan.cubic is not None:  # sample_interpolation="cubic": C¹ through the keyframe outputs
-        out = torch.where(plan.cubic.view(B, 1, 1), catmull_rom_fill(out, plan), out)
+        out = catmull_rom_refill(out, plan)
     return out.contiguous()
 
 

@@ -159,8 +159,8 @@ def keyframe_plan(state: SparseState, frames: torch.Tensor, timesteps: Any, leng
     """
     B, N = frames.shape[:2]
     device = frames.device
-    valid = torch.arange(N, device=device)[None] < lengths[:, None]
     if mask is not None:                                   # training (or a caller's own mask)
+        valid = torch.arange(N, device=device)[None] < lengths[:, None]
         mask = torch.as_tensor(mask, device=device)
         if tuple(mask.shape) != (B, N):
             raise ValueError(f"{mask_name} must be bool [B, N]=[{B}, {N}], got {tuple(mask.shape)}")

@@ -109,11 +109,14 @@ def _call_inner(inner: nn.Module, x: torch.Tensor, pad: Optional[torch.Tensor], 
     return out.transpose(0, 1) if bf else out
 
 
-def _slot_positions(plan: KeyframePlan, lead: int) -> torch.Tensor:
-    """``[lead + K, B]`` long: the sequence position of every lead token and plan slot."""
+def _slot_rows(plan: KeyframePlan, lead: int) -> torch.Tensor:
+    """``[lead + K, B]`` long: the row ``position * B + b`` of every lead token and plan slot in a
+    sequence-first ``[(lead + N) * B, ...]`` tensor."""
+    if not lead:
+        return plan.rows
     B = plan.batch
-    lead_pos = torch.arange(lead, device=plan.index.device)[:, None].expand(lead, B)
-    return torch.cat([lead_pos, lead + plan.slot_frames()], 0)
+    lead_rows = torch.arange(lead * B, device=plan.rows.device).view(lead, B)
+    return torch.cat([lead_rows, plan.rows + lead * B], 0)
 
 
 def _lead_keep(plan: KeyframePlan, lead: int, lead_padding: Optional[torch.Tensor]) -> torch.Tensor:
@@ -123,6 +126,18 @@ def _lead_keep(plan: KeyframePlan, lead: int, lead_padding: Optional[torch.Tenso
     return plan.mask.new_ones(plan.batch, lead)
 
 
+def _key_bias(plan: KeyframePlan, lead: int, lead_padding: Optional[torch.Tensor], dtype: torch.dtype
+              ) -> torch.Tensor:
+    """Additive key padding mask ``[B, lead + K]`` (0 kept / -inf padded lead tokens and empty
+    slots), made once per call: a float mask goes through every layer's attention as it is (a
+    bool one is converted again in each layer)."""
+    pad = ~plan.valid
+    if lead:
+        lead_pad = plan.valid.new_zeros(plan.batch, lead) if lead_padding is None else lead_padding.to(torch.bool)
+        pad = torch.cat([lead_pad, pad], 1)
+    return torch.zeros(pad.shape, dtype=dtype, device=pad.device).masked_fill_(pad, float("-inf"))
+
+
 # ---------------------------------------------------------------------------------- masked
 def masked_backend(inner: nn.Module, x: torch.Tensor, plan: KeyframePlan, lead: int,
                    memory: Optional[torch.Tensor] = None, memory_key_padding_mask: Optional[torch.Tensor] = None,
@@ -130,7 +145,7 @@ def masked_backend(inner: nn.Module, x: torch.Tensor, plan: KeyframePlan, lead: 
     S, B, d = x.shape
     keep = torch.cat([_lead_keep(plan, lead, lead_padding), plan.mask], 1)
     out = _call_inner(inner, x, ~keep, memory, memory_key_padding_mask)
-    rows = _slot_positions(plan, lead) * B + torch.arange(B, device=x.device)
+    rows = _slot_rows(plan, lead)
     return out.reshape(S * B, d), rows
 
 
@@ -139,11 +154,10 @@ def compact_backend(inner: nn.Module, x: torch.Tensor, plan: KeyframePlan, lead:
                     memory: Optional[torch.Tensor] = None, memory_key_padding_mask: Optional[torch.Tensor] = None,
                     lead_padding: Optional[torch.Tensor] = None) -> Tuple[torch.Tensor, torch.Tensor]:
     S, B, d = x.shape
-    src = _slot_positions(plan, lead) * B + torch.arange(B, device=x.device)   # [lead + K, B]
+    src = _slot_rows(plan, lead)                                               # [lead + K, B]
     R = src.shape[0]
     xc = gather_rows(x.reshape(S * B, d), src.reshape(-1)).view(R, B, d)
-    pad = torch.cat([~_lead_keep(plan, lead, lead_padding), ~plan.valid], 1)  # [B, lead + K]
-    out = _call_inner(inner, xc, pad, memory, memory_key_padding_mask)
+    out = _call_inner(inner, xc, _key_bias(plan, lead, lead_padding, x.dtype), memory, memory_key_padding_mask)
     rows = torch.arange(R * B, device=x.device).view(R, B)
     return out.reshape(R * B, d), rows
 
@@ -207,18 +221,22 @@ class _LerpRows(torch.autograd.Function):
     def forward(ctx, h: torch.Tensor, prev: torch.Tensor, nxt: torch.Tensor, w: torch.Tensor) -> torch.Tensor:
         ctx.save_for_backward(prev, nxt, w)
         ctx.rows = h.shape[0]
-        return torch.lerp(h.index_select(0, prev), h.index_select(0, nxt), w)
+        shape = (*w.shape[:-1], -1)                       # w [..., 1] may be a strided view
+        out = torch.lerp(h.index_select(0, prev).view(shape), h.index_select(0, nxt).view(shape), w)
+        return out.reshape(prev.shape[0], *h.shape[1:])
 
     @staticmethod
     def backward(ctx, g: torch.Tensor):
         prev, nxt, w = ctx.saved_tensors
         grad = g.new_zeros(ctx.rows, *g.shape[1:])
-        grad.index_add_(0, prev, g * (1 - w)).index_add_(0, nxt, g * w)
+        gw = g.view(*w.shape[:-1], -1)
+        grad.index_add_(0, prev, (gw * (1 - w)).reshape(g.shape)).index_add_(0, nxt, (gw * w).reshape(g.shape))
         return grad, None, None, None
 
 
 def lerp_rows(h: torch.Tensor, prev: torch.Tensor, nxt: torch.Tensor, w: torch.Tensor) -> torch.Tensor:
-    """Row ``r`` of the result is ``lerp(h[prev[r]], h[nxt[r]], w[r])``; ``w [R, 1]``."""
+    """Row ``r`` of the result is ``lerp(h[prev[r]], h[nxt[r]], w[r])``; ``w [R, 1]`` (or any
+    ``[..., 1]`` whose leading dims flatten to the ``R`` rows, e.g. a transposed ``[N, B, 1]``)."""
     return _LerpRows.apply(h, prev, nxt, w)
 
 
@@ -453,7 +471,7 @@ def fill_frames(h: torch.Tensor, rows: torch.Tensor, plan: KeyframePlan, lead: i
     prev = frame_rows.gather(0, plan.prev_slot.t())                    # [N, B]
     if interpolate:
         out = lerp_rows(h, prev.reshape(-1), frame_rows.gather(0, plan.next_slot.t()).reshape(-1),
-                        plan.weight.t().reshape(-1, 1).to(h.dtype))
+                        plan.weight.t().unsqueeze(-1).to(h.dtype))
     else:
         out = h.index_select(0, prev.reshape(-1)) * plan.mask.t().reshape(-1, 1).to(h.dtype)
     out = out.view(N, B, d)

@@ -16,7 +16,22 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
+from .checks import compiling
+
 __all__ = ["FSQ", "FSQMultiheadAttention", "quantize_attention_keys"]
+
+
+class _RoundSTE(torch.autograd.Function):
+    """``torch.round`` whose gradient is the identity (straight-through): one op forward, none
+    backward (``b + (round(b) - b).detach()`` costs three)."""
+
+    @staticmethod
+    def forward(ctx, b: Tensor) -> Tensor:
+        return torch.round(b)
+
+    @staticmethod
+    def backward(ctx, g: Tensor) -> Tensor:
+        return g
 
 
 class FSQ(nn.Module):
@@ -57,20 +72,22 @@ class FSQ(nn.Module):
     def codebook_size(self) -> int:
         return int(math.prod(self.levels_list))
 
-    def bound(self, z: Tensor) -> Tensor:
+    def bound(self, z: Tensor, shifted: bool = False) -> Tensor:
         """``[..., d]``: each channel squashed into ``(-floor(L/2) - 0.5, ceil(L/2) - 0.5)``
-        (``tanh(z + shift) * half_l - offset``, as one fused multiply-add)."""
-        return torch.addcmul(self._neg_offset.to(z.dtype), torch.tanh(z + self._shift.to(z.dtype)),
-                             self._half_l.to(z.dtype))
+        (``tanh(z + shift) * half_l - offset``, as one fused multiply-add; ``shifted``: ``z``
+        already holds ``+ shift``)."""
+        t = torch.tanh(z if shifted else z + self._shift.to(z.dtype))
+        return torch.addcmul(self._neg_offset.to(z.dtype), t, self._half_l.to(z.dtype))
+
+    @staticmethod
+    def round(b: Tensor) -> Tensor:
+        """Integer levels of bounded ``b``; straight-through under autograd (identity gradient)."""
+        return _RoundSTE.apply(b) if torch.is_grad_enabled() and b.requires_grad else torch.round(b)
 
     def forward(self, z: Tensor) -> Tensor:
         if z.shape[-1] != self.dim:
             raise ValueError(f"FSQ: input must be [..., {self.dim}], got {tuple(z.shape)}")
-        b = self.bound(z)
-        r = torch.round(b)
-        if torch.is_grad_enabled() and b.requires_grad:
-            r = b + (r - b).detach()                            # straight-through rounding
-        return r / self._half_width.to(z.dtype)
+        return self.round(self.bound(z)) / self._half_width.to(z.dtype)
 
     def codes_to_indices(self, codes: Tensor) -> Tensor:
         """``[..., d]`` grid codes (as returned by ``forward``) -> ``[...]`` long in
@@ -150,6 +167,7 @@ class FSQMultiheadAttention(nn.Module):
         self.key_down = nn.Linear(self.head_dim, self.fsq.dim, **fk)
         self.key_up = nn.Linear(self.fsq.dim, self.head_dim, **fk)
         self.quantize = True
+        self._fold_cache: Optional[Tuple[tuple, Tuple[Tensor, Tensor]]] = None
         self._reset_parameters()
         self.register_forward_pre_hook(_disable_transformer_fast_path)
 
@@ -192,10 +210,32 @@ class FSQMultiheadAttention(nn.Module):
         return x.unflatten(-1, (self.num_heads, self.head_dim)).transpose(1, 2)
 
     def quantize_keys(self, k: Tensor) -> Tensor:
-        """``[..., head_dim] -> [..., head_dim]`` through the FSQ bottleneck (the linear layers run on
-        rows ``[-1, head_dim]``: one fused multiply-add each)."""
-        rows = k.reshape(-1, k.shape[-1])
-        return self.key_up(self.fsq(self.key_down(rows))).view(k.shape)
+        """``[..., S, head_dim] -> [..., S, head_dim]`` through the FSQ bottleneck. ``key_down``
+        runs as one batched matmul over dim ``-2`` (the heads, for the layout ``[.., H, head_dim]``
+        of the in-projection's keys), which reads strided keys in place (no copy); ``key_up`` as
+        one fused multiply-add on the rows. The result has ``k``'s shape (strides may differ)."""
+        S, hd = k.shape[-2:]
+        kb = k.movedim(-2, 0).reshape(S, -1, hd)                        # [S, M, hd]: a view for the keys
+        down_bias, up_weight = self._folded()                            # of F.linear(...).chunk(3)
+        z = torch.baddbmm(down_bias, kb, self.key_down.weight.t().expand(S, hd, self.fsq.dim))
+        r = self.fsq.round(self.fsq.bound(z, shifted=True))              # [S, M, d] integer levels
+        out = F.linear(r.view(-1, self.fsq.dim), up_weight, self.key_up.bias)   # [S*M, hd]
+        return out.view(S, *k.shape[:-2], hd).movedim(0, -2)
+
+    def _folded(self) -> Tuple[Tensor, Tensor]:
+        """FSQ's constant affine steps folded into the two projections: ``(key_down.bias + shift
+        [d], key_up.weight / floor(L/2) [head_dim, d])``. Without autograd (sampling) and outside
+        tracing, cached: keyed on the parameters' storage and version, as the Lipschitz layers."""
+        bias, weight, fsq = self.key_down.bias, self.key_up.weight, self.fsq
+        key = None
+        if not torch.is_grad_enabled() and not compiling():
+            key = (bias.data_ptr(), bias._version, weight.data_ptr(), weight._version,
+                   fsq._shift.data_ptr(), fsq._half_width.data_ptr())
+            if self._fold_cache is not None and self._fold_cache[0] == key:
+                return self._fold_cache[1]
+        out = (bias + fsq._shift.to(bias.dtype), weight / fsq._half_width.to(weight.dtype))
+        self._fold_cache = None if key is None else (key, out)
+        return out
 
     def forward(self, query: Tensor, key: Tensor, value: Tensor,
                 key_padding_mask: Optional[Tensor] = None, need_weights: bool = True,
@@ -222,9 +262,12 @@ class FSQMultiheadAttention(nn.Module):
             q, k, v = F.linear(query, w_q, b_q), F.linear(key, w_k, b_k), F.linear(value, w_v, b_v)
         B = q.shape[0] if bf else q.shape[1]
         L, S = q.shape[1 if bf else 0], k.shape[1 if bf else 0]
-        if self.quantize:
-            k = self.quantize_keys(k.reshape(*k.shape[:2], H, hd)).reshape(k.shape)
-        q, k, v = (self._heads(t, bf) for t in (q, k, v))           # [B, H, T, hd]
+        q, v = self._heads(q, bf), self._heads(v, bf)               # [B, H, T, hd]
+        if self.quantize:                                           # [T, B, H, hd] or [B, T, H, hd]
+            k = self.quantize_keys(k.unflatten(-1, (H, hd)))
+            k = (k if bf else k.transpose(0, 1)).transpose(1, 2)
+        else:
+            k = self._heads(k, bf)
         # combined additive mask, broadcastable to [B, H, L, S]
         dt = q.dtype
         mask = _to_float_mask(attn_mask, dt)

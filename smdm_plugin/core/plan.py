@@ -15,7 +15,7 @@ first / last keyframe (constant extension).
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Optional
+from typing import Optional, Union
 
 import torch
 
@@ -33,9 +33,13 @@ class KeyframePlan:
         count: ``[B]`` long, keyframes per sample (``1 <= count <= K``).
         prev_slot, next_slot: ``[B, N]`` long, slots of the keyframes around each frame.
         weight: ``[B, N]`` float32 in [0, 1], the interpolation weight of each frame.
-        cubic: ``[B]`` bool or None: samples whose output frames are filled by C¹ Catmull-Rom curves
-            through the output at the keyframes (:func:`~smdm_plugin.core.interpolation.catmull_rom_taps`;
-            sampling with ``sample_interpolation="cubic"``); None = the paper's linear fill only.
+        rows: ``[K, B]`` long, contiguous: the row ``frame * B + b`` of each slot's frame in a
+            frame-major ``[N * B, ...]`` tensor (made once per call, read by the input embedding
+            and the compact backend).
+        cubic: ``[B]`` bool, ``True`` (every sample) or None: samples whose output frames are filled by
+            C¹ Catmull-Rom curves through the output at the keyframes
+            (:func:`~smdm_plugin.core.interpolation.catmull_rom_refill`; sampling with
+            ``sample_interpolation="cubic"``); None = the paper's linear fill only.
     """
 
     mask: torch.Tensor
@@ -45,7 +49,8 @@ class KeyframePlan:
     prev_slot: torch.Tensor
     next_slot: torch.Tensor
     weight: torch.Tensor
-    cubic: Optional[torch.Tensor] = None
+    rows: torch.Tensor
+    cubic: Union[None, bool, torch.Tensor] = None
 
     @property
     def capacity(self) -> int:
@@ -65,7 +70,8 @@ class KeyframePlan:
         """The plan of bool ``mask [B, N]`` with ``capacity`` slots (None: ``N``, always enough).
         Every sample needs between 1 and ``capacity`` keyframes (checked without a host sync;
         ``check=False`` for masks that hold it by construction, e.g. the sampling schedule's).
-        ``cubic``: bool ``[B]``, samples whose output is filled by C¹ interpolation (None: none)."""
+        ``cubic``: bool ``[B]``, samples whose output is filled by C¹ interpolation (True: all, None:
+        none)."""
         if mask.dim() != 2:
             raise ValueError(f"KeyframePlan: mask must be bool [B, N], got shape {tuple(mask.shape)}")
         mask = mask.to(torch.bool)
@@ -74,27 +80,23 @@ class KeyframePlan:
         if not 1 <= K <= N:
             raise ValueError(f"KeyframePlan: capacity must be in [1, N={N}], got {capacity}")
         idx = torch.arange(N, device=mask.device)
-        count = mask.sum(1)
+        seen = torch.cumsum(mask, 1)                                   # keyframes at or before n
+        count = seen[:, -1]
         if check:
             require((count >= 1) & (count <= K),
                     f"KeyframePlan: every sample needs 1..{K} keyframes (capacity {K}); a keyframe mask "
                     "has more than the capacity or none")
-        # keyframes first (frame order), then the other frames: one sort of distinct keys, whose
-        # positions are the frames
-        index = torch.sort(torch.where(mask, idx, idx + N), dim=1).indices[:, :K]
+        # keyframes first (frame order), then the other frames (frame order): one stable sort
+        index = torch.sort(mask, dim=1, descending=True, stable=True).indices[:, :K]
         valid = idx[:K] < count[:, None]
-        seen = torch.cumsum(mask, 1)                                   # keyframes at or before n
-        prev_slot = (seen - 1).clamp_min(0)
-        next_slot = torch.minimum(torch.where(mask, seen - 1, seen), (count - 1).clamp_min(0)[:, None])
+        before = seen - 1
+        prev_slot = before.clamp_min(0)
+        next_slot = torch.minimum(torch.where(mask, before, seen), before[:, -1:].clamp_min(0))   # <= count - 1
         prev_f = index.gather(1, prev_slot)
         next_f = index.gather(1, next_slot)
-        gap = (next_f - prev_f).clamp_min(1).to(torch.float32)
-        weight = ((idx[None] - prev_f).to(torch.float32) / gap).clamp(0.0, 1.0)
-        if cubic is not None:
+        # a true division of ints: float32 (exact frame differences, one rounding)
+        weight = torch.div(idx[None] - prev_f, (next_f - prev_f).clamp_min(1)).to(torch.float32).clamp(0.0, 1.0)
+        rows = torch.add(torch.arange(B, device=mask.device)[:, None], index, alpha=B).t().contiguous()
+        if cubic is not None and cubic is not True:
             cubic = torch.as_tensor(cubic, device=mask.device).to(torch.bool).reshape(-1).expand(B)
-        return cls(mask, index, valid, count, prev_slot, next_slot, weight, cubic)
-
-    def slot_frames(self) -> torch.Tensor:
-        """``[K, B]`` long: the frame of every slot, frame-major (rows of a ``[N, B, ...]`` tensor
-        are ``frame * B + b``)."""
-        return self.index.t()
+        return cls(mask, index, valid, count, prev_slot, next_slot, weight, rows, cubic)

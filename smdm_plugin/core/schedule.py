@@ -59,16 +59,16 @@ class MaskSchedule:
         c = self.config
         return late_steps(c.gamma, c.diffusion_steps) if c.dynamic and c.reduction > 0 else 0
 
-    def cubic_samples(self, t, B: int, device: torch.device) -> Optional[torch.Tensor]:
+    def cubic_samples(self, t, B: int, device: torch.device) -> Union[None, bool, torch.Tensor]:
         """bool ``[B]``: the samples at step ``t`` (``[B]`` or a scalar) whose non-keyframes are filled
         by C¹ Catmull-Rom interpolation (``sample_interpolation="cubic"``, in the last
-        ``sample_interpolation_steps`` steps or all); None when every sample is linear (the paper).
-        No host sync."""
+        ``sample_interpolation_steps`` steps); ``True`` when every sample is (no tensor, no op);
+        None when every sample is linear (the paper). No host sync."""
         c = self.config
         if c.sample_interpolation != "cubic" or c.reduction == 0:
             return None
         if c.sample_interpolation_steps is None:
-            return torch.ones(B, dtype=torch.bool, device=device)
+            return True
         return torch.as_tensor(t, device=device).reshape(-1).expand(B) < int(c.sample_interpolation_steps)
 
     def capacity(self, n_frames: int, training: bool, forced: int = 0) -> int:
