@@ -95,6 +95,7 @@ def sparsify_mdm(model: Any, args: Any, data: Any = None, diffusion: Any = None,
        steps. Without ``--sparse`` (and no text option) the model is returned untouched, bit for bit.
     """
     from ..adapters.surgery import is_sparse, sparsify
+    from ._rng import upstream_rng_untouched
     from .mdm_text import apply_text_options
 
     config = config if config is not None else SparseConfig.from_args(args)
@@ -107,7 +108,8 @@ def sparsify_mdm(model: Any, args: Any, data: Any = None, diffusion: Any = None,
     if mean is None and config.feature != "raw":
         warnings.warn("smdm: no dataset Mean/Std on the data loader; keyframes are selected on "
                       "normalised features", stacklevel=2)
-    sparsify(model, config, diffusion=diffusion, mean=mean, std=std)
+    with upstream_rng_untouched():  # upstream's prompts / noise / batches stay those of a dense run
+        sparsify(model, config, diffusion=diffusion, mean=mean, std=std)
     if _is_training(args):
         steps = getattr(args, "diffusion_steps", None)
         if steps is None and diffusion is not None:

@@ -113,6 +113,7 @@ def attach_trainer(trainer: Any, config: Optional[SparseConfig] = None) -> Any:
     """Sparsify ``trainer.encoder`` (or its ``.module``) and wrap ``trainer.diffusion`` according
     to ``trainer.opt``; training runs save the config beside the checkpoints."""
     from ..adapters.surgery import is_sparse, sparsify
+    from ._rng import upstream_rng_untouched
 
     opt = trainer.opt
     config = config if config is not None else config_from_opt(opt)
@@ -120,7 +121,8 @@ def attach_trainer(trainer: Any, config: Optional[SparseConfig] = None) -> Any:
     core = getattr(enc, "module", enc)
     if config.enabled and not is_sparse(core):
         mean, std = mean_std_from_opt(opt)
-        sparsify(core, config, mean=mean, std=std, diffusion=trainer.diffusion, family="motiondiffuse")
+        with upstream_rng_untouched():  # upstream's batches / noise stay those of a dense run
+            sparsify(core, config, mean=mean, std=std, diffusion=trainer.diffusion, family="motiondiffuse")
     if config.enabled and getattr(opt, "is_train", False) and getattr(opt, "model_dir", None):
         from ..io.checkpoint import save_sparse_config  # never replaces another config unasked
 

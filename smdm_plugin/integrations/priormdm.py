@@ -58,6 +58,7 @@ def sparsify_priormdm(model: Any, args: Any, data: Any = None, diffusion: Any = 
     Returns the model (changed in place)."""
     from ..adapters.doubletake import attach_doubletake_forcing
     from ..adapters.surgery import is_sparse, sparsify
+    from ._rng import upstream_rng_untouched
 
     config = config if config is not None else SparseConfig.from_args(args)
     if not config.enabled or is_sparse(model):
@@ -66,7 +67,8 @@ def sparsify_priormdm(model: Any, args: Any, data: Any = None, diffusion: Any = 
     if mean is None and config.feature != "raw":
         warnings.warn("smdm: no dataset Mean/Std found on the data loader; keyframes are selected "
                       "on normalised features")
-    sparsify(model, config, diffusion=diffusion, mean=mean, std=std)
+    with upstream_rng_untouched():  # a sparse DoubleTake draws the same prompts / noise as a dense one
+        sparsify(model, config, diffusion=diffusion, mean=mean, std=std)
     if "doubletake" in type(model).__name__.lower():
         attach_doubletake_forcing(model)
         warn_if_not_paper_blend(args)
