@@ -91,8 +91,9 @@ def sparsify_mdm(model: Any, args: Any, data: Any = None, diffusion: Any = None,
        nothing when neither is asked for.
     2. When ``args.sparse``: sparsify the MDM/DiP model, wrap ``diffusion.training_losses``
        (keyframe masks from x0, ``lambda * L_lip``) and, when training (``args.save_dir``), write
-       ``sparse_config.json`` beside the weights and warn if the run uses upstream's 1000 diffusion
-       steps. Without ``--sparse`` (and no text option) the model is returned untouched, bit for bit.
+       ``sparse_config.json`` beside the weights, bring ``args.json``'s ``sparse_*`` entries to the
+       settings that ran, and warn if the run uses upstream's 1000 diffusion steps. Without
+       ``--sparse`` (and no text option) the model is returned untouched, bit for bit.
     """
     from ..adapters.surgery import is_sparse, sparsify
     from ._rng import upstream_rng_untouched
@@ -118,10 +119,11 @@ def sparsify_mdm(model: Any, args: Any, data: Any = None, diffusion: Any = None,
             steps = diffusion_steps(diffusion)
         warn_if_upstream_steps(config, steps)
         save_dir = args.save_dir
-        if os.path.isdir(save_dir):
-            from ..io.checkpoint import save_sparse_config
+        if os.path.isdir(save_dir):  # sparse_config.json, and args.json's sparse_* as resolved (DiP prefix, steps)
+            from ._files import record_run_config
 
-            save_sparse_config(model, save_dir, overwrite=bool(getattr(args, "overwrite", False)))
+            record_run_config(model, save_dir, args, os.path.join(save_dir, "args.json"),
+                              overwrite=bool(getattr(args, "overwrite", False)))
     return model
 
 
