@@ -100,7 +100,8 @@ def sparsify_mdm(model: Any, args: Any, data: Any = None, diffusion: Any = None,
     from .mdm_text import apply_text_options
 
     config = config if config is not None else SparseConfig.from_args(args)
-    apply_text_options(model, config)
+    with upstream_rng_untouched():  # a swapped text encoder's new layers draw from a forked stream
+        apply_text_options(model, config)
     if not config.enabled:
         return model
     if is_sparse(model):
