@@ -250,3 +250,27 @@ def test_launcher_train(tmp_path):
                              os.path.join(HERE, "upstream_harness.py"), run, *train_args(save, 2)]
     out = _run(cmd, REPO, _env(record=rec))
     check_training(save, out, rec, 2)
+
+
+def test_sparse_double_take_draws_the_dense_prompts(tmp_path):
+    """Same seed, prompts drawn from the dataset (no --input_text): a sparse DoubleTake samples the
+    same prompts and lengths as a dense one (the plugin leaves upstream's RNG streams alone; the
+    loader's shuffle is drawn after the model is built)."""
+    run = prepare(str(tmp_path / "priorMDM"), patch=False)
+    texts = {}
+    for name, sparse in (("dense", False), ("sparse", True)):
+        save = str(tmp_path / "save" / name)
+        argv = train_args(save, 2)
+        if not sparse:
+            argv = argv[:argv.index("--sparse")]
+        harness(run, *argv, hooks="priormdm")
+        ckpt = os.path.join(save, "model000000002.pt")
+        out = harness(run, "-m", "sample.double_take", "--model_path", ckpt, "--num_samples", "3",
+                      "--handshake_size", str(H), "--blend_len", str(BLEND), "--skip_steps_double_take",
+                      str(SKIP), "--guidance_param", "2.5", "--seed", "11", hooks="priormdm")
+        assert "y['mask'] covers" not in out
+        out_dir = sorted(glob.glob(os.path.join(save, "DoubleTake_samples_*")))[-1]
+        res = np.load(os.path.join(out_dir, "results.npy"), allow_pickle=True).item()
+        texts[name] = (list(res["text"]), [np.asarray(v).tolist() for v in res["lengths"]])
+        assert os.path.exists(os.path.join(out_dir, "sparse_config.json")) == sparse
+    assert texts["dense"] == texts["sparse"], texts
