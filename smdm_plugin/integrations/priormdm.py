@@ -23,17 +23,7 @@ from typing import Any, Optional
 from ..core.config import CONFIG_FILENAME, SparseConfig
 
 
-from .mdm import _is_training, add_sparse_options  # noqa: E402,F401  (the one --sparse* adder; patches import it here)
-
-
-def _dataset_mean_std(data: Any):
-    """Mean/Std the loader normalises with (HumanML3D: ``dataset/HumanML3D/Mean.npy``)."""
-    ds = getattr(data, "dataset", None)
-    for obj in (ds, getattr(ds, "t2m_dataset", None)):
-        mean, std = getattr(obj, "mean", None), getattr(obj, "std", None)
-        if mean is not None and std is not None:
-            return mean, std
-    return None, None
+from .mdm import _is_training, add_sparse_options, dataset_mean_std  # noqa: E402,F401  (the one --sparse* adder; patches import it here)
 
 
 def warn_if_not_paper_blend(args: Any) -> bool:
@@ -66,7 +56,7 @@ def sparsify_priormdm(model: Any, args: Any, data: Any = None, diffusion: Any = 
     config = config if config is not None else SparseConfig.from_args(args)
     if not config.enabled or is_sparse(model):
         return model
-    mean, std = _dataset_mean_std(data)
+    mean, std = dataset_mean_std(data)
     if mean is None and config.feature != "raw":
         warnings.warn("smdm: no dataset Mean/Std found on the data loader; keyframes are selected "
                       "on normalised features")
