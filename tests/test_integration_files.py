@@ -121,8 +121,9 @@ def test_doubletake_sampling_writes_sparse_config_beside_its_outputs(tmp_path):
         os.makedirs(args.output_dir)
         np.save(os.path.join(args.output_dir, "results.npy"), np.zeros(1))
     """)
-    env = dict(os.environ, PYTHONPATH=os.pathsep.join([os.getcwd(), os.environ.get("PYTHONPATH", "")]))
-    subprocess.run([sys.executable, "-c", script], check=True, env=env, cwd=os.getcwd(), timeout=120)
+    repo = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+    env = dict(os.environ, PYTHONPATH=os.pathsep.join([repo, os.environ.get("PYTHONPATH", "")]))
+    subprocess.run([sys.executable, "-c", script], check=True, env=env, cwd=str(tmp_path), timeout=120)
     cfg = SparseConfig.load(str(out / CONFIG_FILENAME))
     assert cfg.enabled and cfg.reduction == 0.75 and cfg.feature == "raw"
 
