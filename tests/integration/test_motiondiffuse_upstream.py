@@ -113,7 +113,8 @@ def check_blocks(record: str, calls: int) -> None:
     blocks = load_records(record, "blocks")
     assert len(blocks) == calls, (len(blocks), calls)
     for r in blocks:
-        assert r["mask"] is not None and r["tokens"] == r["mask"].sum(1).max(), r["tokens"]
+        # static shapes: the blocks run on the schedule's capacity (>= every row's keyframes)
+        assert r["mask"] is not None and r["tokens"] >= r["mask"].sum(1).max(), r["tokens"]
         assert r["tokens"] < 0.6 * r["mask"].shape[1], (r["tokens"], r["mask"].shape)
 
 
