@@ -155,6 +155,22 @@ def _close_gaps(free: torch.Tensor, max_gap: int) -> torch.Tensor:
     return out
 
 
+def doubletake_window_mask(y: Dict[str, Any], batch_size: int, n_frames: int) -> Optional[torch.Tensor]:
+    """The valid-frame mask ``[B, 1, 1, N]`` bool of a DoubleTake call's own window, from
+    ``y['lengths'] [B]``, when ``y`` is a DoubleTake call (``is_transition`` present) whose
+    ``y['mask']`` covers another number of frames: priorMDM's ``sample/double_take.py`` passes a
+    fixed 196-frame mask (HumanML3D's maximum) to both takes, whose windows are ``n_frames``
+    (first take) and ``(max(lengths) - 2 h) * 2 + h`` (second take), while its ``y['lengths']``
+    are those of the take being sampled. None when nothing needs replacing."""
+    mask, lengths = y.get("mask"), y.get("lengths")
+    if "is_transition" not in y or not isinstance(mask, torch.Tensor) or mask.shape[-1] == n_frames:
+        return None
+    if not isinstance(lengths, torch.Tensor) or lengths.numel() != batch_size:
+        return None
+    idx = torch.arange(n_frames, device=lengths.device)
+    return (idx[None] < lengths.reshape(batch_size, 1)).view(batch_size, 1, 1, n_frames)
+
+
 # --------------------------------------------------------------------------- model hook
 def _find_y(args, kwargs):
     if "y" in kwargs:
@@ -173,13 +189,17 @@ def _doubletake_pre_hook(module: nn.Module, args, kwargs):
         return None
     B, N = x.shape[0], x.shape[-1]
     forced = doubletake_forced_from_y(y, B, N, device=x.device)
-    if forced is None:
+    window = doubletake_window_mask(y, B, N)
+    if forced is None and window is None:
         return None
     y = dict(y)  # never write into the caller's dict (DoubleTake reuses it across takes)
-    prev = y.get("keyframe_forced")
-    if isinstance(prev, torch.Tensor) and prev.shape == forced.shape:
-        forced = forced | prev.to(forced.device, torch.bool)
-    y["keyframe_forced"] = forced
+    if window is not None:
+        y["mask"] = window
+    if forced is not None:
+        prev = y.get("keyframe_forced")
+        if isinstance(prev, torch.Tensor) and prev.shape == forced.shape:
+            forced = forced | prev.to(forced.device, torch.bool)
+        y["keyframe_forced"] = forced
     if where == "kw":
         kwargs = dict(kwargs)
         kwargs["y"] = y
@@ -190,7 +210,8 @@ def _doubletake_pre_hook(module: nn.Module, args, kwargs):
 
 def attach_doubletake_forcing(model: nn.Module) -> nn.Module:
     """Make every call of ``model(x, t, y)`` carry ``y['keyframe_forced']`` derived from DoubleTake's
-    ``is_transition`` / ``inpainting_mask`` (in a copy of ``y``). Idempotent; returns ``model``."""
+    ``is_transition`` / ``inpainting_mask``, and a ``y['mask']`` of the call's own window
+    (:func:`doubletake_window_mask`), in a copy of ``y``. Idempotent; returns ``model``."""
     if getattr(model, "_smdm_doubletake_hook", None) is not None:
         return model
     # prepend: must run before sparsify's own pre-hook, which reads y['keyframe_forced']

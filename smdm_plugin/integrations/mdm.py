@@ -91,14 +91,17 @@ def sparsify_mdm(model: Any, args: Any, data: Any = None, diffusion: Any = None,
        nothing when neither is asked for.
     2. When ``args.sparse``: sparsify the MDM/DiP model, wrap ``diffusion.training_losses``
        (keyframe masks from x0, ``lambda * L_lip``) and, when training (``args.save_dir``), write
-       ``sparse_config.json`` beside the weights and warn if the run uses upstream's 1000 diffusion
-       steps. Without ``--sparse`` (and no text option) the model is returned untouched, bit for bit.
+       ``sparse_config.json`` beside the weights, bring ``args.json``'s ``sparse_*`` entries to the
+       settings that ran, and warn if the run uses upstream's 1000 diffusion steps. Without
+       ``--sparse`` (and no text option) the model is returned untouched, bit for bit.
     """
     from ..adapters.surgery import is_sparse, sparsify
+    from ._rng import upstream_rng_untouched
     from .mdm_text import apply_text_options
 
     config = config if config is not None else SparseConfig.from_args(args)
-    apply_text_options(model, config)
+    with upstream_rng_untouched():  # a swapped text encoder's new layers draw from a forked stream
+        apply_text_options(model, config)
     if not config.enabled:
         return model
     if is_sparse(model):
@@ -107,7 +110,8 @@ def sparsify_mdm(model: Any, args: Any, data: Any = None, diffusion: Any = None,
     if mean is None and config.feature != "raw":
         warnings.warn("smdm: no dataset Mean/Std on the data loader; keyframes are selected on "
                       "normalised features", stacklevel=2)
-    sparsify(model, config, diffusion=diffusion, mean=mean, std=std)
+    with upstream_rng_untouched():  # upstream's prompts / noise / batches stay those of a dense run
+        sparsify(model, config, diffusion=diffusion, mean=mean, std=std)
     if _is_training(args):
         steps = getattr(args, "diffusion_steps", None)
         if steps is None and diffusion is not None:
@@ -116,10 +120,11 @@ def sparsify_mdm(model: Any, args: Any, data: Any = None, diffusion: Any = None,
             steps = diffusion_steps(diffusion)
         warn_if_upstream_steps(config, steps)
         save_dir = args.save_dir
-        if os.path.isdir(save_dir):
-            from ..io.checkpoint import save_sparse_config
+        if os.path.isdir(save_dir):  # sparse_config.json, and args.json's sparse_* as resolved (DiP prefix, steps)
+            from ._files import record_run_config
 
-            save_sparse_config(model, save_dir, overwrite=bool(getattr(args, "overwrite", False)))
+            record_run_config(model, save_dir, args, os.path.join(save_dir, "args.json"),
+                              overwrite=bool(getattr(args, "overwrite", False)))
     return model
 
 

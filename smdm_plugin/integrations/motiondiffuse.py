@@ -111,8 +111,10 @@ def mean_std_from_opt(opt: Any):
 
 def attach_trainer(trainer: Any, config: Optional[SparseConfig] = None) -> Any:
     """Sparsify ``trainer.encoder`` (or its ``.module``) and wrap ``trainer.diffusion`` according
-    to ``trainer.opt``; training runs save the config beside the checkpoints."""
+    to ``trainer.opt``; training runs save the config beside the checkpoints and bring ``opt``
+    and ``opt.txt``'s ``sparse*`` entries to the settings that ran."""
     from ..adapters.surgery import is_sparse, sparsify
+    from ._rng import upstream_rng_untouched
 
     opt = trainer.opt
     config = config if config is not None else config_from_opt(opt)
@@ -120,11 +122,15 @@ def attach_trainer(trainer: Any, config: Optional[SparseConfig] = None) -> Any:
     core = getattr(enc, "module", enc)
     if config.enabled and not is_sparse(core):
         mean, std = mean_std_from_opt(opt)
-        sparsify(core, config, mean=mean, std=std, diffusion=trainer.diffusion, family="motiondiffuse")
+        with upstream_rng_untouched():  # upstream's batches / noise stay those of a dense run
+            sparsify(core, config, mean=mean, std=std, diffusion=trainer.diffusion, family="motiondiffuse")
     if config.enabled and getattr(opt, "is_train", False) and getattr(opt, "model_dir", None):
-        from ..io.checkpoint import save_sparse_config  # never replaces another config unasked
+        # sparse_config.json (never replacing another config unasked), and opt.txt's sparse_* as
+        # they ran (e.g. sparse_fsq False: FSQ keys cannot apply to linear attention, with a warning)
+        from ._files import record_run_config
 
-        save_sparse_config(core, opt.model_dir)
+        opt_file = os.path.join(os.path.dirname(os.path.normpath(opt.model_dir)), "opt.txt")
+        record_run_config(core, opt.model_dir, opt, opt_file)
     return trainer
 
 

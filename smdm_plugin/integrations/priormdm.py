@@ -16,23 +16,14 @@ from there (``load_from_model`` overwrites the ``model`` group from the checkpoi
 from __future__ import annotations
 
 import functools
+import os
 import warnings
 from typing import Any, Optional
 
-from ..core.config import SparseConfig
+from ..core.config import CONFIG_FILENAME, SparseConfig
 
 
-from .mdm import add_sparse_options  # noqa: E402,F401  (the one --sparse* adder; patches import it here)
-
-
-def _dataset_mean_std(data: Any):
-    """Mean/Std the loader normalises with (HumanML3D: ``dataset/HumanML3D/Mean.npy``)."""
-    ds = getattr(data, "dataset", None)
-    for obj in (ds, getattr(ds, "t2m_dataset", None)):
-        mean, std = getattr(obj, "mean", None), getattr(obj, "std", None)
-        if mean is not None and std is not None:
-            return mean, std
-    return None, None
+from .mdm import _is_training, add_sparse_options, dataset_mean_std  # noqa: E402,F401  (the one --sparse* adder; patches import it here)
 
 
 def warn_if_not_paper_blend(args: Any) -> bool:
@@ -55,22 +46,78 @@ def sparsify_priormdm(model: Any, args: Any, data: Any = None, diffusion: Any = 
     """Sparsify a priorMDM model built by ``create_model_and_diffusion`` (no-op unless
     ``args.sparse``); DoubleTake models also get their forced keyframes (see
     :mod:`smdm_plugin.adapters.doubletake`) and a warning when ``--blend_len`` is not the paper's.
-    Returns the model (changed in place)."""
+    Training (``--save_dir``) writes ``sparse_config.json`` beside the weights and brings
+    ``args.json``'s ``sparse_*`` entries to what ran; DoubleTake sampling writes it beside its
+    ``results.npy``. Returns the model (changed in place)."""
     from ..adapters.doubletake import attach_doubletake_forcing
     from ..adapters.surgery import is_sparse, sparsify
+    from ._rng import upstream_rng_untouched
 
     config = config if config is not None else SparseConfig.from_args(args)
     if not config.enabled or is_sparse(model):
         return model
-    mean, std = _dataset_mean_std(data)
+    mean, std = dataset_mean_std(data)
     if mean is None and config.feature != "raw":
         warnings.warn("smdm: no dataset Mean/Std found on the data loader; keyframes are selected "
                       "on normalised features")
-    sparsify(model, config, diffusion=diffusion, mean=mean, std=std)
-    if "doubletake" in type(model).__name__.lower():
+    with upstream_rng_untouched():  # a sparse DoubleTake draws the same prompts / noise as a dense one
+        sparsify(model, config, diffusion=diffusion, mean=mean, std=std)
+    doubletake = "doubletake" in type(model).__name__.lower()
+    if doubletake:
         attach_doubletake_forcing(model)
         warn_if_not_paper_blend(args)
+    save_dir = getattr(args, "save_dir", None)
+    if _is_training(args) and os.path.isdir(save_dir):  # sparse_config.json; args.json as resolved
+        from ._files import record_run_config
+
+        record_run_config(model, save_dir, args, os.path.join(save_dir, "args.json"),
+                          overwrite=bool(getattr(args, "overwrite", False)))
+    elif doubletake and getattr(args, "model_path", None):
+        record_doubletake_output(model, args)
     return model
+
+
+def doubletake_output_dir(args: Any, since: float) -> Optional[str]:
+    """The folder ``sample.double_take`` wrote its ``results.npy`` to after ``since`` (``time.time()``):
+    ``--output_dir`` when given, else the newest folder beside ``--model_path`` holding a
+    ``results.npy`` written since then; None when there is none (the run failed)."""
+    def fresh(folder: str) -> bool:
+        f = os.path.join(folder, "results.npy")
+        return os.path.isfile(f) and os.path.getmtime(f) >= since
+
+    out = getattr(args, "output_dir", "") or ""
+    if out:
+        return out if fresh(out) else None
+    parent = os.path.dirname(os.path.abspath(args.model_path))
+    if not os.path.isdir(parent):
+        return None
+    found = [os.path.join(parent, d) for d in os.listdir(parent) if fresh(os.path.join(parent, d))]
+    return max(found, key=lambda d: os.path.getmtime(os.path.join(d, "results.npy"))) if found else None
+
+
+def record_doubletake_output(model: Any, args: Any) -> None:
+    """A sparse DoubleTake sampling run states its settings beside its outputs: when the process
+    ends, ``sparse_config.json`` goes into the folder it wrote ``results.npy`` to (upstream
+    replaces that folder at the end of sampling, so it cannot be written earlier)."""
+    import atexit
+    import time
+
+    from ..core.config import sparse_config_of
+
+    config, since = sparse_config_of(model), time.time() - 1.0
+
+    def write() -> None:
+        from ..io.checkpoint import save_sparse_config
+
+        out = doubletake_output_dir(args, since)
+        if out is None or config is None:
+            return
+        try:
+            save_sparse_config(config, out)
+        except (OSError, ValueError) as e:
+            warnings.warn(f"smdm: could not write {CONFIG_FILENAME} into {out}: {e}")
+
+    atexit.register(write)
 
 
 # --------------------------------------------------------------------------- import hooks

@@ -172,6 +172,15 @@ def test_sparse_trains_and_samples(arch, launcher, pristine, patched, tmp_path):
     cfg = json.load(open(os.path.join(save, "sparse_config.json")))
     if arch == "dip":
         assert cfg["prefix_frames"] == 20
+    # the two files state the same settings, the ones resolved when the model was built included
+    # (DiP's prefix, the diffusion steps): args.json is brought to what ran
+    assert args["sparse_prefix_frames"] == cfg["prefix_frames"], (args, cfg)
+    assert args["sparse_diffusion_steps"] == cfg["diffusion_steps"] == args["diffusion_steps"], (args, cfg)
+    from smdm_plugin import SparseConfig
+    from smdm_plugin.core.config import disagreement
+
+    assert disagreement(SparseConfig.from_dict(cfg), args, "sparse_config.json", "args.json",
+                        ignore=("version",)) is None
     assert "smdm_sparse_version" in load_sd(ckpt)
     proc, res = generate(repo, ckpt, str(tmp_path / "gen"), arch, launcher=launcher)
     n_frames = 80 if arch == "dip" else 40

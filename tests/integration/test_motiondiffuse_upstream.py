@@ -113,7 +113,8 @@ def check_blocks(record: str, calls: int) -> None:
     blocks = load_records(record, "blocks")
     assert len(blocks) == calls, (len(blocks), calls)
     for r in blocks:
-        assert r["mask"] is not None and r["tokens"] == r["mask"].sum(1).max(), r["tokens"]
+        # static shapes: the blocks run on the schedule's capacity (>= every row's keyframes)
+        assert r["mask"] is not None and r["tokens"] >= r["mask"].sum(1).max(), r["tokens"]
         assert r["tokens"] < 0.6 * r["mask"].shape[1], (r["tokens"], r["mask"].shape)
 
 
@@ -125,6 +126,9 @@ def check_training(t2m: str, out: str, record: str) -> np.ndarray:
     assert opt["sparse"] == "True" and float(opt["sparse_reduction"]) == REDUCTION, opt
     cfg = json.load(open(os.path.join(save, "model", "sparse_config.json")))
     assert cfg["enabled"] is True and cfg["reduction"] == REDUCTION, cfg
+    # opt.txt states what ran: FSQ keys cannot apply to MotionDiffuse's linear attention (turned
+    # off with a warning), the diffusion steps come from the diffusion
+    assert opt["sparse_fsq"] == str(cfg["fsq"]) and opt["sparse_diffusion_steps"] == str(cfg["diffusion_steps"]), (opt, cfg)
     sd = torch.load(os.path.join(save, "model", "latest.tar"), map_location="cpu")["encoder"]
     assert "smdm_sparse_version" in sd and any(k.startswith("joint_embed.net.") for k in sd)
 

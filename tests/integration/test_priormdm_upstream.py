@@ -163,15 +163,32 @@ def double_take(run: str, ckpt: str, hooks: str = "", record: str = "") -> np.nd
     with open(texts, "w") as f:
         f.write("a person walks forward\na person jumps up and down\na person waves\n")
     # (--output_dir disables --input_text in upstream's double_take.py: use the default dir)
-    harness(run, "-m", "sample.double_take", "--model_path", ckpt, "--num_samples", "3",
-            "--handshake_size", str(H), "--blend_len", str(BLEND), "--skip_steps_double_take",
-            str(SKIP), "--input_text", texts, "--guidance_param", "2.5", hooks=hooks, record=record)
+    out = harness(run, "-m", "sample.double_take", "--model_path", ckpt, "--num_samples", "3",
+                  "--handshake_size", str(H), "--blend_len", str(BLEND), "--skip_steps_double_take",
+                  str(SKIP), "--input_text", texts, "--guidance_param", "2.5", hooks=hooks, record=record)
+    assert "covers 196 frames" not in out and "y['mask'] covers" not in out, out[-3000:]  # no mask-length warning
     out_dir = sorted(glob.glob(os.path.join(os.path.dirname(ckpt), "DoubleTake_samples_*")))[-1]
+    check_files_agree(os.path.dirname(ckpt), out_dir)
     res = np.load(os.path.join(out_dir, "results.npy"), allow_pickle=True).item()
     motion = res["motion"]  # [1, 22, 3, T] joint positions of the unfolded sequence
     assert motion.shape == (1, 22, 3, 3 * SEG - 2 * H), motion.shape
     assert np.isfinite(motion).all() and motion.std() > 0
     return motion
+
+
+def check_files_agree(save: str, out_dir: str) -> None:
+    """The training run's ``args.json`` and ``sparse_config.json`` state the same sparse settings
+    (every field, the ones set when the model was built included), and DoubleTake wrote the
+    model's config beside its ``results.npy``."""
+    from smdm_plugin import SparseConfig
+    from smdm_plugin.core.config import disagreement
+
+    saved = SparseConfig.load(os.path.join(save, "sparse_config.json"))
+    args_file = os.path.join(save, "args.json")
+    assert disagreement(saved, json.load(open(args_file)), "sparse_config.json", args_file,
+                        ignore=("version",)) is None
+    written = SparseConfig.load(os.path.join(out_dir, "sparse_config.json"))
+    assert not written.differences(saved), written.differences(saved)
 
 
 def check_forced(record: str) -> None:
@@ -233,3 +250,27 @@ def test_launcher_train(tmp_path):
                              os.path.join(HERE, "upstream_harness.py"), run, *train_args(save, 2)]
     out = _run(cmd, REPO, _env(record=rec))
     check_training(save, out, rec, 2)
+
+
+def test_sparse_double_take_draws_the_dense_prompts(tmp_path):
+    """Same seed, prompts drawn from the dataset (no --input_text): a sparse DoubleTake samples the
+    same prompts and lengths as a dense one (the plugin leaves upstream's RNG streams alone; the
+    loader's shuffle is drawn after the model is built)."""
+    run = prepare(str(tmp_path / "priorMDM"), patch=False)
+    texts = {}
+    for name, sparse in (("dense", False), ("sparse", True)):
+        save = str(tmp_path / "save" / name)
+        argv = train_args(save, 2)
+        if not sparse:
+            argv = argv[:argv.index("--sparse")]
+        harness(run, *argv, hooks="priormdm")
+        ckpt = os.path.join(save, "model000000002.pt")
+        out = harness(run, "-m", "sample.double_take", "--model_path", ckpt, "--num_samples", "3",
+                      "--handshake_size", str(H), "--blend_len", str(BLEND), "--skip_steps_double_take",
+                      str(SKIP), "--guidance_param", "2.5", "--seed", "11", hooks="priormdm")
+        assert "y['mask'] covers" not in out
+        out_dir = sorted(glob.glob(os.path.join(save, "DoubleTake_samples_*")))[-1]
+        res = np.load(os.path.join(out_dir, "results.npy"), allow_pickle=True).item()
+        texts[name] = (list(res["text"]), [np.asarray(v).tolist() for v in res["lengths"]])
+        assert os.path.exists(os.path.join(out_dir, "sparse_config.json")) == sparse
+    assert texts["dense"] == texts["sparse"], texts

@@ -200,15 +200,15 @@ def install_recorder(path: str) -> None:
 
     MaskSchedule.training_mask = wrap_schedule("train", MaskSchedule.training_mask)
     MaskSchedule.sampling_mask = wrap_schedule("sample", MaskSchedule.sampling_mask)
-    original_set = KeyframeTransformer.set_keyframes
+    original_set = KeyframeTransformer.set_plan
 
-    def set_keyframes(self, mask):
-        if isinstance(mask, torch.Tensor):
-            records.append({"kind": "transformer", "mask": mask.detach().cpu().numpy().copy(),
+    def set_plan(self, plan):  # every call's keyframes reach the transformer as a KeyframePlan
+        if plan is not None:
+            records.append({"kind": "transformer", "mask": plan.mask.detach().cpu().numpy().copy(),
                             "lengths": None, "forced": None})
-        return original_set(self, mask)
+        return original_set(self, plan)
 
-    KeyframeTransformer.set_keyframes = set_keyframes
+    KeyframeTransformer.set_plan = set_plan
 
     # MotionDiffuse: the tokens that reach the decoder blocks, with the mask of that call
     import smdm_plugin.adapters.motiondiffuse as md_adapter

@@ -1,0 +1,99 @@
+"""Every file a sparse run writes states the settings that ran.
+
+Upstream writes its options (MDM / DiP / priorMDM ``args.json``, MotionDiffuse ``opt.txt``) before
+the model is built; sparsify then resolves some settings from the model and diffusion (DiP's dense
+prefix, the diffusion steps, MotionDiffuse's FSQ keys that cannot apply). The integrations call
+:func:`record_run_config` right after sparsify: it writes ``sparse_config.json`` beside the weights
+and rewrites the ``sparse`` / ``sparse_*`` entries of the options file (atomically, other entries
+untouched) and of the parsed options with the resolved config, so the files agree.
+"""
+from __future__ import annotations
+
+import json
+import os
+from typing import Any, Dict, Optional
+
+from ..core.atomic import atomic_write_json, atomic_write_text
+from ..core.config import SparseConfig
+
+OPT_BEGIN, OPT_END = "------------ Options -------------", "-------------- End ----------------"
+
+
+def resolved_options(config: SparseConfig) -> Dict[str, Any]:
+    """``sparse`` / ``sparse_<field>`` entries of ``config`` as parsed options (tuples as lists)."""
+    return {k: list(v) if isinstance(v, tuple) else v for k, v in config.to_args_dict().items()
+            if k != "sparse_version"}
+
+
+def update_namespace(args: Any, config: SparseConfig) -> None:
+    """Set the parsed options' ``sparse*`` attributes that exist on ``args`` to ``config``'s."""
+    d = vars(args) if hasattr(args, "__dict__") else None
+    if d is None:
+        return
+    for k, v in resolved_options(config).items():
+        if k in d:
+            setattr(args, k, v)
+
+
+def update_args_json(path: str, config: SparseConfig) -> bool:
+    """Rewrite the ``sparse*`` entries of MDM's ``args.json`` at ``path`` (present keys only, plus
+    ``sparse``); False when the file is absent. Atomic."""
+    if not os.path.isfile(path):
+        return False
+    with open(path, encoding="utf-8") as f:
+        data = json.load(f)
+    if not isinstance(data, dict):
+        raise ValueError(f"{path}: expected a JSON object of options, got {type(data).__name__}")
+    new = dict(data)
+    for k, v in resolved_options(config).items():
+        if k in data or k == "sparse":
+            new[k] = v
+    if new != data:
+        atomic_write_json(path, new, indent=4, sort_keys=True)
+    return True
+
+
+def update_opt_txt(path: str, config: SparseConfig) -> bool:
+    """Rewrite the ``sparse*`` lines (``key: value``) of MotionDiffuse's ``opt.txt``; lines of
+    other options are kept byte for byte; absent ``sparse*`` keys are added before the end line.
+    False when the file is absent. Atomic."""
+    if not os.path.isfile(path):
+        return False
+    with open(path, encoding="utf-8") as f:
+        lines = f.read().splitlines()
+    values = {k: str(v) for k, v in resolved_options(config).items()}
+    out, seen = [], set()
+    for line in lines:
+        key = line.split(":", 1)[0].strip() if ":" in line else None
+        if key in values:
+            out.append(f"{key}: {values[key]}")
+            seen.add(key)
+        elif line.strip() == OPT_END:
+            out.extend(f"{k}: {v}" for k, v in values.items() if k not in seen)
+            seen.update(values)
+            out.append(line)
+        else:
+            out.append(line)
+    out.extend(f"{k}: {v}" for k, v in values.items() if k not in seen)
+    text = "\n".join(out) + "\n"
+    if text != "\n".join(lines) + "\n":
+        atomic_write_text(path, text)
+    return True
+
+
+def record_run_config(model: Any, weights_dir: str, args: Any, options_file: Optional[str],
+                      overwrite: bool = False) -> SparseConfig:
+    """After sparsify: ``sparse_config.json`` in ``weights_dir``, the resolved ``sparse*`` options
+    in ``args`` and in ``options_file`` (``args.json`` or ``opt.txt``; skipped when None/absent).
+    Returns the config that ran."""
+    from ..core.config import sparse_config_of
+    from ..io.checkpoint import save_sparse_config
+
+    config = sparse_config_of(model)
+    if config is None:
+        raise ValueError("record_run_config: the model is not sparse")
+    save_sparse_config(config, weights_dir, overwrite=overwrite)
+    update_namespace(args, config)
+    if options_file:
+        (update_opt_txt if options_file.endswith(".txt") else update_args_json)(options_file, config)
+    return config
