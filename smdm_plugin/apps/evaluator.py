@@ -79,7 +79,7 @@ def main(argv: Optional[List[str]] = None) -> int:
 
 def run(a: argparse.Namespace, p: argparse.ArgumentParser) -> int:
     from ..io.files import OutputExistsError
-    from ..io.outdir import OutputDir
+    from ..io.outdir import OutputDir, open_or_refuse
     from ..metrics.evaluator.data import load_split, split_names
     from ..metrics.evaluator.train import OWN_SIZES, TrainSettings, build_evaluator
 
@@ -113,10 +113,7 @@ def run(a: argparse.Namespace, p: argparse.ArgumentParser) -> int:
     except (FileNotFoundError, ValueError) as e:
         print(f"smdm evaluator train: {e}", file=sys.stderr)
         return 2
-    try:
-        od.open()
-    except OutputExistsError as e:
-        print(f"smdm evaluator train: error: {e}", file=sys.stderr)
+    if not open_or_refuse(od, "smdm evaluator train"):
         return 2
     with od:
         if a.resume and od.resumed_from is None:

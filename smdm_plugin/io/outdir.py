@@ -344,6 +344,17 @@ class OutputDir:
 
 
 
+def open_or_refuse(od: "OutputDir", command: str) -> bool:
+    """Open ``od``; a refused output (exists, locked, overlaps an input) is one line on stderr
+    (``<command>: error: ...``) and False."""
+    try:
+        od.open()
+    except OutputExistsError as e:
+        print(f"{command}: error: {e}", file=sys.stderr)
+        return False
+    return True
+
+
 def run_in_output_dir(fn: Callable[[str], int], out: PathLike, overwrite: bool = False,
                       inputs: Optional[Mapping[str, Optional[PathLike]]] = None, command: str = "smdm",
                       **kwargs: Any) -> int:
@@ -351,10 +362,7 @@ def run_in_output_dir(fn: Callable[[str], int], out: PathLike, overwrite: bool =
     returns 0, abandoned otherwise. A refused ``out`` (exists, locked, overlaps an input) is one
     line on stderr and exit status 2."""
     od = OutputDir(out, overwrite=overwrite, inputs=inputs, command=command, **kwargs)
-    try:
-        od.open()
-    except OutputExistsError as e:
-        print(f"{command}: error: {e}", file=sys.stderr)
+    if not open_or_refuse(od, command):
         return 2
     with od:
         status = int(fn(od.path) or 0)
