@@ -155,6 +155,11 @@ def shutdown_distributed(ctx: DistContext) -> None:
     if ctx.owns_group and torch.distributed.is_initialized():
         # all ranks leave together: a rank tearing gloo down while a peer is still in its last
         # collective aborts the process ("terminate called without an active exception")
+        # and objects still bound to the group (DDP reducers of finished trainers, kept alive by
+        # reference cycles) are freed first, not by the collector after the group is gone
+        import gc
+
+        gc.collect()
         try:
             torch.distributed.barrier()
         finally:
