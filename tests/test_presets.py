@@ -26,7 +26,7 @@ def test_smdm_paper_is_appendix_b1():
     assert c.fsq is True                                     # FSQ-quantised attention keys
     assert c.lipschitz is True and c.lipschitz_lambda == 0.0  # layers kept, L_lip excluded
     assert c.dynamic_update is False and c.dynamic is False   # Table 1 / Table 2 at 50 steps
-    assert c.sample_interpolation == "linear"                 # the paper's fill (the default is cubic)
+    assert c.sample_interpolation == "linear"                 # the paper's fill (the default is auto)
     assert (c.reduction, c.selector, c.gamma, c.prefix_frames, c.interpolate) == (0.8, "vw", 0.1, 0, True)
     up = _yaml("smdm_paper")["upstream"]["mdm"]
     assert up["flags"] == {"arch": "trans_dec", "layers": 8, "latent_dim": 512, "diffusion_steps": 50}

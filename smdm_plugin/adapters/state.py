@@ -175,7 +175,7 @@ def keyframe_plan(state: SparseState, frames: torch.Tensor, timesteps: Any, leng
         mask = state.schedule.sampling_mask(frames, t, lengths, forced, checked=True)
         capacity = state.schedule.capacity(N, training=False, forced=protected_count(forced, lengths))
         check = False                                      # 2..capacity keyframes by construction
-        cubic = state.schedule.cubic_samples(t, B, device)  # sample_interpolation="cubic": [B] bool
+        cubic = state.schedule.cubic_samples(t, B, device, frames.shape[-1])   # C¹ fill: [B] bool
     capacity = max(1, min(int(capacity), N))
     prefix = state.variant.prefix_len
     if prefix:

@@ -58,6 +58,15 @@ def _registered(module: str, registry: str, *extra: str) -> Choices:
 SELECTORS = _registered("smdm_plugin.core.selection", "SELECTORS")
 BACKENDS = _registered("smdm_plugin.core.attention_backends", "BACKENDS", "auto")
 INTERPOLATIONS = ("linear", "cubic")
+#: ``SparseConfig.sample_interpolation``: ``auto`` resolves by the feature kind (:meth:`SparseConfig.sample_fill`)
+SAMPLE_FILLS = ("auto",) + INTERPOLATIONS
+#: the feature kind of ``feature="auto"`` by the number of features D (others: raw)
+FEATURE_KINDS_BY_DIM = {263: "humanml3d", 251: "kit"}
+#: ``sample_interpolation="auto"``: the fill measured best per feature kind (docs/defaults.md, "Smooth
+#: sparse sampling"): HumanML3D / KIT features (root velocities, integrated into positions) are already
+#: as smooth as real motion with the paper's linear fill and over-smoothed by the C¹ fill; raw joint
+#: positions are 2-3x as jerky as real motion with the linear fill and as smooth as it with the C¹ fill
+AUTO_SAMPLE_FILL = {"humanml3d": "linear", "kit": "linear", "raw": "cubic"}
 
 PathLike = Union[str, "os.PathLike[str]"]
 
@@ -226,9 +235,10 @@ class SparseConfig:
         "motion, measured; None/auto: the paper's Table 2, on iff diffusion_steps >= 100 and no DiP prefix)",
         optional=True)
     sample_interpolation: str = _field(
-        "cubic", str, "sampling: how the non-keyframes of the model's output are filled (linear: the paper's "
+        "auto", str, "sampling: how the non-keyframes of the model's output are filled (linear: the paper's "
         "linear interpolation before the output layer only; cubic: then C1 Catmull-Rom through the output at "
-        "the keyframes, smooth motion)", choices=INTERPOLATIONS)
+        "the keyframes; auto: linear for HumanML3D/KIT features, cubic for raw joint positions, as measured)",
+        choices=SAMPLE_FILLS)
     sample_interpolation_steps: Optional[int] = _field(
         None, int, "sampling: the last this many steps use sample_interpolation, the others linear "
         "(None: every step)", range=Range(1), optional=True)
@@ -274,6 +284,17 @@ class SparseConfig:
         if self.dynamic_update is not None:
             return bool(self.dynamic_update)
         return int(self.diffusion_steps) >= 100 and int(self.prefix_frames) == 0
+
+    def feature_kind(self, D: int) -> str:
+        """What keyframe selection measures for motions of ``D`` features: ``feature``, or with
+        ``feature="auto"`` humanml3d (D = 263), kit (D = 251), else raw."""
+        return FEATURE_KINDS_BY_DIM.get(int(D), "raw") if self.feature == "auto" else self.feature
+
+    def sample_fill(self, D: int) -> str:
+        """``sample_interpolation`` resolved for motions of ``D`` features: ``linear`` or ``cubic``
+        (``auto``: by :meth:`feature_kind`, :data:`AUTO_SAMPLE_FILL`)."""
+        fill = self.sample_interpolation
+        return AUTO_SAMPLE_FILL[self.feature_kind(D)] if fill == "auto" else fill
 
     def replace(self, **changes: Any) -> "SparseConfig":
         """A copy with ``changes`` applied (validated)."""

@@ -59,13 +59,14 @@ class MaskSchedule:
         c = self.config
         return late_steps(c.gamma, c.diffusion_steps) if c.dynamic and c.reduction > 0 else 0
 
-    def cubic_samples(self, t, B: int, device: torch.device) -> Union[None, bool, torch.Tensor]:
-        """bool ``[B]``: the samples at step ``t`` (``[B]`` or a scalar) whose non-keyframes are filled
-        by C¹ Catmull-Rom interpolation (``sample_interpolation="cubic"``, in the last
+    def cubic_samples(self, t, B: int, device: torch.device, D: int) -> Union[None, bool, torch.Tensor]:
+        """bool ``[B]``: the samples at step ``t`` (``[B]`` or a scalar) of motions with ``D``
+        features whose non-keyframes are filled by C¹ Catmull-Rom interpolation (``sample_interpolation``
+        resolved to ``cubic`` by :meth:`SparseConfig.sample_fill`, in the last
         ``sample_interpolation_steps`` steps); ``True`` when every sample is (no tensor, no op);
         None when every sample is linear (the paper). No host sync."""
         c = self.config
-        if c.sample_interpolation != "cubic" or c.reduction == 0:
+        if c.sample_fill(D) != "cubic" or c.reduction == 0:
             return None
         if c.sample_interpolation_steps is None:
             return True
@@ -90,8 +91,7 @@ class MaskSchedule:
         return self._tables[key]
 
     def _kind(self, D: int) -> str:
-        kind = self.config.feature
-        return {263: "humanml3d", 251: "kit"}.get(D, "raw") if kind == "auto" else kind
+        return self.config.feature_kind(D)
 
     def features(self, x: torch.Tensor) -> torch.Tensor:
         """What VW measures, ``[B, N, F]``, from motion ``x [B, N, D]``: the joint positions of the
