@@ -38,7 +38,7 @@ def test_table1_config_lists_the_paper_ablations():
         ablate.sparse_config(cfg, v)  # every variant is a valid SparseConfig
     sels = {ablate.sparse_config(cfg, v).selector for v in cfg["variants"] if not v.get("dense")}
     assert sels == {"vw", "random", "uniform", "mdo"}
-    from smdm_plugin.apps import study
+    from smdm_plugin.apps.ablate import study
 
     for name in ablate.packaged_grids():  # every packaged grid resolves (a study config as a study)
         (study.load_study if study.is_study_config(name) else ablate.load_config)(name)

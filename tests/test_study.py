@@ -11,8 +11,10 @@ import numpy as np
 import pytest
 import torch
 
-from smdm_plugin.apps import ablate, study
-from smdm_plugin.apps.trainer import MotionSet, TrainConfig, Trainer, caption_draws
+from smdm_plugin.apps import ablate
+from smdm_plugin.apps.ablate import study
+from smdm_plugin.training.data import MotionSet
+from smdm_plugin.training.trainer import TrainConfig, Trainer, caption_draws
 from smdm_plugin.integrations.distributed import DistContext
 from smdm_plugin.reference.diffusion import SimpleDiffusion
 from smdm_plugin.reference.text import (HashedBagOfWords, TextConfig, load_text_config, sample_with_text,
@@ -254,7 +256,7 @@ def test_quick_study_end_to_end(large_dir, tmp_path, capsys, monkeypatch):
 
 
 def test_smdm_train_text_flag(large_dir, tmp_path, capsys):
-    from smdm_plugin.apps import trainer
+    from smdm_plugin.apps import train as trainer
 
     out = tmp_path / "m"
     base = ["--data", str(large_dir), "--steps", "2", "--batch", "2", "--max-frames", "48", "--diffusion-steps", "4",

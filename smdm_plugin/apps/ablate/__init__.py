@@ -2,7 +2,7 @@
 
 Every variant of a YAML grid (``configs/ablations/table1.yaml``: the paper's Table 1 set) trains the
 in-package backbone (:class:`~smdm_plugin.reference.backbone.TinyMDM` + :class:`~smdm_plugin.reference.diffusion.SimpleDiffusion`)
-through the one in-package :class:`~smdm_plugin.apps.trainer.Trainer` with the *same* seed,
+through the one in-package :class:`~smdm_plugin.training.trainer.Trainer` with the *same* seed,
 initial weights, data order, diffusion steps ``t`` and step count, on HumanML3D-format motion (``--data``, e.g. this project's ``../shared/data/cmu-humanml3d``: ``new_joint_vecs``,
 ``new_joints``, ``Mean.npy``/``Std.npy``, ``train.txt``/``val.txt``). Unconditional (no CLIP).
 
@@ -68,17 +68,19 @@ import sys
 import time
 import traceback
 from dataclasses import dataclass
-from pathlib import Path
-from typing import Any, Callable, Dict, List, Optional, Sequence, Set, Tuple
+from typing import TYPE_CHECKING, Any, Callable, Dict, List, Optional, Sequence, Set, Tuple
 
 import numpy as np
 import torch
 
-from ..core.config import ConfigTypeError, Range, closest, preset_dirs
-from ..io.files import OutputExistsError, atomic_open, atomic_write_json, atomic_write_text
-from ._args import add_overwrite, device_type, existing_path, int_range, resolve_device
-from .threads import THREADS_HELP
-from .provenance import differences, fingerprint_files, make_provenance
+from ...core.config import ConfigTypeError, Range, closest, preset_dirs
+from ...io.files import OutputExistsError, atomic_open, atomic_write_json, atomic_write_text
+from ..common.args import add_overwrite, device_type, existing_path, int_range, resolve_device
+from ..common.threads import THREADS_HELP
+from ..common.provenance import differences, make_provenance
+
+if TYPE_CHECKING:
+    from ...training.data import MotionData
 
 DEFAULT_DATA = os.path.join("..", "shared", "data", "cmu-humanml3d")  # the scripts/ default (this project's data)
 DEFAULTS: Dict[str, Any] = {
@@ -149,7 +151,7 @@ def load_config(path: str) -> Dict[str, Any]:
 
 
 def _model_keys() -> List[str]:
-    from ..reference.backbone import TinyMDM
+    from ...reference.backbone import TinyMDM
 
     fixed = {"self", "njoints", "nfeats", "cond_mode", "text_encoder"}
     return [k for k in inspect.signature(TinyMDM.__init__).parameters if k not in fixed]
@@ -235,7 +237,7 @@ def slug(name: str) -> str:
 
 
 def sparse_config(cfg: Dict[str, Any], variant: Dict[str, Any]):
-    from ..core.config import SparseConfig
+    from ...core.config import SparseConfig
 
     if variant.get("dense"):
         return None
@@ -265,137 +267,10 @@ def select_variants(cfg: Dict[str, Any], only: Optional[Sequence[str]]) -> Set[s
     return picked
 
 
-# ----------------------------------------------------------------------------------------- data
-class MotionData:
-    """HumanML3D-format motions: normalised ``[M, max_frames, 263]`` + lengths, joints for eval.
-    ``files`` lists every file read; ``fingerprint`` hashes their names, sizes and contents."""
-
-    def __init__(self, root: str, max_frames: int = 196, min_frames: int = 40) -> None:
-        root_p = Path(root)
-        if not (root_p / "Mean.npy").exists():
-            raise FileNotFoundError(f"no HumanML3D-format data at {root} (need Mean.npy, Std.npy, "
-                                    "new_joint_vecs/, train.txt); pass --data")
-        self.root = root_p
-        self.files: List[str] = [str(root_p / "Mean.npy"), str(root_p / "Std.npy")]
-        self.mean = np.load(root_p / "Mean.npy").astype(np.float32)
-        self.std = np.load(root_p / "Std.npy").astype(np.float32)
-        self.max_frames = max_frames
-        self.train = self._load("train", min_frames)
-        self.val = self._load("val" if (root_p / "val.txt").exists() else "test", min_frames)
-        self.fingerprint = fingerprint_files(str(root_p), self.files)
-
-    def _load(self, split: str, min_frames: int) -> Dict[str, Any]:
-        listing = self.root / f"{split}.txt"
-        if not listing.exists():
-            raise FileNotFoundError(f"{listing} is missing (the {split} split's motion ids)")
-        self.files.append(str(listing))
-        ids = [i for i in listing.read_text().split() if i]
-        x, lengths, joints, kept = [], [], [], []
-        for i in ids:
-            f = self.root / "new_joint_vecs" / f"{i}.npy"
-            if not f.exists():
-                continue
-            m = np.load(f).astype(np.float32)
-            self.files.append(str(f))
-            if len(m) < min_frames:
-                continue
-            L = min(len(m), self.max_frames)
-            pad = np.zeros((self.max_frames, m.shape[1]), np.float32)
-            pad[:L] = (m[:L] - self.mean) / self.std
-            x.append(pad)
-            lengths.append(L)
-            jf = self.root / "new_joints" / f"{i}.npy"
-            if jf.exists():
-                self.files.append(str(jf))
-            joints.append(np.load(jf)[:L].astype(np.float32) if jf.exists() else None)
-            kept.append(i)
-        if not x:
-            raise ValueError(f"split {split!r} of {self.root} has no usable motion")
-        return {"ids": kept, "x": torch.from_numpy(np.stack(x)), "lengths": torch.tensor(lengths),
-                "joints": joints}
-
-
-# ----------------------------------------------------------------------------------------- metrics
-def keyframe_error_mm(data: MotionData, sc, limit: Optional[int] = None, seed: int = 0) -> Optional[float]:
-    """MPJPE (mm) of interpolating the validation joints from the variant's training keyframes
-    (selector on the HumanML3D features, no mask noise)."""
-    if sc is None:
-        return None
-    from ..core.interpolation import interpolate_keyframes
-    from ..core.schedule import MaskSchedule
-
-    sched = MaskSchedule(sc.replace(mask_noise=0.0), data.mean, data.std)
-    val = data.val
-    n = len(val["ids"]) if limit is None else min(limit, len(val["ids"]))
-    errs = []
-    g = torch.Generator().manual_seed(seed)
-    for b in range(n):
-        j = val["joints"][b]
-        if j is None:
-            continue
-        L = int(val["lengths"][b])
-        x = val["x"][b:b + 1, :L]
-        from ..core.selection import select_keyframes
-
-        mask = select_keyframes(sched.features(x), torch.tensor([L]), sc.reduction, sc.selector, generator=g)
-        rec = interpolate_keyframes(torch.from_numpy(j).reshape(1, L, -1).double(), mask).reshape(L, -1, 3)
-        errs.append(float((rec.numpy() - j).__pow__(2).sum(-1).__pow__(0.5).mean() * 1000.0))
-    return float(np.mean(errs)) if errs else None
-
-
-def _ees(motion_norm: torch.Tensor, lengths: torch.Tensor, data: MotionData) -> Optional[float]:
-    try:
-        from ..metrics import end_effector_speed
-    except ImportError:
-        return None
-    return float(end_effector_speed(motion_norm, lengths, mean=data.mean, std=data.std))
-
-
-def validation_loss(model, diffusion, data: "MotionData", device: torch.device, seed: int, n_t: int = 5) -> float:
-    """Denoising MSE on the validation motions over all valid frames, at ``n_t`` fixed timesteps
-    spread over ``[0, T)`` with fixed noise (identical for every variant). The model runs as it
-    would at sampling time (its own keyframe schedule on ``x_t``), so sparse and dense compare on
-    the same dense frames. Not comparable with training losses, which sample t at random."""
-    from ..reference.diffusion import masked_mse
-
-    val = data.val
-    x = val["x"].permute(0, 2, 1).unsqueeze(2).to(device)
-    B, N = x.shape[0], x.shape[-1]
-    y = {"mask": (torch.arange(N) < val["lengths"][:, None]).view(B, 1, 1, N).to(device),
-         "lengths": val["lengths"].to(device)}
-    g = torch.Generator().manual_seed(seed + 4)
-    out = []
-    with torch.no_grad():
-        for t in torch.linspace(0, diffusion.num_timesteps - 1, n_t).round().long():
-            tt = t.expand(B).to(device)
-            noise = torch.randn(x.shape, generator=g).to(device)
-            pred = model(diffusion.q_sample(x, tt, noise), tt, {"y": dict(y)})
-            out.append(float(masked_mse(pred, x, y["mask"]).mean()))
-    return float(np.mean(out))
-
-
 # ----------------------------------------------------------------------------------------- run
-def motion_set(split: Dict[str, Any], data: "MotionData"):
-    """A :class:`~smdm_plugin.apps.trainer.MotionSet` of a loaded split (already normalised)."""
-    from .trainer import MotionSet
-
-    frames = torch.cat([split["x"][i, :int(L)] for i, L in enumerate(split["lengths"].tolist())])
-    return MotionSet(frames, split["lengths"].long(), list(split["ids"]), data.mean, data.std, data.max_frames)
-
-
-def motion_quality(motion_norm: torch.Tensor, lengths: torch.Tensor, data: "MotionData") -> Dict[str, Optional[float]]:
-    """``{'jitter': m/s³, 'foot_skating': ratio}`` of normalised HumanML3D features ``[B, N, 263]``
-    (valid ``lengths [B]``), on the joints ``recover_from_ric`` gives, at 20 fps."""
-    from ..metrics import foot_skating_ratio, jitter, to_joint_positions
-
-    j = to_joint_positions(motion_norm.float(), data.mean, data.std)
-    L = lengths.long().cpu()
-    return {"jitter": float(jitter(j, fps=20, lengths=L)), "foot_skating": float(foot_skating_ratio(j, fps=20, lengths=L))}
-
-
-def run_variant(cfg: Dict[str, Any], variant: Dict[str, Any], data: MotionData, device: torch.device,
+def run_variant(cfg: Dict[str, Any], variant: Dict[str, Any], data: "MotionData", device: torch.device,
                 progress: bool = False, dist=None, checkpoint_dir: Optional[str] = None) -> Dict[str, Any]:
-    """Train one variant with the in-package :class:`~smdm_plugin.apps.trainer.Trainer` (DDP when
+    """Train one variant with the in-package :class:`~smdm_plugin.training.trainer.Trainer` (DDP when
     ``dist`` is a torchrun context) and, on rank 0, evaluate it: validation loss, unconditional
     samples (EES, jitter, foot skating), keyframe error. Other ranks return after training.
 
@@ -403,19 +278,21 @@ def run_variant(cfg: Dict[str, Any], variant: Dict[str, Any], data: MotionData, 
     the steps and, when one is there, training continues from it (``smdm train --resume``'s
     mechanism: weights, optimiser, random streams, step), so an interrupted variant resumes
     bit-identically instead of starting over."""
-    from ..integrations.distributed import DistContext
-    from .trainer import TrainConfig, Trainer, _resume
+    from ...integrations.distributed import DistContext
+    from ...metrics.features import feature_quality, keyframe_interpolation_error_mm
+    from ...training.trainer import TrainConfig, Trainer, resume
+    from ...training.validation import validation_loss
 
     seed = int(cfg["seed"])
     sc = sparse_config(cfg, variant)
     steps = int(cfg["steps"])
     tc = TrainConfig(steps=steps, batch=int(cfg["batch"]), lr=float(cfg["lr"]),
                      diffusion_steps=int(cfg["diffusion_steps"]), seed=seed, model=dict(cfg["model"]), sparse=sc)
-    trainer = Trainer(tc, motion_set(data.train, data), dist=dist or DistContext(device=device))
+    trainer = Trainer(tc, data.train, dist=dist or DistContext(device=device))
     device = trainer.dist.device
     callback = None
     if checkpoint_dir is not None and trainer.dist.world_size == 1:
-        _resume(trainer, checkpoint_dir)  # nothing there: from step 0
+        resume(trainer, checkpoint_dir)  # nothing there: from step 0
         every = max(1, steps // 10)
 
         def callback(tr: Trainer, loss: float) -> None:
@@ -430,13 +307,13 @@ def run_variant(cfg: Dict[str, Any], variant: Dict[str, Any], data: MotionData, 
     model, diffusion, losses, train_s = trainer.model, trainer.diffusion, list(trainer.losses), result.seconds
     if not trainer.dist.is_main:
         return {"name": variant["name"], "status": "ok", "steps": steps, "rank": trainer.dist.rank}
-    N = data.train["x"].shape[1]
+    N = data.train.max_frames
 
     # evaluation: sample unconditionally (the variant's own sampling schedule), EES
     ev = cfg["eval"]
     ns, nf = int(ev.get("samples", 8)), min(int(ev.get("frames", 120)), N)
     model.eval()
-    val_loss = validation_loss(model, diffusion, data, device, seed)
+    val_loss = validation_loss(model, diffusion, data.val, device, seed)
     g = torch.Generator().manual_seed(seed + 3)
     lengths = torch.full((ns,), nf, dtype=torch.long)
     y = {"mask": torch.ones(ns, 1, 1, nf, dtype=torch.bool, device=device), "lengths": lengths.to(device)}
@@ -444,7 +321,8 @@ def run_variant(cfg: Dict[str, Any], variant: Dict[str, Any], data: MotionData, 
     sample = diffusion.p_sample_loop(model, (ns, 263, 1, nf), {"y": y}, device=device, generator=g)
     sample_s = time.perf_counter() - t1
     motion = sample.squeeze(2).permute(0, 2, 1).cpu()  # [B, N, 263] normalised
-    quality = motion_quality(motion, lengths, data)
+    quality = feature_quality(motion, lengths, data.mean, data.std)
+    val, val_lengths = data.val.padded()
     k = max(1, len(losses) // 10)
     smooth = np.convolve(losses, np.ones(k) / k, mode="valid") if losses else np.array([np.nan])
     return {
@@ -452,8 +330,9 @@ def run_variant(cfg: Dict[str, Any], variant: Dict[str, Any], data: MotionData, 
         "final_loss": float(np.mean(losses[-k:])), "best_loss": float(np.min(smooth)), "val_loss": val_loss,
         "steps_per_s": result.steps / train_s if train_s > 0 else float("nan"), "train_s": train_s,
         "sample_s": sample_s, "resumed_at": steps - result.steps,
-        "keyframe_error_mm": keyframe_error_mm(data, sc, ev.get("keyframe_motions"), seed),
-        "ees": _ees(motion, lengths, data), **quality, "losses": losses, "world_size": trainer.dist.world_size,
+        "keyframe_error_mm": keyframe_interpolation_error_mm(val, val_lengths, data.val.joints, data.mean, data.std,
+                                                             sc, ev.get("keyframe_motions"), seed),
+        **quality, "losses": losses, "world_size": trainer.dist.world_size,
         "max_divergence": result.max_divergence,
         "sparse_config": None if sc is None else sc.to_dict(),
     }
@@ -557,7 +436,7 @@ def _read_json_or_none(path: str) -> Any:
         return None
 
 
-def run_one(cfg: Dict[str, Any], variant: Dict[str, Any], data: MotionData, dev: torch.device, vdir: str,
+def run_one(cfg: Dict[str, Any], variant: Dict[str, Any], data: "MotionData", dev: torch.device, vdir: str,
             provenance: Dict[str, Any], progress: bool, log: Callable[[str], Any], dist=None,
             resume: bool = False) -> Dict[str, Any]:
     """Run one variant and record it (atomically): ``result.json`` (its stale ``failed.json``
@@ -606,7 +485,7 @@ def run_ablation(cfg: Dict[str, Any], out: str, data_root: str, device: str = "a
     unreadable ones; results from another run stop it with :class:`StaleResultsError` before
     anything trains) or ``overwrite`` (run every selected variant again). See the module docstring.
     """
-    from ..integrations.distributed import DistContext
+    from ...integrations.distributed import DistContext
 
     if resume and overwrite:
         raise ValueError("run_ablation: resume and overwrite exclude each other")
@@ -615,7 +494,7 @@ def run_ablation(cfg: Dict[str, Any], out: str, data_root: str, device: str = "a
     if not main_rank:
         log = _quiet
     selected = select_variants(cfg, only)
-    from ..io.outdir import OutputLock, check_no_overlap
+    from ...io.outdir import OutputLock, check_no_overlap
 
     _on_main(ctx, lambda: (check_no_overlap(out, {"--data": data_root}), check_out_dir(out, resume, overwrite)))
     # one writer: rank 0 locks --out for the whole run (the other ranks never write)
@@ -634,8 +513,11 @@ def _run_locked(cfg: Dict[str, Any], out: str, data_root: str, ctx, selected: Se
 
     main_rank = ctx.is_main
     dev = ctx.device
+    from ...metrics.features import feature_quality
+    from ...training.data import MotionData  # noqa: F811 - at run time
+
     data = MotionData(data_root, int(cfg["max_frames"]))
-    log(f"ablate: {len(data.train['ids'])} training / {len(data.val['ids'])} validation motions from "
+    log(f"ablate: {len(data.train)} training / {len(data.val)} validation motions from "
         f"{data_root} (fingerprint {data.fingerprint}); {cfg['steps']} steps x batch {cfg['batch']} per variant "
         f"on {dev}" + (f", {ctx.world_size} processes (DDP; batch per process)" if ctx.distributed else ""))
 
@@ -676,14 +558,14 @@ def _run_locked(cfg: Dict[str, Any], out: str, data_root: str, ctx, selected: Se
         return []
 
     os.makedirs(out, exist_ok=True)
-    from .. import __version__
+    from ... import __version__
 
     atomic_write_json(os.path.join(out, MANIFEST), {
         "tool": "smdm ablate", "format": 1, "grid": cfg.get("name"), "variants": [v["name"] for v in cfg["variants"]],
         "package_version": __version__, "data_root": os.path.abspath(data_root), "data_fingerprint": data.fingerprint,
         "device": dev.type, "updated": time.strftime("%Y-%m-%dT%H:%M:%S%z")})
     atomic_write_text(os.path.join(out, "config.yaml"), yaml.safe_dump(cfg, sort_keys=False))
-    real = {"ees": _ees(data.val["x"], data.val["lengths"], data), **motion_quality(data.val["x"], data.val["lengths"], data)}
+    real = feature_quality(*data.val.padded(), data.mean, data.std)
     rows = [row_from_cache(v["name"], c) for v, _, _, c, _ in plan]
     try:
         for k, (variant, vdir, prov, cached, action) in enumerate(plan):
@@ -761,14 +643,9 @@ def write_report(results: List[Dict[str, Any]], out: str, real_ees: Optional[flo
              f"TinyMDM {cfg['model']}, {cfg['diffusion_steps']} diffusion steps; sparse base {cfg.get('sparse')}",
              "", "| " + " | ".join(COLUMNS) + " |", "| --- | --- |" + " ---: |" * (len(COLUMNS) - 2)]
     lines += ["| " + " | ".join(r) + " |" for r in rows]
-    try:
-        import smdm_plugin.metrics  # noqa: F401
-
-        lines.append(f"\nEES of the real validation motions: {_fmt(real_ees, '.3f')} cm/frame "
-                     "(generated motions closer to it are better).")
-    except ImportError:
-        lines.append("\nEES: smdm_plugin.metrics is not available; column left empty.")
-    from .. import __version__
+    lines.append(f"\nEES of the real validation motions: {_fmt(real_ees, '.3f')} cm/frame "
+                 "(generated motions closer to it are better).")
+    from ... import __version__
 
     lines.append(f"\nProvenance: smdm-plugin {__version__}, data {cfg.get('data')}"
                  + (f" (fingerprint {data_fingerprint})" if data_fingerprint else "")
@@ -842,7 +719,7 @@ def build_parser() -> argparse.ArgumentParser:
     add_overwrite(g)
     p.add_argument("--no-progress", action="store_true", help="no progress bars")
     p.add_argument("--quick", action="store_true",
-                   help="the quick (seconds) variant of a study config (quality_compute): see smdm_plugin.apps.study")
+                   help="the quick (seconds) variant of a study config (quality_compute): see smdm_plugin.apps.ablate.study")
     return p
 
 
@@ -865,7 +742,7 @@ def main(argv: Optional[List[str]] = None) -> int:
         selected = select_variants(cfg, a.only)
     except ValueError as e:
         p.error(f"argument --only: {e}")
-    from .threads import apply_threads
+    from ..common.threads import apply_threads
     apply_threads(a.threads)
     data_root = a.data or cfg.get("data")
     if not data_root:
@@ -873,7 +750,7 @@ def main(argv: Optional[List[str]] = None) -> int:
                 "val.txt or test.txt), e.g. HumanML3D itself; the embedded CMU clips are joint positions, not "
                 "263-D features: `smdm demo` compares dense and sparse on them")
     cfg["data"] = data_root
-    from ..integrations.distributed import init_distributed, shutdown_distributed
+    from ...integrations.distributed import init_distributed, shutdown_distributed
 
     try:
         ctx = init_distributed(a.device)  # under torchrun: join the group (gloo on CPU, nccl on CUDA)
