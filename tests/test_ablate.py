@@ -395,7 +395,7 @@ def test_quick_grid_on_real_motion(hml_dir, tmp_path, monkeypatch):
 def test_missing_data_is_a_clear_message(tmp_path, capsys):
     (tmp_path / "d").mkdir()  # not tmp_path itself: an --out inside --data is refused as overlapping
     rc = ablate.main(["--config", str(QUICK), "--out", str(tmp_path / "x"), "--data", str(tmp_path / "d")])
-    assert rc == 2 and "no HumanML3D-format data" in capsys.readouterr().err
+    assert rc == 2 and "is not a HumanML3D-format folder (missing Mean.npy" in capsys.readouterr().err
     with pytest.raises(SystemExit) as e:
         ablate.main(["--config", str(QUICK), "--out", str(tmp_path / "x"), "--data", str(tmp_path / "none")])
     assert e.value.code == 2 and "argument --data: no such folder" in capsys.readouterr().err
