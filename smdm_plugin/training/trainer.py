@@ -2,7 +2,7 @@
 :class:`~smdm_plugin.reference.diffusion.SimpleDiffusion`, dense or sparse, on HumanML3D-format
 motion; one process, or many under ``torchrun`` (DistributedDataParallel).
 
-    trainer = Trainer(TrainConfig(steps=300, sparse=SparseConfig()), load_humanml3d(root))
+    trainer = Trainer(TrainConfig(steps=300, sparse=SparseConfig()), MotionSet.from_split(load_humanml3d(root)))
     result = trainer.train()              # fixed step count (smdm ablate)
     loss = trainer.step()                 # one optimiser step (smdm demo's race_fair: equal steps, equal time)
     trainer.save("runs/smdm")             # model*.pt + backbone.json (+ sparse_config.json)
