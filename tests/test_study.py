@@ -185,12 +185,13 @@ def test_t_interval_against_scipy():
 
 def test_speed_normalised_jitter_against_a_loop():
     from smdm_plugin.metrics import jitter, to_joint_positions
+    from smdm_plugin.metrics.features import per_motion_quality
 
     g = torch.Generator().manual_seed(0)
     x = torch.randn(3, 30, 263, generator=g) * 0.3
     L = torch.tensor([30, 20, 12])
     mean, std = np.zeros(263, np.float32), np.ones(263, np.float32)
-    q = study.motion_scores(x, L, mean, std)
+    q = per_motion_quality(x, L, mean, std)
     j = to_joint_positions(x, mean, std)
     for b in range(3):
         p = j[b, : int(L[b])].double()

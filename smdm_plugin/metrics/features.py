@@ -9,7 +9,7 @@ import numpy as np
 import torch
 
 from .motion import ArrayLike, end_effector_speed, to_joint_positions
-from .quality import foot_skating_ratio, jitter
+from .quality import foot_skating_ratio, jitter, mean_speed
 
 
 def feature_quality(motion: torch.Tensor, lengths: torch.Tensor, mean: ArrayLike, std: ArrayLike,
@@ -22,6 +22,19 @@ def feature_quality(motion: torch.Tensor, lengths: torch.Tensor, mean: ArrayLike
     L = lengths.long().cpu()
     return {"ees": ees, "jitter": float(jitter(j, fps=fps, lengths=L)),
             "foot_skating": float(foot_skating_ratio(j, fps=fps, lengths=L))}
+
+
+def per_motion_quality(norm: torch.Tensor, lengths: torch.Tensor, mean: ArrayLike, std: ArrayLike,
+                       fps: float = 20.0) -> Dict[str, np.ndarray]:
+    """Per motion ``[M]``: jitter (m/s³), mean joint speed (m/s), jitter per unit speed (1/s²) and
+    foot skating ratio (``smdm ablate --config quality_compute``) of normalised features ``norm [M, N, 263]`` with valid ``lengths [M]``."""
+    j = to_joint_positions(norm.float(), mean, std)  # [M, N, 22, 3]
+    L = lengths.long()
+    jit = jitter(j, fps=fps, lengths=L, reduce="none").double()
+    speed = mean_speed(j, fps=fps, lengths=L, reduce="none").double()
+    skate = foot_skating_ratio(j, fps=fps, lengths=L, reduce="none").double()
+    return {"jitter": jit.numpy(), "speed": speed.numpy(), "jitter_per_speed": (jit / speed.clamp_min(1e-6)).numpy(),
+            "foot_skating": skate.numpy()}
 
 
 def keyframe_interpolation_error_mm(motion: torch.Tensor, lengths: torch.Tensor,

@@ -105,7 +105,10 @@ class MotionSet:
         out = cls.from_motions(split.motions, split.mean, split.std, split.ids, N,
                                split.joints if joints else None)
         if captions:
-            caps = [[c.text for c in cs] for cs in split.captions or [[]] * len(split.ids)]
+            if split.captions is None:
+                raise ValueError("MotionSet.from_split: captions=True needs a split read with load_humanml3d(..., "
+                                 "captions=True)")
+            caps = [[c.text for c in cs] for cs in split.captions]
             for name, texts in zip(split.ids, caps):
                 if not texts:
                     path = Path(split.root) / "texts" / f"{name}.txt"

@@ -216,28 +216,15 @@ class StudyData:
 
 
 # ----------------------------------------------------------------------------------------- scoring
-def motion_scores(norm: torch.Tensor, lengths: torch.Tensor, mean: np.ndarray, std: np.ndarray) -> Dict[str, np.ndarray]:
-    """Per motion ``[M]``: jitter (m/s³), mean joint speed (m/s), jitter per unit speed (1/s²) and
-    foot skating ratio of normalised features ``norm [M, N, 263]`` with valid ``lengths [M]``."""
-    from ...metrics import foot_skating_ratio, jitter, mean_speed, to_joint_positions
-
-    j = to_joint_positions(norm.float(), mean, std)  # [M, N, 22, 3]
-    L = lengths.long()
-    jit = jitter(j, fps=20, lengths=L, reduce="none").double()
-    speed = mean_speed(j, fps=20, lengths=L, reduce="none").double()
-    skate = foot_skating_ratio(j, fps=20, lengths=L, reduce="none").double()
-    return {"jitter": jit.numpy(), "speed": speed.numpy(), "jitter_per_speed": (jit / speed.clamp_min(1e-6)).numpy(),
-            "foot_skating": skate.numpy()}
-
-
 def score_set(evaluator, raw: torch.Tensor, norm: torch.Tensor, lengths: torch.Tensor, text_emb: np.ndarray,
               real_emb: np.ndarray, mean: np.ndarray, std: np.ndarray) -> Dict[str, float]:
     """Every metric of one set of motions (one per caption, row ``i`` for caption ``i``)."""
+    from ...metrics.features import per_motion_quality
     from ...metrics.t2m import diversity, frechet_distance, retrieval
 
     emb = evaluator.embed_motion(raw, lengths).double().numpy()
     r = retrieval(text_emb, emb, seed=0)
-    q = motion_scores(norm, lengths, mean, std)
+    q = per_motion_quality(norm, lengths, mean, std)
     return {"fid": frechet_distance(emb, real_emb), "r_precision_top1": r.top1, "r_precision_top2": r.top2,
             "r_precision_top3": r.top3, "matching_score": r.matching_score, "diversity": diversity(emb, seed=0)[0],
             "jitter": float(np.nanmean(q["jitter"])), "speed": float(np.nanmean(q["speed"])),
