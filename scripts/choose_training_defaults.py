@@ -32,7 +32,7 @@ from typing import Any, Dict, List, Optional
 import numpy as np
 import torch
 
-from smdm_plugin.apps import ablate
+from smdm_plugin.apps.ablate import grid
 from smdm_plugin.io.files import atomic_write_json, atomic_write_text
 from smdm_plugin.metrics import end_effector_speed, to_joint_positions
 from smdm_plugin.metrics.features import feature_quality, keyframe_interpolation_error_mm
@@ -60,7 +60,7 @@ def train_and_measure(cfg: Dict[str, Any], variant: Dict[str, Any], data: Motion
     does, and return its measurements."""
     from smdm_plugin.training.trainer import TrainConfig, Trainer
 
-    sc = ablate.sparse_config(cfg, variant)
+    sc = grid.sparse_config(cfg, variant)
     tc = TrainConfig(steps=int(cfg["steps"]), batch=int(cfg["batch"]), lr=float(cfg["lr"]),
                      diffusion_steps=int(cfg["diffusion_steps"]), seed=seed, model=dict(cfg["model"]), sparse=sc)
     trainer = Trainer(tc, data.train, device="cpu")
@@ -125,18 +125,18 @@ def main(argv: Optional[List[str]] = None) -> int:
     p.add_argument("--samples", type=int_range(1), default=16, help="generated motions per run")
     p.add_argument("--steps", type=int_range(1), default=None, help="override the grid's optimiser steps")
     p.add_argument("--only", nargs="+", default=None, help="run only these variants (names or slugs)")
-    p.add_argument("--data", default=None, help=f"HumanML3D-format folder (default {ablate.DEFAULT_DATA})")
+    p.add_argument("--data", default=None, help=f"HumanML3D-format folder (default {grid.DEFAULT_DATA})")
     p.add_argument("--threads", type=int_range(1), default=1)
     add_overwrite(p)
     a = p.parse_args(argv)
     torch.set_num_threads(a.threads)
     try:
-        cfg = ablate.load_config(a.grid)
+        cfg = grid.load_config(a.grid)
     except (FileNotFoundError, ValueError) as e:
         p.error(str(e))
     if a.steps:
         cfg["steps"] = a.steps
-    data_root = a.data or cfg.get("data") or ablate.DEFAULT_DATA
+    data_root = a.data or cfg.get("data") or grid.DEFAULT_DATA
     if not os.path.exists(os.path.join(data_root, "Mean.npy")):
         p.error(f"--data {data_root!r} holds no HumanML3D-format data (Mean.npy, new_joint_vecs/, train.txt)")
     stamp = {"grid": {k: v for k, v in cfg.items() if k != "data"}, "samples": a.samples}
@@ -151,11 +151,11 @@ def main(argv: Optional[List[str]] = None) -> int:
     real = motion_quality(*data.val.padded(), data)
     results: Dict[str, List[Dict[str, Any]]] = {}
     for variant in cfg["variants"]:
-        if a.only and variant["name"] not in a.only and ablate.slug(variant["name"]) not in a.only:
+        if a.only and variant["name"] not in a.only and grid.slug(variant["name"]) not in a.only:
             continue
         runs = results.setdefault(variant["name"], [])
         for seed in a.seeds:
-            path = os.path.join(a.out, ablate.slug(variant["name"]), f"seed{seed}.json")
+            path = os.path.join(a.out, grid.slug(variant["name"]), f"seed{seed}.json")
             if os.path.exists(path) and not a.overwrite:
                 with open(path) as f:
                     runs.append(json.load(f))

@@ -143,8 +143,9 @@ def test_one_frame_index_scale_default():
 # ----------------------------------------------------------------------------------------- outputs
 def test_quick_ablation_variants_are_distinct_and_record_what_ran():
     from smdm_plugin.apps import ablate
+    from smdm_plugin.apps.ablate import grid
 
-    cfg = ablate.load_config("quick")
+    cfg = grid.load_config("quick")
     resolved = [json.dumps(ablate.variant_settings(cfg, v)["sparse_config"], sort_keys=True) for v in cfg["variants"]]
     assert len(set(resolved)) == len(resolved), "two variants of the quick grid run the same model"
     for v in cfg["variants"]:

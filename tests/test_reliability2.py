@@ -349,8 +349,9 @@ def test_ablate_variant_resumes_with_the_trainers_mechanism(tmp_path):
     """smdm ablate --resume continues an interrupted variant from its checkpoint (the trainer's
     state, as smdm train --resume) instead of starting over, with the same result."""
     from smdm_plugin.apps import ablate
+    from smdm_plugin.apps.ablate import grid
 
-    cfg = ablate.load_config(str(ROOT / "configs" / "ablations" / "quick.yaml"))
+    cfg = grid.load_config(str(ROOT / "configs" / "ablations" / "quick.yaml"))
     cfg.update(steps=20, batch=2, model={**cfg["model"], "latent_dim": 16, "ff_size": 32, "num_layers": 1})
     cfg["eval"] = {**cfg["eval"], "samples": 2, "frames": 40}
     data = MotionData(str(write_humanml3d(tmp_path / "d", train=(60, 52, 48, 70), val=(44, 56))), 60, 40)

@@ -12,7 +12,7 @@ import pytest
 import torch
 
 from smdm_plugin.apps import ablate
-from smdm_plugin.apps.ablate import study
+from smdm_plugin.apps.ablate import grid, study
 from smdm_plugin.training.data import MotionSet
 from smdm_plugin.training.trainer import TrainConfig, Trainer, caption_draws
 from smdm_plugin.integrations.distributed import DistContext
@@ -240,7 +240,7 @@ def test_quick_study_end_to_end(large_dir, tmp_path, capsys, monkeypatch):
     # every (variant, seed) folder has its result with provenance; the evaluator is cached
     for v in names:
         for s in cfg["seeds"]:
-            r = json.loads((out / ablate.slug(v) / f"seed{s}" / "result.json").read_text())
+            r = json.loads((out / grid.slug(v) / f"seed{s}" / "result.json").read_text())
             assert r["status"] == "ok" and r["provenance"]["seed"] == s and len(r["snapshots"]) == 4
     assert len(list((out / "evaluator").iterdir())) == 1
     # resumable per (variant, seed): nothing retrains; without a flag the folder is refused

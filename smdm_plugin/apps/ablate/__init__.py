@@ -57,12 +57,8 @@ YAML schema::
 from __future__ import annotations
 
 import argparse
-import csv
-import inspect
 import json
-import math
 import os
-import re
 import shutil
 import sys
 import time
@@ -73,198 +69,20 @@ from typing import TYPE_CHECKING, Any, Callable, Dict, List, Optional, Sequence,
 import numpy as np
 import torch
 
-from ...core.config import ConfigTypeError, Range, closest, preset_dirs
-from ...io.files import OutputExistsError, atomic_open, atomic_write_json, atomic_write_text
+from ...io.files import OutputExistsError, atomic_write_json, atomic_write_text
 from ..common.args import add_overwrite, device_type, existing_path, int_range, resolve_device
 from ..common.threads import THREADS_HELP
 from ..common.provenance import differences, make_provenance
+from .grid import SHARED_SETTINGS, load_config, select_variants, slug, sparse_config
+from .report import write_report
 
 if TYPE_CHECKING:
     from ...training.data import MotionData
 
-DEFAULT_DATA = os.path.join("..", "shared", "data", "cmu-humanml3d")  # the scripts/ default (this project's data)
-DEFAULTS: Dict[str, Any] = {
-    "name": "ablation", "seed": 0, "steps": 200, "batch": 16, "max_frames": 196, "diffusion_steps": 100,
-    "lr": 2e-4, "log_every": 1,
-    "model": {"latent_dim": 128, "num_layers": 4, "num_heads": 4, "ff_size": 256, "arch": "trans_enc",
-              "dropout": 0.1},
-    "sparse": {"reduction": 0.8},
-    "eval": {"samples": 8, "frames": 120, "keyframe_motions": None},
-}
 MANIFEST = "ablate.json"
-#: the grid settings every variant's result depends on (with the variant itself and its SparseConfig)
-SHARED_SETTINGS = ("seed", "steps", "batch", "max_frames", "diffusion_steps", "lr", "model", "eval")
-
-
-class AblateConfigError(ValueError):
-    """The grid YAML is malformed (unknown key, wrong type or range, clashing names)."""
-
-
-class AblateConfigTypeError(AblateConfigError, ConfigTypeError):
-    """A value of the wrong type in the grid YAML."""
-
-
 class StaleResultsError(OutputExistsError):
     """``--resume`` met results from another run (other settings, data, version, steps, seed or
     device) that it would have to replace."""
-
-
-# ----------------------------------------------------------------------------------------- config
-ABLATIONS_DIR = os.path.join(preset_dirs()[0], "ablations")
-
-
-def packaged_grids() -> List[str]:
-    return sorted(f[:-5] for f in os.listdir(ABLATIONS_DIR) if f.endswith(".yaml"))
-
-
-def config_path(name_or_path: str) -> str:
-    """A grid's YAML file: a path, or the name of a packaged grid (``table1``, ``defaults``,
-    ``quick``: ``configs/ablations/<name>.yaml``)."""
-    if os.path.isfile(name_or_path):
-        return name_or_path
-    packaged = os.path.join(ABLATIONS_DIR, os.path.basename(name_or_path))
-    for cand in (packaged, packaged + ".yaml"):
-        if os.path.isfile(cand) and os.path.dirname(name_or_path) in ("", ABLATIONS_DIR):
-            return cand
-    grids = packaged_grids()
-    hint = closest(os.path.basename(name_or_path).removesuffix(".yaml"), grids)
-    raise FileNotFoundError(f"--config {name_or_path!r} is neither a file nor a packaged grid "
-                            f"({', '.join(grids)}){hint}")
-
-
-def load_config(path: str) -> Dict[str, Any]:
-    """The resolved grid of a YAML file (or packaged grid name); errors name the file."""
-    import yaml
-
-    p = config_path(path)
-    try:
-        with open(p, encoding="utf-8-sig") as f:
-            cfg = yaml.safe_load(f)
-    except yaml.YAMLError as e:
-        raise AblateConfigError(f"{p}: not valid YAML: {' '.join(str(e).split())}") from None
-    except OSError as e:
-        raise AblateConfigError(f"{p}: cannot read it: {e.strerror}") from None
-    try:
-        return resolve(cfg if cfg is not None else {})
-    except ValueError as e:
-        raise type(e)(f"{p}: {e}") from None
-
-
-def _model_keys() -> List[str]:
-    from ...reference.backbone import TinyMDM
-
-    fixed = {"self", "njoints", "nfeats", "cond_mode", "text_encoder"}
-    return [k for k in inspect.signature(TinyMDM.__init__).parameters if k not in fixed]
-
-
-def _check(where: str, v: Any, kind: type, rng: Range = Range(), optional: bool = False) -> None:
-    """Raise :class:`AblateConfigError` unless ``v`` is a ``kind`` in ``rng`` (None if ``optional``)."""
-    if v is None and optional:
-        return
-    if kind is float:
-        ok_type = isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v)
-    else:
-        ok_type = isinstance(v, kind) and not (kind is int and isinstance(v, bool))
-    what = {int: rng.describe(True), float: "a finite " + rng.describe(False)[2:], str: "a non-empty string",
-            bool: "true or false", dict: "a mapping", list: "a list"}[kind]
-    if not ok_type or (kind in (int, float) and v not in rng) or (kind is str and not v.strip()):
-        raise (AblateConfigError if ok_type else AblateConfigTypeError)(f"{where}={v!r}: expected {'null or ' if optional else ''}{what}")
-
-
-def _check_keys(where: str, d: Dict[str, Any], known: Sequence[str]) -> None:
-    for k in d:
-        if k not in known:
-            raise AblateConfigError(f"{where}: unknown key {k!r}{closest(str(k), known)} (known: {', '.join(known)})")
-
-
-def over_defaults(cfg: Any, defaults: Dict[str, Any], what: str, expected: str) -> Dict[str, Any]:
-    """A grid's mapping ``cfg`` laid over a copy of ``defaults`` (mapping sections one level deep);
-    only ``defaults``' keys, ``variants`` and ``data`` are known."""
-    if not isinstance(cfg, dict):
-        raise AblateConfigError(f"expected a mapping ({expected}), got {type(cfg).__name__}")
-    _check_keys(what, cfg, [*defaults, "variants", "data"])
-    out = json.loads(json.dumps(defaults))
-    for k, v in cfg.items():
-        if isinstance(v, dict) and isinstance(out.get(k), dict):
-            out[k].update(v)
-        else:
-            out[k] = v
-    return out
-
-
-def resolve(cfg: Dict[str, Any]) -> Dict[str, Any]:
-    """``cfg`` over :data:`DEFAULTS` (one level deep for the mapping sections), validated: known
-    keys only, types and ranges, every variant named, names and their folder names unique.
-    Variants' ``sparse`` values are checked when the variant runs (an invalid one fails alone)."""
-    out = over_defaults(cfg, DEFAULTS, "ablate config", "name, seed, steps, ..., variants")
-    _check("name", out["name"], str)
-    for k, lo in (("seed", 0), ("steps", 1), ("batch", 1), ("max_frames", 2), ("diffusion_steps", 1), ("log_every", 1)):
-        _check(k, out[k], int, Range(lo))
-    _check("lr", out["lr"], float, Range(0.0, lo_open=True))
-    _check("data", out.get("data"), str, optional=True)
-    for section in ("model", "sparse", "eval"):
-        _check(section, out[section], dict)
-    _check_keys("model", out["model"], _model_keys())
-    _check_keys("eval", out["eval"], list(DEFAULTS["eval"]))
-    _check("eval.samples", out["eval"]["samples"], int, Range(1))
-    _check("eval.frames", out["eval"]["frames"], int, Range(2))
-    _check("eval.keyframe_motions", out["eval"]["keyframe_motions"], int, Range(1), optional=True)
-    variants = out.get("variants")
-    if not variants:
-        raise AblateConfigError("the config lists no variants")
-    _check("variants", variants, list)
-    seen: Dict[str, str] = {}
-    for i, v in enumerate(variants):
-        if not isinstance(v, dict):
-            raise AblateConfigTypeError(f"variants[{i}]={v!r}: expected a mapping with a name")
-        _check_keys(f"variants[{i}]", v, ["name", "dense", "sparse"])
-        if not isinstance(v.get("name"), str) or not v["name"].strip():
-            raise AblateConfigError(f"variants[{i}]: every variant needs a unique name, got {v.get('name')!r}")
-        _check(f"variants[{i}].dense", v.get("dense", False), bool)
-        _check(f"variants[{i}].sparse", v.get("sparse") or {}, dict)
-        s = slug(v["name"])
-        if s in seen:
-            same = "the same name" if seen[s] == v["name"] else f"the same folder name {s!r}"
-            raise AblateConfigError(f"variants {seen[s]!r} and {v['name']!r} have {same}; every variant needs a "
-                                    "unique name (and folder name: lower case, runs of other characters as '-')")
-        seen[s] = v["name"]
-    return out
-
-
-def slug(name: str) -> str:
-    """The folder name of a variant: lower case, runs of anything but ``[a-z0-9]`` as ``-``."""
-    return re.sub(r"[^a-z0-9]+", "-", name.lower()).strip("-") or "variant"
-
-
-def sparse_config(cfg: Dict[str, Any], variant: Dict[str, Any]):
-    from ...core.config import SparseConfig
-
-    if variant.get("dense"):
-        return None
-    d = dict(cfg.get("sparse") or {})
-    d.update(variant.get("sparse") or {})
-    d.setdefault("diffusion_steps", int(cfg["diffusion_steps"]))  # what runs (config.json records it)
-    return SparseConfig.from_dict(d)
-
-
-def select_variants(cfg: Dict[str, Any], only: Optional[Sequence[str]]) -> Set[str]:
-    """The names of the variants ``only`` picks (names or folder names; all when None). An unknown
-    entry is a ``ValueError`` listing the known names."""
-    names = [v["name"] for v in cfg["variants"]]
-    if not only:
-        return set(names)
-    by_slug = {slug(n): n for n in names}
-    picked, unknown = set(), []
-    for o in only:
-        hit = o if o in names else by_slug.get(o) or by_slug.get(slug(o))
-        if hit is None:
-            unknown.append(o)
-        else:
-            picked.add(hit)
-    if unknown:
-        raise ValueError(f"unknown variant(s) {', '.join(map(repr, unknown))}"
-                         f"{closest(unknown[0], names)}; known: {', '.join(map(repr, names))}")
-    return picked
 
 
 # ----------------------------------------------------------------------------------------- run
@@ -601,96 +419,6 @@ def _on_main(ctx, fn: Callable[[], Any]) -> Any:
     if kind == "error":
         raise value
     return value
-
-
-# ----------------------------------------------------------------------------------------- report
-COLUMNS = ("variant", "status", "final loss", "best loss", "val loss", "steps/s", "keyframe error (mm)", "EES (cm/frame)",
-           "jitter (m/s³)", "foot skating", "wall (s)")
-#: the report's reference row: the real validation motions
-REFERENCE_ROW = "real validation motion"
-
-
-def _fmt(v: Any, spec: str) -> str:
-    return "—" if v is None or (isinstance(v, float) and not math.isfinite(v)) else format(v, spec)
-
-
-def write_report(results: List[Dict[str, Any]], out: str, real_ees: Optional[float], cfg: Dict[str, Any],
-                 data_fingerprint: Optional[str] = None, real: Optional[Dict[str, Optional[float]]] = None) -> str:
-    """``results.md`` / ``results.csv`` / ``loss_curves.png`` of ``results`` (one row per variant;
-    numbers only for ``ok`` rows; jitter and foot skating of the variant's unconditional samples),
-    then, with ``real`` (``ees``, ``jitter``, ``foot_skating`` of the real validation motions), a
-    reference row; returns the markdown."""
-    rows = []
-    for r in results:
-        ok = r.get("status") == "ok"
-        rows.append([r["name"], r.get("status", "?"),
-                     _fmt(r.get("final_loss") if ok else None, ".4f"), _fmt(r.get("best_loss") if ok else None, ".4f"),
-                     _fmt(r.get("val_loss") if ok else None, ".4f"),
-                     _fmt(r.get("steps_per_s") if ok else None, ".2f"),
-                     _fmt(r.get("keyframe_error_mm") if ok else None, ".1f"),
-                     _fmt(r.get("ees") if ok else None, ".3f"),
-                     _fmt(r.get("jitter") if ok else None, ".0f"), _fmt(r.get("foot_skating") if ok else None, ".3f"),
-                     _fmt(r.get("wall_s") if r.get("status") in ("ok", "failed") else None, ".0f")])
-    if real is not None:
-        rows.append([REFERENCE_ROW, "reference"] + ["—"] * 5 + [_fmt(real.get("ees"), ".3f"),
-                                                                 _fmt(real.get("jitter"), ".0f"),
-                                                                 _fmt(real.get("foot_skating"), ".3f"), "—"])
-    with atomic_open(os.path.join(out, "results.csv"), "w", newline="") as f:
-        w = csv.writer(f)
-        w.writerow(COLUMNS)
-        w.writerows(rows)
-    lines = [f"{cfg.get('name', 'ablation')}: {cfg['steps']} steps × batch {cfg['batch']}, seed {cfg['seed']}, "
-             f"TinyMDM {cfg['model']}, {cfg['diffusion_steps']} diffusion steps; sparse base {cfg.get('sparse')}",
-             "", "| " + " | ".join(COLUMNS) + " |", "| --- | --- |" + " ---: |" * (len(COLUMNS) - 2)]
-    lines += ["| " + " | ".join(r) + " |" for r in rows]
-    lines.append(f"\nEES of the real validation motions: {_fmt(real_ees, '.3f')} cm/frame "
-                 "(generated motions closer to it are better).")
-    from ... import __version__
-
-    lines.append(f"\nProvenance: smdm-plugin {__version__}, data {cfg.get('data')}"
-                 + (f" (fingerprint {data_fingerprint})" if data_fingerprint else "")
-                 + "; per variant in <folder>/result.json.")
-    reused = [r["name"] for r in results if r.get("reused")]
-    if reused:
-        lines.append(f"\nReused from an earlier run with the same provenance: {', '.join(reused)}.")
-    for r in results:
-        if r.get("status") == "failed":
-            lines.append(f"\n{r['name']} failed: {r.get('error')}")
-        elif r.get("status") in ("stale", "corrupt"):
-            lines.append(f"\n{r['name']}: {r['status']}, not shown ({r.get('reason')}); run it with --only and "
-                         "--overwrite.")
-    pending = [r["name"] for r in results if r.get("status") == "not run"]
-    if pending:
-        lines.append(f"\nNot run yet: {', '.join(pending)}.")
-    text = "\n".join(lines)
-    atomic_write_text(os.path.join(out, "results.md"), text + "\n")
-    _plot(results, os.path.join(out, "loss_curves.png"))
-    return text
-
-
-def _plot(results: List[Dict[str, Any]], path: str) -> None:
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    fig, ax = plt.subplots(figsize=(9, 5))
-    for r in results:
-        if r.get("status") != "ok" or not r.get("losses"):
-            continue
-        loss = np.asarray(r["losses"])
-        k = max(1, len(loss) // 20)
-        sm = np.convolve(loss, np.ones(k) / k, mode="valid")
-        ax.plot(np.arange(len(sm)) + k, sm, label=r["name"], lw=1.5 if r["name"].startswith(("dense", "sparse")) else 1)
-    ax.set_xlabel("training step")
-    ax.set_ylabel("training loss (moving average)")
-    ax.set_yscale("log")
-    if ax.lines:
-        ax.legend(fontsize=8)
-    fig.tight_layout()
-    with atomic_open(path, "wb") as f:
-        fig.savefig(f, format="png", dpi=110)
-    plt.close(fig)
 
 
 # ----------------------------------------------------------------------------------------- CLI

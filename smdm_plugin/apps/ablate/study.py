@@ -46,8 +46,9 @@ import torch
 from ...core.config import closest
 from ...io.files import OutputExistsError, atomic_open, atomic_write_json, atomic_write_text
 from ..common.args import add_overwrite, device_type, existing_path, resolve_device
-from . import (AblateConfigError, _check, _check_keys, check_out_dir, over_defaults, config_path, read_cached, select_variants,
-                     slug, sparse_config)
+from . import check_out_dir, read_cached
+from .grid import (AblateConfigError, _check, _check_keys, config_path, over_defaults, select_variants, slug,
+                   sparse_config)
 from ...io.files import fingerprint_files
 from ..common.provenance import make_provenance, stable_hash
 
