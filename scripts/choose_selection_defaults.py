@@ -9,7 +9,7 @@ mean over motions.
 
 Data sets (../shared/data): ``hml`` = cmu-humanml3d (features from new_joint_vecs through
 ``extract_selection_features`` with Mean/Std, positions from new_joints); ``bvh`` = the same
-79 segments straight from the BVH files (``load_cmu_clip``, features ``root_relative_features``,
+79 segments straight from the BVH files (``load_cmu_clip``, features ``extract_selection_features(..., 'joints')``,
 world positions). Usage:
 ``python scripts/choose_selection_defaults.py [--bench] [--root-relative] [--quality]``
 (``--quality``: jitter, foot skating and EES of the motions rebuilt from the keyframes).
@@ -25,7 +25,7 @@ from typing import Dict, List, Tuple
 import numpy as np
 import torch
 
-from smdm_plugin.io.bvh import load_cmu_clip, root_relative_features
+from smdm_plugin.io.bvh import load_cmu_clip
 from smdm_plugin.core.features import extract_selection_features
 from smdm_plugin.core.selection import select_keyframes
 from smdm_plugin.metrics import end_effector_speed, foot_skating_ratio, jitter
@@ -172,7 +172,8 @@ def main() -> None:
              rel(P), lengths)
     Pb, lb = load_bvh_segments()
     evaluate(f"cmu-mocap BVH (world joints -> root-relative 64-D features), error on {what}",
-             lambda s: torch.from_numpy(root_relative_features(Pb, s)), rel(Pb), lb)
+             lambda s: extract_selection_features(torch.from_numpy(np.asarray(Pb, np.float64).reshape(*Pb.shape[:2], 66)),
+                                                 "joints", frame_index_scale=s), rel(Pb), lb)
     if args.quality:
         quality_table("cmu-humanml3d, global positions",
                       lambda s: extract_selection_features(torch.from_numpy(x), "humanml3d", mean, std, s), P, lengths)

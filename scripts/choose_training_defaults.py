@@ -7,9 +7,9 @@ every seed, trains the in-package ``TinyMDM`` in sparse mode on the real HumanML
 (same data order, timesteps and initial weights for every variant of a seed) and measures:
 
 * ``val loss``: dense-frame denoising MSE on the held-out motions at fixed timesteps and noise,
-  the model using its own sampling masks (``smdm_plugin.apps.ablate.validation_loss``);
+  the model using its own sampling masks (``smdm_plugin.training.validation.validation_loss``);
 * ``kf interp (mm)``: joint error of linearly interpolating the held-out motions from the keyframes
-  the variant's selector picks (``smdm_plugin.apps.ablate.keyframe_error_mm``);
+  the variant's selector picks (``smdm_plugin.metrics.features.keyframe_interpolation_error_mm``);
 * of unconditional samples with the held-out motions' lengths: ``jitter`` (m/s³),
   ``foot skating`` (ratio) and ``EES`` (cm/frame) — :mod:`smdm_plugin.metrics` — next to the
   same numbers for the real held-out motions.
@@ -32,9 +32,12 @@ from typing import Any, Dict, List, Optional
 import numpy as np
 import torch
 
-from smdm_plugin.apps import ablate
+from smdm_plugin.apps.ablate import grid
 from smdm_plugin.io.files import atomic_write_json, atomic_write_text
 from smdm_plugin.metrics import end_effector_speed, to_joint_positions
+from smdm_plugin.metrics.features import feature_quality, keyframe_interpolation_error_mm
+from smdm_plugin.training.data import MotionData
+from smdm_plugin.training.validation import validation_loss
 
 METRICS = ("val_loss", "kf_interp_mm", "jitter", "foot_skating", "ees")
 HEADERS = {"val_loss": "val loss", "kf_interp_mm": "kf interp (mm)", "jitter": "jitter (m/s³)",
@@ -43,37 +46,38 @@ FORMATS = {"val_loss": ".4f", "kf_interp_mm": ".1f", "jitter": ".0f", "foot_skat
 
 
 # ----------------------------------------------------------------------------------------- one run
-def motion_quality(motion: torch.Tensor, lengths: torch.Tensor, data: "ablate.MotionData",
+def motion_quality(motion: torch.Tensor, lengths: torch.Tensor, data: MotionData,
                    fps: float = 20.0) -> Dict[str, float]:
     """Jitter, foot skating (as ``smdm ablate`` reports them) and EES of normalised HumanML3D
     features ``[B, N, 263]``."""
     joints = to_joint_positions(motion, data.mean, data.std).double()
-    return {**ablate.motion_quality(motion, lengths, data), "ees": float(end_effector_speed(joints, lengths))}
+    return {**feature_quality(motion, lengths, data.mean, data.std), "ees": float(end_effector_speed(joints, lengths))}
 
 
-def train_and_measure(cfg: Dict[str, Any], variant: Dict[str, Any], data: "ablate.MotionData",
+def train_and_measure(cfg: Dict[str, Any], variant: Dict[str, Any], data: MotionData,
                       seed: int, samples: int) -> Dict[str, Any]:
     """Train one variant with one seed (CPU) through the in-package Trainer, as ``smdm ablate``
     does, and return its measurements."""
-    from smdm_plugin.apps.trainer import TrainConfig, Trainer
+    from smdm_plugin.training.trainer import TrainConfig, Trainer
 
-    sc = ablate.sparse_config(cfg, variant)
+    sc = grid.sparse_config(cfg, variant)
     tc = TrainConfig(steps=int(cfg["steps"]), batch=int(cfg["batch"]), lr=float(cfg["lr"]),
                      diffusion_steps=int(cfg["diffusion_steps"]), seed=seed, model=dict(cfg["model"]), sparse=sc)
-    trainer = Trainer(tc, ablate.motion_set(data.train, data), device="cpu")
+    trainer = Trainer(tc, data.train, device="cpu")
     result = trainer.train()
     model, diffusion, losses, train_s = trainer.model, trainer.diffusion, result.losses, result.seconds
     model.eval()
-    val = data.val
-    lengths = val["lengths"].repeat((samples + len(val["ids"]) - 1) // len(val["ids"]))[:samples]
+    val_x, val_lengths = data.val.padded()
+    lengths = val_lengths.repeat((samples + len(val_lengths) - 1) // len(val_lengths))[:samples]
     n = int(lengths.max())
     y = {"mask": (torch.arange(n) < lengths[:, None]).view(samples, 1, 1, n), "lengths": lengths}
     sample = diffusion.p_sample_loop(model, (samples, 263, 1, n), {"y": y},
                                      generator=torch.Generator().manual_seed(seed + 3))
     return {"variant": variant["name"], "seed": seed, "steps": int(cfg["steps"]),
             "final_loss": float(np.mean(losses[-max(1, len(losses) // 10):])),
-            "val_loss": ablate.validation_loss(model, diffusion, data, torch.device("cpu"), seed),
-            "kf_interp_mm": ablate.keyframe_error_mm(data, sc, seed=seed),
+            "val_loss": validation_loss(model, diffusion, data.val, torch.device("cpu"), seed),
+            "kf_interp_mm": keyframe_interpolation_error_mm(val_x, val_lengths, data.val.joints, data.mean, data.std,
+                                                            sc, seed=seed),
             **motion_quality(sample.squeeze(2).transpose(1, 2), lengths, data),
             "train_s": train_s, "sparse_config": None if sc is None else sc.to_dict()}
 
@@ -112,7 +116,7 @@ def report(cfg: Dict[str, Any], results: Dict[str, List[Dict[str, Any]]], real: 
 
 # ----------------------------------------------------------------------------------------- CLI
 def main(argv: Optional[List[str]] = None) -> int:
-    from smdm_plugin.apps._args import add_overwrite, int_range
+    from smdm_plugin.apps.common.args import add_overwrite, int_range
 
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--grid", required=True, help="ablation grid: a YAML path or a packaged grid name")
@@ -121,18 +125,18 @@ def main(argv: Optional[List[str]] = None) -> int:
     p.add_argument("--samples", type=int_range(1), default=16, help="generated motions per run")
     p.add_argument("--steps", type=int_range(1), default=None, help="override the grid's optimiser steps")
     p.add_argument("--only", nargs="+", default=None, help="run only these variants (names or slugs)")
-    p.add_argument("--data", default=None, help=f"HumanML3D-format folder (default {ablate.DEFAULT_DATA})")
+    p.add_argument("--data", default=None, help=f"HumanML3D-format folder (default {grid.DEFAULT_DATA})")
     p.add_argument("--threads", type=int_range(1), default=1)
     add_overwrite(p)
     a = p.parse_args(argv)
     torch.set_num_threads(a.threads)
     try:
-        cfg = ablate.load_config(a.grid)
+        cfg = grid.load_config(a.grid)
     except (FileNotFoundError, ValueError) as e:
         p.error(str(e))
     if a.steps:
         cfg["steps"] = a.steps
-    data_root = a.data or cfg.get("data") or ablate.DEFAULT_DATA
+    data_root = a.data or cfg.get("data") or grid.DEFAULT_DATA
     if not os.path.exists(os.path.join(data_root, "Mean.npy")):
         p.error(f"--data {data_root!r} holds no HumanML3D-format data (Mean.npy, new_joint_vecs/, train.txt)")
     stamp = {"grid": {k: v for k, v in cfg.items() if k != "data"}, "samples": a.samples}
@@ -143,15 +147,15 @@ def main(argv: Optional[List[str]] = None) -> int:
                 p.error(f"--out {a.out!r} holds runs of another grid or settings; pass --overwrite or another --out")
     os.makedirs(a.out, exist_ok=True)
     atomic_write_json(stamp_path, stamp, indent=2)
-    data = ablate.MotionData(data_root, int(cfg["max_frames"]))
-    real = motion_quality(data.val["x"], data.val["lengths"], data)
+    data = MotionData(data_root, int(cfg["max_frames"]))
+    real = motion_quality(*data.val.padded(), data)
     results: Dict[str, List[Dict[str, Any]]] = {}
     for variant in cfg["variants"]:
-        if a.only and variant["name"] not in a.only and ablate.slug(variant["name"]) not in a.only:
+        if a.only and variant["name"] not in a.only and grid.slug(variant["name"]) not in a.only:
             continue
         runs = results.setdefault(variant["name"], [])
         for seed in a.seeds:
-            path = os.path.join(a.out, ablate.slug(variant["name"]), f"seed{seed}.json")
+            path = os.path.join(a.out, grid.slug(variant["name"]), f"seed{seed}.json")
             if os.path.exists(path) and not a.overwrite:
                 with open(path) as f:
                     runs.append(json.load(f))

@@ -45,7 +45,7 @@ def transform_for(rep: str):
 
 
 def stats_for(data: Path, rep: str, motions: List[np.ndarray]) -> Tuple[np.ndarray, np.ndarray]:
-    from smdm_plugin.apps.trainer import feature_stats
+    from smdm_plugin.training.data import feature_stats
 
     if rep == "humanml3d":  # the data set's own Mean/Std, as MDM normalises
         return np.load(data / "Mean.npy").astype(np.float32), np.load(data / "Std.npy").astype(np.float32)
@@ -75,7 +75,8 @@ def heldout_loss(x: torch.Tensor, lengths: torch.Tensor, mean: np.ndarray, std: 
 def cmd_train(a: argparse.Namespace) -> int:
     """Train dense and sparse TinyMDM with the in-package Trainer on the train split (each motion's
     first 196 frames) and save them as model folders."""
-    from smdm_plugin.apps.trainer import MotionSet, TrainConfig, Trainer
+    from smdm_plugin.training.data import MotionSet
+    from smdm_plugin.training.trainer import TrainConfig, Trainer
     from smdm_plugin.core.config import SparseConfig
     from smdm_plugin.io.bundle import save_bundle
     from smdm_plugin.io.representation import Representation

@@ -52,7 +52,8 @@ T95 = {1: 12.706, 2: 4.303, 3: 3.182, 4: 2.776, 5: 2.571, 6: 2.447, 7: 2.365, 8:
 
 def load_data(data: str, frames: int):
     """``(MotionSet for training, real joints [M, frames, 22, 3], to_joints(normalised x [B, N, D]))``."""
-    from smdm_plugin.apps.trainer import MotionSet, feature_stats, load_humanml3d
+    from smdm_plugin.io.humanml3d import load_humanml3d
+    from smdm_plugin.training.data import MotionSet, feature_stats
 
     if data == "embedded":
         from smdm_plugin.apps.demo import motion_features, training_crops
@@ -70,8 +71,8 @@ def load_data(data: str, frames: int):
         return MotionSet.from_motions(feats, mean, std, max_frames=frames), real, to_joints
     from smdm_plugin.metrics import to_joint_positions
 
-    train = load_humanml3d(data, "train", max_frames=frames, min_frames=min(40, frames))
-    test = load_humanml3d(data, "test", max_frames=frames, min_frames=frames)
+    train = MotionSet.from_split(load_humanml3d(data, "train", max_frames=frames, min_frames=min(40, frames)))
+    test = MotionSet.from_split(load_humanml3d(data, "test", max_frames=frames, min_frames=frames))
     to_joints = lambda x: to_joint_positions(x.float(), train.mean, train.std)
     xr, _ = test.padded()
     real = to_joints(xr * torch.from_numpy(test.std) / torch.from_numpy(train.std)
@@ -131,7 +132,7 @@ def main(argv=None) -> int:
     if args.data != "embedded" and not os.path.isdir(args.data):
         p.error(f"argument --data: {args.data!r} is not a folder (or 'embedded')")
     torch.set_num_threads(args.threads)
-    from smdm_plugin.apps.trainer import TrainConfig, Trainer
+    from smdm_plugin.training.trainer import TrainConfig, Trainer
 
     data, real, to_joints = load_data(args.data, args.frames)
     N, D = args.frames, data.feature_dim

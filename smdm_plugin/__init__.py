@@ -3,6 +3,7 @@
 Layers (each imports only from those below it; see ``docs/architecture.md``)::
 
     apps/          smdm demo | train | bench | ablate | eval | evaluator | inbetween | render | run | keyframes
+    training/      the in-package TinyMDM trainer behind smdm train / demo / ablate / eval
     integrations/  upstream MDM / DiP, priorMDM, MotionDiffuse: launcher hooks, patch entry points
     adapters/      model surgery: sparsify / unsparsify per model family, diffusion wrapper
     core/          the method: selection, plan, keyframe transformer, interpolation, Lipschitz, FSQ

@@ -14,18 +14,20 @@ import torch
 
 def main() -> int:
     dump, argv = sys.argv[1], sys.argv[sys.argv.index("--") + 1:]
-    import smdm_plugin.apps.trainer as tr
+    import smdm_plugin.apps.train as cli
+    import smdm_plugin.training.trainer as tr
 
     rank = int(os.environ.get("RANK", "0"))
     writes = []
-    for name in ("atomic_open", "atomic_write_json", "atomic_write_text"):
-        original = getattr(tr, name)
+    for module in (tr, cli):  # the trainer's checkpoints, the command's logs
+        for name in ("atomic_open", "atomic_write_json", "atomic_write_text"):
+            original = getattr(module, name)
 
-        def recording(path, *a, _original=original, **k):
-            writes.append(os.fspath(path))
-            return _original(path, *a, **k)
+            def recording(path, *a, _original=original, **k):
+                writes.append(os.fspath(path))
+                return _original(path, *a, **k)
 
-        setattr(tr, name, recording)
+            setattr(module, name, recording)
     train = tr.Trainer.train
 
     def train_and_dump(self, *a, **k):
@@ -36,7 +38,7 @@ def main() -> int:
 
     tr.Trainer.train = train_and_dump
     try:
-        return tr.main(argv)
+        return cli.main(argv)
     finally:
         with open(os.path.join(dump, f"rank{rank}_writes.json"), "w") as f:
             json.dump(writes, f)

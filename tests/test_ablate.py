@@ -10,6 +10,8 @@ import pytest
 
 import smdm_plugin
 from smdm_plugin.apps import ablate
+from smdm_plugin.apps.ablate import grid as grids
+from smdm_plugin.apps.ablate import report
 from synthetic_data import write_humanml3d
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -31,17 +33,17 @@ variants:
 
 
 def test_table1_config_lists_the_paper_ablations():
-    cfg = ablate.load_config(str(ROOT / "configs" / "ablations" / "table1.yaml"))
+    cfg = grids.load_config(str(ROOT / "configs" / "ablations" / "table1.yaml"))
     names = [v["name"] for v in cfg["variants"]]
     assert names[0] == "dense" and len(names) == 9
     for v in cfg["variants"]:
-        ablate.sparse_config(cfg, v)  # every variant is a valid SparseConfig
-    sels = {ablate.sparse_config(cfg, v).selector for v in cfg["variants"] if not v.get("dense")}
+        grids.sparse_config(cfg, v)  # every variant is a valid SparseConfig
+    sels = {grids.sparse_config(cfg, v).selector for v in cfg["variants"] if not v.get("dense")}
     assert sels == {"vw", "random", "uniform", "mdo"}
-    from smdm_plugin.apps import study
+    from smdm_plugin.apps.ablate import study
 
-    for name in ablate.packaged_grids():  # every packaged grid resolves (a study config as a study)
-        (study.load_study if study.is_study_config(name) else ablate.load_config)(name)
+    for name in grids.packaged_grids():  # every packaged grid resolves (a study config as a study)
+        (study.load_study if study.is_study_config(name) else grids.load_config)(name)
 
 
 @pytest.mark.parametrize("cfg,match", [
@@ -63,20 +65,20 @@ def test_table1_config_lists_the_paper_ablations():
 ])
 def test_bad_grid_is_a_clear_error(cfg, match):
     with pytest.raises(ValueError, match=match):
-        ablate.resolve(cfg)
+        grids.resolve(cfg)
 
 
 def test_bad_grid_file_errors_name_the_file(tmp_path):
     p = tmp_path / "g.yaml"
     p.write_text("steps: [1\n")
     with pytest.raises(ValueError, match=rf"{p}: not valid YAML"):
-        ablate.load_config(str(p))
+        grids.load_config(str(p))
     p.write_text("steps: 0\nvariants: [{name: a}]\n")
     with pytest.raises(ValueError, match=rf"{p}: steps=0"):
-        ablate.load_config(str(p))
+        grids.load_config(str(p))
     with pytest.raises(FileNotFoundError, match=r"--config 'tabel1' is neither a file nor a packaged grid .*did you "
                                                 r"mean 'table1'"):
-        ablate.load_config("tabel1")
+        grids.load_config("tabel1")
 
 
 # ------------------------------------------------------------------------------ the results folder
@@ -99,7 +101,7 @@ class Recorder:
             raise KeyboardInterrupt
         self.calls.append(name)
         self.total += 1
-        sc = ablate.sparse_config(cfg, variant)
+        sc = grids.sparse_config(cfg, variant)
         if name in self.fail:
             raise RuntimeError(f"boom in {name}")
         steps = int(cfg["steps"])
@@ -136,7 +138,7 @@ def table_rows(out, reference=False):
     the real validation motion's row too)."""
     md = (out / "results.md").read_text()
     cells = [[c.strip() for c in ln.strip().strip("|").split("|")] for ln in md.splitlines() if ln.startswith("| ")]
-    skip = ("variant", "---") + (() if reference else (ablate.REFERENCE_ROW,))
+    skip = ("variant", "---") + (() if reference else (report.REFERENCE_ROW,))
     return {c[0]: c[1:] for c in cells if c[0] not in skip}
 
 
@@ -368,7 +370,7 @@ def test_quick_grid_on_real_motion(hml_dir, tmp_path, monkeypatch):
     header = next(ln for ln in md.splitlines() if ln.startswith("| variant |"))
     assert "| jitter (m/s³) | foot skating |" in header
     cols = [c.strip() for c in header.strip("|").split("|")]
-    ref = table_rows(out, reference=True)[ablate.REFERENCE_ROW]
+    ref = table_rows(out, reference=True)[report.REFERENCE_ROW]
     jit, skate = float(ref[cols.index("jitter (m/s³)") - 1]), float(ref[cols.index("foot skating") - 1])
     assert jit > 0 and 0 <= skate <= 1 and ref[0] == "reference"
     assert 0 < res["val_loss"] < 100 and 0 < dense["val_loss"] < 100  # same fixed noise and timesteps
@@ -395,7 +397,7 @@ def test_quick_grid_on_real_motion(hml_dir, tmp_path, monkeypatch):
 def test_missing_data_is_a_clear_message(tmp_path, capsys):
     (tmp_path / "d").mkdir()  # not tmp_path itself: an --out inside --data is refused as overlapping
     rc = ablate.main(["--config", str(QUICK), "--out", str(tmp_path / "x"), "--data", str(tmp_path / "d")])
-    assert rc == 2 and "no HumanML3D-format data" in capsys.readouterr().err
+    assert rc == 2 and "is not a HumanML3D-format folder (missing Mean.npy" in capsys.readouterr().err
     with pytest.raises(SystemExit) as e:
         ablate.main(["--config", str(QUICK), "--out", str(tmp_path / "x"), "--data", str(tmp_path / "none")])
     assert e.value.code == 2 and "argument --data: no such folder" in capsys.readouterr().err

@@ -22,7 +22,8 @@ ALLOWED = {
     "io": {"io", "core", "reference"},
     "metrics": {"metrics", "io", "core"},
     "integrations": {"integrations", "adapters", "core", "io", "reference", "metrics"},
-    "apps": {"apps", "integrations", "adapters", "core", "io", "reference", "metrics"},
+    "training": {"training", "integrations", "adapters", "core", "io", "reference", "metrics"},
+    "apps": {"apps", "training", "integrations", "adapters", "core", "io", "reference", "metrics"},
 }
 
 
@@ -90,7 +91,7 @@ def test_dependencies_point_one_way():
 OPTIONAL_EXTRAS = {"triton", "transformers"}   # setup.cfg's [gpu] / [hf]: the core installs without them
 
 
-@pytest.mark.parametrize("layer", ["core", "reference", "adapters", "io", "metrics", "integrations"])
+@pytest.mark.parametrize("layer", ["core", "reference", "adapters", "io", "metrics", "integrations", "training"])
 def test_importing_a_layer_pulls_in_only_what_it_may(layer):
     modules = sorted(module_name(p) for p in (PKG / layer).rglob("*.py"))
     # a module that needs an optional extra (core/kernels/vw_triton.py: triton) is left out where
@@ -128,6 +129,35 @@ def test_architecture_doc_names_every_command_and_family():
     doc = (PKG.parent / "docs" / "architecture.md").read_text()
     missing = [c for c in COMMANDS if c not in doc] + [f"`{f.name}`" for f in families() if f"`{f.name}`" not in doc]
     assert not missing, f"docs/architecture.md does not mention {missing}"
+
+
+def command_of(module: str) -> str:
+    """The command a module of apps/ belongs to: ``apps.<x>`` (module or package ``<x>``);
+    ``common`` for the shared support package, ``cli`` for the dispatcher, ``""`` for apps/ itself."""
+    parts = module.split(".")
+    return parts[2] if len(parts) > 2 else ""
+
+
+def test_commands_do_not_import_each_other():
+    """A command (a module or package of apps/: every COMMANDS entry and its pieces, e.g.
+    apps/ablate/study.py) imports apps/common/ and the layers below, never another command;
+    common imports no command; cli.py reaches the commands only by name (importlib)."""
+    from smdm_plugin.apps.cli import COMMANDS
+
+    commands = {t.split(":")[0].split(".")[2] for t, _ in COMMANDS.values() if t.startswith("smdm_plugin.apps.")}
+    on_disk = {p.stem if p.suffix == ".py" else p.name for p in (PKG / "apps").iterdir()
+               if p.name not in ("__init__.py", "__pycache__", "cli.py", "common")}
+    assert on_disk == commands, f"apps/ holds {sorted(on_disk - commands)} that are not commands (shared code: apps/common/)"
+    bad = []
+    for path in sorted((PKG / "apps").rglob("*.py")):
+        src = command_of(module_name(path))
+        for line, target in imports_of(path):
+            if not target.startswith("smdm_plugin.apps."):
+                continue
+            dst = command_of(target)
+            if dst != src and dst != "common":
+                bad.append(f"{path.relative_to(PKG)}:{line} imports {target} (command {src or 'apps'} -> {dst})")
+    assert not bad, "commands import each other (move shared code to apps/common/ or training/):\n" + "\n".join(bad)
 
 
 def test_io_knows_no_model_family():

@@ -7,9 +7,10 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+import torch
 
 from smdm_plugin.io.bvh import (CMU_TO_METRES, HUMANML22_FROM_CMU, BVHError, BVHWarning, bvh_joint_positions,
-                                cmu_to_humanml22, load_cmu_clip, read_bvh, root_relative_features)
+                                cmu_to_humanml22, load_cmu_clip, read_bvh)
 
 DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
 MOCAP, HML = DATA / "cmu-mocap", DATA / "cmu-humanml3d"
@@ -174,14 +175,18 @@ def test_cmu_to_humanml22_mapping_and_midpoints():
         cmu_to_humanml22(pos[:, :5], names)
 
 
-def test_root_relative_features():
+def test_joint_selection_features_are_root_relative():
+    """BVH joints [.., T, 22, 3] -> the 64-D selection features (kind 'joints': joints 1..21 minus the root)."""
+    from smdm_plugin.core.features import extract_selection_features
+
     j = np.random.default_rng(1).normal(size=(2, 7, 22, 3))
-    f = root_relative_features(j, 0.1)
+    f = extract_selection_features(torch.from_numpy(j.reshape(2, 7, 66)), "joints", frame_index_scale=0.1).numpy()
     assert f.shape == (2, 7, 64)
     np.testing.assert_allclose(f[1, 3, :3], j[1, 3, 1] - j[1, 3, 0])
+    np.testing.assert_allclose(f[1, 3, 60:63], j[1, 3, 21] - j[1, 3, 0])
     np.testing.assert_allclose(f[0, :, 63], np.arange(7) * 0.1)
-    with pytest.raises(ValueError, match=r"joints22 must be \[\.\.\., T, 22, 3\]"):
-        root_relative_features(np.zeros((7, 21, 3)))
+    with pytest.raises(ValueError, match=r"kind='joints' needs x \[B, N, 3J\]"):
+        extract_selection_features(torch.zeros(1, 7, 64), "joints")
 
 
 @pytest.mark.parametrize("edit,match", [

@@ -52,13 +52,13 @@ def test_choose_training_defaults_cell_format():
 def test_defaults_grids_are_valid_ablation_grids(grid):
     """The grids behind docs/defaults.md load as `smdm ablate` grids on the paper's recipe, every
     variant is a valid SparseConfig, and no two variants run the same configuration."""
-    from smdm_plugin.apps import ablate
+    from smdm_plugin.apps.ablate import grid as grids
 
-    cfg = ablate.load_config(grid)
-    base = ablate.sparse_config(cfg, {"name": "base"})
+    cfg = grids.load_config(grid)
+    base = grids.sparse_config(cfg, {"name": "base"})
     assert base.fsq and base.lipschitz_lambda == 0.0 and cfg["model"]["arch"] == "trans_dec"
     assert base.dynamic_update is (cfg["diffusion_steps"] >= 100)     # Table 2's rule
-    configs = [ablate.sparse_config(cfg, v).to_dict() for v in cfg["variants"]]
+    configs = [grids.sparse_config(cfg, v).to_dict() for v in cfg["variants"]]
     assert all(configs.count(c) == 1 for c in configs)
 
 

@@ -214,7 +214,7 @@ def test_argument_types(tmp_path, monkeypatch):
 
     import torch
 
-    from smdm_plugin.apps._args import device_type, existing_path, float_range, int_range, resolve_device
+    from smdm_plugin.apps.common.args import device_type, existing_path, float_range, int_range, resolve_device
 
     assert device_type("auto") == "auto" and device_type("cpu") == "cpu"
     assert resolve_device("cpu") == torch.device("cpu")

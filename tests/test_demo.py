@@ -14,6 +14,7 @@ import numpy as np
 import pytest
 
 from smdm_plugin.apps import demo
+from smdm_plugin.apps.common import keyframe_study as ks
 
 OTHER_SKELETON = """HIERARCHY
 ROOT Pelvis
@@ -207,7 +208,7 @@ def test_load_clips_reports_warnings_and_skips(monkeypatch):
 
     monkeypatch.setattr(bvh, "load_cmu_clip", fake)
     log, skipped = [], []
-    clips = demo.load_clips(["odd.bvh", "bad.bvh", "short.bvh", "ok.bvh"], log=log.append, skipped=skipped)
+    clips = ks.load_clips(["odd.bvh", "bad.bvh", "short.bvh", "ok.bvh"], log=log.append, skipped=skipped)
     assert [n for n, _ in clips] == ["odd", "ok"]
     assert log[0] == "  note: odd.bvh: one extra motion row ignored (UserWarning)"
     assert skipped == [("bad.bvh", "read_bvh: bad.bvh: Frame Time must be > 0"),
@@ -219,9 +220,9 @@ def test_reconstruction_error_and_features():
     j = np.cumsum(np.random.default_rng(0).normal(size=(T, 22, 3)), 0) * 0.01
     mask = np.zeros(T, bool)
     mask[[0, 10, 29]] = True
-    err, rec = demo.reconstruction_error(j, mask)
+    err, rec = ks.reconstruction_error(j, mask)
     assert rec.shape == j.shape and err > 0
-    assert demo.reconstruction_error(j, np.ones(T, bool))[0] == 0
+    assert ks.reconstruction_error(j, np.ones(T, bool))[0] == 0
     f = demo.motion_features(j)
     assert f.shape == (T, 66) and np.allclose(f[:, 63], j[:, 0, 1])
     assert np.allclose(f[0, 64:], 0) and np.allclose(f[:, 64:] + j[0, 0, [0, 2]], j[:, 0, [0, 2]], atol=1e-6)
@@ -242,16 +243,16 @@ def test_motion_source_order(tmp_path, monkeypatch, request):
     from smdm_plugin.io.embedded import embedded_clips
 
     monkeypatch.delenv("SMDM_MOCAP", raising=False)
-    source, files, clips = demo.motion_source(None, max_clips=2)
+    source, files, clips = ks.motion_source(None, max_clips=2)
     assert "embedded" in source and files == [] and [n for n, _ in clips] == [n for n, _ in embedded_clips()[:2]]
     mocap = request.getfixturevalue("mocap_files")  # skips here when the shared clips are absent
     monkeypatch.setenv("SMDM_MOCAP", os.path.dirname(mocap[0]))
-    source, files, clips = demo.motion_source(None, max_clips=1)
+    source, files, clips = ks.motion_source(None, max_clips=1)
     assert "$SMDM_MOCAP" in source and files == mocap and len(clips) == 1
     one = tmp_path / "one"
     one.mkdir()
     shutil.copy(files[0], one / "x.bvh")
-    source, files, clips = demo.motion_source([str(one)])
+    source, files, clips = ks.motion_source([str(one)])
     assert source == f"--bvh {one}" and files == [str(one / "x.bvh")] and [n for n, _ in clips] == ["x"]
 
 
@@ -263,7 +264,7 @@ def test_bvh_warning_is_shown(tmp_path, mocap_files):
     f = tmp_path / "extra.bvh"
     f.write_text("\n".join(lines + [lines[-1]]) + "\n")
     log = []
-    clips = demo.load_clips([str(f)], log=log.append)
+    clips = ks.load_clips([str(f)], log=log.append)
     assert len(clips) == 1 and len(log) == 1
     assert log[0].startswith(f"  note: read_bvh: {f}") and log[0].endswith("(BVHWarning)")
 
@@ -290,7 +291,7 @@ class _FakeTrainer:
 
 
 def test_race_fair_gives_equal_steps_then_equal_time():
-    from smdm_plugin.apps.trainer import race_fair
+    from smdm_plugin.training.trainer import race_fair
 
     slow, fast = _FakeTrainer(0.02), _FakeTrainer(0.005)
     r = race_fair({"dense": slow, "sparse": fast}, seconds=0.6)

@@ -84,7 +84,7 @@ def test_humanml3d_slice_matches_real_joints():
     (lambda: extract_selection_features(torch.zeros(2, 5, 263), std=np.zeros((263, 1))),
      r"std must have shape \[D=263\]"),
     (lambda: extract_selection_features(torch.zeros(2, 5, 263), "smpl"),
-     r"unknown kind 'smpl'; known: \('humanml3d', 'kit', 'raw'\)"),
+     r"unknown kind 'smpl'; known: \('humanml3d', 'kit', 'raw', 'joints'\)"),
     (lambda: extract_selection_features(torch.zeros(2, 5, 263), frame_index_scale=-1.0),
      r"frame_index_scale must be >= 0"),
     (lambda: from_mdm_layout(torch.zeros(2, 263, 5)), r"from_mdm_layout: x must have MDM layout"),

@@ -286,7 +286,7 @@ def test_model_folder_round_trip_samples_the_same(tmp_path):
 
 
 def test_plan_keyframes():
-    from smdm_plugin.apps.inbetween import plan_keyframes
+    from smdm_plugin.apps.common.inbetween import plan_keyframes
 
     kf = plan_keyframes(200, [30, 60, 90], None, None, None, 196)
     assert (kf.frames, kf.start, kf.length, kf.placed) == ([0, 30, 60], 30, 61, False)
@@ -356,7 +356,7 @@ def model_folders(tmp_path_factory):
 def test_cli_bvh_keyframes_dense_and_sparse(model_folders, tmp_path, mocap_files):
     from PIL import Image
 
-    from smdm_plugin.apps.demo import find_bvh
+    from smdm_plugin.apps.common.keyframe_study import find_bvh
     from smdm_plugin.io.bvh import load_cmu_clip
 
     files = find_bvh([os.path.dirname(mocap_files[0])])

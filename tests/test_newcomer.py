@@ -18,7 +18,7 @@ ROOT = Path(__file__).resolve().parent.parent
 
 # ----------------------------------------------------------------------------------------- threads
 def test_default_threads_leaves_busy_cores_alone():
-    from smdm_plugin.apps.threads import default_threads
+    from smdm_plugin.apps.common.threads import default_threads
 
     assert default_threads(cores=2, load=0.0, local_processes=1) == 2      # idle: every core
     assert default_threads(cores=2, load=2.0, local_processes=1) == 1      # two busy neighbours: one
@@ -33,7 +33,7 @@ def test_default_threads_leaves_busy_cores_alone():
 
 
 def test_choose_threads_order(monkeypatch):
-    from smdm_plugin.apps.threads import choose_threads
+    from smdm_plugin.apps.common.threads import choose_threads
 
     monkeypatch.setenv("OMP_NUM_THREADS", "3")
     assert choose_threads(5) == (5, "--threads")
@@ -63,7 +63,7 @@ def test_cli_sets_passive_wait_policy_before_torch_loads(tmp_path):
 # ----------------------------------------------------------------------------------------- clips
 def test_clips_export_is_the_embedded_clip(tmp_path, monkeypatch, capsys):
     from smdm_plugin.apps import clips
-    from smdm_plugin.apps.motion_files import load_motion
+    from smdm_plugin.apps.common.motion_files import load_motion
     from smdm_plugin.io.embedded import embedded_clips
 
     monkeypatch.chdir(tmp_path)
@@ -84,7 +84,7 @@ def test_clips_export_is_the_embedded_clip(tmp_path, monkeypatch, capsys):
 # ----------------------------------------------------------------------------------------- connect
 def test_render_reads_what_inbetween_writes(tmp_path):
     """`[S, N, D]` feature files (inbetween's *_features.npy) pick one sample, like joints files."""
-    from smdm_plugin.apps.motion_files import load_motion
+    from smdm_plugin.apps.common.motion_files import load_motion
     from smdm_plugin.io.embedded import embedded_clips
     from smdm_plugin.io.representation import Representation
 
@@ -99,7 +99,9 @@ def test_render_reads_what_inbetween_writes(tmp_path):
 
 
 def test_a_train_folder_is_a_model_inbetween_reads(tmp_path):
-    from smdm_plugin.apps import inbetween, trainer
+    from smdm_plugin.apps import inbetween
+    from smdm_plugin.apps import train as trainer
+    from smdm_plugin.training.trainer import load_trained
     from smdm_plugin.io.bundle import load_bundle
 
     data = write_humanml3d(tmp_path / "hml")
@@ -111,7 +113,7 @@ def test_a_train_folder_is_a_model_inbetween_reads(tmp_path):
     meta = json.loads((out / "motion.json").read_text())
     assert b.sparse and b.representation.name == "humanml3d" and b.diffusion.num_timesteps == 4
     assert meta["max_frames"] == 196 and np.allclose(meta["mean"], np.load(out / "Mean.npy"))
-    model2, _ = trainer.load_trained(str(out))
+    model2, _ = load_trained(str(out))
     sd1, sd2 = b.model.state_dict(), model2.state_dict()
     assert all(np.array_equal(sd1[k].numpy(), sd2[k].numpy()) for k in sd1)
     keys = data / "new_joint_vecs" / "val000.npy"
@@ -133,14 +135,17 @@ def test_one_frame_index_scale_default():
     p = __import__("argparse").ArgumentParser()
     demo.add_arguments(p)
     assert p.get_default("frame_index_scale") == lib
-    assert demo.keyframe_study.__defaults__[-1] == lib
+    from smdm_plugin.apps.common.keyframe_study import keyframe_study
+
+    assert keyframe_study.__defaults__[-1] == lib
 
 
 # ----------------------------------------------------------------------------------------- outputs
 def test_quick_ablation_variants_are_distinct_and_record_what_ran():
     from smdm_plugin.apps import ablate
+    from smdm_plugin.apps.ablate import grid
 
-    cfg = ablate.load_config("quick")
+    cfg = grid.load_config("quick")
     resolved = [json.dumps(ablate.variant_settings(cfg, v)["sparse_config"], sort_keys=True) for v in cfg["variants"]]
     assert len(set(resolved)) == len(resolved), "two variants of the quick grid run the same model"
     for v in cfg["variants"]:

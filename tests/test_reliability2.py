@@ -18,7 +18,9 @@ import pytest
 import torch
 
 from smdm_plugin.apps import cli
-from smdm_plugin.apps import trainer as T
+from smdm_plugin.apps import train as train_cli
+from smdm_plugin.training import trainer as T
+from smdm_plugin.training.data import MotionData
 from smdm_plugin.core.config import ConfigTypeError, SparseConfig, as_config
 from smdm_plugin.io.outdir import MANIFEST, OutputDir, OutputLock, OutputLockedError, OutputOverlapError, lock_path
 from synthetic_data import write_humanml3d
@@ -45,7 +47,7 @@ def _snapshot(folder: Path) -> dict:
 
 
 def _train(data: Path, out: Path, *extra) -> int:
-    return T.main(["--data", str(data), "--out", str(out), "--min-frames", "20", *TINY, *extra])
+    return train_cli.main(["--data", str(data), "--out", str(out), "--min-frames", "20", *TINY, *extra])
 
 
 @pytest.fixture
@@ -173,7 +175,7 @@ def test_resume_after_kill_9_is_bit_identical(tmp_path, data, capsys):
     common = ["--data", data, "--min-frames", "20", "--save-every", "20", "--sparse", *TINY]
 
     def train(*args) -> int:  # in this process (fast); the run to kill is a child process
-        return T.main([*map(str, common), *map(str, args)])
+        return train_cli.main([*map(str, common), *map(str, args)])
 
     assert train("--out", ref, "--steps", steps) == 0
     # the same run, killed with SIGKILL once a checkpoint is there, then resumed to the same step
@@ -347,11 +349,12 @@ def test_ablate_variant_resumes_with_the_trainers_mechanism(tmp_path):
     """smdm ablate --resume continues an interrupted variant from its checkpoint (the trainer's
     state, as smdm train --resume) instead of starting over, with the same result."""
     from smdm_plugin.apps import ablate
+    from smdm_plugin.apps.ablate import grid
 
-    cfg = ablate.load_config(str(ROOT / "configs" / "ablations" / "quick.yaml"))
+    cfg = grid.load_config(str(ROOT / "configs" / "ablations" / "quick.yaml"))
     cfg.update(steps=20, batch=2, model={**cfg["model"], "latent_dim": 16, "ff_size": 32, "num_layers": 1})
     cfg["eval"] = {**cfg["eval"], "samples": 2, "frames": 40}
-    data = ablate.MotionData(str(write_humanml3d(tmp_path / "d", train=(60, 52, 48, 70), val=(44, 56))), 60, 40)
+    data = MotionData(str(write_humanml3d(tmp_path / "d", train=(60, 52, 48, 70), val=(44, 56))), 60, 40)
     variant = next(v for v in cfg["variants"] if v["name"] == "sparse (VW)")
     dev = torch.device("cpu")
     straight = ablate.run_variant(cfg, variant, data, dev)

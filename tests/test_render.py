@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 from PIL import Image
 
-from smdm_plugin.apps.animation import HIGHLIGHT, Panel, chains_from_parents, render_gif
+from smdm_plugin.apps.common.animation import HIGHLIGHT, Panel, chains_from_parents, render_gif
 
 HL = tuple(int(HIGHLIGHT[i:i + 2], 16) for i in (1, 3, 5))
 
@@ -133,7 +133,7 @@ def test_render_command_on_every_input_kind(tmp_path, hml_dir, monkeypatch, caps
 
 
 def test_render_bvh(tmp_path, mocap_files):
-    from smdm_plugin.apps.demo import find_bvh
+    from smdm_plugin.apps.common.keyframe_study import find_bvh
 
     files = find_bvh([os.path.dirname(mocap_files[0])])
     if not files:

@@ -86,7 +86,7 @@ def test_vw_equals_reference_on_real_humanml3d(scale):
 
 
 def test_vw_equals_reference_on_real_bvh():
-    from smdm_plugin.io.bvh import load_cmu_clip, root_relative_features
+    from smdm_plugin.io.bvh import load_cmu_clip
     clips = ["01_01", "05_02", "49_06"]                               # LF, CRLF, LF files
     if not all((DATA / "cmu-mocap" / f"{c}.bvh").exists() for c in clips):
         pytest.skip("shared/data/cmu-mocap not available")
@@ -97,7 +97,8 @@ def test_vw_equals_reference_on_real_bvh():
     N = max(len(s) for s in segs)
     feats = torch.zeros(len(segs), N, 64, dtype=torch.float64)
     for b, s in enumerate(segs):
-        feats[b, :len(s)] = torch.from_numpy(root_relative_features(s, 0.01))
+        x = torch.from_numpy(np.asarray(s, np.float64).reshape(1, len(s), 66))
+        feats[b, :len(s)] = extract_selection_features(x, "joints", frame_index_scale=0.01)[0]
     lengths = torch.tensor([len(s) for s in segs])
     for red in (0.6, 0.8, 0.95):
         _assert_vw_equals_reference(feats.float(), lengths, red)

@@ -11,8 +11,10 @@ import numpy as np
 import pytest
 import torch
 
-from smdm_plugin.apps import ablate, study
-from smdm_plugin.apps.trainer import MotionSet, TrainConfig, Trainer, caption_draws
+from smdm_plugin.apps import ablate
+from smdm_plugin.apps.ablate import grid, study
+from smdm_plugin.training.data import MotionSet
+from smdm_plugin.training.trainer import TrainConfig, Trainer, caption_draws
 from smdm_plugin.integrations.distributed import DistContext
 from smdm_plugin.reference.diffusion import SimpleDiffusion
 from smdm_plugin.reference.text import (HashedBagOfWords, TextConfig, load_text_config, sample_with_text,
@@ -183,12 +185,13 @@ def test_t_interval_against_scipy():
 
 def test_speed_normalised_jitter_against_a_loop():
     from smdm_plugin.metrics import jitter, to_joint_positions
+    from smdm_plugin.metrics.features import per_motion_quality
 
     g = torch.Generator().manual_seed(0)
     x = torch.randn(3, 30, 263, generator=g) * 0.3
     L = torch.tensor([30, 20, 12])
     mean, std = np.zeros(263, np.float32), np.ones(263, np.float32)
-    q = study.motion_scores(x, L, mean, std)
+    q = per_motion_quality(x, L, mean, std)
     j = to_joint_positions(x, mean, std)
     for b in range(3):
         p = j[b, : int(L[b])].double()
@@ -237,7 +240,7 @@ def test_quick_study_end_to_end(large_dir, tmp_path, capsys, monkeypatch):
     # every (variant, seed) folder has its result with provenance; the evaluator is cached
     for v in names:
         for s in cfg["seeds"]:
-            r = json.loads((out / ablate.slug(v) / f"seed{s}" / "result.json").read_text())
+            r = json.loads((out / grid.slug(v) / f"seed{s}" / "result.json").read_text())
             assert r["status"] == "ok" and r["provenance"]["seed"] == s and len(r["snapshots"]) == 4
     assert len(list((out / "evaluator").iterdir())) == 1
     # resumable per (variant, seed): nothing retrains; without a flag the folder is refused
@@ -254,7 +257,7 @@ def test_quick_study_end_to_end(large_dir, tmp_path, capsys, monkeypatch):
 
 
 def test_smdm_train_text_flag(large_dir, tmp_path, capsys):
-    from smdm_plugin.apps import trainer
+    from smdm_plugin.apps import train as trainer
 
     out = tmp_path / "m"
     base = ["--data", str(large_dir), "--steps", "2", "--batch", "2", "--max-frames", "48", "--diffusion-steps", "4",

@@ -12,8 +12,8 @@ import torch
 
 from smdm_plugin.metrics.evaluator import (Evaluator, EvaluatorConfig, MotionEncoderBiGRUCo, MovementConvEncoder,
                                            TextEncoderBiGRUCo, evaluator_layout, load_evaluator, save_evaluator)
-from smdm_plugin.metrics.evaluator.vocab import (POS_CATEGORIES, encode_tokens, parse_caption_line,
-                                                 safe_pickle_load)
+from smdm_plugin.io.captions import parse_caption_line
+from smdm_plugin.metrics.evaluator.vocab import POS_CATEGORIES, encode_tokens, safe_pickle_load
 
 SMALL = dict(dim_pose=263, dim_word=12, dim_movement_hidden=16, dim_movement_latent=8, dim_motion_hidden=10,
              dim_text_hidden=9, dim_coemb=6)

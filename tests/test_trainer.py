@@ -1,4 +1,4 @@
-"""The in-package trainer (smdm_plugin.apps.trainer) in one process: data, batch order, the
+"""The in-package trainer (smdm_plugin.training.trainer, smdm train: smdm_plugin.apps.train) in one process: data, batch order, the
 per-sample randomness, one step against a hand-written reference step, checkpoints that reload,
 torch.compile, and the ``smdm train`` command's arguments and output folder."""
 from __future__ import annotations
@@ -13,7 +13,10 @@ import numpy as np
 import pytest
 import torch
 
-from smdm_plugin.apps import trainer as T
+from smdm_plugin.apps import train as train_cli
+from smdm_plugin.io.humanml3d import load_humanml3d
+from smdm_plugin.training import trainer as T
+from smdm_plugin.training.data import MotionSet
 from smdm_plugin.core.config import SparseConfig
 
 TINY_MODEL = {"latent_dim": 32, "num_layers": 2, "num_heads": 4, "ff_size": 64, "dropout": 0.0}
@@ -21,7 +24,7 @@ TINY_MODEL = {"latent_dim": 32, "num_layers": 2, "num_heads": 4, "ff_size": 64, 
 
 @pytest.fixture(scope="module")
 def data(hml_dir):
-    return T.load_humanml3d(str(hml_dir), "train")
+    return MotionSet.from_split(load_humanml3d(str(hml_dir), "train"))
 
 
 # ----------------------------------------------------------------------------------------- data
@@ -41,11 +44,11 @@ def test_load_humanml3d_matches_the_files(hml_dir, data):
 def test_motionset_rejects_bad_shapes():
     m = [np.zeros((10, 4), np.float32)]
     with pytest.raises(ValueError, match=r"motions must be \[L, D\] and mean \[D\]"):
-        T.MotionSet.from_motions(m, np.zeros(3), np.ones(4))
+        MotionSet.from_motions(m, np.zeros(3), np.ones(4))
     with pytest.raises(ValueError, match="lengths must be in"):
-        T.MotionSet.from_motions([np.zeros((1, 4))], np.zeros(4), np.ones(4))
+        MotionSet.from_motions([np.zeros((1, 4))], np.zeros(4), np.ones(4))
     with pytest.raises(FileNotFoundError, match="not a HumanML3D-format folder"):
-        T.load_humanml3d("/nonexistent")
+        load_humanml3d("/nonexistent")
 
 
 def test_global_batches_walk_epoch_permutations():
@@ -187,7 +190,7 @@ def test_saved_folder_reloads(data, tmp_path, sparse):
 
 # ----------------------------------------------------------------------------------------- CLI
 def _cli(args, hml_dir, out):
-    return T.main(["--data", str(hml_dir), "--out", str(out), "--latent-dim", "32", "--layers", "1",
+    return train_cli.main(["--data", str(hml_dir), "--out", str(out), "--latent-dim", "32", "--layers", "1",
                    "--ff-size", "64", "--steps", "3", "--batch", "2", "--diffusion-steps", "10",
                    "--no-progress", *args])
 
@@ -227,7 +230,7 @@ def test_cli_writes_a_checkpoint_folder_and_never_overwrites(hml_dir, tmp_path, 
 ])
 def test_cli_bad_arguments_exit_2_with_one_line(args, message, tmp_path, capsys):
     with pytest.raises(SystemExit) as e:
-        T.main(["--data", str(tmp_path), "--out", str(tmp_path / "o"), *args])
+        train_cli.main(["--data", str(tmp_path), "--out", str(tmp_path / "o"), *args])
     assert e.value.code == 2
     err = capsys.readouterr().err
     assert message in err and "Traceback" not in err
@@ -235,7 +238,7 @@ def test_cli_bad_arguments_exit_2_with_one_line(args, message, tmp_path, capsys)
 
 
 def test_cli_missing_data_exit_2(tmp_path, capsys):
-    assert T.main(["--data", str(tmp_path / "nope"), "--out", str(tmp_path / "o")]) == 2
+    assert train_cli.main(["--data", str(tmp_path / "nope"), "--out", str(tmp_path / "o")]) == 2
     assert "not a HumanML3D-format folder" in capsys.readouterr().err
     assert not (tmp_path / "o").exists()
 

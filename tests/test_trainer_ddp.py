@@ -54,7 +54,7 @@ def runs(hml_dir, tmp_path_factory):
     ddp_out, single_out = base / "ddp", base / "single"
     proc = _torchrun(str(WORKER), str(dump), "--", "--data", str(hml_dir), "--out", str(ddp_out),
                      "--batch", "4", *TINY, *SPARSE)
-    from smdm_plugin.apps.trainer import main
+    from smdm_plugin.apps.train import main
 
     threads = torch.get_num_threads()
     torch.set_num_threads(1)  # as the workers (OMP_NUM_THREADS=1)
@@ -95,7 +95,9 @@ def test_only_rank_zero_writes(runs):
 
 
 def test_two_processes_match_one_process_on_the_concatenated_batch(runs, hml_dir):
-    from smdm_plugin.apps.trainer import TrainConfig, Trainer, load_humanml3d, load_trained
+    from smdm_plugin.io.humanml3d import load_humanml3d
+    from smdm_plugin.training.data import MotionSet
+    from smdm_plugin.training.trainer import TrainConfig, Trainer, load_trained
 
     ddp = json.loads((runs["ddp"] / "result.json").read_text())
     single = json.loads((runs["single"] / "result.json").read_text())
@@ -106,7 +108,7 @@ def test_two_processes_match_one_process_on_the_concatenated_batch(runs, hml_dir
     # the initial weights (same seed), to measure the difference against what training moved
     cfg = TrainConfig.from_dict({k: v for k, v in json.loads((runs["single"] / "train_config.json").read_text()).items()
                                  if k in TrainConfig.__dataclass_fields__})
-    init = Trainer(cfg, load_humanml3d(str(hml_dir)), device="cpu").model.state_dict()
+    init = Trainer(cfg, MotionSet.from_split(load_humanml3d(str(hml_dir))), device="cpu").model.state_dict()
     diff = torch.cat([(a[k].float() - b[k].float()).reshape(-1) for k in a if a[k].is_floating_point()])
     moved = torch.cat([(b[k].float() - init[k].float()).reshape(-1) for k in b if b[k].is_floating_point()])
     print(f"|ddp - single| max {diff.abs().max():.3g}, norm ratio {diff.norm() / moved.norm():.3g}")

@@ -1,1 +1,4 @@
-"""Applications on top of the library: the ``smdm`` command (bench, ablate, demo, run)."""
+"""The ``smdm`` command (apps/cli.py ``COMMANDS``): one module or package per command, plus
+``common/`` (what several commands share: argparse types, threads, provenance, animation, motion
+files, the keyframe study, in-betweening). A command imports ``common`` and the layers below,
+never another command (tests/test_architecture.py)."""

@@ -39,8 +39,8 @@ from typing import Any, Callable, Dict, List, Optional, Sequence
 import torch
 
 from ..core.config import BACKENDS
-from ._args import add_overwrite, device_type, float_range, int_range, resolve_device
-from .threads import THREADS_HELP
+from .common.args import add_overwrite, device_type, float_range, int_range, resolve_device
+from .common.threads import THREADS_HELP
 
 TARGETS = {"train": 4.0, "sample": 3.5, "loop": 3.0, "overhead": 0.10}  # at 80% reduction
 MODES = ("train", "sample", "loop")
@@ -509,7 +509,7 @@ def main_bench(args: argparse.Namespace, parser: argparse.ArgumentParser) -> Dic
                 check_new_file(p, args.overwrite, "smdm bench: --out")
         except OutputExistsError as e:
             parser.error(str(e))
-    from .threads import apply_threads
+    from .common.threads import apply_threads
     apply_threads(args.threads)
     note = busy_note(torch.get_num_threads()) if resolve_device(args.device).type == "cpu" else None
     if note:

@@ -29,7 +29,7 @@ COMMANDS: Dict[str, Tuple[str, str]] = {
     "ablate": ("smdm_plugin.apps.ablate", "run an ablation grid (YAML) on real motion; table, CSV, loss curves; "
                "--config quality_compute: the quality-versus-compute study"),
     "demo": ("smdm_plugin.apps.demo", "keyframes + dense-vs-sparse training on CMU motion capture (BVH), no download"),
-    "train": ("smdm_plugin.apps.trainer", "train TinyMDM (dense or --sparse) on HumanML3D-format motion; "
+    "train": ("smdm_plugin.apps.train", "train TinyMDM (dense or --sparse) on HumanML3D-format motion; "
               "under torchrun: DistributedDataParallel"),
     "run": ("smdm_plugin.integrations.launcher:main_run",
             "run an upstream MDM / priorMDM / MotionDiffuse script in sparse mode"),
@@ -77,7 +77,7 @@ def main(argv: Optional[List[str]] = None) -> int:
         print(f"smdm: error: unknown command {cmd!r}{closest(cmd, COMMANDS)} (commands: {', '.join(COMMANDS)}; "
               "'smdm --help' for more)", file=sys.stderr)
         return 2
-    from .threads import prepare_process
+    from .common.threads import prepare_process
 
     prepare_process()  # OMP_WAIT_POLICY=PASSIVE before torch loads OpenMP (docs/threads.md)
     try:

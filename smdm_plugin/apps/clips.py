@@ -15,7 +15,7 @@ import argparse
 import sys
 from typing import List, Optional
 
-from ._args import add_overwrite
+from .common.args import add_overwrite
 
 FORMATS = ("joints", "joints66")
 

@@ -18,7 +18,7 @@ from typing import Any, Dict, List, Optional
 
 import numpy as np
 
-from .threads import THREADS_HELP
+from .common.threads import THREADS_HELP
 
 #: metrics.json keys, in table order: (key, label, format)
 COLUMNS = (("fid", "FID ↓", ".3f"), ("r_precision_top1", "R-prec. top-1 ↑", ".3f"),
@@ -33,7 +33,7 @@ OUTPUT_FILES = ("metrics.json", "metrics.md", "metrics.png")
 
 
 def build_parser() -> argparse.ArgumentParser:
-    from ._args import add_overwrite, device_type, existing_path, int_range
+    from .common.args import add_overwrite, device_type, existing_path, int_range
 
     p = argparse.ArgumentParser(prog="smdm eval", description=__doc__.split("\n\n")[0],
                                 epilog="example: smdm eval --data dataset/HumanML3D --evaluator checkpoints "
@@ -109,7 +109,7 @@ class Generator:
             self.model, self.diffusion, self.mean, self.std = b.model, b.diffusion, b.mean, b.std
             self.representation, self.max_frames, self.label = b.representation.name, b.max_frames, b.label
         else:
-            from .trainer import TRAIN_CONFIG_FILENAME, load_trained
+            from ..training.trainer import TRAIN_CONFIG_FILENAME, load_trained
 
             model, config = load_trained(folder, map_location="cpu")
             with open(os.path.join(folder, TRAIN_CONFIG_FILENAME)) as f:
@@ -248,11 +248,11 @@ def main(argv: Optional[List[str]] = None) -> int:
     from ..io.outdir import OutputDir, run_in_output_dir
     from ..metrics.evaluator.data import load_split
     from ..metrics.evaluator.model import evaluator_layout, load_evaluator
-    from ._args import resolve_device
+    from .common.args import resolve_device
 
     if a.inbetween_every and not a.model:
         p.error("argument --inbetween-every: needs --model (the motions are generated through the keyframes)")
-    from .threads import apply_threads
+    from .common.threads import apply_threads
 
     apply_threads(a.threads)
     # locked for the run, apart from every input, written in a partial folder and swapped in as one unit

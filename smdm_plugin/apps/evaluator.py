@@ -19,12 +19,12 @@ STATE_FILENAME = "train_state.pt"
 OUTPUTS = ("evaluator.json", "evaluator.pt", "metrics.json", STATE_FILENAME)
 
 
-from .threads import THREADS_HELP
+from .common.threads import THREADS_HELP
 
 
 def build_parser() -> argparse.ArgumentParser:
     from ..metrics.evaluator.train import OWN_SIZES, TrainSettings
-    from ._args import add_overwrite, device_type, existing_path, float_range, int_range
+    from .common.args import add_overwrite, device_type, existing_path, float_range, int_range
 
     d = TrainSettings()
     p = argparse.ArgumentParser(
@@ -83,7 +83,7 @@ def run(a: argparse.Namespace, p: argparse.ArgumentParser) -> int:
     from ..metrics.evaluator.data import load_split, split_names
     from ..metrics.evaluator.train import OWN_SIZES, TrainSettings, build_evaluator
 
-    from .threads import apply_threads
+    from .common.threads import apply_threads
 
     if a.resume and a.overwrite:
         p.error("argument --overwrite: not allowed with argument --resume")
@@ -107,7 +107,7 @@ def run(a: argparse.Namespace, p: argparse.ArgumentParser) -> int:
                  dim_motion_hidden=a.hidden, dim_text_hidden=a.hidden)
     settings = TrainSettings(epochs=a.epochs, batch=a.batch, lr=a.lr, seed=a.seed, sizes=sizes)
     try:
-        from ._args import resolve_device
+        from .common.args import resolve_device
 
         ev = build_evaluator(train, settings, glove=a.glove).to(resolve_device(a.device))
     except (FileNotFoundError, ValueError) as e:

@@ -17,7 +17,7 @@ from typing import List, Optional
 
 from ..io.files import OutputExistsError, check_new_file
 from ..core.config import SparseConfig
-from ._args import add_overwrite, existing_path, float_range
+from .common.args import add_overwrite, existing_path, float_range
 
 #: the library's default (docs/defaults.md), as in smdm demo
 FRAME_INDEX_SCALE: float = SparseConfig.frame_index_scale
@@ -57,15 +57,15 @@ def main(argv: Optional[List[str]] = None) -> int:
         folder = os.path.dirname(os.path.abspath(a.plot))
         if not os.path.isdir(folder):
             p.error(f"argument --plot: the folder {folder!r} does not exist")
-    from . import demo  # torch, numpy: after the arguments are checked
+    from .common import keyframe_study as ks  # torch, numpy: after the arguments are checked
 
-    if a.bvh and not demo.find_bvh(a.bvh):
+    if a.bvh and not ks.find_bvh(a.bvh):
         print(f"smdm keyframes: no .bvh file in {', '.join(a.bvh)}", file=sys.stderr)
         return 2
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
         try:  # as smdm demo: the given BVH files, else $SMDM_MOCAP, else the embedded CMU clips
-            source, _, clips = demo.motion_source(a.bvh or None, log=lambda m: print(m, file=sys.stderr))
+            source, _, clips = ks.motion_source(a.bvh or None, log=lambda m: print(m, file=sys.stderr))
         except ValueError as e:
             print(f"smdm keyframes: error: {e}", file=sys.stderr)
             return 2
@@ -76,14 +76,14 @@ def main(argv: Optional[List[str]] = None) -> int:
               "is needed (22-joint mapping), or give no file to use the embedded CMU clips", file=sys.stderr)
         return 2
     print(f"smdm keyframes: motion from {source}", file=sys.stderr)
-    wins = demo.windows(clips, 196)
-    print(demo.keyframe_markdown(demo.keyframe_study(wins, a.reductions, frame_index_scale=a.frame_index_scale)))
+    wins = ks.windows(clips, 196)
+    print(ks.keyframe_markdown(ks.keyframe_study(wins, a.reductions, frame_index_scale=a.frame_index_scale)))
     if a.plot:
         name, start, w = wins[0]
         root, ext = os.path.splitext(os.path.abspath(a.plot))
         tmp = f"{os.path.dirname(root)}/.{os.path.basename(root)}.{secrets.token_hex(4)}.tmp{ext}"
         try:  # written beside the target, then renamed: never a half-written figure
-            demo.plot_keyframes(w, f"{name} frames {start}-{start + len(w) - 1}", 0.8, tmp,
+            ks.plot_keyframes(w, f"{name} frames {start}-{start + len(w) - 1}", 0.8, tmp,
                                 frame_index_scale=a.frame_index_scale)
             os.replace(tmp, a.plot)
         finally:

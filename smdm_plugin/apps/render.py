@@ -15,8 +15,8 @@ import os
 import sys
 from typing import List, Optional
 
-from ._args import add_overwrite, float_range, int_range
-from .motion_files import ACCEPTED, add_motion_file_options
+from .common.args import add_overwrite, float_range, int_range
+from .common.motion_files import ACCEPTED, add_motion_file_options
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -39,8 +39,8 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv: Optional[List[str]] = None) -> int:
     from ..io.files import OutputExistsError
-    from .animation import Panel, render_gif
-    from .motion_files import load_motion
+    from .common.animation import Panel, render_gif
+    from .common.motion_files import load_motion
 
     p = build_parser()
     a = p.parse_args(argv)

@@ -5,6 +5,12 @@
 * ``kit``: ``x [B, N, 251]`` -> 20 × 3 positions (features ``4:64``, KIT's mm-scale units as
   stored) + index column -> ``[B, N, 61]``.
 * ``raw``: ``x [B, N, D]`` itself + index column -> ``[B, N, D + 1]``.
+* ``joints``: global joint positions ``x [B, N, 3J]`` (metres, root first) -> joints ``1..J-1``
+  minus the root (``3(J - 1)``) + index column -> ``[B, N, 3J - 2]`` (22 joints: 64, as ``humanml3d``).
+
+One function computes them (:func:`extract_selection_features`); the mask schedule keeps its
+per-device constants (:func:`selection_constants`) and applies them with
+:func:`apply_selection_constants` on the hot path.
 
 HumanML3D layout per frame: root rotation velocity (1), root linear velocity xz (2), root y (1),
 ric positions ((joints - 1) × 3), 6-D rotations ((joints - 1) × 6), local velocities
@@ -12,12 +18,13 @@ ric positions ((joints - 1) × 3), 6-D rotations ((joints - 1) × 6), local velo
 """
 from __future__ import annotations
 
-from typing import Optional, Union
+from typing import NamedTuple, Optional, Union
 
 import numpy as np
 import torch
 
 KINDS = {"humanml3d": (263, 22), "kit": (251, 21)}  # kind -> (feature dim D, joints)
+FEATURE_KINDS = ("humanml3d", "kit", "raw", "joints")
 ArrayLike = Union[torch.Tensor, np.ndarray]
 
 
@@ -44,26 +51,76 @@ def to_mdm_layout(x: ArrayLike) -> torch.Tensor:
     return x.permute(0, 2, 1)[:, :, None, :]
 
 
-def _stat(v: Optional[ArrayLike], name: str, D: int, ref: torch.Tensor) -> Optional[torch.Tensor]:
+def _stat(v: Optional[ArrayLike], name: str, D: int) -> Optional[torch.Tensor]:
     if v is None:
         return None
-    t = torch.as_tensor(v).to(device=ref.device, dtype=ref.dtype)
+    t = torch.as_tensor(np.asarray(v) if not isinstance(v, torch.Tensor) else v)
     if tuple(t.shape) != (D,):
         raise ValueError(f"extract_selection_features: {name} must have shape [D={D}], "
                          f"got {tuple(t.shape)}")
     return t
 
 
+class SelectionConstants(NamedTuple):
+    """What :func:`apply_selection_constants` needs for one ``(kind, N, D, device, dtype)``: the
+    feature columns read, their ``mean``/``std`` (None: not de-normalised), whether positions are
+    made root-relative (``joints``), and the frame-index column ``[1, N, 1]``."""
+
+    cols: slice
+    mean: Optional[torch.Tensor]
+    std: Optional[torch.Tensor]
+    root_relative: bool
+    index: torch.Tensor
+
+
+def selection_constants(kind: str, N: int, D: int, mean: Optional[ArrayLike] = None, std: Optional[ArrayLike] = None,
+                        frame_index_scale: float = 0.1, device: Union[torch.device, str] = "cpu",
+                        dtype: torch.dtype = torch.float32) -> SelectionConstants:
+    """The constants of the selection features of ``kind`` for motions ``[*, N, D]`` on ``device``
+    in ``dtype`` (``mean``/``std`` ``[D]``: de-normalise the columns read; None: as stored). Made
+    once, outside the traced call (a host-to-device copy per call would synchronise)."""
+    if kind not in FEATURE_KINDS:
+        raise ValueError(f"extract_selection_features: unknown kind {kind!r}; known: {FEATURE_KINDS}")
+    if not float(frame_index_scale) >= 0.0:
+        raise ValueError(f"extract_selection_features: frame_index_scale must be >= 0 "
+                         f"(metres per frame), got {frame_index_scale!r}")
+    if kind in KINDS and D != KINDS[kind][0]:
+        raise ValueError(f"extract_selection_features: x must have D={KINDS[kind][0]} features "
+                         f"for kind={kind!r}, got D={D}")
+    if kind == "joints" and (D % 3 or D < 6):
+        raise ValueError(f"extract_selection_features: kind='joints' needs x [B, N, 3J] joint positions "
+                         f"(J >= 2), got D={D}")
+    cols = ric_slice(kind) if kind in KINDS else slice(0, D)
+    s, m = _stat(std, "std", D), _stat(mean, "mean", D)
+    s = None if s is None else s[cols].to(device=device, dtype=dtype)
+    m = None if m is None else m[cols].to(device=device, dtype=dtype)
+    index = (torch.arange(N, dtype=dtype) * float(frame_index_scale)).view(1, N, 1).to(device)
+    return SelectionConstants(cols, m, s, kind == "joints", index)
+
+
+def apply_selection_constants(x: torch.Tensor, c: SelectionConstants) -> torch.Tensor:
+    """Selection features ``[B, N, F]`` of ``x [B, N, D]`` (shape and dtype as the constants were
+    made for): the columns read, de-normalised, root-relative for ``joints``, plus the index column."""
+    pos = x[..., c.cols]
+    if c.std is not None:
+        pos = pos * c.std
+    if c.mean is not None:
+        pos = pos + c.mean
+    if c.root_relative:
+        B, N, D = pos.shape
+        pos = (pos.view(B, N, D // 3, 3)[:, :, 1:] - pos.view(B, N, D // 3, 3)[:, :, :1]).reshape(B, N, D - 3)
+    return torch.cat([pos, c.index.expand(x.shape[0], x.shape[1], 1)], dim=-1)
+
+
 def extract_selection_features(x: ArrayLike, kind: str = "humanml3d",
                                mean: Optional[ArrayLike] = None, std: Optional[ArrayLike] = None,
                                frame_index_scale: float = 0.1) -> torch.Tensor:
     """Selection features ``[B, N, F]`` from motion ``x [B, N, D]`` (batch-major; use
-    :func:`from_mdm_layout` for ``[B, D, 1, N]``). ``mean``/``std`` (``[D]``) de-normalise
-    ``x`` first (``x * std + mean``); None means ``x`` is already un-normalised. The last
-    column is ``frame index × frame_index_scale`` (metres per frame)."""
-    if kind not in ("humanml3d", "kit", "raw"):
-        raise ValueError(f"extract_selection_features: unknown kind {kind!r}; "
-                         f"known: ('humanml3d', 'kit', 'raw')")
+    :func:`from_mdm_layout` for ``[B, D, 1, N]``); ``kind`` as in the module docstring.
+    ``mean``/``std`` (``[D]``) de-normalise ``x`` first (``x * std + mean``); None means ``x`` is
+    already un-normalised. The last column is ``frame index × frame_index_scale`` (metres per frame)."""
+    if kind not in FEATURE_KINDS:
+        raise ValueError(f"extract_selection_features: unknown kind {kind!r}; known: {FEATURE_KINDS}")
     x = torch.as_tensor(x)
     if x.dim() != 3:
         hint = " (MDM layout [B, D, 1, N]? use from_mdm_layout)" if x.dim() == 4 else ""
@@ -71,18 +128,6 @@ def extract_selection_features(x: ArrayLike, kind: str = "humanml3d",
                          f"got shape {tuple(x.shape)}{hint}")
     if not x.dtype.is_floating_point:
         x = x.float()
-    if not float(frame_index_scale) >= 0.0:
-        raise ValueError(f"extract_selection_features: frame_index_scale must be >= 0 "
-                         f"(metres per frame), got {frame_index_scale!r}")
     B, N, D = x.shape
-    if kind != "raw" and D != KINDS[kind][0]:
-        raise ValueError(f"extract_selection_features: x must have D={KINDS[kind][0]} features "
-                         f"for kind={kind!r}, got D={D} (shape {tuple(x.shape)})")
-    s, m = _stat(std, "std", D, x), _stat(mean, "mean", D, x)
-    if s is not None:
-        x = x * s
-    if m is not None:
-        x = x + m
-    pos = x if kind == "raw" else x[..., ric_slice(kind)]
-    idx = torch.arange(N, device=x.device, dtype=x.dtype) * float(frame_index_scale)
-    return torch.cat([pos, idx[None, :, None].expand(B, N, 1)], dim=-1)
+    return apply_selection_constants(x, selection_constants(kind, N, D, mean, std, frame_index_scale, x.device,
+                                                            x.dtype))

@@ -17,7 +17,7 @@ import torch
 
 from .checks import as_lengths, as_mask, compiling
 from .config import SparseConfig
-from .features import KINDS, ric_slice
+from .features import KINDS, SelectionConstants, apply_selection_constants, selection_constants
 from .selection import (keyframe_capacity, keyframe_count_table, perturb_checked, select_checked,
                         uniform_table)
 
@@ -51,7 +51,7 @@ class MaskSchedule:
         # per (frames, device[, dtype]) constants, made once: a host-to-device copy on every call
         # would synchronise with the GPU. The config is fixed for the schedule's lifetime.
         self._tables: Dict[Tuple[int, torch.device], Tuple[torch.Tensor, torch.Tensor]] = {}
-        self._consts: Dict[tuple, Tuple[Optional[torch.Tensor], Optional[torch.Tensor], torch.Tensor]] = {}
+        self._consts: Dict[tuple, SelectionConstants] = {}
 
     @property
     def late_steps(self) -> int:
@@ -105,7 +105,8 @@ class MaskSchedule:
 
     def _features_checked(self, x: torch.Tensor) -> torch.Tensor:
         """:meth:`features` for a call's motion ``x [B, N, D]`` (shape known good), from per-device
-        constants: the de-normalisation of the selected columns only, and the frame-index column."""
+        constants (:func:`~smdm_plugin.core.features.selection_constants`; ``raw`` features are not
+        de-normalised)."""
         B, N, D = x.shape
         kind = self._kind(D)
         x = x.detach()
@@ -113,23 +114,14 @@ class MaskSchedule:
         key = (kind, N, D, x.device, x.dtype)
         consts = self._consts.get(key)
         if consts is None:
-            cols = slice(0, D) if kind == "raw" else ric_slice(kind)
-            if kind != "raw" and D != KINDS[kind][0]:
+            if kind in KINDS and D != KINDS[kind][0]:
                 raise ValueError(f"MaskSchedule: feature={kind!r} needs D={KINDS[kind][0]} features, got D={D}")
             use = kind != "raw"
-            std = self.std[cols].to(x.device, x.dtype) if use and self.std is not None else None
-            mean = self.mean[cols].to(x.device, x.dtype) if use and self.mean is not None else None
-            col = (torch.arange(N, dtype=x.dtype) * float(self.config.frame_index_scale)).view(1, N, 1).to(x.device)
-            consts = (cols, mean, std, col)
+            consts = selection_constants(kind, N, D, self.mean if use else None, self.std if use else None,
+                                         self.config.frame_index_scale, x.device, x.dtype)
             if not compiling():   # (as in tables: no cache write while tracing)
                 self._consts[key] = consts
-        cols, mean, std, col = consts
-        pos = x[..., cols]
-        if std is not None:
-            pos = pos * std
-        if mean is not None:
-            pos = pos + mean
-        return torch.cat([pos, col.expand(B, N, 1)], dim=-1)
+        return apply_selection_constants(x, consts)
 
     def training_mask(self, x0: torch.Tensor, lengths=None, forced: Optional[torch.Tensor] = None,
                       generator: Optional[torch.Generator] = None, *, checked: bool = False) -> torch.Tensor:

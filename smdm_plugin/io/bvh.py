@@ -331,16 +331,3 @@ def load_cmu_clip(path: Union[str, Path], fps: int = 20, drop_first: bool = True
     pos = pos[1:] if drop_first else pos
     return cmu_to_humanml22(pos[::step], bvh.names)
 
-
-def root_relative_features(joints22: np.ndarray, frame_index_scale: float = 0.1) -> np.ndarray:
-    """Selection features ``[..., T, 64]`` from joints ``[..., T, 22, 3]`` (metres): joints
-    1..21 minus the root, flattened (63), plus ``frame index × frame_index_scale`` (m/frame)."""
-    j = np.asarray(joints22, dtype=np.float64)
-    if j.ndim < 3 or j.shape[-2:] != (22, 3):
-        raise ValueError(f"root_relative_features: joints22 must be [..., T, 22, 3], "
-                         f"got {j.shape}")
-    rel = (j[..., 1:, :] - j[..., :1, :]).reshape(*j.shape[:-2], 63)
-    T = j.shape[-3]
-    idx = np.broadcast_to((np.arange(T) * float(frame_index_scale))[:, None],
-                          (*j.shape[:-3], T, 1))
-    return np.concatenate([rel, idx], -1)

@@ -3,16 +3,19 @@ never over something that exists unless asked (``overwrite=True``; the CLI's ``-
 
 ``atomic_open`` / ``atomic_write_text`` / ``atomic_write_json`` are implemented in
 :mod:`smdm_plugin.core.atomic` (``SparseConfig.save`` needs them, and ``core`` imports nothing
-else of the package); import them from here.
+else of the package); import them from here. :func:`fingerprint_files`: a hash of files' names,
+sizes and contents (the data fingerprint of a cached result).
 """
 from __future__ import annotations
 
+import hashlib
 import os
+from typing import Iterable
 
 from ..core.atomic import PathLike, atomic_open, atomic_write_json, atomic_write_text
 
 __all__ = ["OutputExistsError", "check_new_file", "check_new_dir", "atomic_open", "atomic_write_text",
-           "atomic_write_json"]
+           "atomic_write_json", "fingerprint_files"]
 
 
 class OutputExistsError(FileExistsError):
@@ -41,3 +44,16 @@ def check_new_dir(path: PathLike, overwrite: bool = False, what: str = "output f
                                 "(overwrite=True) to write into it")
     os.makedirs(path, exist_ok=True)
     return path
+
+
+def fingerprint_files(root: str, paths: Iterable[str]) -> str:
+    """sha256 (first 16 hex digits) over the relative names, sizes and contents of ``paths``
+    (files below ``root``), in sorted order: equal iff the same data, wherever it was copied to."""
+    h = hashlib.sha256()
+    for p in sorted(set(os.path.abspath(p) for p in paths)):
+        rel = os.path.relpath(p, root)
+        h.update(f"{rel}\0{os.path.getsize(p)}\0".encode())
+        with open(p, "rb") as f:
+            for block in iter(lambda: f.read(1 << 20), b""):
+                h.update(block)
+    return h.hexdigest()[:16]

@@ -15,7 +15,7 @@ from typing import Dict, List, Optional, Sequence, Tuple
 
 import numpy as np
 
-from .vocab import Caption, plain_tokens, read_captions
+from ...io.captions import Caption, plain_tokens
 
 
 @dataclass
@@ -44,25 +44,18 @@ class CaptionedMotions:
 
 
 def load_captioned(root: str, split: str = "test", min_frames: int = 40, fps: float = 20.0) -> CaptionedMotions:
-    """The ``split`` of a HumanML3D-format folder (see the module docstring)."""
-    need = ["Mean.npy", "Std.npy", "new_joint_vecs", "texts", f"{split}.txt"]
-    missing = [n for n in need if not os.path.exists(os.path.join(root, n))]
-    if missing:
-        raise FileNotFoundError(f"--data {root!r}: not a HumanML3D-format folder with captions (missing "
-                                f"{', '.join(missing)})")
-    mean, std = np.load(os.path.join(root, "Mean.npy")), np.load(os.path.join(root, "Std.npy"))
+    """The ``split`` of a HumanML3D-format folder (see the module docstring), read with
+    :func:`~smdm_plugin.io.humanml3d.load_humanml3d` (motions kept whole; a motion without
+    ``texts/<id>.txt`` is left out)."""
+    from ...io.humanml3d import load_humanml3d
+
+    if not os.path.isdir(os.path.join(root, "texts")):
+        raise FileNotFoundError(f"--data {root!r}: not a HumanML3D-format folder with captions (missing texts)")
+    data = load_humanml3d(root, split, None, min_frames, captions=True)
     ids, motions, captions = [], [], []
-    with open(os.path.join(root, f"{split}.txt")) as f:
-        names = [l.strip() for l in f if l.strip()]
-    for name in names:
-        mpath, tpath = os.path.join(root, "new_joint_vecs", f"{name}.npy"), os.path.join(root, "texts", f"{name}.txt")
-        if not (os.path.isfile(mpath) and os.path.isfile(tpath)):
-            continue
-        motion = np.load(mpath).astype(np.float32)
-        if motion.ndim != 2 or motion.shape[1] != mean.shape[-1]:
-            raise ValueError(f"{mpath}: expected [T, {mean.shape[-1]}] features, got {motion.shape}")
+    for name, motion, caps in zip(data.ids, data.motions, data.captions):
         whole: List[Caption] = []
-        for k, c in enumerate(read_captions(tpath)):
+        for k, c in enumerate(caps):
             if c.start == 0.0 and c.end == 0.0:
                 whole.append(c)
                 continue
@@ -71,13 +64,13 @@ def load_captioned(root: str, split: str = "test", min_frames: int = 40, fps: fl
                 ids.append(f"{name}#{k}")
                 motions.append(part)
                 captions.append([c])
-        if whole and len(motion) >= min_frames:
+        if whole:
             ids.append(name)
             motions.append(motion)
             captions.append(whole)
     if not ids:
         raise ValueError(f"--data {root!r}: split {split!r} has no captioned motion of >= {min_frames} frames")
-    return CaptionedMotions(ids, motions, captions, mean.astype(np.float32), std.astype(np.float32))
+    return CaptionedMotions(ids, motions, captions, data.mean, data.std)
 
 
 def embedded_captioned(split: str, window: int = 40, stride: int = 8) -> CaptionedMotions:

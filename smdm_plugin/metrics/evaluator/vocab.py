@@ -1,4 +1,4 @@
-"""Captions for the T2M evaluator: HumanML3D caption lines, parts of speech, word vectors.
+"""Captions for the T2M evaluator: parts of speech, word vectors (the caption files: io/captions.py).
 
 A HumanML3D caption line is ``caption#word/POS word/POS ...#from#to`` (seconds; ``0#0``: the whole
 motion); the words are lemmas with their spaCy part of speech. The evaluator reads a caption as
@@ -16,11 +16,10 @@ from __future__ import annotations
 import io
 import os
 import pickle
-import re
-from dataclasses import dataclass
 from typing import Dict, List, Sequence, Tuple
 
 import numpy as np
+
 
 POS_CATEGORIES: Tuple[str, ...] = ("VERB", "NOUN", "DET", "ADP", "NUM", "AUX", "PRON", "ADJ", "ADV",
                                    "Loc_VIP", "Body_VIP", "Obj_VIP", "Act_VIP", "Desc_VIP", "OTHER")
@@ -56,49 +55,6 @@ def safe_pickle_load(path: str) -> object:
         return _PlainUnpickler(io.BytesIO(data)).load()
     except (pickle.UnpicklingError, EOFError, ValueError, TypeError) as e:
         raise ValueError(f"{path}: not a plain pickle of words / indices ({e})") from None
-
-
-@dataclass
-class Caption:
-    """One caption: ``text``, ``tokens`` (``word/POS``), and the motion span ``start``/``end`` in seconds
-    (both 0: the whole motion)."""
-
-    text: str
-    tokens: List[str]
-    start: float = 0.0
-    end: float = 0.0
-
-
-def parse_caption_line(line: str, where: str = "caption") -> Caption:
-    """``caption#word/POS ...#from#to`` -> :class:`Caption` (a line with no ``#``: the words, POS ``OTHER``)."""
-    parts = line.strip().split("#")
-    if len(parts) == 1:
-        return Caption(parts[0], plain_tokens(parts[0]))
-    if len(parts) < 2:
-        raise ValueError(f"{where}: expected 'caption#word/POS ...#from#to', got {line.strip()!r}")
-    tokens = [t for t in parts[1].split(" ") if t]
-    if not tokens:
-        tokens = plain_tokens(parts[0])
-    tokens = [t if "/" in t else f"{t}/OTHER" for t in tokens]
-    start = end = 0.0
-    if len(parts) >= 4:
-        try:
-            start, end = float(parts[2]), float(parts[3])
-        except ValueError:
-            raise ValueError(f"{where}: from/to must be numbers (seconds), got {parts[2]!r}, {parts[3]!r}") from None
-        start, end = (0.0 if np.isnan(start) else start), (0.0 if np.isnan(end) else end)
-    return Caption(parts[0], tokens, start, end)
-
-
-def plain_tokens(text: str) -> List[str]:
-    """Lower-case words of ``text`` as ``word/OTHER`` tokens (captions without POS tags)."""
-    return [f"{w}/OTHER" for w in re.findall(r"[a-z0-9']+", text.lower())]
-
-
-def read_captions(path: str) -> List[Caption]:
-    """Every caption of a HumanML3D ``texts/<id>.txt`` file (blank lines skipped)."""
-    with open(path, encoding="utf-8") as f:
-        return [parse_caption_line(l, f"{path}:{i + 1}") for i, l in enumerate(f) if l.strip()]
 
 
 # ----------------------------------------------------------------------------------------- tokens

@@ -1,6 +1,6 @@
 """The text-motion evaluator the quality-versus-compute study scores with, behind one small interface.
 
-:class:`MotionTextEvaluator` is what :mod:`smdm_plugin.apps.study` needs: ``embed_motion`` (raw
+:class:`MotionTextEvaluator` is what :mod:`smdm_plugin.apps.ablate.study` needs: ``embed_motion`` (raw
 HumanML3D features ``[B, N, 263]`` + ``lengths [B]`` -> ``[B, D]``) and ``embed_text`` (captions ->
 ``[B, D]``); FID, diversity, R-precision and matching score are computed on those embeddings with
 :mod:`smdm_plugin.metrics.t2m`. Providers are registered in :data:`EVALUATORS` by name and
@@ -89,13 +89,13 @@ class T2MEvaluator:
         return self.ev.encode_text([c.tokens for c in captions])
 
     def save(self, folder: str) -> None:
-        from ..metrics.evaluator import save_evaluator
+        from ...metrics.evaluator import save_evaluator
 
         save_evaluator(self.ev, folder, extra={"kind": self.name, "report": self.report})
 
     @classmethod
     def load(cls, folder: str) -> "T2MEvaluator":
-        from ..metrics.evaluator import load_evaluator
+        from ...metrics.evaluator import load_evaluator
 
         with open(os.path.join(folder, "evaluator.json"), encoding="utf-8") as f:
             meta = json.load(f)
@@ -108,8 +108,8 @@ def train_t2m(data: Any, settings: T2MSettings, log: Callable[[str], Any] = prin
     """Train the T2M evaluator on ``data.root``'s train split (weights chosen on val when it exists),
     with :mod:`smdm_plugin.metrics.evaluator.train`; held-out accuracy on the evaluation split in
     ``report``."""
-    from ..metrics.evaluator.data import load_captioned
-    from ..metrics.evaluator.train import TrainSettings, build_evaluator, held_out_accuracy, train_evaluator
+    from ...metrics.evaluator.data import load_captioned
+    from ...metrics.evaluator.train import TrainSettings, build_evaluator, held_out_accuracy, train_evaluator
 
     ts = TrainSettings(epochs=settings.epochs, batch=settings.batch, lr=settings.lr,
                        temperature=settings.temperature, seed=settings.seed)

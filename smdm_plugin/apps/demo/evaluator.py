@@ -35,7 +35,7 @@ def check_demo_evaluator(ev: Any, where: str) -> None:
 def load_demo_evaluator(path: str, device: Any = "cpu") -> Any:
     """The evaluator folder ``path`` checked by :func:`check_demo_evaluator`; ValueError /
     FileNotFoundError (one line) otherwise."""
-    from ..metrics.evaluator.model import load_evaluator
+    from ...metrics.evaluator.model import load_evaluator
 
     try:
         ev = load_evaluator(path, device=device)
@@ -52,10 +52,10 @@ def train_demo_evaluator(clips: Sequence[Tuple[str, np.ndarray]], folder: str, s
     when a clip has 40 frames there), captioned with CMU's description of the clip (else its name),
     :data:`EPOCHS` (``quick``: :data:`QUICK_EPOCHS`) epochs, seeded; saves it to ``folder``. Returns
     ``(evaluator, info)``; ``info`` holds the held-out accuracy (``metrics``), sizes and seconds."""
-    from ..io.embedded import embedded_descriptions
-    from ..metrics.evaluator.data import clips_captioned
-    from ..metrics.evaluator.model import save_evaluator
-    from ..metrics.evaluator.train import TrainSettings, build_evaluator, train_evaluator
+    from ...io.embedded import embedded_descriptions
+    from ...metrics.evaluator.data import clips_captioned
+    from ...metrics.evaluator.model import save_evaluator
+    from ...metrics.evaluator.train import TrainSettings, build_evaluator, train_evaluator
 
     t0 = time.perf_counter()
     desc = embedded_descriptions()
@@ -90,8 +90,8 @@ def caption_accuracy(ev: Any, data: Any, texts: Sequence[str]) -> Dict[str, Any]
     ``texts`` (Euclidean, in the co-embedding): ``top1``, ``top3``, ``pool_size`` (len(texts)), chance.
     Windows of one clip share a caption, so the T2M R-precision (a window's caption against 31 others,
     duplicates included) is capped by ties; this is the same retrieval over distinct captions."""
-    from ..metrics.evaluator.score import embed_captions, embed_motions
-    from ..metrics.evaluator.vocab import plain_tokens
+    from ...metrics.evaluator.score import embed_captions, embed_motions
+    from ...io.captions import plain_tokens
 
     texts = list(texts)
     t = embed_captions(ev, [plain_tokens(x) for x in texts])               # [K, C]

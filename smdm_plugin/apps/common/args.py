@@ -11,7 +11,7 @@ if TYPE_CHECKING:
     import torch
 
 # the range-checked types live in core (the --sparse_* options use them too); re-exported here
-from ..core.config import float_range, int_range, str2bool
+from ...core.config import float_range, int_range, str2bool
 
 __all__ = ["int_range", "float_range", "str2bool", "existing_path", "device_type", "resolve_device",
            "add_overwrite"]
@@ -64,7 +64,7 @@ def resolve_device(name: str = "auto") -> "torch.device":
     """The ``torch.device`` of a ``--device`` value (checked by :func:`device_type`): ``auto`` is
     CUDA when available, else MPS when available, else the CPU (one rule for every command:
     :func:`smdm_plugin.integrations.distributed.resolve_device`)."""
-    from ..integrations.distributed import resolve_device as resolve
+    from ...integrations.distributed import resolve_device as resolve
 
     return resolve(name if name == "auto" else device_type(name))
 

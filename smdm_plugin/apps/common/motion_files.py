@@ -48,7 +48,7 @@ class LoadedMotion:
 
 
 def _load_bvh(path: str, fps: float) -> LoadedMotion:
-    from ..io.bvh import bvh_joint_positions, load_cmu_clip, read_bvh
+    from ...io.bvh import bvh_joint_positions, load_cmu_clip, read_bvh
     from .animation import chains_from_parents
 
     try:
@@ -80,7 +80,7 @@ def _load_pickled(path: str, sample: int) -> LoadedMotion:
 def load_motion(path: str, fps: float = 20.0, sample: int = 0, allow_pickle: bool = False) -> LoadedMotion:
     """Read ``path`` (see the module docstring); ``fps`` is the rate a BVH is resampled to and
     the rate assumed for ``.npy`` files. Raises ValueError / OSError with a one-line message."""
-    from ..io.representation import Representation
+    from ...io.representation import Representation
 
     if not os.path.isfile(path):
         raise FileNotFoundError(f"{path}: no such file")
@@ -112,7 +112,7 @@ def load_motion(path: str, fps: float = 20.0, sample: int = 0, allow_pickle: boo
     if arr.ndim == 3 and arr.shape[-1] == 3 and arr.shape[1] in (21, 22):
         out = LoadedMotion(arr, "joints", path, fps)
     elif arr.ndim == 2 and arr.shape[1] in (263, 251):
-        from ..io.humanml3d import recover_from_ric
+        from ...io.humanml3d import recover_from_ric
 
         kind = "humanml3d" if arr.shape[1] == 263 else "kit"
         out = LoadedMotion(recover_from_ric(arr, 22 if kind == "humanml3d" else 21), kind, path, fps, features=arr)
@@ -127,7 +127,7 @@ def load_motion(path: str, fps: float = 20.0, sample: int = 0, allow_pickle: boo
 
 def add_motion_file_options(p: argparse.ArgumentParser) -> None:
     """``--sample`` and ``--allow-pickle``, the options of :func:`load_motion` a command exposes."""
-    from ._args import int_range
+    from .args import int_range
 
     p.add_argument("--sample", type=int_range(0), default=0, help="which motion of a batched file, 0-based (default 0)")
     p.add_argument("--allow-pickle", action="store_true",

@@ -185,7 +185,7 @@ def render_gif(panels: Sequence[Panel], path: str, fps: float = 20.0, stride: in
     import matplotlib.pyplot as plt
     from matplotlib.animation import PillowWriter
 
-    from ..io.files import check_new_file
+    from ...io.files import check_new_file
 
     if not panels:
         raise ValueError("render_gif: no panel to draw")

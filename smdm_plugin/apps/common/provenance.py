@@ -10,9 +10,9 @@ from __future__ import annotations
 
 import hashlib
 import json
-import os
 import time
-from typing import Any, Dict, Iterable, List, Mapping, Optional
+from typing import Any, Dict, List, Mapping, Optional
+
 
 #: the keys that must be equal for a cached result to count as current
 MATCH_KEYS = ("config_hash", "data_fingerprint", "package_version", "steps", "seed", "device")
@@ -24,26 +24,13 @@ def stable_hash(obj: Any) -> str:
     return hashlib.sha256(text.encode()).hexdigest()[:16]
 
 
-def fingerprint_files(root: str, paths: Iterable[str]) -> str:
-    """sha256 (first 16 hex digits) over the relative names, sizes and contents of ``paths``
-    (files below ``root``), in sorted order: equal iff the same data, wherever it was copied to."""
-    h = hashlib.sha256()
-    for p in sorted(set(os.path.abspath(p) for p in paths)):
-        rel = os.path.relpath(p, root)
-        h.update(f"{rel}\0{os.path.getsize(p)}\0".encode())
-        with open(p, "rb") as f:
-            for block in iter(lambda: f.read(1 << 20), b""):
-                h.update(block)
-    return h.hexdigest()[:16]
-
-
 def make_provenance(settings: Mapping[str, Any], data_fingerprint: str, steps: int, seed: int, device: str,
                     **extra: Any) -> Dict[str, Any]:
     """A provenance record for a run with these ``settings`` (everything that shapes the result
     but the data), on data with ``data_fingerprint``."""
     import torch
 
-    from .. import __version__
+    from ... import __version__
 
     return {"config_hash": stable_hash(settings), "data_fingerprint": data_fingerprint,
             "package_version": __version__, "steps": int(steps), "seed": int(seed), "device": str(device),

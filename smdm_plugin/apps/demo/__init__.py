@@ -17,17 +17,17 @@
 2. **Training.** Trains the in-package backbone (:class:`~smdm_plugin.reference.backbone.TinyMDM` +
    :class:`~smdm_plugin.reference.diffusion.SimpleDiffusion`) dense and sparse (80% reduction) from
    the same weights on the same random crops for ``--minutes`` in total, to **equal steps and equal
-   time** (:func:`~smdm_plugin.apps.trainer.race_fair`: both step in turn, so machine load hits both
+   time** (:func:`~smdm_plugin.training.trainer.race_fair`: both step in turn, so machine load hits both
    alike, until the slower has used half the time; the faster one is saved at that step count
    (``sparse_equal_steps/``) and trains on for as long as the slower took), and reports the measured
    speed ratio and the loss curves. Each model then draws 32 unconditional samples (same noise),
    scored by jitter per unit speed (j/s, 1/s²) beside the speed (m/s) it is relative to, jitter
    (m/s³) and foot skating, and by FID against the real training crops and diversity
    (:func:`evaluator_scores`) in the co-embedding of a ``joints66`` motion evaluator: ``--evaluator
-   EDIR``, else one trained at start on the training clips (:mod:`smdm_plugin.apps.demo_evaluator`,
+   EDIR``, else one trained at start on the training clips (:mod:`smdm_plugin.apps.demo.evaluator`,
    a few seconds) and saved as ``evaluator/``; ``--no-evaluator`` skips it. Unconditional models: no
    R-precision. Training goes through the one in-package
-   :class:`~smdm_plugin.apps.trainer.Trainer`, so under ``torchrun --nproc_per_node N -m smdm_plugin
+   :class:`~smdm_plugin.training.trainer.Trainer`, so under ``torchrun --nproc_per_node N -m smdm_plugin
    demo`` both models train with DistributedDataParallel (``--batch`` per process) and only rank 0
    writes files and prints tables. HumanML3D's 263-D features need foot contacts and
    rotations that BVH positions do not give directly, so the demo trains on a representation
@@ -51,233 +51,32 @@ use are listed with the full reason, and the reader's warnings (``BVHWarning``) 
 from __future__ import annotations
 
 import argparse
-import glob
 import os
 import sys
 import time
-import warnings
 from dataclasses import dataclass
-from pathlib import Path
-from typing import Any, Dict, List, Optional, Sequence, Tuple
+from typing import Any, Dict, List, Optional, Tuple
 
 import numpy as np
 import torch
 
-from ..core.config import SparseConfig as _SparseConfig
-from ..io.files import atomic_write_json, atomic_write_text
-from ._args import add_overwrite, device_type, float_range, int_range
-from .threads import THREADS_HELP
+from ...io.files import atomic_write_json, atomic_write_text
+from ..common.args import add_overwrite, device_type, float_range, int_range
+from ..common.keyframe_study import (FRAME_INDEX_SCALE, keyframe_markdown, keyframe_study, motion_source,
+                                     plot_keyframes, windows)
+from ..common.threads import THREADS_HELP
 
-#: metres per frame of VW's time axis: the library's default (SparseConfig.frame_index_scale, docs/defaults.md)
-FRAME_INDEX_SCALE: float = _SparseConfig.frame_index_scale
-
-METHODS = ("vw", "uniform", "random", "mdo")
 NO_BVH = """smdm demo: no BVH motion capture found.
   Pass one or more files or folders:  smdm demo --bvh path/to/clips/
   or set SMDM_MOCAP to a folder of CMU .bvh files (cgspeed's BVH conversion of mocap.cs.cmu.edu),
   or give neither: smdm demo then uses the CMU clips embedded in the package."""
-
-# the 22-joint skeleton (HumanML3D / SMPL order) as parent indices, for the stick figures
-PARENTS22 = (-1, 0, 0, 0, 1, 2, 3, 4, 5, 6, 7, 8, 9, 9, 9, 12, 13, 14, 16, 17, 18, 19)
-
-
-# ----------------------------------------------------------------------------------------- data
-def find_bvh(paths: Optional[Sequence[str]] = None) -> List[str]:
-    """The BVH files to use: ``paths`` (files, or folders: their ``*.bvh``), else the ``*.bvh`` of
-    the folder ``$SMDM_MOCAP``; ``[]`` when neither is given."""
-    if not paths:
-        env = os.environ.get("SMDM_MOCAP")
-        paths = [os.path.abspath(env)] if env else []
-    out: List[str] = []
-    for p in paths:
-        out += sorted(glob.glob(os.path.join(p, "*.bvh"))) if os.path.isdir(p) else [p]
-    return out
-
-
-def motion_source(bvh: Optional[Sequence[str]], max_clips: Optional[int] = None, log=print,
-                  skipped: Optional[List[Tuple[str, str]]] = None, min_frames: int = 20
-                  ) -> Tuple[str, List[str], List[Tuple[str, np.ndarray]]]:
-    """The demo's motion: ``(source, files, clips)`` — ``clips`` ``[(name, joints [T, 22, 3] metres,
-    20 fps)]`` from the BVH files of ``bvh`` (files or folders), else of the folder ``$SMDM_MOCAP``,
-    else the embedded CMU clips (``files`` empty; with ``max_clips``, the first that have
-    ``min_frames`` frames). Raises ``ValueError`` when a given source holds
-    no ``.bvh`` file; BVH files that cannot be used are logged and listed in ``skipped``."""
-    env = os.environ.get("SMDM_MOCAP")
-    if bvh:
-        source = "--bvh " + " ".join(bvh)
-    elif env:
-        if not os.path.isdir(env):
-            raise ValueError(f"SMDM_MOCAP={env!r} is not a folder (unset it to use the embedded clips)")
-        source = f"$SMDM_MOCAP ({os.path.abspath(env)})"
-    else:
-        from ..io.embedded import PATH, embedded_clips
-
-        clips = embedded_clips()
-        source = f"the {len(clips)} CMU clips embedded in the package ({PATH})"
-        if max_clips:
-            clips = [c for c in clips if len(c[1]) >= min_frames][:max_clips]
-        return source, [], clips
-    files = find_bvh(bvh or [env])
-    if not files:
-        raise ValueError(f"no .bvh file in {source}")
-    return source, files, load_clips(files, max_clips=max_clips, log=log, skipped=skipped)
-
-
-def load_clips(files: Sequence[str], fps: int = 20, max_clips: Optional[int] = None, log=print,
-               skipped: Optional[List[Tuple[str, str]]] = None) -> List[Tuple[str, np.ndarray]]:
-    """``[(name, joints [T, 22, 3] metres)]``. A file that cannot be used (unreadable, malformed,
-    not a CMU skeleton — the 22-joint mapping needs CMU's joint names —, too short) is skipped and
-    logged with the full reason (and appended to ``skipped`` as ``(file, reason)``); oddities the
-    reader tolerates (its warnings, ``BVHWarning``) are logged with their category."""
-    from ..io.bvh import load_cmu_clip
-
-    clips = []
-    for f in files:
-        with warnings.catch_warnings(record=True) as caught:
-            warnings.simplefilter("always")
-            try:
-                j = load_cmu_clip(f, fps=fps)
-                reason = None if len(j) >= 20 else f"only {len(j)} frames at {fps} fps (20 needed)"
-            except (ValueError, OSError, IndexError, KeyError) as e:  # malformed, unreadable, not CMU
-                reason = " ".join(str(e).split()) or type(e).__name__
-        for w in caught:
-            if issubclass(w.category, UserWarning):
-                msg = " ".join(str(w.message).split())
-                log(f"  note: {msg if f in msg else f'{f}: {msg}'} ({w.category.__name__})")
-            else:  # not ours to judge: hand it back
-                warnings.warn_explicit(w.message, w.category, w.filename, w.lineno)
-        if reason is not None:
-            log(f"  skipping {f}: {reason}")
-            if skipped is not None:
-                skipped.append((f, reason))
-            continue
-        clips.append((Path(f).stem, j.astype(np.float32)))
-        if max_clips and len(clips) >= max_clips:
-            break
-    return clips
-
-
-def windows(clips: Sequence[Tuple[str, np.ndarray]], length: int = 196, min_len: int = 40,
-            max_windows: Optional[int] = None) -> List[Tuple[str, int, np.ndarray]]:
-    """Consecutive non-overlapping windows of up to ``length`` frames (the tail if >= min_len)."""
-    out = []
-    for name, j in clips:
-        for s in range(0, len(j), length):
-            w = j[s:s + length]
-            if len(w) >= min_len:
-                out.append((name, s, w))
-            if max_windows and len(out) >= max_windows:
-                return out
-    return out
-
-
-def selection_features(joints: np.ndarray, frame_index_scale: float = FRAME_INDEX_SCALE) -> np.ndarray:
-    """``[T, 67]``: the 22 global joint positions (metres) + frame index × scale."""
-    T = joints.shape[0]
-    return np.concatenate([joints.reshape(T, -1), (np.arange(T) * frame_index_scale)[:, None]], 1)
-
-
-def reconstruction_error(joints: np.ndarray, mask: np.ndarray) -> Tuple[float, np.ndarray]:
-    """Mean joint position error (mm) over all frames of linear interpolation from the keyframes
-    ``mask [T]``, and the reconstruction ``[T, 22, 3]``."""
-    from ..core.interpolation import interpolate_keyframes
-
-    T = joints.shape[0]
-    x = torch.from_numpy(joints.reshape(1, T, -1)).double()
-    rec = interpolate_keyframes(x, torch.from_numpy(mask).view(1, T)).reshape(T, -1, 3).numpy()
-    err = np.linalg.norm(rec - joints, axis=-1).mean() * 1000.0
-    return float(err), rec
-
-
-def keyframe_study(wins, reductions: Sequence[float], methods: Sequence[str] = METHODS, seed: int = 0,
-                   frame_index_scale: float = FRAME_INDEX_SCALE) -> Dict[str, Any]:
-    """Reconstruction error (mm) per method and reduction, averaged over the windows."""
-    from ..core.selection import select_keyframes
-
-    g = torch.Generator().manual_seed(seed)
-    table: Dict[str, Dict[float, float]] = {m: {} for m in methods}
-    for r in reductions:
-        for m in methods:
-            errs = []
-            for _, _, w in wins:
-                f = torch.from_numpy(selection_features(w, frame_index_scale)).float()[None]
-                mask = select_keyframes(f, None, r, m, generator=g)[0].numpy()
-                errs.append(reconstruction_error(w, mask)[0])
-            table[m][r] = float(np.mean(errs))
-    return {"reductions": list(reductions), "methods": list(methods), "mpjpe_mm": table,
-            "frame_index_scale": frame_index_scale,
-            "windows": len(wins), "frames": int(sum(len(w) for _, _, w in wins))}
-
-
-def keyframe_markdown(study: Dict[str, Any]) -> str:
-    reds = study["reductions"]
-    lines = [f"Mean joint position error (mm) of linear interpolation from the keyframes, "
-             f"{study['windows']} windows, {study['frames']} frames at 20 fps (selection features: "
-             f"global joint positions + frame index × {study.get('frame_index_scale', FRAME_INDEX_SCALE)} m)",
-             "", "| method | " + " | ".join(f"{int(round(r * 100))}% dropped" for r in reds) + " |",
-             "| --- |" + " ---: |" * len(reds)]
-    for m in study["methods"]:
-        lines.append(f"| {m} | " + " | ".join(f"{study['mpjpe_mm'][m][r]:.1f}" for r in reds) + " |")
-    return "\n".join(lines)
-
-
-def plot_keyframes(win: np.ndarray, title: str, reduction: float, path: str, joint: int = 21,
-                   frame_index_scale: float = FRAME_INDEX_SCALE) -> None:
-    """Trajectory of ``joint`` (default: right wrist) with VW keyframes and reconstructions, and
-    a stick-figure strip of the original vs. the VW reconstruction."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    from ..core.selection import select_keyframes
-
-    T = len(win)
-    f = torch.from_numpy(selection_features(win, frame_index_scale)).float()[None]
-    vw = select_keyframes(f, None, reduction, "vw")[0].numpy()
-    uni = select_keyframes(f, None, reduction, "uniform")[0].numpy()
-    e_vw, rec_vw = reconstruction_error(win, vw)
-    e_uni, rec_uni = reconstruction_error(win, uni)
-    fig = plt.figure(figsize=(13, 7.5))
-    t = np.arange(T) / 20.0
-    for i, (axis, lab) in enumerate(((1, "height (y)"), (0, "x"))):
-        ax = fig.add_subplot(2, 2, i + 1)
-        ax.plot(t, win[:, joint, axis], color="0.2", lw=2, label="motion capture")
-        ax.plot(t, rec_vw[:, joint, axis], color="tab:red", lw=1.2, label=f"VW interpolation ({e_vw:.0f} mm)")
-        ax.plot(t, rec_uni[:, joint, axis], color="tab:blue", lw=1.0, ls="--",
-                label=f"uniform interpolation ({e_uni:.0f} mm)")
-        ax.scatter(t[vw], win[vw, joint, axis], color="tab:red", s=22, zorder=3, label="VW keyframes")
-        ax.set_xlabel("time (s)")
-        ax.set_ylabel(f"right wrist {lab} (m)")
-        if i == 0:
-            ax.legend(fontsize=8)
-    ax = fig.add_subplot(2, 1, 2)
-    n = 10
-    frames = np.linspace(0, T - 1, n).round().astype(int)
-    spread = 0.9
-    for k, fr in enumerate(frames):
-        for src, col, lw in ((win, "0.3", 2.2), (rec_vw, "tab:red", 1.0)):
-            p = src[fr] - np.array([src[fr, 0, 0], 0, src[fr, 0, 2]]) + np.array([k * spread, 0, 0])
-            for j, par in enumerate(PARENTS22):
-                if par >= 0:
-                    ax.plot([p[j, 0], p[par, 0]], [p[j, 1], p[par, 1]], color=col, lw=lw)
-        ax.text(k * spread, -0.1, f"{fr}{'*' if vw[fr] else ''}", ha="center", fontsize=8)
-    ax.set_aspect("equal")
-    ax.axis("off")
-    ax.set_title("stick figures (x-y view, root-centred): grey = motion capture, red = VW reconstruction; "
-                 "* = keyframe", fontsize=9)
-    fig.suptitle(f"{title}: {T} frames, {int(vw.sum())} VW keyframes ({int(round(reduction * 100))}% dropped)")
-    fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-
 
 # ----------------------------------------------------------------------------------------- training
 def motion_features(joints: np.ndarray) -> np.ndarray:
     """The demo's training representation ``[T, 66]`` (``joints66``, see
     :mod:`smdm_plugin.io.representation`) from joints ``[T, 22, 3]`` (metres): joints 1..21 minus
     the root (63), root height (1), root x, z (2) with the first frame's root moved to x = z = 0."""
-    from ..io.representation import canonical_xz, joints_to_joints66
+    from ...io.representation import canonical_xz, joints_to_joints66
 
     return joints_to_joints66(canonical_xz(np.asarray(joints, np.float32))).astype(np.float32)
 
@@ -344,9 +143,9 @@ def inbetween_demo(bundles: Dict[str, Any], clip: Tuple[str, np.ndarray], length
                    seed: int, device: Any, gif: bool, progress: bool, stride: int = 1, note: str = "") -> str:
     """In-between one window of ``clip`` (keyframes every ``every`` frames and the last) with each
     model of ``bundles``; writes ``inbetween.md`` and ``inbetween.gif`` to ``out``; returns the table."""
-    from ..metrics.inbetween import keyframe_metrics
-    from .inbetween import plan_keyframes, run_inbetween, summary_markdown
-    from .motion_files import LoadedMotion
+    from ...metrics.inbetween import keyframe_metrics
+    from ..common.inbetween import plan_keyframes, run_inbetween, summary_markdown
+    from ..common.motion_files import LoadedMotion
 
     name, joints = clip
     source = LoadedMotion(joints, "bvh", name, 20.0)
@@ -364,7 +163,7 @@ def inbetween_demo(bundles: Dict[str, Any], clip: Tuple[str, np.ndarray], length
              + summary_markdown(rows))
     atomic_write_text(os.path.join(out, "inbetween.md"), table + "\n")
     if gif:
-        from .animation import Panel, render_gif
+        from ..common.animation import Panel, render_gif
 
         panels = [Panel(joints[:length], "motion capture", kf.frames)]
         panels += [Panel(r.joints[0], f"{label} model", kf.frames) for label, r in results.items()]
@@ -428,12 +227,13 @@ def apply_quick(args: argparse.Namespace) -> List[str]:
 def main_demo(args: argparse.Namespace) -> int:
     """Run the demo (options checked by :func:`main`); returns the exit status. Under torchrun every
     rank reads the motion and trains; rank 0 alone writes files and prints the tables."""
-    from ..core.config import SparseConfig
-    from ..integrations.distributed import init_distributed, shutdown_distributed
-    from .trainer import MotionSet, TrainConfig, Trainer, feature_stats, race_fair
+    from ...core.config import SparseConfig
+    from ...integrations.distributed import init_distributed, shutdown_distributed
+    from ...training.data import MotionSet, feature_stats
+    from ...training.trainer import TrainConfig, Trainer, race_fair
 
     t_start = time.perf_counter()
-    from .threads import apply_threads
+    from ..common.threads import apply_threads
     apply_threads(args.threads)
     try:
         ctx = init_distributed(args.device)
@@ -491,10 +291,10 @@ def main_demo(args: argparse.Namespace) -> int:
             return 2
         evaluator, ev_info, ev_source = None, {}, None
         if main_rank and not args.no_evaluator:
-            from .demo_evaluator import load_demo_evaluator, train_demo_evaluator
+            from .evaluator import load_demo_evaluator, train_demo_evaluator
 
             if args.evaluator:
-                from ..metrics.evaluator.model import evaluator_info
+                from ...metrics.evaluator.model import evaluator_info
 
                 evaluator, ev_info = load_demo_evaluator(args.evaluator, dev), evaluator_info(args.evaluator)
                 ev_source = f"the evaluator {args.evaluator}"
@@ -550,7 +350,7 @@ def main_demo(args: argparse.Namespace) -> int:
         if evaluator is not None and len(crops) < 2:
             say("no FID: fewer than 2 real training crops to compare with")
         elif evaluator is not None:
-            from .demo_evaluator import evaluator_note
+            from .evaluator import evaluator_note
 
             pool = np.stack(crops)   # the real crops the models trained on: FID's reference
             real = {"motion capture": real_set(reference)} if len(reference) >= 2 else {}
@@ -637,7 +437,7 @@ def generate_samples(bundles: Dict[str, Any], frames: int, samples: int, seed: i
 def motion_scores(joints: torch.Tensor) -> Dict[str, float]:
     """Jitter (m/s³), mean joint speed (m/s), jitter per unit speed ``jps`` (1/s², the ratio of the
     set's means) and foot skating ratio of joints ``[B, N, 22, 3]`` (metres, 20 fps)."""
-    from ..metrics import foot_skating_ratio, jitter, mean_speed
+    from ...metrics import foot_skating_ratio, jitter, mean_speed
 
     j = torch.as_tensor(joints)
     jit, speed = float(jitter(j, fps=20)), float(mean_speed(j, fps=20))
@@ -673,8 +473,8 @@ def evaluator_scores(generated: Dict[str, GeneratedSet], reference: np.ndarray,
     representation."""
     if evaluator is None:
         return {}
-    from ..metrics.evaluator.score import embed_motions
-    from ..metrics.t2m import diversity, frechet_distance
+    from ...metrics.evaluator.score import embed_motions
+    from ...metrics.t2m import diversity, frechet_distance
 
     rep = evaluator.config.representation
     for name, g in generated.items():
@@ -691,7 +491,7 @@ def evaluator_scores(generated: Dict[str, GeneratedSet], reference: np.ndarray,
 
 def sparse_sampling(model: Any) -> str:
     """The sparse sampling settings of ``model`` in words (interpolation, dynamic update)."""
-    from ..core.config import sparse_config_of
+    from ...core.config import sparse_config_of
 
     c = sparse_config_of(model)
     if c is None:
@@ -743,8 +543,8 @@ def save_models(trainers: Dict[str, Any], out: str, frames: int, mean: np.ndarra
     """Write ``out/dense`` and ``out/sparse`` (model folders ``smdm inbetween`` reads) and, for a
     model that trained on after the equal-steps point, ``out/<name>_equal_steps`` (its weights at
     that step, from ``equal_steps``); load them back."""
-    from ..io.bundle import load_bundle, save_bundle
-    from ..io.representation import Representation
+    from ...io.bundle import load_bundle, save_bundle
+    from ...io.representation import Representation
 
     bundles = {}
     for n, tr in trainers.items():
@@ -780,7 +580,7 @@ def main(argv: Optional[List[str]] = None) -> int:
     if args.evaluator is not None and args.no_evaluator:
         p.error("argument --no-evaluator: not allowed with argument --evaluator")
     if first and args.evaluator is not None:
-        from .demo_evaluator import load_demo_evaluator
+        from .evaluator import load_demo_evaluator
 
         try:
             load_demo_evaluator(args.evaluator)
@@ -788,7 +588,7 @@ def main(argv: Optional[List[str]] = None) -> int:
             p.error(f"argument --evaluator: {' '.join(str(e).split())}")
     if not first:
         return main_demo(args)
-    from ..io.outdir import run_in_output_dir  # locked, apart from the inputs, swapped in as one unit
+    from ...io.outdir import run_in_output_dir  # locked, apart from the inputs, swapped in as one unit
 
     def write(part: str) -> int:  # main_demo writes into the partial folder; args.folder: where it ends up
         return main_demo(argparse.Namespace(**{**vars(args), "out": part, "folder": args.out}))

@@ -7,7 +7,7 @@ seconds, for CI) runs a config with ``kind: quality_compute``
 seed), evaluated at snapshots along the run — at given optimiser step counts (``snapshots.steps``:
 equal steps) and at given training-time budgets (``snapshots.seconds``: equal compute); a run ends
 when it has passed every snapshot. Training time is the **process CPU time** spent in
-:meth:`~smdm_plugin.apps.trainer.Trainer.step` (``clock: cpu``; torch runs with one thread): on a
+:meth:`~smdm_plugin.training.trainer.Trainer.step` (``clock: cpu``; torch runs with one thread): on a
 shared machine, wall time counts other users' work too, CPU time does not; evaluation is never
 counted. ``clock: wall`` uses wall time of the steps instead (on a dedicated machine). Both are
 recorded at every snapshot.
@@ -15,7 +15,7 @@ recorded at every snapshot.
 At a snapshot the model (eval mode) generates one motion per id of the evaluation split (``eval.split``,
 default ``test``), for its first caption and its length (cut to ``max_frames``), with
 classifier-free guidance (``text.guidance_scale``), the same noise for every variant of a seed;
-the evaluator (:mod:`smdm_plugin.apps.study_evaluator`, trained once on the train split, cached in
+the evaluator (:mod:`smdm_plugin.apps.ablate.study_evaluator`, trained once on the train split, cached in
 ``DIR/evaluator/<key>/``) embeds them; scores: FID against the real motions of the split, diversity,
 R-precision top-1/2/3 and matching score (T2M's protocol, :mod:`smdm_plugin.metrics.t2m`), jitter
 (m/s³), mean joint speed (m/s), jitter per unit speed (the set's mean jitter over its mean joint speed,
@@ -43,12 +43,14 @@ from typing import Any, Callable, Dict, List, Optional, Sequence, Tuple
 import numpy as np
 import torch
 
-from ..core.config import closest
-from ..io.files import OutputExistsError, atomic_open, atomic_write_json, atomic_write_text
-from ._args import add_overwrite, device_type, existing_path, resolve_device
-from .ablate import (AblateConfigError, _check, _check_keys, check_out_dir, over_defaults, config_path, read_cached, select_variants,
-                     slug, sparse_config)
-from .provenance import fingerprint_files, make_provenance, stable_hash
+from ...core.config import closest
+from ...io.files import OutputExistsError, atomic_open, atomic_write_json, atomic_write_text
+from ..common.args import add_overwrite, device_type, existing_path, resolve_device
+from . import check_out_dir, read_cached
+from .grid import (AblateConfigError, _check, _check_keys, config_path, over_defaults, select_variants, slug,
+                   sparse_config)
+from ...io.files import fingerprint_files
+from ..common.provenance import make_provenance, stable_hash
 
 KIND = "quality_compute"
 DEFAULT_DATA = os.path.join("..", "shared", "data", "cmu-humanml3d-large")
@@ -86,7 +88,7 @@ def is_study_config(name_or_path: str) -> bool:
 
 def resolve_study(cfg: Dict[str, Any]) -> Dict[str, Any]:
     """``cfg`` over :data:`DEFAULTS` (mapping sections one level deep), validated."""
-    from ..reference.text import TextConfig
+    from ...reference.text import TextConfig
     from .study_evaluator import EVALUATORS
 
     out = over_defaults(cfg, DEFAULTS, "study config", "kind, name, seeds, ..., variants")
@@ -148,7 +150,7 @@ def resolve_study(cfg: Dict[str, Any]) -> Dict[str, Any]:
 
 
 def _range(lo: float):
-    from ..core.config import Range
+    from ...core.config import Range
 
     return Range(lo)
 
@@ -181,13 +183,14 @@ class StudyData:
     (raw features ``[M, N, 263]``, lengths, first captions), with a fingerprint of every file read."""
 
     def __init__(self, root: str, cfg: Dict[str, Any]) -> None:
-        from ..metrics.evaluator.vocab import read_captions
-        from .trainer import load_humanml3d
+        from ...io.humanml3d import load_humanml3d
+        from ...training.data import MotionSet
 
         N, lo = int(cfg["max_frames"]), int(cfg["min_frames"])
         self.root = root
-        self.train = load_humanml3d(root, "train", N, lo, with_captions=True)
-        ev = load_humanml3d(root, cfg["eval"]["split"], N, lo, with_captions=True)
+        self.train = MotionSet.from_split(load_humanml3d(root, "train", N, lo, captions=True), captions=True)
+        ev_split = load_humanml3d(root, cfg["eval"]["split"], N, lo, captions=True)
+        ev = MotionSet.from_split(ev_split, captions=True)
         limit = cfg["eval"]["limit"]
         keep = list(range(len(ev)))[: limit or None]
         x, lengths = ev.padded(keep)
@@ -198,7 +201,7 @@ class StudyData:
         self.raw = x * torch.from_numpy(self.std) + torch.from_numpy(self.mean)
         self.captions = [ev.captions[i][0] for i in keep]  # texts: what the generator is given
         #: the same captions as :class:`~smdm_plugin.metrics.evaluator.vocab.Caption` (text + word/POS tokens)
-        self.caption_objs = [read_captions(os.path.join(root, "texts", f"{i}.txt"))[0] for i in self.ids]
+        self.caption_objs = [ev_split.captions[i][0] for i in keep]
         self.split = cfg["eval"]["split"]
         files = [os.path.join(root, n) for n in ("Mean.npy", "Std.npy", "train.txt", f"{cfg['eval']['split']}.txt")]
         val_ids: List[str] = []
@@ -214,28 +217,15 @@ class StudyData:
 
 
 # ----------------------------------------------------------------------------------------- scoring
-def motion_scores(norm: torch.Tensor, lengths: torch.Tensor, mean: np.ndarray, std: np.ndarray) -> Dict[str, np.ndarray]:
-    """Per motion ``[M]``: jitter (m/s³), mean joint speed (m/s), jitter per unit speed (1/s²) and
-    foot skating ratio of normalised features ``norm [M, N, 263]`` with valid ``lengths [M]``."""
-    from ..metrics import foot_skating_ratio, jitter, mean_speed, to_joint_positions
-
-    j = to_joint_positions(norm.float(), mean, std)  # [M, N, 22, 3]
-    L = lengths.long()
-    jit = jitter(j, fps=20, lengths=L, reduce="none").double()
-    speed = mean_speed(j, fps=20, lengths=L, reduce="none").double()
-    skate = foot_skating_ratio(j, fps=20, lengths=L, reduce="none").double()
-    return {"jitter": jit.numpy(), "speed": speed.numpy(), "jitter_per_speed": (jit / speed.clamp_min(1e-6)).numpy(),
-            "foot_skating": skate.numpy()}
-
-
 def score_set(evaluator, raw: torch.Tensor, norm: torch.Tensor, lengths: torch.Tensor, text_emb: np.ndarray,
               real_emb: np.ndarray, mean: np.ndarray, std: np.ndarray) -> Dict[str, float]:
     """Every metric of one set of motions (one per caption, row ``i`` for caption ``i``)."""
-    from ..metrics.t2m import diversity, frechet_distance, retrieval
+    from ...metrics.features import per_motion_quality
+    from ...metrics.t2m import diversity, frechet_distance, retrieval
 
     emb = evaluator.embed_motion(raw, lengths).double().numpy()
     r = retrieval(text_emb, emb, seed=0)
-    q = motion_scores(norm, lengths, mean, std)
+    q = per_motion_quality(norm, lengths, mean, std)
     return {"fid": frechet_distance(emb, real_emb), "r_precision_top1": r.top1, "r_precision_top2": r.top2,
             "r_precision_top3": r.top3, "matching_score": r.matching_score, "diversity": diversity(emb, seed=0)[0],
             "jitter": float(np.nanmean(q["jitter"])), "speed": float(np.nanmean(q["speed"])),
@@ -249,8 +239,8 @@ def generate(model, diffusion, text_cfg, data: StudyData, seed: int, batch: int,
     """One motion per caption of the evaluation split, normalised ``[M, N, 263]`` (zero past each
     length): batches of ``batch`` in order of length (each batch as long as its longest motion),
     noise from a generator seeded by ``seed`` alone (the same for every variant)."""
-    from ..reference.text import sample_with_text
-    from .trainer import mix_seed
+    from ...reference.text import sample_with_text
+    from ...training.trainer import mix_seed
 
     was_training = model.training
     model.eval()
@@ -276,9 +266,9 @@ def run_seed(cfg: Dict[str, Any], variant: Dict[str, Any], seed: int, data: Stud
     """Train ``variant`` with ``seed`` until every snapshot is passed, scoring at each; returns the
     run's record (``snapshots``: one entry per snapshot, with ``kind`` steps|seconds, ``at``,
     ``step``, ``train_s`` (the configured clock), ``train_cpu_s``, ``train_wall_s``, metrics)."""
-    from ..integrations.distributed import DistContext
-    from ..reference.text import TextConfig
-    from .trainer import TrainConfig, Trainer
+    from ...integrations.distributed import DistContext
+    from ...reference.text import TextConfig
+    from ...training.trainer import TrainConfig, Trainer
 
     text_cfg = TextConfig.from_dict(cfg["text"])
     sc = sparse_config(cfg, variant)
@@ -477,7 +467,7 @@ def plot_fid_vs_time(cfg: Dict[str, Any], rows: List[Dict[str, Any]], reference:
 def build_evaluator(cfg: Dict[str, Any], data: StudyData, out: str, log: Callable[[str], Any]):
     """The evaluator of ``cfg['evaluator']``, trained on the train split once and cached in
     ``out/evaluator/<key>/`` (key: data fingerprint + settings + package version)."""
-    from .. import __version__
+    from ... import __version__
     from .study_evaluator import EVALUATORS, cached_evaluator
 
     kind = cfg["evaluator"]["kind"]
@@ -516,7 +506,7 @@ def run_study(cfg: Dict[str, Any], out: str, data_root: str, device: str = "cpu"
         f"(fingerprint {data.fingerprint}); snapshots at {cfg['snapshots']['steps']} steps and "
         f"{cfg['snapshots']['seconds']} s ({cfg['clock']}); seeds {run_seeds}; device {dev}")
     os.makedirs(out, exist_ok=True)
-    from .. import __version__
+    from ... import __version__
 
     atomic_write_json(os.path.join(out, MANIFEST), {
         "tool": "smdm ablate", "kind": KIND, "format": 1, "grid": cfg["name"],
@@ -531,7 +521,7 @@ def run_study(cfg: Dict[str, Any], out: str, data_root: str, device: str = "cpu"
     train_x, train_L = data.train.padded()
     train_emb = evaluator.embed_motion(train_x * torch.from_numpy(data.std) + torch.from_numpy(data.mean),
                                        train_L).double().numpy()
-    from ..metrics.t2m import frechet_distance
+    from ...metrics.t2m import frechet_distance
 
     reference["fid_train_vs_eval"] = frechet_distance(train_emb, real_emb)
     meta = {"data": data_root, "data_fingerprint": data.fingerprint, "train_motions": len(data.train),

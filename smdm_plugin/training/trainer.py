@@ -2,7 +2,7 @@
 :class:`~smdm_plugin.reference.diffusion.SimpleDiffusion`, dense or sparse, on HumanML3D-format
 motion; one process, or many under ``torchrun`` (DistributedDataParallel).
 
-    trainer = Trainer(TrainConfig(steps=300, sparse=SparseConfig()), load_humanml3d(root))
+    trainer = Trainer(TrainConfig(steps=300, sparse=SparseConfig()), MotionSet.from_split(load_humanml3d(root)))
     result = trainer.train()              # fixed step count (smdm ablate)
     loss = trainer.step()                 # one optimiser step (smdm demo's race_fair: equal steps, equal time)
     trainer.save("runs/smdm")             # model*.pt + backbone.json (+ sparse_config.json)
@@ -17,14 +17,12 @@ per-rank stream (seed offset by rank).
 """
 from __future__ import annotations
 
-import argparse
 import dataclasses
 import json
 import math
 import os
 import time
 from dataclasses import dataclass, field
-from pathlib import Path
 from typing import Any, Callable, Dict, List, Optional, Sequence, Tuple
 
 import numpy as np
@@ -36,6 +34,7 @@ from ..integrations.distributed import DistContext, constant_buffers_kwargs, ini
 from ..io.checkpoint import BACKBONE_FILENAME
 from ..io.files import atomic_open, atomic_write_json, atomic_write_text
 from ..reference.text import TextConfig, save_text_config
+from .data import MotionSet
 
 #: TinyMDM size of ``smdm train`` / ``smdm ablate`` (MDM's HumanML3D size is 512-D, 8 layers, ff 1024)
 DEFAULT_MODEL: Dict[str, Any] = {"latent_dim": 128, "num_layers": 4, "num_heads": 4, "ff_size": 256,
@@ -46,164 +45,6 @@ TRAIN_STATE_FILENAME = "train_state.pt"
 TRAIN_STATE_VERSION = 1
 #: feature width -> the representation written to motion.json (HumanML3D 263-D and joints66, both 20 fps)
 MOTION_REPRESENTATIONS: Dict[int, str] = {263: "humanml3d", 66: "joints66"}
-
-
-# ----------------------------------------------------------------------------------------- data
-@dataclass
-class MotionSet:
-    """Normalised motions, stored unpadded: ``frames [sum(lengths), D]`` float32 (sample ``i`` is
-    rows ``offsets[i]:offsets[i + 1]``), ``lengths [M]`` long, ``ids`` (M names), ``mean``/``std``
-    ``[D]`` (the normalisation, needed to select keyframes on de-normalised features), ``joints``
-    (optional, per sample ``[L, 22, 3]`` metres), ``max_frames`` N (batches are padded to it),
-    ``captions`` (optional, per sample its caption texts, for text conditioning)."""
-
-    frames: torch.Tensor
-    lengths: torch.Tensor
-    ids: List[str]
-    mean: np.ndarray
-    std: np.ndarray
-    max_frames: int
-    joints: Optional[List[Optional[np.ndarray]]] = None
-    captions: Optional[List[List[str]]] = None
-    offsets: torch.Tensor = field(init=False)
-
-    def __post_init__(self) -> None:
-        if self.frames.dim() != 2:
-            raise ValueError(f"MotionSet: frames must be [sum(lengths), D], got {tuple(self.frames.shape)}")
-        D = self.frames.shape[1]
-        if self.lengths.dim() != 1 or len(self.ids) != len(self.lengths):
-            raise ValueError(f"MotionSet: lengths must be [M] with M={len(self.ids)} ids, got "
-                             f"{tuple(self.lengths.shape)}")
-        if int(self.lengths.sum()) != self.frames.shape[0]:
-            raise ValueError(f"MotionSet: frames has {self.frames.shape[0]} rows but lengths sum to "
-                             f"{int(self.lengths.sum())}")
-        if len(self.lengths) and (int(self.lengths.min()) < 2 or int(self.lengths.max()) > self.max_frames):
-            raise ValueError(f"MotionSet: lengths must be in [2, max_frames={self.max_frames}], got "
-                             f"[{int(self.lengths.min())}, {int(self.lengths.max())}]")
-        for name in ("mean", "std"):
-            if np.shape(getattr(self, name)) != (D,):
-                raise ValueError(f"MotionSet: {name} must be [D]=[{D}], got {np.shape(getattr(self, name))}")
-        if self.captions is not None and (len(self.captions) != len(self.ids) or not all(self.captions)):
-            raise ValueError(f"MotionSet: captions must hold a non-empty list of texts for each of the "
-                             f"{len(self.ids)} motions, got {len(self.captions)} entries")
-        self.offsets = torch.cat([torch.zeros(1, dtype=torch.long), self.lengths.long().cumsum(0)])
-
-    def __len__(self) -> int:
-        return len(self.ids)
-
-    @property
-    def feature_dim(self) -> int:
-        return int(self.frames.shape[1])
-
-    def padded(self, indices: Optional[Sequence[int]] = None) -> Tuple[torch.Tensor, torch.Tensor]:
-        """``(x [b, N, D], lengths [b])``: the samples ``indices`` (all when None), zero-padded to
-        ``N = max_frames``."""
-        idx = torch.arange(len(self)) if indices is None else torch.as_tensor(indices, dtype=torch.long)
-        x = self.frames.new_zeros(len(idx), self.max_frames, self.feature_dim)
-        for row, i in enumerate(idx.tolist()):
-            a, b = int(self.offsets[i]), int(self.offsets[i + 1])
-            x[row, :b - a] = self.frames[a:b]
-        return x, self.lengths[idx].clone()
-
-    @classmethod
-    def from_motions(cls, motions: Sequence[np.ndarray], mean: np.ndarray, std: np.ndarray,
-                     ids: Optional[Sequence[str]] = None, max_frames: int = 196,
-                     joints: Optional[List[Optional[np.ndarray]]] = None) -> "MotionSet":
-        """From raw (un-normalised) motions ``[L_i, D]``; each is cut to its first ``max_frames``."""
-        mean, std = np.asarray(mean, np.float32), np.asarray(std, np.float32)
-        cut = [np.asarray(m, np.float32)[:max_frames] for m in motions]
-        if not cut:
-            raise ValueError("MotionSet.from_motions: no motions given")
-        D = mean.shape[-1] if mean.ndim == 1 else -1
-        for name, v in (("mean", mean), ("std", std)):
-            if v.shape != (D,) or any(m.ndim != 2 or m.shape[1] != D for m in cut):
-                raise ValueError(f"MotionSet: motions must be [L, D] and {name} [D]; got {name} {v.shape} and "
-                                 f"motions {sorted({m.shape[1:] for m in cut})}")
-        frames = torch.from_numpy(np.concatenate([(m - mean) / std for m in cut]).astype(np.float32))
-        lengths = torch.tensor([len(m) for m in cut], dtype=torch.long)
-        names = list(ids) if ids is not None else [str(i) for i in range(len(cut))]
-        return cls(frames, lengths, names, mean, std, max_frames, joints)
-
-
-def load_humanml3d(root: str, split: str = "train", max_frames: int = 196, min_frames: int = 40,
-                   with_joints: bool = False, with_captions: bool = False) -> MotionSet:
-    """The ``split`` (``<root>/<split>.txt``) of a HumanML3D-format folder (``new_joint_vecs/*.npy``
-    ``[T, 263]``, ``Mean.npy``/``Std.npy``; ``new_joints/*.npy`` ``[T, 22, 3]`` with
-    ``with_joints``), normalised; motions shorter than ``min_frames`` are skipped, longer ones cut
-    to their first ``max_frames`` frames. ``with_captions``: each motion's captions from
-    ``texts/<id>.txt`` (every caption line's text, spans ignored; a missing file is an error)."""
-    base = Path(root)
-    missing = [n for n in ("Mean.npy", "Std.npy", "new_joint_vecs", f"{split}.txt") if not (base / n).exists()]
-    if missing:
-        raise FileNotFoundError(f"data: {root} is not a HumanML3D-format folder (missing {', '.join(missing)})")
-    if not 2 <= min_frames <= max_frames:
-        raise ValueError(f"load_humanml3d: need 2 <= min_frames <= max_frames, got {min_frames}, {max_frames}")
-    from ..io.validate import check_array, check_stats, load_npy
-
-    def npy(path: Path, what: str) -> np.ndarray:
-        try:
-            return load_npy(str(path), what)
-        except ValueError as e:
-            raise ValueError(f"data: {e}") from None
-
-    mean = npy(base / "Mean.npy", "feature mean")
-    std = npy(base / "Std.npy", "feature std")
-    if mean.ndim != 1:
-        raise ValueError(f"data: {base / 'Mean.npy'}: expected a vector [D], got shape {list(mean.shape)}")
-    D = mean.shape[0]
-    mean, _ = check_stats(mean, np.ones(D), D, f"data: {base / 'Mean.npy'}")
-    _, std = check_stats(mean, std, D, f"data: {base / 'Std.npy'}")
-    try:
-        names = (base / f"{split}.txt").read_bytes().decode("utf-8-sig").split()
-    except UnicodeDecodeError as e:
-        raise ValueError(f"data: {base / f'{split}.txt'}: not UTF-8 text (byte {e.start}: {e.reason})") from None
-    except IsADirectoryError:
-        raise ValueError(f"data: {base / f'{split}.txt'}: is a folder, expected a text file") from None
-    kept, motions, joints = [], [], []
-    for name in names:
-        path = base / "new_joint_vecs" / f"{name}.npy"
-        if not path.exists():
-            continue
-        # checked before the first step: a bad file is one line naming it, not a nan loss later
-        motion = check_array(npy(path, "motion features [T, D]"), f"data: {path}", "motion", (-1, D))
-        if len(motion) < min_frames:
-            continue
-        kept.append(name)
-        motions.append(motion)
-        if with_joints:
-            jpath = base / "new_joints" / f"{name}.npy"
-            joints.append(np.load(jpath)[:max_frames].astype(np.float32) if jpath.exists() else None)
-    if not kept:
-        raise ValueError(f"data: split {split!r} of {root} has no motion of >= {min_frames} frames")
-    out = MotionSet.from_motions(motions, mean, std, kept, max_frames, joints if with_joints else None)
-    if with_captions:
-        from ..metrics.evaluator.vocab import read_captions
-
-        caps = []
-        for name in kept:
-            path = base / "texts" / f"{name}.txt"
-            texts = [c.text for c in read_captions(str(path))] if path.is_file() else []
-            if not texts:
-                raise FileNotFoundError(f"{path}: missing or empty (text conditioning needs captions for every motion)")
-            caps.append(texts)
-        out = dataclasses.replace(out, captions=caps)
-    return out
-
-
-def check_clip_lengths(data: MotionSet, sparse: SparseConfig, root: str) -> None:
-    """``ValueError`` naming the first clip so short that the ``sparse.reduction`` would keep fewer
-    than 2 keyframes (the selection would then keep 2, silently not the reduction asked for)."""
-    from ..core.selection import keyframe_count
-
-    r = float(sparse.reduction)
-    short = [(i, int(L)) for i, L in zip(data.ids, data.lengths.tolist()) if round((1.0 - r) * L) < 2]
-    if short:
-        need = next(L for L in range(2, 100000) if round((1.0 - r) * L) >= 2)
-        name, L = short[0]
-        raise ValueError(f"data: {os.path.join(root, 'new_joint_vecs', name + '.npy')} has {L} frames: at reduction "
-                         f"{r:g} it would keep {keyframe_count(L, r)} of the round({1 - r:g} x {L}) keyframes asked "
-                         f"for; pass --min-frames {need} (or more), or a smaller --sparse_reduction"
-                         + (f" ({len(short)} clips are that short)" if len(short) > 1 else ""))
 
 
 # ----------------------------------------------------------------------------------------- randomness
@@ -603,15 +444,6 @@ class Trainer:
         return path
 
 
-def feature_stats(features: Sequence[np.ndarray], eps: float = 1e-4) -> Tuple[np.ndarray, np.ndarray]:
-    """Mean and std ``[D]`` over every frame of ``features`` (``[L_i, D]`` each); std floored at
-    ``eps`` (a channel that never moves must not divide by zero)."""
-    if not features:
-        raise ValueError("feature_stats: no features given")
-    allf = np.concatenate([np.asarray(f, np.float64) for f in features], 0)
-    return allf.mean(0).astype(np.float32), (allf.std(0) + eps).astype(np.float32)
-
-
 def race_fair(trainers: Dict[str, "Trainer"], seconds: float = float("inf"), max_steps: Optional[int] = None,
               progress: bool = False, desc: str = "training") -> Dict[str, Any]:
     """Train several :class:`Trainer` s to **equal steps and equal time** (e.g. dense vs sparse).
@@ -747,119 +579,7 @@ def load_trained(folder: str, step: Optional[int] = None, map_location: Any = "c
     return model, config
 
 
-# ----------------------------------------------------------------------------------------- CLI
-def build_parser() -> argparse.ArgumentParser:
-    from ._args import add_overwrite, device_type, float_range, int_range
-    from .threads import THREADS_HELP
-
-    p = argparse.ArgumentParser(
-        prog="smdm train",
-        description="Train the in-package TinyMDM (dense, or sparse keyframe mode with --sparse) on a "
-                    "HumanML3D-format folder and save a checkpoint folder that smdm_plugin.load_checkpoint "
-                    "reloads. Under torchrun (torchrun --nproc_per_node N -m smdm_plugin train ...) it trains "
-                    "with DistributedDataParallel; --batch is per process.",
-        epilog="example: torchrun --nproc_per_node 2 -m smdm_plugin train --data dataset/HumanML3D "
-               "--out runs/smdm --sparse")
-    p.add_argument("--data", required=True, metavar="DIR",
-                   help="HumanML3D-format folder (new_joint_vecs/, Mean.npy, Std.npy, <split>.txt)")
-    p.add_argument("--split", default="train", help="which <split>.txt to train on (default: train)")
-    p.add_argument("--max-frames", type=int_range(2, 10000), default=196,
-                   help="frames per sample; longer motions are cut (default: 196)")
-    p.add_argument("--min-frames", type=int_range(2, 10000), default=40,
-                   help="skip shorter motions (default: 40)")
-    p.add_argument("--out", required=True, metavar="DIR", help="checkpoint folder to write")
-    add_overwrite(p)
-    p.add_argument("--resume", action="store_true",
-                   help="continue the run in --out (interrupted, or finished and given more --steps) from its last "
-                        "checkpoint: weights, optimiser, random streams and step count, as if never stopped")
-    t = p.add_argument_group("training")
-    t.add_argument("--steps", type=int_range(1), default=1000, help="optimiser steps (default: 1000)")
-    t.add_argument("--batch", type=int_range(1), default=16,
-                   help="samples per process and step; global batch = batch x processes (default: 16)")
-    t.add_argument("--lr", type=float_range(0.0, lo_open=True), default=2e-4, help="AdamW learning rate (default 2e-4)")
-    t.add_argument("--weight-decay", type=float_range(0.0), default=0.0, help="AdamW weight decay (default 0)")
-    t.add_argument("--grad-clip", type=float_range(0.0), default=0.0, help="max gradient norm (default 0: off)")
-    t.add_argument("--diffusion-steps", type=int_range(1, 100000), default=100, help="diffusion steps T (default 100)")
-    t.add_argument("--seed", type=int_range(0), default=0, help="random seed (default 0)")
-    t.add_argument("--save-every", type=int_range(0), default=0,
-                   help="also save a checkpoint every this many steps (default 0: only at the end)")
-    t.add_argument("--compile", action="store_true", help="torch.compile the model")
-    t.add_argument("--compile-backend", default="inductor", help="torch.compile backend (default: inductor)")
-    m = p.add_argument_group("model (TinyMDM)")
-    m.add_argument("--arch", choices=("trans_enc", "trans_dec"), default=DEFAULT_MODEL["arch"],
-                   help=f"MDM architecture (default {DEFAULT_MODEL['arch']})")
-    m.add_argument("--latent-dim", type=int_range(8, 65536), default=DEFAULT_MODEL["latent_dim"],
-                   help=f"transformer width (default {DEFAULT_MODEL['latent_dim']}; MDM: 512)")
-    m.add_argument("--layers", type=int_range(1, 256), default=DEFAULT_MODEL["num_layers"],
-                   help=f"transformer layers (default {DEFAULT_MODEL['num_layers']}; MDM: 8)")
-    m.add_argument("--heads", type=int_range(1, 256), default=DEFAULT_MODEL["num_heads"],
-                   help=f"attention heads (default {DEFAULT_MODEL['num_heads']})")
-    m.add_argument("--ff-size", type=int_range(1, 1 << 20), default=DEFAULT_MODEL["ff_size"],
-                   help=f"feed-forward width (default {DEFAULT_MODEL['ff_size']}; MDM: 1024)")
-    m.add_argument("--dropout", type=float_range(0.0, 1.0, hi_open=True), default=DEFAULT_MODEL["dropout"],
-                   help=f"dropout probability (default {DEFAULT_MODEL['dropout']})")
-    c = p.add_argument_group("text conditioning (off by default: unconditional)")
-    c.add_argument("--text", action="store_true",
-                   help="train text-conditioned on texts/<id>.txt with the frozen hashed bag-of-words encoder "
-                        "(reference/text.py; saved as text_encoder.json) and classifier-free-guidance dropout")
-    c.add_argument("--cond-mask-prob", type=float_range(0.0, 1.0, hi_open=True), default=0.1,
-                   help="with --text: fraction of samples trained without their caption (default 0.1, as MDM)")
-    c.add_argument("--guidance-scale", type=float_range(0.0), default=2.5,
-                   help="with --text: classifier-free guidance scale saved for sampling (default 2.5, as MDM)")
-    SparseConfig.add_argparse_args(p, "sparse keyframe mode (sMDM)")
-    for action in p._actions:  # set by the trainer itself, or meaningless for an unconditional TinyMDM
-        if action.dest in _NOT_CLI_SPARSE:
-            action.help = argparse.SUPPRESS
-    r = p.add_argument_group("run")
-    r.add_argument("--device", type=device_type, default="auto",
-                   help="auto (cuda:LOCAL_RANK when CUDA is available), cpu, cuda, cuda:N, mps")
-    r.add_argument("--threads", type=int_range(1, 1024), default=None, help=THREADS_HELP)
-    r.add_argument("--no-progress", action="store_true", help="no progress bar")
-    return p
-
-
-_NOT_CLI_SPARSE = {"sparse_diffusion_steps": "set from --diffusion-steps",
-                   "sparse_prefix_frames": "TinyMDM has no DiP prefix here",
-                   "sparse_text_encoder": "TinyMDM is trained unconditionally here"}
-
-
-def _parse(argv: Optional[List[str]]) -> Tuple[Any, TrainConfig]:
-    p = build_parser()
-    a = p.parse_args(argv)
-    if a.resume and a.overwrite:
-        p.error("argument --overwrite: not allowed with argument --resume")
-    if a.min_frames > a.max_frames:
-        p.error(f"--min-frames ({a.min_frames}) must be <= --max-frames ({a.max_frames})")
-    if a.latent_dim % a.heads:
-        p.error(f"--latent-dim ({a.latent_dim}) must be a multiple of --heads ({a.heads})")
-    for dest in ("cond_mask_prob", "guidance_scale"):
-        if not a.text and getattr(a, dest) != p.get_default(dest):
-            p.error(f"--{dest.replace('_', '-')}: applies only with --text (text-conditioned training)")
-    for dest in _NOT_CLI_SPARSE:
-        if getattr(a, dest) != p.get_default(dest):
-            p.error(f"--{dest}: not an option of smdm train ({_NOT_CLI_SPARSE[dest]})")
-    try:
-        sparse = SparseConfig.from_args(a) if a.sparse else None
-    except ValueError as e:
-        p.error(str(e))
-    model = {"latent_dim": a.latent_dim, "num_layers": a.layers, "num_heads": a.heads, "ff_size": a.ff_size,
-             "arch": a.arch, "dropout": a.dropout}
-    cfg = TrainConfig(steps=a.steps, batch=a.batch, lr=a.lr, weight_decay=a.weight_decay, grad_clip=a.grad_clip,
-                      diffusion_steps=a.diffusion_steps, seed=a.seed, model=model, sparse=sparse,
-                      compile=a.compile, compile_backend=a.compile_backend,
-                      text=TextConfig(cond_mask_prob=a.cond_mask_prob, guidance_scale=a.guidance_scale) if a.text else None)
-    return a, cfg
-
-
-#: what ``smdm train`` writes besides ``model<step>.pt``
-OUTPUT_FILES = (BACKBONE_FILENAME, CONFIG_FILENAME, TRAIN_CONFIG_FILENAME, TRAIN_STATE_FILENAME, "Mean.npy",
-                "Std.npy", "losses.csv", "loss.png", "result.json", "motion.json",
-                "text_encoder.json")
-#: the names ``smdm train`` writes (an ``--overwrite`` refuses such a file it did not write itself)
-OUTPUT_PATTERNS = OUTPUT_FILES + ("model[0-9][0-9][0-9][0-9][0-9][0-9][0-9][0-9][0-9].pt",)
-
-
-def _resume(trainer: "Trainer", folder: str) -> str:
+def resume(trainer: "Trainer", folder: str) -> str:
     """Load ``folder``'s ``train_state.pt`` and the model of its step into ``trainer``; returns a
     line saying what was resumed (nothing when the interrupted run saved no checkpoint yet)."""
     path = os.path.join(folder, TRAIN_STATE_FILENAME)
@@ -874,148 +594,3 @@ def _resume(trainer: "Trainer", folder: str) -> str:
     if trainer.step_count > trainer.config.steps:
         raise ValueError(f"--resume: {path} is at step {trainer.step_count}, past --steps {trainer.config.steps}")
     return f"resumed at step {trainer.step_count}"
-
-
-def write_logs(folder: str, losses: Sequence[float], result: Optional[TrainResult] = None) -> None:
-    """``losses.csv`` (step, loss), ``loss.png`` and, with ``result``, ``result.json``."""
-    lines = ["step,loss"] + [f"{i + 1},{v:.9g}" for i, v in enumerate(losses)]
-    atomic_write_text(os.path.join(folder, "losses.csv"), "\n".join(lines) + "\n")
-    if result is not None:
-        atomic_write_json(os.path.join(folder, "result.json"), result.to_dict())
-    if losses:
-        import matplotlib
-
-        matplotlib.use("Agg")
-        import matplotlib.pyplot as plt
-
-        fig, ax = plt.subplots(figsize=(7, 4))
-        k = max(1, len(losses) // 50)
-        smooth = np.convolve(losses, np.ones(k) / k, mode="valid")
-        ax.plot(np.arange(1, len(losses) + 1), losses, lw=0.5, alpha=0.4, label="per step")
-        ax.plot(np.arange(k, len(losses) + 1), smooth, lw=1.5, label=f"moving average ({k})")
-        ax.set_xlabel("optimiser step")
-        ax.set_ylabel("training loss")
-        ax.set_yscale("log")
-        ax.legend()
-        fig.tight_layout()
-        with atomic_open(os.path.join(folder, "loss.png"), "wb") as f:
-            fig.savefig(f, format="png", dpi=110)
-        plt.close(fig)
-
-
-def main(argv: Optional[List[str]] = None) -> int:
-    """``smdm train``; returns the exit status (2: bad arguments, data or output folder)."""
-    import sys
-    from contextlib import ExitStack
-
-    from ..integrations.distributed import shutdown_distributed
-    from ..io.files import OutputExistsError
-    from ..io.outdir import OutputDir
-
-    a, cfg = _parse(argv)
-    from .threads import apply_threads
-    apply_threads(a.threads)
-    try:
-        data = load_humanml3d(a.data, a.split, a.max_frames, a.min_frames, with_captions=a.text)
-        if cfg.sparse is not None:
-            check_clip_lengths(data, cfg.sparse, a.data)
-        ctx = init_distributed(a.device)
-    except (FileNotFoundError, ValueError) as e:
-        print(f"smdm train: {e}", file=sys.stderr)
-        return 2
-    try:
-        with ExitStack() as stack:
-            message, od = "", None
-            if ctx.is_main:
-                od = OutputDir(a.out, overwrite=a.overwrite, inputs={"--data": a.data}, command="smdm train",
-                               owns=OUTPUT_PATTERNS, resumable=True, resume=a.resume)
-                try:
-                    stack.enter_context(od)
-                    if a.resume and od.resumed_from is None:
-                        od.abandon(keep=False)  # nothing written: leave no folder behind
-                        raise OutputExistsError(f"--resume: {a.out!r} holds no run to continue (no interrupted or "
-                                                "finished smdm train run there)")
-                except (OutputExistsError, OSError) as e:
-                    from ..io.outdir import describe_os_error
-
-                    message = str(e) if isinstance(e, OutputExistsError) else describe_os_error(e)
-            if not ctx.broadcast_flag(not message):
-                if ctx.is_main:
-                    print(f"smdm train: {message}", file=sys.stderr)
-                return 2
-            from ..io.outdir import partial_path
-
-            folder = od.path if od is not None else partial_path(a.out)  # other ranks only read it (--resume)
-            trainer = Trainer(cfg, data, dist=ctx)
-            extra = {"data": os.path.abspath(a.data), "split": a.split, "min_frames": a.min_frames,
-                     "max_frames": a.max_frames}
-            note = ""
-            if a.resume:
-                try:
-                    note = "; " + _resume(trainer, folder)
-                    saved = _read_json(os.path.join(folder, TRAIN_CONFIG_FILENAME))
-                    if os.path.exists(os.path.join(folder, TRAIN_STATE_FILENAME)):
-                        differ = [k for k in extra if saved.get(k) != extra[k]]
-                        if differ:
-                            raise ValueError(f"--resume: {a.out} was trained on other data ("
-                                             + "; ".join(f"{k}: saved {saved.get(k)!r}, now {extra[k]!r}"
-                                                         for k in differ) + ")")
-                except ValueError as e:
-                    if od is not None:
-                        print(f"smdm train: {e}", file=sys.stderr)
-                        od.abandon(keep=od.resumed_from == od.path)  # an interrupted run's folder stays as it was
-                    return 2
-            if ctx.is_main:
-                kind = "sparse" if cfg.sparse is not None else "dense"
-                print(f"smdm train: {kind} TinyMDM, {len(data)} motions from {a.data} ({a.split}), {cfg.steps} steps "
-                      f"x global batch {trainer.global_batch} ({ctx.world_size} process(es) x {cfg.batch}) on "
-                      f"{ctx.device}" + (f", backend {torch.distributed.get_backend()}" if ctx.distributed else "")
-                      + note, flush=True)
-
-            def every(tr: Trainer, loss: float) -> None:
-                if a.save_every and tr.step_count % a.save_every == 0 and tr.step_count < cfg.steps:
-                    tr.save(folder, extra)
-                    if ctx.is_main:
-                        write_logs(folder, tr.losses)
-
-            try:
-                result = trainer.train(progress=not a.no_progress, callback=every)
-            except KeyboardInterrupt:
-                if ctx.is_main:
-                    done = (trainer.step_count // a.save_every) * a.save_every if a.save_every else 0
-                    print(f"\nsmdm train: interrupted at step {trainer.step_count}; " + (
-                        f"rerun with --resume to continue from step {done}" if done else
-                        "no checkpoint was saved (--save-every N saves one every N steps)"), file=sys.stderr)
-                raise
-            trainer.save(folder, extra)
-            if ctx.is_main:
-                write_logs(folder, trainer.losses, result)
-            ctx.barrier()
-        if ctx.is_main:
-            path = os.path.join(a.out, trainer.checkpoint_name())
-            print(f"smdm train: {result.steps} steps in {result.seconds:.1f} s ({result.steps_per_s:.2f} steps/s, "
-                  f"{result.samples_per_s:.1f} samples/s), final loss {result.final_loss:.4f}; ranks in sync: "
-                  f"max |difference| {result.max_divergence:.3g}\nsaved {path}")
-        return 0
-    finally:
-        shutdown_distributed(ctx)
-
-
-def _read_json(path: str) -> Dict[str, Any]:
-    """A JSON object file (errors name it)."""
-    try:
-        with open(path, "rb") as f:
-            data = json.loads(f.read().decode("utf-8"))
-    except FileNotFoundError:
-        raise ValueError(f"{path}: missing") from None
-    except (UnicodeDecodeError, ValueError) as e:
-        raise ValueError(f"{path}: not valid UTF-8 JSON ({e})") from None
-    if not isinstance(data, dict):
-        raise ValueError(f"{path}: expected a JSON object, got {type(data).__name__}")
-    return data
-
-
-if __name__ == "__main__":
-    import sys
-
-    sys.exit(main())

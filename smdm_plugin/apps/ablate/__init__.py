@@ -2,7 +2,7 @@
 
 Every variant of a YAML grid (``configs/ablations/table1.yaml``: the paper's Table 1 set) trains the
 in-package backbone (:class:`~smdm_plugin.reference.backbone.TinyMDM` + :class:`~smdm_plugin.reference.diffusion.SimpleDiffusion`)
-through the one in-package :class:`~smdm_plugin.apps.trainer.Trainer` with the *same* seed,
+through the one in-package :class:`~smdm_plugin.training.trainer.Trainer` with the *same* seed,
 initial weights, data order, diffusion steps ``t`` and step count, on HumanML3D-format motion (``--data``, e.g. this project's ``../shared/data/cmu-humanml3d``: ``new_joint_vecs``,
 ``new_joints``, ``Mean.npy``/``Std.npy``, ``train.txt``/``val.txt``). Unconditional (no CLIP).
 
@@ -57,345 +57,38 @@ YAML schema::
 from __future__ import annotations
 
 import argparse
-import csv
-import inspect
 import json
-import math
 import os
-import re
 import shutil
 import sys
 import time
 import traceback
 from dataclasses import dataclass
-from pathlib import Path
-from typing import Any, Callable, Dict, List, Optional, Sequence, Set, Tuple
+from typing import TYPE_CHECKING, Any, Callable, Dict, List, Optional, Sequence, Set, Tuple
 
 import numpy as np
 import torch
 
-from ..core.config import ConfigTypeError, Range, closest, preset_dirs
-from ..io.files import OutputExistsError, atomic_open, atomic_write_json, atomic_write_text
-from ._args import add_overwrite, device_type, existing_path, int_range, resolve_device
-from .threads import THREADS_HELP
-from .provenance import differences, fingerprint_files, make_provenance
+from ...io.files import OutputExistsError, atomic_write_json, atomic_write_text
+from ..common.args import add_overwrite, device_type, existing_path, int_range, resolve_device
+from ..common.threads import THREADS_HELP
+from ..common.provenance import differences, make_provenance
+from .grid import SHARED_SETTINGS, load_config, select_variants, slug, sparse_config
+from .report import write_report
 
-DEFAULT_DATA = os.path.join("..", "shared", "data", "cmu-humanml3d")  # the scripts/ default (this project's data)
-DEFAULTS: Dict[str, Any] = {
-    "name": "ablation", "seed": 0, "steps": 200, "batch": 16, "max_frames": 196, "diffusion_steps": 100,
-    "lr": 2e-4, "log_every": 1,
-    "model": {"latent_dim": 128, "num_layers": 4, "num_heads": 4, "ff_size": 256, "arch": "trans_enc",
-              "dropout": 0.1},
-    "sparse": {"reduction": 0.8},
-    "eval": {"samples": 8, "frames": 120, "keyframe_motions": None},
-}
+if TYPE_CHECKING:
+    from ...training.data import MotionData
+
 MANIFEST = "ablate.json"
-#: the grid settings every variant's result depends on (with the variant itself and its SparseConfig)
-SHARED_SETTINGS = ("seed", "steps", "batch", "max_frames", "diffusion_steps", "lr", "model", "eval")
-
-
-class AblateConfigError(ValueError):
-    """The grid YAML is malformed (unknown key, wrong type or range, clashing names)."""
-
-
-class AblateConfigTypeError(AblateConfigError, ConfigTypeError):
-    """A value of the wrong type in the grid YAML."""
-
-
 class StaleResultsError(OutputExistsError):
     """``--resume`` met results from another run (other settings, data, version, steps, seed or
     device) that it would have to replace."""
 
 
-# ----------------------------------------------------------------------------------------- config
-ABLATIONS_DIR = os.path.join(preset_dirs()[0], "ablations")
-
-
-def packaged_grids() -> List[str]:
-    return sorted(f[:-5] for f in os.listdir(ABLATIONS_DIR) if f.endswith(".yaml"))
-
-
-def config_path(name_or_path: str) -> str:
-    """A grid's YAML file: a path, or the name of a packaged grid (``table1``, ``defaults``,
-    ``quick``: ``configs/ablations/<name>.yaml``)."""
-    if os.path.isfile(name_or_path):
-        return name_or_path
-    packaged = os.path.join(ABLATIONS_DIR, os.path.basename(name_or_path))
-    for cand in (packaged, packaged + ".yaml"):
-        if os.path.isfile(cand) and os.path.dirname(name_or_path) in ("", ABLATIONS_DIR):
-            return cand
-    grids = packaged_grids()
-    hint = closest(os.path.basename(name_or_path).removesuffix(".yaml"), grids)
-    raise FileNotFoundError(f"--config {name_or_path!r} is neither a file nor a packaged grid "
-                            f"({', '.join(grids)}){hint}")
-
-
-def load_config(path: str) -> Dict[str, Any]:
-    """The resolved grid of a YAML file (or packaged grid name); errors name the file."""
-    import yaml
-
-    p = config_path(path)
-    try:
-        with open(p, encoding="utf-8-sig") as f:
-            cfg = yaml.safe_load(f)
-    except yaml.YAMLError as e:
-        raise AblateConfigError(f"{p}: not valid YAML: {' '.join(str(e).split())}") from None
-    except OSError as e:
-        raise AblateConfigError(f"{p}: cannot read it: {e.strerror}") from None
-    try:
-        return resolve(cfg if cfg is not None else {})
-    except ValueError as e:
-        raise type(e)(f"{p}: {e}") from None
-
-
-def _model_keys() -> List[str]:
-    from ..reference.backbone import TinyMDM
-
-    fixed = {"self", "njoints", "nfeats", "cond_mode", "text_encoder"}
-    return [k for k in inspect.signature(TinyMDM.__init__).parameters if k not in fixed]
-
-
-def _check(where: str, v: Any, kind: type, rng: Range = Range(), optional: bool = False) -> None:
-    """Raise :class:`AblateConfigError` unless ``v`` is a ``kind`` in ``rng`` (None if ``optional``)."""
-    if v is None and optional:
-        return
-    if kind is float:
-        ok_type = isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v)
-    else:
-        ok_type = isinstance(v, kind) and not (kind is int and isinstance(v, bool))
-    what = {int: rng.describe(True), float: "a finite " + rng.describe(False)[2:], str: "a non-empty string",
-            bool: "true or false", dict: "a mapping", list: "a list"}[kind]
-    if not ok_type or (kind in (int, float) and v not in rng) or (kind is str and not v.strip()):
-        raise (AblateConfigError if ok_type else AblateConfigTypeError)(f"{where}={v!r}: expected {'null or ' if optional else ''}{what}")
-
-
-def _check_keys(where: str, d: Dict[str, Any], known: Sequence[str]) -> None:
-    for k in d:
-        if k not in known:
-            raise AblateConfigError(f"{where}: unknown key {k!r}{closest(str(k), known)} (known: {', '.join(known)})")
-
-
-def over_defaults(cfg: Any, defaults: Dict[str, Any], what: str, expected: str) -> Dict[str, Any]:
-    """A grid's mapping ``cfg`` laid over a copy of ``defaults`` (mapping sections one level deep);
-    only ``defaults``' keys, ``variants`` and ``data`` are known."""
-    if not isinstance(cfg, dict):
-        raise AblateConfigError(f"expected a mapping ({expected}), got {type(cfg).__name__}")
-    _check_keys(what, cfg, [*defaults, "variants", "data"])
-    out = json.loads(json.dumps(defaults))
-    for k, v in cfg.items():
-        if isinstance(v, dict) and isinstance(out.get(k), dict):
-            out[k].update(v)
-        else:
-            out[k] = v
-    return out
-
-
-def resolve(cfg: Dict[str, Any]) -> Dict[str, Any]:
-    """``cfg`` over :data:`DEFAULTS` (one level deep for the mapping sections), validated: known
-    keys only, types and ranges, every variant named, names and their folder names unique.
-    Variants' ``sparse`` values are checked when the variant runs (an invalid one fails alone)."""
-    out = over_defaults(cfg, DEFAULTS, "ablate config", "name, seed, steps, ..., variants")
-    _check("name", out["name"], str)
-    for k, lo in (("seed", 0), ("steps", 1), ("batch", 1), ("max_frames", 2), ("diffusion_steps", 1), ("log_every", 1)):
-        _check(k, out[k], int, Range(lo))
-    _check("lr", out["lr"], float, Range(0.0, lo_open=True))
-    _check("data", out.get("data"), str, optional=True)
-    for section in ("model", "sparse", "eval"):
-        _check(section, out[section], dict)
-    _check_keys("model", out["model"], _model_keys())
-    _check_keys("eval", out["eval"], list(DEFAULTS["eval"]))
-    _check("eval.samples", out["eval"]["samples"], int, Range(1))
-    _check("eval.frames", out["eval"]["frames"], int, Range(2))
-    _check("eval.keyframe_motions", out["eval"]["keyframe_motions"], int, Range(1), optional=True)
-    variants = out.get("variants")
-    if not variants:
-        raise AblateConfigError("the config lists no variants")
-    _check("variants", variants, list)
-    seen: Dict[str, str] = {}
-    for i, v in enumerate(variants):
-        if not isinstance(v, dict):
-            raise AblateConfigTypeError(f"variants[{i}]={v!r}: expected a mapping with a name")
-        _check_keys(f"variants[{i}]", v, ["name", "dense", "sparse"])
-        if not isinstance(v.get("name"), str) or not v["name"].strip():
-            raise AblateConfigError(f"variants[{i}]: every variant needs a unique name, got {v.get('name')!r}")
-        _check(f"variants[{i}].dense", v.get("dense", False), bool)
-        _check(f"variants[{i}].sparse", v.get("sparse") or {}, dict)
-        s = slug(v["name"])
-        if s in seen:
-            same = "the same name" if seen[s] == v["name"] else f"the same folder name {s!r}"
-            raise AblateConfigError(f"variants {seen[s]!r} and {v['name']!r} have {same}; every variant needs a "
-                                    "unique name (and folder name: lower case, runs of other characters as '-')")
-        seen[s] = v["name"]
-    return out
-
-
-def slug(name: str) -> str:
-    """The folder name of a variant: lower case, runs of anything but ``[a-z0-9]`` as ``-``."""
-    return re.sub(r"[^a-z0-9]+", "-", name.lower()).strip("-") or "variant"
-
-
-def sparse_config(cfg: Dict[str, Any], variant: Dict[str, Any]):
-    from ..core.config import SparseConfig
-
-    if variant.get("dense"):
-        return None
-    d = dict(cfg.get("sparse") or {})
-    d.update(variant.get("sparse") or {})
-    d.setdefault("diffusion_steps", int(cfg["diffusion_steps"]))  # what runs (config.json records it)
-    return SparseConfig.from_dict(d)
-
-
-def select_variants(cfg: Dict[str, Any], only: Optional[Sequence[str]]) -> Set[str]:
-    """The names of the variants ``only`` picks (names or folder names; all when None). An unknown
-    entry is a ``ValueError`` listing the known names."""
-    names = [v["name"] for v in cfg["variants"]]
-    if not only:
-        return set(names)
-    by_slug = {slug(n): n for n in names}
-    picked, unknown = set(), []
-    for o in only:
-        hit = o if o in names else by_slug.get(o) or by_slug.get(slug(o))
-        if hit is None:
-            unknown.append(o)
-        else:
-            picked.add(hit)
-    if unknown:
-        raise ValueError(f"unknown variant(s) {', '.join(map(repr, unknown))}"
-                         f"{closest(unknown[0], names)}; known: {', '.join(map(repr, names))}")
-    return picked
-
-
-# ----------------------------------------------------------------------------------------- data
-class MotionData:
-    """HumanML3D-format motions: normalised ``[M, max_frames, 263]`` + lengths, joints for eval.
-    ``files`` lists every file read; ``fingerprint`` hashes their names, sizes and contents."""
-
-    def __init__(self, root: str, max_frames: int = 196, min_frames: int = 40) -> None:
-        root_p = Path(root)
-        if not (root_p / "Mean.npy").exists():
-            raise FileNotFoundError(f"no HumanML3D-format data at {root} (need Mean.npy, Std.npy, "
-                                    "new_joint_vecs/, train.txt); pass --data")
-        self.root = root_p
-        self.files: List[str] = [str(root_p / "Mean.npy"), str(root_p / "Std.npy")]
-        self.mean = np.load(root_p / "Mean.npy").astype(np.float32)
-        self.std = np.load(root_p / "Std.npy").astype(np.float32)
-        self.max_frames = max_frames
-        self.train = self._load("train", min_frames)
-        self.val = self._load("val" if (root_p / "val.txt").exists() else "test", min_frames)
-        self.fingerprint = fingerprint_files(str(root_p), self.files)
-
-    def _load(self, split: str, min_frames: int) -> Dict[str, Any]:
-        listing = self.root / f"{split}.txt"
-        if not listing.exists():
-            raise FileNotFoundError(f"{listing} is missing (the {split} split's motion ids)")
-        self.files.append(str(listing))
-        ids = [i for i in listing.read_text().split() if i]
-        x, lengths, joints, kept = [], [], [], []
-        for i in ids:
-            f = self.root / "new_joint_vecs" / f"{i}.npy"
-            if not f.exists():
-                continue
-            m = np.load(f).astype(np.float32)
-            self.files.append(str(f))
-            if len(m) < min_frames:
-                continue
-            L = min(len(m), self.max_frames)
-            pad = np.zeros((self.max_frames, m.shape[1]), np.float32)
-            pad[:L] = (m[:L] - self.mean) / self.std
-            x.append(pad)
-            lengths.append(L)
-            jf = self.root / "new_joints" / f"{i}.npy"
-            if jf.exists():
-                self.files.append(str(jf))
-            joints.append(np.load(jf)[:L].astype(np.float32) if jf.exists() else None)
-            kept.append(i)
-        if not x:
-            raise ValueError(f"split {split!r} of {self.root} has no usable motion")
-        return {"ids": kept, "x": torch.from_numpy(np.stack(x)), "lengths": torch.tensor(lengths),
-                "joints": joints}
-
-
-# ----------------------------------------------------------------------------------------- metrics
-def keyframe_error_mm(data: MotionData, sc, limit: Optional[int] = None, seed: int = 0) -> Optional[float]:
-    """MPJPE (mm) of interpolating the validation joints from the variant's training keyframes
-    (selector on the HumanML3D features, no mask noise)."""
-    if sc is None:
-        return None
-    from ..core.interpolation import interpolate_keyframes
-    from ..core.schedule import MaskSchedule
-
-    sched = MaskSchedule(sc.replace(mask_noise=0.0), data.mean, data.std)
-    val = data.val
-    n = len(val["ids"]) if limit is None else min(limit, len(val["ids"]))
-    errs = []
-    g = torch.Generator().manual_seed(seed)
-    for b in range(n):
-        j = val["joints"][b]
-        if j is None:
-            continue
-        L = int(val["lengths"][b])
-        x = val["x"][b:b + 1, :L]
-        from ..core.selection import select_keyframes
-
-        mask = select_keyframes(sched.features(x), torch.tensor([L]), sc.reduction, sc.selector, generator=g)
-        rec = interpolate_keyframes(torch.from_numpy(j).reshape(1, L, -1).double(), mask).reshape(L, -1, 3)
-        errs.append(float((rec.numpy() - j).__pow__(2).sum(-1).__pow__(0.5).mean() * 1000.0))
-    return float(np.mean(errs)) if errs else None
-
-
-def _ees(motion_norm: torch.Tensor, lengths: torch.Tensor, data: MotionData) -> Optional[float]:
-    try:
-        from ..metrics import end_effector_speed
-    except ImportError:
-        return None
-    return float(end_effector_speed(motion_norm, lengths, mean=data.mean, std=data.std))
-
-
-def validation_loss(model, diffusion, data: "MotionData", device: torch.device, seed: int, n_t: int = 5) -> float:
-    """Denoising MSE on the validation motions over all valid frames, at ``n_t`` fixed timesteps
-    spread over ``[0, T)`` with fixed noise (identical for every variant). The model runs as it
-    would at sampling time (its own keyframe schedule on ``x_t``), so sparse and dense compare on
-    the same dense frames. Not comparable with training losses, which sample t at random."""
-    from ..reference.diffusion import masked_mse
-
-    val = data.val
-    x = val["x"].permute(0, 2, 1).unsqueeze(2).to(device)
-    B, N = x.shape[0], x.shape[-1]
-    y = {"mask": (torch.arange(N) < val["lengths"][:, None]).view(B, 1, 1, N).to(device),
-         "lengths": val["lengths"].to(device)}
-    g = torch.Generator().manual_seed(seed + 4)
-    out = []
-    with torch.no_grad():
-        for t in torch.linspace(0, diffusion.num_timesteps - 1, n_t).round().long():
-            tt = t.expand(B).to(device)
-            noise = torch.randn(x.shape, generator=g).to(device)
-            pred = model(diffusion.q_sample(x, tt, noise), tt, {"y": dict(y)})
-            out.append(float(masked_mse(pred, x, y["mask"]).mean()))
-    return float(np.mean(out))
-
-
 # ----------------------------------------------------------------------------------------- run
-def motion_set(split: Dict[str, Any], data: "MotionData"):
-    """A :class:`~smdm_plugin.apps.trainer.MotionSet` of a loaded split (already normalised)."""
-    from .trainer import MotionSet
-
-    frames = torch.cat([split["x"][i, :int(L)] for i, L in enumerate(split["lengths"].tolist())])
-    return MotionSet(frames, split["lengths"].long(), list(split["ids"]), data.mean, data.std, data.max_frames)
-
-
-def motion_quality(motion_norm: torch.Tensor, lengths: torch.Tensor, data: "MotionData") -> Dict[str, Optional[float]]:
-    """``{'jitter': m/s³, 'foot_skating': ratio}`` of normalised HumanML3D features ``[B, N, 263]``
-    (valid ``lengths [B]``), on the joints ``recover_from_ric`` gives, at 20 fps."""
-    from ..metrics import foot_skating_ratio, jitter, to_joint_positions
-
-    j = to_joint_positions(motion_norm.float(), data.mean, data.std)
-    L = lengths.long().cpu()
-    return {"jitter": float(jitter(j, fps=20, lengths=L)), "foot_skating": float(foot_skating_ratio(j, fps=20, lengths=L))}
-
-
-def run_variant(cfg: Dict[str, Any], variant: Dict[str, Any], data: MotionData, device: torch.device,
+def run_variant(cfg: Dict[str, Any], variant: Dict[str, Any], data: "MotionData", device: torch.device,
                 progress: bool = False, dist=None, checkpoint_dir: Optional[str] = None) -> Dict[str, Any]:
-    """Train one variant with the in-package :class:`~smdm_plugin.apps.trainer.Trainer` (DDP when
+    """Train one variant with the in-package :class:`~smdm_plugin.training.trainer.Trainer` (DDP when
     ``dist`` is a torchrun context) and, on rank 0, evaluate it: validation loss, unconditional
     samples (EES, jitter, foot skating), keyframe error. Other ranks return after training.
 
@@ -403,19 +96,21 @@ def run_variant(cfg: Dict[str, Any], variant: Dict[str, Any], data: MotionData, 
     the steps and, when one is there, training continues from it (``smdm train --resume``'s
     mechanism: weights, optimiser, random streams, step), so an interrupted variant resumes
     bit-identically instead of starting over."""
-    from ..integrations.distributed import DistContext
-    from .trainer import TrainConfig, Trainer, _resume
+    from ...integrations.distributed import DistContext
+    from ...metrics.features import feature_quality, keyframe_interpolation_error_mm
+    from ...training.trainer import TrainConfig, Trainer, resume
+    from ...training.validation import validation_loss
 
     seed = int(cfg["seed"])
     sc = sparse_config(cfg, variant)
     steps = int(cfg["steps"])
     tc = TrainConfig(steps=steps, batch=int(cfg["batch"]), lr=float(cfg["lr"]),
                      diffusion_steps=int(cfg["diffusion_steps"]), seed=seed, model=dict(cfg["model"]), sparse=sc)
-    trainer = Trainer(tc, motion_set(data.train, data), dist=dist or DistContext(device=device))
+    trainer = Trainer(tc, data.train, dist=dist or DistContext(device=device))
     device = trainer.dist.device
     callback = None
     if checkpoint_dir is not None and trainer.dist.world_size == 1:
-        _resume(trainer, checkpoint_dir)  # nothing there: from step 0
+        resume(trainer, checkpoint_dir)  # nothing there: from step 0
         every = max(1, steps // 10)
 
         def callback(tr: Trainer, loss: float) -> None:
@@ -430,13 +125,13 @@ def run_variant(cfg: Dict[str, Any], variant: Dict[str, Any], data: MotionData, 
     model, diffusion, losses, train_s = trainer.model, trainer.diffusion, list(trainer.losses), result.seconds
     if not trainer.dist.is_main:
         return {"name": variant["name"], "status": "ok", "steps": steps, "rank": trainer.dist.rank}
-    N = data.train["x"].shape[1]
+    N = data.train.max_frames
 
     # evaluation: sample unconditionally (the variant's own sampling schedule), EES
     ev = cfg["eval"]
     ns, nf = int(ev.get("samples", 8)), min(int(ev.get("frames", 120)), N)
     model.eval()
-    val_loss = validation_loss(model, diffusion, data, device, seed)
+    val_loss = validation_loss(model, diffusion, data.val, device, seed)
     g = torch.Generator().manual_seed(seed + 3)
     lengths = torch.full((ns,), nf, dtype=torch.long)
     y = {"mask": torch.ones(ns, 1, 1, nf, dtype=torch.bool, device=device), "lengths": lengths.to(device)}
@@ -444,7 +139,8 @@ def run_variant(cfg: Dict[str, Any], variant: Dict[str, Any], data: MotionData, 
     sample = diffusion.p_sample_loop(model, (ns, 263, 1, nf), {"y": y}, device=device, generator=g)
     sample_s = time.perf_counter() - t1
     motion = sample.squeeze(2).permute(0, 2, 1).cpu()  # [B, N, 263] normalised
-    quality = motion_quality(motion, lengths, data)
+    quality = feature_quality(motion, lengths, data.mean, data.std)
+    val, val_lengths = data.val.padded()
     k = max(1, len(losses) // 10)
     smooth = np.convolve(losses, np.ones(k) / k, mode="valid") if losses else np.array([np.nan])
     return {
@@ -452,8 +148,9 @@ def run_variant(cfg: Dict[str, Any], variant: Dict[str, Any], data: MotionData, 
         "final_loss": float(np.mean(losses[-k:])), "best_loss": float(np.min(smooth)), "val_loss": val_loss,
         "steps_per_s": result.steps / train_s if train_s > 0 else float("nan"), "train_s": train_s,
         "sample_s": sample_s, "resumed_at": steps - result.steps,
-        "keyframe_error_mm": keyframe_error_mm(data, sc, ev.get("keyframe_motions"), seed),
-        "ees": _ees(motion, lengths, data), **quality, "losses": losses, "world_size": trainer.dist.world_size,
+        "keyframe_error_mm": keyframe_interpolation_error_mm(val, val_lengths, data.val.joints, data.mean, data.std,
+                                                             sc, ev.get("keyframe_motions"), seed),
+        **quality, "losses": losses, "world_size": trainer.dist.world_size,
         "max_divergence": result.max_divergence,
         "sparse_config": None if sc is None else sc.to_dict(),
     }
@@ -557,7 +254,7 @@ def _read_json_or_none(path: str) -> Any:
         return None
 
 
-def run_one(cfg: Dict[str, Any], variant: Dict[str, Any], data: MotionData, dev: torch.device, vdir: str,
+def run_one(cfg: Dict[str, Any], variant: Dict[str, Any], data: "MotionData", dev: torch.device, vdir: str,
             provenance: Dict[str, Any], progress: bool, log: Callable[[str], Any], dist=None,
             resume: bool = False) -> Dict[str, Any]:
     """Run one variant and record it (atomically): ``result.json`` (its stale ``failed.json``
@@ -606,7 +303,7 @@ def run_ablation(cfg: Dict[str, Any], out: str, data_root: str, device: str = "a
     unreadable ones; results from another run stop it with :class:`StaleResultsError` before
     anything trains) or ``overwrite`` (run every selected variant again). See the module docstring.
     """
-    from ..integrations.distributed import DistContext
+    from ...integrations.distributed import DistContext
 
     if resume and overwrite:
         raise ValueError("run_ablation: resume and overwrite exclude each other")
@@ -615,7 +312,7 @@ def run_ablation(cfg: Dict[str, Any], out: str, data_root: str, device: str = "a
     if not main_rank:
         log = _quiet
     selected = select_variants(cfg, only)
-    from ..io.outdir import OutputLock, check_no_overlap
+    from ...io.outdir import OutputLock, check_no_overlap
 
     _on_main(ctx, lambda: (check_no_overlap(out, {"--data": data_root}), check_out_dir(out, resume, overwrite)))
     # one writer: rank 0 locks --out for the whole run (the other ranks never write)
@@ -634,8 +331,11 @@ def _run_locked(cfg: Dict[str, Any], out: str, data_root: str, ctx, selected: Se
 
     main_rank = ctx.is_main
     dev = ctx.device
+    from ...metrics.features import feature_quality
+    from ...training.data import MotionData  # noqa: F811 - at run time
+
     data = MotionData(data_root, int(cfg["max_frames"]))
-    log(f"ablate: {len(data.train['ids'])} training / {len(data.val['ids'])} validation motions from "
+    log(f"ablate: {len(data.train)} training / {len(data.val)} validation motions from "
         f"{data_root} (fingerprint {data.fingerprint}); {cfg['steps']} steps x batch {cfg['batch']} per variant "
         f"on {dev}" + (f", {ctx.world_size} processes (DDP; batch per process)" if ctx.distributed else ""))
 
@@ -676,14 +376,14 @@ def _run_locked(cfg: Dict[str, Any], out: str, data_root: str, ctx, selected: Se
         return []
 
     os.makedirs(out, exist_ok=True)
-    from .. import __version__
+    from ... import __version__
 
     atomic_write_json(os.path.join(out, MANIFEST), {
         "tool": "smdm ablate", "format": 1, "grid": cfg.get("name"), "variants": [v["name"] for v in cfg["variants"]],
         "package_version": __version__, "data_root": os.path.abspath(data_root), "data_fingerprint": data.fingerprint,
         "device": dev.type, "updated": time.strftime("%Y-%m-%dT%H:%M:%S%z")})
     atomic_write_text(os.path.join(out, "config.yaml"), yaml.safe_dump(cfg, sort_keys=False))
-    real = {"ees": _ees(data.val["x"], data.val["lengths"], data), **motion_quality(data.val["x"], data.val["lengths"], data)}
+    real = feature_quality(*data.val.padded(), data.mean, data.std)
     rows = [row_from_cache(v["name"], c) for v, _, _, c, _ in plan]
     try:
         for k, (variant, vdir, prov, cached, action) in enumerate(plan):
@@ -721,101 +421,6 @@ def _on_main(ctx, fn: Callable[[], Any]) -> Any:
     return value
 
 
-# ----------------------------------------------------------------------------------------- report
-COLUMNS = ("variant", "status", "final loss", "best loss", "val loss", "steps/s", "keyframe error (mm)", "EES (cm/frame)",
-           "jitter (m/s³)", "foot skating", "wall (s)")
-#: the report's reference row: the real validation motions
-REFERENCE_ROW = "real validation motion"
-
-
-def _fmt(v: Any, spec: str) -> str:
-    return "—" if v is None or (isinstance(v, float) and not math.isfinite(v)) else format(v, spec)
-
-
-def write_report(results: List[Dict[str, Any]], out: str, real_ees: Optional[float], cfg: Dict[str, Any],
-                 data_fingerprint: Optional[str] = None, real: Optional[Dict[str, Optional[float]]] = None) -> str:
-    """``results.md`` / ``results.csv`` / ``loss_curves.png`` of ``results`` (one row per variant;
-    numbers only for ``ok`` rows; jitter and foot skating of the variant's unconditional samples),
-    then, with ``real`` (``ees``, ``jitter``, ``foot_skating`` of the real validation motions), a
-    reference row; returns the markdown."""
-    rows = []
-    for r in results:
-        ok = r.get("status") == "ok"
-        rows.append([r["name"], r.get("status", "?"),
-                     _fmt(r.get("final_loss") if ok else None, ".4f"), _fmt(r.get("best_loss") if ok else None, ".4f"),
-                     _fmt(r.get("val_loss") if ok else None, ".4f"),
-                     _fmt(r.get("steps_per_s") if ok else None, ".2f"),
-                     _fmt(r.get("keyframe_error_mm") if ok else None, ".1f"),
-                     _fmt(r.get("ees") if ok else None, ".3f"),
-                     _fmt(r.get("jitter") if ok else None, ".0f"), _fmt(r.get("foot_skating") if ok else None, ".3f"),
-                     _fmt(r.get("wall_s") if r.get("status") in ("ok", "failed") else None, ".0f")])
-    if real is not None:
-        rows.append([REFERENCE_ROW, "reference"] + ["—"] * 5 + [_fmt(real.get("ees"), ".3f"),
-                                                                 _fmt(real.get("jitter"), ".0f"),
-                                                                 _fmt(real.get("foot_skating"), ".3f"), "—"])
-    with atomic_open(os.path.join(out, "results.csv"), "w", newline="") as f:
-        w = csv.writer(f)
-        w.writerow(COLUMNS)
-        w.writerows(rows)
-    lines = [f"{cfg.get('name', 'ablation')}: {cfg['steps']} steps × batch {cfg['batch']}, seed {cfg['seed']}, "
-             f"TinyMDM {cfg['model']}, {cfg['diffusion_steps']} diffusion steps; sparse base {cfg.get('sparse')}",
-             "", "| " + " | ".join(COLUMNS) + " |", "| --- | --- |" + " ---: |" * (len(COLUMNS) - 2)]
-    lines += ["| " + " | ".join(r) + " |" for r in rows]
-    try:
-        import smdm_plugin.metrics  # noqa: F401
-
-        lines.append(f"\nEES of the real validation motions: {_fmt(real_ees, '.3f')} cm/frame "
-                     "(generated motions closer to it are better).")
-    except ImportError:
-        lines.append("\nEES: smdm_plugin.metrics is not available; column left empty.")
-    from .. import __version__
-
-    lines.append(f"\nProvenance: smdm-plugin {__version__}, data {cfg.get('data')}"
-                 + (f" (fingerprint {data_fingerprint})" if data_fingerprint else "")
-                 + "; per variant in <folder>/result.json.")
-    reused = [r["name"] for r in results if r.get("reused")]
-    if reused:
-        lines.append(f"\nReused from an earlier run with the same provenance: {', '.join(reused)}.")
-    for r in results:
-        if r.get("status") == "failed":
-            lines.append(f"\n{r['name']} failed: {r.get('error')}")
-        elif r.get("status") in ("stale", "corrupt"):
-            lines.append(f"\n{r['name']}: {r['status']}, not shown ({r.get('reason')}); run it with --only and "
-                         "--overwrite.")
-    pending = [r["name"] for r in results if r.get("status") == "not run"]
-    if pending:
-        lines.append(f"\nNot run yet: {', '.join(pending)}.")
-    text = "\n".join(lines)
-    atomic_write_text(os.path.join(out, "results.md"), text + "\n")
-    _plot(results, os.path.join(out, "loss_curves.png"))
-    return text
-
-
-def _plot(results: List[Dict[str, Any]], path: str) -> None:
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    fig, ax = plt.subplots(figsize=(9, 5))
-    for r in results:
-        if r.get("status") != "ok" or not r.get("losses"):
-            continue
-        loss = np.asarray(r["losses"])
-        k = max(1, len(loss) // 20)
-        sm = np.convolve(loss, np.ones(k) / k, mode="valid")
-        ax.plot(np.arange(len(sm)) + k, sm, label=r["name"], lw=1.5 if r["name"].startswith(("dense", "sparse")) else 1)
-    ax.set_xlabel("training step")
-    ax.set_ylabel("training loss (moving average)")
-    ax.set_yscale("log")
-    if ax.lines:
-        ax.legend(fontsize=8)
-    fig.tight_layout()
-    with atomic_open(path, "wb") as f:
-        fig.savefig(f, format="png", dpi=110)
-    plt.close(fig)
-
-
 # ----------------------------------------------------------------------------------------- CLI
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(
@@ -842,7 +447,7 @@ def build_parser() -> argparse.ArgumentParser:
     add_overwrite(g)
     p.add_argument("--no-progress", action="store_true", help="no progress bars")
     p.add_argument("--quick", action="store_true",
-                   help="the quick (seconds) variant of a study config (quality_compute): see smdm_plugin.apps.study")
+                   help="the quick (seconds) variant of a study config (quality_compute): see smdm_plugin.apps.ablate.study")
     return p
 
 
@@ -865,7 +470,7 @@ def main(argv: Optional[List[str]] = None) -> int:
         selected = select_variants(cfg, a.only)
     except ValueError as e:
         p.error(f"argument --only: {e}")
-    from .threads import apply_threads
+    from ..common.threads import apply_threads
     apply_threads(a.threads)
     data_root = a.data or cfg.get("data")
     if not data_root:
@@ -873,7 +478,7 @@ def main(argv: Optional[List[str]] = None) -> int:
                 "val.txt or test.txt), e.g. HumanML3D itself; the embedded CMU clips are joint positions, not "
                 "263-D features: `smdm demo` compares dense and sparse on them")
     cfg["data"] = data_root
-    from ..integrations.distributed import init_distributed, shutdown_distributed
+    from ...integrations.distributed import init_distributed, shutdown_distributed
 
     try:
         ctx = init_distributed(a.device)  # under torchrun: join the group (gloo on CPU, nccl on CUDA)
