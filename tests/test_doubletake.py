@@ -7,6 +7,7 @@ import pytest
 import torch
 
 from smdm_plugin import SparseConfig, TinyMDM, keyframe_count, sparsify
+from smdm_plugin import KEYFRAMES_KEY
 from smdm_plugin.adapters.doubletake import (PAPER_BLEND_LEN, attach_doubletake_forcing,
                                              detach_doubletake_forcing, doubletake_forced_frames,
                                              doubletake_forced_from_y, paper_blend_len)
@@ -111,7 +112,7 @@ def test_forced_frames_honoured_every_step():
     for mask in seen:
         assert bool(mask[first].all())
         assert int(mask.sum()) < int(y["mask"].sum())  # still sparse elsewhere
-    assert "keyframe_forced" not in y  # the caller's dict is untouched
+    assert KEYFRAMES_KEY not in y  # the caller's dict is untouched
 
     # second take: inpainting of the transition windows
     seen.clear()

@@ -37,6 +37,7 @@ from torch import nn
 
 from .family import register_family
 from .mdm import MDMFamily
+from .request import request_of, with_forced
 from .state import MISSING, SparseState
 
 #: the paper's DoubleTake transition blending length, in seconds
@@ -196,10 +197,10 @@ def _doubletake_pre_hook(module: nn.Module, args, kwargs):
     if window is not None:
         y["mask"] = window
     if forced is not None:
-        prev = y.get("keyframe_forced")
-        if isinstance(prev, torch.Tensor) and prev.shape == forced.shape:
+        prev = request_of(y).forced
+        if prev is not None and prev.shape == forced.shape:
             forced = forced | prev.to(forced.device, torch.bool)
-        y["keyframe_forced"] = forced
+        y = with_forced(y, forced)
     if where == "kw":
         kwargs = dict(kwargs)
         kwargs["y"] = y
@@ -209,12 +210,12 @@ def _doubletake_pre_hook(module: nn.Module, args, kwargs):
 
 
 def attach_doubletake_forcing(model: nn.Module) -> nn.Module:
-    """Make every call of ``model(x, t, y)`` carry ``y['keyframe_forced']`` derived from DoubleTake's
+    """Make every call of ``model(x, t, y)`` carry forced keyframes (:func:`with_forced`) derived from DoubleTake's
     ``is_transition`` / ``inpainting_mask``, and a ``y['mask']`` of the call's own window
     (:func:`doubletake_window_mask`), in a copy of ``y``. Idempotent; returns ``model``."""
     if getattr(model, "_smdm_doubletake_hook", None) is not None:
         return model
-    # prepend: must run before sparsify's own pre-hook, which reads y['keyframe_forced']
+    # prepend: must run before sparsify's own pre-hook, which reads the forced frames
     handle = model.register_forward_pre_hook(_doubletake_pre_hook, with_kwargs=True, prepend=True)
     model._smdm_doubletake_hook = handle
     return model

@@ -8,11 +8,12 @@ What ``sparsify`` (:mod:`smdm_plugin.adapters.surgery`) changes on such a model:
 * ``seqTransEncoder`` / ``seqTransDecoder`` is wrapped by :class:`KeyframeTransformer` (and its
   self-attention keys FSQ-quantised with ``config.fsq``);
 * a forward pre-hook decides the keyframes of every call and builds its
-  :class:`~smdm_plugin.core.plan.KeyframePlan` once: ``y['keyframe_mask']`` when given (training:
-  the diffusion wrapper selects it from x0 and passes its capacity as ``y['keyframe_capacity']``),
-  else the sampling schedule on ``(x_t, timesteps)``; ``y['keyframe_forced']`` frames are always
-  keyframes (inside the budget); DiP's ``context_len`` prefix frames are always kept. The input
-  embedding, the keyframe transformer and the interpolation all read that one plan.
+  :class:`~smdm_plugin.core.plan.KeyframePlan` once from the call's
+  :class:`~smdm_plugin.adapters.request.KeyframeRequest` (``y[KEYFRAMES_KEY]``): its ``mask`` when
+  given (training: the diffusion wrapper selects it from x0, with its ``capacity``), else the
+  sampling schedule on ``(x_t, timesteps)``; its ``forced`` frames are always keyframes (inside
+  the budget); DiP's ``context_len`` prefix frames are always kept. The input embedding, the
+  keyframe transformer and the interpolation all read that one plan.
 
 A call has static shapes and no host synchronisation (unless forced keyframes live on an
 accelerator: their count is read once to size the plan), so ``torch.compile(model,
@@ -34,8 +35,8 @@ from ..core.keyframe_transformer import KeyframeTransformer
 from ..core.losses import add_lipschitz_term
 from ..core.plan import KeyframePlan
 from .family import CallInputs, ModelFamily, register_family
-from .state import (MISSING, STATE_ATTR, SparseState, Variant, forced_from_y, frames_layout,
-                    lengths_from_y)
+from .request import request_of, with_request
+from .state import MISSING, STATE_ATTR, SparseState, Variant, frames_layout, lengths_from_y
 
 
 
@@ -157,8 +158,8 @@ def _rows_post_hook(module: nn.Module, args: tuple, output: torch.Tensor):
 
 class MDMFamily(ModelFamily):
     """MDM's ``forward(x [B, J, F, N], timesteps [B], y)``; lengths in ``y['mask']`` /
-    ``y['lengths']``, forced frames in ``y['keyframe_forced']``, training keyframes in
-    ``y['keyframe_mask']`` / ``y['keyframe_capacity']``; DiP's prefix frames kept dense."""
+    ``y['lengths']``, forced frames and training keyframes in ``y[KEYFRAMES_KEY]`` (a
+    :class:`~smdm_plugin.adapters.request.KeyframeRequest`); DiP's prefix frames kept dense."""
 
     name = "mdm"
 
@@ -223,24 +224,15 @@ class MDMFamily(ModelFamily):
     def read_call(self, state: SparseState, args: tuple, kwargs: Dict[str, Any]) -> CallInputs:
         x, timesteps, y = _call_args(args, kwargs)
         B, N = x.shape[0], x.shape[-1]
-        lengths = lengths_from_y(y, B, N, x.device)
-        return CallInputs(frames_layout(x), timesteps, lengths, forced_from_y(y, B, N, x.device),
-                          y.get("keyframe_mask"), y.get("keyframe_capacity"), "y['keyframe_mask']")
+        return CallInputs.of(frames_layout(x), timesteps, lengths_from_y(y, B, N, x.device), request_of(y), "y")
 
     def training_inputs(self, state: SparseState, x_start: torch.Tensor, model_kwargs: Dict[str, Any]):
-        y = (model_kwargs or {}).get("y", {})
-        frames = frames_layout(x_start)
-        B, N = frames.shape[:2]
-        return (frames, lengths_from_y(y, B, N, x_start.device), forced_from_y(y, B, N, x_start.device),
-                y.get("keyframe_mask"), y.get("keyframe_capacity"))
+        return self.read_call(state, (x_start, None, (model_kwargs or {}).get("y")), {})
 
     def with_keyframes(self, state: SparseState, model_kwargs: Dict[str, Any], mask: torch.Tensor,
                        capacity: Optional[int]) -> Dict[str, Any]:
         model_kwargs = dict(model_kwargs or {})
-        y = dict(model_kwargs.get("y", {}))
-        y["keyframe_mask"] = mask
-        if capacity is not None:
-            y["keyframe_capacity"] = capacity
+        y = with_request(model_kwargs.get("y"), mask=mask, capacity=capacity)
         if not state.config.interpolate and isinstance(y.get("mask"), torch.Tensor):
             y["mask"] = y["mask"] & mask.view(y["mask"].shape).to(y["mask"].dtype)   # keyframes-only loss
         model_kwargs["y"] = y
