@@ -21,6 +21,7 @@ fullgraph=True)`` and CUDA graphs work on the sparse model as on the dense one.
 """
 from __future__ import annotations
 
+import functools
 from typing import Any, Dict, List, Optional
 
 import torch
@@ -126,16 +127,15 @@ def cubic_output(output: torch.Tensor, plan: KeyframePlan) -> torch.Tensor:
 # is interpolated from the kept ones), so the embedding of the other frames is never used: the
 # hooks below hand ``poseEmbedding`` the rows of the plan's slots ``[K*B, F]`` (static shape; on
 # the CPU in eager mode, exactly the keyframe rows) and scatter its output back to ``[N, B, d]``
-# with zeros elsewhere. They are plain functions that find the model's state through an attribute
-# (not a closure), so ``copy.deepcopy`` (EMA) keeps each copy on its own state.
-def _rows_pre_hook(module: nn.Module, args: tuple):
-    state: Optional[SparseState] = getattr(module, "_smdm_rows_state", None)
-    plan = None if state is None else state.plan
+# with zeros elsewhere. They are registered as ``functools.partial(hook, state)``: the embedding
+# carries no attribute of ours, and ``copy.deepcopy`` (EMA) copies the partial with the model, so
+# each copy's hooks hold that copy's own state.
+def _rows_pre_hook(state: SparseState, module: nn.Module, args: tuple):
+    plan = state.plan
     x = args[0] if args else None
     if (plan is None or not isinstance(x, torch.Tensor) or x.dim() != 3 or len(args) != 1
             or x.shape[0] != plan.frames or x.shape[1] != plan.batch):
-        if state is not None:
-            state.embed_rows = None
+        state.embed_rows = None
         return None
     N, B, F_ = x.shape
     if host_checkable(plan.mask):                          # exact keyframe rows (data-dependent size)
@@ -146,9 +146,8 @@ def _rows_pre_hook(module: nn.Module, args: tuple):
     return (gather_rows(x.reshape(N * B, F_), rows),)
 
 
-def _rows_post_hook(module: nn.Module, args: tuple, output: torch.Tensor):
-    state: Optional[SparseState] = getattr(module, "_smdm_rows_state", None)
-    rows = None if state is None else state.embed_rows
+def _rows_post_hook(state: SparseState, module: nn.Module, args: tuple, output: torch.Tensor):
+    rows = state.embed_rows
     if rows is None:
         return None
     idx, N, B = rows
@@ -198,19 +197,16 @@ class MDMFamily(ModelFamily):
                           model.register_forward_hook(_post_hook, with_kwargs=True)]
         embed = getattr(model.input_process, "poseEmbedding", None)
         if isinstance(embed, nn.Module):
-            state.originals[(embed, "_smdm_rows_state")] = embed.__dict__.get("_smdm_rows_state", MISSING)
-            embed._smdm_rows_state = state
-            state.handles += [embed.register_forward_pre_hook(_rows_pre_hook),
-                              embed.register_forward_hook(_rows_post_hook)]
+            state.handles += [embed.register_forward_pre_hook(functools.partial(_rows_pre_hook, state)),
+                              embed.register_forward_hook(functools.partial(_rows_post_hook, state))]
         if config.fsq:                                    # FSQ keys in the self-attention
             for m in inner.modules():
                 if isinstance(getattr(m, "self_attn", None), nn.MultiheadAttention):
                     state.originals[(m, "self_attn")] = m.self_attn
-            if isinstance(inner, nn.TransformerEncoder):
-                state.originals[(inner, "use_nested_tensor")] = inner.use_nested_tensor
-                state.originals[(inner, "_smdm_nested_tensor")] = inner.__dict__.get("_smdm_nested_tensor",
-                                                                                     MISSING)
             state.fsq_layers = quantize_attention_keys(inner, config.fsq_levels)
+            if isinstance(inner, nn.TransformerEncoder):   # FSQ layers: no nested-tensor fast path
+                state.originals[(inner, "use_nested_tensor")] = inner.use_nested_tensor
+                inner.use_nested_tensor = False
 
     def uninstall(self, model: nn.Module, state: SparseState) -> None:
         """``unsparsify`` keeps the trained attention: each FSQ self-attention goes back as an

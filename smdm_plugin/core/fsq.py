@@ -336,35 +336,25 @@ def quantize_attention_keys(module: nn.Module, levels: Sequence[int]) -> int:
     """In place: replace each ``self_attn`` ``nn.MultiheadAttention`` inside ``module`` (e.g. of
     ``nn.TransformerEncoderLayer`` / ``nn.TransformerDecoderLayer``) by
     :meth:`FSQMultiheadAttention.from_mha`. Cross-attention (``multihead_attn``) is left alone.
-    Turns off ``nn.TransformerEncoder``'s nested-tensor path. Returns the number replaced."""
+    ``nn.TransformerEncoder``'s nested-tensor setting stays (FSQ attention takes nested input;
+    ``sparsify`` turns it off and back on). Returns the number replaced."""
     count = 0
     for m in list(module.modules()):
         attn = getattr(m, "self_attn", None)
         if isinstance(attn, nn.MultiheadAttention):
             m.self_attn = FSQMultiheadAttention.from_mha(attn, levels)
             count += 1
-    for m in module.modules():
-        if isinstance(m, nn.TransformerEncoder) and any(
-                isinstance(getattr(layer, "self_attn", None), FSQMultiheadAttention)
-                for layer in m.layers):
-            if not hasattr(m, "_smdm_nested_tensor"):
-                m._smdm_nested_tensor = m.use_nested_tensor
-            m.use_nested_tensor = False
     return count
 
 
 def unquantize_attention_keys(module: nn.Module) -> int:
     """In place, the inverse of :func:`quantize_attention_keys`: each ``FSQMultiheadAttention``
     ``self_attn`` becomes an ``nn.MultiheadAttention`` with its current weights
-    (:meth:`FSQMultiheadAttention.to_mha`), and ``nn.TransformerEncoder``'s nested-tensor setting
-    is put back. Returns the number replaced."""
+    (:meth:`FSQMultiheadAttention.to_mha`). Returns the number replaced."""
     count = 0
     for m in list(module.modules()):
         attn = getattr(m, "self_attn", None)
         if isinstance(attn, FSQMultiheadAttention):
             m.self_attn = attn.to_mha()
             count += 1
-    for m in module.modules():
-        if isinstance(m, nn.TransformerEncoder) and hasattr(m, "_smdm_nested_tensor"):
-            m.use_nested_tensor = m.__dict__.pop("_smdm_nested_tensor")
     return count
