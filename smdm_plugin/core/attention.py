@@ -29,8 +29,30 @@ def project_qkv(attn: nn.Module, query: Tensor, key: Tensor, value: Tensor) -> T
     if key is value:
         k, v = F.linear(key, W[E:], bkv).chunk(2, dim=-1)
         return q, k, v
-    bk, bv = (bkv[:E], bkv[E:]) if bkv is not None else (None, None)
-    return q, F.linear(key, W[E:2 * E], bk), F.linear(value, W[2 * E:], bv)
+    bk = bkv[:E] if bkv is not None else None
+    return q, F.linear(key, W[E:2 * E], bk), project_value(attn, value)
+
+
+def project_value(attn: nn.Module, value: Tensor) -> Tensor:
+    """``v [..., E]``: ``attn``'s value projection alone."""
+    W, b = attn.in_proj_weight, attn.in_proj_bias
+    E = W.shape[1]
+    return F.linear(value, W[2 * E:], b[2 * E:] if b is not None else None)
+
+
+def attend_single_key(attn: nn.Module, value: Tensor, sample: Tensor) -> Tensor:
+    """Attention when each sample has exactly one key (MDM trans_dec: the condition token):
+    softmax over one key is exactly 1, so query row ``r`` gets the value row of its sample
+    ``sample[r]`` whatever the query is (its projection gets zero gradient, as in the full maths).
+    ``value [B, E]`` (the module's input), ``sample [T]`` long; returns ``[T, E]`` before
+    ``out_proj``. In training the module's dropout drops that one weight per row and head, as SDPA
+    does."""
+    o = F.embedding(sample, project_value(attn, value))                  # [T, E]
+    if attn.training and attn.dropout > 0.0:
+        H = attn.num_heads
+        keep = F.dropout(o.new_ones(o.shape[0], H, 1), attn.dropout, True)
+        o = (o.view(o.shape[0], H, -1) * keep).reshape(o.shape)
+    return o
 
 
 def attend(attn: nn.Module, q: Tensor, k: Tensor, v: Tensor, mask: Optional[Tensor]) -> Tensor:

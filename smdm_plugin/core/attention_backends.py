@@ -37,7 +37,7 @@ import torch
 import torch.nn as nn
 import torch.nn.functional as F
 
-from .attention import attend, float_mask, project_qkv
+from .attention import attend, attend_single_key, float_mask, project_qkv
 from .checks import static_shapes
 from .registry import Registry
 from .fsq import FSQMultiheadAttention, _disable_transformer_fast_path
@@ -298,6 +298,8 @@ class _AttentionOnPackedRows:
                  ) -> Tuple[torch.Tensor, None]:
         attn, p = self.attn, self.packing
         H = attn.num_heads
+        if key is not query and key.shape[0] == 1 and self.memory_padding is None:
+            return attn.out_proj(attend_single_key(attn, value[0], p.seg)), None
         q, k, v = project_qkv(attn, query, key, value)                  # [T, E] / [M, B, E]
         E = q.shape[-1]
         hd = E // H
