@@ -156,7 +156,9 @@ def keyframe_plan(state: SparseState, frames: torch.Tensor, timesteps: Any, leng
     device = frames.device
     if mask is not None:                                   # training (or a caller's own mask)
         valid = torch.arange(N, device=device)[None] < lengths[:, None]
-        mask = torch.as_tensor(mask, device=device)
+        # a mask chosen while loading (keyframe_collate) is still on the CPU: upstream loops move
+        # y's tensors, not the KeyframeRequest; copy it without waiting for the device
+        mask = torch.as_tensor(mask).to(device, non_blocking=True)
         if tuple(mask.shape) != (B, N):
             raise ValueError(f"{mask_name} must be bool [B, N]=[{B}, {N}], got {tuple(mask.shape)}")
         mask = mask.to(torch.bool) & valid
