@@ -66,8 +66,8 @@ def forced_for_edit(model: Any, model_kwargs: Optional[Dict[str, Any]], policy: 
     from ..adapters.request import request_of, with_forced
 
     y = (model_kwargs or {}).get("y")
-    if (not isinstance(y, dict) or request_of(y).forced is not None or "inpainting_mask" not in y
-            or "inpainted_motion" not in y or _sparse_model(model) is None):
+    if (not isinstance(y, dict) or "inpainting_mask" not in y or "inpainted_motion" not in y
+            or _sparse_model(model) is None or request_of(y).forced is not None):
         return model_kwargs
     motion = y["inpainted_motion"]
     B, N = motion.shape[0], motion.shape[-1]
