@@ -8,6 +8,7 @@ Attention modules keep ``nn.MultiheadAttention``'s parameter layout (``in_proj_w
 """
 from __future__ import annotations
 
+import math
 from typing import Optional, Tuple
 
 import torch
@@ -61,6 +62,17 @@ def attend(attn: nn.Module, q: Tensor, k: Tensor, v: Tensor, mask: Optional[Tens
     training: ``[B, H, L, hd]``."""
     p = attn.dropout if attn.training else 0.0
     return F.scaled_dot_product_attention(q, k, v, attn_mask=mask, dropout_p=p)
+
+
+def attend_with_weights(attn: nn.Module, q: Tensor, k: Tensor, v: Tensor, mask: Optional[Tensor]
+                        ) -> Tuple[Tensor, Tensor]:
+    """:func:`attend` that also returns the attention weights ``[B, H, L, S]`` (before dropout),
+    written out (SDPA does not return them): ``(out [B, H, L, hd], weights)``."""
+    scores = q @ k.transpose(-2, -1) / math.sqrt(q.shape[-1])
+    if mask is not None:
+        scores = scores + mask
+    weights = torch.softmax(scores, dim=-1)
+    return F.dropout(weights, p=attn.dropout, training=attn.training) @ v, weights
 
 
 def float_mask(mask: Optional[Tensor], dtype: torch.dtype) -> Optional[Tensor]:

@@ -16,7 +16,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
-from .attention import attend, float_mask, project_qkv
+from .attention import attend, attend_with_weights, float_mask, project_qkv
 from .checks import compiling
 
 __all__ = ["FSQ", "FSQMultiheadAttention", "quantize_attention_keys"]
@@ -269,17 +269,11 @@ class FSQMultiheadAttention(nn.Module):
             kpm = kpm.view(B, 1, 1, S)
             mask = kpm if mask is None else mask + kpm
 
-        p = self.dropout if self.training else 0.0
-        weights = None
         if need_weights:
-            scores = q @ k.transpose(-2, -1) / math.sqrt(self.head_dim)
-            if mask is not None:
-                scores = scores + mask
-            attn = torch.softmax(scores, dim=-1)                   # [B, H, L, S]
-            out = F.dropout(attn, p=p, training=self.training) @ v
-            weights = attn.mean(dim=1) if average_attn_weights else attn
+            out, weights = attend_with_weights(self, q, k, v, mask)   # weights [B, H, L, S]
+            weights = weights.mean(dim=1) if average_attn_weights else weights
         else:
-            out = attend(self, q, k, v, mask)
+            out, weights = attend(self, q, k, v, mask), None
         out = out.permute(0, 2, 1, 3) if bf else out.permute(2, 0, 1, 3)   # [B, L, H, hd] / [L, B, H, hd]
         out = self.out_proj(out.reshape(-1, E)).view(*out.shape[:2], E)
         if unbatched:
