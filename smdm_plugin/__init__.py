@@ -40,6 +40,7 @@ _EXPORTS: Dict[str, str] = {
     "set_mean_std": "adapters.surgery", "detect_variant": "adapters.mdm",
     "ModelFamily": "adapters.family", "register_family": "adapters.family", "families": "adapters.family",
     "CallInputs": "adapters.family",
+    "KeyframeRequest": "adapters.request", "KEYFRAMES_KEY": "adapters.request", "with_forced": "adapters.request",
     "attach_diffusion": "adapters.diffusion", "detach_diffusion": "adapters.diffusion",
     "keyframe_collate": "adapters.diffusion",
     "swap_text_encoder": "adapters.text_encoder", "HFTextEncoder": "adapters.text_encoder",
@@ -91,6 +92,7 @@ if TYPE_CHECKING:  # pragma: no cover - for type checkers and IDEs
     from .adapters.text_cache import TextEmbeddingCache, install_text_cache
     from .adapters.text_encoder import HFTextEncoder, swap_text_encoder
     from .adapters.family import CallInputs, ModelFamily, families, register_family
+    from .adapters.request import KEYFRAMES_KEY, KeyframeRequest, with_forced
     from .adapters.mdm import detect_variant
     from .adapters.surgery import is_sparse, set_mean_std, sparsify, unsparsify
     from .core.attention_backends import available_backends, get_backend, register_backend

@@ -129,9 +129,7 @@ def test_backend_unavailable_on_device_falls_back_to_compact():
         ab.BACKENDS.unregister("_never")
 
 
-def test_forced_varlen_without_flash_attn_is_correct(monkeypatch):
-    monkeypatch.setattr(ab, "_flash_attn_fn", lambda: None)
-    monkeypatch.setattr(ab, "_torch_varlen_fn", lambda: None)
+def test_varlen_decoder_with_padded_memory_is_correct():
     torch.manual_seed(3)
     S, B, d = 20, 3, 32
     dec = decoder().eval()
@@ -160,6 +158,9 @@ def test_varlen_falls_back_to_compact_for_hooks_and_custom_attention():
     assert calls == [4]  # hooks fire: ran through the modules (compact, capacity tokens)
     assert torch.allclose(out[keep.t()], ref[keep.t()], atol=1e-5)
     assert ab.supports_packed(enc)  # the hook is gone: packed again
+    h = enc.layers[1].self_attn.register_forward_hook(lambda m, a, o: None)
+    assert not ab.supports_packed(enc)  # varlen uses the attention's weights: its hooks would not fire
+    h.remove()
 
 
 @pytest.mark.parametrize("kind", ["encoder", "decoder"])
@@ -224,9 +225,9 @@ def test_varlen_on_cuda_matches_masked(dtype):
     assert torch.allclose(out[keep.t()].float(), ref[keep.t()].float(), atol=tol)
 
 
-def test_single_memory_token_shortcut_matches_reference_gradients():
-    """MDM trans_dec: one condition token per sample; varlen skips the (irrelevant) query
-    projection of the cross-attention but keeps outputs and every gradient (zeros included)."""
+def test_single_memory_token_matches_reference_gradients():
+    """MDM trans_dec: one condition token per sample; varlen keeps outputs and every gradient
+    (the query projection's exact zeros included)."""
     torch.manual_seed(7)
     dec = decoder().train()
     x = torch.randn(20, 3, 32, requires_grad=True)
@@ -241,3 +242,53 @@ def test_single_memory_token_shortcut_matches_reference_gradients():
         grads[name] = [x.grad.clone(), mem.grad.clone()] + [p.grad.clone() for p in dec.parameters()]
     for a, b in zip(grads["varlen"], grads["masked"]):
         assert torch.allclose(a, b, atol=1e-5)
+
+
+@pytest.mark.parametrize("kind", ["encoder", "decoder"])
+@pytest.mark.parametrize("fsq", [False, True])
+def test_varlen_runs_pytorch_s_own_layers_batch_first_and_leaves_them_unchanged(kind, fsq):
+    """varlen calls the wrapped module's own forward on packed rows: batch-first layers and FSQ
+    keys work as in the module itself, and the module is not changed (same attention objects, no
+    attribute added)."""
+    from smdm_plugin.core.fsq import quantize_attention_keys
+
+    torch.manual_seed(8)
+    d, B, S = 32, 3, 17
+    if kind == "encoder":
+        inner = nn.TransformerEncoder(nn.TransformerEncoderLayer(d, 4, 64, 0.0, batch_first=True), 2,
+                                      enable_nested_tensor=False)
+    else:
+        inner = nn.TransformerDecoder(nn.TransformerDecoderLayer(d, 4, 64, 0.0, batch_first=True), 2)
+    if fsq:
+        quantize_attention_keys(inner, (8, 5, 5, 5))
+    inner.train()
+    assert ab.supports_packed(inner)
+    before = [(dict(vars(layer)), layer.self_attn) for layer in inner.layers]
+    keep = keyframes(B, S, [17, 11, 4], 5)
+    mem = torch.randn(2, B, d) if kind == "decoder" else None
+    x = torch.randn(S, B, d, requires_grad=True)
+    w = torch.randn(S, B, d) * keep.t()[..., None]
+    results = {}
+    for name, fn in (("varlen", varlen_backend), ("masked", ab.masked_backend)):
+        x.grad = None
+        inner.zero_grad()
+        (run(fn, inner, x, keep, memory=mem) * w).sum().backward()
+        results[name] = (x.grad.clone(), inner.layers[0].self_attn.in_proj_weight.grad.clone())
+    for a, b in zip(results["varlen"], results["masked"]):
+        assert torch.allclose(a, b, atol=1e-5)
+    assert [(dict(vars(layer)), layer.self_attn) for layer in inner.layers] == before
+
+
+def test_varlen_falls_back_for_a_custom_layer_class():
+    class MyLayer(nn.TransformerEncoderLayer):
+        def forward(self, src, *args, **kwargs):
+            return super().forward(src, *args, **kwargs) * 2
+
+    enc = nn.TransformerEncoder(MyLayer(32, 4, 64, 0.0), 2, enable_nested_tensor=False).eval()
+    assert not ab.supports_packed(enc) and ab.supports_packed(encoder())
+    keep = keyframes(2, 12, [12, 7], 4)
+    x = torch.randn(12, 2, 32)
+    with torch.no_grad():
+        out = run(varlen_backend, enc, x, keep)
+        ref = reference(enc, x, keep)
+    assert torch.allclose(out[keep.t()], ref[keep.t()], atol=1e-5)

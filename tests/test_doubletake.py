@@ -7,7 +7,8 @@ import pytest
 import torch
 
 from smdm_plugin import SparseConfig, TinyMDM, keyframe_count, sparsify
-from smdm_plugin.adapters.doubletake import (PAPER_BLEND_LEN, attach_doubletake_forcing,
+from smdm_plugin import KEYFRAMES_KEY
+from smdm_plugin.adapters.doubletake import (PAPER_BLEND_LEN, attach_doubletake_forcing, has_doubletake_forcing,
                                              detach_doubletake_forcing, doubletake_forced_frames,
                                              doubletake_forced_from_y, paper_blend_len)
 from smdm_plugin.integrations.priormdm import sparsify_priormdm
@@ -111,7 +112,7 @@ def test_forced_frames_honoured_every_step():
     for mask in seen:
         assert bool(mask[first].all())
         assert int(mask.sum()) < int(y["mask"].sum())  # still sparse elsewhere
-    assert "keyframe_forced" not in y  # the caller's dict is untouched
+    assert KEYFRAMES_KEY not in y  # the caller's dict is untouched
 
     # second take: inpainting of the transition windows
     seen.clear()
@@ -131,7 +132,9 @@ def test_forced_frames_honoured_every_step():
 
 def test_detach():
     model, seen = _sparse_tiny()
+    assert has_doubletake_forcing(model)
     detach_doubletake_forcing(model)
+    assert not has_doubletake_forcing(model) and not model._forward_pre_hooks_with_kwargs.get(-1, False)
     lens = [30, 40]
     y = {"lengths": torch.tensor(lens), "is_transition": _first_take_transition(lens, 40)}
     with torch.no_grad():
@@ -181,7 +184,7 @@ def test_sparse_doubletake_warns_about_a_non_paper_blend(blend, warns):
     assert bool(hit) == warns
     if warns:
         assert "--blend_len 5" in hit[0] and ("priorMDM's default" in hit[0]) == (blend == 20)
-    assert model._smdm_doubletake_hook is not None  # forcing attached either way
+    assert has_doubletake_forcing(model)  # forcing attached either way
 
 
 def test_forced_frames_count_inside_the_budget():

@@ -18,6 +18,7 @@ from motiondiffuse_standin import StandInDiffusion, StandInMotionTransformer
 from smdm_plugin import (SimpleDiffusion, SparseConfig, TinyMDM, attach_diffusion, families, is_sparse,
                          load_checkpoint, save_sparse_config, sparsify, unsparsify)
 from smdm_plugin.adapters.family import family_for
+from smdm_plugin.adapters.state import SparseState
 from smdm_plugin.core.checks import static_mode
 from test_gpu_path import Dispatched
 
@@ -149,6 +150,19 @@ def assert_same(model, snap, same_objects=True):
     assert {k: v for k, v in model.__dict__.items() if not k.startswith("_")} == attrs
     assert [len(m._forward_pre_hooks) + len(m._forward_hooks) for m in model.modules()] == hooks
     assert not is_sparse(model) and not hasattr(model, "_smdm_state")
+
+
+def _our_attributes(model):
+    """``(module name, attribute)`` of every ``_smdm*`` instance attribute inside ``model``."""
+    return [(name, k) for name, m in model.named_modules() for k in vars(m) if k.startswith("_smdm")]
+
+
+def test_the_state_is_the_only_attribute_sparse_mode_puts_on_the_model(case):
+    model = case.build()
+    sparsify(model, case.config(), diffusion=case.diffusion())
+    assert _our_attributes(model) == [("", "_smdm_state")]
+    unsparsify(model)
+    assert _our_attributes(model) == []
 
 
 def test_every_builtin_family_is_registered_and_detected(case):
@@ -292,6 +306,10 @@ def test_sparse_state_is_deep_copied_with_the_model(case):
     sparsify(model, case.config())
     twin = copy.deepcopy(model)
     assert twin._smdm_state is not model._smdm_state and twin._smdm_state.family is model._smdm_state.family
+    for m in twin.modules():                 # hooks bound to a state (functools.partial) hold the twin's
+        for hook in [*m._forward_pre_hooks.values(), *m._forward_hooks.values()]:
+            bound = [a for a in getattr(hook, "args", ()) if isinstance(a, SparseState)]
+            assert all(a is twin._smdm_state for a in bound)
     x, y = case.inputs()
     model.eval(), twin.eval()
     with torch.no_grad():

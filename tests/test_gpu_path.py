@@ -17,6 +17,7 @@ import torch
 from torch.utils._python_dispatch import TorchDispatchMode
 
 from smdm_plugin import SimpleDiffusion, SparseConfig, TinyMDM, sparsify
+from smdm_plugin import KEYFRAMES_KEY, KeyframeRequest
 from smdm_plugin.core.checks import static_mode
 from smdm_plugin.core.fsq import quantize_attention_keys
 
@@ -102,7 +103,7 @@ def test_every_sparse_call_compiles_fullgraph_and_matches_eager(name):
     mask = state.schedule.training_mask(x.squeeze(2).transpose(1, 2), lengths)
     cap = state.schedule.capacity(N, training=True)
     t = STEPS
-    given = {**y, "keyframe_mask": mask, "keyframe_capacity": cap}
+    given = {**y, KEYFRAMES_KEY: KeyframeRequest(mask=mask, capacity=cap)}
     assert torch.allclose(compiled(x, t, dict(given)), model(x, t, dict(given)), atol=1e-4)
     # ... and through the attached diffusion (masks from x0, mask noise drawn inside)
     torch.manual_seed(3)

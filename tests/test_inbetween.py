@@ -13,6 +13,7 @@ import numpy as np
 import pytest
 import torch
 
+from smdm_plugin import KEYFRAMES_KEY
 from smdm_plugin.adapters import inbetween as ib
 from smdm_plugin.adapters.surgery import sparsify
 from smdm_plugin.adapters.state import get_state
@@ -196,7 +197,7 @@ def test_mdm_style_diffusion_gets_the_inpainting_keys_and_xt_is_refused():
     c, _ = constraint_y()
     out = ib.sample_inbetween(model, MDMLikeDiffusion(), c)
     assert calls["shape"] == (2, D, 1, N) and calls["clip"] is False
-    assert calls["y"]["inpainting_mask"].shape == (2, D, 1, N) and calls["y"]["keyframe_forced"].shape == (2, N)
+    assert calls["y"]["inpainting_mask"].shape == (2, D, 1, N) and calls["y"][KEYFRAMES_KEY].forced.shape == (2, N)
     assert torch.equal(out, c.target)
     with pytest.raises(ValueError, match="imputes the clean prediction only"):
         ib.sample_inbetween(model, MDMLikeDiffusion(), c, imputation="xt")
@@ -226,16 +227,16 @@ def test_mdm_edit_hook_forces_the_kept_frames_of_a_sparse_model_only(monkeypatch
     sparse, _ = tiny(sparse=True)
     GaussianDiffusion().p_sample_loop(ClassifierFreeGuidance(sparse), (2, D, 1, N), clip_denoised=False,
                                       model_kwargs={"y": y})
-    assert "keyframe_forced" not in y  # the caller's dict is untouched
-    assert seen["y"]["keyframe_forced"][0].nonzero().flatten().tolist() == [0, 5, 18, 23]
-    assert seen["y"]["keyframe_forced"][1].nonzero().flatten().tolist() == [0, 5, 18, 19]
+    assert KEYFRAMES_KEY not in y  # the caller's dict is untouched
+    assert seen["y"][KEYFRAMES_KEY].forced[0].nonzero().flatten().tolist() == [0, 5, 18, 23]
+    assert seen["y"][KEYFRAMES_KEY].forced[1].nonzero().flatten().tolist() == [0, 5, 18, 19]
     dense, _ = tiny(sparse=False)
     GaussianDiffusion().p_sample_loop(dense, (2, D, 1, N), None, False, {"y": y})  # positional
-    assert "keyframe_forced" not in seen["y"]
+    assert KEYFRAMES_KEY not in seen["y"]
     monkeypatch.setenv("SMDM_EDIT_FORCED", "all")
     kw = {"y": dict(y)}
     mdm_edit.add_forced_keyframes(sparse, kw)
-    assert kw["y"]["keyframe_forced"].sum().item() == 12 + 8
+    assert kw["y"][KEYFRAMES_KEY].forced.sum().item() == 12 + 8
     monkeypatch.setenv("SMDM_EDIT_FORCED", "every")
     with pytest.raises(ValueError, match="SMDM_EDIT_FORCED='every'"):
         mdm_edit.forced_for_edit(sparse, {"y": y})

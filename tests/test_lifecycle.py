@@ -8,6 +8,7 @@ import pytest
 import torch
 
 from smdm_plugin import SimpleDiffusion, SparseConfig, TinyMDM, is_sparse, sparsify, unsparsify
+from smdm_plugin import KEYFRAMES_KEY
 from smdm_plugin.adapters.diffusion import keyframe_collate
 from smdm_plugin.core.checks import static_mode
 
@@ -163,7 +164,7 @@ def test_keyframe_collate_chooses_the_masks_the_diffusion_would():
     seen = seen_masks(model)
     losses(diffusion, model, motion, cond["y"])                    # the loader's mask is used ...
     losses(diffusion, model, x, y)                                 # ... and equals the in-step one
-    assert torch.equal(seen[0], cond["y"]["keyframe_mask"]) and torch.equal(seen[0], seen[1])
+    assert torch.equal(seen[0], cond["y"][KEYFRAMES_KEY].mask) and torch.equal(seen[0], seen[1])
 
 
 @pytest.mark.parametrize("M", [1, 120])

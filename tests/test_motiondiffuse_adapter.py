@@ -8,6 +8,7 @@ import torch
 
 from motiondiffuse_standin import StandInDiffusion, StandInMotionTransformer
 from smdm_plugin import LipschitzMLP, SparseConfig, lipschitz_loss
+from smdm_plugin import KeyframeRequest, with_forced
 from smdm_plugin import sparsify as sparsify_motiondiffuse, unsparsify as unsparsify_motiondiffuse
 from smdm_plugin.adapters.motiondiffuse import trainer_loss, training_mean_std
 from smdm_plugin.integrations.motiondiffuse import (add_sparse_options, attach_trainer,
@@ -37,7 +38,7 @@ def test_all_keyframes_equals_dense():
         dense = model(x, t, length=length, text=text)
         sparsify_motiondiffuse(model, _dense_cfg())
         full = torch.ones(x.shape[:2], dtype=torch.bool)
-        sparse_explicit = model(x, t, length=length, text=text, keyframe_mask=full)
+        sparse_explicit = model(x, t, length=length, text=text, smdm_keyframes=KeyframeRequest(mask=full))
         sparse_sched = model(x, t, length=length, text=text)  # reduction 0 -> every frame
     valid = torch.arange(40)[None] < length[:, None]
     assert (sparse_explicit - dense)[valid].abs().max() < 1e-5
@@ -54,7 +55,7 @@ def test_sparse_tokens_and_interpolation():
     mask = torch.zeros(3, 40, dtype=torch.bool)
     mask[:, [0, 10, 16]] = True
     with torch.no_grad():
-        out = model(x, t, length=length, text=text, keyframe_mask=mask)
+        out = model(x, t, length=length, text=text, smdm_keyframes=KeyframeRequest(mask=mask))
     assert seen == [3]  # only keyframe tokens went through the decoder blocks
     # hidden features are linear between keyframes, and `out` is linear (no Lipschitz MLP here)
     mid = out[:, 5]
@@ -63,10 +64,15 @@ def test_sparse_tokens_and_interpolation():
     forced = torch.zeros(3, 40, dtype=torch.bool)
     forced[:, 7] = True
     with torch.no_grad():
-        model(x, t, length=length, text=text, keyframe_forced=forced)
+        model(x, t, length=length, text=text, **with_forced({}, forced))
     last = model._smdm_state.last_mask
     assert bool(last[:, 7].all())
     assert not bool(last[2, 17:].any())  # nothing beyond the valid length (17)
+    with torch.no_grad(), pytest.raises(TypeError, match=r"model_kwargs\['keyframe_forced'\] is not read since "
+                                                         r"smdm-plugin 0.4"):
+        model(x, t, length=length, text=text, keyframe_forced=forced)   # 0.3's keyword: refused, not ignored
+    with torch.no_grad(), pytest.raises(TypeError, match=r"unexpected keyword argument\(s\) \['forced'\]"):
+        model(x, t, length=length, text=text, forced=forced)
 
 
 def test_lipschitz_swap_and_unsparsify():

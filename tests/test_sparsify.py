@@ -5,6 +5,7 @@ import pytest
 import torch
 import torch.nn as nn
 
+from smdm_plugin import KEYFRAMES_KEY, KeyframeRequest, with_forced
 from smdm_plugin import (SimpleDiffusion, SparseConfig, TinyMDM, detect_variant, is_sparse, lipschitz_loss,
                          sparsify, unsparsify)
 from smdm_plugin.core.fsq import FSQMultiheadAttention, quantize_attention_keys
@@ -147,14 +148,32 @@ def test_explicit_and_forced_keyframes_are_honoured():
     forced = torch.zeros(2, 60, dtype=torch.bool)
     forced[:, 10:14] = True
     with torch.no_grad():
-        model(x, t, {**y, "keyframe_mask": explicit})
-        model(x, t, {**y, "keyframe_forced": forced})
-        model(x, t, {**y, "keyframe_mask": explicit, "keyframe_forced": forced})
+        model(x, t, {**y, KEYFRAMES_KEY: KeyframeRequest(mask=explicit)})
+        model(x, t, with_forced(y, forced))
+        model(x, t, {**y, KEYFRAMES_KEY: KeyframeRequest(mask=explicit, forced=forced)})
     assert torch.equal(seen[0], explicit)
     assert seen[2][forced].all()
     assert torch.equal(seen[4], explicit | forced)
-    with pytest.raises(ValueError, match=r"keyframe_mask'\] must be bool \[B, N\]"):
-        model(x, t, {**y, "keyframe_mask": explicit[:, :10]})
+    with pytest.raises(ValueError, match=r"y\['smdm_keyframes'\].mask must be bool \[B, N\]"):
+        model(x, t, {**y, KEYFRAMES_KEY: KeyframeRequest(mask=explicit[:, :10])})
+    with pytest.raises(ValueError, match=r"y\['smdm_keyframes'\].forced must be a bool tensor \[B, N\]"):
+        model(x, t, with_forced(y, forced[:1]))
+
+
+@pytest.mark.parametrize("key", ["keyframe_mask", "keyframe_capacity", "keyframe_forced"])
+def test_the_string_keys_of_0_3_are_an_error_naming_the_request(key):
+    """0.4: keyframes travel as one KeyframeRequest; an old key is refused, never ignored."""
+    model = sparsify(tiny(), SparseConfig(reduction=0.9, lipschitz=False)).eval()
+    x, t, y = batch(model, B=2)
+    with torch.no_grad(), pytest.raises(TypeError, match=rf"y\['{key}'\] is not read since smdm-plugin 0.4: "
+                                                         r"pass y\['smdm_keyframes'\] = smdm_plugin.KeyframeRequest"):
+        model(x, t, {**y, key: torch.ones(2, 60, dtype=torch.bool)})
+    with pytest.raises(TypeError, match=r"y\['smdm_keyframes'\] must be a smdm_plugin.KeyframeRequest, got dict"):
+        model(x, t, {**y, KEYFRAMES_KEY: {"mask": None}})
+    with pytest.raises(TypeError, match="KeyframeRequest.capacity must be a Python int >= 1"):
+        KeyframeRequest(mask=torch.ones(2, 60, dtype=torch.bool), capacity=torch.tensor(3))
+    with pytest.raises(TypeError, match="capacity is the slot count of a given mask"):
+        KeyframeRequest(capacity=3)
 
 
 def test_lipschitz_layers_swapped_and_unsparsify_restores_dense():
@@ -195,7 +214,7 @@ def test_training_losses_use_x0_mask_and_add_lipschitz_term():
     expected = MaskSchedule(model._smdm_state.config).training_mask(x.squeeze(2).transpose(1, 2), y["lengths"])
     assert torch.equal(seen[0], expected)  # from x0, not from the (pure-noise) x_t
     assert torch.allclose(terms["loss"] - terms["mse"], 0.5 * terms["lip"])
-    assert "keyframe_mask" not in y  # the caller's dict is not mutated
+    assert KEYFRAMES_KEY not in y  # the caller's dict is not mutated
 
 
 def test_sparse_training_reduces_loss_on_real_motion(hml_batch):

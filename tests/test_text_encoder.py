@@ -15,7 +15,7 @@ pytest.importorskip("transformers")
 
 from smdm_plugin import SimpleDiffusion, SparseConfig, TinyMDM, sparsify  # noqa: E402
 from smdm_plugin.adapters.text_encoder import (EncodeText, HFTextEncoder, pool_hidden, read_layout,  # noqa: E402
-                                               swap_text_encoder, text_encoder_of)
+                                               swap_text_encoder, swapped_text_encoder, text_encoder_of)
 from smdm_plugin.integrations import mdm_text  # noqa: E402
 from smdm_plugin.integrations.mdm import sparsify_mdm, warn_if_upstream_steps  # noqa: E402
 
@@ -213,7 +213,9 @@ def test_swap_on_tinymdm_sets_width_and_keeps_encoder_out_of_the_state_dict(bert
     before = {k for k in model.state_dict()}
     swap_text_encoder(model, bert_dir)
     assert model.clip_dim == 32 and model.embed_text.in_features == 32 and model.embed_text.out_features == 64
-    assert isinstance(text_encoder_of(model), HFTextEncoder) and model._smdm_text_encoder == bert_dir
+    assert isinstance(text_encoder_of(model), HFTextEncoder) and swapped_text_encoder(model) == bert_dir
+    assert not [k for k in vars(model) if k.startswith("_smdm")]     # the id lives on our EncodeText
+    assert swapped_text_encoder(tiny_model()) is None and text_encoder_of(tiny_model()) is None
     assert {k for k in model.state_dict()} == before  # no encoder weights saved
     x, y = motion_batch()
     model.eval()
@@ -224,6 +226,10 @@ def test_swap_on_tinymdm_sets_width_and_keeps_encoder_out_of_the_state_dict(bert
     # the text path equals: encoder -> pooled [B, W] -> embed_text
     enc = model.text_encoder(y["text"])
     torch.testing.assert_close(enc, text_encoder_of(model)(y["text"]))
+    from smdm_plugin.adapters.text_cache import install_text_cache
+
+    install_text_cache(model)
+    assert swapped_text_encoder(model) == bert_dir                   # read through the cache
 
 
 @pytest.mark.parametrize("arch", ["trans_enc", "trans_dec"])

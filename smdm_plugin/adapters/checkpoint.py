@@ -9,13 +9,13 @@ import torch.nn as nn
 from ..core.config import SparseConfig
 from ..io import checkpoint as _io
 from .surgery import is_sparse, sparsify
-from .text_encoder import swap_text_encoder
+from .text_encoder import swap_text_encoder, swapped_text_encoder
 
 
 def prepare_model(model: nn.Module, config: SparseConfig, **sparsify_kwargs: Any) -> nn.Module:
     """Make a freshly built ``model`` what ``config`` describes: the text encoder the weights were
     trained with (``config.text_encoder``), then sparse mode through the model's family."""
-    if config.text_encoder and getattr(model, "_smdm_text_encoder", None) != config.text_encoder:
+    if config.text_encoder and swapped_text_encoder(model) != config.text_encoder:
         swap_text_encoder(model, config.text_encoder)
     if config.enabled and not is_sparse(model):
         sparsify(model, config, **sparsify_kwargs)

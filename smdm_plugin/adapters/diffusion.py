@@ -2,7 +2,8 @@
 in-package :class:`~smdm_plugin.reference.diffusion.SimpleDiffusion`) for sparse training:
 
 * the keyframe mask is selected from the clean motion ``x_start`` (+ mask noise) and handed to
-  the model as ``y['keyframe_mask']``, with its static capacity as ``y['keyframe_capacity']``
+  the model, with its static capacity, as a
+  :class:`~smdm_plugin.adapters.request.KeyframeRequest` by the model family's ``with_keyframes``
   (unless the batch already carries one, chosen while loading: :func:`keyframe_collate`);
 * the loss stays on the dense, interpolated frames with the upstream valid-frame mask — or on
   keyframes only when ``config.interpolate`` is False (ablation);
@@ -20,13 +21,14 @@ from __future__ import annotations
 import functools
 import weakref
 from dataclasses import dataclass, field
-from typing import Any, List, Optional
+from typing import Any, List, Optional, Tuple
 
 import torch.nn as nn
 
 from ..core.config import SparseConfig
-from .state import (find_sparse_model, forced_from_y, frames_layout, get_state, lengths_from_y,
-                    protected_count)
+from ..core.checks import as_mask
+from .request import KEYFRAMES_KEY, request_of, with_request
+from .state import find_sparse_model, frames_layout, get_state, lengths_from_y, protected_count
 
 
 def diffusion_steps(diffusion: Any) -> int:
@@ -94,11 +96,10 @@ def attach_diffusion(diffusion: Any, config: Optional[SparseConfig] = None,
             return original(model, x_start, t, model_kwargs, *args, **kwargs)
         state = get_state(sparse)
         family = state.family
-        frames, lengths, forced, mask, capacity = family.training_inputs(state, x_start, model_kwargs or {})
+        call = family.training_inputs(state, x_start, model_kwargs or {})
+        mask, capacity = call.mask, call.capacity
         if mask is None:                         # else: chosen in data loading (keyframe_collate)
-            mask = state.schedule.training_mask(frames, lengths, forced, checked=True)
-            capacity = state.schedule.capacity(frames.shape[1], training=True,
-                                               forced=protected_count(forced, lengths))
+            mask, capacity = training_keyframes(state.schedule, call.frames, call.lengths, call.forced)
         model_kwargs = family.with_keyframes(state, model_kwargs or {}, mask, capacity)
         terms = original(model, x_start, t, model_kwargs, *args, **kwargs)
         return family.finish_losses(state, sparse, terms, mask)
@@ -136,8 +137,9 @@ def release_diffusions(model: nn.Module) -> None:
 class keyframe_collate:
     """Wrap an MDM-style ``collate_fn`` (returns ``(motion [B, J, F, N], {'y': {...}})``) so that the
     training keyframes are chosen while loading, on the CPU, in the loader's worker processes:
-    ``y['keyframe_mask']`` and ``y['keyframe_capacity']`` are added, and the diffusion wrapper uses
-    them instead of selecting on the GPU. The mask depends only on x0, so the result is the same
+    ``y[KEYFRAMES_KEY]`` gets their ``mask`` and ``capacity`` (a
+    :class:`~smdm_plugin.adapters.request.KeyframeRequest`), and the diffusion wrapper uses them
+    instead of selecting on the GPU. The mask depends only on x0, so the result is the same
     (mask noise is drawn in the worker). ``schedule``: the sparse model's
     ``MaskSchedule`` (``model._smdm_state.schedule``); it must be picklable for worker processes."""
 
@@ -150,7 +152,14 @@ class keyframe_collate:
         frames = frames_layout(motion)
         B, N = frames.shape[:2]
         lengths = lengths_from_y(y, B, N, motion.device)
-        forced = forced_from_y(y, B, N, motion.device)
-        y["keyframe_mask"] = self.schedule.training_mask(frames, lengths, forced, checked=True)
-        y["keyframe_capacity"] = self.schedule.capacity(N, training=True, forced=protected_count(forced, lengths))
+        forced = as_mask(request_of(y).forced, B, N, motion.device, f"y[{KEYFRAMES_KEY!r}].forced")
+        mask, capacity = training_keyframes(self.schedule, frames, lengths, forced)
+        cond["y"] = with_request(y, mask=mask, capacity=capacity)
         return motion, cond
+
+
+def training_keyframes(schedule: Any, frames: Any, lengths: Any, forced: Any) -> Tuple[Any, int]:
+    """``(mask bool [B, N], capacity K)``: the training keyframes of x0 ``frames [B, N, D]``
+    (valid ``lengths [B]``, ``forced [B, N]`` or None) by ``schedule`` (a ``MaskSchedule``)."""
+    mask = schedule.training_mask(frames, lengths, forced, checked=True)
+    return mask, schedule.capacity(frames.shape[1], training=True, forced=protected_count(forced, lengths))

@@ -34,10 +34,12 @@ from typing import Any, Dict, Optional, Sequence
 
 import torch
 from torch import nn
+from torch.utils.hooks import RemovableHandle
 
 from .family import register_family
 from .mdm import MDMFamily
-from .state import MISSING, SparseState
+from .request import request_of, with_forced
+from .state import SparseState
 
 #: the paper's DoubleTake transition blending length, in seconds
 PAPER_BLEND_SECONDS = 0.25
@@ -196,10 +198,10 @@ def _doubletake_pre_hook(module: nn.Module, args, kwargs):
     if window is not None:
         y["mask"] = window
     if forced is not None:
-        prev = y.get("keyframe_forced")
-        if isinstance(prev, torch.Tensor) and prev.shape == forced.shape:
+        prev = request_of(y).forced
+        if prev is not None and prev.shape == forced.shape:
             forced = forced | prev.to(forced.device, torch.bool)
-        y["keyframe_forced"] = forced
+        y = with_forced(y, forced)
     if where == "kw":
         kwargs = dict(kwargs)
         kwargs["y"] = y
@@ -208,23 +210,33 @@ def _doubletake_pre_hook(module: nn.Module, args, kwargs):
     return args, kwargs
 
 
+def has_doubletake_forcing(model: nn.Module) -> bool:
+    """Whether :func:`attach_doubletake_forcing` hooked ``model`` (read from its hooks: the model
+    carries no attribute of ours)."""
+    return any(h is _doubletake_pre_hook for h in model._forward_pre_hooks.values())
+
+
+def _attach(model: nn.Module) -> Optional[RemovableHandle]:
+    """The handle of a new forcing hook on ``model``; None when it already has one."""
+    if has_doubletake_forcing(model):
+        return None
+    # prepend: must run before sparsify's own pre-hook, which reads the forced frames
+    return model.register_forward_pre_hook(_doubletake_pre_hook, with_kwargs=True, prepend=True)
+
+
 def attach_doubletake_forcing(model: nn.Module) -> nn.Module:
-    """Make every call of ``model(x, t, y)`` carry ``y['keyframe_forced']`` derived from DoubleTake's
-    ``is_transition`` / ``inpainting_mask``, and a ``y['mask']`` of the call's own window
-    (:func:`doubletake_window_mask`), in a copy of ``y``. Idempotent; returns ``model``."""
-    if getattr(model, "_smdm_doubletake_hook", None) is not None:
-        return model
-    # prepend: must run before sparsify's own pre-hook, which reads y['keyframe_forced']
-    handle = model.register_forward_pre_hook(_doubletake_pre_hook, with_kwargs=True, prepend=True)
-    model._smdm_doubletake_hook = handle
+    """Make every call of ``model(x, t, y)`` carry forced keyframes (:func:`with_forced`) derived
+    from DoubleTake's ``is_transition`` / ``inpainting_mask``, and a ``y['mask']`` of the call's own
+    window (:func:`doubletake_window_mask`), in a copy of ``y``. Idempotent; returns ``model``."""
+    _attach(model)
     return model
 
 
 def detach_doubletake_forcing(model: nn.Module) -> nn.Module:
-    handle = getattr(model, "_smdm_doubletake_hook", None)
-    if handle is not None:
-        handle.remove()
-        model._smdm_doubletake_hook = None
+    """Remove :func:`attach_doubletake_forcing`'s hook (if any); returns ``model``."""
+    for key in [k for k, h in model._forward_pre_hooks.items() if h is _doubletake_pre_hook]:
+        del model._forward_pre_hooks[key]
+        model._forward_pre_hooks_with_kwargs.pop(key, None)
     return model
 
 
@@ -245,11 +257,9 @@ class DoubleTakeFamily(MDMFamily):
 
     def install(self, model: nn.Module, state: SparseState) -> None:
         super().install(model, state)
-        if getattr(model, "_smdm_doubletake_hook", None) is None:
-            state.originals[(model, "_smdm_doubletake_hook")] = model.__dict__.get("_smdm_doubletake_hook",
-                                                                                   MISSING)
-            attach_doubletake_forcing(model)
-            state.handles.append(model._smdm_doubletake_hook)
+        handle = _attach(model)
+        if handle is not None:            # attached here: unsparsify removes it again
+            state.handles.append(handle)
 
 
 register_family(DoubleTakeFamily())

@@ -14,8 +14,9 @@ its family. A family says:
 * :meth:`~ModelFamily.install` — which blocks become keyframe-only and how (MDM: the
   ``seqTransEncoder``/``Decoder`` wrapped by ``KeyframeTransformer`` plus forward hooks;
   MotionDiffuse: its ``forward``), recording every replacement in ``state.originals``;
-* :meth:`~ModelFamily.read_call` — how one model call's frames, timesteps, lengths, forced frames and
-  (training) keyframes arrive: a typed :class:`CallInputs`;
+* :meth:`~ModelFamily.read_call` — how one model call's frames, timesteps, lengths and
+  :class:`~smdm_plugin.adapters.request.KeyframeRequest` (forced frames, training keyframes) arrive:
+  a typed :class:`CallInputs`;
 * :meth:`~ModelFamily.training_inputs` / :meth:`~ModelFamily.with_keyframes` /
   :meth:`~ModelFamily.finish_losses` — how the family's diffusion ``training_losses`` is hooked:
   where x0's lengths and forced frames are, how the chosen keyframes reach the model, what is
@@ -33,9 +34,11 @@ from typing import Any, ClassVar, Dict, List, Optional, Sequence, Tuple
 import torch
 import torch.nn as nn
 
+from ..core.checks import as_mask
 from ..core.config import SparseConfig
 from ..core.plan import KeyframePlan
 from ..core.registry import Registry
+from .request import KEYFRAMES_KEY, KeyframeRequest
 from .state import SparseState, Variant, keyframe_plan
 
 
@@ -47,8 +50,10 @@ class CallInputs:
         frames: ``[B, N, D]`` the motion of the call (x_t while sampling, x_t in training).
         timesteps: ``[B]`` diffusion steps (or None).
         lengths: ``[B]`` long, valid frames (validated, ``2 <= L <= N``).
-        forced: bool ``[B, N]`` frames that must be keyframes, or None.
-        mask: bool ``[B, N]`` keyframes chosen by the caller (training), or None (sampling).
+        forced: bool ``[B, N]`` frames that must be keyframes (``KeyframeRequest.forced`` on the
+            call's device, shape checked), or None.
+        mask: bool ``[B, N]`` keyframes chosen by the caller (training: ``KeyframeRequest.mask``),
+            or None (sampling).
         capacity: the slot count chosen with ``mask`` (a Python int), or None.
         mask_name: how the family's calls pass ``mask`` (for error messages).
     """
@@ -59,7 +64,18 @@ class CallInputs:
     forced: Optional[torch.Tensor] = None
     mask: Optional[torch.Tensor] = None
     capacity: Optional[int] = None
-    mask_name: str = "keyframe_mask"
+    mask_name: str = "KeyframeRequest.mask"
+
+    @classmethod
+    def of(cls, frames: torch.Tensor, timesteps: Any, lengths: torch.Tensor, request: KeyframeRequest,
+           where: str) -> "CallInputs":
+        """The inputs of a call whose :class:`~smdm_plugin.adapters.request.KeyframeRequest` came in
+        ``where`` (``y``, ``model_kwargs``: error messages); its forced frames checked ``[B, N]``
+        and moved to ``frames``' device."""
+        B, N = frames.shape[:2]
+        name = f"{where}[{KEYFRAMES_KEY!r}]"
+        return cls(frames, timesteps, lengths, as_mask(request.forced, B, N, frames.device, f"{name}.forced"),
+                   request.mask, request.capacity, f"{name}.mask")
 
     def plan(self, state: SparseState) -> KeyframePlan:
         """The call's :class:`~smdm_plugin.core.plan.KeyframePlan` (see :func:`keyframe_plan`)."""
@@ -123,20 +139,24 @@ class ModelFamily(ABC):
     # ------------------------------------------------------------------ one model call
     @abstractmethod
     def read_call(self, state: SparseState, args: tuple, kwargs: Dict[str, Any]) -> CallInputs:
-        """The frames, timesteps, lengths, forced frames and given keyframes of one call."""
+        """The frames, timesteps, lengths, forced frames and given keyframes of one call: the one
+        place a family reads the call's :class:`~smdm_plugin.adapters.request.KeyframeRequest`
+        (with :func:`~smdm_plugin.adapters.request.request_of`)."""
 
     # ------------------------------------------------------------------ the diffusion's loss
     @abstractmethod
     def training_inputs(self, state: SparseState, x_start: torch.Tensor, model_kwargs: Dict[str, Any]
-                        ) -> Tuple[torch.Tensor, torch.Tensor, Optional[torch.Tensor], Optional[torch.Tensor],
-                                   Optional[int]]:
-        """``(frames [B, N, D], lengths [B], forced [B, N] | None, given mask | None, given
-        capacity | None)`` of a ``training_losses(model, x_start, t, model_kwargs)`` call."""
+                        ) -> CallInputs:
+        """The :class:`CallInputs` of a ``training_losses(model, x_start, t, model_kwargs)`` call
+        (frames from ``x_start``, no timesteps): :meth:`read_call` on the arguments the model will
+        get, so the request is read in one place."""
 
     @abstractmethod
     def with_keyframes(self, state: SparseState, model_kwargs: Dict[str, Any], mask: torch.Tensor,
                        capacity: Optional[int]) -> Dict[str, Any]:
-        """A copy of ``model_kwargs`` that hands the training keyframes to the model."""
+        """A copy of ``model_kwargs`` that hands the training keyframes to the model: the one place
+        a family builds the call's :class:`~smdm_plugin.adapters.request.KeyframeRequest` (with
+        :func:`~smdm_plugin.adapters.request.with_request`)."""
 
     def finish_losses(self, state: SparseState, model: nn.Module, terms: Dict[str, Any],
                       mask: torch.Tensor) -> Dict[str, Any]:

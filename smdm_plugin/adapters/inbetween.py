@@ -7,8 +7,8 @@ The user's keyframes are imposed in two ways at once:
   ``GaussianDiffusion`` and the in-package ``SimpleDiffusion`` impose at every sampling step, so the
   given frames of the output equal the target exactly (in the model's representation);
 * **forced keyframes** (sparse models only): the given frames become keyframe tokens of the sparse
-  transformer at every step (``y['keyframe_forced']``, bool ``[B, N]``), so the model attends to them
-  and interpolates its output from them. Which given frames are forced is a ``policy`` (see
+  transformer at every step (bool ``[B, N]``, :func:`~smdm_plugin.adapters.request.with_forced`),
+  so the model attends to them and interpolates its output from them. Which given frames are forced is a ``policy`` (see
   :func:`forced_keyframes`): a long run of given frames (MDM's in-between prefix / suffix) would
   otherwise take most of the keyframe budget.
 
@@ -23,6 +23,8 @@ from dataclasses import dataclass
 from typing import Any, Callable, Dict, Optional, Sequence, Tuple, Union
 
 import torch
+
+from .request import with_forced
 
 #: which given frames become forced keyframes (:func:`forced_keyframes`)
 POLICIES = ("ends", "all", "none")
@@ -183,13 +185,13 @@ def to_batch_major(x: torch.Tensor) -> torch.Tensor:
 def conditioning(constraint: KeyframeConstraint, njoints: int, nfeats: int = 1,
                  y: Optional[Dict[str, Any]] = None, policy: str = "ends") -> Dict[str, Any]:
     """MDM's ``y`` for in-betweening: a copy of ``y`` (text conditioning etc.) with
-    ``inpainting_mask`` / ``inpainted_motion`` (``[B, J, F, N]``), ``keyframe_forced`` (``[B, N]``,
-    per ``policy``), and the valid frames ``mask [B, 1, 1, N]`` / ``lengths [B]`` unless ``y`` has them."""
+    ``inpainting_mask`` / ``inpainted_motion`` (``[B, J, F, N]``), forced keyframes (``[B, N]``,
+    per ``policy``, :func:`~smdm_plugin.adapters.request.with_forced`), and the valid frames ``mask [B, 1, 1, N]`` / ``lengths [B]`` unless ``y`` has them."""
     out = dict(y or {})
     B, N, _ = constraint.target.shape
     out["inpainting_mask"] = to_frame_last(constraint.given, njoints, nfeats)
     out["inpainted_motion"] = to_frame_last(constraint.target, njoints, nfeats)
-    out["keyframe_forced"] = forced_keyframes(constraint.frames, constraint.lengths, policy)
+    out = with_forced(out, forced_keyframes(constraint.frames, constraint.lengths, policy))
     if "mask" not in out and "lengths" not in out:
         L = constraint.lengths
         out["lengths"] = L

@@ -8,11 +8,12 @@ What ``sparsify`` (:mod:`smdm_plugin.adapters.surgery`) changes on such a model:
 * ``seqTransEncoder`` / ``seqTransDecoder`` is wrapped by :class:`KeyframeTransformer` (and its
   self-attention keys FSQ-quantised with ``config.fsq``);
 * a forward pre-hook decides the keyframes of every call and builds its
-  :class:`~smdm_plugin.core.plan.KeyframePlan` once: ``y['keyframe_mask']`` when given (training:
-  the diffusion wrapper selects it from x0 and passes its capacity as ``y['keyframe_capacity']``),
-  else the sampling schedule on ``(x_t, timesteps)``; ``y['keyframe_forced']`` frames are always
-  keyframes (inside the budget); DiP's ``context_len`` prefix frames are always kept. The input
-  embedding, the keyframe transformer and the interpolation all read that one plan.
+  :class:`~smdm_plugin.core.plan.KeyframePlan` once from the call's
+  :class:`~smdm_plugin.adapters.request.KeyframeRequest` (``y[KEYFRAMES_KEY]``): its ``mask`` when
+  given (training: the diffusion wrapper selects it from x0, with its ``capacity``), else the
+  sampling schedule on ``(x_t, timesteps)``; its ``forced`` frames are always keyframes (inside
+  the budget); DiP's ``context_len`` prefix frames are always kept. The input embedding, the
+  keyframe transformer and the interpolation all read that one plan.
 
 A call has static shapes and no host synchronisation (unless forced keyframes live on an
 accelerator: their count is read once to size the plan), so ``torch.compile(model,
@@ -20,6 +21,7 @@ fullgraph=True)`` and CUDA graphs work on the sparse model as on the dense one.
 """
 from __future__ import annotations
 
+import functools
 from typing import Any, Dict, List, Optional
 
 import torch
@@ -34,8 +36,8 @@ from ..core.keyframe_transformer import KeyframeTransformer
 from ..core.losses import add_lipschitz_term
 from ..core.plan import KeyframePlan
 from .family import CallInputs, ModelFamily, register_family
-from .state import (MISSING, STATE_ATTR, SparseState, Variant, forced_from_y, frames_layout,
-                    lengths_from_y)
+from .request import request_of, with_request
+from .state import MISSING, STATE_ATTR, SparseState, Variant, frames_layout, lengths_from_y
 
 
 
@@ -125,16 +127,15 @@ def cubic_output(output: torch.Tensor, plan: KeyframePlan) -> torch.Tensor:
 # is interpolated from the kept ones), so the embedding of the other frames is never used: the
 # hooks below hand ``poseEmbedding`` the rows of the plan's slots ``[K*B, F]`` (static shape; on
 # the CPU in eager mode, exactly the keyframe rows) and scatter its output back to ``[N, B, d]``
-# with zeros elsewhere. They are plain functions that find the model's state through an attribute
-# (not a closure), so ``copy.deepcopy`` (EMA) keeps each copy on its own state.
-def _rows_pre_hook(module: nn.Module, args: tuple):
-    state: Optional[SparseState] = getattr(module, "_smdm_rows_state", None)
-    plan = None if state is None else state.plan
+# with zeros elsewhere. They are registered as ``functools.partial(hook, state)``: the embedding
+# carries no attribute of ours, and ``copy.deepcopy`` (EMA) copies the partial with the model, so
+# each copy's hooks hold that copy's own state.
+def _rows_pre_hook(state: SparseState, module: nn.Module, args: tuple):
+    plan = state.plan
     x = args[0] if args else None
     if (plan is None or not isinstance(x, torch.Tensor) or x.dim() != 3 or len(args) != 1
             or x.shape[0] != plan.frames or x.shape[1] != plan.batch):
-        if state is not None:
-            state.embed_rows = None
+        state.embed_rows = None
         return None
     N, B, F_ = x.shape
     if host_checkable(plan.mask):                          # exact keyframe rows (data-dependent size)
@@ -145,9 +146,8 @@ def _rows_pre_hook(module: nn.Module, args: tuple):
     return (gather_rows(x.reshape(N * B, F_), rows),)
 
 
-def _rows_post_hook(module: nn.Module, args: tuple, output: torch.Tensor):
-    state: Optional[SparseState] = getattr(module, "_smdm_rows_state", None)
-    rows = None if state is None else state.embed_rows
+def _rows_post_hook(state: SparseState, module: nn.Module, args: tuple, output: torch.Tensor):
+    rows = state.embed_rows
     if rows is None:
         return None
     idx, N, B = rows
@@ -157,8 +157,8 @@ def _rows_post_hook(module: nn.Module, args: tuple, output: torch.Tensor):
 
 class MDMFamily(ModelFamily):
     """MDM's ``forward(x [B, J, F, N], timesteps [B], y)``; lengths in ``y['mask']`` /
-    ``y['lengths']``, forced frames in ``y['keyframe_forced']``, training keyframes in
-    ``y['keyframe_mask']`` / ``y['keyframe_capacity']``; DiP's prefix frames kept dense."""
+    ``y['lengths']``, forced frames and training keyframes in ``y[KEYFRAMES_KEY]`` (a
+    :class:`~smdm_plugin.adapters.request.KeyframeRequest`); DiP's prefix frames kept dense."""
 
     name = "mdm"
 
@@ -197,19 +197,16 @@ class MDMFamily(ModelFamily):
                           model.register_forward_hook(_post_hook, with_kwargs=True)]
         embed = getattr(model.input_process, "poseEmbedding", None)
         if isinstance(embed, nn.Module):
-            state.originals[(embed, "_smdm_rows_state")] = embed.__dict__.get("_smdm_rows_state", MISSING)
-            embed._smdm_rows_state = state
-            state.handles += [embed.register_forward_pre_hook(_rows_pre_hook),
-                              embed.register_forward_hook(_rows_post_hook)]
+            state.handles += [embed.register_forward_pre_hook(functools.partial(_rows_pre_hook, state)),
+                              embed.register_forward_hook(functools.partial(_rows_post_hook, state))]
         if config.fsq:                                    # FSQ keys in the self-attention
             for m in inner.modules():
                 if isinstance(getattr(m, "self_attn", None), nn.MultiheadAttention):
                     state.originals[(m, "self_attn")] = m.self_attn
-            if isinstance(inner, nn.TransformerEncoder):
-                state.originals[(inner, "use_nested_tensor")] = inner.use_nested_tensor
-                state.originals[(inner, "_smdm_nested_tensor")] = inner.__dict__.get("_smdm_nested_tensor",
-                                                                                     MISSING)
             state.fsq_layers = quantize_attention_keys(inner, config.fsq_levels)
+            if isinstance(inner, nn.TransformerEncoder):   # FSQ layers: no nested-tensor fast path
+                state.originals[(inner, "use_nested_tensor")] = inner.use_nested_tensor
+                inner.use_nested_tensor = False
 
     def uninstall(self, model: nn.Module, state: SparseState) -> None:
         """``unsparsify`` keeps the trained attention: each FSQ self-attention goes back as an
@@ -223,24 +220,15 @@ class MDMFamily(ModelFamily):
     def read_call(self, state: SparseState, args: tuple, kwargs: Dict[str, Any]) -> CallInputs:
         x, timesteps, y = _call_args(args, kwargs)
         B, N = x.shape[0], x.shape[-1]
-        lengths = lengths_from_y(y, B, N, x.device)
-        return CallInputs(frames_layout(x), timesteps, lengths, forced_from_y(y, B, N, x.device),
-                          y.get("keyframe_mask"), y.get("keyframe_capacity"), "y['keyframe_mask']")
+        return CallInputs.of(frames_layout(x), timesteps, lengths_from_y(y, B, N, x.device), request_of(y), "y")
 
     def training_inputs(self, state: SparseState, x_start: torch.Tensor, model_kwargs: Dict[str, Any]):
-        y = (model_kwargs or {}).get("y", {})
-        frames = frames_layout(x_start)
-        B, N = frames.shape[:2]
-        return (frames, lengths_from_y(y, B, N, x_start.device), forced_from_y(y, B, N, x_start.device),
-                y.get("keyframe_mask"), y.get("keyframe_capacity"))
+        return self.read_call(state, (x_start, None, (model_kwargs or {}).get("y")), {})
 
     def with_keyframes(self, state: SparseState, model_kwargs: Dict[str, Any], mask: torch.Tensor,
                        capacity: Optional[int]) -> Dict[str, Any]:
         model_kwargs = dict(model_kwargs or {})
-        y = dict(model_kwargs.get("y", {}))
-        y["keyframe_mask"] = mask
-        if capacity is not None:
-            y["keyframe_capacity"] = capacity
+        y = with_request(model_kwargs.get("y"), mask=mask, capacity=capacity)
         if not state.config.interpolate and isinstance(y.get("mask"), torch.Tensor):
             y["mask"] = y["mask"] & mask.view(y["mask"].shape).to(y["mask"].dtype)   # keyframes-only loss
         model_kwargs["y"] = y

@@ -16,9 +16,10 @@ instance in place:
   ``src_mask`` exactly like upstream masks padded frames), runs the blocks and interpolates the
   hidden features of every frame from the slots before ``out`` — no host sync, so the call traces
   with ``torch.compile(fullgraph=True)``;
-* the keyframe mask is the ``keyframe_mask`` keyword when given (training: chosen from x0 by the
-  wrapped ``training_losses``, with its capacity as ``keyframe_capacity``), else the sampling
-  schedule on ``(x_t, timesteps)``; ``keyframe_forced`` frames are always keyframes.
+* the keyframes of a call come as the keyword ``smdm_keyframes=`` (:data:`KEYFRAMES_KEY`), a
+  :class:`~smdm_plugin.adapters.request.KeyframeRequest`: its ``mask`` when given (training: chosen
+  from x0 by the wrapped ``training_losses``, with its ``capacity``), else the sampling schedule on
+  ``(x_t, timesteps)``; its ``forced`` frames are always keyframes.
 
 ``unsparsify`` puts the original layers and ``forward`` back.
 
@@ -45,11 +46,12 @@ import torch
 import torch.nn as nn
 
 from ..core.attention_backends import fill_frames, gather_rows
-from ..core.checks import as_lengths, as_mask
+from ..core.checks import as_lengths
 from ..core.config import SparseConfig
 from ..core.interpolation import catmull_rom_refill
 from ..core.lipschitz import lipschitz_loss
 from .family import CallInputs, ModelFamily, register_family
+from .request import KEYFRAMES_KEY, OLD_KEYS, request_of, with_request
 from .state import MISSING, SparseState, Variant, find_sparse_model, get_state
 
 _REQUIRED = ("joint_embed", "out", "temporal_decoder_blocks", "sequence_embedding", "time_embed",
@@ -81,10 +83,9 @@ def _lengths(length: Any, B: int, T: int, device: torch.device) -> torch.Tensor:
 
 
 # --------------------------------------------------------------------------- forward
-def _sparse_forward(self, x, timesteps, length=None, text=None, xf_proj=None, xf_out=None,
-                    keyframe_mask=None, keyframe_forced=None, keyframe_capacity=None):
-    """Sparse ``MotionTransformer.forward``: same arguments and output ``[B, T, D]``, plus
-    ``keyframe_mask`` / ``keyframe_forced`` (bool ``[B, T]``) and ``keyframe_capacity`` (int)."""
+def _sparse_forward(self, x, timesteps, length=None, text=None, xf_proj=None, xf_out=None, **request):
+    """Sparse ``MotionTransformer.forward``: same arguments and output ``[B, T, D]``, plus the
+    keyword ``smdm_keyframes=`` (a :class:`~smdm_plugin.adapters.request.KeyframeRequest`)."""
     state: SparseState = get_state(self)
     B, T = x.shape[0], x.shape[1]
     if text is not None and len(text) != B:  # upstream's per-GPU slice of a replicated text list
@@ -97,9 +98,7 @@ def _sparse_forward(self, x, timesteps, length=None, text=None, xf_proj=None, xf
     h = self.joint_embed(x)
     h = h + self.sequence_embedding.unsqueeze(0)[:, :T, :]
 
-    plan = state.family.read_call(state, (x, timesteps, length), dict(
-        keyframe_mask=keyframe_mask, keyframe_forced=keyframe_forced, keyframe_capacity=keyframe_capacity)
-    ).plan(state)
+    plan = state.family.read_call(state, (x, timesteps, length), request).plan(state)
     state.last_mask = plan.mask
     D = h.shape[-1]
     K = plan.capacity
@@ -119,8 +118,8 @@ def _sparse_forward(self, x, timesteps, length=None, text=None, xf_proj=None, xf
 # --------------------------------------------------------------------------- the family
 class MotionDiffuseFamily(ModelFamily):
     """MotionDiffuse's ``MotionTransformer``: ``forward(x [B, T, D], timesteps [B], length, text,
-    xf_proj, xf_out)``; lengths in ``length``; forced / training keyframes as the keywords
-    ``keyframe_forced`` / ``keyframe_mask`` (+ ``keyframe_capacity``) of ``model_kwargs``."""
+    xf_proj, xf_out)``; lengths in ``length``; forced / training keyframes as the keyword
+    ``smdm_keyframes`` (a :class:`~smdm_plugin.adapters.request.KeyframeRequest`) of ``model_kwargs``."""
 
     name = "motiondiffuse"
 
@@ -155,20 +154,20 @@ class MotionDiffuseFamily(ModelFamily):
 
     def read_call(self, state: SparseState, args: tuple, kwargs: Dict[str, Any]) -> CallInputs:
         x, timesteps, length = args
+        unknown = sorted(set(kwargs) - {KEYFRAMES_KEY, *OLD_KEYS})
+        if unknown:
+            raise TypeError(f"MotionTransformer.forward() got unexpected keyword argument(s) {unknown}")
         B, T = x.shape[:2]
-        return CallInputs(x.detach(), timesteps, _lengths(length, B, T, x.device),
-                          as_mask(kwargs.get("keyframe_forced"), B, T, x.device, "keyframe_forced"),
-                          kwargs.get("keyframe_mask"), kwargs.get("keyframe_capacity"))
+        return CallInputs.of(x.detach(), timesteps, _lengths(length, B, T, x.device),
+                             request_of(kwargs, "model_kwargs"), "model_kwargs")
 
     def training_inputs(self, state: SparseState, x_start: torch.Tensor, model_kwargs: Dict[str, Any]):
-        B, T = x_start.shape[:2]
-        return (x_start.detach(), _lengths(model_kwargs.get("length"), B, T, x_start.device),
-                as_mask(model_kwargs.get("keyframe_forced"), B, T, x_start.device, "keyframe_forced"),
-                model_kwargs.get("keyframe_mask"), model_kwargs.get("keyframe_capacity"))
+        request = {k: v for k, v in model_kwargs.items() if k in (KEYFRAMES_KEY, *OLD_KEYS)}
+        return self.read_call(state, (x_start, None, model_kwargs.get("length")), request)
 
     def with_keyframes(self, state: SparseState, model_kwargs: Dict[str, Any], mask: torch.Tensor,
                        capacity: Optional[int]) -> Dict[str, Any]:
-        return {**model_kwargs, "keyframe_mask": mask, "keyframe_capacity": capacity}
+        return with_request(model_kwargs, "model_kwargs", mask=mask, capacity=capacity)
 
     def finish_losses(self, state: SparseState, model: nn.Module, terms: Dict[str, Any],
                       mask: torch.Tensor) -> Dict[str, Any]:

@@ -14,7 +14,7 @@ from typing import Any, Dict, List, Optional, Tuple
 import torch
 import torch.nn as nn
 
-from ..core.checks import as_lengths, as_mask, compiling, host_checkable, require
+from ..core.checks import as_lengths, compiling, host_checkable, require
 from ..core.config import STATE_ATTR, SparseConfig  # STATE_ATTR: the attribute the state lives under
 from ..core.plan import KeyframePlan
 from ..core.schedule import MaskSchedule
@@ -136,14 +136,9 @@ def lengths_from_y(y: Dict[str, Any], B: int, N: int, device: torch.device) -> t
     return torch.full((B,), N, dtype=torch.long, device=device)
 
 
-def forced_from_y(y: Dict[str, Any], B: int, N: int, device: torch.device) -> Optional[torch.Tensor]:
-    """``y['keyframe_forced']`` as bool ``[B, N]`` on ``device`` (shape checked), or None."""
-    return as_mask(y.get("keyframe_forced"), B, N, device, "y['keyframe_forced']")
-
-
 def keyframe_plan(state: SparseState, frames: torch.Tensor, timesteps: Any, lengths: torch.Tensor,
                   forced: Optional[torch.Tensor], mask: Any = None, capacity: Any = None,
-                  mask_name: str = "keyframe_mask") -> KeyframePlan:
+                  mask_name: str = "KeyframeRequest.mask") -> KeyframePlan:
     """The keyframe plan of one model call, for every family.
 
     Args:
@@ -161,7 +156,9 @@ def keyframe_plan(state: SparseState, frames: torch.Tensor, timesteps: Any, leng
     device = frames.device
     if mask is not None:                                   # training (or a caller's own mask)
         valid = torch.arange(N, device=device)[None] < lengths[:, None]
-        mask = torch.as_tensor(mask, device=device)
+        # a mask chosen while loading (keyframe_collate) is still on the CPU: upstream loops move
+        # y's tensors, not the KeyframeRequest; copy it without waiting for the device
+        mask = torch.as_tensor(mask).to(device, non_blocking=True)
         if tuple(mask.shape) != (B, N):
             raise ValueError(f"{mask_name} must be bool [B, N]=[{B}, {N}], got {tuple(mask.shape)}")
         mask = mask.to(torch.bool) & valid

@@ -349,14 +349,15 @@ class EncodeText:
     """The ``encode_text`` / ``text_encoder`` callable a swapped model gets: ``texts [B]`` -> the
     model's own text-feature convention. ``style``: ``mdm`` ``[1, B, W]`` (MDM's CLIP), ``dip``
     ``([1, B, W], pad mask [B, 1] all False)`` (DiP's DistilBERT: one text token), ``flat``
-    ``[B, W]`` (TinyMDM)."""
+    ``[B, W]`` (TinyMDM). ``source``: the encoder's id (hub id, folder or class name), what
+    :func:`swapped_text_encoder` reports."""
 
     STYLES = ("mdm", "dip", "flat")
 
-    def __init__(self, encoder: nn.Module, style: str) -> None:
+    def __init__(self, encoder: nn.Module, style: str, source: Optional[str] = None) -> None:
         if style not in self.STYLES:
             raise ValueError(f"EncodeText: style must be one of {self.STYLES}, got {style!r}")
-        self.encoder, self.style = encoder, style
+        self.encoder, self.style, self.source = encoder, style, source
 
     def __call__(self, texts: Sequence[str]) -> Any:
         emb = self.encoder(texts)  # [B, W]
@@ -379,10 +380,26 @@ def _text_style(model: nn.Module) -> str:
                     "encode_text + text_encoder_type (MDM, DiP) or text_encoder (TinyMDM))")
 
 
+def _installed(model: nn.Module) -> Optional[EncodeText]:
+    """The :class:`EncodeText` :func:`swap_text_encoder` installed on ``model`` (through a text
+    cache, which keeps it as ``encode``), else None: the model carries no attribute of ours."""
+    for attr in ("encode_text", "text_encoder"):
+        fn = model.__dict__.get(attr)
+        fn = fn if isinstance(fn, EncodeText) else getattr(fn, "encode", None)
+        if isinstance(fn, EncodeText):
+            return fn
+    return None
+
+
+def swapped_text_encoder(model: nn.Module) -> Optional[str]:
+    """The id of the encoder :func:`swap_text_encoder` put into ``model`` (None if never swapped)."""
+    fn = _installed(model)
+    return None if fn is None else fn.source
+
+
 def text_encoder_of(model: nn.Module) -> Optional[nn.Module]:
     """The encoder :func:`swap_text_encoder` put into ``model`` (None if never swapped)."""
-    enc = getattr(model, "clip_model", None)
-    return enc if getattr(model, "_smdm_text_encoder", None) is not None else None
+    return getattr(model, "clip_model", None) if _installed(model) is not None else None
 
 
 def swap_text_encoder(model: nn.Module, encoder: Union[str, nn.Module], *, pooling: Optional[str] = None,
@@ -398,7 +415,8 @@ def swap_text_encoder(model: nn.Module, encoder: Union[str, nn.Module], *, pooli
     The encoder goes to ``model.clip_model`` (the name MDM's checkpoint code already leaves out of
     saved weights), ``model.embed_text`` becomes ``nn.Linear(width, latent_dim)`` (new weights: train
     it), ``model.clip_dim = width``, and ``encode_text`` (MDM, DiP) / ``text_encoder`` (TinyMDM) the
-    :class:`EncodeText` of the model's convention. ``model._smdm_text_encoder`` records the id.
+    :class:`EncodeText` of the model's convention, which records the id
+    (:func:`swapped_text_encoder`).
     """
     style = _text_style(model)
     name = encoder if isinstance(encoder, str) else getattr(encoder, "name_or_path", type(encoder).__name__)
@@ -416,10 +434,9 @@ def swap_text_encoder(model: nn.Module, encoder: Union[str, nn.Module], *, pooli
     model.clip_model = encoder
     model.clip_dim = encoder.width
     model.embed_text = proj
-    fn = EncodeText(encoder, style)
+    fn = EncodeText(encoder, style, name)
     if style == "flat":
         model.text_encoder = fn
     else:
         model.encode_text = fn
-    model._smdm_text_encoder = name
     return model

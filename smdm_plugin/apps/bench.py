@@ -245,6 +245,7 @@ def _overhead_fns(model, batch, device, train: bool):
     shapes: ``(select, interp)`` callables."""
     from ..adapters.mdm import call_plan
     from ..adapters.state import frames_layout, get_state
+    from ..adapters.request import with_request
     from ..core.attention_backends import fill_frames
 
     state = get_state(model)
@@ -259,8 +260,7 @@ def _overhead_fns(model, batch, device, train: bool):
 
         def select():
             return state.schedule.sampling_mask(frames, late, lengths, checked=True)
-    y = dict(batch["y"])
-    y["keyframe_mask"], y["keyframe_capacity"] = select(), state.schedule.capacity(N, training=train)
+    y = with_request(batch["y"], mask=select(), capacity=state.schedule.capacity(N, training=train))
     plan = call_plan(state, batch["x"], None, y)
     lead = 1 if model.arch == "trans_enc" or getattr(model, "emb_trans_dec", False) else 0
     K = plan.capacity

@@ -17,16 +17,19 @@ anywhere valid). The keyframe transformer interpolates every frame from these ro
 * ``compact`` — the lead tokens and the ``K`` plan slots gathered to ``[lead + K, B, d]`` with a key
   padding mask over the empty slots, the wrapped module called as it is. Static shapes, no host
   sync: the default on accelerators and under ``torch.compile``; also the fallback for layers
-  ``varlen`` cannot re-apply (custom layers, hooks).
-* ``varlen``  — kept tokens packed with no padding at all ``[T, d]``, the layer maths of
-  ``nn.TransformerEncoderLayer`` / ``DecoderLayer`` re-applied with variable-length attention
-  (``flash_attn`` or PyTorch's ``varlen_attn`` on CUDA in half precision, else SDPA on a padded view
-  of the attention only). No padded rows in projections, feed-forward and norms, but the packed
-  size ``T`` is data-dependent (host syncs, dynamic shapes): the default in eager mode on the CPU,
-  where rows, not launches, cost time.
+  ``varlen`` cannot run (custom layer classes, hooks on layers).
+* ``varlen``  — kept tokens packed with no padding at all ``[T, d]`` through PyTorch's own
+  ``nn.TransformerEncoder`` / ``Decoder`` and layer ``forward`` (run on the packed rows as one
+  unbatched sequence; the wrapped module is not changed); each layer's attention module is called
+  through :class:`_AttentionOnPackedRows`, which pads only the heads for
+  ``scaled_dot_product_attention`` (:mod:`smdm_plugin.core.attention`, the package's one copy of
+  the attention maths). No padded rows in projections, feed-forward and norms, but the packed size
+  ``T`` is data-dependent (host syncs, dynamic shapes): the default in eager mode on the CPU, where
+  rows, not launches, cost time.
 """
 from __future__ import annotations
 
+import copy
 from dataclasses import dataclass
 from typing import Callable, Dict, Optional, Tuple
 
@@ -34,6 +37,7 @@ import torch
 import torch.nn as nn
 import torch.nn.functional as F
 
+from .attention import attend, attend_single_key, float_mask, project_qkv
 from .checks import static_shapes
 from .registry import Registry
 from .fsq import FSQMultiheadAttention, _disable_transformer_fast_path
@@ -162,27 +166,6 @@ def compact_backend(inner: nn.Module, x: torch.Tensor, plan: KeyframePlan, lead:
     return out.reshape(R * B, d), rows
 
 
-# ---------------------------------------------------------------------------------- varlen
-def _flash_attn_fn() -> Optional[Callable]:
-    try:
-        from flash_attn import flash_attn_varlen_func  # type: ignore
-        return flash_attn_varlen_func
-    except Exception:
-        return None
-
-
-def _torch_varlen_fn() -> Optional[Callable]:
-    try:
-        from torch.nn.attention.varlen import varlen_attn  # type: ignore
-        return varlen_attn
-    except Exception:
-        return None
-
-
-def _varlen_available(device: torch.device) -> bool:
-    return True  # the padded-attention fallback runs anywhere
-
-
 class _RowGather(torch.autograd.Function):
     """``t.index_select(0, idx)`` for *distinct* ``idx``; backward is a row copy (``index_copy``)
     instead of autograd's generic scatter-add, which is slow on CPU."""
@@ -253,9 +236,9 @@ def scatter_rows(t: torch.Tensor, idx: torch.Tensor, rows: int) -> torch.Tensor:
 class Packing:
     """Where the packed rows ``[T, ...]`` (batch-major, the order of ``keep.nonzero()``) sit.
 
-    ``counts [B]``, ``cu [B+1]`` (cumulative, for flash / varlen kernels), ``max`` (largest count),
-    ``seg [T]`` (sample of each row), ``src [T]`` (its position in the sequence), ``valid [B, max]``
-    and ``flat [T]`` (padded slot ``b * max + j`` of each row).
+    ``counts [B]``, ``cu [B+1]`` (cumulative), ``max`` (largest count), ``seg [T]`` (sample of
+    each row), ``src [T]`` (its position in the sequence), ``valid [B, max]`` and ``flat [T]``
+    (padded slot ``b * max + j`` of each row).
     """
 
     def __init__(self, keep: torch.Tensor) -> None:
@@ -270,17 +253,17 @@ class Packing:
         self.flat = self.seg * self.max + slot
         self.valid = torch.arange(self.max, device=keep.device) < self.counts.unsqueeze(1)
         self.full = self.T == B * self.max
-        self._bias: Dict[torch.dtype, torch.Tensor] = {}
+        self._padding: Dict[torch.dtype, torch.Tensor] = {}
 
-    def key_bias(self, dtype: torch.dtype) -> Optional[torch.Tensor]:
-        """Additive key padding mask ``[B, 1, 1, max]`` (0 / -inf), None when nothing is padded.
-        A float mask keeps SDPA on its fused CPU kernel (a bool mask sends it to the math path)."""
+    def key_padding(self, dtype: torch.dtype) -> Optional[torch.Tensor]:
+        """Additive key padding mask ``[B, max]`` (0 / -inf), None when nothing is padded; made
+        once per call and dtype (a float mask goes through every layer's attention as it is)."""
         if self.full:
             return None
-        if dtype not in self._bias:
-            bias = torch.zeros(self.B, 1, 1, self.max, dtype=dtype, device=self.valid.device)
-            self._bias[dtype] = bias.masked_fill_(~self.valid[:, None, None, :], float("-inf"))
-        return self._bias[dtype]
+        if dtype not in self._padding:
+            pad = torch.zeros(self.B, self.max, dtype=dtype, device=self.valid.device)
+            self._padding[dtype] = pad.masked_fill_(~self.valid, float("-inf"))
+        return self._padding[dtype]
 
     def pad(self, t: torch.Tensor) -> torch.Tensor:
         """``[T, ...]`` -> ``[B, max, ...]`` (padded slots hold zeros)."""
@@ -294,150 +277,98 @@ class Packing:
         return t if self.full else gather_rows(t, self.flat)
 
 
-def _use_varlen_kernel(q: torch.Tensor, dropout_p: float) -> bool:
-    return (q.is_cuda and dropout_p == 0.0 and q.dtype in (torch.float16, torch.bfloat16)
-            and (_flash_attn_fn() is not None or _torch_varlen_fn() is not None))
+# ---------------------------------------------------------------------------------- varlen
+class _AttentionOnPackedRows:
+    """Stands in for a layer's attention module while PyTorch's own layer runs on packed rows.
+
+    The layer calls it as it calls ``nn.MultiheadAttention`` (unbatched: ``query [T, d]``). The
+    module's own projections run on the packed rows (:func:`~smdm_plugin.core.attention.project_qkv`;
+    FSQ keys through the module's ``quantize_keys``), the heads are padded to ``[B, H, max, hd]``
+    for :func:`~smdm_plugin.core.attention.attend` (``scaled_dot_product_attention``) with a key
+    padding mask, and the output is packed again for the module's ``out_proj``: only the attention
+    sees padded rows. Cross-attention keys are the memory as given (``[M, B, d]``
+    sequence-first) with its own padding mask.
+    """
+
+    def __init__(self, attn: nn.Module, packing: Packing, memory_padding: Optional[torch.Tensor] = None) -> None:
+        self.attn, self.packing, self.memory_padding = attn, packing, memory_padding
+        self.batch_first = attn.batch_first        # read by nn.TransformerEncoder's fast-path checks
+
+    def __call__(self, query: torch.Tensor, key: torch.Tensor, value: torch.Tensor, *args, **kwargs
+                 ) -> Tuple[torch.Tensor, None]:
+        attn, p = self.attn, self.packing
+        H = attn.num_heads
+        if key is not query and key.shape[0] == 1 and self.memory_padding is None:
+            return attn.out_proj(attend_single_key(attn, value[0], p.seg)), None
+        q, k, v = project_qkv(attn, query, key, value)                  # [T, E] / [M, B, E]
+        E = q.shape[-1]
+        hd = E // H
+        if key is query:                                                # self-attention
+            if isinstance(attn, FSQMultiheadAttention) and attn.quantize:
+                k = attn.quantize_keys(k.reshape(-1, H, hd)).reshape(-1, E)
+            k, v = (p.pad(t).view(p.B, p.max, H, hd).transpose(1, 2) for t in (k, v))
+            mask = p.key_padding(q.dtype)
+            mask = None if mask is None else mask[:, None, None, :]
+        else:                                                           # memory [M, B, E]
+            k, v = (t.reshape(t.shape[0], p.B, H, hd).permute(1, 2, 0, 3) for t in (k, v))
+            mask = float_mask(self.memory_padding, q.dtype)
+            mask = None if mask is None else mask[:, None, None, :]
+        q = p.pad(q).view(p.B, p.max, H, hd).transpose(1, 2)           # [B, H, max, hd]
+        o = attend(attn, q, k, v, mask)
+        return attn.out_proj(p.unpad(o.transpose(1, 2)).reshape(-1, E)), None
 
 
-def _attend(q: torch.Tensor, k: torch.Tensor, v: torch.Tensor, pq: Packing, pk: Packing, dropout_p: float
-            ) -> torch.Tensor:
-    """Variable-length attention on packed ``q [Tq, H, Dh]``, ``k, v [Tk, H, Dh]``: flash_attn or
-    PyTorch's ``varlen_attn`` on CUDA (half precision, no dropout), else SDPA on the padded layout
-    ``[B, H, max, Dh]`` with a key padding mask (only the attention itself sees padding; the
-    projections, feed-forward and norms run on the packed rows)."""
-    if q.is_cuda and dropout_p == 0.0 and q.dtype in (torch.float16, torch.bfloat16):
-        fa = _flash_attn_fn()
-        if fa is not None:
-            return fa(q, k, v, pq.cu.int(), pk.cu.int(), pq.max, pk.max)
-        tv = _torch_varlen_fn()
-        if tv is not None:
-            try:
-                return tv(q, k, v, pq.cu.int(), pk.cu.int(), pq.max, pk.max)
-            except (RuntimeError, NotImplementedError, TypeError):
-                pass
-    qp, kp, vp = (p.pad(t).transpose(1, 2) for p, t in ((pq, q), (pk, k), (pk, v)))  # [B, H, L, Dh]
-    o = F.scaled_dot_product_attention(qp, kp, vp, attn_mask=pk.key_bias(q.dtype), dropout_p=dropout_p)
-    return pq.unpad(o.transpose(1, 2))
+def _packed_twin(layer: nn.Module, packing: Packing, memory_padding: Optional[torch.Tensor]) -> nn.Module:
+    """A shallow copy of ``layer`` (same parameters and submodules; the layer itself is not
+    changed) whose attention modules are called on packed rows."""
+    twin = copy.copy(layer)
+    twin.__dict__["self_attn"] = _AttentionOnPackedRows(layer.self_attn, packing)
+    if getattr(layer, "multihead_attn", None) is not None:
+        twin.__dict__["multihead_attn"] = _AttentionOnPackedRows(layer.multihead_attn, packing, memory_padding)
+    return twin
 
 
-def _mha_packed(mha: nn.MultiheadAttention, xq: torch.Tensor, xkv: torch.Tensor, self_attn: bool,
-                pq: Packing, pk: Packing, training: bool) -> torch.Tensor:
-    d, H = mha.embed_dim, mha.num_heads
-    Dh = d // H
-    W, b = mha.in_proj_weight, mha.in_proj_bias
-    p = mha.dropout if training else 0.0
-    if self_attn and not _use_varlen_kernel(xq, p):
-        # padded attention: one scatter of the fused q|k|v projection, one gather of the output
-        qkv = pq.pad(F.linear(xq, W, b)).view(pq.B, pq.max, 3, H, Dh).permute(2, 0, 3, 1, 4)
-        q, k, v = qkv.unbind(0)  # unbind: its backward stacks, no zero-filled [3, ...] per index
-        k = _quantized_keys(mha, k)
-        o = F.scaled_dot_product_attention(q, k, v, attn_mask=pq.key_bias(xq.dtype), dropout_p=p)
-        return mha.out_proj(pq.unpad(o.transpose(1, 2)).reshape(-1, d))
-    if not self_attn and pk.full and pk.max == 1:
-        # one memory token per sample (MDM trans_dec: the condition): softmax over a single key is
-        # exactly 1, so every query row gets that sample's value row, whatever q is; the query
-        # projection has exactly zero gradient (kept as zeros so optimisers treat it as before)
-        bkv = b[d:] if b is not None else None
-        v = F.linear(xkv, W[2 * d:], bkv[d:] if bkv is not None else None)  # [B, d]
-        o = F.embedding(pq.seg, v)  # [Tq, d]
-        if p > 0.0:  # dropout on the (single) attention weight, per row and head
-            keep = F.dropout(o.new_ones(o.shape[0], H, 1), p, True)
-            o = (o.view(-1, H, Dh) * keep).reshape(-1, d)
-        zero = W[:d].sum() * 0.0 + (b[:d].sum() * 0.0 if b is not None else 0.0)
-        return mha.out_proj(o) + zero
-    if self_attn:
-        q, k, v = F.linear(xq, W, b).chunk(3, dim=-1)
-        k = _quantized_keys(mha, k.reshape(-1, H, Dh)).reshape(-1, d)
-    else:
-        bq, bkv = (b[:d], b[d:]) if b is not None else (None, None)
-        q = F.linear(xq, W[:d], bq)
-        k, v = F.linear(xkv, W[d:], bkv).chunk(2, dim=-1)
-    o = _attend(q.reshape(-1, H, Dh), k.reshape(-1, H, Dh), v.reshape(-1, H, Dh), pq, pk, p)
-    return mha.out_proj(o.reshape(-1, d))
-
-
-def _quantized_keys(mha: nn.Module, k: torch.Tensor) -> torch.Tensor:
-    """Keys ``[..., head_dim]`` through an FSQ attention's bottleneck (others: unchanged)."""
-    return mha.quantize_keys(k) if isinstance(mha, FSQMultiheadAttention) and mha.quantize else k
-
-
-def _has_hooks(m: Optional[nn.Module]) -> bool:
-    if m is None:
-        return False
+def _has_hooks(m: nn.Module) -> bool:
     pre = [h for h in m._forward_pre_hooks.values() if h is not _disable_transformer_fast_path]
-    return bool(m._forward_hooks or pre or m._backward_hooks or getattr(m, "_backward_pre_hooks", None))
+    return bool(m._forward_hooks or pre or m._backward_hooks or m._backward_pre_hooks)
 
 
 def _supports_varlen(layer: nn.Module) -> bool:
-    """The layer maths can be re-applied to packed rows: ``nn.MultiheadAttention`` or FSQ
-    attention (packed q/k/v projection; FSQ keys applied to the packed keys) and no hooks on the
-    layer or its attention modules (``varlen`` reads their weights instead of calling them, which
-    would silently skip the hooks)."""
-    if any(_has_hooks(m) for m in (layer, getattr(layer, "self_attn", None),
-                                    getattr(layer, "multihead_attn", None))):
+    """PyTorch's own ``nn.TransformerEncoderLayer`` / ``DecoderLayer`` (whose ``forward`` calls its
+    attention modules once each, as :class:`_AttentionOnPackedRows` expects) with
+    ``nn.MultiheadAttention`` / FSQ attention (packed in-projection) and no hooks on the layer or its
+    attention modules (the layer's would see packed rows; the attention modules' parameters are
+    used, the modules not called, which would skip their hooks silently)."""
+    if type(layer) not in (nn.TransformerEncoderLayer, nn.TransformerDecoderLayer):
         return False
-    attn = getattr(layer, "self_attn", None)
-    if not (type(attn) in (nn.MultiheadAttention, FSQMultiheadAttention) and attn._qkv_same_embed_dim
-            and attn.in_proj_weight is not None):
-        return False
-    cross = getattr(layer, "multihead_attn", None)
-    return cross is None or (type(cross) is nn.MultiheadAttention and cross._qkv_same_embed_dim
-                             and cross.in_proj_weight is not None)
-
-
-def _ff(layer: nn.Module, h: torch.Tensor, drop) -> torch.Tensor:
-    return drop(layer.linear2(layer.dropout(layer.activation(layer.linear1(h)))))
+    attns = [layer.self_attn] + ([layer.multihead_attn] if hasattr(layer, "multihead_attn") else [])
+    return not any(_has_hooks(m) for m in [layer, *attns]) and all(
+        type(a) in (nn.MultiheadAttention, FSQMultiheadAttention) and a._qkv_same_embed_dim
+        and a.in_proj_weight is not None for a in attns)
 
 
 def varlen_packed(inner: nn.Module, x: torch.Tensor, keep: torch.Tensor,
                   memory: Optional[torch.Tensor] = None,
                   memory_key_padding_mask: Optional[torch.Tensor] = None) -> Tuple[torch.Tensor, Packing]:
-    """The transformer on the kept tokens packed with no padding: ``(h [T, d], packing)``."""
+    """The wrapped module on the kept tokens packed with no padding: ``(h [T, d], packing)``.
+
+    PyTorch's own ``inner.forward`` runs (on a shallow copy whose layers call their attention
+    through :class:`_AttentionOnPackedRows`) on the packed rows as one unbatched sequence."""
     S, B, d = x.shape
     pq = Packing(keep)
     h = gather_rows(x.reshape(S * B, d), pq.src * B + pq.seg)  # [T, d], batch-major
-    pk = pq
-    mem = None
-    if memory is not None:
-        M = memory.shape[0]
-        mkeep = torch.ones(B, M, dtype=torch.bool, device=x.device)
-        if memory_key_padding_mask is not None:
-            mkeep = ~memory_key_padding_mask.to(torch.bool)
-        pk = Packing(mkeep)
-        mem = gather_rows(memory.reshape(M * B, d), pk.src * B + pk.seg)
-    for layer in inner.layers:
-        first = layer.norm_first
-        training = layer.training  # the wrapper's eval()/train() reaches the layers, not ``inner``
-        sa = lambda t: layer.dropout1(_mha_packed(layer.self_attn, t, t, True, pq, pq, training))
-        if memory is None:
-            if first:
-                h = h + sa(layer.norm1(h))
-                h = h + _ff(layer, layer.norm2(h), layer.dropout2)
-            else:
-                h = layer.norm1(h + sa(h))
-                h = layer.norm2(h + _ff(layer, h, layer.dropout2))
-        else:
-            ca = lambda t: layer.dropout2(_mha_packed(layer.multihead_attn, t, mem, False, pq, pk, training))
-            if first:
-                h = h + sa(layer.norm1(h))
-                h = h + ca(layer.norm2(h))
-                h = h + _ff(layer, layer.norm3(h), layer.dropout3)
-            else:
-                h = layer.norm1(h + sa(h))
-                h = layer.norm2(h + ca(h))
-                h = layer.norm3(h + _ff(layer, h, layer.dropout3))
-    if inner.norm is not None:
-        h = inner.norm(h)
+    twin = copy.copy(inner)
+    twin.__dict__["layers"] = [_packed_twin(layer, pq, memory_key_padding_mask) for layer in inner.layers]
+    h = twin(h) if memory is None else twin(h, memory)
     return h, pq
 
 
 def varlen_backend(inner: nn.Module, x: torch.Tensor, plan: KeyframePlan, lead: int,
                    memory: Optional[torch.Tensor] = None, memory_key_padding_mask: Optional[torch.Tensor] = None,
                    lead_padding: Optional[torch.Tensor] = None) -> Tuple[torch.Tensor, torch.Tensor]:
-    """Packed tokens with no padding; the layer maths of ``nn.TransformerEncoderLayer`` /
-    ``nn.TransformerDecoderLayer`` (post- or pre-norm) re-applied to ``[T, d]``. Layers it cannot
-    re-apply (FSQ attention, custom layers, hooks), padded lead tokens and ``torch.compile`` make it
-    fall back to ``compact``."""
+    """Packed tokens with no padding through PyTorch's own layers (:func:`varlen_packed`); only
+    the attention pads. Custom layers, hooks on layers, padded lead tokens and static shapes
+    (``torch.compile``, :func:`~smdm_plugin.core.checks.static_mode`) fall back to ``compact``."""
     if lead_padding is not None or static_shapes() or not supports_packed(inner):
         return compact_backend(inner, x, plan, lead, memory, memory_key_padding_mask, lead_padding)
     keep = torch.cat([plan.mask.new_ones(plan.batch, lead), plan.mask], 1)
@@ -457,7 +388,7 @@ def supports_packed(inner: nn.Module) -> bool:
 
 register_backend("masked", masked_backend)
 register_backend("compact", compact_backend)
-register_backend("varlen", varlen_backend, _varlen_available, static_shapes=False, supports=supports_packed)
+register_backend("varlen", varlen_backend, static_shapes=False, supports=supports_packed)
 
 
 def fill_frames(h: torch.Tensor, rows: torch.Tensor, plan: KeyframePlan, lead: int,

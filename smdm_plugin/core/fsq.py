@@ -16,6 +16,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
+from .attention import attend, attend_with_weights, float_mask, project_qkv
 from .checks import compiling
 
 __all__ = ["FSQ", "FSQMultiheadAttention", "quantize_attention_keys"]
@@ -111,16 +112,6 @@ def _disable_transformer_fast_path(module: nn.Module, args: Any) -> None:
     """No-op forward pre-hook. Its presence makes ``nn.TransformerEncoderLayer`` skip its fused
     fast path (which would call the dense attention kernel directly and bypass FSQ)."""
     return None
-
-
-def _to_float_mask(mask: Optional[Tensor], dtype: torch.dtype) -> Optional[Tensor]:
-    """Bool (True = masked out) or float (additive) -> additive float mask."""
-    if mask is None:
-        return None
-    if mask.dtype == torch.bool:
-        return torch.zeros(mask.shape, dtype=dtype, device=mask.device).masked_fill(
-            mask, float("-inf"))
-    return mask.to(dtype)
 
 
 class FSQMultiheadAttention(nn.Module):
@@ -251,15 +242,7 @@ class FSQMultiheadAttention(nn.Module):
                 key_padding_mask = key_padding_mask.unsqueeze(0)
         bf = not unbatched and self.batch_first                    # else [T, B, E]
         E, H, hd = self.embed_dim, self.num_heads, self.head_dim
-        # projections in the input's own layout; one for self-attention (query is key is value)
-        if query is key and key is value:
-            q, k, v = F.linear(query, self.in_proj_weight, self.in_proj_bias).chunk(3, dim=-1)
-        else:
-            w_q, w_k, w_v = self.in_proj_weight.split(E)
-            b_q = b_k = b_v = None
-            if self.in_proj_bias is not None:
-                b_q, b_k, b_v = self.in_proj_bias.split(E)
-            q, k, v = F.linear(query, w_q, b_q), F.linear(key, w_k, b_k), F.linear(value, w_v, b_v)
+        q, k, v = project_qkv(self, query, key, value)             # in the input's own layout
         B = q.shape[0] if bf else q.shape[1]
         L, S = q.shape[1 if bf else 0], k.shape[1 if bf else 0]
         q, v = self._heads(q, bf), self._heads(v, bf)               # [B, H, T, hd]
@@ -270,7 +253,7 @@ class FSQMultiheadAttention(nn.Module):
             k = self._heads(k, bf)
         # combined additive mask, broadcastable to [B, H, L, S]
         dt = q.dtype
-        mask = _to_float_mask(attn_mask, dt)
+        mask = float_mask(attn_mask, dt)
         if mask is None and is_causal:
             mask = torch.full((L, S), float("-inf"), dtype=dt, device=q.device).triu(1)
         if mask is not None:
@@ -278,7 +261,7 @@ class FSQMultiheadAttention(nn.Module):
                 raise ValueError(f"FSQMultiheadAttention: attn_mask must be [L={L}, S={S}] or "
                                  f"[B*H={B * H}, L, S], got {tuple(mask.shape)}")
             mask = mask.reshape(B, H, L, S) if mask.dim() == 3 else mask.reshape(1, 1, L, S)
-        kpm = _to_float_mask(key_padding_mask, dt)
+        kpm = float_mask(key_padding_mask, dt)
         if kpm is not None:
             if kpm.shape != (B, S):
                 raise ValueError(f"FSQMultiheadAttention: key_padding_mask must be [B={B}, "
@@ -286,17 +269,11 @@ class FSQMultiheadAttention(nn.Module):
             kpm = kpm.view(B, 1, 1, S)
             mask = kpm if mask is None else mask + kpm
 
-        p = self.dropout if self.training else 0.0
-        weights = None
         if need_weights:
-            scores = q @ k.transpose(-2, -1) / math.sqrt(self.head_dim)
-            if mask is not None:
-                scores = scores + mask
-            attn = torch.softmax(scores, dim=-1)                   # [B, H, L, S]
-            out = F.dropout(attn, p=p, training=self.training) @ v
-            weights = attn.mean(dim=1) if average_attn_weights else attn
+            out, weights = attend_with_weights(self, q, k, v, mask)   # weights [B, H, L, S]
+            weights = weights.mean(dim=1) if average_attn_weights else weights
         else:
-            out = F.scaled_dot_product_attention(q, k, v, attn_mask=mask, dropout_p=p)
+            out, weights = attend(self, q, k, v, mask), None
         out = out.permute(0, 2, 1, 3) if bf else out.permute(2, 0, 1, 3)   # [B, L, H, hd] / [L, B, H, hd]
         out = self.out_proj(out.reshape(-1, E)).view(*out.shape[:2], E)
         if unbatched:
@@ -336,35 +313,25 @@ def quantize_attention_keys(module: nn.Module, levels: Sequence[int]) -> int:
     """In place: replace each ``self_attn`` ``nn.MultiheadAttention`` inside ``module`` (e.g. of
     ``nn.TransformerEncoderLayer`` / ``nn.TransformerDecoderLayer``) by
     :meth:`FSQMultiheadAttention.from_mha`. Cross-attention (``multihead_attn``) is left alone.
-    Turns off ``nn.TransformerEncoder``'s nested-tensor path. Returns the number replaced."""
+    ``nn.TransformerEncoder``'s nested-tensor setting stays (FSQ attention takes nested input;
+    ``sparsify`` turns it off and back on). Returns the number replaced."""
     count = 0
     for m in list(module.modules()):
         attn = getattr(m, "self_attn", None)
         if isinstance(attn, nn.MultiheadAttention):
             m.self_attn = FSQMultiheadAttention.from_mha(attn, levels)
             count += 1
-    for m in module.modules():
-        if isinstance(m, nn.TransformerEncoder) and any(
-                isinstance(getattr(layer, "self_attn", None), FSQMultiheadAttention)
-                for layer in m.layers):
-            if not hasattr(m, "_smdm_nested_tensor"):
-                m._smdm_nested_tensor = m.use_nested_tensor
-            m.use_nested_tensor = False
     return count
 
 
 def unquantize_attention_keys(module: nn.Module) -> int:
     """In place, the inverse of :func:`quantize_attention_keys`: each ``FSQMultiheadAttention``
     ``self_attn`` becomes an ``nn.MultiheadAttention`` with its current weights
-    (:meth:`FSQMultiheadAttention.to_mha`), and ``nn.TransformerEncoder``'s nested-tensor setting
-    is put back. Returns the number replaced."""
+    (:meth:`FSQMultiheadAttention.to_mha`). Returns the number replaced."""
     count = 0
     for m in list(module.modules()):
         attn = getattr(m, "self_attn", None)
         if isinstance(attn, FSQMultiheadAttention):
             m.self_attn = attn.to_mha()
             count += 1
-    for m in module.modules():
-        if isinstance(m, nn.TransformerEncoder) and hasattr(m, "_smdm_nested_tensor"):
-            m.use_nested_tensor = m.__dict__.pop("_smdm_nested_tensor")
     return count

@@ -4,13 +4,13 @@ MDM's edit script passes the frames to keep as ``y['inpainting_mask']`` (bool ``
 keep) and ``y['inpainted_motion']``, and its ``GaussianDiffusion.p_mean_variance`` imposes them by
 imputation of the clean prediction at every step. A sparse model additionally needs those frames
 among its keyframe tokens, or it may interpolate straight over the seam between kept and generated
-frames. :func:`forced_for_edit` adds ``y['keyframe_forced']`` (bool ``[B, N]``) for the whole frames
-the mask keeps, per a policy (:func:`smdm_plugin.adapters.inbetween.forced_keyframes`); the default
+frames. :func:`forced_for_edit` forces (``smdm_plugin.with_forced``, bool ``[B, N]``) the whole
+frames the mask keeps, per a policy (:func:`smdm_plugin.adapters.inbetween.forced_keyframes`); the default
 ``ends`` forces the two ends of every kept segment — for ``--edit_mode in_between`` the first and
 last frame of the motion and the two frames on either side of the generated gap — and leaves the
 keyframe budget to the selection. (``all`` would make MDM's 25% prefix + 25% suffix half of all
 frames tokens; docs/inbetween.md measures the policies.) ``upper_body`` keeps channels, not whole
-frames, so it forces nothing. Dense models, and ``y`` that already has ``keyframe_forced``, are left as
+frames, so it forces nothing. Dense models, and ``y`` that already forces keyframes, are left as
 they are. ``SMDM_EDIT_FORCED=ends|all|none`` picks the policy.
 
 Ways in: ``smdm run`` installs :func:`install_hooks` (wraps ``GaussianDiffusion.p_sample_loop`` as
@@ -59,13 +59,15 @@ def policy_from_env() -> str:
 
 def forced_for_edit(model: Any, model_kwargs: Optional[Dict[str, Any]], policy: Optional[str] = None
                     ) -> Optional[Dict[str, Any]]:
-    """``model_kwargs`` with ``y['keyframe_forced']`` added when ``model`` is sparse and ``y`` has
-    MDM's in-painting keys (a new dict; the caller's is not changed), else ``model_kwargs`` itself."""
+    """``model_kwargs`` with forced keyframes added to ``y`` (``smdm_plugin.with_forced``) when
+    ``model`` is sparse and ``y`` has MDM's in-painting keys (a new dict; the caller's is not
+    changed), else ``model_kwargs`` itself."""
     from ..adapters.inbetween import forced_keyframes, frames_from_inpainting_mask
+    from ..adapters.request import request_of, with_forced
 
     y = (model_kwargs or {}).get("y")
-    if (not isinstance(y, dict) or "keyframe_forced" in y or "inpainting_mask" not in y
-            or "inpainted_motion" not in y or _sparse_model(model) is None):
+    if (not isinstance(y, dict) or "inpainting_mask" not in y or "inpainted_motion" not in y
+            or _sparse_model(model) is None or request_of(y).forced is not None):
         return model_kwargs
     motion = y["inpainted_motion"]
     B, N = motion.shape[0], motion.shape[-1]
@@ -77,15 +79,17 @@ def forced_for_edit(model: Any, model_kwargs: Optional[Dict[str, Any]], policy: 
     else:
         lengths = None
     forced = forced_keyframes(frames, lengths, policy or policy_from_env())
-    return {**model_kwargs, "y": {**y, "keyframe_forced": forced}}
+    return {**model_kwargs, "y": with_forced(y, forced)}
 
 
 def add_forced_keyframes(model: Any, model_kwargs: Dict[str, Any], policy: Optional[str] = None) -> None:
-    """In place: ``model_kwargs['y']['keyframe_forced']`` for a sparse ``model`` (see
+    """In place: ``model_kwargs['y']`` forces the kept frames of a sparse ``model`` (see
     :func:`forced_for_edit`); the one call patch users add to ``sample/edit.py``."""
+    from ..adapters.request import KEYFRAMES_KEY
+
     new = forced_for_edit(model, model_kwargs, policy)
     if new is not model_kwargs:
-        model_kwargs["y"]["keyframe_forced"] = new["y"]["keyframe_forced"]
+        model_kwargs["y"][KEYFRAMES_KEY] = new["y"][KEYFRAMES_KEY]
 
 
 def _patch_gaussian_diffusion(mod: Any) -> None:

@@ -69,10 +69,10 @@ def apply_text_options(model: Any, config: SparseConfig, environ: Optional[dict]
     """Swap the text encoder (``config.text_encoder``) and install the text cache
     (``SMDM_TEXT_CACHE``) on an MDM/DiP model; idempotent, a no-op when neither is asked for."""
     from ..adapters.text_cache import install_text_cache
-    from ..adapters.text_encoder import swap_text_encoder
+    from ..adapters.text_encoder import swap_text_encoder, swapped_text_encoder
 
     capacity = cache_capacity_from_env(environ)
-    if config.text_encoder and getattr(model, "_smdm_text_encoder", None) != config.text_encoder:
+    if config.text_encoder and swapped_text_encoder(model) != config.text_encoder:
         if not hasattr(model, "embed_text"):
             raise ValueError(f"--sparse_text_encoder {config.text_encoder}: the model has no text "
                              "conditioning (cond_mode must include 'text')")

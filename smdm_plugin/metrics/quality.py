@@ -257,7 +257,7 @@ def keyframe_error(motion: ArrayLike, target: ArrayLike, keyframes: ArrayLike, *
     Args:
         motion: generated joint positions ``[N, J, 3]`` / ``[B, N, J, 3]`` in metres.
         target: the positions the keyframes were taken from, same shape as ``motion``.
-        keyframes: bool ``[N]`` / ``[B, N]`` (True = keyframe, as ``y['keyframe_mask']``), or
+        keyframes: bool ``[N]`` / ``[B, N]`` (True = keyframe, as ``KeyframeRequest.mask``), or
             frame indices: a list / 1-D integer tensor for every motion, or one list per motion.
             Every motion needs at least one keyframe, all within its length.
         fps: frames per second; accepted so that every metric takes ``fps`` and ``lengths``

@@ -56,8 +56,8 @@ pmv = gd.GaussianDiffusion.p_mean_variance
 def p_mean_variance(self, model, x, t, *a, model_kwargs=None, **k):
     y = model_kwargs["y"]
     seen["steps"] += 1
-    if "keyframe_forced" in y:
-        seen["forced"] = y["keyframe_forced"].cpu().numpy().tolist()
+    if "smdm_keyframes" in y and y["smdm_keyframes"].forced is not None:
+        seen["forced"] = y["smdm_keyframes"].forced.cpu().numpy().tolist()
     seen["lengths"] = y["lengths"].cpu().numpy().tolist()
     return pmv(self, model, x, t, *a, model_kwargs=model_kwargs, **k)
 gd.GaussianDiffusion.p_mean_variance = p_mean_variance

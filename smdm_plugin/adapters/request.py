@@ -1,0 +1,96 @@
+"""The per-call protocol between the diffusion wrapper (or a user) and a sparse model.
+
+What a caller tells a sparse model about the keyframes of one call is one typed, frozen
+:class:`KeyframeRequest`, carried under the one key :data:`KEYFRAMES_KEY` of the call's keyword
+container: MDM's ``y`` dict (upstream models pass ``y`` through and ignore keys they do not know)
+or, for MotionDiffuse, the model's keyword arguments (``model_kwargs``). Each family reads it in
+its ``read_call`` (through :func:`request_of`) and the diffusion wrapper hands the training
+keyframes over in the family's ``with_keyframes`` (through :func:`with_request`).
+
+Users who force keyframes (in-betweening, DoubleTake, their own code) call :func:`with_forced`.
+The string keys of 0.3 (``keyframe_mask`` / ``keyframe_capacity`` / ``keyframe_forced``) are a
+``TypeError`` naming this API, so a caller's keyframes are never ignored silently.
+"""
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass
+from typing import Any, Dict, Mapping, Optional
+
+import torch
+
+#: the one key of ``y`` (MDM) / of the model's keyword arguments (MotionDiffuse) that carries a
+#: :class:`KeyframeRequest`
+KEYFRAMES_KEY = "smdm_keyframes"
+
+#: the string keys of 0.3, refused with a message naming the new API
+OLD_KEYS = ("keyframe_mask", "keyframe_capacity", "keyframe_forced")
+
+
+@dataclass(frozen=True)
+class KeyframeRequest:
+    """The keyframes a caller asks for in one model call (every field optional).
+
+    Attributes:
+        mask: bool ``[B, N]`` keyframes chosen by the caller (training: the diffusion wrapper, from
+            x0), or None: the model's sampling schedule on ``(x_t, t)`` decides.
+        capacity: the static slot count ``K`` that goes with ``mask`` (a Python int >= 1), or None
+            (then the largest row of ``mask`` when it can be read without a device sync, else
+            ``N``).
+        forced: bool ``[B, N]`` frames that must be keyframes (inside the keyframe budget), or None.
+    """
+
+    mask: Optional[torch.Tensor] = None
+    capacity: Optional[int] = None
+    forced: Optional[torch.Tensor] = None
+
+    def __post_init__(self) -> None:
+        for name in ("mask", "forced"):
+            value = getattr(self, name)
+            if value is not None and not isinstance(value, torch.Tensor):
+                raise TypeError(f"KeyframeRequest.{name} must be a bool tensor [B, N] or None, "
+                                f"got {type(value).__name__}")
+        c = self.capacity
+        if c is not None and (isinstance(c, bool) or not isinstance(c, int) or c < 1):
+            raise TypeError(f"KeyframeRequest.capacity must be a Python int >= 1 or None, got {c!r}")
+        if c is not None and self.mask is None:
+            raise TypeError("KeyframeRequest.capacity is the slot count of a given mask: pass mask too")
+
+
+_EMPTY = KeyframeRequest()
+
+
+def request_of(container: Optional[Mapping[str, Any]], where: str = "y") -> KeyframeRequest:
+    """The :class:`KeyframeRequest` of one call (an empty one when ``container`` has none).
+
+    ``container``: MDM's ``y`` or MotionDiffuse's keyword arguments; ``where`` names it in errors.
+    A value of another type, or one of the 0.3 string keys, is a ``TypeError``."""
+    if not container:
+        return _EMPTY
+    for key in OLD_KEYS:
+        if key in container:
+            raise TypeError(f"{where}[{key!r}] is not read since smdm-plugin 0.4: pass "
+                            f"{where}[{KEYFRAMES_KEY!r}] = smdm_plugin.KeyframeRequest(mask=, capacity=, "
+                            f"forced=), e.g. smdm_plugin.with_forced({where}, forced)")
+    request = container.get(KEYFRAMES_KEY)
+    if request is None:
+        return _EMPTY
+    if not isinstance(request, KeyframeRequest):
+        raise TypeError(f"{where}[{KEYFRAMES_KEY!r}] must be a smdm_plugin.KeyframeRequest, "
+                        f"got {type(request).__name__}")
+    return request
+
+
+def with_request(container: Optional[Mapping[str, Any]], where: str = "y", **changes: Any) -> Dict[str, Any]:
+    """A copy of ``container`` whose :class:`KeyframeRequest` has the fields in ``changes``
+    (``mask=``, ``capacity=``, ``forced=``) replaced; the caller's dict is not changed."""
+    out = dict(container or {})
+    out[KEYFRAMES_KEY] = dataclasses.replace(request_of(container, where), **changes)
+    return out
+
+
+def with_forced(y: Optional[Mapping[str, Any]], forced: Optional[torch.Tensor]) -> Dict[str, Any]:
+    """A copy of ``y`` (MDM's conditions, or MotionDiffuse's model keyword arguments) in which the
+    frames of bool ``forced [B, N]`` must be keyframes in every call of a sparse model (a dense
+    model ignores them). Replaces forced frames already requested; ``y`` is not changed."""
+    return with_request(y, forced=forced)
