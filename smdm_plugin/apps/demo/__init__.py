@@ -499,8 +499,10 @@ def sparse_sampling(model: Any) -> str:
     steps = "" if c.sample_interpolation_steps is None else f" in the last {c.sample_interpolation_steps} steps"
     fill, D = c.sample_interpolation, int(getattr(model, "njoints", 0)) * int(getattr(model, "nfeats", 1))
     if fill == "auto" and D:                     # what auto resolves to for the model's features
-        fill = f"auto: {c.sample_fill(D)}"
-    return f"{fill} fill{steps}, dynamic VW update {'on' if c.dynamic else 'off'}"
+        fill = f"{c.sample_fill(D)} fill (auto)"
+    else:
+        fill += " fill"
+    return f"{fill}{steps}, dynamic VW update {'on' if c.dynamic else 'off'}"
 
 
 def training_markdown(train: Dict[str, Any], quality: Dict[str, Dict[str, float]], reference: str) -> str:
