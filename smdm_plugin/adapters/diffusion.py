@@ -22,9 +22,11 @@ import weakref
 from dataclasses import dataclass, field
 from typing import Any, List, Optional
 
+import torch
 import torch.nn as nn
 
 from ..core.config import SparseConfig
+from ..core.noise import NOISE_STEP
 from .state import (find_sparse_model, forced_from_y, frames_layout, get_state, lengths_from_y,
                     protected_count)
 
@@ -96,7 +98,8 @@ def attach_diffusion(diffusion: Any, config: Optional[SparseConfig] = None,
         family = state.family
         frames, lengths, forced, mask, capacity = family.training_inputs(state, x_start, model_kwargs or {})
         if mask is None:                         # else: chosen in data loading (keyframe_collate)
-            mask = state.schedule.training_mask(frames, lengths, forced, checked=True)
+            mask = state.schedule.training_mask(frames, lengths, forced, checked=True,
+                                                step=getattr(sparse, NOISE_STEP, None))
             capacity = state.schedule.capacity(frames.shape[1], training=True,
                                                forced=protected_count(forced, lengths))
         model_kwargs = family.with_keyframes(state, model_kwargs or {}, mask, capacity)
@@ -139,10 +142,15 @@ class keyframe_collate:
     ``y['keyframe_mask']`` and ``y['keyframe_capacity']`` are added, and the diffusion wrapper uses
     them instead of selecting on the GPU. The mask depends only on x0, so the result is the same
     (mask noise is drawn in the worker). ``schedule``: the sparse model's
-    ``MaskSchedule`` (``model._smdm_state.schedule``); it must be picklable for worker processes."""
+    ``MaskSchedule`` (``model._smdm_state.schedule``); it must be picklable for worker processes.
+
+    Mask noise comes from the schedule's noise table (:mod:`~smdm_plugin.core.noise`) at a step
+    counted per batch and, in a worker process, offset by the worker's seed (new every epoch);
+    torch's global stream is not drawn from (with ``num_workers=0`` it is the training process's)."""
 
     def __init__(self, collate_fn, schedule) -> None:
         self.collate_fn, self.schedule = collate_fn, schedule
+        self.batches = 0
 
     def __call__(self, batch):
         motion, cond = self.collate_fn(batch)
@@ -151,6 +159,11 @@ class keyframe_collate:
         B, N = frames.shape[:2]
         lengths = lengths_from_y(y, B, N, motion.device)
         forced = forced_from_y(y, B, N, motion.device)
-        y["keyframe_mask"] = self.schedule.training_mask(frames, lengths, forced, checked=True)
+        worker = torch.utils.data.get_worker_info()
+        offset = (worker.seed % (1 << 32)) * 65537 if worker is not None else 0
+        step = torch.tensor(self.batches + offset, dtype=torch.long, device=motion.device)
+        self.batches += 1
+        y["keyframe_mask"] = self.schedule.training_mask(frames, lengths, forced, self.schedule.noise(step),
+                                                         checked=True)
         y["keyframe_capacity"] = self.schedule.capacity(N, training=True, forced=protected_count(forced, lengths))
         return motion, cond

@@ -18,6 +18,7 @@ import torch
 from .checks import as_lengths, as_mask, compiling
 from .config import SparseConfig
 from .features import KINDS, ric_slice
+from .noise import CounterNoise, default_noise_seed, noise_table
 from .selection import (keyframe_capacity, keyframe_count_table, perturb_checked, select_checked,
                         uniform_table)
 
@@ -42,10 +43,18 @@ class MaskSchedule:
     Args:
         config: the sparse config (reduction, selector, feature, gamma, dynamic_update, ...).
         mean, std: ``[D]`` dataset statistics to de-normalise features before VW (optional).
+        noise_seed: the seed of the mask noise's table (:mod:`~smdm_plugin.core.noise`); None =
+            torch's seed now (``torch.initial_seed()``, plus the process rank). The table is made
+            here, before any traced call, when the config draws (mask noise, random selector).
     """
 
-    def __init__(self, config: SparseConfig, mean: ArrayLike = None, std: ArrayLike = None) -> None:
+    def __init__(self, config: SparseConfig, mean: ArrayLike = None, std: ArrayLike = None,
+                 noise_seed: Optional[int] = None) -> None:
         self.config = config
+        self.noise_seed = default_noise_seed() if noise_seed is None else int(noise_seed)
+        draws = config.mask_noise > 0 or config.selector == "random"
+        self._noise_host: Optional[torch.Tensor] = noise_table(self.noise_seed) if draws else None
+        self._noise: Dict[torch.device, torch.Tensor] = {}
         self.mean = None if mean is None else torch.as_tensor(np.asarray(mean), dtype=torch.float32)
         self.std = None if std is None else torch.as_tensor(np.asarray(std), dtype=torch.float32)
         # per (frames, device[, dtype]) constants, made once: a host-to-device copy on every call
@@ -88,6 +97,19 @@ class MaskSchedule:
                 return tables     # would fail the graph's guard on it and recompile the next call
             self._tables[key] = tables
         return self._tables[key]
+
+    def noise(self, step: torch.Tensor) -> CounterNoise:
+        """The counter-based random numbers at ``step`` (int64, 0-d or ``[B]``, on the device
+        wanted): windows of this schedule's noise table (copied to that device once)."""
+        device = step.device
+        table = self._noise.get(device)
+        if table is None:
+            if self._noise_host is None:
+                self._noise_host = noise_table(self.noise_seed)
+            table = self._noise_host.to(device)
+            if not compiling():   # (as in tables: no cache write while tracing)
+                self._noise[device] = table
+        return CounterNoise(step, table)
 
     def _kind(self, D: int) -> str:
         kind = self.config.feature
@@ -132,19 +154,31 @@ class MaskSchedule:
         return torch.cat([pos, col.expand(B, N, 1)], dim=-1)
 
     def training_mask(self, x0: torch.Tensor, lengths=None, forced: Optional[torch.Tensor] = None,
-                      generator: Optional[torch.Generator] = None, *, checked: bool = False) -> torch.Tensor:
+                      generator: Optional[torch.Generator] = None, *, checked: bool = False,
+                      step: Optional[torch.Tensor] = None) -> torch.Tensor:
         """bool ``[B, N]`` from the clean motion ``x0 [B, N, D]``: the selector (forced frames
         inside the budget) + mask noise (never dropping forced frames). ``checked=True``: ``lengths``
-        is a validated long tensor on ``x0``'s device and ``forced`` a bool ``[B, N]`` or None."""
+        is a validated long tensor on ``x0``'s device and ``forced`` a bool ``[B, N]`` or None.
+
+        Random draws (mask noise, the ``random`` selector): with ``step`` (an int64 0-d tensor
+        on ``x0``'s device, the sparse model's ``smdm_mask_noise_step`` buffer) from the noise
+        table at ``step`` (:meth:`noise`), and ``step`` is advanced by one in place — no RNG state
+        touched, traceable, no sync; else from ``generator`` (a ``torch.Generator`` or
+        :class:`~smdm_plugin.core.noise.CounterNoise`); else from torch's global stream."""
         B, N, _ = x0.shape
         lengths, forced = _checked_inputs(x0, lengths, forced, checked)
         c = self.config
         counts, _ = self.tables(N, x0.device)
         with torch.no_grad():
+            draws = self._noise_host is not None               # (this config draws: see __init__)
+            noise = self.noise(step) if step is not None and generator is None and draws else None
+            source = noise if noise is not None else generator
             mask = select_checked(self._features_checked(x0), lengths, counts[lengths], c.selector,
-                                  generator, forced)
+                                  source, forced)
             if c.mask_noise > 0:
-                mask = perturb_checked(mask, lengths, c.mask_noise, generator, forced)
+                mask = perturb_checked(mask, lengths, c.mask_noise, source, forced)
+            if noise is not None:
+                noise.advance()
         return mask
 
     def sampling_mask(self, x_t: torch.Tensor, t: torch.Tensor, lengths=None,
@@ -165,12 +199,14 @@ class MaskSchedule:
                 mask = select_checked(x_t[..., :1], lengths, k, "uniform", forced=forced)
             n_late = self.late_steps
             if n_late > 0:
-                late = torch.as_tensor(t, device=x_t.device).reshape(-1).expand(B) < n_late
+                steps = torch.as_tensor(t, device=x_t.device).reshape(-1).expand(B)
+                late = steps < n_late
                 feats = self._features_checked(x_t)
                 if c.selector == "vw":
                     sel = select_checked(feats, lengths, k, "vw", forced=forced, active=late)
-                else:
-                    sel = select_checked(feats, lengths, k, c.selector, forced=forced)
+                else:   # (the random selector: numbers from the noise table at step t, no RNG state)
+                    sel = select_checked(feats, lengths, k, c.selector, self.noise(steps),
+                                         forced=forced)
                 mask = torch.where(late[:, None], sel, mask)
         return mask
 
