@@ -9,9 +9,16 @@ a table of :data:`TABLE_SIZE` uniforms made from the schedule's seed with a priv
 ``table[(step * STRIDE + i) mod TABLE_SIZE]`` for its ``i``-th number, with ``step`` an int64 tensor
 on the device (the sparse model's persistent buffer :data:`NOISE_STEP`, advanced in place once per
 mask: no host sync, saved and restored with the weights). A mask costs four small ops (offset,
-index, modulo, gather) plus the step's increment. The offsets of successive steps follow a Weyl
-sequence (``STRIDE / TABLE_SIZE`` ≈ the golden ratio), so windows spread evenly over the table;
-the numbers repeat only after ``TABLE_SIZE`` steps. Same seed and step: the same numbers.
+index, modulo, gather) plus the step's increment (a hash of the counter per number would cost
+dozens, over the launch budget of a training step). Same seed and step: the same numbers.
+
+How random: the offsets of successive steps follow a Weyl sequence (``STRIDE / TABLE_SIZE`` ≈ the
+golden ratio), so windows spread evenly over the table and an offset recurs only after
+``TABLE_SIZE`` steps; but a window of ``W`` numbers (``B·(N+1)`` per mask) overlaps, shifted,
+those of some steps about ``TABLE_SIZE / W`` apart (B=64, N=196: ~80), so numbers are reused at
+other positions of later masks, i.e. for other samples. For mask noise (how many keyframes a
+sample gains or loses, and which) this reuse on unrelated data is harmless; it is not a
+general-purpose generator.
 """
 from __future__ import annotations
 
