@@ -136,6 +136,22 @@ def test_whole_training_step_compiles_with_the_diffusion_wrapper_and_gradients_m
             assert torch.allclose(p.grad, q.grad, atol=1e-4), n
 
 
+def test_training_step_with_mask_noise_traces_fullgraph_without_the_global_rng():
+    """Mask noise drawn inside the traced call (counter-based, core/noise.py): fullgraph, the
+    model's step advanced by the compiled calls, torch's stream untouched, eager's masks."""
+    model, diffusion = make("trans_enc", mask_noise=0.2)
+    x, y = batch("trans_enc")
+    step = torch.compile(lambda m: loss(diffusion, m, x, y).mean(), fullgraph=True, backend="eager")
+    torch.manual_seed(0)
+    before = torch.get_rng_state()
+    compiled = [step(model), step(model)]
+    assert int(model.smdm_mask_noise_step) == 2 and torch.equal(torch.get_rng_state(), before)
+    rewind_noise(model)
+    eager = [loss(diffusion, model, x, y).mean(), loss(diffusion, model, x, y).mean()]
+    assert all(torch.allclose(c, e, atol=1e-5) for c, e in zip(compiled, eager))
+    assert not torch.allclose(eager[0], eager[1])                 # a new mask at the next step
+
+
 # ----------------------------------------------------------------------------- host syncs
 @pytest.mark.parametrize("name", VARIANTS)
 def test_static_path_has_no_host_sync_per_step(name):
