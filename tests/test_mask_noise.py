@@ -9,7 +9,8 @@ import pytest
 import torch
 
 from smdm_plugin import SimpleDiffusion, SparseConfig, TinyMDM, sparsify
-from smdm_plugin.core.noise import NOISE_STEP, TABLE_SIZE, CounterNoise, noise_table
+from smdm_plugin.adapters.diffusion import model_noise
+from smdm_plugin.core.noise import NOISE_STEP, NOISE_TABLE, TABLE_SIZE, CounterNoise, noise_table
 from smdm_plugin.core.schedule import MaskSchedule
 from smdm_plugin.core.selection import keyframe_count
 
@@ -57,7 +58,7 @@ def test_the_old_global_stream_draw_would_have_shifted_it():
     sched.training_mask(frames, y["lengths"])                     # no step: torch's stream (explicit API)
     assert not torch.equal(torch.get_rng_state(), before)
     torch.manual_seed(123)
-    sched.training_mask(frames, y["lengths"], step=torch.zeros((), dtype=torch.long))
+    sched.training_mask(frames, y["lengths"], None, sched.noise(torch.zeros((), dtype=torch.long)))
     assert torch.equal(torch.get_rng_state(), before)
 
 
@@ -94,7 +95,7 @@ def test_mask_noise_changes_the_masks_per_step_and_per_sample():
     x = torch.randn(1, N, 12).cumsum(1).expand(8, N, 12).contiguous()   # 8 identical samples
     lengths = torch.full((8,), N)
     step = torch.zeros((), dtype=torch.long)
-    masks = [sched.training_mask(x, lengths, step=step) for _ in range(20)]
+    masks = [sched.training_mask(x, lengths, None, sched.noise(step)) for _ in range(20)]
     assert int(step) == 20
     counts = torch.stack([m.sum(1) for m in masks])            # [steps, samples]
     assert len({tuple(m[0].tolist()) for m in masks}) > 10      # per step
@@ -110,7 +111,7 @@ def test_same_seed_same_masks_and_the_step_travels_with_the_weights():
     frames = x.squeeze(2).transpose(1, 2)
 
     def next_mask(model):
-        return model._smdm_state.schedule.training_mask(frames, y["lengths"], step=getattr(model, NOISE_STEP))
+        return model._smdm_state.schedule.training_mask(frames, y["lengths"], None, model_noise(model))
 
     seq_a = [next_mask(a) for _ in range(5)]
     seq_b = [next_mask(b) for _ in range(5)]
@@ -130,12 +131,41 @@ def test_same_seed_same_masks_and_the_step_travels_with_the_weights():
     assert int(getattr(e, NOISE_STEP)) == 0
 
 
+def test_the_table_is_a_buffer_that_moves_with_the_model_and_is_not_saved():
+    model, _ = make(True)
+    table = getattr(model, NOISE_TABLE)
+    assert torch.equal(table.view(torch.float32), model._smdm_state.schedule.noise_table)
+    assert NOISE_TABLE not in model.state_dict()
+    before = model_noise(model).uniform((4, 61))
+    model.half()                                     # float buffers would be rounded: this one is not
+    assert torch.equal(model_noise(model).uniform((4, 61)), before)
+    assert getattr(model, NOISE_STEP).dtype == torch.long
+
+
 def test_schedules_without_draws_make_no_table():
-    assert MaskSchedule(SparseConfig(mask_noise=0.0))._noise_host is None
-    assert MaskSchedule(SparseConfig(mask_noise=0.1))._noise_host is not None
+    assert MaskSchedule(SparseConfig(mask_noise=0.0)).noise_table is None
+    assert MaskSchedule(SparseConfig(mask_noise=0.1)).noise_table is not None
 
 
 @pytest.mark.parametrize("seed", [0, 2 ** 64 - 1])
 def test_any_torch_seed_gives_a_table(seed):
     torch.manual_seed(seed)
     assert MaskSchedule(SparseConfig()).noise_seed == seed
+
+
+def test_ranks_draw_other_masks_from_equal_buffers(monkeypatch):
+    """Under torch.distributed every rank holds the same table and step (the trainer's
+    max_divergence compares buffers) but reads its windows at its own offset."""
+    x, y = inputs()
+    frames = x.squeeze(2).transpose(1, 2)
+    models = []
+    for rank in (0, 1):
+        monkeypatch.setattr(torch.distributed, "is_initialized", lambda: True)
+        monkeypatch.setattr(torch.distributed, "get_rank", lambda group=None, r=rank: r)
+        models.append(make(True, seed=4)[0])
+        monkeypatch.undo()
+    a, b = models
+    assert all(torch.equal(p, q) for p, q in zip(a.buffers(), b.buffers()))
+    ma = a._smdm_state.schedule.training_mask(frames, y["lengths"], None, model_noise(a))
+    mb = b._smdm_state.schedule.training_mask(frames, y["lengths"], None, model_noise(b))
+    assert not torch.equal(ma, mb) and int(getattr(a, NOISE_STEP)) == int(getattr(b, NOISE_STEP)) == 1

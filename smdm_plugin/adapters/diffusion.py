@@ -26,7 +26,7 @@ import torch
 import torch.nn as nn
 
 from ..core.config import SparseConfig
-from ..core.noise import NOISE_STEP
+from ..core.noise import NOISE_STEP, NOISE_TABLE, CounterNoise
 from .state import (find_sparse_model, forced_from_y, frames_layout, get_state, lengths_from_y,
                     protected_count)
 
@@ -38,6 +38,14 @@ def diffusion_steps(diffusion: Any) -> int:
             return int(getattr(diffusion, attr))
     raise ValueError(f"attach_diffusion: cannot read the step count of {type(diffusion).__name__} "
                      "(expected num_timesteps or original_num_steps)")
+
+
+def model_noise(sparse: nn.Module) -> Optional[CounterNoise]:
+    """The random numbers of ``sparse``'s next training mask: its step counter and noise table
+    buffers (:mod:`~smdm_plugin.core.noise`); None when its config draws nothing."""
+    table = getattr(sparse, NOISE_TABLE, None)
+    return None if table is None else CounterNoise(getattr(sparse, NOISE_STEP), table,
+                                                   get_state(sparse).schedule.noise_salt)
 
 
 #: the one attribute a wrapped diffusion carries
@@ -98,8 +106,7 @@ def attach_diffusion(diffusion: Any, config: Optional[SparseConfig] = None,
         family = state.family
         frames, lengths, forced, mask, capacity = family.training_inputs(state, x_start, model_kwargs or {})
         if mask is None:                         # else: chosen in data loading (keyframe_collate)
-            mask = state.schedule.training_mask(frames, lengths, forced, checked=True,
-                                                step=getattr(sparse, NOISE_STEP, None))
+            mask = state.schedule.training_mask(frames, lengths, forced, model_noise(sparse), checked=True)
             capacity = state.schedule.capacity(frames.shape[1], training=True,
                                                forced=protected_count(forced, lengths))
         model_kwargs = family.with_keyframes(state, model_kwargs or {}, mask, capacity)

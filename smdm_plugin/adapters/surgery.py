@@ -20,7 +20,7 @@ import torch.nn as nn
 from ..core.checks import module_device
 from ..core.config import MARKER, SparseConfig
 from ..core.lipschitz import LipschitzMLP
-from ..core.noise import NOISE_STEP
+from ..core.noise import NOISE_STEP, NOISE_TABLE
 from ..core.schedule import MaskSchedule
 from .diffusion import attach_diffusion, diffusion_steps, release_diffusions
 from .family import ModelFamily, family_for, get_family
@@ -124,6 +124,8 @@ def sparsify(model: nn.Module, config: ConfigLike = None, *, diffusion: Any = No
         fam.install(model, state)
         model.register_buffer(MARKER, torch.tensor(config.version, device=device), persistent=True)
         model.register_buffer(NOISE_STEP, torch.zeros((), dtype=torch.long, device=device), persistent=True)
+        if schedule.noise_table is not None:           # on the model: moves with it, made before tracing
+            model.register_buffer(NOISE_TABLE, schedule.noise_table.view(torch.int32).to(device), persistent=False)
         state.handles.append(model.register_load_state_dict_pre_hook(_keep_noise_step))
         setattr(model, STATE_ATTR, state)
         if diffusion is not None:
@@ -148,6 +150,7 @@ def _undo(model: nn.Module, state: SparseState, rollback: bool = False) -> None:
     state.originals.clear()
     model._buffers.pop(MARKER, None)
     model._buffers.pop(NOISE_STEP, None)
+    model._buffers.pop(NOISE_TABLE, None)
     model.__dict__.pop(STATE_ATTR, None)
 
 

@@ -431,6 +431,7 @@ def _sample_loop_fn(work: Workload, model, diffusion, batch, device, amp: str, c
 def _overhead_fns(work: Workload, model, batch, device, train: bool):
     """Keyframe selection and the interpolation back to all frames, alone, with the step's
     shapes: ``(select, interp)`` callables."""
+    from ..adapters.diffusion import model_noise
     from ..adapters.state import get_state
     from ..core.attention_backends import fill_frames
 
@@ -440,7 +441,7 @@ def _overhead_fns(work: Workload, model, batch, device, train: bool):
     B, N = frames.shape[:2]
     if train:
         def select():
-            return state.schedule.training_mask(frames, lengths, checked=True)
+            return state.schedule.training_mask(frames, lengths, None, model_noise(model), checked=True)
     else:
         late = torch.zeros(B, dtype=torch.long, device=device)
 

@@ -18,7 +18,7 @@ import torch
 from .checks import as_lengths, as_mask, compiling
 from .config import SparseConfig
 from .features import KINDS, ric_slice
-from .noise import CounterNoise, default_noise_seed, noise_table
+from .noise import CounterNoise, default_noise_salt, default_noise_seed, noise_table
 from .selection import (keyframe_capacity, keyframe_count_table, perturb_checked, select_checked,
                         uniform_table)
 
@@ -44,16 +44,20 @@ class MaskSchedule:
         config: the sparse config (reduction, selector, feature, gamma, dynamic_update, ...).
         mean, std: ``[D]`` dataset statistics to de-normalise features before VW (optional).
         noise_seed: the seed of the mask noise's table (:mod:`~smdm_plugin.core.noise`); None =
-            torch's seed now (``torch.initial_seed()``, plus the process rank). The table is made
-            here, before any traced call, when the config draws (mask noise, random selector).
+            torch's seed now (``torch.initial_seed()``); each rank of a distributed run starts
+            its windows elsewhere in it (:attr:`noise_salt`). The table is made
+            here, before any traced call, when the config draws (mask noise, random selector):
+            :attr:`noise_table` (``sparsify`` puts it on the model as a buffer).
     """
 
     def __init__(self, config: SparseConfig, mean: ArrayLike = None, std: ArrayLike = None,
                  noise_seed: Optional[int] = None) -> None:
         self.config = config
         self.noise_seed = default_noise_seed() if noise_seed is None else int(noise_seed)
+        self.noise_salt = default_noise_salt()
         draws = config.mask_noise > 0 or config.selector == "random"
-        self._noise_host: Optional[torch.Tensor] = noise_table(self.noise_seed) if draws else None
+        #: float32 ``[TABLE_SIZE]`` uniforms on the CPU, or None when the config draws nothing
+        self.noise_table: Optional[torch.Tensor] = noise_table(self.noise_seed) if draws else None
         self._noise: Dict[torch.device, torch.Tensor] = {}
         self.mean = None if mean is None else torch.as_tensor(np.asarray(mean), dtype=torch.float32)
         self.std = None if std is None else torch.as_tensor(np.asarray(std), dtype=torch.float32)
@@ -100,16 +104,17 @@ class MaskSchedule:
 
     def noise(self, step: torch.Tensor) -> CounterNoise:
         """The counter-based random numbers at ``step`` (int64, 0-d or ``[B]``, on the device
-        wanted): windows of this schedule's noise table (copied to that device once)."""
+        wanted): windows of :attr:`noise_table` (copied to that device once; training through
+        the diffusion wrapper reads the model's own copy instead)."""
         device = step.device
         table = self._noise.get(device)
         if table is None:
-            if self._noise_host is None:
-                self._noise_host = noise_table(self.noise_seed)
-            table = self._noise_host.to(device)
+            if self.noise_table is None:
+                self.noise_table = noise_table(self.noise_seed)
+            table = self.noise_table.to(device)
             if not compiling():   # (as in tables: no cache write while tracing)
                 self._noise[device] = table
-        return CounterNoise(step, table)
+        return CounterNoise(step, table, self.noise_salt)
 
     def _kind(self, D: int) -> str:
         kind = self.config.feature
@@ -154,31 +159,27 @@ class MaskSchedule:
         return torch.cat([pos, col.expand(B, N, 1)], dim=-1)
 
     def training_mask(self, x0: torch.Tensor, lengths=None, forced: Optional[torch.Tensor] = None,
-                      generator: Optional[torch.Generator] = None, *, checked: bool = False,
-                      step: Optional[torch.Tensor] = None) -> torch.Tensor:
+                      generator: Optional[torch.Generator] = None, *, checked: bool = False) -> torch.Tensor:
         """bool ``[B, N]`` from the clean motion ``x0 [B, N, D]``: the selector (forced frames
         inside the budget) + mask noise (never dropping forced frames). ``checked=True``: ``lengths``
         is a validated long tensor on ``x0``'s device and ``forced`` a bool ``[B, N]`` or None.
 
-        Random draws (mask noise, the ``random`` selector): with ``step`` (an int64 0-d tensor
-        on ``x0``'s device, the sparse model's ``smdm_mask_noise_step`` buffer) from the noise
-        table at ``step`` (:meth:`noise`), and ``step`` is advanced by one in place — no RNG state
-        touched, traceable, no sync; else from ``generator`` (a ``torch.Generator`` or
-        :class:`~smdm_plugin.core.noise.CounterNoise`); else from torch's global stream."""
+        Random draws (mask noise, the ``random`` selector) come from ``generator``: a
+        :class:`~smdm_plugin.core.noise.CounterNoise` (the diffusion wrapper passes the model's:
+        its step counter and table; :meth:`noise` makes one), whose step is then advanced by one
+        in place — no RNG state touched, traceable, no sync; or a ``torch.Generator``; None:
+        torch's global stream."""
         B, N, _ = x0.shape
         lengths, forced = _checked_inputs(x0, lengths, forced, checked)
         c = self.config
         counts, _ = self.tables(N, x0.device)
         with torch.no_grad():
-            draws = self._noise_host is not None               # (this config draws: see __init__)
-            noise = self.noise(step) if step is not None and generator is None and draws else None
-            source = noise if noise is not None else generator
             mask = select_checked(self._features_checked(x0), lengths, counts[lengths], c.selector,
-                                  source, forced)
+                                  generator, forced)
             if c.mask_noise > 0:
-                mask = perturb_checked(mask, lengths, c.mask_noise, source, forced)
-            if noise is not None:
-                noise.advance()
+                mask = perturb_checked(mask, lengths, c.mask_noise, generator, forced)
+            if isinstance(generator, CounterNoise):
+                generator.advance()
         return mask
 
     def sampling_mask(self, x_t: torch.Tensor, t: torch.Tensor, lengths=None,
