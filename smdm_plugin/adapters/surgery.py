@@ -126,7 +126,9 @@ def sparsify(model: nn.Module, config: ConfigLike = None, *, diffusion: Any = No
         model.register_buffer(NOISE_STEP, torch.zeros((), dtype=torch.long, device=device), persistent=True)
         if schedule.noise_table is not None:           # on the model: moves with it, made before tracing
             model.register_buffer(NOISE_TABLE, schedule.noise_table.view(torch.int32).to(device), persistent=False)
-        state.handles.append(model.register_load_state_dict_pre_hook(_keep_noise_step))
+        register = getattr(model, "register_load_state_dict_pre_hook", None)   # public since torch 2.3
+        state.handles.append(register(_keep_noise_step) if register is not None
+                             else model._register_load_state_dict_pre_hook(_keep_noise_step, with_module=True))
         setattr(model, STATE_ATTR, state)
         if diffusion is not None:
             attach_diffusion(diffusion, model=model)
