@@ -112,3 +112,59 @@ def test_cli_help_and_run_delegates(monkeypatch, capsys):
     monkeypatch.setattr(integ, "launcher", fake, raising=False)
     assert cli.main(["run", "mdm", "--", "-m", "sample.generate"]) == 0
     assert seen == [["mdm", "--", "-m", "sample.generate"]]
+
+
+# ----------------------------------------------------------------------------- --family motiondiffuse
+def test_bench_motiondiffuse_prints_dense_and_sparse_rows(tmp_path, capsys):
+    out = tmp_path / "md.json"
+    assert bench.main(["--quick", "--family", "motiondiffuse", "--reductions", "0.8", "--modes", "train", "sample",
+                       "loop", "--steps", "3", "--frames", "48", "--out", str(out)]) == 0
+    r = json.loads(out.read_text())
+    rows = {(x["arch"], x["mode"], x["variant"]) for x in r["rows"]}
+    assert rows == {("motiondiffuse", m, v) for m in ("train", "sample", "loop") for v in ("dense", "sparse 80%")}
+    assert r["family"] == "motiondiffuse" and r["fsq"] == "off" and "MotionTransformer" in r["model_source"]
+    assert all(x["speedup"] > 0 for x in r["rows"]) and all("overhead_share" in x for x in r["rows"]
+                                                              if x["variant"] != "dense" and x["mode"] != "loop")
+    text = capsys.readouterr().out
+    assert "| motiondiffuse | train | dense |" in text and "| motiondiffuse | sample | sparse 80% |" in text
+    assert "model family: motiondiffuse" in text and "FSQ keys: n/a" in text
+
+
+def test_bench_models_come_from_the_family_registry():
+    from smdm_plugin.adapters.family import FAMILIES, family_for
+    from smdm_plugin.adapters.surgery import is_sparse
+
+    assert bench.family_choices() == [n for n in FAMILIES.names() if n in ("mdm", "motiondiffuse")]
+    for family in bench.family_choices():
+        arch = bench.WORKLOADS.get(family).archs[0]
+        dense, _ = bench.build(arch, None, torch.device("cpu"), True, 4, family=family, frames=40)
+        sparse, _ = bench.build(arch, 0.8, torch.device("cpu"), True, 4, family=family, frames=40)
+        assert family_for(dense).name == family and not is_sparse(dense)
+        assert is_sparse(sparse) and sparse._smdm_state.family.name == family
+
+
+def test_bench_motiondiffuse_takes_the_upstream_class_from_root(tmp_path):
+    models = tmp_path / "md" / "text2motion" / "models"
+    models.mkdir(parents=True)
+    (models / "__init__.py").write_text("")
+    (models / "transformer.py").write_text(
+        "from smdm_plugin.reference.motion_transformer import MotionTransformer as _Base\n\n\n"
+        "class MotionTransformer(_Base):\n    pass\n")
+    cls = bench.upstream_motion_transformer(str(tmp_path / "md"))
+    assert cls.__module__ == "models.transformer"
+    model, _ = bench.build("motiondiffuse", 0.8, torch.device("cpu"), True, 4, family="motiondiffuse", frames=40,
+                           root=str(tmp_path / "md"))
+    assert type(model) is cls and model._smdm_state.family.name == "motiondiffuse"
+
+
+@pytest.mark.parametrize("args,message", [
+    (["--family", "nope"], "argument --family: invalid choice: 'nope' (choose from 'mdm', 'motiondiffuse')"),
+    (["--family", "motiondiffuse", "--arch", "trans_dec"], "argument --arch: 'trans_dec' is an MDM architecture"),
+    (["--family", "motiondiffuse", "--fsq", "both"], "argument --fsq: --family motiondiffuse has no softmax"),
+    (["--family", "motiondiffuse", "--root", "."], "argument --root: . is not a MotionDiffuse checkout"),
+    (["--root", "."], "argument --root: --family mdm has no upstream model to load"),
+])
+def test_bad_family_options_are_one_line_errors(args, message):
+    p = smdm("bench", *args)
+    assert p.returncode == 2 and message in p.stderr and "Traceback" not in p.stderr
+    assert len([ln for ln in p.stderr.splitlines() if "error:" in ln]) == 1

@@ -85,6 +85,11 @@ def batch(name, B=3, N=None, seed=0):
 STEPS = torch.tensor([1, 30, 45])
 
 
+def rewind_noise(model, step=0):
+    """Set the sparse model's mask-noise step (its masks are a function of seed and step)."""
+    model.smdm_mask_noise_step.fill_(step)
+
+
 def loss(diffusion, model, x, y):
     return diffusion.training_losses(model, x, STEPS[:x.shape[0]], {"y": dict(y)}, noise=torch.ones_like(x))["loss"]
 
@@ -106,10 +111,11 @@ def test_every_sparse_call_compiles_fullgraph_and_matches_eager(name):
     given = {**y, KEYFRAMES_KEY: KeyframeRequest(mask=mask, capacity=cap)}
     assert torch.allclose(compiled(x, t, dict(given)), model(x, t, dict(given)), atol=1e-4)
     # ... and through the attached diffusion (masks from x0, mask noise drawn inside)
-    torch.manual_seed(3)
+    rewind_noise(model, 3)
     ref = loss(diffusion, model, x, y)
-    torch.manual_seed(3)
+    rewind_noise(model, 3)
     out = loss(diffusion, compiled, x, y)
+    assert int(model.smdm_mask_noise_step) == 4                 # advanced in the compiled call too
     assert torch.allclose(out, ref, atol=1e-4)
     model.eval()
     with torch.no_grad():
@@ -129,6 +135,22 @@ def test_whole_training_step_compiles_with_the_diffusion_wrapper_and_gradients_m
         assert (p.grad is None) == (q.grad is None), n
         if p.grad is not None:
             assert torch.allclose(p.grad, q.grad, atol=1e-4), n
+
+
+def test_training_step_with_mask_noise_traces_fullgraph_without_the_global_rng():
+    """Mask noise drawn inside the traced call (counter-based, core/noise.py): fullgraph, the
+    model's step advanced by the compiled calls, torch's stream untouched, eager's masks."""
+    model, diffusion = make("trans_enc", mask_noise=0.2)
+    x, y = batch("trans_enc")
+    step = torch.compile(lambda m: loss(diffusion, m, x, y).mean(), fullgraph=True, backend="eager")
+    torch.manual_seed(0)
+    before = torch.get_rng_state()
+    compiled = [step(model), step(model)]
+    assert int(model.smdm_mask_noise_step) == 2 and torch.equal(torch.get_rng_state(), before)
+    rewind_noise(model)
+    eager = [loss(diffusion, model, x, y).mean(), loss(diffusion, model, x, y).mean()]
+    assert all(torch.allclose(c, e, atol=1e-5) for c, e in zip(compiled, eager))
+    assert not torch.allclose(eager[0], eager[1])                 # a new mask at the next step
 
 
 # ----------------------------------------------------------------------------- host syncs
@@ -251,9 +273,9 @@ def test_static_path_equals_default_cpu_path(name):
                 out = model(x, ts, dict(y))
             assert torch.allclose(out, ref, atol=1e-5), step
     model.train()
-    torch.manual_seed(5)
+    rewind_noise(model, 5)
     ref = loss(diffusion, model, x, y)
-    torch.manual_seed(5)
+    rewind_noise(model, 5)
     with static_mode():
         out = loss(diffusion, model, x, y)
     assert torch.allclose(out, ref, atol=1e-5)

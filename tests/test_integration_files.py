@@ -83,49 +83,81 @@ def test_priormdm_training_writes_sparse_config_and_agreeing_args_json(tmp_path)
     _agree(args.save_dir, after, path)
 
 
-def test_doubletake_output_dir_is_the_folder_written_by_this_run(tmp_path):
-    import time
-
-    model_dir = tmp_path / "model"
-    old, new = model_dir / "DoubleTake_samples_old", model_dir / "DoubleTake_samples_new"
-    for d in (old, new):
-        d.mkdir(parents=True)
-    np.save(old / "results.npy", np.zeros(1))
-    os.utime(old / "results.npy", (1.0, 1.0))          # written by an earlier run
-    since = time.time() - 1
-    np.save(new / "results.npy", np.zeros(1))
-    args = argparse.Namespace(model_path=str(model_dir / "model000000100.pt"), output_dir="")
-    assert doubletake_output_dir(args, since) == str(new)
-    assert doubletake_output_dir(argparse.Namespace(model_path=args.model_path, output_dir=str(old)), since) is None
-    assert doubletake_output_dir(args, time.time() + 10) is None  # nothing written since: nothing to mark
+def _dt_args(**kw):
+    base = dict(model_path="save/my_model/model000200000.pt", output_dir="", input_text="", sample_gt=False,
+                double_take=True, seed=10, handshake_size=20, blend_len=5, skip_steps_double_take=100)
+    return argparse.Namespace(**{**base, **kw})
 
 
-def test_doubletake_sampling_writes_sparse_config_beside_its_outputs(tmp_path):
-    """In a child process (the config is written when the process ends, after upstream has
-    replaced its output folder): the folder's sparse_config.json is the model's config."""
+@pytest.mark.parametrize("kw,name", [
+    ({}, "DoubleTake_samples_my_model_000200000_seed10_handshake_20_double_take_blend_5_skipSteps_100"),
+    ({"seed": 3, "handshake_size": 10, "blend_len": 20, "skip_steps_double_take": 0},
+     "DoubleTake_samples_my_model_000200000_seed3_handshake_10_double_take_blend_20_skipSteps_0"),
+    ({"input_text": "texts/my prompts.v2.txt"},
+     "DoubleTake_samples_my_model_000200000_seed10_my_promptsv2_handshake_20_double_take_blend_5_skipSteps_100"),
+    ({"input_text": "a/b.csv", "sample_gt": True},
+     "DoubleTake_samples_my_model_000200000_seed10_b_gt_handshake_20_double_take_blend_5_skipSteps_100"),
+])
+def test_doubletake_output_dir_is_derived_from_the_args_as_upstream_does(kw, name):
+    """Expected names written out by hand from priorMDM's sample/double_take.py."""
+    assert doubletake_output_dir(_dt_args(**kw)) == os.path.abspath(os.path.join("save", "my_model", name))
+
+
+def test_doubletake_output_dir_given_or_impossible():
+    assert doubletake_output_dir(_dt_args(output_dir="res/x")) == os.path.abspath("res/x")
+    assert doubletake_output_dir(_dt_args(input_text="prompts.json")) is None   # upstream raises TypeError
+    assert doubletake_output_dir(_dt_args(model_path=None)) is None
+
+
+def _doubletake_run(cwd, args: str, then: str) -> None:
+    """A sparse DoubleTake sampling run in a child process, in ``cwd`` (sparse_config.json is
+    written when the process ends, after upstream has replaced its output folder): sparsify with
+    the option values ``args`` (Python keyword text), then run ``then`` (writes the outputs)."""
     import subprocess
     import textwrap
 
-    out = tmp_path / "out"
-    script = textwrap.dedent(f"""
-        import argparse, os, warnings, numpy as np, torch
+    script = textwrap.dedent("""
+        import argparse, os, time, warnings, numpy as np
         warnings.simplefilter("ignore")
         from smdm_plugin import TinyMDM
         from smdm_plugin.integrations.priormdm import sparsify_priormdm
         class doubleTake_TinyMDM(TinyMDM):
             pass
         m = doubleTake_TinyMDM(njoints=8, nfeats=1, latent_dim=32, ff_size=64, num_layers=1, cond_mode="no_cond")
-        args = argparse.Namespace(sparse=True, sparse_feature="raw", sparse_reduction=0.75, blend_len=5,
-                                  model_path={str(tmp_path / 'model000001.pt')!r}, output_dir={str(out)!r})
+        args = argparse.Namespace(sparse=True, sparse_feature="raw", sparse_reduction=0.75, blend_len=5, {args})
         sparsify_priormdm(m, args)
+    """).format(args=args) + textwrap.dedent(then)
+    repo = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+    env = dict(os.environ, PYTHONPATH=os.pathsep.join([repo, os.environ.get("PYTHONPATH", "")]))
+    subprocess.run([sys.executable, "-c", script], check=True, env=env, cwd=str(cwd), timeout=120)
+
+
+def test_doubletake_sampling_writes_sparse_config_beside_its_outputs(tmp_path):
+    """With --output_dir: that folder's sparse_config.json is the model's config."""
+    out = tmp_path / "out"
+    _doubletake_run(tmp_path, f"model_path={str(tmp_path / 'model000001.pt')!r}, output_dir={str(out)!r}", """
         os.makedirs(args.output_dir)
         np.save(os.path.join(args.output_dir, "results.npy"), np.zeros(1))
     """)
-    repo = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
-    env = dict(os.environ, PYTHONPATH=os.pathsep.join([repo, os.environ.get("PYTHONPATH", "")]))
-    subprocess.run([sys.executable, "-c", script], check=True, env=env, cwd=str(tmp_path), timeout=120)
     cfg = SparseConfig.load(str(out / CONFIG_FILENAME))
     assert cfg.enabled and cfg.reduction == 0.75 and cfg.feature == "raw"
+
+
+def test_doubletake_sparse_config_goes_to_the_derived_folder_not_the_newest(tmp_path):
+    """Without --output_dir: the folder upstream derives from the args gets sparse_config.json,
+    even when another DoubleTake folder beside the checkpoint got a results.npy later."""
+    run = tmp_path / "run"
+    run.mkdir()
+    exact = "DoubleTake_samples_run_000000100_seed4_handshake_20_double_take_blend_5_skipSteps_100"
+    _doubletake_run(tmp_path, 'model_path="run/model000000100.pt", output_dir="", input_text="", seed=4, '
+                              "sample_gt=False, double_take=True, handshake_size=20, skip_steps_double_take=100", f"""
+        for name in ({exact!r}, "DoubleTake_samples_other"):   # the second one written last: the newest
+            os.makedirs(os.path.join("run", name))
+            np.save(os.path.join("run", name, "results.npy"), np.zeros(1))
+            time.sleep(0.05)
+    """)
+    assert SparseConfig.load(str(run / exact / CONFIG_FILENAME)).reduction == 0.75
+    assert not (run / "DoubleTake_samples_other" / CONFIG_FILENAME).exists()
 
 
 def test_motiondiffuse_opt_txt_states_fsq_off_with_a_warning(tmp_path):

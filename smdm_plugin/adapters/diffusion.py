@@ -23,10 +23,12 @@ import weakref
 from dataclasses import dataclass, field
 from typing import Any, List, Optional, Tuple
 
+import torch
 import torch.nn as nn
 
 from ..core.config import SparseConfig
 from ..core.checks import as_mask
+from ..core.noise import NOISE_STEP, NOISE_TABLE, CounterNoise
 from .request import KEYFRAMES_KEY, request_of, with_request
 from .state import find_sparse_model, frames_layout, get_state, lengths_from_y, protected_count
 
@@ -38,6 +40,14 @@ def diffusion_steps(diffusion: Any) -> int:
             return int(getattr(diffusion, attr))
     raise ValueError(f"attach_diffusion: cannot read the step count of {type(diffusion).__name__} "
                      "(expected num_timesteps or original_num_steps)")
+
+
+def model_noise(sparse: nn.Module) -> Optional[CounterNoise]:
+    """The random numbers of ``sparse``'s next training mask: its step counter and noise table
+    buffers (:mod:`~smdm_plugin.core.noise`); None when its config draws nothing."""
+    table = getattr(sparse, NOISE_TABLE, None)
+    return None if table is None else CounterNoise(getattr(sparse, NOISE_STEP), table,
+                                                   get_state(sparse).schedule.noise_salt)
 
 
 #: the one attribute a wrapped diffusion carries
@@ -99,7 +109,8 @@ def attach_diffusion(diffusion: Any, config: Optional[SparseConfig] = None,
         call = family.training_inputs(state, x_start, model_kwargs or {})
         mask, capacity = call.mask, call.capacity
         if mask is None:                         # else: chosen in data loading (keyframe_collate)
-            mask, capacity = training_keyframes(state.schedule, call.frames, call.lengths, call.forced)
+            mask, capacity = training_keyframes(state.schedule, call.frames, call.lengths, call.forced,
+                                                model_noise(sparse))
         model_kwargs = family.with_keyframes(state, model_kwargs or {}, mask, capacity)
         terms = original(model, x_start, t, model_kwargs, *args, **kwargs)
         return family.finish_losses(state, sparse, terms, mask)
@@ -141,10 +152,15 @@ class keyframe_collate:
     :class:`~smdm_plugin.adapters.request.KeyframeRequest`), and the diffusion wrapper uses them
     instead of selecting on the GPU. The mask depends only on x0, so the result is the same
     (mask noise is drawn in the worker). ``schedule``: the sparse model's
-    ``MaskSchedule`` (``model._smdm_state.schedule``); it must be picklable for worker processes."""
+    ``MaskSchedule`` (``model._smdm_state.schedule``); it must be picklable for worker processes.
+
+    Mask noise comes from the schedule's noise table (:mod:`~smdm_plugin.core.noise`) at a step
+    counted per batch and, in a worker process, offset by the worker's seed (new every epoch);
+    torch's global stream is not drawn from (with ``num_workers=0`` it is the training process's)."""
 
     def __init__(self, collate_fn, schedule) -> None:
         self.collate_fn, self.schedule = collate_fn, schedule
+        self.batches = 0
 
     def __call__(self, batch):
         motion, cond = self.collate_fn(batch)
@@ -153,13 +169,19 @@ class keyframe_collate:
         B, N = frames.shape[:2]
         lengths = lengths_from_y(y, B, N, motion.device)
         forced = as_mask(request_of(y).forced, B, N, motion.device, f"y[{KEYFRAMES_KEY!r}].forced")
-        mask, capacity = training_keyframes(self.schedule, frames, lengths, forced)
+        worker = torch.utils.data.get_worker_info()
+        offset = (worker.seed % (1 << 32)) * 65537 if worker is not None else 0
+        step = torch.tensor(self.batches + offset, dtype=torch.long, device=motion.device)
+        self.batches += 1
+        mask, capacity = training_keyframes(self.schedule, frames, lengths, forced, self.schedule.noise(step))
         cond["y"] = with_request(y, mask=mask, capacity=capacity)
         return motion, cond
 
 
-def training_keyframes(schedule: Any, frames: Any, lengths: Any, forced: Any) -> Tuple[Any, int]:
+def training_keyframes(schedule: Any, frames: Any, lengths: Any, forced: Any,
+                       noise: Optional[CounterNoise] = None) -> Tuple[Any, int]:
     """``(mask bool [B, N], capacity K)``: the training keyframes of x0 ``frames [B, N, D]``
-    (valid ``lengths [B]``, ``forced [B, N]`` or None) by ``schedule`` (a ``MaskSchedule``)."""
-    mask = schedule.training_mask(frames, lengths, forced, checked=True)
+    (valid ``lengths [B]``, ``forced [B, N]`` or None) by ``schedule`` (a ``MaskSchedule``), its
+    random draws from ``noise`` (:mod:`~smdm_plugin.core.noise`; advanced by one)."""
+    mask = schedule.training_mask(frames, lengths, forced, noise, checked=True)
     return mask, schedule.capacity(frames.shape[1], training=True, forced=protected_count(forced, lengths))

@@ -36,7 +36,6 @@ chooses each training sample's keyframes from ``x_start`` and passes them to the
 """
 from __future__ import annotations
 
-import math
 import types
 import warnings
 from typing import Any, Dict, Optional, Tuple
@@ -48,6 +47,7 @@ import torch.nn as nn
 from ..core.attention_backends import fill_frames, gather_rows
 from ..core.checks import as_lengths
 from ..core.config import SparseConfig
+from ..core.embedding import timestep_embedding
 from ..core.interpolation import catmull_rom_refill
 from ..core.lipschitz import lipschitz_loss
 from .family import CallInputs, ModelFamily, register_family
@@ -56,18 +56,6 @@ from .state import MISSING, SparseState, Variant, find_sparse_model, get_state
 
 _REQUIRED = ("joint_embed", "out", "temporal_decoder_blocks", "sequence_embedding", "time_embed",
              "encode_text", "latent_dim", "input_feats")
-
-
-def timestep_embedding(timesteps: torch.Tensor, dim: int, max_period: int = 10000) -> torch.Tensor:
-    """Sinusoidal embedding ``[B, dim]`` (cos half, then sin half), as the denoiser expects."""
-    half = dim // 2
-    freqs = torch.exp(-math.log(max_period) * torch.arange(half, dtype=torch.float32,
-                                                           device=timesteps.device) / half)
-    args = timesteps.reshape(-1, 1).float() * freqs[None]
-    emb = torch.cat([torch.cos(args), torch.sin(args)], dim=-1)
-    if dim % 2:
-        emb = torch.cat([emb, torch.zeros_like(emb[:, :1])], dim=-1)
-    return emb
 
 
 def _timestep_embedding_fn(model: nn.Module):

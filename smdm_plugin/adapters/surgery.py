@@ -20,6 +20,7 @@ import torch.nn as nn
 from ..core.checks import module_device
 from ..core.config import MARKER, SparseConfig
 from ..core.lipschitz import LipschitzMLP
+from ..core.noise import NOISE_STEP, NOISE_TABLE
 from ..core.schedule import MaskSchedule
 from .diffusion import attach_diffusion, diffusion_steps, release_diffusions
 from .family import ModelFamily, family_for, get_family
@@ -122,6 +123,12 @@ def sparsify(model: nn.Module, config: ConfigLike = None, *, diffusion: Any = No
             setattr(owner, name, mlp)
         fam.install(model, state)
         model.register_buffer(MARKER, torch.tensor(config.version, device=device), persistent=True)
+        model.register_buffer(NOISE_STEP, torch.zeros((), dtype=torch.long, device=device), persistent=True)
+        if schedule.noise_table is not None:           # on the model: moves with it, made before tracing
+            model.register_buffer(NOISE_TABLE, schedule.noise_table.view(torch.int32).to(device), persistent=False)
+        register = getattr(model, "register_load_state_dict_pre_hook", None)   # public since torch 2.3
+        state.handles.append(register(_keep_noise_step) if register is not None
+                             else model._register_load_state_dict_pre_hook(_keep_noise_step, with_module=True))
         setattr(model, STATE_ATTR, state)
         if diffusion is not None:
             attach_diffusion(diffusion, model=model)
@@ -144,7 +151,17 @@ def _undo(model: nn.Module, state: SparseState, rollback: bool = False) -> None:
     restore_originals(state.originals)
     state.originals.clear()
     model._buffers.pop(MARKER, None)
+    model._buffers.pop(NOISE_STEP, None)
+    model._buffers.pop(NOISE_TABLE, None)
     model.__dict__.pop(STATE_ATTR, None)
+
+
+def _keep_noise_step(module: nn.Module, state_dict: Dict[str, Any], prefix: str, *args: Any) -> None:
+    """A state dict without the mask-noise step (written before it existed, or a dense one) loads
+    as before: the model keeps its own step."""
+    key = prefix + NOISE_STEP
+    if key not in state_dict and NOISE_STEP in module._buffers:
+        state_dict[key] = module._buffers[NOISE_STEP]
 
 
 def unsparsify(model: nn.Module) -> nn.Module:
@@ -171,4 +188,4 @@ def set_mean_std(model: nn.Module, mean: Any, std: Any) -> None:
     device = model_device(model, "set_mean_std")
     _check_stats("mean", mean, device, "set_mean_std")
     _check_stats("std", std, device, "set_mean_std")
-    state.schedule = MaskSchedule(state.config, mean, std)
+    state.schedule = MaskSchedule(state.config, mean, std, noise_seed=state.schedule.noise_seed)

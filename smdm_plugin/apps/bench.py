@@ -1,18 +1,22 @@
 """``smdm bench``: what sparse keyframe mode saves, dense and sparse side by side in one run.
 
-For the MDM-size in-package backbone (:class:`~smdm_plugin.reference.backbone.TinyMDM`, latent
-512, 8 layers, 4 heads, ff 1024; ``trans_enc`` and ``trans_dec``) on a HumanML3D-like batch (default
-batch 64, 196 frames, valid lengths drawn in 40..196 with a fixed seed, cached text embeddings — no
-CLIP) it times, dense and at every reduction rate, in the same process and interleaved (every
-repeat runs every variant in turn, so machine load hits all alike):
+For one registered model family (``--family``; each has a :class:`Workload`): ``mdm``, the
+MDM-size in-package backbone (:class:`~smdm_plugin.reference.backbone.TinyMDM`, latent 512, 8
+layers, 4 heads, ff 1024; ``trans_enc`` and ``trans_dec``), or ``motiondiffuse``, MotionDiffuse's
+denoiser layout (:class:`~smdm_plugin.reference.motion_transformer.MotionTransformer`, latent 512,
+8 layers, 8 heads, ff 1024; one model call per sampling step, no guidance, as MotionDiffuse
+samples), on a HumanML3D-like batch (default batch 64, 196 frames, valid lengths drawn in 40..196
+with a fixed seed, cached text features — no CLIP) it times, dense and at every reduction rate, in
+the same process and interleaved (every repeat runs every variant in turn, so machine load hits
+all alike):
 
 * ``train`` — one training step: ``SimpleDiffusion.training_losses`` with the sparse diffusion
   wrapper (keyframe selection on x0 + mask noise included) + backward + ``AdamW.step``;
-* ``sample`` — one sampling step with classifier-free guidance (two forward passes, ``eval``,
+* ``sample`` — one sampling step (MDM: classifier-free guidance, two forward passes; ``eval``,
   ``no_grad``) at a late step (``t < round(γT)``, dynamic update forced on: VW on x_t, the
   costliest step of the schedule);
-* ``loop`` — the whole sampling loop a user runs: ``--steps`` steps with classifier-free guidance
-  and the config's own schedule;
+* ``loop`` — the whole sampling loop a user runs: ``--steps`` steps (MDM: with classifier-free
+  guidance) and the config's own schedule;
 
 plus, for the sparse variants, the share of the step spent in keyframe selection and in the
 interpolation back to all frames, and peak memory (CUDA: max allocated; CPU: the peak rise of the
@@ -28,17 +32,17 @@ from __future__ import annotations
 import argparse
 import contextlib
 import ctypes
-import json
 import os
 import statistics
 import sys
 import threading
 import time
-from typing import Any, Callable, Dict, List, Optional, Sequence
+from typing import Any, Callable, Dict, List, Optional, Sequence, Tuple
 
 import torch
 
 from ..core.config import BACKENDS
+from ..core.registry import Registry
 from .common.args import add_overwrite, device_type, float_range, int_range, resolve_device
 from .common.threads import THREADS_HELP
 
@@ -136,9 +140,7 @@ def make_batch(batch: int, frames: int, device: torch.device, seed: int = 0, min
                ) -> Dict[str, Any]:
     """A HumanML3D-like batch: normal features ``[B, 263, 1, N]``, lengths in ``min_len..N``."""
     g = torch.Generator().manual_seed(seed)
-    lo = min(min_len, frames)
-    lengths = torch.randint(lo, frames + 1, (batch,), generator=g)
-    lengths[0] = frames  # the longest sample sets the padded length
+    lengths = _lengths(batch, frames, min_len, g)
     x = torch.randn(batch, 263, 1, frames, generator=g)
     valid = torch.arange(frames) < lengths[:, None]
     x = x * valid.view(batch, 1, 1, frames)
@@ -147,26 +149,219 @@ def make_batch(batch: int, frames: int, device: torch.device, seed: int = 0, min
     return {"x": x.to(device), "y": y, "lengths": lengths}
 
 
+def _lengths(batch: int, frames: int, min_len: int, g: torch.Generator) -> torch.Tensor:
+    """``[B]`` long valid lengths drawn in ``min_len..frames``; the first is ``frames`` (the longest
+    sample sets the padded length)."""
+    lengths = torch.randint(min(min_len, frames), frames + 1, (batch,), generator=g)
+    lengths[0] = frames
+    return lengths
+
+
 FSQ_CHOICES = {"paper": "sparse only (dense = upstream MDM, sparse = the paper's recipe)",
                "both": "dense and sparse (like with like)", "off": "neither"}
 
 
+class Workload:
+    """How the benchmark builds, feeds and calls the in-package model of one registered model
+    family (:data:`~smdm_plugin.adapters.family.FAMILIES`). One subclass per family, registered in
+    :data:`WORKLOADS` under the family's name; ``--family`` offers the registered families that
+    have one. The sparse model is made with ``sparsify(..., family=name)``."""
+
+    #: the model family's registered name
+    family: str = ""
+    #: the variants ``--arch`` chooses among (the first ones by default)
+    archs: Tuple[str, ...] = ()
+    #: whether FSQ-quantised attention keys apply (softmax attention)
+    fsq: bool = True
+    #: model calls per sampling step (2: classifier-free guidance)
+    passes: int = 1
+
+    def size(self, quick: bool) -> Dict[str, int]:
+        raise NotImplementedError
+
+    def model(self, arch: str, quick: bool, frames: int, root: Optional[str] = None) -> torch.nn.Module:
+        """The dense model; ``root``: an upstream checkout to take the model class from (None =
+        the in-package one)."""
+        raise NotImplementedError
+
+    def source(self, root: Optional[str]) -> str:
+        """Where the model class comes from, as the table names it."""
+        return "in-package"
+
+    #: the environment variable naming an upstream checkout (None: no upstream model to load)
+    root_env: Optional[str] = None
+
+    def check_root(self, root: str) -> None:
+        """Raise ``ValueError`` (starting ``--root:``) unless ``root`` is a usable checkout."""
+        raise ValueError(f"--root: --family {self.family} has no upstream model to load (leave it out)")
+
+    def batch(self, batch: int, frames: int, device: torch.device, quick: bool) -> Dict[str, Any]:
+        """``{"x": the motion as the model takes it, "frames": [B, N, D], "lengths": [B] (CPU),
+        "kwargs": the model's keyword arguments}``."""
+        raise NotImplementedError
+
+    def kwargs(self, data: Dict[str, Any]) -> Dict[str, Any]:
+        """A fresh copy of the model keyword arguments (hooks may add keys to them)."""
+        return dict(data["kwargs"])
+
+    def denoiser(self, model: torch.nn.Module) -> torch.nn.Module:
+        """What one sampling step calls: ``denoiser(x_t, t, **kwargs)``."""
+        return model.eval()
+
+    def call_args(self, data: Dict[str, Any], mask: torch.Tensor, capacity: int) -> Tuple[tuple, Dict[str, Any]]:
+        """``(args, kwargs)`` of a model call with the given keyframes, as the family's ``read_call``
+        reads them."""
+        raise NotImplementedError
+
+    def lead(self, model: torch.nn.Module) -> int:
+        """Tokens before the frames in the keyframe transformer's sequence."""
+        return 0
+
+    def backend(self, backend: str, device: torch.device, compile_mode: str) -> str:
+        """The sparse model's attention, as the table names it."""
+        from ..core.attention_backends import resolve_backend_name
+
+        return resolve_backend_name(backend, device) if compile_mode == "none" else "compact"
+
+
+class MDMWorkload(Workload):
+    """``TinyMDM`` at MDM's HumanML3D size, ``trans_enc`` / ``trans_dec``; cached text embeddings;
+    sampling with classifier-free guidance (two passes per step) as MDM samples."""
+
+    family, archs, fsq, passes = "mdm", ("trans_enc", "trans_dec"), True, 2
+
+    def size(self, quick: bool) -> Dict[str, int]:
+        return mdm_size(quick)
+
+    def model(self, arch: str, quick: bool, frames: int, root: Optional[str] = None) -> torch.nn.Module:
+        from ..reference.backbone import TinyMDM
+
+        return TinyMDM(arch=arch, **mdm_size(quick))
+
+    def source(self, root: Optional[str]) -> str:
+        return "in-package TinyMDM"
+
+    def batch(self, batch: int, frames: int, device: torch.device, quick: bool) -> Dict[str, Any]:
+        from ..adapters.state import frames_layout
+
+        data = make_batch(batch, frames, device)
+        return {**data, "frames": frames_layout(data["x"]), "kwargs": {"y": data["y"]}}
+
+    def kwargs(self, data: Dict[str, Any]) -> Dict[str, Any]:
+        return {"y": dict(data["y"])}
+
+    def denoiser(self, model: torch.nn.Module) -> torch.nn.Module:
+        from ..reference.diffusion import ClassifierFreeGuidance
+
+        return ClassifierFreeGuidance(model.eval(), scale=2.5)
+
+    def call_args(self, data, mask, capacity):
+        from ..adapters.request import with_request
+
+        return (data["x"], None, with_request(data["y"], mask=mask, capacity=capacity)), {}
+
+    def lead(self, model: torch.nn.Module) -> int:
+        return 1 if model.arch == "trans_enc" or getattr(model, "emb_trans_dec", False) else 0
+
+
+class MotionDiffuseWorkload(Workload):
+    """MotionDiffuse's denoiser layout (:class:`~smdm_plugin.reference.motion_transformer.MotionTransformer`,
+    latent 512, 8 layers, 8 heads, FFN 1024) on ``[B, N, 263]``; precomputed text features
+    (``xf_proj``, ``xf_out`` of 77 tokens) as MotionDiffuse computes them once per prompt; one
+    model call per sampling step (MotionDiffuse samples without guidance). Its self-attention is
+    linear: no FSQ keys, no attention backend (the sparse model runs its own blocks on the K slots)."""
+
+    family, archs, fsq, passes = "motiondiffuse", ("motiondiffuse",), False, 1
+
+    def size(self, quick: bool) -> Dict[str, int]:
+        from ..reference.motion_transformer import motiondiffuse_size
+
+        return motiondiffuse_size(quick)
+
+    root_env = "SMDM_MOTIONDIFFUSE_ROOT"
+
+    def check_root(self, root: str) -> None:
+        upstream_motion_transformer(root)
+
+    def model(self, arch: str, quick: bool, frames: int, root: Optional[str] = None) -> torch.nn.Module:
+        from ..reference.motion_transformer import MotionTransformer
+
+        cls = MotionTransformer if root is None else upstream_motion_transformer(root)
+        return cls(input_feats=263, num_frames=max(196, frames), **self.size(quick))
+
+    def source(self, root: Optional[str]) -> str:
+        return ("in-package MotionTransformer (MotionDiffuse's layout)" if root is None
+                else f"upstream MotionDiffuse {root}")
+
+    def batch(self, batch: int, frames: int, device: torch.device, quick: bool) -> Dict[str, Any]:
+        size = self.size(quick)
+        g = torch.Generator().manual_seed(0)
+        lengths = _lengths(batch, frames, 40, g)
+        x = torch.randn(batch, frames, 263, generator=g) * (torch.arange(frames) < lengths[:, None])[..., None]
+        kw = {"length": lengths.to(device),
+              "xf_proj": torch.randn(batch, 4 * size["latent_dim"], generator=g).to(device),
+              "xf_out": torch.randn(batch, 77, size["text_latent_dim"], generator=g).to(device)}
+        return {"x": x.to(device), "frames": x.to(device), "lengths": lengths, "kwargs": kw}
+
+    def call_args(self, data, mask, capacity):
+        from ..adapters.request import with_request
+
+        return (data["x"], None, data["kwargs"]["length"]), with_request({}, "model_kwargs", mask=mask, capacity=capacity)
+
+    def backend(self, backend: str, device: torch.device, compile_mode: str) -> str:
+        return "n/a (linear attention)"
+
+
+def upstream_motion_transformer(root: str) -> type:
+    """MotionDiffuse's own ``MotionTransformer`` class from the checkout ``root`` (the folder
+    holding ``text2motion/``). Raises ``ValueError`` naming ``root`` when it is not one or cannot be
+    imported (MotionDiffuse needs ``openai-clip`` and CLIP's weights)."""
+    import importlib
+
+    t2m = os.path.join(os.path.abspath(root), "text2motion")
+    if not os.path.isfile(os.path.join(t2m, "models", "transformer.py")):
+        raise ValueError(f"--root: {root} is not a MotionDiffuse checkout (no text2motion/models/transformer.py)")
+    if t2m not in sys.path:
+        sys.path.insert(0, t2m)
+    try:
+        return importlib.import_module("models.transformer").MotionTransformer
+    except Exception as e:  # noqa: BLE001 - any import failure is the checkout's, said in one line
+        raise ValueError(f"--root: cannot import MotionDiffuse's models.transformer from {t2m}: "
+                         f"{type(e).__name__}: {e}") from None
+
+
+#: the benchmark's workload per model family name
+WORKLOADS: Registry[Workload] = Registry("benchmark workload")
+for _w in (MDMWorkload(), MotionDiffuseWorkload()):
+    WORKLOADS.register(_w.family, _w)
+
+
+def family_choices() -> List[str]:
+    """The registered model families the benchmark can time (those with a :class:`Workload`)."""
+    from ..adapters.family import FAMILIES
+
+    return [n for n in FAMILIES.names() if n in WORKLOADS]
+
+
 def build(arch: str, reduction: Optional[float], device: torch.device, quick: bool, steps: int,
-          backend: str = "auto", seed: int = 0, fsq: str = "paper", **sparse: Any):
-    """(model, diffusion) — dense when ``reduction`` is None. ``fsq`` (:data:`FSQ_CHOICES`): which
-    side gets FSQ-quantised attention keys."""
+          backend: str = "auto", seed: int = 0, fsq: str = "paper", family: str = "mdm", frames: int = 196,
+          root: Optional[str] = None, **sparse: Any):
+    """(model, diffusion) of ``family``'s workload — dense when ``reduction`` is None. ``fsq``
+    (:data:`FSQ_CHOICES`): which side gets FSQ-quantised attention keys (families whose attention
+    has softmax keys). ``root``: an upstream checkout whose model class to use."""
     from ..adapters.surgery import sparsify
     from ..core.config import SparseConfig
     from ..core.fsq import quantize_attention_keys
-    from ..reference.backbone import TinyMDM
     from ..reference.diffusion import SimpleDiffusion
 
+    work = WORKLOADS.get(family)
+    fsq = fsq if work.fsq else "off"
     torch.manual_seed(seed)
-    model = TinyMDM(arch=arch, **mdm_size(quick)).to(device)
+    model = work.model(arch, quick, frames, root).to(device)
     diffusion = SimpleDiffusion(steps)
     if reduction is not None:
         sparsify(model, SparseConfig(reduction=reduction, attention_backend=backend, fsq=fsq != "off", **sparse),
-                 diffusion=diffusion)
+                 diffusion=diffusion, family=family)
     elif fsq == "both":
         quantize_attention_keys(model, SparseConfig().fsq_levels)
     return model, diffusion
@@ -184,7 +379,7 @@ def _compiled(model: torch.nn.Module, compile_mode: str) -> torch.nn.Module:
     return torch.compile(model, mode=None if compile_mode == "default" else compile_mode, fullgraph=True)
 
 
-def _train_step_fn(model, diffusion, batch, device, amp: str, compile_mode: str, seed: int = 0
+def _train_step_fn(work: Workload, model, diffusion, batch, device, amp: str, compile_mode: str, seed: int = 0
                    ) -> Callable[[], None]:
     model.train()
     run = _compiled(model, compile_mode)
@@ -198,7 +393,7 @@ def _train_step_fn(model, diffusion, batch, device, amp: str, compile_mode: str,
         t = ts[step_no[0] % len(ts)]                 # made ahead of time: no host-to-device copy
         step_no[0] += 1
         with _autocast(device, amp):
-            loss = diffusion.training_losses(run, batch["x"], t, {"y": dict(batch["y"])})["loss"].mean()
+            loss = diffusion.training_losses(run, batch["x"], t, work.kwargs(batch))["loss"].mean()
         opt.zero_grad(set_to_none=True)
         loss.backward()
         opt.step()
@@ -206,14 +401,9 @@ def _train_step_fn(model, diffusion, batch, device, amp: str, compile_mode: str,
     return step
 
 
-def _cfg(model, compile_mode: str):
-    from ..reference.diffusion import ClassifierFreeGuidance
-
-    return _compiled(ClassifierFreeGuidance(model.eval(), scale=2.5), compile_mode)
-
-
-def _sample_step_fn(model, diffusion, batch, device, amp: str, compile_mode: str) -> Callable[[], None]:
-    cfg = _cfg(model, compile_mode)
+def _sample_step_fn(work: Workload, model, diffusion, batch, device, amp: str, compile_mode: str
+                    ) -> Callable[[], None]:
+    den = _compiled(work.denoiser(model), compile_mode)
     B = batch["x"].shape[0]
     state = getattr(model, "_smdm_state", None)
     late = state.schedule.late_steps if state is not None else 1
@@ -223,48 +413,49 @@ def _sample_step_fn(model, diffusion, batch, device, amp: str, compile_mode: str
     def step() -> None:
         with torch.no_grad(), _autocast(device, amp):
             x_t.add_(0)                              # a new x_t every time
-            cfg(x_t, t, dict(batch["y"]))
+            den(x_t, t, **work.kwargs(batch))
 
     return step
 
 
-def _sample_loop_fn(model, diffusion, batch, device, amp: str, compile_mode: str) -> Callable[[], None]:
-    cfg = _cfg(model, compile_mode)
+def _sample_loop_fn(work: Workload, model, diffusion, batch, device, amp: str, compile_mode: str
+                    ) -> Callable[[], None]:
+    den = _compiled(work.denoiser(model), compile_mode)
     shape = tuple(batch["x"].shape)
     g = torch.Generator(device=device).manual_seed(0)
 
     def loop() -> None:
         with torch.no_grad(), _autocast(device, amp):
-            diffusion.p_sample_loop(cfg, shape, {"y": dict(batch["y"])}, device=device, generator=g)
+            diffusion.p_sample_loop(den, shape, work.kwargs(batch), device=device, generator=g)
 
     return loop
 
 
-def _overhead_fns(model, batch, device, train: bool):
+def _overhead_fns(work: Workload, model, batch, device, train: bool):
     """Keyframe selection and the interpolation back to all frames, alone, with the step's
     shapes: ``(select, interp)`` callables."""
-    from ..adapters.mdm import call_plan
-    from ..adapters.state import frames_layout, get_state
-    from ..adapters.request import with_request
+    from ..adapters.diffusion import model_noise
+    from ..adapters.state import get_state
     from ..core.attention_backends import fill_frames
 
     state = get_state(model)
-    frames = frames_layout(batch["x"])
+    frames = batch["frames"]
     lengths = batch["lengths"].to(device)
     B, N = frames.shape[:2]
     if train:
         def select():
-            return state.schedule.training_mask(frames, lengths, checked=True)
+            return state.schedule.training_mask(frames, lengths, None, model_noise(model), checked=True)
     else:
         late = torch.zeros(B, dtype=torch.long, device=device)
 
         def select():
             return state.schedule.sampling_mask(frames, late, lengths, checked=True)
-    y = with_request(batch["y"], mask=select(), capacity=state.schedule.capacity(N, training=train))
-    plan = call_plan(state, batch["x"], None, y)
-    lead = 1 if model.arch == "trans_enc" or getattr(model, "emb_trans_dec", False) else 0
+    args, kwargs = work.call_args(batch, select(), state.schedule.capacity(N, training=train))
+    plan = state.family.read_call(state, args, kwargs).plan(state)
+    lead = work.lead(model)
     K = plan.capacity
-    h = torch.randn((lead + K) * B, model.latent_dim, device=device, requires_grad=train)
+    width = getattr(model, "latent_dim")
+    h = torch.randn((lead + K) * B, width, device=device, requires_grad=train)
     rows = torch.arange((lead + K) * B, device=device).view(lead + K, B)
 
     def interp():
@@ -278,33 +469,40 @@ def _overhead_fns(model, batch, device, train: bool):
 
 
 # ----------------------------------------------------------------------------------------- run
-def run_bench(archs: Sequence[str] = ("trans_enc", "trans_dec"), reductions: Sequence[float] = (0.6, 0.7, 0.8, 0.9),
+def run_bench(archs: Optional[Sequence[str]] = None, reductions: Sequence[float] = (0.6, 0.7, 0.8, 0.9),
               batch: int = 64, frames: int = 196, repeats: int = 3, warmup: int = 1, device: str = "auto",
               quick: bool = False, backend: str = "auto", steps: int = 50, fastpath: bool = False,
               modes: Sequence[str] = ("train", "sample"), amp: str = "fp32", compile_mode: str = "none",
-              progress: Optional[Callable[[str], None]] = None, fsq: str = "paper") -> Dict[str, Any]:
-    """Dense and sparse, interleaved per repeat; wall-clock, process CPU time, peak memory."""
+              progress: Optional[Callable[[str], None]] = None, fsq: str = "paper", family: str = "mdm",
+              root: Optional[str] = None) -> Dict[str, Any]:
+    """Dense and sparse, interleaved per repeat; wall-clock, process CPU time, peak memory.
+    ``family``: a registered model family with a :class:`Workload` (:func:`family_choices`);
+    ``archs``: its variants (None = all of them); ``root``: an upstream checkout whose model class
+    to time (None = the in-package one)."""
+    work = WORKLOADS.get(family)
+    archs = list(work.archs if archs is None else archs)
+    bad = [a for a in archs if a not in work.archs]
+    if bad:
+        raise ValueError(f"run_bench: arch {bad[0]!r} is not a {family} variant; expected one of {list(work.archs)}")
     mha = getattr(torch.backends, "mha", None)
     has_fp = mha is not None and hasattr(mha, "set_fastpath_enabled")
     before = mha.get_fastpath_enabled() if has_fp else None
     if has_fp:
         mha.set_fastpath_enabled(bool(fastpath))
     try:
-        return _run_bench(list(archs), list(reductions), batch, frames, repeats, warmup, device, quick, backend,
-                          steps, fastpath, list(modes), amp, compile_mode, progress, fsq)
+        return _run_bench(work, archs, list(reductions), batch, frames, repeats, warmup, device, quick, backend,
+                          steps, fastpath, list(modes), amp, compile_mode, progress, fsq if work.fsq else "off", root)
     finally:
         if has_fp:
             mha.set_fastpath_enabled(before)
 
 
-def _run_bench(archs, reductions, batch, frames, repeats, warmup, device, quick, backend, steps, fastpath,
-               modes, amp, compile_mode, progress, fsq) -> Dict[str, Any]:
-    from ..core.attention_backends import resolve_backend_name
-
+def _run_bench(work: Workload, archs, reductions, batch, frames, repeats, warmup, device, quick, backend, steps, fastpath,
+               modes, amp, compile_mode, progress, fsq, root) -> Dict[str, Any]:
     dev = resolve_device(device)
     if dev.type == "cpu":
         _pin_malloc()
-    data = make_batch(batch, frames, dev)
+    data = work.batch(batch, frames, dev, quick)
     say = progress or (lambda s: None)
     rows: List[Dict[str, Any]] = []
     variants: List[Optional[float]] = [None] + list(reductions)
@@ -314,8 +512,9 @@ def _run_bench(archs, reductions, batch, frames, repeats, warmup, device, quick,
             sparse_kw = {"dynamic_update": True} if mode == "sample" else {}
             cells = []
             for red in variants:
-                model, diffusion = build(arch, red, dev, quick, steps, backend, fsq=fsq, **sparse_kw)
-                fn = makers[mode](model, diffusion, data, dev, amp, compile_mode)
+                model, diffusion = build(arch, red, dev, quick, steps, backend, fsq=fsq, family=work.family,
+                                         frames=frames, root=root, **sparse_kw)
+                fn = makers[mode](work, model, diffusion, data, dev, amp, compile_mode)
                 cells.append({"red": red, "model": model, "fn": fn, "wall": [], "cpu": [], "mem": 0})
             for _ in range(warmup):
                 for c in cells:
@@ -335,30 +534,28 @@ def _run_bench(archs, reductions, batch, frames, repeats, warmup, device, quick,
             for c in cells:
                 red, wall, cpu = c["red"], statistics.median(c["wall"]), statistics.median(c["cpu"])
                 row: Dict[str, Any] = {
-                    "arch": arch, "mode": mode, "reduction": 0.0 if red is None else red,
+                    "family": work.family, "arch": arch, "mode": mode, "reduction": 0.0 if red is None else red,
                     "variant": "dense" if red is None else f"sparse {int(round(red * 100))}%",
                     "median_s": wall, "cpu_s": cpu, "times_s": c["wall"], "cpu_times_s": c["cpu"],
                     "speedup": d_wall / wall, "cpu_speedup": d_cpu / cpu, "peak_mem_mib": c["mem"] / 2 ** 20,
                     "mem_ratio": c["mem"] / dense["mem"] if dense["mem"] > 0 else None,
                 }
                 if red is not None and mode != "loop":
-                    sel, interp = _overhead_fns(c["model"], data, dev, mode == "train")
+                    sel, interp = _overhead_fns(work, c["model"], data, dev, mode == "train")
                     with _autocast(dev, amp):
                         t_sel = statistics.median(time_it(sel, dev, repeats, 1))
                         t_int = statistics.median(time_it(interp, dev, repeats, 1))
-                    n_int = 1 if mode == "train" else 2   # CFG: two forward passes, two selections
-                    n_sel = 1 if mode == "train" else 2
+                    n_sel = n_int = 1 if mode == "train" else work.passes   # CFG: two passes, two selections
                     row.update(select_s=t_sel * n_sel, interp_s=t_int * n_int,
                                overhead_share=(t_sel * n_sel + t_int * n_int) / wall)
                 rows.append(row)
                 say(_row_line(row))
             del cells
-    sparse_backend = resolve_backend_name(backend, dev) if compile_mode == "none" else "compact"
     return {
-        "device": str(dev), "device_name": _device_name(dev), "torch": torch.__version__,
+        "family": work.family, "model_source": work.source(root), "device": str(dev), "device_name": _device_name(dev), "torch": torch.__version__,
         "threads": torch.get_num_threads(), "batch": batch, "frames": frames,
-        "lengths": [int(v) for v in data["lengths"]], "model": mdm_size(quick), "quick": bool(quick), "repeats": repeats,
-        "warmup": warmup, "backend": backend, "sparse_backend": sparse_backend, "amp": amp,
+        "lengths": [int(v) for v in data["lengths"]], "model": work.size(quick), "quick": bool(quick), "repeats": repeats,
+        "warmup": warmup, "backend": backend, "sparse_backend": work.backend(backend, dev, compile_mode), "amp": amp,
         "compile": compile_mode, "fastpath": bool(fastpath), "diffusion_steps": steps, "fsq": fsq,
         "load_average": _loadavg(), "rows": rows, "targets": TARGETS,
     }
@@ -385,11 +582,19 @@ def _row_line(r: Dict[str, Any]) -> str:
             f"x{r['speedup']:.2f} (cpu x{r['cpu_speedup']:.2f}){ov}")
 
 
+def _fsq_note(result: Dict[str, Any]) -> str:
+    fam = result.get("family", "mdm")
+    if fam in WORKLOADS and not WORKLOADS.get(fam).fsq:
+        return "n/a (no softmax attention keys)"
+    return FSQ_CHOICES[result.get("fsq", "paper")]
+
+
 def markdown(result: Dict[str, Any]) -> str:
     mode = f"{result['amp']}, {'eager' if result['compile'] == 'none' else 'torch.compile ' + result['compile']}"
     lines = [f"device: {result['device_name']} ({result['device']}), torch {result['torch']}, "
              f"{result['threads']} threads; {mode}; sparse attention backend: {result['sparse_backend']}; "
-             f"FSQ keys: {FSQ_CHOICES[result.get('fsq', 'paper')]}; "
+             f"FSQ keys: {_fsq_note(result)}; model family: {result.get('family', 'mdm')} "
+             f"({result.get('model_source', 'in-package')}); "
              f"batch {result['batch']}, {result['frames']} frames, model {result['model']}, "
              f"T = {result['diffusion_steps']}; median of {result['repeats']} (dense and sparse interleaved) "
              f"after {result['warmup']} warm-up; load average {result.get('load_average')}",
@@ -409,9 +614,10 @@ def markdown(result: Dict[str, Any]) -> str:
     at = [r for r in result["rows"] if abs(r["reduction"] - 0.8) < 1e-9]
     if result.get("quick"):  # a smoke test: fixed costs dominate at this size, so targets would mislead
         lines += ["", "--quick: a tiny model and batch, to check that the benchmark runs. At this size fixed "
-                  "costs (Python, selection, kernel launches) dominate, so the speed-ups say nothing about MDM "
-                  "size, and the targets and memory ratios are left out. For real numbers run `smdm bench` "
-                  "(MDM size, batch 64, 196 frames; minutes on a CPU) or `smdm bench --device cuda`."]
+                  "costs (Python, selection, kernel launches) dominate, so the speed-ups say nothing about the "
+                  "full-size model, and the targets and memory ratios are left out. For real numbers run "
+                  f"`smdm bench --family {result.get('family', 'mdm')}` (full size, batch 64, 196 frames; "
+                  "minutes on a CPU) or add `--device cuda`."]
     elif at:
         lines += ["", "at 80% reduction (targets: training ≥ 4×, sampling step ≥ 3.5×, sampling loop ≥ 3×, "
                   "selection + interpolation < 10% of the sparse step):"]
@@ -445,8 +651,15 @@ QUICK = {"batch": 4, "frames": 60, "repeats": 1, "warmup": 0}
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--arch", nargs="+", default=["trans_enc", "trans_dec"], choices=["trans_enc", "trans_dec"],
-                   help="MDM architectures to time (default: both)")
+    p.add_argument("--family", default="mdm", choices=family_choices(),
+                   help="model family to time, on its in-package model: mdm (TinyMDM at MDM's size), "
+                        "motiondiffuse (MotionDiffuse's MotionTransformer layout); default mdm")
+    p.add_argument("--root", default=None,
+                   help="--family motiondiffuse: a MotionDiffuse checkout (the folder holding text2motion/) whose "
+                        f"own MotionTransformer to time (default ${MotionDiffuseWorkload.root_env} when set, else "
+                        "the in-package one with the same layout)")
+    p.add_argument("--arch", nargs="+", default=None, choices=["trans_enc", "trans_dec"],
+                   help="MDM architectures to time (default: both; --family mdm only)")
     p.add_argument("--reductions", nargs="+", type=float_range(0.0, 1.0, hi_open=True), default=[0.6, 0.7, 0.8, 0.9],
                    help="fractions of frames dropped, each in [0, 1)")
     p.add_argument("--batch", type=int_range(1), default=None, help="motions per batch (default 64)")
@@ -461,8 +674,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                         "loop: the whole T-step CFG sampling loop")
     p.add_argument("--steps", type=int_range(1), default=50, help="diffusion steps T (default 50, the paper's recipe)")
     p.add_argument("--amp", choices=["fp32", "bf16"], default="fp32", help="bf16: torch.autocast for both")
-    p.add_argument("--fsq", choices=list(FSQ_CHOICES), default="paper",
-                   help="FSQ attention keys on: " + "; ".join(f"{k}: {v}" for k, v in FSQ_CHOICES.items()))
+    p.add_argument("--fsq", choices=list(FSQ_CHOICES), default=None,
+                   help="FSQ attention keys on: " + "; ".join(f"{k}: {v}" for k, v in FSQ_CHOICES.items())
+                        + " (default paper; --family mdm only: MotionDiffuse's attention is linear)")
     p.add_argument("--compile", dest="compile_mode", default="none",
                    choices=["none", "default", "reduce-overhead", "max-autotune"],
                    help="torch.compile dense and sparse models alike (fullgraph) with this mode")
@@ -497,6 +711,21 @@ def output_paths(out: str):
 def main_bench(args: argparse.Namespace, parser: argparse.ArgumentParser) -> Dict[str, Any]:
     from ..io.files import OutputExistsError, atomic_write_json, atomic_write_text, check_new_file
 
+    work = WORKLOADS.get(args.family)
+    bad = [a for a in args.arch or () if a not in work.archs]
+    if bad:
+        parser.error(f"argument --arch: {bad[0]!r} is an MDM architecture; --family {args.family} has no "
+                     "--arch choice (leave it out)")
+    if args.fsq not in (None, "off") and not work.fsq:
+        parser.error(f"argument --fsq: --family {args.family} has no softmax attention keys to quantise "
+                     "(linear attention); leave --fsq out")
+    args.fsq = args.fsq or ("paper" if work.fsq else "off")
+    root = args.root if args.root is not None else (os.environ.get(work.root_env) or None if work.root_env else None)
+    if root is not None:
+        try:
+            work.check_root(root)
+        except ValueError as e:
+            parser.error(str(e).replace("--root:", "argument --root:", 1))
     defaults = QUICK if args.quick else {"batch": 64, "frames": 196, "repeats": 3, "warmup": 1}
     for k, v in defaults.items():
         if getattr(args, k) is None:
@@ -516,7 +745,7 @@ def main_bench(args: argparse.Namespace, parser: argparse.ArgumentParser) -> Dic
         print(note, file=sys.stderr)
     result = run_bench(args.arch, args.reductions, args.batch, args.frames, args.repeats, args.warmup, args.device,
                        args.quick, args.backend, args.steps, args.fastpath, args.modes, args.amp, args.compile_mode,
-                       progress=lambda s: print(s, file=sys.stderr, flush=True), fsq=args.fsq)
+                       progress=lambda s: print(s, file=sys.stderr, flush=True), fsq=args.fsq, family=args.family, root=root)
     table = markdown(result)
     print(table)
     if paths:

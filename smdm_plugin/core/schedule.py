@@ -18,6 +18,7 @@ import torch
 from .checks import as_lengths, as_mask, compiling
 from .config import SparseConfig
 from .features import KINDS, SelectionConstants, apply_selection_constants, selection_constants
+from .noise import CounterNoise, default_noise_salt, default_noise_seed, noise_table
 from .selection import (keyframe_capacity, keyframe_count_table, perturb_checked, select_checked,
                         uniform_table)
 
@@ -42,10 +43,22 @@ class MaskSchedule:
     Args:
         config: the sparse config (reduction, selector, feature, gamma, dynamic_update, ...).
         mean, std: ``[D]`` dataset statistics to de-normalise features before VW (optional).
+        noise_seed: the seed of the mask noise's table (:mod:`~smdm_plugin.core.noise`); None =
+            torch's seed now (``torch.initial_seed()``); each rank of a distributed run starts
+            its windows elsewhere in it (:attr:`noise_salt`). The table is made
+            here, before any traced call, when the config draws (mask noise, random selector):
+            :attr:`noise_table` (``sparsify`` puts it on the model as a buffer).
     """
 
-    def __init__(self, config: SparseConfig, mean: ArrayLike = None, std: ArrayLike = None) -> None:
+    def __init__(self, config: SparseConfig, mean: ArrayLike = None, std: ArrayLike = None,
+                 noise_seed: Optional[int] = None) -> None:
         self.config = config
+        self.noise_seed = default_noise_seed() if noise_seed is None else int(noise_seed)
+        self.noise_salt = default_noise_salt()
+        draws = config.mask_noise > 0 or config.selector == "random"
+        #: float32 ``[TABLE_SIZE]`` uniforms on the CPU, or None when the config draws nothing
+        self.noise_table: Optional[torch.Tensor] = noise_table(self.noise_seed) if draws else None
+        self._noise: Dict[torch.device, torch.Tensor] = {}
         self.mean = None if mean is None else torch.as_tensor(np.asarray(mean), dtype=torch.float32)
         self.std = None if std is None else torch.as_tensor(np.asarray(std), dtype=torch.float32)
         # per (frames, device[, dtype]) constants, made once: a host-to-device copy on every call
@@ -90,6 +103,20 @@ class MaskSchedule:
             self._tables[key] = tables
         return self._tables[key]
 
+    def noise(self, step: torch.Tensor) -> CounterNoise:
+        """The counter-based random numbers at ``step`` (int64, 0-d or ``[B]``, on the device
+        wanted): windows of :attr:`noise_table` (copied to that device once; training through
+        the diffusion wrapper reads the model's own copy instead)."""
+        device = step.device
+        table = self._noise.get(device)
+        if table is None:
+            if self.noise_table is None:
+                self.noise_table = noise_table(self.noise_seed)
+            table = self.noise_table.to(device)
+            if not compiling():   # (as in tables: no cache write while tracing)
+                self._noise[device] = table
+        return CounterNoise(step, table, self.noise_salt)
+
     def _kind(self, D: int) -> str:
         return self.config.feature_kind(D)
 
@@ -127,7 +154,13 @@ class MaskSchedule:
                       generator: Optional[torch.Generator] = None, *, checked: bool = False) -> torch.Tensor:
         """bool ``[B, N]`` from the clean motion ``x0 [B, N, D]``: the selector (forced frames
         inside the budget) + mask noise (never dropping forced frames). ``checked=True``: ``lengths``
-        is a validated long tensor on ``x0``'s device and ``forced`` a bool ``[B, N]`` or None."""
+        is a validated long tensor on ``x0``'s device and ``forced`` a bool ``[B, N]`` or None.
+
+        Random draws (mask noise, the ``random`` selector) come from ``generator``: a
+        :class:`~smdm_plugin.core.noise.CounterNoise` (the diffusion wrapper passes the model's:
+        its step counter and table; :meth:`noise` makes one), whose step is then advanced by one
+        in place — no RNG state touched, traceable, no sync; or a ``torch.Generator``; None:
+        torch's global stream."""
         B, N, _ = x0.shape
         lengths, forced = _checked_inputs(x0, lengths, forced, checked)
         c = self.config
@@ -137,6 +170,8 @@ class MaskSchedule:
                                   generator, forced)
             if c.mask_noise > 0:
                 mask = perturb_checked(mask, lengths, c.mask_noise, generator, forced)
+            if isinstance(generator, CounterNoise):
+                generator.advance()
         return mask
 
     def sampling_mask(self, x_t: torch.Tensor, t: torch.Tensor, lengths=None,
@@ -157,12 +192,14 @@ class MaskSchedule:
                 mask = select_checked(x_t[..., :1], lengths, k, "uniform", forced=forced)
             n_late = self.late_steps
             if n_late > 0:
-                late = torch.as_tensor(t, device=x_t.device).reshape(-1).expand(B) < n_late
+                steps = torch.as_tensor(t, device=x_t.device).reshape(-1).expand(B)
+                late = steps < n_late
                 feats = self._features_checked(x_t)
                 if c.selector == "vw":
                     sel = select_checked(feats, lengths, k, "vw", forced=forced, active=late)
-                else:
-                    sel = select_checked(feats, lengths, k, c.selector, forced=forced)
+                else:   # (the random selector: numbers from the noise table at step t, no RNG state)
+                    sel = select_checked(feats, lengths, k, c.selector, self.noise(steps),
+                                         forced=forced)
                 mask = torch.where(late[:, None], sel, mask)
         return mask
 

@@ -30,6 +30,7 @@ import torch
 
 from .checks import LengthsLike, as_lengths, as_mask, require
 from .kernels.vw import vw_keyframes
+from .noise import CounterNoise
 from .scalars import as_float
 from .registry import Registry
 
@@ -141,9 +142,13 @@ def _work_dtype(device: torch.device) -> torch.dtype:
 
 def _rand(shape: Tuple[int, ...], generator: Optional[torch.Generator], device: torch.device
           ) -> torch.Tensor:
-    """Uniform [0, 1) float32 numbers from ``generator`` (on its device), moved to ``device``."""
+    """Uniform [0, 1) float32 numbers from ``generator`` (a ``torch.Generator`` on its device, or a
+    :class:`~smdm_plugin.core.noise.CounterNoise`: counter-based, no RNG state), moved to
+    ``device``; None: torch's global stream."""
     if generator is None:
         return torch.rand(shape, device=device)
+    if isinstance(generator, CounterNoise):
+        return generator.uniform(shape).to(device)
     return torch.rand(shape, generator=generator, device=generator.device).to(device)
 
 
@@ -202,11 +207,12 @@ def _uniform(lengths: torch.Tensor, k: torch.Tensor, N: int) -> torch.Tensor:
     return mask.scatter_(1, pos, True)
 
 
-def _rank_select(cand: torch.Tensor, count: torch.Tensor, generator: Optional[torch.Generator]
-                 ) -> torch.Tensor:
-    """``[B, N]`` bool: ``count[b]`` random entries among ``cand[b]`` (fewer if not enough)."""
+def _rank_select(cand: torch.Tensor, count: torch.Tensor, generator: Optional[torch.Generator],
+                 u: Optional[torch.Tensor] = None) -> torch.Tensor:
+    """``[B, N]`` bool: ``count[b]`` random entries among ``cand[b]`` (fewer if not enough);
+    ``u``: the ``[B, N]`` uniforms to rank by (default: drawn from ``generator``)."""
     B, N = cand.shape
-    keys = torch.where(cand, _rand((B, N), generator, cand.device), 2.0)
+    keys = torch.where(cand, _rand((B, N), generator, cand.device) if u is None else u, 2.0)
     order = keys.argsort(1)
     rank_ok = torch.arange(N, device=cand.device)[None] < count[:, None]
     take = rank_ok & cand.gather(1, order)
@@ -345,11 +351,12 @@ def perturb_checked(mask: torch.Tensor, lengths_t: torch.Tensor, amount: float,
         m = mask.to(torch.bool)                                        # keyframes lie in valid frames
         k = m.sum(1, dtype=torch.float32)
         mmax = torch.round(k * float(amount))                          # exact: k <= N << 2^24
-        c = torch.minimum((_rand((B,), generator, device) * (2 * mmax + 1)).floor() - mmax, mmax)
+        u = _rand((B, N + 1), generator, device)                        # one draw: the count, then frames
+        c = torch.minimum((u[:, 0] * (2 * mmax + 1)).floor() - mmax, mmax)
         droppable = m & (i > 0) & (i < (lengths_t - 1)[:, None])
         if protected is not None:
             droppable &= ~protected
         add = c > 0
         cand = torch.where(add[:, None], valid & ~m, droppable)
         count = torch.where(add, c, torch.minimum(-c, torch.minimum(k - 2, droppable.sum(1, dtype=torch.float32))))
-        return m ^ _rank_select(cand, count, generator)
+        return m ^ _rank_select(cand, count, generator, u[:, 1:])

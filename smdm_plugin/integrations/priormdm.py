@@ -77,40 +77,56 @@ def sparsify_priormdm(model: Any, args: Any, data: Any = None, diffusion: Any = 
     return model
 
 
-def doubletake_output_dir(args: Any, since: float) -> Optional[str]:
-    """The folder ``sample.double_take`` wrote its ``results.npy`` to after ``since`` (``time.time()``):
-    ``--output_dir`` when given, else the newest folder beside ``--model_path`` holding a
-    ``results.npy`` written since then; None when there is none (the run failed)."""
-    def fresh(folder: str) -> bool:
-        f = os.path.join(folder, "results.npy")
-        return os.path.isfile(f) and os.path.getmtime(f) >= since
-
+def doubletake_output_dir(args: Any) -> Optional[str]:
+    """The folder priorMDM's ``sample/double_take.py`` writes its ``results.npy`` to, derived from
+    its parsed options exactly as it derives it: ``--output_dir`` when given, else beside
+    ``--model_path``: ``DoubleTake_samples_<model folder>_<checkpoint number>_seed<seed>``, then
+    ``_<text file name>`` (``--input_text`` .txt/.csv: extension, spaces and dots dropped), ``_gt``
+    (``--sample_gt``), ``_handshake_<handshake_size>`` and, with ``--double_take``,
+    ``_double_take_blend_<blend_len>_skipSteps_<skip_steps_double_take>``. Absolute (resolved
+    against the current folder, as upstream's relative one is). None when upstream would not run
+    (an ``--input_text`` that is neither .txt nor .csv) or ``--model_path`` is missing."""
     out = getattr(args, "output_dir", "") or ""
     if out:
-        return out if fresh(out) else None
-    parent = os.path.dirname(os.path.abspath(args.model_path))
-    if not os.path.isdir(parent):
+        return os.path.abspath(out)
+    model_path = getattr(args, "model_path", None)
+    if not model_path:
         return None
-    found = [os.path.join(parent, d) for d in os.listdir(parent) if fresh(os.path.join(parent, d))]
-    return max(found, key=lambda d: os.path.getmtime(os.path.join(d, "results.npy"))) if found else None
+    name = os.path.basename(os.path.dirname(model_path))
+    niter = os.path.basename(model_path).replace("model", "").replace(".pt", "")
+    out = os.path.join(os.path.dirname(model_path), f"DoubleTake_samples_{name}_{niter}_seed{getattr(args, 'seed', 10)}")
+    text = getattr(args, "input_text", "") or ""
+    if text:
+        ext = ".txt" if ".txt" in text else ".csv" if ".csv" in text else None
+        if ext is None:
+            return None
+        out += "_" + os.path.basename(text).replace(ext, "").replace(" ", "_").replace(".", "")
+    if getattr(args, "sample_gt", False):
+        out += "_gt"
+    out += f"_handshake_{getattr(args, 'handshake_size', 20)}"
+    if getattr(args, "double_take", False):
+        out += f"_double_take_blend_{args.blend_len}_skipSteps_{args.skip_steps_double_take}"
+    return os.path.abspath(out)
 
 
 def record_doubletake_output(model: Any, args: Any) -> None:
     """A sparse DoubleTake sampling run states its settings beside its outputs: when the process
-    ends, ``sparse_config.json`` goes into the folder it wrote ``results.npy`` to (upstream
-    replaces that folder at the end of sampling, so it cannot be written earlier)."""
+    ends, ``sparse_config.json`` goes into the folder it wrote ``results.npy`` to
+    (:func:`doubletake_output_dir`; upstream replaces that folder at the end of sampling, so it
+    cannot be written earlier). Nothing is written when that folder holds no ``results.npy`` of
+    this run (sampling failed, or the script was not ``sample.double_take``)."""
     import atexit
     import time
 
     from ..core.config import sparse_config_of
 
-    config, since = sparse_config_of(model), time.time() - 1.0
+    config, since, out = sparse_config_of(model), time.time() - 1.0, doubletake_output_dir(args)
 
     def write() -> None:
         from ..io.checkpoint import save_sparse_config
 
-        out = doubletake_output_dir(args, since)
-        if out is None or config is None:
+        results = os.path.join(out, "results.npy") if out else ""
+        if config is None or not os.path.isfile(results) or os.path.getmtime(results) < since:
             return
         try:
             save_sparse_config(config, out)

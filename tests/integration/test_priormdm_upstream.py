@@ -21,7 +21,6 @@ What is checked (each would fail if the integration were wrong):
   (:func:`smdm_plugin.adapters.doubletake.doubletake_forced_frames`, independent of the
   ``y``-based hook under test); the unfolded sample is finite, ``[1, 22, 3, 3*150 - 2*10]``.
 """
-import glob
 import json
 import os
 import pickle
@@ -167,13 +166,33 @@ def double_take(run: str, ckpt: str, hooks: str = "", record: str = "") -> np.nd
                   "--handshake_size", str(H), "--blend_len", str(BLEND), "--skip_steps_double_take",
                   str(SKIP), "--input_text", texts, "--guidance_param", "2.5", hooks=hooks, record=record)
     assert "covers 196 frames" not in out and "y['mask'] covers" not in out, out[-3000:]  # no mask-length warning
-    out_dir = sorted(glob.glob(os.path.join(os.path.dirname(ckpt), "DoubleTake_samples_*")))[-1]
+    out_dir = dt_out_dir(run, ckpt, input_text=texts)
     check_files_agree(os.path.dirname(ckpt), out_dir)
     res = np.load(os.path.join(out_dir, "results.npy"), allow_pickle=True).item()
     motion = res["motion"]  # [1, 22, 3, T] joint positions of the unfolded sequence
     assert motion.shape == (1, 22, 3, 3 * SEG - 2 * H), motion.shape
     assert np.isfinite(motion).all() and motion.std() > 0
     return motion
+
+
+def dt_out_dir(run: str, ckpt: str, seed: int = 10, input_text: str = "") -> str:
+    """The folder sample.double_take wrote to, as the plugin derives it from upstream's options
+    (the folder it writes sparse_config.json into); it must hold this run's results.npy."""
+    import argparse
+
+    from smdm_plugin.integrations.priormdm import doubletake_output_dir
+
+    args = argparse.Namespace(model_path=ckpt, output_dir="", input_text=input_text, sample_gt=False,
+                              double_take=True, seed=seed, handshake_size=H, blend_len=BLEND,
+                              skip_steps_double_take=SKIP)
+    cwd = os.getcwd()
+    os.chdir(run)                              # upstream resolves a relative path from its folder
+    try:
+        out = doubletake_output_dir(args)
+    finally:
+        os.chdir(cwd)
+    assert out and os.path.isfile(os.path.join(out, "results.npy")), out
+    return out
 
 
 def check_files_agree(save: str, out_dir: str) -> None:
@@ -269,7 +288,7 @@ def test_sparse_double_take_draws_the_dense_prompts(tmp_path):
                       "--handshake_size", str(H), "--blend_len", str(BLEND), "--skip_steps_double_take",
                       str(SKIP), "--guidance_param", "2.5", "--seed", "11", hooks="priormdm")
         assert "y['mask'] covers" not in out
-        out_dir = sorted(glob.glob(os.path.join(save, "DoubleTake_samples_*")))[-1]
+        out_dir = dt_out_dir(run, ckpt, seed=11)
         res = np.load(os.path.join(out_dir, "results.npy"), allow_pickle=True).item()
         texts[name] = (list(res["text"]), [np.asarray(v).tolist() for v in res["lengths"]])
         assert os.path.exists(os.path.join(out_dir, "sparse_config.json")) == sparse
