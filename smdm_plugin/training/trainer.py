@@ -12,8 +12,9 @@ Under ``torchrun --nproc_per_node N -m smdm_plugin train ...`` every process bui
 on its own shard of every global batch; only rank 0 writes. The randomness that defines the
 objective (each sample's diffusion step ``t`` and noise) is a function of (seed, step, global
 sample index), so ``N`` processes with ``batch`` samples each follow the same trajectory as one
-process with ``N * batch`` (up to float rounding); dropout and training mask noise draw from a
-per-rank stream (seed offset by rank).
+process with ``N * batch`` (up to float rounding); dropout draws from a per-rank stream (seed
+offset by rank), training mask noise from the sparse model's counter-based table
+(:mod:`smdm_plugin.core.noise`, its own offset per rank), never from torch's global stream.
 """
 from __future__ import annotations
 
@@ -261,7 +262,7 @@ class Trainer:
             self.forward_model = torch.compile(self.forward_model, backend=config.compile_backend)
         self.optimizer = torch.optim.AdamW(self.model.parameters(), lr=config.lr,
                                            weight_decay=config.weight_decay)
-        # dropout and training mask noise: a stream of their own on each rank
+        # dropout: a stream of its own on each rank (mask noise: the model's table, core/noise.py)
         torch.manual_seed(mix_seed(config.seed, 3, self.dist.rank))
         self.step_count = 0
         self.losses: List[float] = []
