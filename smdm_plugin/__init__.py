@@ -18,7 +18,7 @@ import importlib
 from typing import TYPE_CHECKING, Any, Dict, List
 
 
-__version__ = "0.3.0"
+__version__ = "0.4.0"
 
 _EXPORTS: Dict[str, str] = {
     # core: the method
