@@ -48,7 +48,7 @@ def load_saved_model(model, *a, **k):
     sparse = find_sparse_model(model)
     seen["sparse"] = sparse is not None
     if sparse is not None:
-        sparse.register_forward_pre_hook(lambda m, args: seen["masks"].append(get_state(m).frame_mask.clone()))
+        sparse.register_forward_pre_hook(lambda m, args: seen["masks"].append(get_state(m).plan.mask.clone()))
     return res
 edit.load_saved_model = load_saved_model
 
