@@ -24,6 +24,7 @@ from typing import Any, Callable, Dict, Optional, Sequence, Tuple, Union
 
 import torch
 
+from ..core.checks import as_lengths
 from .request import with_forced
 
 #: which given frames become forced keyframes (:func:`forced_keyframes`)
@@ -52,20 +53,8 @@ class KeyframeConstraint:
 
 
 def _lengths(lengths: Optional[IntsLike], B: int, N: int, device: torch.device, fn: str) -> torch.Tensor:
-    if lengths is None:
-        return torch.full((B,), N, dtype=torch.long, device=device)
-    L = torch.as_tensor(lengths, device=device)
-    if L.dtype.is_floating_point or L.dtype == torch.bool:
-        raise TypeError(f"{fn}: lengths must be integers [B], got dtype {L.dtype}")
-    L = L.long().reshape(-1)
-    if L.numel() == 1 and B > 1:
-        L = L.expand(B).clone()
-    if L.shape[0] != B:
-        raise ValueError(f"{fn}: lengths must be [B]=[{B}], got {L.shape[0]} values")
-    if bool((L < 2).any()) or bool((L > N).any()):
-        raise ValueError(f"{fn}: lengths must be in [2, N={N}] (frames), got min {int(L.min())}, "
-                         f"max {int(L.max())}")
-    return L
+    """Valid frames per sample ``[B]`` long (None: all ``N``; an int: every sample), in ``[2, N]``."""
+    return as_lengths(lengths, B, N, device, fn, broadcast=True)
 
 
 def keyframe_constraint(target: torch.Tensor, given: Union[torch.Tensor, IntsLike],

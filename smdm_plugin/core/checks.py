@@ -69,35 +69,45 @@ def require(cond: torch.Tensor, message: str) -> None:
         torch._assert_async(cond.all(), message)
 
 
+class LengthsTypeError(TypeError, ValueError):
+    """Lengths that are not integers (a ``TypeError`` that callers catching ``ValueError`` for bad
+    lengths also catch)."""
+
+
 def as_lengths(lengths: LengthsLike, B: int, N: int, device: torch.device, fn: str,
-               clip: bool = False) -> torch.Tensor:
-    """``lengths`` as a long tensor ``[B]`` on ``device`` (None: all ``N``), checked: an integer
-    tensor (or sequence) of shape ``[B]`` with ``2 <= L <= N`` (``clip``: ``L >= 2``, and values
-    above ``N`` cut to ``N``). Errors name ``fn``."""
+               clip: bool = False, minimum: int = 2, broadcast: bool = False) -> torch.Tensor:
+    """``lengths`` as a long tensor ``[B]`` on ``device`` (None: all ``N``), checked: integers of
+    shape ``[B]`` with ``minimum <= L <= N`` (``clip``: values above ``N`` cut to ``N``;
+    ``broadcast``: a Python int or a single value stands for every sample). The one validation of
+    per-sample frame counts; errors name ``fn``. On an accelerator the range is asserted on the
+    device (no host sync)."""
     if lengths is None:
-        if N < 2:
-            raise ValueError(f"{fn}: N must be >= 2 frames, got N={N}")
+        if N < minimum:
+            raise ValueError(f"{fn}: N must be >= {minimum} frames, got N={N}")
         return torch.full((B,), N, dtype=torch.long, device=device)
     if not isinstance(lengths, torch.Tensor):
         arr = np.asarray(lengths)
         if arr.dtype.kind not in "iu":
-            raise ValueError(f"{fn}: lengths must be an integer tensor [B={B}], got dtype {arr.dtype}")
+            raise LengthsTypeError(f"{fn}: lengths must be an integer tensor [B={B}], got dtype {arr.dtype}")
         lengths = torch.as_tensor(arr)
     if lengths.dtype.is_floating_point or lengths.dtype.is_complex or lengths.dtype == torch.bool:
-        raise ValueError(f"{fn}: lengths must be an integer tensor [B={B}], got dtype {lengths.dtype}")
+        raise LengthsTypeError(f"{fn}: lengths must be an integer tensor [B={B}], got dtype {lengths.dtype}")
+    if broadcast and lengths.numel() == 1:
+        lengths = lengths.reshape(1).expand(B)
     if tuple(lengths.shape) != (B,):
-        raise ValueError(f"{fn}: lengths must have shape [B={B}], got {tuple(lengths.shape)}")
+        raise ValueError(f"{fn}: lengths must have shape [B={B}]{' (or be one int)' if broadcast else ''}, "
+                         f"got {tuple(lengths.shape)}")
     if host_checkable(lengths) and B:
         lo, hi = int(lengths.min()), int(lengths.max())
-        if lo < 2:
-            raise ValueError(f"{fn}: lengths must be >= 2, got min {lo}")
+        if lo < minimum:
+            raise ValueError(f"{fn}: lengths must be >= {minimum}, got min {lo}")
         if hi > N and not clip:
             raise ValueError(f"{fn}: lengths must be <= N={N}, got max {hi}")
     elif B and clip:
-        torch._assert_async((lengths >= 2).all(), f"{fn}: lengths must be >= 2")
+        torch._assert_async((lengths >= minimum).all(), f"{fn}: lengths must be >= {minimum}")
     elif B:
-        torch._assert_async(((lengths >= 2) & (lengths <= N)).all(),
-                            f"{fn}: lengths must be in [2, N={N}]")
+        torch._assert_async(((lengths >= minimum) & (lengths <= N)).all(),
+                            f"{fn}: lengths must be in [{minimum}, N={N}]")
     lengths = lengths.to(device=device, dtype=torch.long)
     return lengths.clamp(max=N) if clip else lengths
 

@@ -32,7 +32,8 @@ import torch
 import torch.nn.functional as F
 
 from .motion import ArrayLike, _as_tensor
-from ..core.scalars import as_float, is_int
+from ..core.checks import as_lengths
+from ..core.scalars import as_float
 
 #: HumanML3D 22-joint (SMPL order) feet: l_foot (10), r_foot (11).
 HUMANML3D_FEET: Tuple[int, ...] = (10, 11)
@@ -60,22 +61,8 @@ def _positions(fn: str, motion: ArrayLike, name: str = "motion") -> torch.Tensor
 
 def _lengths(fn: str, lengths: Lengths, B: int, N: int, minimum: int, device: torch.device
              ) -> torch.Tensor:
-    """Valid frames per motion ``[B]`` (long), each in ``[minimum, N]``."""
-    if lengths is None:
-        L = torch.full((B,), N, dtype=torch.long)
-    else:
-        L = _as_tensor(lengths) if not is_int(lengths) else torch.tensor([int(lengths)])
-        if torch.is_floating_point(L) or L.dtype == torch.bool:
-            raise TypeError(f"{fn}: lengths must be integers, got dtype {L.dtype}")
-        L = L.reshape(-1).long()
-        if L.numel() == 1 and B > 1:
-            L = L.expand(B)
-        if L.shape[0] != B:
-            raise ValueError(f"{fn}: lengths must be an int or [B]=[{B}], got {L.shape[0]} values")
-    if bool((L > N).any()) or bool((L < minimum).any()):
-        raise ValueError(f"{fn}: lengths must be in [{minimum}, N={N}] (frames), got min {int(L.min())}, "
-                         f"max {int(L.max())}")
-    return L.to(device)
+    """Valid frames per motion ``[B]`` (long), each in ``[minimum, N]`` (an int: every motion)."""
+    return as_lengths(lengths, B, N, device, fn, minimum=minimum, broadcast=True)
 
 
 def _fps(fn: str, fps: float) -> float:
