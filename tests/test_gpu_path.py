@@ -421,3 +421,54 @@ def test_auto_sample_fill_samples_as_the_fill_it_resolves_to(feature, same_as):
         outs = {k: m(x, ts, dict(y)) for k, m in fills.items()}
     assert torch.equal(out, outs[same_as])
     assert not torch.allclose(outs["linear"], outs["cubic"], atol=1e-4)
+
+
+@pytest.mark.parametrize("name", VARIANTS)
+def test_cubic_fill_on_the_uniform_mask_looks_its_taps_up(name):
+    """Dynamic update off (the default): every sampling mask is the uniform one, so the C¹ fill's
+    taps come from the schedule's per-length table (``MaskSchedule.cubic_taps``; DiP: computed, its
+    prefix shifts the frames). The output is the same C¹ curve through the paper's output at the
+    keyframes as when the taps are computed, and it traces with fullgraph, with no host sync."""
+    from smdm_plugin import interpolate_keyframes
+    from smdm_plugin.adapters.mdm import call_plan
+
+    model, _ = make(name, sample_interpolation="cubic", dynamic_update=False)
+    linear, _ = make(name, sample_interpolation="linear", dynamic_update=False)
+    x, y = batch(name)
+    y["lengths"] = torch.tensor([x.shape[-1], x.shape[-1] - 7, x.shape[-1] - 20])
+    y["mask"] = (torch.arange(x.shape[-1]) < y["lengths"][:, None]).view(3, 1, 1, -1)
+    B, N = x.shape[0], x.shape[-1]
+    model.eval()
+    linear.eval()
+    ts = torch.full((B,), 1)
+    plan = call_plan(model._smdm_state, x, ts, dict(y))
+    assert (plan.taps is not None) == (name != "dip")
+    torch._dynamo.reset()
+    compiled = torch.compile(model, fullgraph=True, backend="eager")
+    with torch.no_grad():
+        out = model(x, ts, dict(y))
+        lin = linear(x, ts, dict(y))
+        kf = plan.mask[:, plan.frames - N:]
+        frames, lin_frames = out.squeeze(2).transpose(1, 2), lin.squeeze(2).transpose(1, 2)
+        assert torch.allclose(frames, interpolate_keyframes(lin_frames, kf, "cubic"), atol=1e-5)
+        assert not torch.allclose(frames, lin_frames, atol=1e-3)
+        assert torch.allclose(compiled(x, ts, dict(y)), out, atol=1e-4)
+        with static_mode():
+            model(x, ts, dict(y))
+            with Dispatched() as d:
+                model(x, ts, dict(y))
+    assert not d.syncs, d.syncs
+
+
+@pytest.mark.parametrize("name", ["trans_enc", "trans_dec"])
+def test_launch_budget_of_the_default_cubic_fill_on_raw_features(name):
+    """The default for raw joint-position features (``auto`` -> the C¹ fill, dynamic update off):
+    with its taps looked up, a sampling call of the sparse model with FSQ keys stays within 1.6x
+    the dense model without FSQ, early and late."""
+    dense = static_path_counts(name, False)
+    sparse = static_path_counts(name, True, True, feature="raw", sample_interpolation="auto", dynamic_update=False)
+    linear = static_path_counts(name, True, True, feature="raw", sample_interpolation="linear", dynamic_update=False)
+    for what in ("sample t=40", "sample t=2"):
+        ratio = sparse[what] / dense[what]
+        assert ratio <= BUDGET[what], f"{name} {what}: {sparse[what]} vs {dense[what]} ops ({ratio:.2f}x)"
+        assert 0 < sparse[what] - linear[what] <= 8, (sparse[what], linear[what])   # the fill: a handful of ops

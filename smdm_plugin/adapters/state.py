@@ -154,6 +154,7 @@ def keyframe_plan(state: SparseState, frames: torch.Tensor, timesteps: Any, leng
     """
     B, N = frames.shape[:2]
     device = frames.device
+    taps = None                                            # C¹ fill taps looked up (sampling, uniform mask)
     if mask is not None:                                   # training (or a caller's own mask)
         valid = torch.arange(N, device=device)[None] < lengths[:, None]
         # a mask chosen while loading (keyframe_collate) is still on the CPU: upstream loops move
@@ -173,12 +174,15 @@ def keyframe_plan(state: SparseState, frames: torch.Tensor, timesteps: Any, leng
         capacity = state.schedule.capacity(N, training=False, forced=protected_count(forced, lengths))
         check = False                                      # 2..capacity keyframes by construction
         cubic = state.schedule.cubic_samples(t, B, device, frames.shape[-1])   # C¹ fill: [B] bool
+        if cubic is not None and forced is None and state.schedule.late_steps == 0 and not state.variant.prefix_len:
+            f_tab, w_tab = state.schedule.cubic_taps(N, device)            # the uniform mask: look up
+            taps = (f_tab[lengths], w_tab[lengths])
     capacity = max(1, min(int(capacity), N))
     prefix = state.variant.prefix_len
     if prefix:
         mask = torch.cat([mask.new_ones(B, prefix), mask], dim=1)
         capacity += prefix
-    return KeyframePlan.build(mask, capacity, check=check, cubic=cubic)
+    return KeyframePlan.build(mask, capacity, check=check, cubic=cubic, taps=taps)
 
 
 def protected_count(forced: Optional[torch.Tensor], lengths: torch.Tensor) -> int:

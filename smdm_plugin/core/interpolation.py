@@ -110,10 +110,15 @@ def catmull_rom_taps(index: torch.Tensor, count: torch.Tensor, prev_slot: torch.
 def catmull_rom_fill(features: torch.Tensor, plan: KeyframePlan) -> torch.Tensor:
     """``features [B, N, D]`` refilled between the keyframes of ``plan`` (over the same ``N`` frames)
     along C¹ Catmull-Rom curves (:func:`catmull_rom_taps`): equal at keyframes, constant before the
-    first and after the last. Reuses the plan's slots: no mask is scanned again."""
+    first and after the last. Reuses the plan's slots (or its looked-up ``taps``): no mask is
+    scanned again."""
     B, N, D = features.shape
-    frames, w = catmull_rom_taps(plan.index, plan.count, plan.prev_slot, plan.next_slot, plan.weight,
-                                 features.dtype)
+    if plan.taps is not None:
+        frames, w = plan.taps
+        w = w.to(features.dtype)
+    else:
+        frames, w = catmull_rom_taps(plan.index, plan.count, plan.prev_slot, plan.next_slot, plan.weight,
+                                     features.dtype)
     taps = features.gather(1, frames.view(B, N * 4, 1).expand(B, N * 4, D)).view(B, N, 4, D)
     return (taps * w.unsqueeze(-1)).sum(2)
 

@@ -15,7 +15,7 @@ first / last keyframe (constant extension).
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Optional, Union
+from typing import Optional, Tuple, Union
 
 import torch
 
@@ -40,6 +40,9 @@ class KeyframePlan:
             C¹ Catmull-Rom curves through the output at the keyframes
             (:func:`~smdm_plugin.core.interpolation.catmull_rom_refill`; sampling with
             ``sample_interpolation="cubic"``); None = the paper's linear fill only.
+        taps: ``(frames [B, N, 4] long, weights [B, N, 4] float32)`` of that C¹ fill when they were
+            looked up in a table (the sampling schedule's uniform masks), else None (computed from
+            the plan's slots by :func:`~smdm_plugin.core.interpolation.catmull_rom_taps`).
     """
 
     mask: torch.Tensor
@@ -51,6 +54,7 @@ class KeyframePlan:
     weight: torch.Tensor
     rows: torch.Tensor
     cubic: Union[None, bool, torch.Tensor] = None
+    taps: Optional[Tuple[torch.Tensor, torch.Tensor]] = None
 
     @property
     def capacity(self) -> int:
@@ -66,7 +70,8 @@ class KeyframePlan:
 
     @classmethod
     def build(cls, mask: torch.Tensor, capacity: Optional[int] = None, check: bool = True,
-              cubic: Optional[torch.Tensor] = None) -> "KeyframePlan":
+              cubic: Optional[torch.Tensor] = None,
+              taps: Optional[Tuple[torch.Tensor, torch.Tensor]] = None) -> "KeyframePlan":
         """The plan of bool ``mask [B, N]`` with ``capacity`` slots (None: ``N``, always enough).
         Every sample needs between 1 and ``capacity`` keyframes (checked without a host sync;
         ``check=False`` for masks that hold it by construction, e.g. the sampling schedule's).
@@ -99,4 +104,4 @@ class KeyframePlan:
         rows = torch.add(torch.arange(B, device=mask.device)[:, None], index, alpha=B).t().contiguous()
         if cubic is not None and cubic is not True:
             cubic = torch.as_tensor(cubic, device=mask.device).to(torch.bool).reshape(-1).expand(B)
-        return cls(mask, index, valid, count, prev_slot, next_slot, weight, rows, cubic)
+        return cls(mask, index, valid, count, prev_slot, next_slot, weight, rows, cubic, taps)

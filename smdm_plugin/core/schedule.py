@@ -18,7 +18,9 @@ import torch
 from .checks import as_lengths, as_mask, compiling
 from .config import SparseConfig
 from .features import KINDS, SelectionConstants, apply_selection_constants, selection_constants
+from .interpolation import catmull_rom_taps
 from .noise import CounterNoise, default_noise_salt, default_noise_seed, noise_table
+from .plan import KeyframePlan
 from .selection import (keyframe_capacity, keyframe_count_table, perturb_checked, select_checked,
                         uniform_table)
 
@@ -65,6 +67,7 @@ class MaskSchedule:
         # would synchronise with the GPU. The config is fixed for the schedule's lifetime.
         self._tables: Dict[Tuple[int, torch.device], Tuple[torch.Tensor, torch.Tensor]] = {}
         self._consts: Dict[tuple, SelectionConstants] = {}
+        self._taps: Dict[Tuple[int, torch.device], Tuple[torch.Tensor, torch.Tensor]] = {}
 
     @property
     def late_steps(self) -> int:
@@ -102,6 +105,23 @@ class MaskSchedule:
                 return tables     # would fail the graph's guard on it and recompile the next call
             self._tables[key] = tables
         return self._tables[key]
+
+    def cubic_taps(self, n_frames: int, device: torch.device) -> Tuple[torch.Tensor, torch.Tensor]:
+        """``(frames [N+1, N, 4] long, weights [N+1, N, 4] float32)`` on ``device``: the C¹
+        Catmull-Rom taps (:func:`~smdm_plugin.core.interpolation.catmull_rom_taps`) of the uniform
+        mask of every length (index them with ``lengths``), made once like :meth:`tables`: a sampling
+        call on the uniform mask looks its taps up (2 ops) instead of computing them (~20)."""
+        key = (int(n_frames), torch.device(device))
+        if key not in self._taps:
+            mask = uniform_table(n_frames, self.config.reduction)
+            mask[:2, 0] = True    # lengths 0 and 1 are never looked up; one keyframe keeps them well formed
+            plan = KeyframePlan.build(mask, None, check=False)
+            frames, w = catmull_rom_taps(plan.index, plan.count, plan.prev_slot, plan.next_slot, plan.weight)
+            taps = (frames.to(device), w.to(device))
+            if compiling():       # (as in tables: no cache write while tracing)
+                return taps
+            self._taps[key] = taps
+        return self._taps[key]
 
     def noise(self, step: torch.Tensor) -> CounterNoise:
         """The counter-based random numbers at ``step`` (int64, 0-d or ``[B]``, on the device
