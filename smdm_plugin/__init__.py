@@ -64,7 +64,7 @@ _EXPORTS: Dict[str, str] = {
     "save_sparse_config": "io.checkpoint", "load_checkpoint": "adapters.checkpoint",
     "check_state_dict": "io.checkpoint", "find_sparse_config": "io.checkpoint",
     # reference model
-    "TinyMDM": "reference.backbone", "MotionTransformer": "reference.motion_transformer",
+    "TinyMDM": "reference.backbone", "MotionDiffuseDenoiser": "reference.motiondiffuse_denoiser",
     "SimpleDiffusion": "reference.diffusion", "ClassifierFreeGuidance": "reference.diffusion",
     "TextConfig": "reference.text", "HashedBagOfWords": "reference.text", "sample_with_text": "reference.text",
 }
@@ -119,6 +119,6 @@ if TYPE_CHECKING:  # pragma: no cover - for type checkers and IDEs
     from .adapters.checkpoint import load_checkpoint
     from .io.checkpoint import check_state_dict, find_sparse_config, save_sparse_config
     from .reference.backbone import TinyMDM
-    from .reference.motion_transformer import MotionTransformer
+    from .reference.motiondiffuse_denoiser import MotionDiffuseDenoiser
     from .reference.diffusion import ClassifierFreeGuidance, SimpleDiffusion
     from .reference.text import HashedBagOfWords, TextConfig, sample_with_text

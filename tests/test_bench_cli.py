@@ -122,7 +122,7 @@ def test_bench_motiondiffuse_prints_dense_and_sparse_rows(tmp_path, capsys):
     r = json.loads(out.read_text())
     rows = {(x["arch"], x["mode"], x["variant"]) for x in r["rows"]}
     assert rows == {("motiondiffuse", m, v) for m in ("train", "sample", "loop") for v in ("dense", "sparse 80%")}
-    assert r["family"] == "motiondiffuse" and r["fsq"] == "off" and "MotionTransformer" in r["model_source"]
+    assert r["family"] == "motiondiffuse" and r["fsq"] == "off" and "MotionDiffuseDenoiser" in r["model_source"]
     assert all(x["speedup"] > 0 for x in r["rows"]) and all("overhead_share" in x for x in r["rows"]
                                                               if x["variant"] != "dense" and x["mode"] != "loop")
     text = capsys.readouterr().out
@@ -148,7 +148,7 @@ def test_bench_motiondiffuse_takes_the_upstream_class_from_root(tmp_path):
     models.mkdir(parents=True)
     (models / "__init__.py").write_text("")
     (models / "transformer.py").write_text(
-        "from smdm_plugin.reference.motion_transformer import MotionTransformer as _Base\n\n\n"
+        "from smdm_plugin.reference.motiondiffuse_denoiser import MotionDiffuseDenoiser as _Base\n\n\n"
         "class MotionTransformer(_Base):\n    pass\n")
     cls = bench.upstream_motion_transformer(str(tmp_path / "md"))
     assert cls.__module__ == "models.transformer"

@@ -79,6 +79,12 @@ def test_clips_export_is_the_embedded_clip(tmp_path, monkeypatch, capsys):
     with pytest.raises(SystemExit):  # never over an existing file
         clips.main(["export", "05_02"])
     assert "--overwrite" in capsys.readouterr().err
+    # --frames: those poses only, in the order given; a frame past the clip is an argparse error
+    assert clips.main(["export", "05_02", "--frames", "100", "0", "40", "--out", "poses.npy"]) == 0
+    np.testing.assert_array_equal(np.load("poses.npy"), ref[[100, 0, 40]])
+    with pytest.raises(SystemExit) as e:
+        clips.main(["export", "05_02", "--frames", str(len(ref)), "--out", "bad.npy"])
+    assert e.value.code == 2 and f"has {len(ref)} frames" in capsys.readouterr().err
 
 
 # ----------------------------------------------------------------------------------------- connect

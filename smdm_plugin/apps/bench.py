@@ -3,7 +3,7 @@
 For one registered model family (``--family``; each has a :class:`Workload`): ``mdm``, the
 MDM-size in-package backbone (:class:`~smdm_plugin.reference.backbone.TinyMDM`, latent 512, 8
 layers, 4 heads, ff 1024; ``trans_enc`` and ``trans_dec``), or ``motiondiffuse``, MotionDiffuse's
-denoiser layout (:class:`~smdm_plugin.reference.motion_transformer.MotionTransformer`, latent 512,
+denoiser layout (:class:`~smdm_plugin.reference.motiondiffuse_denoiser.MotionDiffuseDenoiser`, latent 512,
 8 layers, 8 heads, ff 1024; one model call per sampling step, no guidance, as MotionDiffuse
 samples), on a HumanML3D-like batch (default batch 64, 196 frames, valid lengths drawn in 40..196
 with a fixed seed, cached text features — no CLIP) it times, dense and at every reduction rate, in
@@ -265,7 +265,7 @@ class MDMWorkload(Workload):
 
 
 class MotionDiffuseWorkload(Workload):
-    """MotionDiffuse's denoiser layout (:class:`~smdm_plugin.reference.motion_transformer.MotionTransformer`,
+    """MotionDiffuse's denoiser layout (:class:`~smdm_plugin.reference.motiondiffuse_denoiser.MotionDiffuseDenoiser`,
     latent 512, 8 layers, 8 heads, FFN 1024) on ``[B, N, 263]``; precomputed text features
     (``xf_proj``, ``xf_out`` of 77 tokens) as MotionDiffuse computes them once per prompt; one
     model call per sampling step (MotionDiffuse samples without guidance). Its self-attention is
@@ -274,7 +274,7 @@ class MotionDiffuseWorkload(Workload):
     family, archs, fsq, passes = "motiondiffuse", ("motiondiffuse",), False, 1
 
     def size(self, quick: bool) -> Dict[str, int]:
-        from ..reference.motion_transformer import motiondiffuse_size
+        from ..reference.motiondiffuse_denoiser import motiondiffuse_size
 
         return motiondiffuse_size(quick)
 
@@ -284,13 +284,13 @@ class MotionDiffuseWorkload(Workload):
         upstream_motion_transformer(root)
 
     def model(self, arch: str, quick: bool, frames: int, root: Optional[str] = None) -> torch.nn.Module:
-        from ..reference.motion_transformer import MotionTransformer
+        from ..reference.motiondiffuse_denoiser import MotionDiffuseDenoiser
 
-        cls = MotionTransformer if root is None else upstream_motion_transformer(root)
+        cls = MotionDiffuseDenoiser if root is None else upstream_motion_transformer(root)
         return cls(input_feats=263, num_frames=max(196, frames), **self.size(quick))
 
     def source(self, root: Optional[str]) -> str:
-        return ("in-package MotionTransformer (MotionDiffuse's layout)" if root is None
+        return ("in-package MotionDiffuseDenoiser (MotionDiffuse's interface)" if root is None
                 else f"upstream MotionDiffuse {root}")
 
     def batch(self, batch: int, frames: int, device: torch.device, quick: bool) -> Dict[str, Any]:

@@ -3,6 +3,7 @@ motion file that every other command reads.
 
     smdm clips                                   # name, frames, seconds, CMU's description
     smdm clips export 05_02 --out dance.npy      # joints [N, 22, 3], metres, y up, 20 fps
+    smdm clips export 05_02 --frames 0 40 100 --out poses.npy   # three of its poses [3, 22, 3]
 
 The exported ``.npy`` is what ``smdm inbetween --keyframes``, ``smdm render`` and
 ``numpy.load`` read: HumanML3D's 22 joints in metres at 20 fps (``--format joints66``: the
@@ -15,7 +16,7 @@ import argparse
 import sys
 from typing import List, Optional
 
-from .common.args import add_overwrite
+from .common.args import add_overwrite, int_range
 
 FORMATS = ("joints", "joints66")
 
@@ -35,6 +36,9 @@ def build_parser() -> argparse.ArgumentParser:
     e.add_argument("--format", choices=FORMATS, default="joints",
                    help="joints: [N, 22, 3] joint positions in metres, y up (default); joints66: the in-package "
                         "features [N, 66]; both at 20 frames per second")
+    e.add_argument("--frames", type=int_range(0), nargs="+", default=None, metavar="F",
+                   help="write only these frames of the clip (0-based, in the order given), e.g. poses for "
+                        "'smdm inbetween --keyframes' (default: every frame)")
     add_overwrite(e)
     return p
 
@@ -75,6 +79,11 @@ def main(argv: Optional[List[str]] = None) -> int:
     except OutputExistsError as e:
         p.error(str(e))
     joints = clips[a.name]
+    if a.frames is not None:
+        late = [f for f in a.frames if f >= len(joints)]
+        if late:
+            p.error(f"argument --frames: clip {a.name} has {len(joints)} frames (0..{len(joints) - 1}), got {late}")
+        joints = np.asarray(joints)[a.frames]
     if a.format == "joints66":
         from ..io.representation import Representation
 
