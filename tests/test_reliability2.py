@@ -113,10 +113,11 @@ def test_overwrite_replaces_only_the_commands_own_files(tmp_path, data, capsys):
 
 
 # ------------------------------------------------------------------------------ one unit; OS errors
-def test_failed_overwrite_leaves_the_old_model_whole_and_one_line(tmp_path, data, monkeypatch, capsys):
+def test_failed_overwrite_is_one_line_and_blocks_nothing(tmp_path, data, monkeypatch, capsys):
+    """smdm train writes in --out itself (each file atomic; docs/reliability.md): a failed write is one
+    line naming the file, leaves no lock, and the next run goes ahead."""
     out = tmp_path / "run"
     assert _train(data, out, "--sparse", "--steps", "2") == 0
-    before = _snapshot(out)
     real_save = np.save
 
     def full_disk(f, *a, **k):  # the disk fills while the new model folder is written (a write names no file)
@@ -130,8 +131,9 @@ def test_failed_overwrite_leaves_the_old_model_whole_and_one_line(tmp_path, data
     assert rc == 1 and "Traceback" not in err
     last = err.strip().splitlines()[-1]
     assert last.startswith("smdm train: error: ") and last.endswith("Mean.npy: No space left on device")
-    assert ".run.partial" in last  # the path written, inside the partial folder
-    assert _snapshot(out) == before  # the old model, whole: a reader never sees a mix
+    assert str(out / "Mean.npy") in last  # the path written
+    assert not os.path.exists(lock_path(out)) and not [n for n in os.listdir(out) if n.endswith(".tmp")]
+    assert _train(data, out, "--overwrite", "--sparse", "--steps", "2") == 0
     model, config = T.load_trained(str(out))
     assert config is not None
 
@@ -141,7 +143,7 @@ def test_permission_denied_on_the_output_is_one_line(tmp_path, data, monkeypatch
     real = os.makedirs
 
     def denied(path, *a, **k):
-        if ".partial" in str(path):
+        if os.path.basename(str(path)) == "run":
             raise PermissionError(errno.EACCES, os.strerror(errno.EACCES), str(path))
         return real(path, *a, **k)
 
@@ -149,7 +151,7 @@ def test_permission_denied_on_the_output_is_one_line(tmp_path, data, monkeypatch
     rc = cli.main(["train", "--data", str(data), "--out", str(tmp_path / "run"), "--steps", "1", "--min-frames", "20",
                    *TINY])
     err = capsys.readouterr().err
-    assert rc == 2 and "Permission denied" in err and ".run.partial" in err and "Traceback" not in err
+    assert rc == 2 and "Permission denied" in err and str(tmp_path / "run") in err and "Traceback" not in err
     assert not (tmp_path / "run").exists() and not os.path.exists(lock_path(tmp_path / "run"))
 
 
@@ -181,15 +183,16 @@ def test_resume_after_kill_9_is_bit_identical(tmp_path, data, capsys):
     # the same run, killed with SIGKILL once a checkpoint is there, then resumed to the same step
     child = subprocess.Popen([sys.executable, "-m", "smdm_plugin", "train", *map(str, common), "--out", str(run),
                               "--steps", "100000"], env=_env(), stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
-    state = tmp_path / ".run.partial" / T.TRAIN_STATE_FILENAME
+    state = run / T.TRAIN_STATE_FILENAME  # written in --out as training goes
     deadline = time.time() + 120
     while not state.exists() and child.poll() is None and time.time() < deadline:
         time.sleep(0.002)
     os.kill(child.pid, signal.SIGKILL)
     child.wait()
-    assert state.exists() and not run.exists()
+    assert state.exists()
     killed_at = torch.load(state, weights_only=True)["step"]
     assert 20 <= killed_at < steps
+    T.load_trained(str(run), step=killed_at)  # the killed run's checkpoint: visible and loadable
     capsys.readouterr()
     # the killed run's lock is reported as stale, never taken over: the user removes it
     assert train("--out", run, "--steps", steps, "--resume") == 2
@@ -398,7 +401,7 @@ def test_ctrl_c_keeps_the_checkpoint_for_resume(tmp_path, data, monkeypatch, cap
     rc = cli.main(["train", "--data", str(data), "--out", str(tmp_path / "o"), "--steps", "9", "--save-every", "2",
                    "--min-frames", "20", *TINY])
     assert rc == 130 and "rerun with --resume to continue from step 2" in capsys.readouterr().err
-    assert not (tmp_path / "o").exists() and (tmp_path / ".o.partial" / "model000000002.pt").exists()
+    assert (tmp_path / "o" / "model000000002.pt").exists() and not (tmp_path / ".o.partial").exists()
     assert not os.path.exists(lock_path(tmp_path / "o"))
     monkeypatch.setattr(T.Trainer, "step", real_step)
     assert _train(data, tmp_path / "o", "--steps", "9", "--save-every", "2", "--resume") == 0

@@ -158,21 +158,21 @@ def test_eval_failure_mid_write_keeps_the_earlier_results(tmp_path, evaluator, m
     assert _snapshot(out) == before and sorted(os.listdir(tmp_path)) == ["res"]
 
 
-def test_evaluator_failure_mid_write_keeps_the_earlier_evaluator_then_resumes(tmp_path, monkeypatch, capsys):
+def test_evaluator_failure_mid_write_is_one_line_then_resumes(tmp_path, monkeypatch, capsys):
+    """evaluator train writes in --out itself (a long run: its state visible as it goes; docs/reliability.md)."""
     import smdm_plugin.io.files as files
 
     out = tmp_path / "ev"
     assert _train_ev(out, "--epochs", "1", "--seed", "1") == 0
-    before = _snapshot(out)
     capsys.readouterr()
     monkeypatch.setattr(files, "atomic_write_json", _full_disk)  # evaluator.json, after evaluator.pt
     assert _train_ev(out, "--overwrite") == 1
     line = capsys.readouterr().err.strip().splitlines()[-1]
     assert line.startswith("smdm evaluator: error: ") and line.endswith("evaluator.json: No space left on device")
-    assert _snapshot(out) == before and not os.path.exists(lock_path(out))
-    assert os.path.isfile(os.path.join(partial_path(out), "train_state.pt"))  # kept for --resume
+    assert not os.path.exists(lock_path(out)) and not os.path.exists(partial_path(out))
+    assert os.path.isfile(out / "train_state.pt")  # kept for --resume
     monkeypatch.undo()
-    assert _train_ev(out, "--resume") == 0  # continues the failed run's partial folder (its 2 epochs done)
+    assert _train_ev(out, "--resume") == 0  # continues the failed run (its 2 epochs done)
     ref = tmp_path / "ref"
     assert _train_ev(ref) == 0
     _assert_same_weights(out, ref)
@@ -192,7 +192,7 @@ def _assert_same_weights(a: Path, b: Path) -> None:
 
 # ------------------------------------------------------------------------------ resumable evaluator training
 def test_evaluator_ctrl_c_then_resume_equals_one_run(tmp_path, monkeypatch, capsys):
-    """Interrupted after epoch 1 of 3: `--out` untouched (absent), the partial folder kept; `--resume`
+    """Interrupted after epoch 1 of 3: its state in `--out` (written there as it goes); `--resume`
     continues it to the same weights as 3 epochs in one go."""
     import smdm_plugin.metrics.evaluator.train as tr
 
@@ -209,8 +209,8 @@ def test_evaluator_ctrl_c_then_resume_equals_one_run(tmp_path, monkeypatch, caps
     monkeypatch.setattr(tr, "train_evaluator", interrupted)
     assert _train_ev(out, "--epochs", "3") == 130
     assert "rerun with --resume to continue from epoch 1" in capsys.readouterr().err
-    assert not out.exists() and not os.path.exists(lock_path(out))
-    assert torch.load(os.path.join(partial_path(out), "train_state.pt"), weights_only=True)["epoch"] == 1
+    assert not os.path.exists(lock_path(out)) and not os.path.exists(partial_path(out))
+    assert torch.load(out / "train_state.pt", weights_only=True)["epoch"] == 1
     monkeypatch.undo()
     assert _train_ev(out, "--epochs", "3", "--resume") == 0
     ref = tmp_path / "ref"

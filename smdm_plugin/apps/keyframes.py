@@ -10,7 +10,6 @@ from __future__ import annotations
 
 import argparse
 import os
-import secrets
 import sys
 import warnings
 from typing import List, Optional
@@ -77,18 +76,17 @@ def main(argv: Optional[List[str]] = None) -> int:
         return 2
     print(f"smdm keyframes: motion from {source}", file=sys.stderr)
     wins = ks.windows(clips, 196)
+    try:
+        ks.require_windows(wins, clips)
+    except ValueError as e:
+        print(f"smdm keyframes: error: {e}", file=sys.stderr)
+        return 2
     print(ks.keyframe_markdown(ks.keyframe_study(wins, a.reductions, frame_index_scale=a.frame_index_scale)))
     if a.plot:
         name, start, w = wins[0]
-        root, ext = os.path.splitext(os.path.abspath(a.plot))
-        tmp = f"{os.path.dirname(root)}/.{os.path.basename(root)}.{secrets.token_hex(4)}.tmp{ext}"
-        try:  # written beside the target, then renamed: never a half-written figure
-            ks.plot_keyframes(w, f"{name} frames {start}-{start + len(w) - 1}", 0.8, tmp,
-                                frame_index_scale=a.frame_index_scale)
-            os.replace(tmp, a.plot)
-        finally:
-            if os.path.exists(tmp):
-                os.remove(tmp)
+        # written atomically (a temporary file beside the target, then renamed): never a half-written figure
+        ks.plot_keyframes(w, f"{name} frames {start}-{start + len(w) - 1}", 0.8, a.plot,
+                          frame_index_scale=a.frame_index_scale)
         print(f"wrote {a.plot}")
     return 0
 

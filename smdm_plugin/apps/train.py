@@ -14,7 +14,8 @@ import torch
 from ..core.config import CONFIG_FILENAME, SparseConfig
 from ..integrations.distributed import init_distributed
 from ..io.checkpoint import BACKBONE_FILENAME
-from ..io.files import atomic_open, atomic_write_json, atomic_write_text
+from ..io.files import (atomic_open, atomic_write_json, atomic_write_text, describe_changes, digests_fingerprint,
+                        file_digests)
 from ..io.humanml3d import load_humanml3d
 from ..reference.text import TextConfig
 from ..training.data import MotionSet, check_clip_lengths
@@ -127,7 +128,7 @@ def _parse(argv: Optional[List[str]]) -> Tuple[Any, TrainConfig]:
 #: what ``smdm train`` writes besides ``model<step>.pt``
 OUTPUT_FILES = (BACKBONE_FILENAME, CONFIG_FILENAME, TRAIN_CONFIG_FILENAME, TRAIN_STATE_FILENAME, "Mean.npy",
                 "Std.npy", "losses.csv", "loss.png", "result.json", "motion.json",
-                "text_encoder.json")
+                "text_encoder.json", "data_files.json")
 #: the names ``smdm train`` writes (an ``--overwrite`` refuses such a file it did not write itself)
 OUTPUT_PATTERNS = OUTPUT_FILES + ("model[0-9][0-9][0-9][0-9][0-9][0-9][0-9][0-9][0-9].pt",)
 
@@ -171,8 +172,8 @@ def main(argv: Optional[List[str]] = None) -> int:
     a, cfg = _parse(argv)
     apply_threads(a.threads)
     try:
-        data = MotionSet.from_split(load_humanml3d(a.data, a.split, a.max_frames, a.min_frames, captions=a.text),
-                                    captions=a.text)
+        split = load_humanml3d(a.data, a.split, a.max_frames, a.min_frames, captions=a.text)
+        data = MotionSet.from_split(split, captions=a.text)
         if cfg.sparse is not None:
             check_clip_lengths(data, cfg.sparse, a.data)
         ctx = init_distributed(a.device)
@@ -199,23 +200,18 @@ def main(argv: Optional[List[str]] = None) -> int:
                 if ctx.is_main:
                     print(f"smdm train: {message}", file=sys.stderr)
                 return 2
-            from ..io.outdir import partial_path
-
-            folder = od.path if od is not None else partial_path(a.out)  # other ranks only read it (--resume)
+            # written in --out itself (OutputDir live): each checkpoint visible as it is made
+            folder = od.path if od is not None else os.path.abspath(a.out)  # other ranks only read it (--resume)
             trainer = Trainer(cfg, data, dist=ctx)
+            digests = file_digests(a.data, split.files)  # the data by content: a copy elsewhere is the same data
             extra = {"data": os.path.abspath(a.data), "split": a.split, "min_frames": a.min_frames,
-                     "max_frames": a.max_frames}
+                     "max_frames": a.max_frames, "data_fingerprint": digests_fingerprint(digests)}
             note = ""
             if a.resume:
                 try:
                     note = "; " + resume(trainer, folder)
-                    saved = _read_json(os.path.join(folder, TRAIN_CONFIG_FILENAME))
                     if os.path.exists(os.path.join(folder, TRAIN_STATE_FILENAME)):
-                        differ = [k for k in extra if saved.get(k) != extra[k]]
-                        if differ:
-                            raise ValueError(f"--resume: {a.out} was trained on other data ("
-                                             + "; ".join(f"{k}: saved {saved.get(k)!r}, now {extra[k]!r}"
-                                                         for k in differ) + ")")
+                        check_same_data(folder, extra, digests, a.out)
                 except ValueError as e:
                     if od is not None:
                         print(f"smdm train: {e}", file=sys.stderr)
@@ -227,6 +223,9 @@ def main(argv: Optional[List[str]] = None) -> int:
                       f"x global batch {trainer.global_batch} ({ctx.world_size} process(es) x {cfg.batch}) on "
                       f"{ctx.device}" + (f", backend {torch.distributed.get_backend()}" if ctx.distributed else "")
                       + note, flush=True)
+
+            if ctx.is_main:
+                write_data_digests(folder, digests)
 
             def every(tr: Trainer, loss: float) -> None:
                 if a.save_every and tr.step_count % a.save_every == 0 and tr.step_count < cfg.steps:
@@ -255,6 +254,44 @@ def main(argv: Optional[List[str]] = None) -> int:
         return 0
     finally:
         shutdown_distributed(ctx)
+
+
+#: per-file content digests of the training data (``--resume`` names the files that changed)
+DATA_DIGESTS_FILENAME = "data_files.json"
+
+
+def write_data_digests(folder: str, digests: Dict[str, str]) -> None:
+    """``data_files.json``: ``{"fingerprint", "files": {relative name: digest}}`` (atomic; kept when equal)."""
+    path = os.path.join(folder, DATA_DIGESTS_FILENAME)
+    doc = {"fingerprint": digests_fingerprint(digests), "files": digests}
+    try:
+        if _read_json(path) == doc:
+            return
+    except ValueError:
+        pass
+    atomic_write_json(path, doc)
+
+
+def check_same_data(folder: str, extra: Dict[str, Any], digests: Dict[str, str], out: str) -> None:
+    """``ValueError`` when the run in ``folder`` was trained on other data than ``extra`` describes:
+    the data is identified by content (``data_fingerprint``), not by path, so an identical copy
+    elsewhere continues the run and data changed in place is refused, naming the files that changed.
+    Runs saved before the fingerprint existed are compared by path."""
+    saved = _read_json(os.path.join(folder, TRAIN_CONFIG_FILENAME))
+    keys = ["split", "min_frames", "max_frames"] + (["data_fingerprint"] if "data_fingerprint" in saved else ["data"])
+    differ = [k for k in keys if saved.get(k) != extra[k]]
+    if not differ:
+        return
+    what = "; ".join(f"{k}: saved {saved.get(k)!r}, now {extra[k]!r}" for k in differ if k != "data_fingerprint")
+    if "data_fingerprint" in differ:
+        try:
+            old = _read_json(os.path.join(folder, DATA_DIGESTS_FILENAME))["files"]
+            changes = describe_changes(old, digests) if isinstance(old, dict) else "contents differ"
+        except (ValueError, KeyError):
+            changes = "contents differ"
+        what = "; ".join(w for w in (what, f"--data {extra['data']}: {changes}") if w)
+    raise ValueError(f"--resume: {out} was trained on other data ({what}); resume with the same data, or start a "
+                     "new run")
 
 
 def _read_json(path: str) -> Dict[str, Any]:

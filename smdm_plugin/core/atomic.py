@@ -7,11 +7,13 @@ and ``core`` imports nothing else of the package.
 """
 from __future__ import annotations
 
+import errno
 import json
 import os
 import secrets
+import shutil
 from contextlib import contextmanager
-from typing import IO, Any, Iterator, Union
+from typing import IO, Any, Iterator, Optional, Union
 
 PathLike = Union[str, "os.PathLike[str]"]
 
@@ -46,11 +48,53 @@ def atomic_open(path: PathLike, mode: str = "w", **kwargs: Any) -> Iterator[IO[A
             os.unlink(tmp)
         except OSError:
             pass
-        if isinstance(e, OSError) and e.filename is None and e.errno is not None:
-            # a failed write (a full disk): name the file it was for
-            raise type(e)(e.errno, e.strerror, path) from None
+        named = write_error(e, path)
+        if named is not None:  # a failed write (a full disk): one OSError naming the file it was for
+            raise named from None
         raise
     _fsync_dir(folder)
+
+
+#: how torch's zip writer reports a failed write (``torch.save``): a RuntimeError, not an OSError
+_TORCH_WRITE_FAILURES = ("inline_container", "PytorchStreamWriter", "unexpected pos")
+#: below this many free bytes a failed write is reported as a full disk
+_NEARLY_FULL = 1 << 20
+
+
+def _free_bytes(folder: str) -> Optional[int]:
+    try:
+        return shutil.disk_usage(folder).free
+    except OSError:
+        return None
+
+
+def write_error(e: BaseException, path: PathLike) -> Optional[OSError]:
+    """The ``OSError`` naming ``path`` that a failed write of ``path`` is, or None when ``e`` is not a
+    failed write (a bug, Ctrl-C, an OSError that already names its file).
+
+    Writers report a full disk in several ways: ``OSError(ENOSPC)`` without the file name (Python's
+    ``write``), an ``OSError`` without an errno (numpy: ``problem writing element 0``, ``0 requested
+    and 8 written``) or a ``RuntimeError`` from torch's zip writer (``[enforce fail at
+    inline_container.cc:...] unexpected pos ...``). Each becomes ``OSError(errno, reason, path)``;
+    the reason is ``No space left on device`` when the errno says so or the disk has less than 1 MiB
+    free, else the writer's message.
+    """
+    path = os.fspath(path)
+    if isinstance(e, OSError):
+        if e.filename is not None:
+            return None
+        msg, code = (e.strerror or str(e)), e.errno
+    elif isinstance(e, RuntimeError) and any(m in str(e) for m in _TORCH_WRITE_FAILURES):
+        msg, code = " ".join(str(e).split()), None
+    else:
+        return None
+    if code is None or code == errno.EIO:
+        free = _free_bytes(os.path.dirname(os.path.abspath(path)))
+        if free is not None and free < _NEARLY_FULL:
+            code = errno.ENOSPC
+    if code == errno.ENOSPC:
+        return OSError(errno.ENOSPC, os.strerror(errno.ENOSPC), path)
+    return OSError(code if code is not None else errno.EIO, f"write failed: {msg}", path)
 
 
 def _fsync_dir(folder: str) -> None:

@@ -10,12 +10,12 @@ from __future__ import annotations
 
 import hashlib
 import os
-from typing import Iterable
+from typing import Dict, Iterable, List, Mapping
 
 from ..core.atomic import PathLike, atomic_open, atomic_write_json, atomic_write_text
 
 __all__ = ["OutputExistsError", "check_new_file", "check_new_dir", "atomic_open", "atomic_write_text",
-           "atomic_write_json", "fingerprint_files"]
+           "atomic_write_json", "fingerprint_files", "file_digests", "digests_fingerprint", "describe_changes"]
 
 
 class OutputExistsError(FileExistsError):
@@ -57,3 +57,39 @@ def fingerprint_files(root: str, paths: Iterable[str]) -> str:
             for block in iter(lambda: f.read(1 << 20), b""):
                 h.update(block)
     return h.hexdigest()[:16]
+
+
+def file_digests(root: str, paths: Iterable[str]) -> Dict[str, str]:
+    """Relative name (``/``-separated, below ``root``) -> sha256 of the content (first 16 hex
+    digits) of each of ``paths``: what :func:`describe_changes` compares."""
+    out: Dict[str, str] = {}
+    for p in sorted(set(os.path.abspath(p) for p in paths)):
+        h = hashlib.sha256()
+        with open(p, "rb") as f:
+            for block in iter(lambda: f.read(1 << 20), b""):
+                h.update(block)
+        out[os.path.relpath(p, root).replace(os.sep, "/")] = h.hexdigest()[:16]
+    return out
+
+
+def digests_fingerprint(digests: Mapping[str, str]) -> str:
+    """One hash (16 hex digits) of a :func:`file_digests` map: equal iff the same files with the
+    same contents, wherever the folder was copied to."""
+    h = hashlib.sha256()
+    for name in sorted(digests):
+        h.update(f"{name}\0{digests[name]}\0".encode())
+    return h.hexdigest()[:16]
+
+
+def describe_changes(saved: Mapping[str, str], now: Mapping[str, str], limit: int = 5) -> str:
+    """What differs between two :func:`file_digests` maps, in words: ``changed: a.npy, b.npy;
+    added: c.npy; removed: d.npy`` (at most ``limit`` names each, then a count)."""
+    groups = (("changed", sorted(n for n in saved if n in now and saved[n] != now[n])),
+              ("added", sorted(n for n in now if n not in saved)),
+              ("removed", sorted(n for n in saved if n not in now)))
+    parts: List[str] = []
+    for what, names in groups:
+        if names:
+            more = f" and {len(names) - limit} more" if len(names) > limit else ""
+            parts.append(f"{what}: {', '.join(names[:limit])}{more}")
+    return "; ".join(parts) or "no file differs"

@@ -31,13 +31,15 @@ import errno
 import fnmatch
 import json
 import os
+import re
+import secrets
 import shutil
 import socket
 import sys
 import time
 from typing import Any, Callable, List, Mapping, Optional, Sequence
 
-from ..core.atomic import _fsync_dir
+from ..core.atomic import _fsync_dir, write_error
 from .files import OutputExistsError, PathLike, atomic_write_json
 
 __all__ = ["OutputDir", "OutputLock", "run_in_output_dir", "OutputLockedError", "OutputOverlapError", "MANIFEST", "check_no_overlap",
@@ -111,16 +113,30 @@ def _pid_alive(pid: int) -> bool:
 
 def _own_entries(folder: str) -> Optional[List[str]]:
     """The top-level names listed in ``folder``'s manifest, or None when it has none (or it is
-    unreadable)."""
+    unreadable). The manifest of a folder written in place (``live``) also holds the command's name
+    ``patterns``: every entry matching one is the command's too (written since the manifest was)."""
     try:
         with open(os.path.join(folder, MANIFEST), encoding="utf-8") as f:
             data = json.load(f)
         names = data["entries"]
-        if isinstance(names, list) and all(isinstance(n, str) for n in names):
+        patterns = data.get("patterns", [])
+        if (isinstance(names, list) and all(isinstance(n, str) for n in names) and isinstance(patterns, list)
+                and all(isinstance(n, str) for n in patterns)):
+            if patterns:
+                present = [n for n in os.listdir(folder) if any(fnmatch.fnmatchcase(n, p) for p in patterns)]
+                names = sorted(set(names) | set(present))
             return names
     except (OSError, ValueError, KeyError, TypeError):
         pass
     return None
+
+
+_TMP_NAME = re.compile(r"\..+\.[0-9a-f]{8}\.tmp")
+
+
+def _listing(folder: str) -> List[str]:
+    """``folder``'s entries but the manifest and temporary files an interrupted atomic write left."""
+    return [n for n in os.listdir(folder) if n != MANIFEST and not _TMP_NAME.fullmatch(n)]
 
 
 _RENAME_EXCHANGE = 2
@@ -145,6 +161,55 @@ def _exchange(a: str, b: str) -> bool:
     raise OSError(err, os.strerror(err), a, None, b)
 
 
+def _create_with_content(path: str, data: bytes, exists: Callable[[], BaseException]) -> None:
+    """Create ``path`` holding ``data``, atomically: it appears complete or not at all (``exists()``
+    is raised when it is there already). The content is written to a temporary file first and
+    hard-linked to ``path`` (``link`` fails when ``path`` exists: the same guarantee as ``O_EXCL``);
+    where hard links are not supported, ``O_EXCL`` then write, and the file is removed if the write
+    fails. A failed write (a full disk) is an ``OSError`` naming ``path``; nothing is left behind."""
+    folder = os.path.dirname(path)
+    tmp = os.path.join(folder, f".{os.path.basename(path)}.{os.getpid()}.{secrets.token_hex(4)}.tmp")
+    try:
+        try:
+            with open(tmp, "xb") as f:
+                f.write(data)
+                f.flush()
+                os.fsync(f.fileno())
+        except BaseException as e:
+            named = write_error(e, path)
+            raise (named if named is not None else e) from None
+        try:
+            os.link(tmp, path)
+            return
+        except FileExistsError:
+            raise exists() from None
+        except OSError as e:
+            if e.errno not in (errno.EPERM, errno.ENOTSUP, errno.EOPNOTSUPP, errno.EXDEV, errno.ENOSYS,
+                               errno.EMLINK):
+                raise
+    finally:
+        try:
+            os.unlink(tmp)
+        except OSError:
+            pass
+    try:  # no hard links here: O_EXCL, and the file removed if its content cannot be written
+        fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o644)
+    except FileExistsError:
+        raise exists() from None
+    try:
+        with os.fdopen(fd, "wb") as f:
+            f.write(data)
+            f.flush()
+            os.fsync(f.fileno())
+    except BaseException as e:
+        try:
+            os.unlink(path)
+        except OSError:
+            pass
+        named = write_error(e, path)
+        raise (named if named is not None else e) from None
+
+
 class OutputLock:
     """The lock of output folder ``out`` for one run (``.<name>.lock`` beside it, ``O_EXCL``, with
     pid, host and command); a context manager. A held lock is :class:`OutputLockedError` naming
@@ -165,12 +230,7 @@ class OutputLock:
         os.makedirs(os.path.dirname(self.path), exist_ok=True)
         info = {"pid": os.getpid(), "host": socket.gethostname(), "command": self.command,
                 "started": time.strftime("%Y-%m-%dT%H:%M:%S%z")}
-        try:
-            fd = os.open(self.path, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o644)
-        except FileExistsError:
-            raise OutputLockedError(self.message()) from None
-        with os.fdopen(fd, "w", encoding="utf-8") as f:
-            json.dump(info, f)
+        _create_with_content(self.path, json.dumps(info).encode(), lambda: OutputLockedError(self.message()))
         self.held = True
         return self
 
@@ -182,8 +242,8 @@ class OutputLock:
                 owner = json.load(f)
             pid, host, cmd = int(owner["pid"]), str(owner["host"]), str(owner.get("command", "?"))
         except (OSError, ValueError, KeyError, TypeError):
-            return (f"{self.what} {shown!r} is locked by {self.path} (unreadable: another run may be starting); "
-                    "if none is, remove that file and run again")
+            return (f"{self.what} {shown!r} is locked by {self.path} (unreadable: another run may be starting, or "
+                    "an older version failed to write it); if none is starting, remove that file and run again")
         if host == socket.gethostname() and not _pid_alive(pid):
             return (f"{self.what} {shown!r}: stale lock {self.path} left by {cmd} (pid {pid}, no longer running); "
                     "if no other run writes there, remove that file and run again")
@@ -206,7 +266,8 @@ class OutputLock:
 
 
 class OutputDir:
-    """An output folder written as one unit, locked for the run, apart from the inputs.
+    """An output folder written as one unit (or, ``live``, in place), locked for the run, apart from
+    the inputs.
 
     Args:
         out: the folder the command writes.
@@ -220,17 +281,25 @@ class OutputDir:
         resume: continue: a partial folder of an interrupted run is kept and written further; else
             the new partial folder starts as a copy of ``out``'s own files (a finished run continued).
         what: the option name in messages.
+        live: write in ``out`` itself instead of a partial folder (default: ``resumable``; the
+            long-running commands): each file appears, atomically, as it is made (a checkpoint is
+            visible, loadable and resumable during the run and after a crash). The lock, the overlap
+            check and the refusals stay; ``overwrite`` removes the command's own entries of ``out``
+            when the run starts (the new run replaces the old one as it goes); a failure leaves
+            what was written.
 
     Attributes: ``path`` (where to write, inside the block), ``out``.
     """
 
     def __init__(self, out: PathLike, overwrite: bool = False, inputs: Optional[Mapping[str, Optional[PathLike]]] = None,
                  command: str = "smdm", owns: Sequence[str] = ("*",), resumable: bool = False, resume: bool = False,
-                 what: str = "--out") -> None:
+                 what: str = "--out", live: Optional[bool] = None) -> None:
         self.out = os.path.abspath(os.fspath(out))
         self.overwrite, self.inputs, self.command = overwrite, dict(inputs or {}), command
         self.owns, self.resumable, self.resume, self.what = tuple(owns), resumable, resume, what
-        self.path = partial_path(self.out)
+        self.live = resumable if live is None else bool(live)
+        self.path = self.out if self.live else partial_path(self.out)
+        self._created = False
         self.lock = OutputLock(self.out, command, what)
         self._abandoned = False
         self._keep = resumable
@@ -244,8 +313,11 @@ class OutputDir:
         check_no_overlap(self.out, self.inputs, self.what)
         if os.path.lexists(self.out) and not os.path.isdir(self.out):
             raise OutputExistsError(f"{self.what} {shown!r} exists and is not a folder")
-        existing = os.listdir(self.out) if os.path.isdir(self.out) else []
+        existing = _listing(self.out) if os.path.isdir(self.out) else []
         if existing and not (self.overwrite or self.resume):
+            if self.resumable and _own_entries(self.out):
+                raise OutputExistsError(f"{self.what} {shown!r} holds a run of {self.command} (interrupted or "
+                                        "finished); pass --resume to continue it, --overwrite to start over")
             raise OutputExistsError(f"{self.what} {shown!r} exists and is not empty; pass --overwrite "
                                     "(overwrite=True) to write into it")
         if existing:
@@ -269,7 +341,7 @@ class OutputDir:
         self.check()
         self.lock.acquire()
         try:
-            self._prepare_partial()
+            self._prepare_live() if self.live else self._prepare_partial()
         except BaseException:
             self.lock.release()
             raise
@@ -298,6 +370,52 @@ class OutputDir:
                     shutil.copy2(src, os.path.join(self.path, name))
             self.resumed_from = self.out
 
+    def _patterns(self) -> List[str]:
+        return [] if self.owns == ("*",) else list(self.owns)
+
+    def _prepare_live(self) -> None:
+        legacy = partial_path(self.out)  # an interrupted run of smdm-plugin <= 0.4 wrote there
+        if os.path.lexists(legacy):
+            out_empty = not (os.path.isdir(self.out) and _listing(self.out))
+            if self.overwrite:
+                shutil.rmtree(legacy) if os.path.isdir(legacy) else os.unlink(legacy)
+            elif self.resume and out_empty and os.path.isdir(legacy):
+                if os.path.isdir(self.out):
+                    shutil.rmtree(self.out)
+                os.rename(legacy, self.out)  # continued in --out itself from now on
+            else:
+                raise OutputExistsError(
+                    f"{self.what} {self._shown()!r}: an interrupted run left {legacy}; "
+                    + ("pass --resume to continue it (its files move into " + self.what + "), " if out_empty else
+                       f"move its files into {self.what} to continue it with --resume, ")
+                    + "--overwrite to start over, or remove it")
+        existed = os.path.isdir(self.out)
+        own = (_own_entries(self.out) or []) if existed else []
+        if existed and self.overwrite and not self.resume:
+            for name in own:  # the new run replaces the old one as it goes
+                p = os.path.join(self.out, name)
+                if os.path.isdir(p) and not os.path.islink(p):
+                    shutil.rmtree(p)
+                elif os.path.lexists(p):
+                    os.unlink(p)
+            own = []
+        if existed:
+            for name in os.listdir(self.out):
+                if _TMP_NAME.fullmatch(name):  # left by a killed atomic write
+                    os.unlink(os.path.join(self.out, name))
+        os.makedirs(self.out, exist_ok=True)
+        self._created = not existed
+        own = [n for n in own if os.path.lexists(os.path.join(self.out, n))]
+        if self.resume and own:
+            self.resumed_from = self.out
+        self._write_manifest(own)
+
+    def _write_manifest(self, entries: Sequence[str]) -> None:
+        data: dict = {"command": self.command, "entries": sorted(entries)}
+        if self.live and self._patterns():
+            data["patterns"] = self._patterns()
+        atomic_write_json(os.path.join(self.path, MANIFEST), data)
+
     def abandon(self, keep: Optional[bool] = None) -> None:
         """Do not commit at the end of the block (the command failed without an exception): ``out``
         stays as it was; the partial folder is kept when ``keep`` (default: ``resumable``), else
@@ -309,6 +427,9 @@ class OutputDir:
         try:
             if exc_type is None and not self._abandoned:
                 self.commit()
+            elif self.live:  # what was written stays (each file whole); a folder made for nothing goes
+                if self._abandoned and not self._keep and self._created and not _listing(self.out):
+                    shutil.rmtree(self.out, ignore_errors=True)
             elif not (self._keep if self._abandoned else self.resumable):
                 shutil.rmtree(self.path, ignore_errors=True)
         finally:
@@ -316,7 +437,11 @@ class OutputDir:
 
     def commit(self) -> None:
         """Write the manifest and swap the partial folder in for ``out`` (foreign entries of an
-        existing ``out`` carried over)."""
+        existing ``out`` carried over); ``live``: write the manifest of what ``out`` holds now."""
+        if self.live:
+            self._write_manifest(_own_entries(self.out) or [])
+            _fsync_dir(self.out)
+            return
         new_entries = sorted(n for n in os.listdir(self.path) if n != MANIFEST)
         atomic_write_json(os.path.join(self.path, MANIFEST), {"command": self.command, "entries": new_entries})
         if os.path.isdir(self.out):

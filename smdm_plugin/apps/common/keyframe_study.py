@@ -112,6 +112,18 @@ def windows(clips: Sequence[Tuple[str, np.ndarray]], length: int = 196, min_len:
     return out
 
 
+def require_windows(wins: Sequence[Tuple[str, int, np.ndarray]], clips: Sequence[Tuple[str, np.ndarray]],
+                    min_len: int = 40) -> None:
+    """``ValueError`` (one line) when no clip gave a window of ``min_len`` frames: the keyframe study
+    of no window would be a table of NaN."""
+    if wins:
+        return
+    longest = max(clips, key=lambda c: len(c[1]), default=None)
+    have = f"the longest, {longest[0]}, has {len(longest[1])}" if longest is not None else "no clip was given"
+    raise ValueError(f"no clip has the {min_len} frames (at 20 fps) a keyframe window needs ({have}); "
+                     "give longer clips")
+
+
 def selection_features(joints: np.ndarray, frame_index_scale: float = FRAME_INDEX_SCALE) -> torch.Tensor:
     """``[1, T, 67]`` float32: the 22 global joint positions (metres) + frame index × scale
     (:func:`~smdm_plugin.core.features.extract_selection_features`, kind ``raw``)."""
@@ -136,8 +148,12 @@ def reconstruction_error(joints: np.ndarray, mask: np.ndarray) -> Tuple[float, n
 
 def keyframe_study(wins, reductions: Sequence[float], methods: Sequence[str] = METHODS, seed: int = 0,
                    frame_index_scale: float = FRAME_INDEX_SCALE) -> Dict[str, Any]:
-    """Reconstruction error (mm) per method and reduction, averaged over the windows."""
+    """Reconstruction error (mm) per method and reduction, averaged over the windows (at least one:
+    ``ValueError`` otherwise)."""
     from ...core.selection import select_keyframes
+
+    if not wins:
+        raise ValueError("keyframe_study: no window of motion (every clip is shorter than a window)")
 
     g = torch.Generator().manual_seed(seed)
     table: Dict[str, Dict[float, float]] = {m: {} for m in methods}
@@ -213,5 +229,10 @@ def plot_keyframes(win: np.ndarray, title: str, reduction: float, path: str, joi
                  "* = keyframe", fontsize=9)
     fig.suptitle(f"{title}: {T} frames, {int(vw.sum())} VW keyframes ({int(round(reduction * 100))}% dropped)")
     fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
+    from ...io.files import atomic_open
+
+    try:  # atomic: never a half-written figure; a failed write names the file
+        with atomic_open(path, "wb") as f:
+            fig.savefig(f, format=os.path.splitext(path)[1][1:].lower() or "png", dpi=110)
+    finally:
+        plt.close(fig)

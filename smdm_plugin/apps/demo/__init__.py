@@ -60,10 +60,10 @@ from typing import Any, Dict, List, Optional, Tuple
 import numpy as np
 import torch
 
-from ...io.files import atomic_write_json, atomic_write_text
+from ...io.files import atomic_open, atomic_write_json, atomic_write_text
 from ..common.args import add_overwrite, device_type, float_range, int_range
 from ..common.keyframe_study import (FRAME_INDEX_SCALE, keyframe_markdown, keyframe_study, motion_source,
-                                     plot_keyframes, windows)
+                                     plot_keyframes, require_windows, windows)
 from ..common.threads import THREADS_HELP
 
 NO_BVH = """smdm demo: no BVH motion capture found.
@@ -116,8 +116,11 @@ def plot_losses(train: Dict[str, Any], path: str) -> None:
     fig.suptitle(f"dense vs sparse ({int(round(train['spec']['reduction'] * 100))}% of frames dropped): "
                  f"sparse runs {train['speed_ratio']:.2f}x the steps per second")
     fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
+    try:  # atomic; a failed write (a full disk) names the file
+        with atomic_open(path, "wb") as f:
+            fig.savefig(f, format="png", dpi=110)
+    finally:
+        plt.close(fig)
 
 
 def limits_note(args: argparse.Namespace, train: Dict[str, Any], crops: int) -> str:
@@ -266,6 +269,11 @@ def main_demo(args: argparse.Namespace) -> int:
 
         # 1. keyframes (rank 0)
         wins = windows(clips, 196, max_windows=2 if args.quick else None)
+        try:
+            require_windows(wins, clips)
+        except ValueError as e:
+            print(f"smdm demo: error: {e}", file=sys.stderr)
+            return 2
         study: Dict[str, Any] = {}
         if main_rank:
             study = keyframe_study(wins, args.reductions, seed=args.seed, frame_index_scale=args.frame_index_scale)
