@@ -54,14 +54,28 @@ def model_device(model: nn.Module, fn: str = "sparsify") -> torch.device:
 
 def _check_stats(name: str, value: Any, device: torch.device, fn: str) -> None:
     """Dataset statistics may be host data (numpy, lists, CPU tensors) or tensors on the model's
-    device; ``meta`` tensors or another accelerator are a ``ValueError``."""
-    if not isinstance(value, torch.Tensor):
+    device, of real finite numbers; ``meta`` tensors, another accelerator, NaN / inf (which would
+    silently change which frames are keyframes), complex or non-numeric values are a ``ValueError``."""
+    if value is None:
         return
-    if value.device.type == "meta":
-        raise ValueError(f"{fn}: {name} is a 'meta' tensor (no values); pass the [D] statistics as data")
-    if value.device.type != "cpu" and value.device != device:
-        raise ValueError(f"{fn}: {name} is on {value.device} but the model is on {device}; pass it on "
-                         f"the CPU or on {device}")
+    if isinstance(value, torch.Tensor):
+        if value.device.type == "meta":
+            raise ValueError(f"{fn}: {name} is a 'meta' tensor (no values); pass the [D] statistics as data")
+        if value.device.type != "cpu" and value.device != device:
+            raise ValueError(f"{fn}: {name} is on {value.device} but the model is on {device}; pass it on "
+                             f"the CPU or on {device}")
+        t = value.detach()
+    else:
+        try:
+            t = torch.as_tensor(value)
+        except (TypeError, ValueError, RuntimeError) as e:
+            raise ValueError(f"{fn}: {name} must be [D] real numbers, got {type(value).__name__} ({e})") from None
+    if t.is_complex() or t.dtype == torch.bool:
+        raise ValueError(f"{fn}: {name} must be [D] real numbers, got dtype {t.dtype}")
+    if t.is_floating_point() and not bool(torch.isfinite(t).all()):  # once, at conversion: not the hot path
+        bad = int(torch.nonzero(~torch.isfinite(t.reshape(-1)))[0])
+        raise ValueError(f"{fn}: {name} holds a non-finite value ({float(t.reshape(-1)[bad])} at index {bad}); "
+                         "the [D] statistics must be finite")
 
 
 def is_sparse(model: nn.Module) -> bool:
@@ -108,6 +122,12 @@ def sparsify(model: nn.Module, config: ConfigLike = None, *, diffusion: Any = No
     if family is not None and not fam.matches(model):
         raise TypeError(f"sparsify: {type(model).__name__} is not a {fam.name} model: {fam.mismatch(model)}")
     device = model_device(model)
+    if diffusion is not None and not (callable(getattr(diffusion, "training_losses", None))
+                                      and any(getattr(diffusion, a, None) for a in ("original_num_steps",
+                                                                                     "num_timesteps", "num_steps", "T"))):
+        raise TypeError(f"sparsify: diffusion must be a Gaussian diffusion with a callable training_losses(model, "
+                        "x_start, t, model_kwargs) and its step count (num_timesteps or original_num_steps), got "
+                        f"{type(diffusion).__name__}")
     _check_stats("mean", mean, device, "sparsify")
     _check_stats("std", std, device, "sparsify")
     variant = fam.variant(model)

@@ -106,6 +106,8 @@ class KeyframeTransformer(nn.Module):
         if plan.batch != B or plan.frames > S:
             raise ValueError(f"KeyframeTransformer: the keyframe plan is for [B, N]=[{plan.batch}, "
                              f"{plan.frames}], the sequence has B={B}, S={S} tokens")
+        if B == 0:  # an empty batch: the empty output (a Python-level shape check, no sync)
+            return seq.clone()
         lead = S - plan.frames
         # padding of the frames is the plan's business (keyframes are valid frames); the caller's
         # padding of the lead tokens is honoured

@@ -122,6 +122,8 @@ def _check(features, lengths: LengthsLike, reduction: float, fn: str
         features = torch.as_tensor(np.asarray(features))
     if features.dim() != 3:
         raise ValueError(f"{fn}: features must be 3-D [B, N, F], got shape {tuple(features.shape)}")
+    if features.device.type == "meta":
+        raise ValueError(f"{fn}: features is a 'meta' tensor (no values); pass the motion [B, N, F] on a real device")
     B, N, _ = features.shape
     _check_reduction(reduction, fn)
     lengths_t = as_lengths(lengths, B, N, features.device, fn)

@@ -375,6 +375,7 @@ class OutputDir:
 
     def _prepare_live(self) -> None:
         legacy = partial_path(self.out)  # an interrupted run of smdm-plugin <= 0.4 wrote there
+        migrated = False
         if os.path.lexists(legacy):
             out_empty = not (os.path.isdir(self.out) and _listing(self.out))
             if self.overwrite:
@@ -383,6 +384,7 @@ class OutputDir:
                 if os.path.isdir(self.out):
                     shutil.rmtree(self.out)
                 os.rename(legacy, self.out)  # continued in --out itself from now on
+                migrated = True  # a partial folder holds only the command's own files (no manifest yet)
             else:
                 raise OutputExistsError(
                     f"{self.what} {self._shown()!r}: an interrupted run left {legacy}; "
@@ -390,7 +392,7 @@ class OutputDir:
                        f"move its files into {self.what} to continue it with --resume, ")
                     + "--overwrite to start over, or remove it")
         existed = os.path.isdir(self.out)
-        own = (_own_entries(self.out) or []) if existed else []
+        own = (_listing(self.out) if migrated else (_own_entries(self.out) or [])) if existed else []
         if existed and self.overwrite and not self.resume:
             for name in own:  # the new run replaces the old one as it goes
                 p = os.path.join(self.out, name)

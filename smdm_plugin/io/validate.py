@@ -18,7 +18,10 @@ import numpy as np
 from ..core.scalars import as_float, is_int
 
 __all__ = ["read_json_object", "require_fields", "int_field", "float_field", "check_stats", "check_array",
-           "load_npy"]
+           "load_npy", "load_feature_motion"]
+
+#: the largest float32: what is read is computed in float32
+F32_MAX = float(np.finfo(np.float32).max)
 
 
 def read_json_object(path: str) -> Dict[str, Any]:
@@ -79,6 +82,13 @@ def check_array(a: Any, where: str, what: str = "values", shape: Optional[tuple]
     if arr.dtype.kind == "f" and not np.isfinite(arr).all():
         bad = np.argwhere(~np.isfinite(arr))[0].tolist()
         raise ValueError(f"{where}: {what} holds a non-finite value ({arr[tuple(bad)]} at index {bad})")
+    if arr.dtype.kind in "fiu" and arr.dtype.itemsize > 4 and arr.size:
+        # what is read is computed in float32: a float64 beyond its range would become inf there
+        big = float(np.abs(arr).max())
+        if big > F32_MAX:
+            bad = np.unravel_index(int(np.argmax(np.abs(arr))), arr.shape)
+            raise ValueError(f"{where}: {what} holds {big:.3g} at index {list(map(int, bad))}, beyond float32's "
+                             f"range (±{F32_MAX:.3g})")
     return arr
 
 
@@ -103,3 +113,14 @@ def load_npy(path: str, what: str = "array") -> np.ndarray:
         raise
     except (ValueError, OSError, EOFError) as e:
         raise ValueError(f"{path}: not a readable .npy file ({what}): {' '.join(str(e).split())}") from None
+
+
+def load_feature_motion(path: str, dim: int, min_len: int = 4, what: str = "motion features") -> np.ndarray:
+    """A ``.npy`` of raw per-frame features ``[L >= min_len, dim]`` (``smdm eval --motions``) as
+    float32, with one-line errors naming the file: empty / truncated / not a ``.npy``, another
+    shape, not real floats (complex, integers), NaN / inf, values beyond float32's range."""
+    m = load_npy(path, what)
+    if m.dtype.kind != "f" or m.ndim != 2 or m.shape[1] != dim or len(m) < min_len:
+        raise ValueError(f"{path}: expected raw features [L >= {min_len}, {dim}] of real floats, got "
+                         f"{list(m.shape)} {m.dtype}")
+    return check_array(m, path, what).astype(np.float32)

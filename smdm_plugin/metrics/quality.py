@@ -25,6 +25,7 @@ returns the per-motion values ``[B]``.
 """
 from __future__ import annotations
 
+import warnings
 from typing import Optional, Sequence, Tuple, Union
 
 import numpy as np
@@ -87,6 +88,20 @@ def _inputs(fn: str, motion: ArrayLike, fps: float, lengths: Lengths, min_length
     B, N, J, _ = pos.shape
     return (pos, _fps(fn, fps), _lengths(fn, lengths, B, N, min_length, pos.device),
             _joints(fn, joints, J, joints_name))
+
+
+class MetricOverflowWarning(RuntimeWarning):
+    """A metric of finite positions came out inf / NaN: the values overflowed (not metres?)."""
+
+
+def _warn_overflow(fn: str, pos: torch.Tensor, values: torch.Tensor) -> None:
+    """Warn (:class:`MetricOverflowWarning`) when ``values``, computed from finite ``pos``, are not
+    all finite: positions so large (1e30) that the differences overflow. The caller would otherwise
+    report a silent inf / NaN (a "—" in a table)."""
+    if values.numel() and not bool(torch.isfinite(values).all()) and bool(torch.isfinite(pos).all()):
+        big = float(pos.abs().max())
+        warnings.warn(f"{fn}: the result overflowed (inf / NaN) for finite joint positions reaching {big:.3g}; "
+                      "positions are expected in metres", MetricOverflowWarning, stacklevel=3)
 
 
 def _reduce(fn: str, per_motion: torch.Tensor, reduce: str) -> torch.Tensor:
@@ -189,6 +204,7 @@ def jitter(motion: ArrayLike, *, fps: float = 20.0, lengths: Lengths = None,
             raise ValueError(f"{fn}: frame_mask must be [N]=[{N}] or [B, N]=[{B}, {N}], got {tuple(fm.shape)}")
         touches = fm[:, :-3] | fm[:, 1:-2] | fm[:, 2:-1] | fm[:, 3:]
         counted = counted & touches
+    _warn_overflow(fn, p, mag[counted])
     w = counted.to(mag.dtype)
     n = w.sum(dim=1)
     per_motion = (mag * w).sum(dim=1) / n                                 # NaN: no counted step
@@ -208,7 +224,9 @@ def mean_speed(motion: ArrayLike, *, fps: float = 20.0, lengths: Lengths = None,
     B, N = pos.shape[:2]
     p = pos[:, :, idx]
     mag = ((p[:, 1:] - p[:, :-1]) * rate).norm(dim=-1).mean(dim=-1)      # [B, N-1]
-    w = (torch.arange(N - 1, device=pos.device)[None] < (L - 1)[:, None]).to(mag.dtype)
+    counted = torch.arange(N - 1, device=pos.device)[None] < (L - 1)[:, None]
+    _warn_overflow(fn, p, mag[counted])
+    w = counted.to(mag.dtype)
     return _reduce(fn, (mag * w).sum(dim=1) / w.sum(dim=1), reduce)
 
 

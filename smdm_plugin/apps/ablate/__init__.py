@@ -74,7 +74,7 @@ from ..common.args import add_overwrite, device_type, existing_path, int_range, 
 from ..common.threads import THREADS_HELP
 from ..common.provenance import differences, make_provenance
 from .grid import SHARED_SETTINGS, load_config, select_variants, slug, sparse_config
-from .report import write_report
+from .report import check_record, write_report
 
 if TYPE_CHECKING:
     from ...training.data import MotionData
@@ -195,6 +195,9 @@ def read_cached(vdir: str, provenance: Dict[str, Any]) -> Cached:
                 rec = json.load(f)
             if not isinstance(rec, dict) or rec.get("status") != "ok":
                 raise ValueError("not a result record")
+            bad = check_record(rec)
+            if bad is not None:  # e.g. edited by hand: reported as corrupt, never a crash of the report
+                raise ValueError(f"not a result record: {bad}")
         except (OSError, ValueError) as e:  # json.JSONDecodeError is a ValueError
             return Cached("corrupt", None, f"unreadable {res_path} ({type(e).__name__}: {e})")
         why = differences(rec.get("provenance"), provenance)

@@ -18,8 +18,31 @@ COLUMNS = ("variant", "status", "final loss", "best loss", "val loss", "steps/s"
 REFERENCE_ROW = "real validation motion"
 
 
+#: the numbers of a variant's ``result.json`` the report shows (each a number or null)
+RESULT_NUMBERS = ("final_loss", "best_loss", "val_loss", "steps_per_s", "keyframe_error_mm", "ees", "jitter",
+                  "foot_skating", "wall_s")
+
+
+def _is_number(v: Any) -> bool:
+    return isinstance(v, (int, float)) and not isinstance(v, bool)
+
+
+def check_record(rec: Dict[str, Any]) -> Optional[str]:
+    """Why a result record cannot be reported (a field of :data:`RESULT_NUMBERS` that is not a
+    number or null, ``losses`` not a list of numbers), or None when it can."""
+    for k in RESULT_NUMBERS:
+        if rec.get(k) is not None and not _is_number(rec[k]):
+            return f"{k}={rec[k]!r}: expected a number or null"
+    losses = rec.get("losses")
+    if losses is not None and not (isinstance(losses, list) and all(_is_number(v) for v in losses)):
+        return "losses: expected a list of numbers"
+    return None
+
+
 def _fmt(v: Any, spec: str) -> str:
-    return "—" if v is None or (isinstance(v, float) and not math.isfinite(v)) else format(v, spec)
+    if not _is_number(v):  # None, or (a record edited by hand) not a number: never a crash
+        return "—" if v is None else "?"
+    return "—" if isinstance(v, float) and not math.isfinite(v) else format(v, spec)
 
 
 def write_report(results: List[Dict[str, Any]], out: str, real_ees: Optional[float], cfg: Dict[str, Any],

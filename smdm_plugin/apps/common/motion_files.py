@@ -21,6 +21,8 @@ from typing import Optional
 
 import numpy as np
 
+from ...io.validate import F32_MAX
+
 ACCEPTED = ("joints [N, 22|21, 3] or [B, N, J, 3], HumanML3D features [N, 263], KIT features [N, 251], "
             "joints66 features [N, 66] (features also batched [S, N, D], as smdm inbetween writes them), "
             "MDM results.npy (with --allow-pickle), or a .bvh file")
@@ -67,14 +69,14 @@ def _load_pickled(path: str, sample: int) -> LoadedMotion:
     obj = obj.item() if obj.dtype == object and obj.shape == () else obj
     if not isinstance(obj, dict) or "motion" not in obj:
         raise ValueError(f"{path}: a pickled .npy without a 'motion' entry (expected MDM's results.npy)")
-    motion = np.asarray(obj["motion"])  # [B, J, 3, N]
+    motion = check_real_values(np.asarray(obj["motion"]), path)  # [B, J, 3, N]
     if motion.ndim != 4 or motion.shape[2] != 3:
         raise ValueError(f"{path}: 'motion' must be [B, J, 3, N] (MDM's results.npy), got {motion.shape}")
     if not 0 <= sample < motion.shape[0]:
         raise ValueError(f"{path}: sample must be in [0, {motion.shape[0]}), got {sample}")
     lengths = obj.get("lengths")
     n = int(lengths[sample]) if lengths is not None else motion.shape[-1]
-    return LoadedMotion(motion[sample].transpose(2, 0, 1)[:n], "mdm-results", path, 20.0)
+    return check_plausible(LoadedMotion(motion[sample].transpose(2, 0, 1)[:n], "mdm-results", path, 20.0))
 
 
 def load_motion(path: str, fps: float = 20.0, sample: int = 0, allow_pickle: bool = False) -> LoadedMotion:
@@ -92,14 +94,14 @@ def load_motion(path: str, fps: float = 20.0, sample: int = 0, allow_pickle: boo
         arr = np.load(path, allow_pickle=False)
     except ValueError as e:
         if "allow_pickle" not in str(e):
-            raise ValueError(f"{path}: not a readable .npy file ({e})") from None
+            raise ValueError(f"{path}: not a readable .npy file ({' '.join(str(e).split())})") from None
         if not allow_pickle:
             raise ValueError(f"{path} holds pickled Python objects (MDM's results.npy?); pass --allow-pickle "
                              "to read it, only if you trust the file") from None
         return _load_pickled(path, sample)
-    if not np.issubdtype(arr.dtype, np.number):
-        raise ValueError(f"{path}: expected numbers, got dtype {arr.dtype}")
-    arr = arr.astype(np.float64)
+    except (EOFError, OSError) as e:  # an empty (0-byte) or truncated file
+        raise ValueError(f"{path}: not a readable .npy file ({' '.join(str(e).split()) or 'empty file'})") from None
+    arr = check_real_values(arr, path)
     if arr.ndim == 4 and arr.shape[-1] == 3:
         if not 0 <= sample < arr.shape[0]:
             raise ValueError(f"{path}: sample must be in [0, {arr.shape[0]}) for a [B, N, J, 3] file, got {sample}")
@@ -122,7 +124,38 @@ def load_motion(path: str, fps: float = 20.0, sample: int = 0, allow_pickle: boo
         raise ValueError(f"{path}: shape {arr.shape} is not a motion; expected {ACCEPTED}")
     if len(out.joints) < 1 or not np.isfinite(out.joints).all():
         raise ValueError(f"{path}: the motion is empty or holds NaN / inf")
-    return out
+    return check_plausible(out)
+
+
+#: joint positions beyond this many metres (or a BVH's units) are not a motion (as io.bvh's bound)
+MAX_ABS_POSITION = 1e7
+
+
+def check_real_values(arr: np.ndarray, path: str) -> np.ndarray:
+    """``arr`` as float64 when it holds real, finite numbers that float32 (what the models and
+    metrics compute in) can hold; else a ``ValueError`` naming ``path`` and the cause: complex or
+    non-numeric dtypes, NaN / inf, a value beyond float32's range."""
+    if arr.dtype.kind not in "iuf":
+        raise ValueError(f"{path}: expected real numbers, got dtype {arr.dtype}"
+                         + (" (complex values are not a motion)" if arr.dtype.kind == "c" else ""))
+    arr = arr.astype(np.float64)
+    if arr.size and not np.isfinite(arr).all():
+        bad = np.argwhere(~np.isfinite(arr))[0].tolist()
+        raise ValueError(f"{path}: holds a non-finite value ({arr[tuple(bad)]} at index {bad})")
+    big = float(np.abs(arr).max()) if arr.size else 0.0
+    if big > F32_MAX:
+        raise ValueError(f"{path}: holds {big:.3g}, beyond float32's range (±{F32_MAX:.3g})")
+    return arr
+
+
+def check_plausible(m: LoadedMotion) -> LoadedMotion:
+    """``m`` when its joint positions are within ±:data:`MAX_ABS_POSITION`; a ``ValueError`` naming
+    the file otherwise (1e30 m is no motion: every metric of it would overflow)."""
+    big = float(np.abs(m.joints).max())
+    if big > MAX_ABS_POSITION:
+        raise ValueError(f"{m.source}: joint positions reach {big:.3g} (beyond ±{MAX_ABS_POSITION:g}); expected "
+                         "metres (HumanML3D) or the BVH's own units")
+    return m
 
 
 def add_motion_file_options(p: argparse.ArgumentParser) -> None:
