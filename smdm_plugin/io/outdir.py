@@ -8,15 +8,18 @@ What it guarantees:
 
 * **Outputs never overlap inputs**: ``out`` equal to, inside or containing an input path is refused
   (:class:`OutputOverlapError`) before anything is written, with or without ``overwrite``.
-* **One writer per folder**: a lock file ``.<name>.lock`` beside ``out`` (created with ``O_EXCL``;
-  it holds the owner's pid, host and command). A second writer gets :class:`OutputLockedError`
+* **One writer per folder**: a lock file ``.<name>.lock`` beside ``out`` (it holds the owner's pid,
+  host and command; it appears whole or not at all: written to a temporary file, then hard-linked,
+  which fails when the lock exists, as ``O_EXCL`` does). A second writer gets :class:`OutputLockedError`
   naming the folder and the owner. A lock left by a process that no longer runs (same host) is
   reported as stale, never taken over: the user removes it.
 * **Replaced as one unit**: the content is written in ``.<name>.partial`` beside ``out`` and
   swapped in by rename when the block ends without an error (on Linux one atomic
   ``renameat2(RENAME_EXCHANGE)``; elsewhere two renames). A reader sees the old folder or the
-  new one, never a mix. On an error the partial folder is removed (``resumable``: kept, so that
-  ``--resume`` can continue from it) and ``out`` is untouched.
+  new one, never a mix. On an error the partial folder is removed and ``out`` is untouched.
+* **Or written as it goes** (``live``, the default of ``resumable`` commands: ``smdm train``,
+  ``smdm evaluator train``): the content is written in ``out`` itself, each file atomically, so that
+  a long run's checkpoints are visible, loadable and resumable while it runs and after a crash.
 * **--overwrite replaces only the command's own files**: each committed folder holds a manifest
   (``.smdm-manifest.json``) of what the command wrote. Other entries of an overwritten folder are
   moved into the new one unchanged; one whose name the command would write itself is refused up
