@@ -240,3 +240,22 @@ def test_file_digests_identify_data_by_content(tmp_path):
     db = file_digests(str(b), [str(b / "sub" / "x.npy"), str(b / "z.txt")])
     assert digests_fingerprint(da) != digests_fingerprint(db)
     assert describe_changes(da, db) == "changed: sub/x.npy; added: z.txt; removed: y.txt"
+
+
+def test_other_readers_of_the_data_folder_name_the_file(tmp_path):
+    """Joint files and captions of a HumanML3D-format folder: 0.4.0 raised EOFError /
+    UnicodeDecodeError tracebacks."""
+    from smdm_plugin.io.captions import read_captions
+    from smdm_plugin.io.humanml3d import load_humanml3d
+    from synthetic_data import write_humanml3d
+
+    root = write_humanml3d(tmp_path / "d")
+    bad = root / "new_joints" / "train001.npy"
+    bad.write_bytes(b"")
+    with pytest.raises(ValueError, match="train001.npy: not a readable .npy file"):
+        load_humanml3d(str(root), "train", 64, 20, joints=True)
+    (tmp_path / "c.txt").write_bytes(b"\xff\xfea man walks")
+    with pytest.raises(ValueError, match="c.txt: not UTF-8 text"):
+        read_captions(str(tmp_path / "c.txt"))
+    (tmp_path / "ok.txt").write_bytes(b"\xef\xbb\xbfa man walks#a/DET man/NOUN walk/VERB#0.0#0.0\r\n\r\nhe runs\r")
+    assert [c.text for c in read_captions(str(tmp_path / "ok.txt"))] == ["a man walks", "he runs"]

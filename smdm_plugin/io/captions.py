@@ -50,6 +50,14 @@ def plain_tokens(text: str) -> List[str]:
 
 
 def read_captions(path: str) -> List[Caption]:
-    """Every caption of a HumanML3D ``texts/<id>.txt`` file (blank lines skipped)."""
-    with open(path, encoding="utf-8") as f:
-        return [parse_caption_line(l, f"{path}:{i + 1}") for i, l in enumerate(f) if l.strip()]
+    """Every caption of a HumanML3D ``texts/<id>.txt`` file (blank lines skipped); a file that is
+    not UTF-8 text (or a folder) is a ``ValueError`` naming it."""
+    try:
+        with open(path, "rb") as f:
+            text = f.read().decode("utf-8-sig")
+    except UnicodeDecodeError as e:
+        raise ValueError(f"{path}: not UTF-8 text (byte {e.start}: {e.reason})") from None
+    except IsADirectoryError:
+        raise ValueError(f"{path}: is a folder, expected a caption text file") from None
+    lines = text.replace("\r\n", "\n").replace("\r", "\n").split("\n")  # as open()'s universal newlines
+    return [parse_caption_line(l, f"{path}:{i + 1}") for i, l in enumerate(lines) if l.strip()]

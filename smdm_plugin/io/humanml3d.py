@@ -167,7 +167,8 @@ def load_humanml3d(root: str, split: str = "train", max_frames: Optional[int] = 
             jpath = base / "new_joints" / f"{name}.npy"
             if jpath.exists():
                 files.append(str(jpath))
-            out.joints.append(np.load(jpath)[cut].astype(np.float32) if jpath.exists() else None)
+            out.joints.append(check_array(npy(jpath, "joint positions [T, J, 3]"), f"data: {jpath}", "joints")[cut]
+                              .astype(np.float32) if jpath.exists() else None)
         if captions:
             tpath = base / "texts" / f"{name}.txt"
             if tpath.is_file():
