@@ -214,3 +214,15 @@ def test_a_tampered_result_json_is_reported_not_a_crash(tmp_path, data, monkeypa
     # a result that cannot be reported is corrupt: --resume runs that variant again (docs/bench_ablate_demo.md)
     assert "dense: replacing corrupt result" in out + err and "final_loss='0.5': expected a number or null" in out + err
     assert rc == 0 and json.loads(res.read_text())["final_loss"] == 1.0
+
+
+def test_result_records_are_checked_before_they_are_reported():
+    """The records `smdm ablate` (and its quality-versus-compute study) reuse under --resume."""
+    from smdm_plugin.apps.ablate.report import check_record
+
+    assert check_record({"final_loss": 1.0, "ees": None, "losses": [1.0, 2]}) is None
+    assert check_record({"jitter": True}) == "jitter=True: expected a number or null"
+    assert check_record({"losses": [1.0, "x"]}) == "losses: expected a list of numbers"
+    assert check_record({"snapshots": [{"kind": "steps", "at": 10, "fid": "0.3"}]}) == \
+        "snapshots[0].fid='0.3': expected a number or null"
+    assert check_record({"snapshots": [{"kind": "steps", "at": 10, "fid": None, "loss": 0.1}]}) is None

@@ -41,11 +41,13 @@ def build_parser() -> argparse.ArgumentParser:
                    help="frames per sample; longer motions are cut (default: 196)")
     p.add_argument("--min-frames", type=int_range(2, 10000), default=40,
                    help="skip shorter motions (default: 40)")
-    p.add_argument("--out", required=True, metavar="DIR", help="checkpoint folder to write")
+    p.add_argument("--out", required=True, metavar="DIR",
+                   help="checkpoint folder to write; each checkpoint appears there as it is made")
     add_overwrite(p)
     p.add_argument("--resume", action="store_true",
                    help="continue the run in --out (interrupted, or finished and given more --steps) from its last "
-                        "checkpoint: weights, optimiser, random streams and step count, as if never stopped")
+                        "checkpoint: weights, optimiser, random streams and step count, as if never stopped; "
+                        "the data must have the same content (a copy elsewhere is fine)")
     t = p.add_argument_group("training")
     t.add_argument("--steps", type=int_range(1), default=1000, help="optimiser steps (default: 1000)")
     t.add_argument("--batch", type=int_range(1), default=16,

@@ -36,6 +36,15 @@ def check_record(rec: Dict[str, Any]) -> Optional[str]:
     losses = rec.get("losses")
     if losses is not None and not (isinstance(losses, list) and all(_is_number(v) for v in losses)):
         return "losses: expected a list of numbers"
+    snaps = rec.get("snapshots")  # the quality-versus-compute study's records
+    if snaps is not None:
+        if not isinstance(snaps, list) or not all(isinstance(x, dict) for x in snaps):
+            return "snapshots: expected a list of objects"
+        for i, x in enumerate(snaps):
+            bad = [k for k, v in x.items() if k != "kind" and v is not None and not _is_number(v)]
+            if bad or not isinstance(x.get("kind"), str):
+                k = bad[0] if bad else "kind"
+                return f"snapshots[{i}].{k}={x.get(k)!r}: expected {'a number or null' if bad else 'a string'}"
     return None
 
 
