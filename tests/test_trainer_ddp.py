@@ -127,7 +127,8 @@ def test_refuses_existing_output_on_every_rank(runs, hml_dir):
          "-m", "smdm_plugin", "train", "--data", str(hml_dir), "--out", str(runs["ddp"]), *TINY],
         cwd=str(REPO), env=_env(), capture_output=True, text=True, timeout=300)
     assert proc.returncode != 0
-    assert proc.stderr.count("exists and is not empty; pass --overwrite") == 1  # rank 0 says it, once
+    assert proc.stderr.count("holds a run of smdm train (interrupted or finished); pass --resume to continue it, "
+                             "--overwrite to start over") == 1  # rank 0 says it, once
     # both ranks stop: each exits 2, unless torchrun ends the second one first (SIGTERM, -15) once the
     # first has exited; which happens first depends on the machine's load
     codes = re.findall(r"exitcode\s*:\s*(-?\d+)", proc.stderr)
