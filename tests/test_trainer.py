@@ -208,7 +208,8 @@ def test_cli_writes_a_checkpoint_folder_and_never_overwrites(hml_dir, tmp_path, 
     assert lines[0] == "step,loss" and [float(v.split(",")[1]) for v in lines[1:]] == pytest.approx(result["losses"])
     before = (out / "model000000003.pt").read_bytes()
     assert _cli([], hml_dir, out) == 2
-    assert "exists and is not empty; pass --overwrite" in capsys.readouterr().err
+    assert "holds a run of smdm train (interrupted or finished); pass --resume to continue it, --overwrite to " \
+        "start over" in capsys.readouterr().err
     assert (out / "model000000003.pt").read_bytes() == before
     (out / "notes.txt").write_text("mine")
     assert _cli(["--overwrite", "--steps", "1"], hml_dir, out) == 0  # dense now: the old run's files go
