@@ -122,9 +122,7 @@ def sparsify(model: nn.Module, config: ConfigLike = None, *, diffusion: Any = No
     if family is not None and not fam.matches(model):
         raise TypeError(f"sparsify: {type(model).__name__} is not a {fam.name} model: {fam.mismatch(model)}")
     device = model_device(model)
-    if diffusion is not None and not (callable(getattr(diffusion, "training_losses", None))
-                                      and any(getattr(diffusion, a, None) for a in ("original_num_steps",
-                                                                                     "num_timesteps", "num_steps", "T"))):
+    if diffusion is not None and not callable(getattr(diffusion, "training_losses", None)):  # step count: below
         raise TypeError(f"sparsify: diffusion must be a Gaussian diffusion with a callable training_losses(model, "
                         "x_start, t, model_kwargs) and its step count (num_timesteps or original_num_steps), got "
                         f"{type(diffusion).__name__}")
