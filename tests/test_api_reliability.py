@@ -103,3 +103,16 @@ def test_metrics_warn_when_finite_positions_overflow():
     with warnings.catch_warnings():
         warnings.simplefilter("error")  # a normal motion: no warning
         assert torch.isfinite(jitter(a[:5])) and torch.isfinite(jitter(np.where(np.abs(a) > 1, 0, a)))
+
+
+def test_set_mean_std_refuses_nan_statistics_and_keeps_the_old_ones():
+    from smdm_plugin import set_mean_std
+    from smdm_plugin.adapters.state import get_state
+
+    m = sparsify(tiny(), {"reduction": 0.8})
+    before = get_state(m).schedule
+    std = np.ones(m.njoints, np.float32)
+    std[3] = np.inf
+    with pytest.raises(ValueError, match="set_mean_std: std holds a non-finite value \\(inf at index 3\\)"):
+        set_mean_std(m, np.zeros(m.njoints, np.float32), std)
+    assert get_state(m).schedule is before
