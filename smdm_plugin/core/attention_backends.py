@@ -134,7 +134,10 @@ def _key_bias(plan: KeyframePlan, lead: int, lead_padding: Optional[torch.Tensor
               ) -> torch.Tensor:
     """Additive key padding mask ``[B, lead + K]`` (0 kept / -inf padded lead tokens and empty
     slots), made once per call: a float mask goes through every layer's attention as it is (a
-    bool one is converted again in each layer)."""
+    bool one is converted again in each layer). A looked-up plan carries it (``plan.key_bias``)."""
+    if plan.key_bias is not None and lead <= 1 and lead_padding is None:
+        bias = plan.key_bias[:, 1 - lead:]
+        return bias if bias.dtype == dtype else bias.to(dtype)
     pad = ~plan.valid
     if lead:
         lead_pad = plan.valid.new_zeros(plan.batch, lead) if lead_padding is None else lead_padding.to(torch.bool)
