@@ -46,6 +46,8 @@ class KeyframePlan:
         key_bias: ``[B, 1 + K]`` float32 or None: the additive key padding mask of one lead token
             and the slots (0 kept, -inf empty slots; column 0 is a lead token's 0), looked up with
             the plan (:meth:`PlanTables.lookup`); ``key_bias[:, 1 - lead:]`` serves ``lead <= 1``.
+        slots: ``[B, 2N]`` long or None: ``prev_slot | next_slot`` side by side (those two are its
+            views), so the fill gathers both ends at once.
     """
 
     mask: torch.Tensor
@@ -59,6 +61,7 @@ class KeyframePlan:
     cubic: Union[None, bool, torch.Tensor] = None
     taps: Optional[Tuple[torch.Tensor, torch.Tensor]] = None
     key_bias: Optional[torch.Tensor] = None
+    slots: Optional[torch.Tensor] = None
 
     @property
     def capacity(self) -> int:
@@ -99,8 +102,9 @@ class KeyframePlan:
         index = torch.sort(mask, dim=1, descending=True, stable=True).indices[:, :K]
         valid = idx[:K] < count[:, None]
         before = seen - 1
-        prev_slot = before.clamp_min(0)
-        next_slot = torch.minimum(torch.where(mask, before, seen), before[:, -1:].clamp_min(0))   # <= count - 1
+        slots = torch.cat([before.clamp_min(0),
+                           torch.minimum(torch.where(mask, before, seen), before[:, -1:].clamp_min(0))], 1)
+        prev_slot, next_slot = slots[:, :N], slots[:, N:]              # next <= count - 1
         prev_f = index.gather(1, prev_slot)
         next_f = index.gather(1, next_slot)
         # a true division of ints: float32 (exact frame differences, one rounding)
@@ -108,7 +112,7 @@ class KeyframePlan:
         rows = torch.add(torch.arange(B, device=mask.device)[:, None], index, alpha=B).t().contiguous()
         if cubic is not None and cubic is not True:
             cubic = torch.as_tensor(cubic, device=mask.device).to(torch.bool).reshape(-1).expand(B)
-        return cls(mask, index, valid, count, prev_slot, next_slot, weight, rows, cubic, taps)
+        return cls(mask, index, valid, count, prev_slot, next_slot, weight, rows, cubic, taps, slots=slots)
 
 
 @dataclass(frozen=True)
@@ -154,4 +158,5 @@ class PlanTables:
         if cubic is not None and cubic is not True:
             cubic = torch.as_tensor(cubic, device=lengths.device).to(torch.bool).reshape(-1).expand(B)
         return KeyframePlan(flags[:, :N], ints[:, :K], flags[:, N:], ints[:, K], ints[:, K + 1:K + 1 + N],
-                            ints[:, K + 1 + N:], floats[:, :N], rows, cubic, taps, floats[:, N:])
+                            ints[:, K + 1 + N:], floats[:, :N], rows, cubic, taps, floats[:, N:],
+                            ints[:, K + 1:])
