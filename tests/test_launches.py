@@ -129,6 +129,10 @@ def test_host_scalars_launch_nothing_and_host_data_on_the_device_is_a_sync():
         x * torch.tensor([1.0, 2.0, 3.0])             # host data fed to a device op
     assert c.count == 1 and c.syncs, (c.ops, c.syncs)
     with LaunchCounter() as c:
+        torch.where(x > 0, x, 0.0)                    # a wrapped Python scalar: passed by value
+        x * torch.tensor(2.0)                         # a 0-d host tensor: passed by value
+    assert c.count == 3 and not c.syncs, (c.ops, c.syncs)
+    with LaunchCounter() as c:
         x.sum().item()                                # device value read on the host
         x[x > 0]                                      # boolean-mask indexing
     assert c.syncs["aten._local_scalar_dense.default"] == 1

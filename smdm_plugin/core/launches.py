@@ -27,9 +27,12 @@ CUDA's; see ``_install``). The rules, as CUDA runs the ops:
   up to ~36-110 tensors: a model with more parameters than that launches a few per op; the count
   here is the lower bound the brief uses);
 * **host scalars launch nothing**: an op whose tensor inputs are all host tensors (made from host
-  data while counting: ``torch.tensor(...)``, or the 0-d ``step`` tensors of a non-capturable,
-  non-fused optimizer, which torch keeps on the CPU on every device) runs on the CPU on a CUDA
-  machine too: 0, and its outputs are host tensors. ``.item()`` of a host tensor is no sync;
+  data while counting: ``torch.tensor(...)``, ``scalar_tensor`` (a Python scalar an op or an
+  autograd formula wraps), or the 0-d ``step`` tensors of a non-capturable, non-fused optimizer,
+  which torch keeps on the CPU on every device) runs on the CPU on a CUDA machine too: 0, and its
+  outputs are host tensors. ``.item()`` of a host tensor is no sync; a 0-d host tensor in a device
+  op is passed by value (no sync); a host tensor with elements in a device op is a sync (a copy of
+  host data to the device);
 * **autocast**: run the block under ``torch.autocast("cpu", torch.bfloat16)``; every cast autocast
   inserts (``_to_copy``) counts 1, and its cache (leaf tensors that require grad, within one
   autocast region) is the same on both devices. The CPU's op lists differ from CUDA's, see
@@ -86,8 +89,10 @@ _FREE = frozenset({
     _aten.set_.source_Storage_storage_offset, _aten.set_.source_Tensor, _aten.resize_.default,
     _aten.empty_permuted.default})
 
-#: ops whose outputs are host data
-_HOST_SOURCES = frozenset({_aten.lift_fresh.default, _aten.lift_fresh_copy.default})
+#: ops whose outputs are host data (``scalar_tensor``: a Python scalar wrapped by an op such as
+#: ``torch.where(c, x, 0.0)`` or an autograd formula; CUDA passes it to the kernel by value)
+_HOST_SOURCES = frozenset({_aten.lift_fresh.default, _aten.lift_fresh_copy.default,
+                           _aten.scalar_tensor.default})
 
 _BOOL_INDEX_OPS = frozenset({_aten.index.Tensor, _aten.index_put_.default, _aten.index_put.default})
 
@@ -315,8 +320,8 @@ class LaunchCounter(TorchDispatchMode):
                 isinstance(i, torch.Tensor) and i.dtype == torch.bool for i in (args[1] or ()))
             if name in SYNC_OPS or bool_index:
                 self.syncs[name] += 1
-            if any(t in self._host for t in inputs):           # host data fed to the device
-                self.syncs["aten.lift_fresh.default"] += 1
+            if any(t.dim() and t in self._host for t in inputs):   # host data fed to the device
+                self.syncs["aten.lift_fresh.default"] += 1             # (0-d host scalars: by value)
         if not host and not func.is_view and func not in _FREE and func.namespace != "profiler":
             self.ops[name] += 1
         return out
