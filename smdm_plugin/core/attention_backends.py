@@ -128,14 +128,15 @@ _ARANGES: Dict[Tuple[int, int, torch.device], torch.Tensor] = {}
 def arange_rows(n: int, B: int, device: torch.device) -> torch.Tensor:
     """``arange(n * B).view(n, B)`` on ``device``: made once per shape and device (outside tracing),
     a per-call constant (it is never written to)."""
+    if static_compiling():                  # a constant of the traced graph (no guard on the cache)
+        return torch.arange(n * B, device=device).view(n, B)
     key = (int(n), int(B), torch.device(device))
     out = _ARANGES.get(key)
     if out is None:
         out = torch.arange(n * B, device=device).view(n, B)
-        if not static_compiling():
-            if len(_ARANGES) > 64:
-                _ARANGES.clear()
-            _ARANGES[key] = out
+        if len(_ARANGES) > 64:
+            _ARANGES.clear()
+        _ARANGES[key] = out
     return out
 
 

@@ -183,7 +183,8 @@ class FSQMultiheadAttention(nn.Module):
         self.key_down = nn.Linear(self.head_dim, self.fsq.dim, **fk)
         self.key_up = nn.Linear(self.fsq.dim, self.head_dim, **fk)
         self.quantize = True
-        self._fold_cache: Optional[Tuple[tuple, Tuple[Tensor, Tensor]]] = None
+        self._fold_cache: Optional[Tuple[tuple, Tuple[Tensor, ...]]] = None
+        self._call_fold: Optional[Tuple[Tensor, ...]] = None     # set by fold_keys for one call
         self._reset_parameters()
         self.register_forward_pre_hook(_disable_transformer_fast_path)
 
@@ -245,6 +246,9 @@ class FSQMultiheadAttention(nn.Module):
         compute ``dtype`` (autocast's, else the keys'): keyed on the parameters' storage and
         version, as the Lipschitz layers; so a sampling call under autocast casts none of them (the
         values autocast would make). With autograd: the parameters' dtype (autocast casts them)."""
+        call = self.__dict__.get("_call_fold")
+        if call is not None:
+            return call
         down, up, fsq = self.key_down, self.key_up, self.fsq
         key = None
         if not torch.is_grad_enabled() and not compiling():
@@ -338,6 +342,46 @@ class FSQMultiheadAttention(nn.Module):
     def extra_repr(self) -> str:
         return (f"embed_dim={self.embed_dim}, num_heads={self.num_heads}, "
                 f"dropout={self.dropout}, batch_first={self.batch_first}, quantize={self.quantize}")
+
+
+class fold_keys:
+    """Context manager, for one call with autograd: the folded key projections
+    (:meth:`FSQMultiheadAttention._folded`) of every layer in ``attns`` made at once, as stacked
+    tensors: ``bias + shift`` and ``weight / floor(L/2)`` are one op each for all layers instead of
+    one per layer, and under autocast each parameter kind is cast once for all layers (autocast
+    would cast each layer's non-leaf folds, forward and backward). The same values as per layer.
+    Without autograd (cached per layer), under ``torch.compile`` (which fuses the folds itself), with
+    fewer than two layers, or layers of different levels or dtypes, it does nothing."""
+
+    def __init__(self, attns: Sequence["FSQMultiheadAttention"], like: Tensor) -> None:
+        self.attns = [a for a in attns if a.quantize]
+        self.like = like
+
+    def __enter__(self) -> "fold_keys":
+        attns = self.attns
+        if (len(attns) < 2 or not torch.is_grad_enabled() or compiling()
+                or len({(a.fsq.levels_list, a.key_down.weight.dtype, a.key_down.weight.device) for a in attns}) != 1):
+            self.attns = []
+            return self
+        dtype = _compute_dtype(self.like)
+        _, _, shift, half_width = attns[0].fsq.constants(attns[0].key_down.bias.dtype)
+        down_b = torch.stack([a.key_down.bias for a in attns]) + shift              # [G, d]
+        up_w = torch.stack([a.key_up.weight for a in attns]) / half_width            # [G, hd, d]
+        if dtype != down_b.dtype:                                # one cast per kind for all layers
+            down_w = torch.stack([a.key_down.weight for a in attns]).to(dtype).transpose(1, 2)
+            up_b = torch.stack([a.key_up.bias for a in attns]).to(dtype).unbind(0)
+            down_b, up_w = down_b.to(dtype), up_w.to(dtype)
+        else:
+            down_w = [a.key_down.weight.t() for a in attns]
+            up_b = [a.key_up.bias for a in attns]
+        for a, folds in zip(attns, zip(down_b.unbind(0), down_w if isinstance(down_w, list) else down_w.unbind(0),
+                                      up_w.unbind(0), up_b)):
+            a._call_fold = folds
+        return self
+
+    def __exit__(self, *exc) -> None:
+        for a in self.attns:
+            a._call_fold = None
 
 
 def quantize_attention_keys(module: nn.Module, levels: Sequence[int]) -> int:

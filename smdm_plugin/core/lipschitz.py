@@ -87,6 +87,70 @@ class LipschitzWeight(nn.Module):
         return out
 
 
+class _NormalisedWeights(torch.autograd.Function):
+    """Every :class:`LipschitzWeight` of one MLP in one pass, with autograd: the same values as
+    the parametrizations (the same elementwise operations, bit for bit), in ``3G + 6`` ops forward
+    and ``5G + 10`` backward for ``G`` layers (the parametrizations one by one: about 24 per
+    layer). ``row_owner [R]`` long: the layer of each of the ``R`` output rows (all layers' rows
+    stacked); inputs ``c_1..c_G, W_1..W_G``; returns ``W_hat_1..W_hat_G``. The backward is written
+    out: ``dW = g·scale - sign(W)·r``, ``r = [ratio <= 1][rowsum >= eps]·ratio/rowsum·Σ_j g·W``,
+    ``dc = softplus'(c)·Σ_rows [ratio <= 1]/rowsum·Σ_j g·W``."""
+
+    @staticmethod
+    def forward(ctx, row_owner: Tensor, *tensors: Tensor):
+        G = len(tensors) // 2
+        cs, ws = tensors[:G], tensors[G:]
+        eps = torch.finfo(ws[0].dtype).eps
+        rowsum = torch.cat([_row_abs_sum(w) for w in ws])                  # [R, 1]
+        c = torch.stack([t.reshape(()) for t in cs])                          # [G]
+        bound = F.softplus(c).index_select(0, row_owner).unsqueeze(1)          # [R, 1]
+        clamped = rowsum.clamp_min(eps)                                       # 0-rows: scale 1
+        ratio = bound / clamped
+        scale = ratio.clamp(max=1.0)
+        sizes = [w.shape[0] for w in ws]
+        ctx.sizes, ctx.eps, ctx.c_shapes = sizes, eps, [t.shape for t in cs]
+        ctx.save_for_backward(row_owner, c, rowsum, clamped, ratio, scale, *ws)
+        return tuple(w * sc for w, sc in zip(ws, scale.split(sizes)))
+
+    @staticmethod
+    def backward(ctx, *grads: Tensor):
+        row_owner, c, rowsum, clamped, ratio, scale, *ws = ctx.saved_tensors
+        gw = torch.cat([(g * w).sum(1, keepdim=True) for g, w in zip(grads, ws)])   # [R, 1]
+        g_ratio = torch.where(ratio <= 1.0, gw, 0.0)
+        g_bound = g_ratio / clamped                                            # d/d softplus(c), per row
+        r = torch.where(rowsum >= ctx.eps, g_bound * ratio, 0.0)               # -d/d rowsum
+        g_c = torch.zeros_like(c).index_add_(0, row_owner, g_bound.squeeze(1))
+        g_c = torch.ops.aten.softplus_backward(g_c, c, 1.0, 20.0)
+        g_ws = [torch.addcmul(g * sc, torch.sign(w), rr, value=-1.0)
+                for g, w, sc, rr in zip(grads, ws, scale.split(ctx.sizes), r.split(ctx.sizes))]
+        return (None, *(g_c[i].reshape(shape) for i, shape in enumerate(ctx.c_shapes)), *g_ws)
+
+
+def normalised_weights(linears: List[nn.Linear], row_owner: Optional[Tensor] = None) -> Optional[List[Tensor]]:
+    """The normalised weights of Lipschitz-parametrized ``linears`` (one
+    :class:`LipschitzWeight` each, the same dtype) in one pass (:class:`_NormalisedWeights`), or
+    None when they are not all such layers. ``row_owner``: :func:`row_owner` of the layers (a
+    per-device constant the caller keeps), else made here."""
+    params = []
+    for m in linears:
+        if not parametrize.is_parametrized(m, "weight") or len(m.parametrizations.weight) != 1:
+            return None
+        p = m.parametrizations.weight[0]
+        if not isinstance(p, LipschitzWeight):
+            return None
+        params.append((p.c, m.parametrizations.weight.original))
+    if len({w.dtype for _, w in params}) != 1:
+        return None
+    if row_owner is None:
+        row_owner = _row_owner([w.shape[0] for _, w in params], params[0][1].device)
+    return list(_NormalisedWeights.apply(row_owner, *(c for c, _ in params), *(w for _, w in params)))
+
+
+def _row_owner(sizes: List[int], device: torch.device) -> Tensor:
+    """``[sum(sizes)]`` long: the layer of every stacked output row (static shapes)."""
+    return torch.cat([torch.full((int(n),), i, dtype=torch.long, device=device) for i, n in enumerate(sizes)])
+
+
 def _siren_uniform_(linear: nn.Linear, bound: float) -> None:
     with torch.no_grad():
         linear.weight.uniform_(-bound, bound)
@@ -172,6 +236,8 @@ class LipschitzMLP(nn.Module):
             if not last:
                 mods.append(SineActivation(self.w0))
         self.net = nn.Sequential(*mods)
+        # the layer of every stacked output row (normalised_weights), moved with the module
+        self.register_buffer("row_owner", _row_owner(widths[1:], torch.device("cpu")).to(device), persistent=False)
 
     @property
     def num_sines(self) -> int:
@@ -203,7 +269,18 @@ class LipschitzMLP(nn.Module):
         return prod * (self.w0 ** self.num_sines)
 
     def forward(self, x: Tensor) -> Tensor:
-        return self.net(x)
+        """With autograd, every layer's normalised weight in one pass (:func:`normalised_weights`:
+        the same values, fewer kernels); without, each parametrization's cached weight."""
+        linears = [m for m in self.net if isinstance(m, nn.Linear)]
+        weights = None
+        if torch.is_grad_enabled() and len(linears) > 1:
+            weights = normalised_weights(linears, self._buffers.get("row_owner"))
+        if weights is None:
+            return self.net(x)
+        it = iter(weights)
+        for m in self.net:
+            x = F.linear(x, next(it), m.bias) if isinstance(m, nn.Linear) else m(x)
+        return x
 
     def extra_repr(self) -> str:
         return (f"in_features={self.in_features}, out_features={self.out_features}, "

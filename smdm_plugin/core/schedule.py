@@ -145,7 +145,7 @@ class MaskSchedule:
             if not compiling():   # (as in tables: no cache write while tracing)
                 self._plans[key] = tables
         B = lengths.shape[0]
-        batch_index = self._batch_index.get((B, device))
+        batch_index = None if compiling() else self._batch_index.get((B, device))
         if batch_index is None:
             batch_index = torch.arange(B, device=device)
             if not compiling():
