@@ -52,7 +52,7 @@ from ..core.interpolation import catmull_rom_refill
 from ..core.lipschitz import lipschitz_loss
 from .family import CallInputs, ModelFamily, register_family
 from .request import KEYFRAMES_KEY, OLD_KEYS, request_of, with_request
-from .state import MISSING, SparseState, Variant, find_sparse_model, get_state
+from .state import MISSING, SparseState, Variant, find_sparse_model, get_state, reuse_for
 
 _REQUIRED = ("joint_embed", "out", "temporal_decoder_blocks", "sequence_embedding", "time_embed",
              "encode_text", "latent_dim", "input_feats")
@@ -67,6 +67,8 @@ def _timestep_embedding_fn(model: nn.Module):
 def _lengths(length: Any, B: int, T: int, device: torch.device) -> torch.Tensor:
     """``length`` (MotionDiffuse's ``[B]`` list / tensor, or None = all ``T``) as long ``[B]``,
     validated (``2 <= L <= T``)."""
+    if isinstance(length, torch.Tensor):            # read and checked once per tensor (state.reuse_for)
+        return reuse_for(length, ("length", B, T, device), lambda: as_lengths(length, B, T, device, "MotionDiffuse length"))
     return as_lengths(length, B, T, device, "MotionDiffuse length")
 
 

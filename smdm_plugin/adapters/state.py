@@ -123,10 +123,12 @@ def lengths_from_y(y: Dict[str, Any], B: int, N: int, device: torch.device) -> t
     ``N``, as the dense model treats every frame of the window as valid, with a warning."""
     mask = y.get("mask")
     if isinstance(mask, torch.Tensor) and mask.shape[-1] == N and mask.numel() == B * N:
-        m = mask.reshape(B, N).to(device=device)
-        lengths = m.sum(1) if m.dtype == torch.bool else m.to(torch.long).sum(1)   # a bool sum is long
-        require(lengths >= 2, f"y['mask'] must mark at least 2 valid frames of the N={N} in every sample")
-        return lengths
+        def from_mask() -> torch.Tensor:
+            m = mask.reshape(B, N).to(device=device)
+            lengths = m.sum(1) if m.dtype == torch.bool else m.to(torch.long).sum(1)   # a bool sum is long
+            require(lengths >= 2, f"y['mask'] must mark at least 2 valid frames of the N={N} in every sample")
+            return lengths
+        return reuse_for(mask, ("mask", B, N, device), from_mask)
     if isinstance(mask, torch.Tensor) and mask.dim() and mask.shape[-1] != N and y.get("lengths") is not None:
         if not compiling():
             warnings.warn(f"y['mask'] covers {mask.shape[-1]} frames but the motion has N={N}: y['lengths'] "
@@ -135,6 +137,26 @@ def lengths_from_y(y: Dict[str, Any], B: int, N: int, device: torch.device) -> t
     if y.get("lengths") is not None:
         return as_lengths(y["lengths"], B, N, device, "y['lengths']")
     return torch.full((B,), N, dtype=torch.long, device=device)
+
+
+_REUSED: List[tuple] = []          # (source tensor, its version, key, result): the last few
+
+
+def reuse_for(source: torch.Tensor, key: tuple, compute) -> torch.Tensor:
+    """``compute()``, or its result for the same ``source`` tensor (the same object, unchanged
+    since: same version) and ``key`` from one of the last few calls: the lengths of a sampling loop's
+    ``y['mask']`` are read and validated once, not at every step and guidance pass (and once per
+    training step: the diffusion wrapper's x0 call and the model call share them). Not while
+    tracing (the traced graph computes them)."""
+    if compiling():
+        return compute()
+    for src, version, k, out in _REUSED:
+        if src is source and version == source._version and k == key:
+            return out
+    out = compute()
+    _REUSED.insert(0, (source, source._version, key, out))
+    del _REUSED[4:]
+    return out
 
 
 def keyframe_plan(state: SparseState, frames: torch.Tensor, timesteps: Any, lengths: torch.Tensor,

@@ -38,7 +38,8 @@ import torch.nn as nn
 import torch.nn.functional as F
 
 from .attention import attend, attend_single_key, float_mask, project_qkv
-from .checks import compiling as static_compiling, static_shapes
+from . import consts
+from .checks import static_shapes
 from .registry import Registry
 from .fsq import FSQMultiheadAttention, _disable_transformer_fast_path
 from .plan import KeyframePlan
@@ -122,22 +123,10 @@ def _slot_rows(plan: KeyframePlan, lead: int) -> torch.Tensor:
     return torch.cat([arange_rows(lead, B, plan.rows.device), plan.rows + lead * B], 0)
 
 
-_ARANGES: Dict[Tuple[int, int, torch.device], torch.Tensor] = {}
-
-
 def arange_rows(n: int, B: int, device: torch.device) -> torch.Tensor:
     """``arange(n * B).view(n, B)`` on ``device``: made once per shape and device (outside tracing),
-    a per-call constant (it is never written to)."""
-    if static_compiling():                  # a constant of the traced graph (no guard on the cache)
-        return torch.arange(n * B, device=device).view(n, B)
-    key = (int(n), int(B), torch.device(device))
-    out = _ARANGES.get(key)
-    if out is None:
-        out = torch.arange(n * B, device=device).view(n, B)
-        if len(_ARANGES) > 64:
-            _ARANGES.clear()
-        _ARANGES[key] = out
-    return out
+    a per-call constant (never written to)."""
+    return consts.arange(n * B, device).view(n, B)
 
 
 def _lead_keep(plan: KeyframePlan, lead: int, lead_padding: Optional[torch.Tensor]) -> torch.Tensor:

@@ -19,6 +19,7 @@ from typing import Optional, Tuple, Union
 
 import torch
 
+from . import consts
 from .checks import require
 
 
@@ -91,7 +92,7 @@ class KeyframePlan:
         K = N if capacity is None else int(capacity)
         if not 1 <= K <= N:
             raise ValueError(f"KeyframePlan: capacity must be in [1, N={N}], got {capacity}")
-        idx = torch.arange(N, device=mask.device)
+        idx = consts.arange(N, mask.device)
         seen = torch.cumsum(mask, 1)                                   # keyframes at or before n
         count = seen[:, -1]
         if check:
@@ -105,11 +106,11 @@ class KeyframePlan:
         slots = torch.cat([before.clamp_min(0),
                            torch.minimum(torch.where(mask, before, seen), before[:, -1:].clamp_min(0))], 1)
         prev_slot, next_slot = slots[:, :N], slots[:, N:]              # next <= count - 1
-        prev_f = index.gather(1, prev_slot)
-        next_f = index.gather(1, next_slot)
+        ends = index.gather(1, slots)                                 # frames of both ends at once
+        prev_f, next_f = ends[:, :N], ends[:, N:]
         # a true division of ints: float32 (exact frame differences, one rounding)
         weight = torch.div(idx[None] - prev_f, (next_f - prev_f).clamp_min(1)).to(torch.float32).clamp(0.0, 1.0)
-        rows = torch.add(torch.arange(B, device=mask.device)[:, None], index, alpha=B).t().contiguous()
+        rows = torch.add(consts.arange(B, mask.device)[:, None], index, alpha=B).t().contiguous()
         if cubic is not None and cubic is not True:
             cubic = torch.as_tensor(cubic, device=mask.device).to(torch.bool).reshape(-1).expand(B)
         return cls(mask, index, valid, count, prev_slot, next_slot, weight, rows, cubic, taps, slots=slots)
