@@ -122,12 +122,13 @@ def cubic_output(output: torch.Tensor, plan: KeyframePlan) -> torch.Tensor:
     return filled.reshape(B, N, J, F_).permute(0, 2, 3, 1)
 
 
-# Input embedding on keyframe rows only (speed; outputs unchanged). Only keyframe tokens enter the
-# keyframe transformer (every backend reads kept tokens only, and the output of the other frames
-# is interpolated from the kept ones), so the embedding of the other frames is never used: the
-# hooks below hand ``poseEmbedding`` the rows of the plan's slots ``[K*B, F]`` (static shape; on
-# the CPU in eager mode, exactly the keyframe rows) and scatter its output back to ``[N, B, d]``
-# with zeros elsewhere. They are registered as ``functools.partial(hook, state)``: the embedding
+# Input embedding on keyframe rows only (CPU speed; outputs unchanged). Only keyframe tokens enter
+# the keyframe transformer (every backend reads kept tokens only, and the output of the other frames
+# is interpolated from the kept ones), so the embedding of the other frames is never used: on the
+# CPU in eager mode the hooks below hand ``poseEmbedding`` exactly the keyframe rows and scatter its
+# output back to ``[N, B, d]`` with zeros elsewhere. On the static path (accelerators, tracing) they
+# do nothing: the embedding of every row costs a few FLOPs, the gather and scatter three launches
+# forward and three backward. They are registered as ``functools.partial(hook, state)``: the embedding
 # carries no attribute of ours, and ``copy.deepcopy`` (EMA) copies the partial with the model, so
 # each copy's hooks hold that copy's own state.
 def _rows_pre_hook(state: SparseState, module: nn.Module, args: tuple):
@@ -138,10 +139,10 @@ def _rows_pre_hook(state: SparseState, module: nn.Module, args: tuple):
         state.embed_rows = None
         return None
     N, B, F_ = x.shape
-    if host_checkable(plan.mask):                          # exact keyframe rows (data-dependent size)
-        rows = plan.mask.t().reshape(-1).nonzero(as_tuple=True)[0]
-    else:                                                  # every slot's frame: K*B rows, distinct
-        rows = plan.rows.view(-1)
+    if not host_checkable(plan.mask):   # static path (accelerators): every row, no gather / scatter
+        state.embed_rows = None         # (6 launches a training step, 3 a pass, for a few rows' FLOPs)
+        return None
+    rows = plan.mask.t().reshape(-1).nonzero(as_tuple=True)[0]   # exact keyframe rows (data-dependent size)
     state.embed_rows = (rows, N, B)
     return (gather_rows(x.reshape(N * B, F_), rows),)
 

@@ -234,7 +234,10 @@ class FSQMultiheadAttention(nn.Module):
         S, hd = k.shape[-2:]
         kb = k.movedim(-2, 0).reshape(S, -1, hd)                        # [S, M, hd]: a view for the keys
         down_bias, down_weight_t, up_weight, up_bias = self._folded(_compute_dtype(k))
-        z = torch.baddbmm(down_bias, kb, down_weight_t.expand(S, hd, self.fsq.dim))
+        # W^T as the transpose of W expanded (not W^T expanded): the same values, and the weight's
+        # gradient (the sum over the heads) comes out in W's own layout (no copy into it)
+        down_weight = down_weight_t.t().expand(S, self.fsq.dim, hd).transpose(1, 2)
+        z = torch.baddbmm(down_bias, kb, down_weight)
         r = self.fsq.round(self.fsq.bound(z, shifted=True))              # [S, M, d] integer levels
         out = F.linear(r.view(-1, self.fsq.dim), up_weight, up_bias)   # [S*M, hd]
         return out.view(S, *k.shape[:-2], hd).movedim(0, -2)
