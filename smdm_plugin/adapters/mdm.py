@@ -28,11 +28,12 @@ import torch
 import torch.nn as nn
 
 from ..core.attention_backends import gather_rows, scatter_rows
-from ..core.checks import host_checkable
+from ..core.checks import compiling, host_checkable
 from ..core.config import SparseConfig
 from ..core.fsq import FSQMultiheadAttention, quantize_attention_keys
 from ..core.interpolation import catmull_rom_refill
 from ..core.keyframe_transformer import KeyframeTransformer
+from ..core.lipschitz import lipschitz_pass
 from ..core.losses import add_lipschitz_term
 from ..core.plan import KeyframePlan
 from .family import CallInputs, ModelFamily, register_family
@@ -95,6 +96,10 @@ def _pre_hook(model: nn.Module, args: tuple, kwargs: dict):
     x, timesteps, y = _call_args(args, kwargs)
     state.plan = call_plan(state, x, timesteps, y)
     state.transformer.set_plan(state.plan)
+    if not compiling():                                    # training: all Lipschitz weights at once
+        if state.lipschitz_pass is not None:               # (left by a call that raised)
+            state.lipschitz_pass.__exit__(None, None, None)
+        state.lipschitz_pass = lipschitz_pass(model).__enter__()
     return None
 
 
@@ -103,6 +108,9 @@ def _post_hook(model: nn.Module, args: tuple, kwargs: dict, output: Any) -> Any:
     plan = state.plan
     state.transformer.set_plan(None)
     state.plan = None
+    if state.lipschitz_pass is not None:
+        state.lipschitz_pass.__exit__(None, None, None)
+        state.lipschitz_pass = None
     if plan is None or plan.cubic is None or not isinstance(output, torch.Tensor) or output.dim() != 4:
         return None
     return cubic_output(output, plan)

@@ -61,6 +61,7 @@ class SparseState:
     diffusions: List["weakref.ref"] = field(default_factory=list)
     plan: Optional[KeyframePlan] = None
     embed_rows: Optional[Tuple[torch.Tensor, int, int]] = None
+    lipschitz_pass: Optional[Any] = None          # core.lipschitz.lipschitz_pass of the running call
     family: Any = None
     last_mask: Optional[torch.Tensor] = None
     extra: Any = None

@@ -273,8 +273,10 @@ class LipschitzMLP(nn.Module):
         the same values, fewer kernels); without, each parametrization's cached weight."""
         linears = [m for m in self.net if isinstance(m, nn.Linear)]
         weights = None
-        if torch.is_grad_enabled() and len(linears) > 1:
-            weights = normalised_weights(linears, self._buffers.get("row_owner"))
+        if torch.is_grad_enabled():
+            weights = self.__dict__.get("_call_weights")            # lipschitz_pass: the model's at once
+            if weights is None and len(linears) > 1:
+                weights = normalised_weights(linears, self._buffers.get("row_owner"))
         if weights is None:
             return self.net(x)
         it = iter(weights)
@@ -285,6 +287,51 @@ class LipschitzMLP(nn.Module):
     def extra_repr(self) -> str:
         return (f"in_features={self.in_features}, out_features={self.out_features}, "
                 f"hidden={self.hidden}, layers={self.num_layers}, w0={self.w0}")
+
+
+class lipschitz_pass:
+    """For one model call with autograd: the normalised weights of every (unbaked)
+    :class:`LipschitzMLP` of ``module`` from one :class:`_NormalisedWeights` (a model's input and
+    output MLPs share its ``~16`` fixed kernels; the same values). Enter before the call, exit after
+    it (the adapters' forward hooks); without autograd, while tracing, or with fewer than two such
+    MLPs (or mixed dtypes), it does nothing."""
+
+    def __init__(self, module: nn.Module) -> None:
+        self.mlps: List[LipschitzMLP] = []
+        if not torch.is_grad_enabled() or _compiling():
+            return
+        mlps = [m for m in module.modules() if isinstance(m, LipschitzMLP) and not m.baked]
+        if len(mlps) >= 2:
+            self.mlps = mlps
+
+    def __enter__(self) -> "lipschitz_pass":
+        groups = [[m for m in mlp.net if isinstance(m, nn.Linear)] for mlp in self.mlps]
+        linears = [m for g in groups for m in g]
+        if not linears:
+            return self
+        if not all(parametrize.is_parametrized(m, "weight") for m in linears):
+            self.mlps = []
+            return self
+        key = (tuple(m.out_features for m in linears), linears[0].parametrizations.weight.original.device)
+        owner = _pass_owners.get(key)
+        if owner is None:
+            owner = _pass_owners[key] = _row_owner(list(key[0]), key[1])
+        weights = normalised_weights(linears, owner)
+        if weights is None:
+            self.mlps = []
+            return self
+        start = 0
+        for mlp, g in zip(self.mlps, groups):
+            mlp._call_weights = weights[start:start + len(g)]
+            start += len(g)
+        return self
+
+    def __exit__(self, *exc) -> None:
+        for mlp in self.mlps:
+            mlp._call_weights = None
+
+
+_pass_owners: dict = {}
 
 
 def lipschitz_loss(module: nn.Module) -> Tensor:
