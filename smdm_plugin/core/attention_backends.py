@@ -37,9 +37,9 @@ import torch
 import torch.nn as nn
 import torch.nn.functional as F
 
-from .attention import attend, attend_single_key, float_mask, project_qkv
+from .attention import attend, attend_single_key, compute_dtype, float_mask, project_qkv
 from . import consts
-from .checks import static_shapes
+from .checks import compiling as static_compiling, static_shapes
 from .registry import Registry
 from .fsq import FSQMultiheadAttention, _disable_transformer_fast_path
 from .plan import KeyframePlan
@@ -169,10 +169,13 @@ def compact_backend(inner: nn.Module, x: torch.Tensor, plan: KeyframePlan, lead:
                     memory: Optional[torch.Tensor] = None, memory_key_padding_mask: Optional[torch.Tensor] = None,
                     lead_padding: Optional[torch.Tensor] = None) -> Tuple[torch.Tensor, torch.Tensor]:
     S, B, d = x.shape
-    src = _slot_rows(plan, lead)                                               # [lead + K, B]
-    R = src.shape[0]
-    xc = gather_rows(x.reshape(S * B, d), src.reshape(-1)).view(R, B, d)
-    out = _call_inner(inner, xc, _key_bias(plan, lead, lead_padding, x.dtype), memory, memory_key_padding_mask)
+    R = lead + plan.capacity
+    if lead and not (torch.is_grad_enabled() and x.requires_grad):   # the lead tokens as they are (a view)
+        xc = torch.cat([x[:lead], gather_rows(x[lead:].reshape(-1, d), plan.rows.reshape(-1)).view(R - lead, B, d)])
+    else:                                  # one gather (with autograd: one scatter back, not two + a sum)
+        xc = gather_rows(x.reshape(S * B, d), _slot_rows(plan, lead).reshape(-1)).view(R, B, d)
+    # the key bias in the dtype the attention runs in (autocast's): cast once, not in every layer
+    out = _call_inner(inner, xc, _key_bias(plan, lead, lead_padding, compute_dtype(x)), memory, memory_key_padding_mask)
     return out.reshape(R * B, d), arange_rows(R, B, x.device)
 
 
@@ -425,6 +428,15 @@ register_backend("compact", compact_backend)
 register_backend("varlen", varlen_backend, static_shapes=False, supports=supports_packed)
 
 
+def _lead_rows(h: torch.Tensor, rows: torch.Tensor, lead: int, B: int) -> torch.Tensor:
+    """``[lead, B, d]``: the lead tokens' output rows; a view when they are ``h``'s first rows (the
+    compact backend's rows: its cached arange)."""
+    if not static_compiling() and rows.is_contiguous() and rows.numel() == h.shape[0] \
+            and rows.data_ptr() == consts.arange(rows.numel(), rows.device).data_ptr():
+        return h[:lead * B].view(lead, B, -1)
+    return gather_rows(h, rows[:lead].reshape(-1)).view(lead, B, h.shape[-1])
+
+
 def fill_frames(h: torch.Tensor, rows: torch.Tensor, plan: KeyframePlan, lead: int,
                 interpolate: bool = True) -> torch.Tensor:
     """Every output token ``[lead + N, B, d]`` from a backend's rows: lead tokens as they are,
@@ -438,7 +450,7 @@ def fill_frames(h: torch.Tensor, rows: torch.Tensor, plan: KeyframePlan, lead: i
         out = _LerpRowPairs.apply(h, pairs.reshape(-1), plan.weight.t().unsqueeze(-1).to(h.dtype))
         out = out.view(N, B, d)
         if lead:
-            out = torch.cat([gather_rows(h, rows[:lead].reshape(-1)).view(lead, B, d), out], 0)
+            out = torch.cat([_lead_rows(h, rows, lead, B), out], 0)
         return out
     prev = frame_rows.gather(0, plan.prev_slot.t())                    # [N, B]
     if interpolate:
@@ -448,5 +460,5 @@ def fill_frames(h: torch.Tensor, rows: torch.Tensor, plan: KeyframePlan, lead: i
         out = h.index_select(0, prev.reshape(-1)) * plan.mask.t().reshape(-1, 1).to(h.dtype)
     out = out.view(N, B, d)
     if lead:
-        out = torch.cat([gather_rows(h, rows[:lead].reshape(-1)).view(lead, B, d), out], 0)
+        out = torch.cat([_lead_rows(h, rows, lead, B), out], 0)
     return out

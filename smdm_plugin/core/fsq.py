@@ -16,7 +16,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
-from .attention import attend, attend_with_weights, float_mask, project_qkv
+from .attention import attend, attend_with_weights, compute_dtype, float_mask, project_qkv
 from .checks import compiling
 
 __all__ = ["FSQ", "FSQMultiheadAttention", "quantize_attention_keys"]
@@ -125,14 +125,6 @@ class FSQ(nn.Module):
         return f"levels={list(self.levels_list)}, codebook_size={self.codebook_size}"
 
 
-def _compute_dtype(t: Tensor) -> torch.dtype:
-    """The dtype a matmul on ``t`` runs in: autocast's for ``t``'s device when it is on, else
-    ``t``'s."""
-    if torch.is_autocast_enabled(t.device.type):
-        return torch.get_autocast_dtype(t.device.type)
-    return t.dtype
-
-
 def _disable_transformer_fast_path(module: nn.Module, args: Any) -> None:
     """No-op forward pre-hook. Its presence makes ``nn.TransformerEncoderLayer`` skip its fused
     fast path (which would call the dense attention kernel directly and bypass FSQ)."""
@@ -233,7 +225,7 @@ class FSQMultiheadAttention(nn.Module):
         one fused multiply-add on the rows. The result has ``k``'s shape (strides may differ)."""
         S, hd = k.shape[-2:]
         kb = k.movedim(-2, 0).reshape(S, -1, hd)                        # [S, M, hd]: a view for the keys
-        down_bias, down_weight_t, up_weight, up_bias = self._folded(_compute_dtype(k))
+        down_bias, down_weight_t, up_weight, up_bias = self._folded(compute_dtype(k))
         # W^T as the transpose of W expanded (not W^T expanded): the same values, and the weight's
         # gradient (the sum over the heads) comes out in W's own layout (no copy into it)
         down_weight = down_weight_t.t().expand(S, self.fsq.dim, hd).transpose(1, 2)
@@ -366,7 +358,7 @@ class fold_keys:
                 or len({(a.fsq.levels_list, a.key_down.weight.dtype, a.key_down.weight.device) for a in attns}) != 1):
             self.attns = []
             return self
-        dtype = _compute_dtype(self.like)
+        dtype = compute_dtype(self.like)
         _, _, shift, half_width = attns[0].fsq.constants(attns[0].key_down.bias.dtype)
         down_b = torch.stack([a.key_down.bias for a in attns]) + shift              # [G, d]
         up_w = torch.stack([a.key_up.weight for a in attns]) / half_width            # [G, hd, d]
