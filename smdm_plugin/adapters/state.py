@@ -14,6 +14,7 @@ from typing import Any, Dict, List, Optional, Tuple
 import torch
 import torch.nn as nn
 
+from ..core import consts
 from ..core.checks import as_lengths, compiling, host_checkable, require
 from ..core.config import STATE_ATTR, SparseConfig  # STATE_ATTR: the attribute the state lives under
 from ..core.plan import KeyframePlan
@@ -180,7 +181,7 @@ def keyframe_plan(state: SparseState, frames: torch.Tensor, timesteps: Any, leng
     device = frames.device
     taps = None                                            # C¹ fill taps looked up (sampling, uniform mask)
     if mask is not None:                                   # training (or a caller's own mask)
-        valid = torch.arange(N, device=device)[None] < lengths[:, None]
+        valid = consts.arange(N, device)[None] < lengths[:, None]
         # a mask chosen while loading (keyframe_collate) is still on the CPU: upstream loops move
         # y's tensors, not the KeyframeRequest; copy it without waiting for the device
         mask = torch.as_tensor(mask).to(device, non_blocking=True)

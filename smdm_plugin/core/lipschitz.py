@@ -115,7 +115,8 @@ class _NormalisedWeights(torch.autograd.Function):
     @staticmethod
     def backward(ctx, *grads: Tensor):
         row_owner, c, rowsum, clamped, ratio, scale, *ws = ctx.saved_tensors
-        gw = torch.cat([(g * w).sum(1, keepdim=True) for g, w in zip(grads, ws)])   # [R, 1]
+        # Σ_j g·W per row as one batched dot product per layer
+        gw = torch.cat([torch.bmm(g.unsqueeze(1), w.unsqueeze(2)).view(-1, 1) for g, w in zip(grads, ws)])   # [R, 1]
         g_ratio = torch.where(ratio <= 1.0, gw, 0.0)
         g_bound = g_ratio / clamped                                            # d/d softplus(c), per row
         r = torch.where(rowsum >= ctx.eps, g_bound * ratio, 0.0)               # -d/d rowsum

@@ -354,7 +354,9 @@ def perturb_checked(mask: torch.Tensor, lengths_t: torch.Tensor, amount: float,
         mmax = torch.round(k * float(amount))                          # exact: k <= N << 2^24
         u = _rand((B, N + 1), generator, device)                        # one draw: the count, then frames
         c = torch.minimum((u[:, 0] * (2 * mmax + 1)).floor() - mmax, mmax)
-        droppable = m & (i > 0) & (i < (lengths_t - 1)[:, None])
+        # interior frames 0 < i < L - 1: i >= 1 is the cached arange's tail, i < L - 1 is i + 1 < L
+        after_first = consts.arange(N + 1, device)[None, 1:]            # i + 1
+        droppable = m & (after_first > 1) & (after_first < lengths_t[:, None])
         if protected is not None:
             droppable &= ~protected
         add = c > 0
