@@ -15,6 +15,7 @@ import torch
 import torch.nn as nn
 
 from ..core import consts
+from ..core.attention import compute_dtype
 from ..core.checks import as_lengths, compiling, host_checkable, require
 from ..core.config import STATE_ATTR, SparseConfig  # STATE_ATTR: the attribute the state lives under
 from ..core.plan import KeyframePlan
@@ -200,7 +201,8 @@ def keyframe_plan(state: SparseState, frames: torch.Tensor, timesteps: Any, leng
             if cubic is not None and not state.variant.prefix_len:
                 f_tab, w_tab = state.schedule.cubic_taps(N, device)
                 taps = (f_tab[lengths], w_tab[lengths])
-            return state.schedule.uniform_plan(lengths, N, state.variant.prefix_len, cubic, taps)
+            return state.schedule.uniform_plan(lengths, N, state.variant.prefix_len, cubic, taps,
+                                               compute_dtype(frames))   # the key bias in the attention's dtype
         mask = state.schedule.sampling_mask(frames, t, lengths, forced, checked=True)
         capacity = state.schedule.capacity(N, training=False, forced=protected_count(forced, lengths))
         check = False                                      # 2..capacity keyframes by construction

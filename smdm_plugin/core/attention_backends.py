@@ -170,8 +170,9 @@ def compact_backend(inner: nn.Module, x: torch.Tensor, plan: KeyframePlan, lead:
                     lead_padding: Optional[torch.Tensor] = None) -> Tuple[torch.Tensor, torch.Tensor]:
     S, B, d = x.shape
     R = lead + plan.capacity
-    if lead and not (torch.is_grad_enabled() and x.requires_grad):   # the lead tokens as they are (a view)
-        xc = torch.cat([x[:lead], gather_rows(x[lead:].reshape(-1, d), plan.rows.reshape(-1)).view(R - lead, B, d)])
+    if not (torch.is_grad_enabled() and x.requires_grad):   # the slots' frames by index; lead tokens as they are
+        slots = torch.gather(x[lead:], 0, plan.index.t().unsqueeze(-1).expand(R - lead, B, d))
+        xc = torch.cat([x[:lead], slots]) if lead else slots
     else:                                  # one gather (with autograd: one scatter back, not two + a sum)
         xc = gather_rows(x.reshape(S * B, d), _slot_rows(plan, lead).reshape(-1)).view(R, B, d)
     # the key bias in the dtype the attention runs in (autocast's): cast once, not in every layer

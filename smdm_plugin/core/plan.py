@@ -58,11 +58,22 @@ class KeyframePlan:
     prev_slot: torch.Tensor
     next_slot: torch.Tensor
     weight: torch.Tensor
-    rows: torch.Tensor
+    slot_rows: Optional[torch.Tensor]
     cubic: Union[None, bool, torch.Tensor] = None
     taps: Optional[Tuple[torch.Tensor, torch.Tensor]] = None
     key_bias: Optional[torch.Tensor] = None
     slots: Optional[torch.Tensor] = None
+    rows_from: Optional[Tuple[torch.Tensor, torch.Tensor, torch.Tensor]] = None
+
+    @property
+    def rows(self) -> torch.Tensor:
+        """``[K, B]`` long, contiguous (see the class docstring). A looked-up plan makes it when it
+        is read (2 ops; the static sampling path never reads it): ``rows_from`` = ``(arange(B),
+        index table transposed [K, N+1], lengths [B])``."""
+        if self.slot_rows is not None:
+            return self.slot_rows
+        batch_index, index_t, lengths = self.rows_from
+        return torch.add(batch_index, index_t.index_select(1, lengths), alpha=lengths.shape[0])
 
     @property
     def capacity(self) -> int:
@@ -116,48 +127,72 @@ class KeyframePlan:
         return cls(mask, index, valid, count, prev_slot, next_slot, weight, rows, cubic, taps, slots=slots)
 
 
+def _packed(t: torch.Tensor) -> torch.Tensor:
+    """``[R, n]`` of any dtype as int64 columns ``[R, ceil(n·size / 8)]`` (zero padded): the same
+    bytes, to share one int64 table row; ``.view(dtype)[:, :n]`` of the columns gives ``t`` back."""
+    R, n = t.shape
+    per = 8 // t.element_size()
+    pad = (-n) % per
+    if pad:
+        t = torch.cat([t, t.new_zeros(R, pad)], 1)
+    return t.contiguous().view(torch.int64)
+
+
 @dataclass(frozen=True)
 class PlanTables:
     """The plans of a fixed mask per length, as lookup tables (the sampling schedule's uniform
-    masks): row ``L`` of each table belongs to a sample of ``L`` valid frames. A call looks its plan
-    up with 5 ops (four row lookups and the rows' offsets) instead of building it (~25).
+    masks): row ``L`` belongs to a sample of ``L`` valid frames. A call looks its plan up with 3
+    ops (one row lookup; the slot rows, when read: a lookup and an add) instead of building it (~25).
 
-    Attributes (``N`` frames, ``K`` slots): ``ints [N+1, K+1+2N]`` long (index | count | prev_slot |
-    next_slot), ``flags [N+1, N+K]`` bool (mask | valid), ``floats [N+1, N+1+K]`` float32 (weight |
-    key bias with a lead column), ``index_t [K, N+1]`` long (index, transposed: the rows come out
-    ``[K, B]`` contiguous).
+    ``table [N+1, C]`` int64: per length, side by side, ``index [K] | count [1] | prev_slot [N] |
+    next_slot [N]`` as int64, then the bytes of ``weight [N]`` float32, ``key bias [1+K]`` float32
+    and bfloat16, ``mask [N] | valid [K]`` bool (``column`` holds where each starts, in int64
+    columns; the other dtypes are views of the looked-up row, no copy). ``index_t [K, N+1]``: the
+    index transposed (the slot rows come out ``[K, B]`` contiguous).
     """
 
-    ints: torch.Tensor
-    flags: torch.Tensor
-    floats: torch.Tensor
+    table: torch.Tensor
     index_t: torch.Tensor
+    frames: int
+    capacity: int
 
     @classmethod
     def build(cls, masks: torch.Tensor, capacity: int) -> "PlanTables":
         """Tables of bool ``masks [N+1, N]`` (row ``L``: the mask of length ``L``; every row needs
         1..capacity keyframes) with ``capacity`` slots; on the masks' device."""
         p = KeyframePlan.build(masks, capacity, check=False)
-        bias = torch.zeros(p.valid.shape[0], 1 + p.capacity).masked_fill_(
+        bias = torch.zeros(p.valid.shape[0], 1 + p.capacity, device=masks.device).masked_fill_(
             torch.cat([p.valid.new_ones(p.valid.shape[0], 1), p.valid], 1).logical_not(), float("-inf"))
-        return cls(torch.cat([p.index, p.count[:, None], p.prev_slot, p.next_slot], 1),
-                   torch.cat([p.mask, p.valid], 1), torch.cat([p.weight, bias.to(p.weight.device)], 1),
-                   p.index.t().contiguous())
+        parts = [torch.cat([p.index, p.count[:, None], p.slots], 1), _packed(p.weight), _packed(bias),
+                 _packed(bias.to(torch.bfloat16)), _packed(torch.cat([p.mask, p.valid], 1))]
+        return cls(torch.cat(parts, 1), p.index.t().contiguous(), p.frames, p.capacity)
 
     def to(self, device: torch.device) -> "PlanTables":
-        return PlanTables(*(t.to(device) for t in (self.ints, self.flags, self.floats, self.index_t)))
+        return PlanTables(self.table.to(device), self.index_t.to(device), self.frames, self.capacity)
 
     def lookup(self, lengths: torch.Tensor, batch_index: torch.Tensor, cubic=None,
-               taps: Optional[Tuple[torch.Tensor, torch.Tensor]] = None) -> KeyframePlan:
+               taps: Optional[Tuple[torch.Tensor, torch.Tensor]] = None,
+               dtype: torch.dtype = torch.float32) -> KeyframePlan:
         """The plan of samples with ``lengths [B]`` (long, validated, on the tables' device);
-        ``batch_index``: ``arange(B)`` on that device (a per-call constant the caller keeps). Values
-        equal :meth:`KeyframePlan.build` on the looked-up masks."""
-        K, N = self.index_t.shape[0], self.flags.shape[1] - self.index_t.shape[0]
+        ``batch_index``: ``arange(B)`` on that device (a per-call constant the caller keeps);
+        ``dtype``: of the key bias (float32 or bfloat16 are stored; others cast). Values equal
+        :meth:`KeyframePlan.build` on the looked-up masks."""
+        N, K = self.frames, self.capacity
         B = lengths.shape[0]
-        ints, flags, floats = self.ints[lengths], self.flags[lengths], self.floats[lengths]
-        rows = torch.add(batch_index, self.index_t.index_select(1, lengths), alpha=B)     # [K, B]
+        row = self.table[lengths]                                                         # [B, C]
+        c = K + 1 + 2 * N                                   # where the weights start (int64 columns)
+        w_cols, b_cols = -(-N // 2), -(-(1 + K) // 2)
+        h_cols = -(-(1 + K) // 4)
+        weight = row[:, c:c + w_cols].view(torch.float32)[:, :N]
+        c += w_cols
+        bias32 = row[:, c:c + b_cols].view(torch.float32)[:, :1 + K]
+        c += b_cols
+        bias16 = row[:, c:c + h_cols].view(torch.bfloat16)[:, :1 + K]
+        c += h_cols
+        flags = row[:, c:].view(torch.bool)
+        bias = bias16 if dtype == torch.bfloat16 else bias32 if dtype == torch.float32 else bias32.to(dtype)
         if cubic is not None and cubic is not True:
             cubic = torch.as_tensor(cubic, device=lengths.device).to(torch.bool).reshape(-1).expand(B)
-        return KeyframePlan(flags[:, :N], ints[:, :K], flags[:, N:], ints[:, K], ints[:, K + 1:K + 1 + N],
-                            ints[:, K + 1 + N:], floats[:, :N], rows, cubic, taps, floats[:, N:],
-                            ints[:, K + 1:])
+        return KeyframePlan(flags[:, :N], row[:, :K], flags[:, N:N + K], row[:, K], row[:, K + 1:K + 1 + N],
+                            row[:, K + 1 + N:K + 1 + 2 * N], weight, None, cubic, taps, bias,
+                            row[:, K + 1:K + 1 + 2 * N], (batch_index, self.index_t, lengths))

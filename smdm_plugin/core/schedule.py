@@ -126,12 +126,13 @@ class MaskSchedule:
         return self._taps[key]
 
     def uniform_plan(self, lengths: torch.Tensor, n_frames: int, prefix: int = 0, cubic=None,
-                     taps: Optional[Tuple[torch.Tensor, torch.Tensor]] = None) -> KeyframePlan:
+                     taps: Optional[Tuple[torch.Tensor, torch.Tensor]] = None,
+                     dtype: torch.dtype = torch.float32) -> KeyframePlan:
         """The sampling plan of the uniform mask (no forced frames) of samples with ``lengths [B]``
         (long, validated, on the device) over ``n_frames`` frames after ``prefix`` frames that are
         always kept (DiP): looked up in per-length tables made once per ``(frames, prefix,
-        device)`` (:class:`~smdm_plugin.core.plan.PlanTables`): 5 ops instead of the mask lookup
-        and :meth:`KeyframePlan.build` (~25). Equal to building the plan of :meth:`sampling_mask`'s
+        device)`` (:class:`~smdm_plugin.core.plan.PlanTables`): 3 ops instead of the mask lookup
+        and :meth:`KeyframePlan.build` (~25); the key bias in ``dtype`` (the attention's). Equal to building the plan of :meth:`sampling_mask`'s
         uniform mask with :meth:`capacity` slots."""
         device = lengths.device
         key = (int(n_frames), int(prefix), device)
@@ -150,7 +151,7 @@ class MaskSchedule:
             batch_index = torch.arange(B, device=device)
             if not compiling():
                 self._batch_index[(B, device)] = batch_index
-        return tables.lookup(lengths, batch_index, cubic, taps)
+        return tables.lookup(lengths, batch_index, cubic, taps, dtype)
 
     def noise(self, step: torch.Tensor) -> CounterNoise:
         """The counter-based random numbers at ``step`` (int64, 0-d or ``[B]``, on the device
