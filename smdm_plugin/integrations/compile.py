@@ -7,8 +7,9 @@ side at its best:
 * :func:`compile_model` compiles the module **in place** (as ``nn.Module.compile`` does: the call,
   forward hooks included, goes through ``torch.compile``; ``dynamic=False``; ``fullgraph=True``
   for sparse models): parameter and buffer names do not change, so a checkpoint of a compiled
-  model loads into an uncompiled one and back (no ``_orig_mod.`` prefix), ``copy.deepcopy`` gets
-  a compiled copy of its own, ``DistributedDataParallel`` wraps the compiled module as usual
+  model loads into an uncompiled one and back (no ``_orig_mod.`` prefix), ``copy.deepcopy`` gives
+  an uncompiled copy (torch drops the compiled call; MDM's EMA model evaluates eagerly),
+  ``DistributedDataParallel`` wraps the compiled module as usual
   (compile inside DDP).
 * Each call is first *prepared* eagerly (:data:`PREPARERS`): what cannot be captured runs
   before the graph — text encoding (CLIP tokenises Python strings), strings dropped from ``y``,
@@ -26,7 +27,6 @@ side at its best:
 """
 from __future__ import annotations
 
-import dataclasses
 import warnings
 from dataclasses import dataclass
 from typing import Any, Callable, Dict, List, Optional, Tuple
@@ -41,7 +41,6 @@ __all__ = ["COMPILE_MODES", "CompileSetting", "add_compile_options", "check_comp
 COMPILE_MODES = ("none", "default", "reduce-overhead")
 #: the argparse option the upstream integrations add (``smdm train`` / ``bench`` call it ``--compile``)
 FLAG = "--sparse_compile"
-_ATTR = "_smdm_compile"          # the CompileSetting on a compiled model
 _WARN = "smdm compile"
 
 
@@ -305,13 +304,6 @@ class _CompiledCall:
             return _clone_outputs(fn(*args, **kwargs))
         return fn(*args, **kwargs)
 
-    def __deepcopy__(self, memo: dict) -> Optional["_CompiledCall"]:
-        """``copy.deepcopy(model)`` (MDM's EMA model): the copy is compiled on its own."""
-        twin = memo.get(id(self.model))
-        if twin is None:
-            return None
-        return _CompiledCall(twin, dataclasses.replace(self.setting, compiled_calls=0, eager_calls=0))
-
     def __reduce__(self):                            # torch.save(model): saved uncompiled
         return (_none, ())
 
@@ -354,7 +346,6 @@ def compile_model(model: nn.Module, mode: Any, *, backend: str = "inductor", ful
     if encoder is not None and not _is_motiondiffuse(model):    # uncompile() put the original back
         model.encode_text = _PassThroughEncoder(encoder)
     model._compiled_call_impl = _CompiledCall(model, setting)
-    setattr(model, _ATTR, setting)
     return setting
 
 
@@ -362,7 +353,8 @@ def compile_setting(model: nn.Module) -> Optional[CompileSetting]:
     """The :class:`CompileSetting` of a model :func:`compile_model` compiled (None: eager)."""
     if isinstance(model, (nn.parallel.DistributedDataParallel, nn.DataParallel)):
         model = model.module
-    return getattr(model, _ATTR, None)
+    call = getattr(model, "_compiled_call_impl", None)
+    return call.setting if isinstance(call, _CompiledCall) else None
 
 
 def uncompile(model: nn.Module) -> nn.Module:
@@ -373,8 +365,6 @@ def uncompile(model: nn.Module) -> nn.Module:
     enc = model.__dict__.get("encode_text")
     if isinstance(enc, _PassThroughEncoder):
         model.encode_text = enc.original
-    if _ATTR in model.__dict__:
-        delattr(model, _ATTR)
     return model
 
 
