@@ -35,7 +35,7 @@ import torch
 import torch.nn as nn
 
 __all__ = ["COMPILE_MODES", "CompileSetting", "add_compile_options", "check_compile_mode", "compile_model",
-           "compile_setting", "uncompile", "compile_from_args", "PREPARERS"]
+           "compile_setting", "compile_stats", "uncompile", "compile_from_args", "PREPARERS"]
 
 #: the values of ``--sparse_compile`` / ``smdm train --compile`` / ``smdm bench --compile``
 COMPILE_MODES = ("none", "default", "reduce-overhead")
@@ -70,6 +70,7 @@ class CompileSetting:
     note: str = ""
     compiled_calls: int = 0
     eager_calls: int = 0
+    recompiles: int = 0
 
     def to_dict(self) -> Dict[str, Any]:
         """What a run records (``args.json``'s ``sparse_compile_applied``, ``train_config.json``...)."""
@@ -174,9 +175,11 @@ def prepare_mdm(model: nn.Module, args: tuple, kwargs: dict) -> Tuple[tuple, dic
                 if getattr(model, "encode_text", None) is None:       # TinyMDM: [B, dim] -> [1, B, dim]
                     enc = enc.reshape(1, x.shape[0], -1)
                 y["text_embed"] = enc
-        if text_cond and y.get("uncond", False) is True and not model.training and "text_embed" in y:
-            y["text_embed"] = _zeros_like_text(y["text_embed"])
-            del y["uncond"]
+        uncond = y.get("uncond", False)   # True, or priorMDM's second take: 1.0
+        if text_cond and isinstance(uncond, (bool, int, float)) and not model.training and "text_embed" in y:
+            if uncond:
+                y["text_embed"] = _zeros_like_text(y["text_embed"])
+            y.pop("uncond", None)
         if "text_embed" in y and isinstance(getattr(model, "encode_text", None), _PassThroughEncoder):
             y["text"] = y["text_embed"]               # forwards that always call encode_text(y['text'])
         y = {k: (tuple(_to(v, device) for v in val) if isinstance(val, tuple) and not _is_strings(val)
@@ -245,6 +248,12 @@ def _clone_outputs(out: Any) -> Any:
     return out
 
 
+def _graph_count() -> int:
+    from torch._dynamo.utils import counters
+
+    return int(counters["stats"]["unique_graphs"])
+
+
 def _none() -> None:
     return None
 
@@ -289,6 +298,7 @@ class _CompiledCall:
         if x is None:
             return self.model._call_impl(*args, **kwargs)
         phase = (self.model.training, torch.is_grad_enabled(), x.device.type, tuple(x.shape[1:]))
+        warm = phase in self._static
         batch = self._static.setdefault(phase, x.shape[0])
         if x.shape[0] != batch:                      # outside the static batch: eager, no recompile
             self.setting.eager_calls += 1
@@ -299,28 +309,37 @@ class _CompiledCall:
             return self.model._call_impl(*args, **kwargs)
         fn, graphs = self._function(x.device)
         self.setting.compiled_calls += 1
+        before = _graph_count()
         if graphs:
             torch.compiler.cudagraph_mark_step_begin()
-            return _clone_outputs(fn(*args, **kwargs))
-        return fn(*args, **kwargs)
+            out = _clone_outputs(fn(*args, **kwargs))
+        else:
+            out = fn(*args, **kwargs)
+        if warm and _graph_count() > before:
+            self.setting.recompiles += 1
+        return out
 
     def __reduce__(self):                            # torch.save(model): saved uncompiled
         return (_none, ())
 
 
 # --------------------------------------------------------------------------- entry points
-def _is_sparse(model: nn.Module) -> bool:
+def _fullgraph_default(model: nn.Module) -> bool:
+    """Sparse models trace whole (fullgraph), except DoubleTake's: its forced keyframes are read
+    from ``y`` on the host once per call (as in eager), which breaks the graph there."""
+    from ..adapters.doubletake import has_doubletake_forcing
     from ..adapters.surgery import is_sparse
 
-    return is_sparse(model)
+    return is_sparse(model) and not has_doubletake_forcing(model)
 
 
 def compile_model(model: nn.Module, mode: Any, *, backend: str = "inductor", fullgraph: Optional[bool] = None,
                   device: Any = None, name: str = FLAG) -> CompileSetting:
     """Compile ``model`` in place for ``mode`` (:data:`COMPILE_MODES`); returns its
     :class:`CompileSetting` (also on ``compile_setting(model)``). ``none`` leaves the model
-    untouched (bit for bit). ``fullgraph``: default True for sparse models, False for dense ones
-    (upstream's dense MotionDiffuse builds its padding mask in a Python loop). ``device``: where
+    untouched (bit for bit). ``fullgraph``: default True for sparse models (DoubleTake's excepted: its
+    forced keyframes are read on the host), False for dense ones (upstream's dense MotionDiffuse
+    builds its padding mask in a Python loop). ``device``: where
     the model will run (default: CUDA when available), to decide now whether ``reduce-overhead``
     can apply (else a warning and ``default``). Compiling again replaces the previous setting."""
     mode = check_compile_mode(mode, name)
@@ -329,7 +348,7 @@ def compile_model(model: nn.Module, mode: Any, *, backend: str = "inductor", ful
     if isinstance(model, (nn.parallel.DistributedDataParallel, nn.DataParallel)):
         model = model.module                         # compile inside DDP / DataParallel wrappers
     uncompile(model)
-    fullgraph = _is_sparse(model) if fullgraph is None else bool(fullgraph)
+    fullgraph = _fullgraph_default(model) if fullgraph is None else bool(fullgraph)
     setting = CompileSetting(requested=mode, mode=mode, backend=backend, fullgraph=fullgraph)
     if mode == "none":
         return setting
@@ -368,14 +387,54 @@ def uncompile(model: nn.Module) -> nn.Module:
     return model
 
 
+#: environment: the torch.compile backend of the integrations (default inductor; aot_eager / eager
+#: trace the same graphs without generating code: quick checks on a CPU)
+BACKEND_ENV = "SMDM_COMPILE_BACKEND"
+#: environment: a JSON file the process writes at exit: per compiled model its setting, calls,
+#: phases (static shapes) and Dynamo's graph count (graphs == phases: no recompilation)
+STATS_ENV = "SMDM_COMPILE_STATS"
+_COMPILED: List[Tuple[str, CompileSetting, "_CompiledCall"]] = []
+
+
+def compile_stats() -> Dict[str, Any]:
+    """What the integrations compiled in this process: ``graphs`` (Dynamo's unique graphs, all
+    models), ``models`` (name, setting, ``compiled_calls``, ``eager_calls``, ``phases``: the distinct
+    (train/eval, grad, device, shape) combinations that ran compiled)."""
+    from torch._dynamo.utils import counters
+
+    return {"graphs": int(counters["stats"]["unique_graphs"]),
+            "models": [{"name": name, **s.to_dict(), "compiled_calls": s.compiled_calls,
+                        "eager_calls": s.eager_calls, "recompiles": s.recompiles, "phases": len(call._static)}
+                       for name, s, call in _COMPILED]}
+
+
+def _write_stats() -> None:
+    import json
+    import os
+
+    path = os.environ.get(STATS_ENV)
+    if path:
+        with open(path, "w") as f:
+            json.dump(compile_stats(), f, indent=2)
+
+
 def compile_from_args(model: nn.Module, args: Any, device: Any = None) -> Optional[CompileSetting]:
     """The integrations' entry point: compile ``model`` for ``args.sparse_compile`` (absent or
-    ``none``: nothing happens, upstream runs bit for bit) and record what applies on ``args``
-    (``sparse_compile_applied``: ``args.json`` / ``opt.txt`` carry it). Returns the setting."""
+    ``none``: nothing happens, upstream runs bit for bit) with the backend of ``SMDM_COMPILE_BACKEND``
+    (default inductor) and record what applies on ``args`` (``sparse_compile_applied``:
+    ``args.json`` / ``opt.txt`` carry it). With ``SMDM_COMPILE_STATS=FILE`` the process writes
+    :func:`compile_stats` there at exit. Returns the setting."""
+    import atexit
+    import os
+
     mode = getattr(args, "sparse_compile", None)
     if mode in (None, "none"):
         return None
-    setting = compile_model(model, mode, device=device)
+    setting = compile_model(model, mode, device=device, backend=os.environ.get(BACKEND_ENV, "inductor"))
+    if os.environ.get(STATS_ENV):
+        if not _COMPILED:
+            atexit.register(_write_stats)
+        _COMPILED.append((type(model).__name__, setting, model._compiled_call_impl))
     if hasattr(args, "__dict__"):
         args.sparse_compile_applied = setting.describe()
     return setting

@@ -1,0 +1,162 @@
+"""``--sparse_compile`` on the real upstream code (CPU; docs/compile.md).
+
+Each run compiles with ``SMDM_COMPILE_BACKEND=aot_eager`` (Dynamo + AOTAutograd, no code
+generation: quick on 2 cores; inductor compiles the same graphs) and writes the compile
+statistics at exit (``SMDM_COMPILE_STATS``): per model, the phases it ran in (train / eval, grad,
+motion shape), its compiled calls and ``recompiles`` (calls after the first of their phase that
+made Dynamo capture a new graph).
+
+* MDM (``smdm run``): a sparse trans_enc trains 20 steps compiled: one graph, zero recompiles,
+  the same weights as an eager run on the static-shape path (``static_mode``: what runs on a GPU;
+  the CPU's eager default packs keyframes differently, so its dropout draws differ), the setting
+  in ``args.json``, no ``_orig_mod.`` key in the checkpoint; ``sample.generate`` (classifier-free
+  guidance: 2 calls per step) from it: one graph, zero recompiles, samples equal to eager.
+* priorMDM DoubleTake (patch): both takes, both guidance passes: zero recompiles after each
+  take's first call, the unfolded sample equal to eager.
+* MotionDiffuse (patch): a sparse MotionTransformer trains compiled: zero recompiles, ``opt.txt``
+  states the setting, losses equal to eager within float tolerance (dropout 0 there).
+"""
+from __future__ import annotations
+
+import json
+import os
+import re
+import sys
+
+import numpy as np
+import pytest
+
+HERE = os.path.dirname(os.path.abspath(__file__))
+sys.path.insert(0, HERE)
+
+COMPILE_ENV = {"SMDM_COMPILE_BACKEND": "aot_eager"}
+
+
+def stats(path: str) -> dict:
+    with open(path) as f:
+        data = json.load(f)
+    assert len(data["models"]) >= 1, data
+    return data
+
+
+def assert_no_recompiles(data: dict, phases: int) -> None:
+    m = data["models"][-1]
+    assert m["recompiles"] == 0 and m["eager_calls"] == 0, data
+    assert m["phases"] == phases, data
+    if m["fullgraph"]:
+        assert data["graphs"] == phases, data                     # one graph per phase, none after
+
+
+# --------------------------------------------------------------------------- MDM (smdm run)
+MDM_ROOT = os.environ.get("SMDM_MDM_ROOT")
+
+
+@pytest.mark.skipif(not MDM_ROOT, reason="SMDM_MDM_ROOT not set (an MDM checkout)")
+def test_mdm_trains_20_steps_and_samples_compiled(upstream_copy, tmp_path, monkeypatch):
+    import torch
+
+    import test_mdm_upstream as M
+
+    repo = upstream_copy(MDM_ROOT, "mdm_compile")
+    runs = {}
+    for mode in ("none", "default"):
+        for k, v in COMPILE_ENV.items():
+            monkeypatch.setenv(k, v)
+        st = str(tmp_path / f"train_{mode}.json")
+        monkeypatch.setenv("SMDM_COMPILE_STATS", st)
+        save = str(tmp_path / f"save_{mode}")
+        if mode == "none":   # eager on the static-shape path (a GPU's path; same dropout draws)
+            args = ["--save_dir", save, "--num_steps", "20", *M.TINY, *M.ARCH["trans_enc"], "--sparse"]
+            code = ("import runpy, sys; from smdm_plugin.core.checks import static_mode\n"
+                    f"sys.argv = ['train_mdm'] + {args!r}\n"
+                    "with static_mode():\n    runpy.run_module('train.train_mdm', run_name='__main__')")
+            M.harness_code(repo, code, launcher=True)
+            ckpt = M.latest_checkpoint(save)
+        else:
+            proc, ckpt = M.train(repo, save, "trans_enc", 20, extra=["--sparse", "--sparse_compile", mode],
+                                 launcher=True)
+            assert_no_recompiles(stats(st), phases=1)
+            args = json.load(open(os.path.join(save, "args.json")))
+            assert args["sparse_compile"] == "default"
+            assert args["sparse_compile_applied"].startswith("torch.compile default (aot_eager, fullgraph=True)")
+        runs[mode] = M.load_sd(ckpt)
+    assert not [k for k in runs["default"] if "_orig_mod" in k] and runs["default"].keys() == runs["none"].keys()
+    for k, v in runs["none"].items():
+        assert torch.allclose(runs["default"][k].float(), v.float(), atol=1e-4), k
+
+    samples = {}
+    for mode in ("none", "default"):
+        st = str(tmp_path / f"gen_{mode}.json")
+        monkeypatch.setenv("SMDM_COMPILE_STATS", st)
+        _, res = M.generate(repo, ckpt, str(tmp_path / f"gen_{mode}"), "trans_enc",
+                            extra=["--sparse_compile", mode], launcher=True)
+        samples[mode] = res["motion"]
+        if mode == "default":
+            data = stats(st)
+            assert_no_recompiles(data, phases=1)
+            assert data["models"][-1]["compiled_calls"] == 2 * 20    # both guidance passes, 20 steps
+    assert np.allclose(samples["default"], samples["none"], atol=1e-4)
+
+
+# --------------------------------------------------------------------------- priorMDM DoubleTake
+PRIOR_ROOT = os.environ.get("SMDM_PRIORMDM_ROOT")
+
+
+@pytest.mark.skipif(not PRIOR_ROOT, reason="SMDM_PRIORMDM_ROOT not set")
+def test_doubletake_samples_compiled(tmp_path, monkeypatch):
+    import shutil
+
+    import test_priormdm_upstream as P
+
+    if not P.DATA:
+        pytest.skip("no HumanML3D-format data")
+    run, save = P.prepare(str(tmp_path / "priorMDM")), str(tmp_path / "save" / "sparse")
+    P.harness(run, *P.train_args(save, 2))
+    ckpt = os.path.join(save, "model000000002.pt")
+    motions = {}
+    for mode in ("none", "default"):
+        for k, v in COMPILE_ENV.items():
+            monkeypatch.setenv(k, v)
+        st = str(tmp_path / f"dt_{mode}.json")
+        monkeypatch.setenv("SMDM_COMPILE_STATS", st)
+        texts = os.path.join(run, "dt_texts.txt")
+        with open(texts, "w") as f:
+            f.write("a person walks forward\na person jumps up and down\na person waves\n")
+        P.harness(run, "-m", "sample.double_take", "--model_path", ckpt, "--num_samples", "3",
+                  "--handshake_size", str(P.H), "--blend_len", str(P.BLEND), "--skip_steps_double_take",
+                  str(P.SKIP), "--input_text", texts, "--guidance_param", "2.5", "--sparse_compile", mode)
+        out_dir = P.dt_out_dir(run, ckpt, input_text=texts)
+        motions[mode] = np.load(os.path.join(out_dir, "results.npy"), allow_pickle=True).item()["motion"]
+        shutil.rmtree(out_dir)
+        if mode == "default":
+            data = stats(st)
+            assert_no_recompiles(data, phases=2)                  # first take, second take
+            m = data["models"][-1]
+            assert m["compiled_calls"] == 2 * P.DT_STEPS + 2 * (P.DT_STEPS - P.SKIP), m
+    assert np.allclose(motions["default"], motions["none"], atol=1e-4)
+
+
+# --------------------------------------------------------------------------- MotionDiffuse
+MD_ROOT = os.environ.get("SMDM_MOTIONDIFFUSE_ROOT")
+
+
+@pytest.mark.skipif(not MD_ROOT, reason="SMDM_MOTIONDIFFUSE_ROOT not set")
+def test_motiondiffuse_trains_compiled(tmp_path, monkeypatch):
+    import test_motiondiffuse_upstream as D
+
+    if not D.DATA:
+        pytest.skip("no HumanML3D-format data")
+    losses = {}
+    for mode in ("none", "default"):
+        for k, v in COMPILE_ENV.items():
+            monkeypatch.setenv(k, v)
+        st = str(tmp_path / f"md_{mode}.json")
+        monkeypatch.setenv("SMDM_COMPILE_STATS", st)
+        t2m = D.prepare(str(tmp_path / f"md_{mode}"))
+        out = D.harness(t2m, *D.train_args(3), "--sparse_compile", mode, anomaly=False)  # 21 iterations
+        losses[mode] = np.array([float(v) for v in re.findall(r"loss_mot_rec: (\S+)", out)])
+        if mode == "default":
+            assert_no_recompiles(stats(st), phases=1)
+            opt = open(os.path.join(t2m, "checkpoints", "t2m", "sparse_ci", "opt.txt")).read()
+            assert "sparse_compile: default" in opt and "sparse_compile_applied: torch.compile default" in opt
+    assert len(losses["default"]) >= 20 and np.allclose(losses["default"], losses["none"], rtol=1e-3, atol=1e-5)
