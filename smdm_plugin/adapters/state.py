@@ -123,7 +123,8 @@ def lengths_from_y(y: Dict[str, Any], B: int, N: int, device: torch.device) -> t
     ``N``, as the dense model treats every frame of the window as valid, with a warning."""
     mask = y.get("mask")
     if isinstance(mask, torch.Tensor) and mask.shape[-1] == N and mask.numel() == B * N:
-        lengths = mask.reshape(B, N).to(device=device, dtype=torch.long).sum(1)
+        m = mask.reshape(B, N).to(device=device)
+        lengths = m.sum(1) if m.dtype == torch.bool else m.to(torch.long).sum(1)   # a bool sum is long
         require(lengths >= 2, f"y['mask'] must mark at least 2 valid frames of the N={N} in every sample")
         return lengths
     if isinstance(mask, torch.Tensor) and mask.dim() and mask.shape[-1] != N and y.get("lengths") is not None:
@@ -170,6 +171,12 @@ def keyframe_plan(state: SparseState, frames: torch.Tensor, timesteps: Any, leng
         check, cubic = True, None
     else:                                                  # sampling: the schedule on x_t
         t = timesteps if timesteps is not None else torch.zeros(B, dtype=torch.long, device=device)
+        if forced is None and state.schedule.late_steps == 0:   # the uniform mask: a table lookup
+            cubic = state.schedule.cubic_samples(t, B, device, frames.shape[-1])
+            if cubic is not None and not state.variant.prefix_len:
+                f_tab, w_tab = state.schedule.cubic_taps(N, device)
+                taps = (f_tab[lengths], w_tab[lengths])
+            return state.schedule.uniform_plan(lengths, N, state.variant.prefix_len, cubic, taps)
         mask = state.schedule.sampling_mask(frames, t, lengths, forced, checked=True)
         capacity = state.schedule.capacity(N, training=False, forced=protected_count(forced, lengths))
         check = False                                      # 2..capacity keyframes by construction

@@ -38,7 +38,7 @@ import torch.nn as nn
 import torch.nn.functional as F
 
 from .attention import attend, attend_single_key, float_mask, project_qkv
-from .checks import static_shapes
+from .checks import compiling as static_compiling, static_shapes
 from .registry import Registry
 from .fsq import FSQMultiheadAttention, _disable_transformer_fast_path
 from .plan import KeyframePlan
@@ -119,8 +119,24 @@ def _slot_rows(plan: KeyframePlan, lead: int) -> torch.Tensor:
     if not lead:
         return plan.rows
     B = plan.batch
-    lead_rows = torch.arange(lead * B, device=plan.rows.device).view(lead, B)
-    return torch.cat([lead_rows, plan.rows + lead * B], 0)
+    return torch.cat([arange_rows(lead, B, plan.rows.device), plan.rows + lead * B], 0)
+
+
+_ARANGES: Dict[Tuple[int, int, torch.device], torch.Tensor] = {}
+
+
+def arange_rows(n: int, B: int, device: torch.device) -> torch.Tensor:
+    """``arange(n * B).view(n, B)`` on ``device``: made once per shape and device (outside tracing),
+    a per-call constant (it is never written to)."""
+    key = (int(n), int(B), torch.device(device))
+    out = _ARANGES.get(key)
+    if out is None:
+        out = torch.arange(n * B, device=device).view(n, B)
+        if not static_compiling():
+            if len(_ARANGES) > 64:
+                _ARANGES.clear()
+            _ARANGES[key] = out
+    return out
 
 
 def _lead_keep(plan: KeyframePlan, lead: int, lead_padding: Optional[torch.Tensor]) -> torch.Tensor:
@@ -134,7 +150,12 @@ def _key_bias(plan: KeyframePlan, lead: int, lead_padding: Optional[torch.Tensor
               ) -> torch.Tensor:
     """Additive key padding mask ``[B, lead + K]`` (0 kept / -inf padded lead tokens and empty
     slots), made once per call: a float mask goes through every layer's attention as it is (a
-    bool one is converted again in each layer)."""
+    bool one is converted again in each layer). A looked-up plan carries it (``plan.key_bias``)."""
+    if plan.key_bias is not None and lead <= 1:
+        bias = plan.key_bias[:, 1 - lead:]
+        if lead and lead_padding is not None:                       # the caller's padding of its lead token
+            bias = torch.cat([bias[:, :1].masked_fill(lead_padding.to(torch.bool), float("-inf")), bias[:, 1:]], 1)
+        return bias if bias.dtype == dtype else bias.to(dtype)
     pad = ~plan.valid
     if lead:
         lead_pad = plan.valid.new_zeros(plan.batch, lead) if lead_padding is None else lead_padding.to(torch.bool)
@@ -162,8 +183,7 @@ def compact_backend(inner: nn.Module, x: torch.Tensor, plan: KeyframePlan, lead:
     R = src.shape[0]
     xc = gather_rows(x.reshape(S * B, d), src.reshape(-1)).view(R, B, d)
     out = _call_inner(inner, xc, _key_bias(plan, lead, lead_padding, x.dtype), memory, memory_key_padding_mask)
-    rows = torch.arange(R * B, device=x.device).view(R, B)
-    return out.reshape(R * B, d), rows
+    return out.reshape(R * B, d), arange_rows(R, B, x.device)
 
 
 class _RowGather(torch.autograd.Function):
@@ -215,6 +235,30 @@ class _LerpRows(torch.autograd.Function):
         gw = g.view(*w.shape[:-1], -1)
         grad.index_add_(0, prev, (gw * (1 - w)).reshape(g.shape)).index_add_(0, nxt, (gw * w).reshape(g.shape))
         return grad, None, None, None
+
+
+class _LerpRowPairs(torch.autograd.Function):
+    """:class:`_LerpRows` with the rows of both ends in one index ``[2R]`` (``prev`` then ``next``):
+    one row gather forward, one ``index_add_`` backward."""
+
+    @staticmethod
+    def forward(ctx, h: torch.Tensor, pairs: torch.Tensor, w: torch.Tensor) -> torch.Tensor:
+        ctx.save_for_backward(pairs, w)
+        ctx.rows = h.shape[0]
+        R = pairs.shape[0] // 2
+        shape = (*w.shape[:-1], -1)                       # w [..., 1] may be a strided view
+        ends = h.index_select(0, pairs)
+        return torch.lerp(ends[:R].view(shape), ends[R:].view(shape), w).reshape(R, *h.shape[1:])
+
+    @staticmethod
+    def backward(ctx, g: torch.Tensor):
+        pairs, w = ctx.saved_tensors
+        gw = g.view(*w.shape[:-1], -1)
+        both = g.new_empty(2, *gw.shape)
+        torch.mul(gw, 1 - w, out=both[0])
+        torch.mul(gw, w, out=both[1])
+        grad = g.new_zeros(ctx.rows, *g.shape[1:])
+        return grad.index_add_(0, pairs, both.view(-1, *g.shape[1:])), None, None
 
 
 def lerp_rows(h: torch.Tensor, prev: torch.Tensor, nxt: torch.Tensor, w: torch.Tensor) -> torch.Tensor:
@@ -399,6 +443,13 @@ def fill_frames(h: torch.Tensor, rows: torch.Tensor, plan: KeyframePlan, lead: i
     d = h.shape[-1]
     B, N = plan.mask.shape
     frame_rows = rows[lead:]                                           # [K, B]
+    if interpolate and plan.slots is not None:                         # both ends in one gather
+        pairs = frame_rows.gather(0, plan.slots.t())                   # [2N, B]: prev rows, next rows
+        out = _LerpRowPairs.apply(h, pairs.reshape(-1), plan.weight.t().unsqueeze(-1).to(h.dtype))
+        out = out.view(N, B, d)
+        if lead:
+            out = torch.cat([gather_rows(h, rows[:lead].reshape(-1)).view(lead, B, d), out], 0)
+        return out
     prev = frame_rows.gather(0, plan.prev_slot.t())                    # [N, B]
     if interpolate:
         out = lerp_rows(h, prev.reshape(-1), frame_rows.gather(0, plan.next_slot.t()).reshape(-1),

@@ -64,6 +64,22 @@ class FSQ(nn.Module):
         self.register_buffer("_shift", shift.float(), persistent=False)
         self.register_buffer("_half_width", (lv // 2).float(), persistent=False)
         self.register_buffer("_basis", basis, persistent=False)
+        self._cast: dict = {}                                    # per-dtype copies of the constants
+
+    def constants(self, dtype: torch.dtype) -> Tuple[Tensor, Tensor, Tensor, Tensor]:
+        """``(neg_offset, half_l, shift, half_width)`` ``[d]`` in ``dtype``: cast once per dtype and
+        device (outside tracing), not at every use (under autocast, each use of a float32 buffer
+        in a bf16 op would be a cast kernel); keyed on the buffers' storage and version."""
+        bufs = (self._neg_offset, self._half_l, self._shift, self._half_width)
+        if bufs[0].dtype == dtype:
+            return bufs
+        if compiling():
+            return tuple(b.to(dtype) for b in bufs)
+        key = tuple((b.data_ptr(), b._version) for b in bufs)
+        hit = self._cast.get(dtype)
+        if hit is None or hit[0] != key:
+            hit = self._cast[dtype] = (key, tuple(b.to(dtype) for b in bufs))
+        return hit[1]
 
     @property
     def dim(self) -> int:
@@ -77,8 +93,9 @@ class FSQ(nn.Module):
         """``[..., d]``: each channel squashed into ``(-floor(L/2) - 0.5, ceil(L/2) - 0.5)``
         (``tanh(z + shift) * half_l - offset``, as one fused multiply-add; ``shifted``: ``z``
         already holds ``+ shift``)."""
-        t = torch.tanh(z if shifted else z + self._shift.to(z.dtype))
-        return torch.addcmul(self._neg_offset.to(z.dtype), t, self._half_l.to(z.dtype))
+        neg_offset, half_l, shift, _ = self.constants(z.dtype)
+        t = torch.tanh(z if shifted else z + shift)
+        return torch.addcmul(neg_offset, t, half_l)
 
     @staticmethod
     def round(b: Tensor) -> Tensor:
@@ -88,7 +105,7 @@ class FSQ(nn.Module):
     def forward(self, z: Tensor) -> Tensor:
         if z.shape[-1] != self.dim:
             raise ValueError(f"FSQ: input must be [..., {self.dim}], got {tuple(z.shape)}")
-        return self.round(self.bound(z)) / self._half_width.to(z.dtype)
+        return self.round(self.bound(z)) / self.constants(z.dtype)[3]
 
     def codes_to_indices(self, codes: Tensor) -> Tensor:
         """``[..., d]`` grid codes (as returned by ``forward``) -> ``[...]`` long in
@@ -106,6 +123,14 @@ class FSQ(nn.Module):
 
     def extra_repr(self) -> str:
         return f"levels={list(self.levels_list)}, codebook_size={self.codebook_size}"
+
+
+def _compute_dtype(t: Tensor) -> torch.dtype:
+    """The dtype a matmul on ``t`` runs in: autocast's for ``t``'s device when it is on, else
+    ``t``'s."""
+    if torch.is_autocast_enabled(t.device.type):
+        return torch.get_autocast_dtype(t.device.type)
+    return t.dtype
 
 
 def _disable_transformer_fast_path(module: nn.Module, args: Any) -> None:
@@ -207,25 +232,31 @@ class FSQMultiheadAttention(nn.Module):
         one fused multiply-add on the rows. The result has ``k``'s shape (strides may differ)."""
         S, hd = k.shape[-2:]
         kb = k.movedim(-2, 0).reshape(S, -1, hd)                        # [S, M, hd]: a view for the keys
-        down_bias, up_weight = self._folded()                            # of F.linear(...).chunk(3)
-        z = torch.baddbmm(down_bias, kb, self.key_down.weight.t().expand(S, hd, self.fsq.dim))
+        down_bias, down_weight_t, up_weight, up_bias = self._folded(_compute_dtype(k))
+        z = torch.baddbmm(down_bias, kb, down_weight_t.expand(S, hd, self.fsq.dim))
         r = self.fsq.round(self.fsq.bound(z, shifted=True))              # [S, M, d] integer levels
-        out = F.linear(r.view(-1, self.fsq.dim), up_weight, self.key_up.bias)   # [S*M, hd]
+        out = F.linear(r.view(-1, self.fsq.dim), up_weight, up_bias)   # [S*M, hd]
         return out.view(S, *k.shape[:-2], hd).movedim(0, -2)
 
-    def _folded(self) -> Tuple[Tensor, Tensor]:
+    def _folded(self, dtype: torch.dtype) -> Tuple[Tensor, Tensor, Tensor, Tensor]:
         """FSQ's constant affine steps folded into the two projections: ``(key_down.bias + shift
-        [d], key_up.weight / floor(L/2) [head_dim, d])``. Without autograd (sampling) and outside
-        tracing, cached: keyed on the parameters' storage and version, as the Lipschitz layers."""
-        bias, weight, fsq = self.key_down.bias, self.key_up.weight, self.fsq
+        [d], key_down.weight.t() [head_dim, d], key_up.weight / floor(L/2) [head_dim, d],
+        key_up.bias [head_dim])``. Without autograd (sampling) and outside tracing, cached in the
+        compute ``dtype`` (autocast's, else the keys'): keyed on the parameters' storage and
+        version, as the Lipschitz layers; so a sampling call under autocast casts none of them (the
+        values autocast would make). With autograd: the parameters' dtype (autocast casts them)."""
+        down, up, fsq = self.key_down, self.key_up, self.fsq
         key = None
         if not torch.is_grad_enabled() and not compiling():
-            key = (bias.data_ptr(), bias._version, weight.data_ptr(), weight._version,
-                   fsq._shift.data_ptr(), fsq._half_width.data_ptr())
+            key = (dtype,) + tuple((t.data_ptr(), t._version) for t in (
+                down.bias, down.weight, up.weight, up.bias, fsq._shift, fsq._half_width))
             if self._fold_cache is not None and self._fold_cache[0] == key:
                 return self._fold_cache[1]
-        out = (bias + fsq._shift.to(bias.dtype), weight / fsq._half_width.to(weight.dtype))
-        self._fold_cache = None if key is None else (key, out)
+        _, _, shift, half_width = fsq.constants(down.bias.dtype)
+        out = (down.bias + shift, down.weight.t(), up.weight / half_width, up.bias)
+        if key is not None:
+            out = tuple(t.to(dtype) for t in out)
+            self._fold_cache = (key, out)
         return out
 
     def forward(self, query: Tensor, key: Tensor, value: Tensor,

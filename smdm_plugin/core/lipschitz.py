@@ -69,15 +69,21 @@ class LipschitzWeight(nn.Module):
         # Without autograd (sampling) the normalised weight only changes when W or c do: reuse it
         # while both are the same tensors at the same version (in-place updates bump the version,
         # a new tensor has a new storage). Never while torch.compile traces.
+        # Under autocast the cached weight is kept in autocast's dtype (the value autocast's cast
+        # would make at every call: the cached weight is no leaf, autocast would not cache its cast).
         key = None
         if not torch.is_grad_enabled() and not _compiling():
+            device = weight.device.type
+            dtype = torch.get_autocast_dtype(device) if torch.is_autocast_enabled(device) else weight.dtype
             key = (weight.data_ptr(), weight._version, self.c.data_ptr(), self.c._version,
-                   weight.dtype, weight.device, weight.shape)
+                   weight.dtype, weight.device, weight.shape, dtype)
             if self._cache is not None and self._cache[0] == key:
                 return self._cache[1]
         rowsum = _row_abs_sum(weight).clamp_min(torch.finfo(weight.dtype).eps)  # 0-rows: scale 1
         out = weight * torch.clamp(self.bound() / rowsum, max=1.0)
-        self._cache = None if key is None else (key, out)
+        if key is not None:
+            out = out.to(key[-1])
+            self._cache = (key, out)
         return out
 
 
@@ -112,7 +118,7 @@ class SineActivation(nn.Module):
         self.w0 = float(w0)
 
     def forward(self, x: Tensor) -> Tensor:
-        return torch.sin(self.w0 * x)
+        return torch.sin(x if self.w0 == 1.0 else self.w0 * x)     # 1·x is x exactly: one op less
 
     def extra_repr(self) -> str:
         return f"w0={self.w0}"
@@ -235,7 +241,8 @@ def bake_lipschitz(module: nn.Module) -> nn.Module:
     for m in list(module.modules()):
         if parametrize.is_parametrized(m, "weight") and any(
                 isinstance(p, LipschitzWeight) for p in m.parametrizations.weight):
-            parametrize.remove_parametrizations(m, "weight", leave_parametrized=True)
+            with torch.autocast(m.parametrizations.weight.original.device.type, enabled=False):
+                parametrize.remove_parametrizations(m, "weight", leave_parametrized=True)   # its own dtype
     return module
 
 

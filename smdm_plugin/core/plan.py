@@ -43,6 +43,11 @@ class KeyframePlan:
         taps: ``(frames [B, N, 4] long, weights [B, N, 4] float32)`` of that C¹ fill when they were
             looked up in a table (the sampling schedule's uniform masks), else None (computed from
             the plan's slots by :func:`~smdm_plugin.core.interpolation.catmull_rom_taps`).
+        key_bias: ``[B, 1 + K]`` float32 or None: the additive key padding mask of one lead token
+            and the slots (0 kept, -inf empty slots; column 0 is a lead token's 0), looked up with
+            the plan (:meth:`PlanTables.lookup`); ``key_bias[:, 1 - lead:]`` serves ``lead <= 1``.
+        slots: ``[B, 2N]`` long or None: ``prev_slot | next_slot`` side by side (those two are its
+            views), so the fill gathers both ends at once.
     """
 
     mask: torch.Tensor
@@ -55,6 +60,8 @@ class KeyframePlan:
     rows: torch.Tensor
     cubic: Union[None, bool, torch.Tensor] = None
     taps: Optional[Tuple[torch.Tensor, torch.Tensor]] = None
+    key_bias: Optional[torch.Tensor] = None
+    slots: Optional[torch.Tensor] = None
 
     @property
     def capacity(self) -> int:
@@ -95,8 +102,9 @@ class KeyframePlan:
         index = torch.sort(mask, dim=1, descending=True, stable=True).indices[:, :K]
         valid = idx[:K] < count[:, None]
         before = seen - 1
-        prev_slot = before.clamp_min(0)
-        next_slot = torch.minimum(torch.where(mask, before, seen), before[:, -1:].clamp_min(0))   # <= count - 1
+        slots = torch.cat([before.clamp_min(0),
+                           torch.minimum(torch.where(mask, before, seen), before[:, -1:].clamp_min(0))], 1)
+        prev_slot, next_slot = slots[:, :N], slots[:, N:]              # next <= count - 1
         prev_f = index.gather(1, prev_slot)
         next_f = index.gather(1, next_slot)
         # a true division of ints: float32 (exact frame differences, one rounding)
@@ -104,4 +112,51 @@ class KeyframePlan:
         rows = torch.add(torch.arange(B, device=mask.device)[:, None], index, alpha=B).t().contiguous()
         if cubic is not None and cubic is not True:
             cubic = torch.as_tensor(cubic, device=mask.device).to(torch.bool).reshape(-1).expand(B)
-        return cls(mask, index, valid, count, prev_slot, next_slot, weight, rows, cubic, taps)
+        return cls(mask, index, valid, count, prev_slot, next_slot, weight, rows, cubic, taps, slots=slots)
+
+
+@dataclass(frozen=True)
+class PlanTables:
+    """The plans of a fixed mask per length, as lookup tables (the sampling schedule's uniform
+    masks): row ``L`` of each table belongs to a sample of ``L`` valid frames. A call looks its plan
+    up with 5 ops (four row lookups and the rows' offsets) instead of building it (~25).
+
+    Attributes (``N`` frames, ``K`` slots): ``ints [N+1, K+1+2N]`` long (index | count | prev_slot |
+    next_slot), ``flags [N+1, N+K]`` bool (mask | valid), ``floats [N+1, N+1+K]`` float32 (weight |
+    key bias with a lead column), ``index_t [K, N+1]`` long (index, transposed: the rows come out
+    ``[K, B]`` contiguous).
+    """
+
+    ints: torch.Tensor
+    flags: torch.Tensor
+    floats: torch.Tensor
+    index_t: torch.Tensor
+
+    @classmethod
+    def build(cls, masks: torch.Tensor, capacity: int) -> "PlanTables":
+        """Tables of bool ``masks [N+1, N]`` (row ``L``: the mask of length ``L``; every row needs
+        1..capacity keyframes) with ``capacity`` slots; on the masks' device."""
+        p = KeyframePlan.build(masks, capacity, check=False)
+        bias = torch.zeros(p.valid.shape[0], 1 + p.capacity).masked_fill_(
+            torch.cat([p.valid.new_ones(p.valid.shape[0], 1), p.valid], 1).logical_not(), float("-inf"))
+        return cls(torch.cat([p.index, p.count[:, None], p.prev_slot, p.next_slot], 1),
+                   torch.cat([p.mask, p.valid], 1), torch.cat([p.weight, bias.to(p.weight.device)], 1),
+                   p.index.t().contiguous())
+
+    def to(self, device: torch.device) -> "PlanTables":
+        return PlanTables(*(t.to(device) for t in (self.ints, self.flags, self.floats, self.index_t)))
+
+    def lookup(self, lengths: torch.Tensor, batch_index: torch.Tensor, cubic=None,
+               taps: Optional[Tuple[torch.Tensor, torch.Tensor]] = None) -> KeyframePlan:
+        """The plan of samples with ``lengths [B]`` (long, validated, on the tables' device);
+        ``batch_index``: ``arange(B)`` on that device (a per-call constant the caller keeps). Values
+        equal :meth:`KeyframePlan.build` on the looked-up masks."""
+        K, N = self.index_t.shape[0], self.flags.shape[1] - self.index_t.shape[0]
+        B = lengths.shape[0]
+        ints, flags, floats = self.ints[lengths], self.flags[lengths], self.floats[lengths]
+        rows = torch.add(batch_index, self.index_t.index_select(1, lengths), alpha=B)     # [K, B]
+        if cubic is not None and cubic is not True:
+            cubic = torch.as_tensor(cubic, device=lengths.device).to(torch.bool).reshape(-1).expand(B)
+        return KeyframePlan(flags[:, :N], ints[:, :K], flags[:, N:], ints[:, K], ints[:, K + 1:K + 1 + N],
+                            ints[:, K + 1 + N:], floats[:, :N], rows, cubic, taps, floats[:, N:],
+                            ints[:, K + 1:])
