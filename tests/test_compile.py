@@ -287,3 +287,32 @@ def test_ddp_with_compile_keeps_ranks_in_sync(tmp_path, hml_dir):
         results[mode] = json.loads((out / "result.json").read_text())
     assert results["default"]["max_divergence"] == 0.0 and results["default"]["world_size"] == 2
     assert results["default"]["losses"] == pytest.approx(results["none"]["losses"], rel=1e-5, abs=1e-6)
+
+
+def test_motiondiffuse_interface_encodes_text_before_the_graph():
+    """MotionDiffuse's ``forward(x, t, length=, text=)`` (the in-package denoiser with its
+    interface), sparse: captions (strings) and lengths (a Python list) change every call, no
+    recompile, equal to eager on the static path."""
+    from smdm_plugin.core.checks import static_mode
+    from smdm_plugin.reference.motiondiffuse_denoiser import MotionDiffuseDenoiser
+
+    torch.manual_seed(0)
+    model = MotionDiffuseDenoiser(input_feats=D, num_frames=N, latent_dim=32, ff_size=64, num_layers=2,
+                                  num_heads=4, text_latent_dim=16)
+    diffusion = SimpleDiffusion(20)
+    sparsify(model, SparseConfig(mask_noise=0.0, feature="raw", fsq=False), diffusion=diffusion,
+             family="motiondiffuse")
+    ref = copy.deepcopy(model)
+    C.compile_model(model, "default", backend=BACKEND)
+    assert C.compile_setting(model).fullgraph
+    g = torch.Generator().manual_seed(0)
+    for step, texts in enumerate((["walk", "run", "jump", "wave"], ["a kick", "turn", "sit", "crawl"],
+                                  ["spin", "hop", "bow", "clap"])):
+        x = torch.randn(4, N, D, generator=g)
+        lengths = torch.randint(12, N + 1, (4,), generator=g).tolist()
+        with torch.no_grad():
+            out = model(x, torch.tensor([1, 5, 9, 13]), length=lengths, text=texts)
+            with static_mode():
+                want = ref(x, torch.tensor([1, 5, 9, 13]), length=torch.tensor(lengths), text=texts)
+        assert torch.allclose(out, want, atol=1e-5), step
+    assert C.compile_setting(model).recompiles == 0 and graphs() == 1

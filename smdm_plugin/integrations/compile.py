@@ -209,6 +209,9 @@ def prepare_motiondiffuse(model: nn.Module, args: tuple, kwargs: dict) -> Tuple[
             text = text[index * B: index * B + B]
         kwargs["xf_proj"], kwargs["xf_out"] = model.encode_text(text, x.device)
     kwargs.pop("text", None)
+    length = kwargs.get("length")
+    if isinstance(length, (list, tuple)) and all(isinstance(v, int) for v in length):
+        kwargs["length"] = torch.tensor(length, dtype=torch.long)   # Python ints would be guarded one by one
     return args, {k: _to(v, x.device) for k, v in kwargs.items()}
 
 
