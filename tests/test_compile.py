@@ -316,3 +316,38 @@ def test_motiondiffuse_interface_encodes_text_before_the_graph():
                 want = ref(x, torch.tensor([1, 5, 9, 13]), length=torch.tensor(lengths), text=texts)
         assert torch.allclose(out, want, atol=1e-5), step
     assert C.compile_setting(model).recompiles == 0 and graphs() == 1
+
+
+def test_mdm_integration_compiles_dense_models_and_records_the_setting(tmp_path, capsys):
+    """What the MDM patch / ``smdm run`` call after ``create_model_and_diffusion``: a dense model
+    is compiled too (the A/B's other side), ``args.json`` of a training run gets what applied;
+    ``--sparse_compile none`` leaves the model untouched. The option joins MDM's ``base`` group
+    (never overwritten from ``args.json`` at sampling)."""
+    import types
+
+    from smdm_plugin.integrations.mdm import patch_base_options, sparsify_mdm
+
+    (tmp_path / "args.json").write_text(json.dumps({"seed": 10, "sparse_compile": "reduce-overhead"}))
+    args = argparse.Namespace(sparse=False, sparse_compile="reduce-overhead", save_dir=str(tmp_path),
+                              model_path=None, overwrite=False)
+    model = TinyMDM(njoints=D, cond_mode="no_cond", **TINY)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        sparsify_mdm(model, args)
+    s = C.compile_setting(model)
+    assert s is not None and s.requested == "reduce-overhead"
+    saved = json.loads((tmp_path / "args.json").read_text())
+    assert saved["seed"] == 10 and saved["sparse_compile"] == "reduce-overhead"
+    assert saved["sparse_compile_applied"] == s.describe() and "runs torch.compile" in capsys.readouterr().err
+    plain = TinyMDM(njoints=D, cond_mode="no_cond", **TINY)
+    sparsify_mdm(plain, argparse.Namespace(sparse=False, sparse_compile="none", save_dir=None, model_path="m.pt"))
+    assert plain._compiled_call_impl is None
+
+    parser_util = types.SimpleNamespace(add_base_options=lambda parser: parser.add_argument_group("base"))
+    patch_base_options(parser_util)
+    patch_base_options(parser_util)                               # idempotent
+    p = argparse.ArgumentParser()
+    parser_util.add_base_options(p)
+    base = next(g for g in p._action_groups if g.title == "base")
+    assert [a.dest for a in base._group_actions] == ["sparse_compile"]
+    assert p.parse_args(["--sparse_compile", "default"]).sparse_compile == "default"
