@@ -160,3 +160,44 @@ def test_motiondiffuse_trains_compiled(tmp_path, monkeypatch):
             opt = open(os.path.join(t2m, "checkpoints", "t2m", "sparse_ci", "opt.txt")).read()
             assert "sparse_compile: default" in opt and "sparse_compile_applied: torch.compile default" in opt
     assert len(losses["default"]) >= 20 and np.allclose(losses["default"], losses["none"], rtol=1e-3, atol=1e-5)
+
+
+# --------------------------------------------------------------------------- MDM eval (patch route)
+@pytest.mark.skipif(not MDM_ROOT, reason="SMDM_MDM_ROOT not set (an MDM checkout)")
+def test_mdm_patch_trains_and_evaluates_compiled(tmp_path, monkeypatch):
+    """``patches/mdm.patch`` carries the flag (``base`` group): training and ``eval.eval_humanml``
+    (guided sampling of the evaluation batches) compiled, zero recompiles, finite FID."""
+    import glob
+
+    import test_mdm_eval_upstream as E
+
+    if not os.path.isfile(os.path.join(E.LARGE, "test.txt")):
+        pytest.skip("no cmu-humanml3d-large data")
+    import tempfile
+
+    from _upstream import copy_checkout, git_apply, link_humanml3d
+
+    repo = tempfile.mkdtemp(dir=str(tmp_path))
+    copy_checkout(MDM_ROOT, repo)
+    link_humanml3d(repo, os.path.abspath(E.LARGE))
+    assert git_apply(os.path.join(E.PATCHES, "mdm.patch"), repo).returncode == 0
+    E.write_evaluator(repo, E.LARGE)
+    for k, v in COMPILE_ENV.items():
+        monkeypatch.setenv(k, v)
+    save = str(tmp_path / "sparse")
+    st = str(tmp_path / "train.json")
+    monkeypatch.setenv("SMDM_COMPILE_STATS", st)
+    E.harness(repo, ["train.train_mdm", "--save_dir", save, "--num_steps", "10", *E.TINY, "--sparse",
+                     "--sparse_compile", "default"])
+    assert_no_recompiles(stats(st), phases=1)
+    assert json.load(open(os.path.join(save, "args.json")))["sparse_compile"] == "default"
+    ckpt = sorted(glob.glob(os.path.join(save, "model*.pt")))[-1]
+    st = str(tmp_path / "eval.json")
+    monkeypatch.setenv("SMDM_COMPILE_STATS", st)
+    proc = E.harness(repo, ["--model_path", ckpt, "--eval_mode", "debug", "--sparse_compile", "default"], code=E.EVAL)
+    assert "EVAL_MODEL_SPARSE=True" in proc.stdout + proc.stderr
+    m = stats(st)["models"][-1]
+    assert m["recompiles"] == 0 and m["compiled_calls"] > 0, m
+    text = open(glob.glob(os.path.join(save, "eval_humanml_*_debug.log"))[0]).read()
+    fids = [float(v) for v in re.findall(r"\[vald\] FID: ([-0-9.eE+naninf]+)", text)]
+    assert fids and all(np.isfinite(fids)), text[-2000:]
