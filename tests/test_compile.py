@@ -351,3 +351,22 @@ def test_mdm_integration_compiles_dense_models_and_records_the_setting(tmp_path,
     base = next(g for g in p._action_groups if g.title == "base")
     assert [a.dest for a in base._group_actions] == ["sparse_compile"]
     assert p.parse_args(["--sparse_compile", "default"]).sparse_compile == "default"
+
+
+def test_bert_text_tokens_padded_to_a_bucket_change_nothing():
+    """DiP's ``(features [L, B, d], mask [B, L])`` padded with masked tokens: the decoder's
+    cross-attention gives the same output (masked keys weigh 0), and every L <= 64 has one shape."""
+    torch.manual_seed(0)
+    layer = torch.nn.TransformerDecoderLayer(16, 4, 32, dropout=0.0)
+    dec = torch.nn.TransformerDecoder(layer, 2).eval()
+    tgt = torch.randn(10, 3, 16)
+    for L in (5, 17, 64):
+        feats, mask = torch.randn(L, 3, 16), torch.zeros(3, L, dtype=torch.bool)
+        mask[0, L // 2:] = True                                    # a shorter caption in the batch
+        pf, pm = C.pad_text_tokens((feats, mask))
+        assert pf.shape == (64, 3, 16) and pm.shape == (3, 64) and pm[:, L:].all()
+        with torch.no_grad():
+            want = dec(tgt, feats, memory_key_padding_mask=mask)
+            got = dec(tgt, pf, memory_key_padding_mask=pm)
+        assert torch.allclose(got, want, atol=1e-5), L
+    assert C.pad_text_tokens((torch.randn(70, 3, 16), torch.zeros(3, 70, dtype=torch.bool)))[0].shape[0] == 128

@@ -115,8 +115,12 @@ def _join_call(args: tuple, kwargs: dict, x: Any, t: Any, y: Any) -> Tuple[tuple
 
 
 def _to(value: Any, device: torch.device) -> Any:
-    if isinstance(value, torch.Tensor) and value.device != device:
-        return value.to(device, non_blocking=True)
+    """A tensor on ``device``, contiguous (a slice's strides would be guarded: DiP's prefix is the
+    previous window's tail); anything else as it is."""
+    if isinstance(value, torch.Tensor):
+        if value.device != device:
+            value = value.to(device, non_blocking=True)
+        return value.contiguous()
     return value
 
 
@@ -142,6 +146,27 @@ class _PassThroughEncoder:
         if isinstance(raw, torch.Tensor) or (isinstance(raw, tuple) and raw and isinstance(raw[0], torch.Tensor)):
             return raw
         return self.original(raw, *a, **kw)
+
+
+#: DiP's DistilBERT features are padded (masked tokens) to a multiple of this many tokens
+TEXT_TOKEN_BUCKET = 64
+
+
+def pad_text_tokens(enc: Tuple[torch.Tensor, ...], bucket: int = TEXT_TOKEN_BUCKET) -> Tuple[torch.Tensor, ...]:
+    """DiP's BERT text features ``(features [L, B, d], padding mask [B, L] bool, True = no token)``
+    padded with masked tokens to the next multiple of ``bucket`` tokens: the batch's longest
+    caption no longer sets a shape (one graph for every batch up to ``bucket`` tokens). Exact:
+    masked keys get zero attention weight."""
+    if len(enc) != 2 or not all(isinstance(t, torch.Tensor) for t in enc) or enc[0].dim() != 3 or enc[1].dim() != 2:
+        return enc
+    feats, mask = enc
+    L = feats.shape[0]
+    target = max(bucket, -(-L // bucket) * bucket)
+    if target == L or mask.shape[1] != L:
+        return enc
+    feats = torch.cat([feats, feats.new_zeros(target - L, *feats.shape[1:])], dim=0)
+    mask = torch.cat([mask, mask.new_ones(mask.shape[0], target - L)], dim=1)
+    return feats, mask
 
 
 def _mdm_text_encoder(model: nn.Module) -> Optional[Callable]:
@@ -175,6 +200,8 @@ def prepare_mdm(model: nn.Module, args: tuple, kwargs: dict) -> Tuple[tuple, dic
                 if getattr(model, "encode_text", None) is None:       # TinyMDM: [B, dim] -> [1, B, dim]
                     enc = enc.reshape(1, x.shape[0], -1)
                 y["text_embed"] = enc
+        if isinstance(y.get("text_embed"), tuple):
+            y["text_embed"] = pad_text_tokens(y["text_embed"])
         uncond = y.get("uncond", False)   # True, or priorMDM's second take: 1.0
         if text_cond and isinstance(uncond, (bool, int, float)) and not model.training and "text_embed" in y:
             if uncond:

@@ -201,3 +201,29 @@ def test_mdm_patch_trains_and_evaluates_compiled(tmp_path, monkeypatch):
     text = open(glob.glob(os.path.join(save, "eval_humanml_*_debug.log"))[0]).read()
     fids = [float(v) for v in re.findall(r"\[vald\] FID: ([-0-9.eE+naninf]+)", text)]
     assert fids and all(np.isfinite(fids)), text[-2000:]
+
+
+@pytest.mark.skipif(not MDM_ROOT, reason="SMDM_MDM_ROOT not set (an MDM checkout)")
+def test_dip_trains_and_samples_autoregressively_compiled(upstream_copy, tmp_path, monkeypatch):
+    """DiP (DistilBERT features of batch-dependent length, padded to a fixed bucket; the prefix is
+    the previous window's tail): one graph in training, one in autoregressive guided sampling,
+    zero recompiles, samples equal to eager."""
+    import test_mdm_upstream as M
+
+    repo = upstream_copy(MDM_ROOT, "mdm_compile_dip")
+    for k, v in COMPILE_ENV.items():
+        monkeypatch.setenv(k, v)
+    st = str(tmp_path / "train.json")
+    monkeypatch.setenv("SMDM_COMPILE_STATS", st)
+    _, ckpt = M.train(repo, str(tmp_path / "dip"), "dip", 6, extra=["--sparse", "--sparse_compile", "default"],
+                      launcher=True)
+    assert_no_recompiles(stats(st), phases=1)
+    samples = {}
+    for mode in ("none", "default"):
+        st = str(tmp_path / f"gen_{mode}.json")
+        monkeypatch.setenv("SMDM_COMPILE_STATS", st)
+        _, res = M.generate(repo, ckpt, str(tmp_path / f"gen_{mode}"), "dip", extra=["--sparse_compile", mode],
+                            launcher=True)
+        samples[mode] = res["motion"]
+    assert_no_recompiles(stats(st), phases=1)
+    assert np.allclose(samples["default"], samples["none"], atol=1e-4)
