@@ -370,3 +370,28 @@ def test_bert_text_tokens_padded_to_a_bucket_change_nothing():
             got = dec(tgt, pf, memory_key_padding_mask=pm)
         assert torch.allclose(got, want, atol=1e-5), L
     assert C.pad_text_tokens((torch.randn(70, 3, 16), torch.zeros(3, 70, dtype=torch.bool)))[0].shape[0] == 128
+
+
+def test_forced_keyframes_trace_with_a_break_and_never_recompile():
+    """In-betweening / ``sample.edit``: forced keyframes are counted on the host once per call (as
+    in eager), so those calls compile without fullgraph: no error, no recompile across steps and
+    other forced frames of the same count pattern, equal to eager."""
+    from smdm_plugin import with_forced
+
+    model, diffusion = TinyMDM(njoints=D, cond_mode="no_cond", **TINY), SimpleDiffusion(20)
+    sparsify(model, SparseConfig(mask_noise=0.0, feature="raw"), diffusion=diffusion)
+    model.eval()
+    ref = copy.deepcopy(model)
+    C.compile_model(model, "default", backend=BACKEND)
+    x = torch.randn(2, D, 1, N)
+    y = {"mask": torch.ones(2, 1, 1, N, dtype=torch.bool), "lengths": torch.tensor([N, 30])}
+    forced = torch.zeros(2, N, dtype=torch.bool)
+    forced[:, 10] = True
+    with torch.no_grad():
+        for step in (19, 12, 5, 1, 0):
+            t = torch.full((2,), step)
+            yf = with_forced(y, forced)
+            assert torch.allclose(model(x, t, dict(yf)), ref(x, t, dict(yf)), atol=1e-5), step
+            assert torch.allclose(model(x, t, dict(y)), ref(x, t, dict(y)), atol=1e-5), step
+    s = C.compile_setting(model)
+    assert s.recompiles == 0 and s.compiled_calls == 10 and len(model._compiled_call_impl._static) == 2

@@ -278,6 +278,18 @@ def _clone_outputs(out: Any) -> Any:
     return out
 
 
+def _has_forced(args: tuple, kwargs: dict) -> bool:
+    """Whether a call carries forced keyframes (a :class:`KeyframeRequest` with ``forced``), in
+    MDM's ``y`` or MotionDiffuse's keyword arguments."""
+    from ..adapters.request import KEYFRAMES_KEY
+
+    for container in [kwargs] + [a for a in args if isinstance(a, dict)] + \
+            [v for v in kwargs.values() if isinstance(v, dict)]:
+        if getattr(container.get(KEYFRAMES_KEY), "forced", None) is not None:
+            return True
+    return False
+
+
 def _graph_count() -> int:
     from torch._dynamo.utils import counters
 
@@ -294,40 +306,43 @@ class _CompiledCall:
     def __init__(self, model: nn.Module, setting: CompileSetting) -> None:
         self.model, self.setting = model, setting
         self.prepare = _preparer(model)
-        self._compiled: Optional[Callable] = None
+        self._compiled: Dict[bool, Callable] = {}
         self._mode: Optional[str] = None
         self._static: Dict[tuple, int] = {}
         self._warned_eager = False
 
-    def _function(self, device: torch.device) -> Tuple[Callable, bool]:
-        """The compiled ``_call_impl`` (made on the first call) and whether CUDA graphs apply."""
-        if self._compiled is None:
-            s = self.setting
-            mode = s.mode
-            if mode == "reduce-overhead" and device.type != "cuda":
-                mode = "default"
+    def _function(self, device: torch.device, fullgraph: bool) -> Tuple[Callable, bool]:
+        """The compiled ``_call_impl`` (made on the first call; one per ``fullgraph``) and whether
+        CUDA graphs apply."""
+        s = self.setting
+        if self._mode is None:
+            self._mode = s.mode
+            if s.mode == "reduce-overhead" and device.type != "cuda":
+                self._mode = s.mode = "default"
                 s.note = (s.note + "; " if s.note else "") + \
                     f"reduce-overhead needs CUDA graphs; the model runs on {device.type}: compiled with default"
-                s.mode = "default"
                 warnings.warn(f"{_WARN}: {s.note}", stacklevel=4)
-            kwargs: Dict[str, Any] = dict(fullgraph=s.fullgraph, dynamic=False, backend=s.backend)
+        if fullgraph not in self._compiled:
+            kwargs: Dict[str, Any] = dict(fullgraph=fullgraph, dynamic=False, backend=s.backend)
             if s.backend == "inductor":
-                kwargs["mode"] = None if mode == "default" else mode
+                kwargs["mode"] = None if self._mode == "default" else self._mode
             model = self.model
 
             def call(*args: Any, **kw: Any) -> Any:    # traced as one frame, the hooks inlined
                 return model._call_impl(*args, **kw)
 
-            self._compiled = torch.compile(call, **kwargs)
-            self._mode = mode
-        return self._compiled, self._mode == "reduce-overhead" and device.type == "cuda"
+            self._compiled[fullgraph] = torch.compile(call, **kwargs)
+        return self._compiled[fullgraph], self._mode == "reduce-overhead" and device.type == "cuda"
 
     def __call__(self, *args: Any, **kwargs: Any) -> Any:
         args, kwargs = self.prepare(self.model, args, kwargs)
         x = _first_tensor(args, kwargs)
         if x is None:
             return self.model._call_impl(*args, **kwargs)
-        phase = (self.model.training, torch.is_grad_enabled(), x.device.type, tuple(x.shape[1:]))
+        # forced keyframes (sample.edit, in-betweening) are counted on the host once per call, as in
+        # eager: such calls trace with a graph break there (a phase of their own, same guarantee)
+        fullgraph = self.setting.fullgraph and not _has_forced(args, kwargs)
+        phase = (self.model.training, torch.is_grad_enabled(), x.device.type, tuple(x.shape[1:]), fullgraph)
         warm = phase in self._static
         batch = self._static.setdefault(phase, x.shape[0])
         if x.shape[0] != batch:                      # outside the static batch: eager, no recompile
@@ -337,7 +352,7 @@ class _CompiledCall:
                 warnings.warn(f"{_WARN}: a call with batch {x.shape[0]} (static batch {batch} for this "
                               f"shape) runs eagerly; the compiled graph keeps its static batch", stacklevel=3)
             return self.model._call_impl(*args, **kwargs)
-        fn, graphs = self._function(x.device)
+        fn, graphs = self._function(x.device, fullgraph)
         self.setting.compiled_calls += 1
         before = _graph_count()
         if graphs:
