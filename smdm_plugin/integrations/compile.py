@@ -435,8 +435,8 @@ def uncompile(model: nn.Module) -> nn.Module:
 #: environment: the torch.compile backend of the integrations (default inductor; aot_eager / eager
 #: trace the same graphs without generating code: quick checks on a CPU)
 BACKEND_ENV = "SMDM_COMPILE_BACKEND"
-#: environment: a JSON file the process writes at exit: per compiled model its setting, calls,
-#: phases (static shapes) and Dynamo's graph count (graphs == phases: no recompilation)
+#: environment: a JSON file the process writes at exit (``{rank}`` in it: torchrun's rank): per
+#: compiled model its setting, calls, phases (static shapes), recompiles, and Dynamo's graph count
 STATS_ENV = "SMDM_COMPILE_STATS"
 _COMPILED: List[Tuple[str, CompileSetting, "_CompiledCall"]] = []
 
@@ -459,6 +459,7 @@ def _write_stats() -> None:
 
     path = os.environ.get(STATS_ENV)
     if path:
+        path = path.replace("{rank}", os.environ.get("RANK", "0"))    # torchrun: a file per process
         with open(path, "w") as f:
             json.dump(compile_stats(), f, indent=2)
 

@@ -10,7 +10,10 @@ made Dynamo capture a new graph).
   the same weights as an eager run on the static-shape path (``static_mode``: what runs on a GPU;
   the CPU's eager default packs keyframes differently, so its dropout draws differ), the setting
   in ``args.json``, no ``_orig_mod.`` key in the checkpoint; ``sample.generate`` (classifier-free
-  guidance: 2 calls per step) from it: one graph, zero recompiles, samples equal to eager.
+  guidance: 2 calls per step) from it: one graph, zero recompiles, samples equal to eager;
+  ``sample.edit`` (in-betweening: forced keyframes, a graph break at their host count): zero
+  recompiles, equal to eager. DiP: training and autoregressive sampling, zero recompiles.
+* MDM through the patch: training and ``eval.eval_humanml``, zero recompiles, finite FID.
 * priorMDM DoubleTake (patch): both takes, both guidance passes: zero recompiles after each
   take's first call, the unfolded sample equal to eager.
 * MotionDiffuse (patch): a sparse MotionTransformer trains compiled: zero recompiles, ``opt.txt``
@@ -96,6 +99,43 @@ def test_mdm_trains_20_steps_and_samples_compiled(upstream_copy, tmp_path, monke
             assert_no_recompiles(data, phases=1)
             assert data["models"][-1]["compiled_calls"] == 2 * 20    # both guidance passes, 20 steps
     assert np.allclose(samples["default"], samples["none"], atol=1e-4)
+
+    edits = {}                       # sample.edit in_between: the kept frames are forced keyframes
+    for mode in ("none", "default"):
+        st = str(tmp_path / f"edit_{mode}.json")
+        monkeypatch.setenv("SMDM_COMPILE_STATS", st)
+        out = str(tmp_path / f"edit_{mode}")
+        M.mdm(repo, "sample.edit", ["--model_path", ckpt, "--output_dir", out, "--num_samples", "2",
+                                    "--num_repetitions", "1", "--edit_mode", "in_between", "--text_condition",
+                                    "a person walks", "--sparse_compile", mode], launcher=True)
+        edits[mode] = np.load(os.path.join(out, "results.npy"), allow_pickle=True).item()["motion"]
+    m = stats(st)["models"][-1]
+    assert m["recompiles"] == 0 and m["eager_calls"] == 0 and m["compiled_calls"] == 2 * 20, m
+    assert np.allclose(edits["default"], edits["none"], atol=1e-4)
+
+
+@pytest.mark.skipif(not MDM_ROOT, reason="SMDM_MDM_ROOT not set (an MDM checkout)")
+def test_mdm_torchrun_compiled_inside_ddp(upstream_copy, tmp_path, monkeypatch):
+    """``smdm run -- torchrun --nproc_per_node 2`` (gloo): the model compiled inside MDM's DDP
+    wrapper; both ranks end with identical parameters, zero recompiles on each."""
+    import torch
+
+    import test_mdm_upstream as M
+
+    repo = upstream_copy(MDM_ROOT, "mdm_compile_ddp")
+    for k, v in COMPILE_ENV.items():
+        monkeypatch.setenv(k, v)
+    monkeypatch.setenv("SMDM_COMPILE_STATS", str(tmp_path / "rank{rank}.json"))
+    probe = tmp_path / "probe"
+    probe.mkdir()
+    M.torchrun_train(repo, str(tmp_path / "save"), str(probe), "trans_enc",
+                     ["--sparse", "--sparse_compile", "default"], launcher=True)
+    r0, r1 = (torch.load(probe / f"rank{r}.pt", weights_only=True) for r in (0, 1))
+    assert sorted(r0) == sorted(r1) and not [k for k in r0 if "_orig_mod" in k]
+    for k in r0:
+        assert torch.equal(r0[k], r1[k]), k
+    for r in (0, 1):
+        assert_no_recompiles(stats(str(tmp_path / f"rank{r}.json")), phases=1)
 
 
 # --------------------------------------------------------------------------- priorMDM DoubleTake
