@@ -14,8 +14,9 @@ made Dynamo capture a new graph).
   ``sample.edit`` (in-betweening: forced keyframes, a graph break at their host count): zero
   recompiles, equal to eager. DiP: training and autoregressive sampling, zero recompiles.
 * MDM through the patch: training and ``eval.eval_humanml``, zero recompiles, finite FID.
-* priorMDM DoubleTake (patch): both takes, both guidance passes: zero recompiles after each
-  take's first call, the unfolded sample equal to eager.
+* priorMDM (patch): training compiled (zero recompiles, ``args.json``); DoubleTake, both takes,
+  both guidance passes: zero recompiles after each take's first call, the unfolded sample equal
+  to eager.
 * MotionDiffuse (patch): a sparse MotionTransformer trains compiled: zero recompiles, ``opt.txt``
   states the setting, losses equal to eager within float tolerance (dropout 0 there).
 """
@@ -151,7 +152,12 @@ def test_doubletake_samples_compiled(tmp_path, monkeypatch):
     if not P.DATA:
         pytest.skip("no HumanML3D-format data")
     run, save = P.prepare(str(tmp_path / "priorMDM")), str(tmp_path / "save" / "sparse")
-    P.harness(run, *P.train_args(save, 2))
+    for k, v in COMPILE_ENV.items():
+        monkeypatch.setenv(k, v)
+    monkeypatch.setenv("SMDM_COMPILE_STATS", str(tmp_path / "train.json"))
+    P.harness(run, *P.train_args(save, 2), "--sparse_compile", "default")   # priorMDM's training, compiled
+    assert_no_recompiles(stats(str(tmp_path / "train.json")), phases=1)
+    assert json.load(open(os.path.join(save, "args.json")))["sparse_compile_applied"].startswith("torch.compile")
     ckpt = os.path.join(save, "model000000002.pt")
     motions = {}
     for mode in ("none", "default"):
