@@ -31,7 +31,7 @@ import torch
 import torch.nn as nn
 
 from ..core.config import CONFIG_FILENAME, SparseConfig, sparse_config_of
-from ..integrations.compile import compile_model
+from ..integrations.compile import check_compile_mode, compile_model
 from ..integrations.distributed import DistContext, constant_buffers_kwargs, init_distributed
 from ..io.checkpoint import BACKBONE_FILENAME
 from ..io.files import atomic_open, atomic_write_json, atomic_write_text
@@ -127,8 +127,6 @@ class TrainConfig:
     text: Optional[TextConfig] = None
 
     def __post_init__(self) -> None:
-        from ..integrations.compile import check_compile_mode
-
         self.compile = check_compile_mode(self.compile, "TrainConfig.compile")
         checks = {"steps": self.steps >= 0, "batch": self.batch >= 1, "lr": self.lr > 0,
                   "weight_decay": self.weight_decay >= 0, "grad_clip": self.grad_clip >= 0,
