@@ -688,8 +688,9 @@ def markdown(result: Dict[str, Any]) -> str:
         lines.append(f"| {r['arch']} | {r['mode']} | {cm} | {r['variant']} | {r['median_s'] * 1000:.1f} | "
                      f"{_launch_cell(r)} | {r['speedup']:.2f}× | {r['cpu_s'] * 1000:.1f} | {r['cpu_speedup']:.2f}× | "
                      f"{sel} | {itp} | {ov} | {r['peak_mem_mib']:.0f} | {mr} |")
-    lines += ["", "launches: kernel launches of one call, counted as CUDA runs them (smdm_plugin.core.launches; "
-              "eager cells, any device); compiled cells: on CUDA the launch calls the profiler records (a CUDA "
+    lines += ["", "launches: kernel launches of the timed call, counted as CUDA runs them (smdm_plugin.core.launches; "
+              "eager cells, any device: off CUDA the sparse model's own CPU path, which packs keyframes; a GPU runs "
+              "the static-shape path); compiled cells: on CUDA the launch calls the profiler records (a CUDA "
               "graph replay counts once), elsewhere — (a compiler's fused kernels bypass the dispatcher). "
               "Speed-ups are against the dense model at the same compile mode."]
     at = [r for r in result["rows"] if abs(r["reduction"] - 0.8) < 1e-9]
