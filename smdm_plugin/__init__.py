@@ -18,7 +18,7 @@ import importlib
 from typing import TYPE_CHECKING, Any, Dict, List
 
 
-__version__ = "0.4.0"
+__version__ = "0.5.0"
 
 _EXPORTS: Dict[str, str] = {
     # core: the method
@@ -34,6 +34,7 @@ _EXPORTS: Dict[str, str] = {
     "FSQ": "core.fsq", "FSQMultiheadAttention": "core.fsq", "quantize_attention_keys": "core.fsq",
     "unquantize_attention_keys": "core.fsq",
     "MaskSchedule": "core.schedule",
+    "LaunchCounter": "core.launches", "LaunchCount": "core.launches", "count_launches": "core.launches",
     "dense_loss": "core.losses", "keyframe_loss": "core.losses", "lipschitz_term": "core.losses",
     # adapters: model surgery
     "sparsify": "adapters.surgery", "unsparsify": "adapters.surgery", "is_sparse": "adapters.surgery",
@@ -46,6 +47,8 @@ _EXPORTS: Dict[str, str] = {
     "swap_text_encoder": "adapters.text_encoder", "HFTextEncoder": "adapters.text_encoder",
     "install_text_cache": "adapters.text_cache", "TextEmbeddingCache": "adapters.text_cache",
     "ConfigTypeError": "core.config",
+    # integrations: graph capture (--sparse_compile / smdm train --compile)
+    "compile_model": "integrations.compile", "CompileSetting": "integrations.compile",
     "sample_inbetween": "adapters.inbetween", "keyframe_constraint": "adapters.inbetween",
     "forced_keyframes": "adapters.inbetween",
     # metrics
@@ -112,6 +115,8 @@ if TYPE_CHECKING:  # pragma: no cover - for type checkers and IDEs
     from .core.lipschitz import LipschitzMLP, bake_lipschitz, lipschitz_loss
     from .core.losses import dense_loss, keyframe_loss, lipschitz_term
     from .core.schedule import MaskSchedule
+    from .core.launches import LaunchCount, LaunchCounter, count_launches
+    from .integrations.compile import CompileSetting, compile_model
     from .core.selection import register_selector
     from .core.selection import keyframe_count, perturb_mask, select_keyframes, vw_reference
     from .io.bvh import BVHError, BVHWarning, bvh_joint_positions, load_cmu_clip, read_bvh

@@ -285,12 +285,26 @@ class BrokenDiffusion:
     num_timesteps = 50
 
 
-def test_failed_sparsify_leaves_the_model_as_before_and_a_retry_works(case):
+def test_failed_sparsify_leaves_the_model_as_before_and_a_retry_works(case, monkeypatch):
+    """A diffusion without ``training_losses`` is refused before any change (a TypeError naming the
+    argument); a failure at the last step (attaching the diffusion) rolls the surgery back."""
+    import smdm_plugin.adapters.surgery as surgery
+
     model = case.build()
     snap = snapshot(model)
-    with pytest.raises(AttributeError):
+    with pytest.raises(TypeError, match="diffusion"):
         sparsify(model, case.config(lipschitz=True), diffusion=BrokenDiffusion())
     assert_same(model, snap)
+
+    def broken_attach(*args, **kwargs):
+        raise RuntimeError("attach failed")
+
+    monkeypatch.setattr(surgery, "attach_diffusion", broken_attach)
+    with pytest.raises(RuntimeError, match="attach failed"):
+        sparsify(model, case.config(lipschitz=True), diffusion=case.diffusion())
+    assert_same(model, snap)
+    assert not is_sparse(model)
+    monkeypatch.undo()
     sparsify(model, case.config(), diffusion=case.diffusion())
     assert is_sparse(model)
 
