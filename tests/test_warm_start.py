@@ -1,0 +1,121 @@
+"""Starting sparse from a dense model: the zero-shot wrap (preset zero_shot, wrap_dense) and the
+warm start (warm_start: Lipschitz MLPs and FSQ keys fitted to the dense layers)."""
+import pytest
+import torch
+
+from smdm_plugin import SparseConfig, TinyMDM, sparsify
+from smdm_plugin.adapters.surgery import unsparsify
+from smdm_plugin.adapters.warm import (adds_layers, diffusion_probe, fit_mlp_to_linear, is_dense_wrap, warm_start,
+                                       wrap_dense)
+from smdm_plugin.core.config import MARKER, load_preset
+from smdm_plugin.core.noise import NOISE_STEP
+from smdm_plugin.core.lipschitz import LipschitzMLP
+from smdm_plugin.reference.diffusion import SimpleDiffusion
+
+KW = dict(latent_dim=32, ff_size=64, num_layers=2, dropout=0.0, cond_mode="no_cond")
+D, N = 263, 40
+
+
+def dense(arch="trans_enc", seed=0):
+    torch.manual_seed(seed)
+    return TinyMDM(arch=arch, **KW).eval()
+
+
+def call(model, x, t):
+    with torch.no_grad():
+        return model(x, t, y={"mask": torch.ones(x.shape[0], 1, 1, x.shape[-1], dtype=torch.bool),
+                               "lengths": torch.full((x.shape[0],), x.shape[-1])})
+
+
+def inputs(seed=1):
+    g = torch.Generator().manual_seed(seed)
+    return torch.randn(3, D, 1, N, generator=g), torch.tensor([3, 20, 45])
+
+
+def test_zero_shot_preset_adds_no_layer():
+    c = load_preset("zero_shot")
+    assert c.enabled and not c.lipschitz and not c.fsq and not adds_layers(c) and c.reduction == 0.8
+    assert adds_layers(load_preset("smdm_paper"))
+
+
+@pytest.mark.parametrize("arch", ["trans_enc", "trans_dec"])
+def test_wrap_keeps_every_weight_and_reduction_0_equals_dense(arch):
+    ref = dense(arch)
+    before = {k: v.clone() for k, v in ref.state_dict().items()}
+    x, t = inputs()
+    want = call(ref, x, t)
+    model = wrap_dense(dense(arch), load_preset("zero_shot").replace(reduction=0.0))
+    after = model.state_dict()
+    assert set(after) - set(before) == {MARKER, NOISE_STEP}
+    for k, v in before.items():
+        assert torch.equal(after[k], v), k            # weights untouched
+    assert is_dense_wrap(model)
+    assert torch.allclose(call(model, x, t), want, atol=1e-5)
+    sparse_out = call(wrap_dense(dense(arch)), x, t)      # 80% dropped: differs
+    assert not torch.allclose(sparse_out, want, atol=1e-3)
+
+
+def test_wrapped_model_loads_a_dense_state_dict_and_its_own():
+    src = dense(seed=3)
+    model = wrap_dense(dense(seed=0))
+    model.load_state_dict(src.state_dict())           # dense weights into the wrapped model
+    for k, v in src.state_dict().items():
+        assert torch.equal(model.state_dict()[k], v)
+    model.load_state_dict(model.state_dict())
+    unsparsify(model)
+    assert not is_dense_wrap(model)
+    plain = sparsify(dense(), SparseConfig(lipschitz=False, fsq=False))
+    with pytest.raises(RuntimeError):                 # a plain sparse model still refuses a dense state dict
+        plain.load_state_dict(src.state_dict())
+
+
+def test_wrap_refuses_a_config_with_new_layers():
+    model = dense()
+    with pytest.raises(ValueError, match="lipschitz"):
+        wrap_dense(model, "smdm_paper")
+    assert MARKER not in dict(model.named_buffers())
+
+
+def test_fit_mlp_to_linear_reference():
+    torch.manual_seed(0)
+    for n_in, n_out, hidden in ((263, 32, 32), (32, 263, 32), (20, 30, 64), (40, 40, 16)):
+        lin = torch.nn.Linear(n_in, n_out)
+        mlp = LipschitzMLP(n_in, n_out, hidden=hidden, layers=3)
+        x = torch.randn(500, n_in) * 2
+        with torch.no_grad():
+            err = fit_mlp_to_linear(mlp, lin, x)
+            out, ref = mlp(x), lin(x)
+        if hidden >= min(n_in, n_out):
+            assert err.rel_rms < 2e-3, (n_in, n_out, err)
+            assert torch.allclose(out, ref, atol=2e-3 * float(ref.abs().max()))
+        else:                                          # rank-limited: the best rank-`hidden` map
+            U, S, Vh = torch.linalg.svd(lin.weight.detach())
+            best = x @ (U[:, :hidden] * S[:hidden] @ Vh[:hidden]).T + lin.bias.detach()
+            assert torch.allclose(out, best, atol=1e-2 * float(best.abs().max()))
+
+
+@pytest.mark.parametrize("fsq", [False, True])
+def test_warm_start_reproduces_the_dense_model_at_reduction_0(fsq):
+    ref = dense("trans_dec")
+    x, t = inputs()
+    want = call(ref, x, t)
+    diffusion = SimpleDiffusion(50)
+    model = dense("trans_dec")
+    y = {"mask": torch.ones(3, 1, 1, N, dtype=torch.bool), "lengths": torch.full((3,), N)}
+    probe = diffusion_probe(torch.randn(3, D, 1, N), {"y": y}, diffusion.q_sample, 50)
+    cfg = SparseConfig(reduction=0.0, fsq=fsq)
+    report = warm_start(model, cfg, probe)
+    assert len(report.mlps) == 2 and all(e.rel_rms < 5e-3 for e in report.mlps), report
+    got = call(model, x, t)
+    rel = float((got - want).norm() / want.norm())
+    if fsq:                                            # quantised keys: close, not equal
+        assert len(report.fsq) == 2 and all(e.rel_rms < 0.6 for e in report.fsq), report
+        assert rel < 0.1, rel
+        cold = sparsify(dense("trans_dec"), cfg)       # FSQ + Lipschitz at random init
+        assert rel < 0.5 * float((call(cold, x, t) - want).norm() / want.norm())
+    else:
+        assert rel < 1e-3, rel
+    # the warm-started model is a plain sparse model: its state dict loads elsewhere with no flag
+    other = sparsify(dense("trans_dec", seed=7), cfg)
+    other.load_state_dict(model.state_dict())
+    assert torch.allclose(call(other, x, t), got, atol=1e-6)
