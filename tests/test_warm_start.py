@@ -119,3 +119,55 @@ def test_warm_start_reproduces_the_dense_model_at_reduction_0(fsq):
     other = sparsify(dense("trans_dec", seed=7), cfg)
     other.load_state_dict(model.state_dict())
     assert torch.allclose(call(other, x, t), got, atol=1e-6)
+
+
+# ------------------------------------------------------------------- smdm train --init-from
+def _train(hml_dir, out, *args):
+    from smdm_plugin.apps import train as train_cli
+
+    return train_cli.main(["--data", str(hml_dir), "--out", str(out), "--latent-dim", "32", "--layers", "2",
+                           "--ff-size", "64", "--steps", "3", "--batch", "2", "--diffusion-steps", "10",
+                           "--dropout", "0", "--no-progress", "--threads", "1", *args])
+
+
+def test_smdm_train_init_from_warm_starts_and_records_the_origin(hml_dir, tmp_path, capsys):
+    import json
+
+    from smdm_plugin.adapters.warm import file_digest
+    from smdm_plugin.io.humanml3d import load_humanml3d
+    from smdm_plugin.training import trainer as T
+    from smdm_plugin.training.data import MotionSet
+
+    assert _train(hml_dir, tmp_path / "dense") == 0
+    dense_model, _ = T.load_trained(str(tmp_path / "dense"))
+    pt = sorted((tmp_path / "dense").glob("model*.pt"))[-1]
+    # before any step: the warm-started sparse model at reduction 0 computes what the dense one does
+    data = MotionSet.from_split(load_humanml3d(str(hml_dir), "train"))
+    cfg = T.TrainConfig(steps=0, batch=2, diffusion_steps=10, model={"latent_dim": 32, "num_layers": 2,
+                        "ff_size": 64, "dropout": 0.0}, sparse=SparseConfig(reduction=0.0, fsq=False))
+    tr = T.Trainer(cfg, data, device="cpu", init_from=str(tmp_path / "dense"))
+    x, t = inputs()
+    want, got = call(dense_model.eval(), x, t), call(tr.model.eval(), x, t)
+    assert float((got - want).norm() / want.norm()) < 1e-3
+    assert tr.init_origin["digest"] == file_digest(str(pt)) and tr.init_origin["path"] == str(pt)
+    # through the command: origin recorded, and the result loads with no flag
+    capsys.readouterr()
+    assert _train(hml_dir, tmp_path / "warm", "--sparse", "--init-from", str(tmp_path / "dense")) == 0
+    assert "initialised from the dense checkpoint" in capsys.readouterr().out
+    rec = json.loads((tmp_path / "warm" / "train_config.json").read_text())["init_from"]
+    assert rec["digest"] == file_digest(str(pt)) and len(rec["fit"]["mlps"]) == 2
+    model, config = T.load_trained(str(tmp_path / "warm"))
+    assert config is not None and config.lipschitz and config.fsq
+
+
+def test_smdm_train_init_from_refuses_bad_origins(hml_dir, tmp_path, capsys):
+    assert _train(hml_dir, tmp_path / "sparse", "--sparse") == 0
+    capsys.readouterr()
+    assert _train(hml_dir, tmp_path / "w1", "--sparse", "--init-from", str(tmp_path / "sparse")) == 2
+    assert "holds a sparse model" in capsys.readouterr().err
+    assert _train(hml_dir, tmp_path / "w2", "--init-from", str(tmp_path / "nothing")) == 2
+    assert "--init-from" in capsys.readouterr().err
+    assert not (tmp_path / "w1").exists() and not (tmp_path / "w2").exists()
+    with pytest.raises(SystemExit) as e:
+        _train(hml_dir, tmp_path / "sparse", "--resume", "--init-from", str(tmp_path / "sparse"))
+    assert e.value.code == 2
