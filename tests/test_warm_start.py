@@ -171,3 +171,52 @@ def test_smdm_train_init_from_refuses_bad_origins(hml_dir, tmp_path, capsys):
     with pytest.raises(SystemExit) as e:
         _train(hml_dir, tmp_path / "sparse", "--resume", "--init-from", str(tmp_path / "sparse"))
     assert e.value.code == 2
+
+
+# ------------------------------------------------------------------- upstream options (no checkout)
+def _mdm_like_parser():
+    """The shape of MDM's parser: add_model_options(parser) adds a 'model' group and calls
+    add_sparse_options(group), as patches/mdm.patch does."""
+    import argparse
+
+    from smdm_plugin.integrations.mdm import add_sparse_options
+
+    def add_model_options(parser):
+        group = parser.add_argument_group("model")
+        group.add_argument("--layers", type=int, default=8)
+        add_sparse_options(group)
+
+    parser = argparse.ArgumentParser()
+    add_model_options(parser)
+    return parser
+
+
+def test_start_options_are_not_in_the_model_group():
+    p = _mdm_like_parser()
+    a = p.parse_args(["--sparse_preset", "zero_shot", "--sparse_init_from", "x.pt"])
+    assert a.sparse_preset == "zero_shot" and a.sparse_init_from == "x.pt"
+    model = next(g for g in p._action_groups if g.title == "model")
+    dests = {x.dest for x in model._group_actions}
+    assert "sparse" in dests and "sparse_reduction" in dests                     # restored from args.json
+    assert "sparse_preset" not in dests and "sparse_init_from" not in dests      # never restored
+    assert "--sparse_preset" in p.format_help()
+
+
+def test_resolve_wraps_only_dense_checkpoints_and_refuses_new_layers(capsys):
+    import argparse
+
+    from smdm_plugin.integrations.start import resolve
+
+    dense = SparseConfig(enabled=False)
+    s = resolve(argparse.Namespace(sparse_preset="zero_shot", sparse_init_from=None), dense, training=False)
+    assert s.wrap and s.config.enabled and not s.config.lipschitz
+    with pytest.warns(UserWarning, match="already sparse"):                 # a sparse checkpoint keeps its own
+        s = resolve(argparse.Namespace(sparse_preset="zero_shot"), SparseConfig(), training=False)
+    assert not s.wrap and s.config.lipschitz
+    with pytest.raises(SystemExit) as e:
+        resolve(argparse.Namespace(sparse_preset="smdm_paper"), dense, training=False)
+    assert e.value.code == 2 and "no weights for" in capsys.readouterr().err
+    s = resolve(argparse.Namespace(sparse_preset="smdm_paper", sparse_init_from=None), dense, training=True)
+    assert not s.wrap and s.config.enabled and s.config.fsq                  # training: the run's settings
+    with pytest.raises(SystemExit):
+        resolve(argparse.Namespace(sparse_preset=None, sparse_init_from="nope.pt"), SparseConfig(), training=True)
