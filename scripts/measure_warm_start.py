@@ -88,7 +88,7 @@ def wrap_folder(dense: str, out: str, reduction: float) -> None:
         json.dump(tc, f, indent=2)
 
 
-def sampling_seconds(folder: str, n: int = 16, frames: int = 120, repeats: int = 2) -> float:
+def sampling_seconds(folder: str, n: int = 8, frames: int = 120, repeats: int = 1) -> float:
     """Median wall time (s) of generating ``n`` motions of ``frames`` frames (one batch, 1 thread)."""
     import torch
 
@@ -123,7 +123,7 @@ def main() -> int:
     p.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2])
     p.add_argument("--dense-steps", type=int, default=400)
     p.add_argument("--more-steps", type=int, default=200)
-    p.add_argument("--catch-up", type=int, nargs="*", default=[400, 800],
+    p.add_argument("--catch-up", type=int, nargs="*", default=[600],
                    help="(a) evaluated again after this many more steps each")
     p.add_argument("--replications", type=int, default=3, help="smdm eval replications in (ii) (default 3)")
     p.add_argument("--zero-shot-replications", type=int, default=1,
@@ -138,28 +138,26 @@ def main() -> int:
             json.dump(res, f, indent=2)
 
     W = lambda *n: os.path.join(a.work, *n)  # noqa: E731
-    for seed in a.seeds:                                          # dense models
-        if not os.path.exists(W(f"dense_s{seed}", f"model{a.dense_steps:09d}.pt")):
-            train(a.data, W(f"dense_s{seed}"), a.dense_steps, seed)
-    if "zero_shot" not in a.skip:                                 # (i)
-        for seed in a.seeds:
-            row: Dict[str, Any] = {}
-            for name, reduction in (("dense", None), ("zero_shot_80", 0.8), ("zero_shot_50", 0.5)):
-                folder = W(f"dense_s{seed}") if reduction is None else W(f"{name}_s{seed}")
-                if reduction is not None:
-                    wrap_folder(W(f"dense_s{seed}"), folder, reduction)
-                m = pick(evaluate(a, folder, W(f"eval_{name}_s{seed}"), a.zero_shot_replications))
-                m["sampling_s"] = sampling_seconds(folder)
-                row[name] = m
-                res["zero_shot"][f"seed{seed}"] = row
-                save()
-    if "warm" not in a.skip:                                      # (ii), first seed
-        seed, S = a.seeds[0], a.dense_steps + a.more_steps
+    def zero_shot(seed: int) -> None:                             # (i)
+        row: Dict[str, Any] = {}
+        for name, reduction in (("dense", None), ("zero_shot_80", 0.8), ("zero_shot_50", 0.5)):
+            folder = W(f"dense_s{seed}") if reduction is None else W(f"{name}_s{seed}")
+            if reduction is not None:
+                wrap_folder(W(f"dense_s{seed}"), folder, reduction)
+            m = pick(evaluate(a, folder, W(f"eval_{name}_s{seed}"), a.zero_shot_replications))
+            m["sampling_s"] = sampling_seconds(folder)
+            row[name] = m
+            res["zero_shot"][f"seed{seed}"] = row
+            save()
+
+    def warm(seed: int) -> None:                                  # (ii)
+        S = a.dense_steps + a.more_steps
         dense = W(f"dense_s{seed}")
         t0 = time.time()
         train(a.data, W("warm_b"), a.more_steps, seed + 100, ["--sparse", "--init-from", dense])
         res["warm"]["b_warm"] = {"steps": f"{a.dense_steps} dense + {a.more_steps} sparse",
-                                 "wall_s": time.time() - t0, **pick(evaluate(a, W("warm_b"), W("eval_warm_b"), a.replications))}
+                                 "wall_s": time.time() - t0,
+                                 **pick(evaluate(a, W("warm_b"), W("eval_warm_b"), a.replications))}
         save()
         t0 = time.time()
         train(a.data, W("dense_c"), a.more_steps, seed + 100, ["--init-from", dense])
@@ -169,14 +167,24 @@ def main() -> int:
         steps = S
         train(a.data, W("scratch_a"), steps, seed, ["--sparse"])
         res["warm"][f"a_scratch_{steps}"] = {"steps": f"{steps} sparse",
-                                            **pick(evaluate(a, W("scratch_a"), W(f"eval_scratch_{steps}"), a.replications))}
+                                            **pick(evaluate(a, W("scratch_a"), W(f"eval_scratch_{steps}"),
+                                                            a.replications))}
         save()
         for more in a.catch_up:
             steps = S + more
             train(a.data, W("scratch_a"), steps, seed, ["--sparse"], resume=True)
             res["warm"][f"a_scratch_{steps}"] = {"steps": f"{steps} sparse",
-                                                **pick(evaluate(a, W("scratch_a"), W(f"eval_scratch_{steps}"), a.replications))}
+                                                **pick(evaluate(a, W("scratch_a"), W(f"eval_scratch_{steps}"),
+                                                                a.replications))}
             save()
+
+    for i, seed in enumerate(a.seeds):                            # dense models, then what starts from them
+        if not os.path.exists(W(f"dense_s{seed}", f"model{a.dense_steps:09d}.pt")):
+            train(a.data, W(f"dense_s{seed}"), a.dense_steps, seed)
+        if "zero_shot" not in a.skip:
+            zero_shot(seed)
+        if i == 0 and "warm" not in a.skip:
+            warm(seed)
     save()
     print(json.dumps(res, indent=2))
     return 0
