@@ -114,6 +114,44 @@ def mean_ci(values: List[float]) -> str:
     return f"{v.mean():.3g} ± {half:.2g}"
 
 
+def tables(res: Dict[str, Any]) -> str:
+    """The two markdown tables of docs/mdm.md from the results JSON."""
+    def cell(v: Any) -> str:
+        if v is None:
+            return "-"
+        if isinstance(v, list):
+            return f"{v[0]:.3g} ± {v[1]:.2g}" if v[1] else f"{v[0]:.3g}"
+        return f"{v:.3g}"
+
+    out = []
+    zs = res.get("zero_shot", {})
+    if zs:
+        n = len(zs)
+        out += [f"(i) zero-shot wrap vs dense: mean ± 95% interval over {n} seed(s) (one dense model per seed, "
+                "one smdm eval replication each)", "",
+                "| model | FID | jitter per speed | foot skating | sampling s (8 x 120 frames) |",
+                "| --- | ---: | ---: | ---: | ---: |"]
+        names = (("dense", "dense"), ("zero_shot_80", "zero-shot wrap, 80% dropped"),
+                 ("zero_shot_50", "zero-shot wrap, 50% dropped"))
+        for key, label in names:
+            rows = [r[key] for r in zs.values() if key in r]
+            if not rows:
+                continue
+            out.append(f"| {label} | " + " | ".join(mean_ci([r[k][0] for r in rows]) for k in METRICS)
+                       + f" | {mean_ci([r['sampling_s'] for r in rows])} |")
+        real = next(iter(zs.values()))["dense"]
+        out.append(f"| real (test split) | 0 | {cell(real['real_jitter_per_speed'])} | {cell(real['real_foot_skating'])} | |")
+    w = res.get("warm", {})
+    if w:
+        out += ["", "(ii) warm start at equal optimiser steps: mean ± 95% interval over 3 smdm eval replications",
+                "", "| run | steps | FID | jitter per speed | foot skating |", "| --- | --- | ---: | ---: | ---: |"]
+        label = {"b_warm": "(b) sparse, warm-started from the dense model", "c_dense_continued": "(c) dense, continued"}
+        for key, r in w.items():
+            name = label.get(key, "(a) sparse from scratch")
+            out.append(f"| {name} | {r['steps']} | " + " | ".join(cell(r[k]) for k in METRICS) + " |")
+    return "\n".join(out) + "\n"
+
+
 def main() -> int:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--data", required=True)
@@ -129,7 +167,12 @@ def main() -> int:
     p.add_argument("--zero-shot-replications", type=int, default=1,
                    help="smdm eval replications per seed in (i) (default 1: the interval is over the seeds)")
     p.add_argument("--skip", nargs="*", default=[], choices=["zero_shot", "warm"])
+    p.add_argument("--tables-only", action="store_true", help="print the tables of an existing --out and stop")
     a = p.parse_args()
+    if a.tables_only:
+        with open(a.out) as f:
+            print(tables(json.load(f)), end="")
+        return 0
     os.makedirs(a.work, exist_ok=True)
     res: Dict[str, Any] = {"settings": vars(a), "zero_shot": {}, "warm": {}}
 
@@ -186,7 +229,10 @@ def main() -> int:
         if i == 0 and "warm" not in a.skip:
             warm(seed)
     save()
-    print(json.dumps(res, indent=2))
+    text = tables(res)
+    with open(os.path.splitext(a.out)[0] + ".md", "w") as f:
+        f.write(text)
+    print(text, end="")
     return 0
 
 

@@ -192,7 +192,8 @@ def fit_mlp_to_linear(mlp: LipschitzMLP, linear: nn.Linear, inputs: torch.Tensor
         dt = lins[0].weight.dtype
         _set_lipschitz(lins[0], (eps / w0 * P).to(dt), (eps / w0 * Pb).to(dt))
         for mid in lins[1:-1]:                           # sin(w0 * (I / w0) h) ~ h
-            _set_lipschitz(mid, (torch.eye(H, dtype=W.dtype, device=dev) / w0).to(dt), torch.zeros(H, device=dev, dtype=dt))
+            eye = (torch.eye(H, dtype=W.dtype, device=dev) / w0).to(dt)
+            _set_lipschitz(mid, eye, torch.zeros(H, device=dev, dtype=dt))
         _set_lipschitz(lins[-1], (Q / eps).to(dt), Qb.to(dt))
     with torch.no_grad():
         xs = inputs.detach().reshape(-1, n_in)
@@ -239,8 +240,11 @@ def diffusion_probe(x0: torch.Tensor, model_kwargs: Dict[str, Any], q_sample: Ca
     return run
 
 
+Recorded = Dict[str, List[torch.Tensor]]
+
+
 def _record(model: nn.Module, layers: List[Tuple[str, nn.Module]], probe: Callable[[nn.Module], None],
-            key_of: Callable[[tuple, dict], torch.Tensor]) -> Tuple[Dict[str, List[torch.Tensor]], Dict[str, List[torch.Tensor]]]:
+            key_of: Callable[[tuple, dict], torch.Tensor]) -> Tuple[Recorded, Recorded]:
     """Run ``probe(model)`` in eval mode (gradients on: no fused fast path that skips the hooks),
     recording the inputs of the io linears and the key inputs of the self-attentions."""
     lin_in: Dict[str, List[torch.Tensor]] = {n: [] for n, m in layers if isinstance(m, nn.Linear)}

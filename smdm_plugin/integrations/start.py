@@ -164,7 +164,8 @@ def warm_start_upstream(model: Any, start: Start, diffusion: Any, mean: Any, std
     missing, unexpected = model.load_state_dict(sd, strict=False)
     bad = [k for k in missing if not k.startswith("clip_model.")] + list(unexpected)
     if bad:
-        _fail(INIT_OPTION, f"{path} does not fit the model (e.g. {bad[0]!r}); pass the model options it was trained with")
+        _fail(INIT_OPTION, f"{path} does not fit the model (e.g. {bad[0]!r}); pass the model options it was "
+                           "trained with")
     with upstream_rng_untouched():
         probe = _data_probe(data, diffusion, model)
         report = warm_start(model, start.config, probe, diffusion=diffusion, mean=mean, std=std)
