@@ -146,7 +146,9 @@ def tables(res: Dict[str, Any]) -> str:
         out += ["", "(ii) warm start at equal optimiser steps: mean ± 95% interval over 3 smdm eval replications",
                 "", "| run | steps | FID | jitter per speed | foot skating |", "| --- | --- | ---: | ---: | ---: |"]
         label = {"b_warm": "(b) sparse, warm-started from the dense model", "c_dense_continued": "(c) dense, continued"}
-        for key, r in w.items():
+        order = sorted(w, key=lambda k: (k.startswith("a_"), int(k.rsplit("_", 1)[1]) if k.startswith("a_") else 0))
+        for key in order:
+            r = w[key]
             name = label.get(key, "(a) sparse from scratch")
             out.append(f"| {name} | {r['steps']} | " + " | ".join(cell(r[k]) for k in METRICS) + " |")
     return "\n".join(out) + "\n"
@@ -168,6 +170,11 @@ def main() -> int:
                    help="smdm eval replications per seed in (i) (default 1: the interval is over the seeds)")
     p.add_argument("--skip", nargs="*", default=[], choices=["zero_shot", "warm"])
     p.add_argument("--tables-only", action="store_true", help="print the tables of an existing --out and stop")
+    p.add_argument("--add-scratch", type=int, nargs="*", default=[],
+                   help="add (a) rows at these step counts (separate from-scratch runs) to an existing --out")
+    p.add_argument("--retime", type=int, default=0,
+                   help="re-measure the sampling times of an existing --out: this many rounds, the models "
+                        "of a seed interleaved (median)")
     a = p.parse_args()
     if a.tables_only:
         with open(a.out) as f:
@@ -175,6 +182,9 @@ def main() -> int:
         return 0
     os.makedirs(a.work, exist_ok=True)
     res: Dict[str, Any] = {"settings": vars(a), "zero_shot": {}, "warm": {}}
+    if a.add_scratch or a.retime:
+        with open(a.out) as f:
+            res = json.load(f)
 
     def save() -> None:
         with open(a.out, "w") as f:
@@ -221,6 +231,27 @@ def main() -> int:
                                                                 a.replications))}
             save()
 
+    if a.add_scratch or a.retime:
+        for n in a.add_scratch:
+            train(a.data, W(f"scratch_{n}"), n, a.seeds[0], ["--sparse"])
+            res["warm"][f"a_scratch_{n}"] = {"steps": f"{n} sparse", **pick(
+                evaluate(a, W(f"scratch_{n}"), W(f"eval_scratch_p{n}"), a.replications))}
+            save()
+        for key, row in res["zero_shot"].items() if a.retime else ():
+            seed = key[len("seed"):]
+            folders = {n: W(f"dense_s{seed}") if n == "dense" else W(f"{n}_s{seed}") for n in row}
+            times: Dict[str, List[float]] = {n: [] for n in row}
+            for _ in range(a.retime):
+                for n, folder in folders.items():
+                    times[n].append(sampling_seconds(folder))
+            for n in row:
+                row[n]["sampling_s"] = float(np.median(times[n]))
+            save()
+        text = tables(res)
+        with open(os.path.splitext(a.out)[0] + ".md", "w") as f:
+            f.write(text)
+        print(text, end="")
+        return 0
     for i, seed in enumerate(a.seeds):                            # dense models, then what starts from them
         if not os.path.exists(W(f"dense_s{seed}", f"model{a.dense_steps:09d}.pt")):
             train(a.data, W(f"dense_s{seed}"), a.dense_steps, seed)
