@@ -88,10 +88,11 @@ def test_fit_mlp_to_linear_reference():
         if hidden >= min(n_in, n_out):
             assert err.rel_rms < 2e-3, (n_in, n_out, err)
             assert torch.allclose(out, ref, atol=2e-3 * float(ref.abs().max()))
-        else:                                          # rank-limited: the best rank-`hidden` map
+        else:                                          # rank-limited: as good as the best rank-`hidden` map
             U, S, Vh = torch.linalg.svd(lin.weight.detach())
             best = x @ (U[:, :hidden] * S[:hidden] @ Vh[:hidden]).T + lin.bias.detach()
-            assert torch.allclose(out, best, atol=1e-2 * float(best.abs().max()))
+            assert float((out - ref).norm()) <= 1.01 * float((best - ref).norm())
+            assert float((best - ref).norm()) < 0.9 * float(ref.norm())    # (the reference is no trivial bound)
 
 
 @pytest.mark.parametrize("fsq", [False, True])

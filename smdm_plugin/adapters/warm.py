@@ -165,8 +165,10 @@ def fit_mlp_to_linear(mlp: LipschitzMLP, linear: nn.Linear, inputs: torch.Tensor
     hidden layers pass it on, the last layer multiplies by ``1/eps`` and applies the rest of the
     dense map. ``P`` is the identity when ``hidden >= in``, else the dense weight itself when
     ``hidden >= out``, else its top-``hidden`` singular directions. ``eps`` puts the largest
-    first-layer pre-activation at ``amplitude`` radians (the sine's relative error is about
-    ``amplitude^2 / 6``). Returns the measured error on ``inputs``."""
+    first-layer pre-activation at ``amplitude`` radians (the sine's relative error is at most about
+    ``amplitude^2 / 6``); with more input rows than hidden units the last layer is then refitted by
+    least squares on ``inputs``. A small ``amplitude`` is exact but gives small first-layer weights,
+    which an optimiser's fixed step (Adam) moves relatively more. Returns the measured error on ``inputs``."""
     W, b = linear.weight.detach().double(), (linear.bias.detach().double() if linear.bias is not None
                                              else torch.zeros(linear.out_features, dtype=torch.float64,
                                                               device=linear.weight.device))
@@ -195,6 +197,13 @@ def fit_mlp_to_linear(mlp: LipschitzMLP, linear: nn.Linear, inputs: torch.Tensor
             eye = (torch.eye(H, dtype=W.dtype, device=dev) / w0).to(dt)
             _set_lipschitz(mid, eye, torch.zeros(H, device=dev, dtype=dt))
         _set_lipschitz(lins[-1], (Q / eps).to(dt), Qb.to(dt))
+        if x.shape[0] > H:                               # then the last layer by least squares on the inputs
+            with torch.no_grad():
+                h = mlp.net[:-1](x.to(dt)).double()
+                A = torch.cat([h, h.new_ones(h.shape[0], 1)], 1).cpu()
+                target = (x @ W.T + b).cpu()
+                sol = torch.linalg.lstsq(A, target, driver="gelsd").solution.to(dev)   # [H + 1, out]
+            _set_lipschitz(lins[-1], sol[:H].T.contiguous().to(dt), sol[H].to(dt))
     with torch.no_grad():
         xs = inputs.detach().reshape(-1, n_in)
         return _error(name, mlp(xs), linear(xs))

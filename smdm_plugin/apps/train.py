@@ -53,6 +53,10 @@ def build_parser() -> argparse.ArgumentParser:
                         "model*.pt): its weights are loaded; with --sparse the recipe's new layers are fitted to the "
                         "dense ones (warm start, errors printed); fresh optimiser; train_config.json records the "
                         "origin (path + sha256)")
+    p.add_argument("--init-amplitude", type=float_range(0.0, 3.0, lo_open=True), default=0.05, metavar="RAD",
+                   help="with --init-from --sparse: largest pre-activation (radians) of the fitted sine layers; small "
+                        "= closer to the dense layer, larger = larger first-layer weights, which Adam's fixed step "
+                        "moves relatively less (default 0.05)")
     t = p.add_argument_group("training")
     t.add_argument("--steps", type=int_range(1), default=1000, help="optimiser steps (default: 1000)")
     t.add_argument("--batch", type=int_range(1), default=16,
@@ -212,7 +216,7 @@ def main(argv: Optional[List[str]] = None) -> int:
             # written in --out itself (OutputDir live): each checkpoint visible as it is made
             folder = od.path if od is not None else os.path.abspath(a.out)  # other ranks only read it (--resume)
             try:
-                trainer = Trainer(cfg, data, dist=ctx, init_from=a.init_from)
+                trainer = Trainer(cfg, data, dist=ctx, init_from=a.init_from, init_amplitude=a.init_amplitude)
             except (FileNotFoundError, ValueError) as e:
                 if od is not None:
                     print(f"smdm train: {e}", file=sys.stderr)

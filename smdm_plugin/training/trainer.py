@@ -225,7 +225,7 @@ class Trainer:
     """
 
     def __init__(self, config: TrainConfig, data: MotionSet, dist: Optional[DistContext] = None,
-                 device: str = "auto", init_from: Optional[str] = None) -> None:
+                 device: str = "auto", init_from: Optional[str] = None, init_amplitude: float = 0.05) -> None:
         from ..adapters.surgery import sparsify
         from ..reference.backbone import TinyMDM
         from ..reference.diffusion import SimpleDiffusion
@@ -252,7 +252,7 @@ class Trainer:
         #: where the initial weights came from (``init_from``: path, digest, fit errors), else None
         self.init_origin: Optional[Dict[str, Any]] = None
         if init_from is not None:   # dense weights in; sparse: new layers fitted to the dense ones
-            self.init_origin = init_from_dense(self, init_from)
+            self.init_origin = init_from_dense(self, init_from, amplitude=init_amplitude)
         elif config.sparse is not None:
             sparsify(self.model, config.sparse, diffusion=self.diffusion, mean=data.mean, std=data.std)
         self.model.train()
@@ -623,7 +623,7 @@ def dense_checkpoint_path(path: str) -> str:
     return path
 
 
-def init_from_dense(trainer: "Trainer", path: str, probe_motions: int = 16) -> Dict[str, Any]:
+def init_from_dense(trainer: "Trainer", path: str, probe_motions: int = 16, amplitude: float = 0.05) -> Dict[str, Any]:
     """Load a dense checkpoint (``smdm train --out`` folder or its ``model*.pt``) into ``trainer``'s
     freshly built dense model; when the run is sparse, sparsify it with the new layers fitted to the
     dense ones on noised training motions (:func:`smdm_plugin.adapters.warm.warm_start`). The
@@ -665,7 +665,9 @@ def init_from_dense(trainer: "Trainer", path: str, probe_motions: int = 16) -> D
         y["text_embed"] = torch.stack([trainer.text_embeddings[int(i)][0] for i in ids]).unsqueeze(0).to(dev)
     probe = diffusion_probe(x, {"y": y}, trainer.diffusion.q_sample, trainer.diffusion.num_timesteps,
                             seed=trainer.config.seed)
-    report = warm_start(trainer.model, config, probe, diffusion=trainer.diffusion, mean=data.mean, std=data.std)
+    report = warm_start(trainer.model, config, probe, diffusion=trainer.diffusion, mean=data.mean, std=data.std,
+                        amplitude=amplitude)
+    origin["amplitude"] = amplitude
     origin["fit"] = report.to_dict()
     origin["fit_summary"] = report.summary()
     return origin
