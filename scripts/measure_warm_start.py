@@ -29,6 +29,17 @@ PY = sys.executable
 METRICS = ("fid", "jitter_per_speed", "foot_skating")
 
 
+#: (ii)'s variants: (key, run folder, smdm train options, table label)
+VARIANTS = (
+    ("b_warm_amp1", "warm_amp1.0", ["--sparse", "--init-from", "DENSE", "--init-amplitude", "1.0"],
+     "(b') warm start, fitted sine layers at 1 rad (--init-amplitude 1.0)"),
+    ("b_warm_nofsq", "warm_nofsq", ["--sparse", "--sparse_fsq", "false", "--init-from", "DENSE"],
+     "(b'') warm start without FSQ keys (--sparse_fsq false)"),
+    ("a_scratch_nofsq_200", "scratch_nofsq_200", ["--sparse", "--sparse_fsq", "false"],
+     "(a'') sparse from scratch without FSQ keys"),
+)
+
+
 def sh(args: List[str]) -> None:
     t0 = time.time()
     print("$ smdm " + " ".join(args), flush=True)
@@ -139,8 +150,15 @@ def tables(res: Dict[str, Any]) -> str:
                 continue
             out.append(f"| {label} | " + " | ".join(mean_ci([r[k][0] for r in rows]) for k in METRICS)
                        + f" | {mean_ci([r['sampling_s'] for r in rows])} |")
+        out += ["", "per seed: FID / jitter per speed / foot skating", "",
+                "| seed | " + " | ".join(label for _, label in names) + " |", "| --- |" + " ---: |" * len(names)]
+        for seed, r in zs.items():
+            out.append(f"| {seed[len('seed'):]} | " + " | ".join(
+                " / ".join(f"{r[k][m][0]:.3g}" for m in METRICS) if k in r else "-" for k, _ in names) + " |")
+        out.append("")
         real = next(iter(zs.values()))["dense"]
-        out.append(f"| real (test split) | 0 | {cell(real['real_jitter_per_speed'])} | {cell(real['real_foot_skating'])} | |")
+        out.append(f"real (test split): jitter per speed {cell(real['real_jitter_per_speed'])}, foot skating "
+                   f"{cell(real['real_foot_skating'])}")
     w = res.get("warm", {})
     if w:
         out += ["", "(ii) warm start at equal optimiser steps: mean ± 95% interval over 3 smdm eval replications",
@@ -149,7 +167,7 @@ def tables(res: Dict[str, Any]) -> str:
         order = sorted(w, key=lambda k: (k.startswith("a_"), int(k.rsplit("_", 1)[1]) if k.startswith("a_") else 0))
         for key in order:
             r = w[key]
-            name = label.get(key, "(a) sparse from scratch")
+            name = r.get("label") or label.get(key, "(a) sparse from scratch")
             out.append(f"| {name} | {r['steps']} | " + " | ".join(cell(r[k]) for k in METRICS) + " |")
     return "\n".join(out) + "\n"
 
@@ -212,6 +230,13 @@ def main() -> int:
                                  "wall_s": time.time() - t0,
                                  **pick(evaluate(a, W("warm_b"), W("eval_warm_b"), a.replications))}
         save()
+        for key, run, extra, label in VARIANTS:               # which new layer limits the warm start
+            train(a.data, W(run), a.more_steps, seed + 100 if key.startswith("b") else seed,
+                  [x.replace("DENSE", dense) for x in extra])
+            res["warm"][key] = {"steps": f"{a.dense_steps} dense + {a.more_steps} sparse" if key.startswith("b")
+                                else f"{a.more_steps} sparse", "label": label,
+                                **pick(evaluate(a, W(run), W("eval_" + run), a.replications))}
+            save()
         t0 = time.time()
         train(a.data, W("dense_c"), a.more_steps, seed + 100, ["--init-from", dense])
         res["warm"]["c_dense_continued"] = {"steps": f"{S} dense", "wall_s": time.time() - t0,
