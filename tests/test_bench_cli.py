@@ -28,8 +28,10 @@ def test_bench_quick_writes_json_and_table(tmp_path, capsys):
     assert all(x["speedup"] > 0 and x["peak_mem_mib"] >= 0 for x in sparse)
     assert all(0 <= x["overhead_share"] for x in sparse if x["mode"] != "loop")
     assert r["sparse_backend"] == "varlen" and r["amp"] == "fp32" and r["compile"] == "none"
+    assert all(isinstance(x["launches"], int) and x["launches"] > 0 for x in r["rows"])   # eager: counted
     text = capsys.readouterr().out
-    assert "| trans_enc | train | dense |" in text and "sparse attention backend: varlen" in text
+    assert "| trans_enc | train | eager | dense |" in text and "sparse attention backend: varlen" in text
+    assert "| launches |" in text
     assert out.with_suffix(".md").read_text().startswith("device:")
 
 
@@ -38,6 +40,37 @@ def test_bench_bf16_and_compiled_modes_run():
                         steps=4, modes=["train", "sample"], amp="bf16", compile_mode="default")
     assert {x["variant"] for x in r["rows"]} == {"dense", "sparse 80%"} and r["sparse_backend"] == "compact"
     assert "torch.compile default" in bench.markdown(r) and "bf16" in bench.markdown(r)
+    assert all(x["launches"] is None for x in r["rows"])          # compiled on the CPU: nothing to count
+
+
+def test_bench_several_compile_modes_one_table(capsys):
+    """``--compile none reduce-overhead``: both sides at both modes in one table; without CUDA
+    reduce-overhead runs as default and the table says so; launches counted for eager cells, and
+    the sparse step launches fewer kernels per frame... at least as few as the counter says for its
+    own eager run (the counter is deterministic: a second count agrees)."""
+    assert bench.main(["--quick", "--arch", "trans_enc", "--reductions", "0.8", "--modes", "sample", "--steps", "4",
+                       "--device", "cpu", "--compile", "none", "reduce-overhead"]) == 0
+    text = capsys.readouterr().out
+    rows = [ln for ln in text.splitlines() if ln.startswith("| trans_enc | sample |")]
+    assert len(rows) == 4
+    assert sum("| eager |" in ln for ln in rows) == 2
+    assert sum("torch.compile default (asked reduce-overhead)" in ln for ln in rows) == 2
+    assert "eager and torch.compile reduce-overhead" in text
+
+
+def test_launch_count_of_an_eager_cell_is_the_counters():
+    from smdm_plugin.core.launches import count_launches
+
+    model, diffusion = bench.build("trans_enc", 0.8, torch.device("cpu"), True, 4)
+    data = bench.WORKLOADS.get("mdm").batch(2, 24, torch.device("cpu"), True)
+    fn = bench._sample_step_fn(bench.WORKLOADS.get("mdm"), model, diffusion, data, torch.device("cpu"), "fp32", "none")
+    fn()
+    assert bench.launches(fn, torch.device("cpu"), False) == count_launches(fn, warmup=0).count > 0
+
+
+def test_bench_rejects_unknown_compile_modes():
+    p = smdm("bench", "--quick", "--compile", "max")
+    assert p.returncode == 2 and "--compile" in p.stderr and "Traceback" not in p.stderr
 
 
 @pytest.mark.parametrize("fsq,dense_fsq,sparse_fsq", [("paper", False, True), ("both", True, True),
@@ -126,7 +159,7 @@ def test_bench_motiondiffuse_prints_dense_and_sparse_rows(tmp_path, capsys):
     assert all(x["speedup"] > 0 for x in r["rows"]) and all("overhead_share" in x for x in r["rows"]
                                                               if x["variant"] != "dense" and x["mode"] != "loop")
     text = capsys.readouterr().out
-    assert "| motiondiffuse | train | dense |" in text and "| motiondiffuse | sample | sparse 80% |" in text
+    assert "| motiondiffuse | train | eager | dense |" in text and "| motiondiffuse | sample | eager | sparse 80% |" in text
     assert "model family: motiondiffuse" in text and "FSQ keys: n/a" in text
 
 

@@ -28,11 +28,12 @@ import torch
 import torch.nn as nn
 
 from ..core.attention_backends import gather_rows, scatter_rows
-from ..core.checks import host_checkable
+from ..core.checks import compiling, host_checkable
 from ..core.config import SparseConfig
 from ..core.fsq import FSQMultiheadAttention, quantize_attention_keys
 from ..core.interpolation import catmull_rom_refill
 from ..core.keyframe_transformer import KeyframeTransformer
+from ..core.lipschitz import lipschitz_pass
 from ..core.losses import add_lipschitz_term
 from ..core.plan import KeyframePlan
 from .family import CallInputs, ModelFamily, register_family
@@ -95,6 +96,10 @@ def _pre_hook(model: nn.Module, args: tuple, kwargs: dict):
     x, timesteps, y = _call_args(args, kwargs)
     state.plan = call_plan(state, x, timesteps, y)
     state.transformer.set_plan(state.plan)
+    if not compiling():                                    # training: all Lipschitz weights at once
+        if state.lipschitz_pass is not None:               # (left by a call that raised)
+            state.lipschitz_pass.__exit__(None, None, None)
+        state.lipschitz_pass = lipschitz_pass(model).__enter__()
     return None
 
 
@@ -103,6 +108,9 @@ def _post_hook(model: nn.Module, args: tuple, kwargs: dict, output: Any) -> Any:
     plan = state.plan
     state.transformer.set_plan(None)
     state.plan = None
+    if state.lipschitz_pass is not None:
+        state.lipschitz_pass.__exit__(None, None, None)
+        state.lipschitz_pass = None
     if plan is None or plan.cubic is None or not isinstance(output, torch.Tensor) or output.dim() != 4:
         return None
     return cubic_output(output, plan)
@@ -122,12 +130,13 @@ def cubic_output(output: torch.Tensor, plan: KeyframePlan) -> torch.Tensor:
     return filled.reshape(B, N, J, F_).permute(0, 2, 3, 1)
 
 
-# Input embedding on keyframe rows only (speed; outputs unchanged). Only keyframe tokens enter the
-# keyframe transformer (every backend reads kept tokens only, and the output of the other frames
-# is interpolated from the kept ones), so the embedding of the other frames is never used: the
-# hooks below hand ``poseEmbedding`` the rows of the plan's slots ``[K*B, F]`` (static shape; on
-# the CPU in eager mode, exactly the keyframe rows) and scatter its output back to ``[N, B, d]``
-# with zeros elsewhere. They are registered as ``functools.partial(hook, state)``: the embedding
+# Input embedding on keyframe rows only (CPU speed; outputs unchanged). Only keyframe tokens enter
+# the keyframe transformer (every backend reads kept tokens only, and the output of the other frames
+# is interpolated from the kept ones), so the embedding of the other frames is never used: on the
+# CPU in eager mode the hooks below hand ``poseEmbedding`` exactly the keyframe rows and scatter its
+# output back to ``[N, B, d]`` with zeros elsewhere. On the static path (accelerators, tracing) they
+# do nothing: the embedding of every row costs a few FLOPs, the gather and scatter three launches
+# forward and three backward. They are registered as ``functools.partial(hook, state)``: the embedding
 # carries no attribute of ours, and ``copy.deepcopy`` (EMA) copies the partial with the model, so
 # each copy's hooks hold that copy's own state.
 def _rows_pre_hook(state: SparseState, module: nn.Module, args: tuple):
@@ -138,10 +147,10 @@ def _rows_pre_hook(state: SparseState, module: nn.Module, args: tuple):
         state.embed_rows = None
         return None
     N, B, F_ = x.shape
-    if host_checkable(plan.mask):                          # exact keyframe rows (data-dependent size)
-        rows = plan.mask.t().reshape(-1).nonzero(as_tuple=True)[0]
-    else:                                                  # every slot's frame: K*B rows, distinct
-        rows = plan.rows.view(-1)
+    if not host_checkable(plan.mask):   # static path (accelerators): every row, no gather / scatter
+        state.embed_rows = None         # (6 launches a training step, 3 a pass, for a few rows' FLOPs)
+        return None
+    rows = plan.mask.t().reshape(-1).nonzero(as_tuple=True)[0]   # exact keyframe rows (data-dependent size)
     state.embed_rows = (rows, N, B)
     return (gather_rows(x.reshape(N * B, F_), rows),)
 

@@ -49,10 +49,11 @@ from ..core.checks import as_lengths
 from ..core.config import SparseConfig
 from ..core.embedding import timestep_embedding
 from ..core.interpolation import catmull_rom_refill
-from ..core.lipschitz import lipschitz_loss
+from ..core import consts
+from ..core.lipschitz import lipschitz_loss, lipschitz_pass
 from .family import CallInputs, ModelFamily, register_family
 from .request import KEYFRAMES_KEY, OLD_KEYS, request_of, with_request
-from .state import MISSING, SparseState, Variant, find_sparse_model, get_state
+from .state import MISSING, SparseState, Variant, find_sparse_model, get_state, reuse_for
 
 _REQUIRED = ("joint_embed", "out", "temporal_decoder_blocks", "sequence_embedding", "time_embed",
              "encode_text", "latent_dim", "input_feats")
@@ -67,6 +68,8 @@ def _timestep_embedding_fn(model: nn.Module):
 def _lengths(length: Any, B: int, T: int, device: torch.device) -> torch.Tensor:
     """``length`` (MotionDiffuse's ``[B]`` list / tensor, or None = all ``T``) as long ``[B]``,
     validated (``2 <= L <= T``)."""
+    if isinstance(length, torch.Tensor):            # read and checked once per tensor (state.reuse_for)
+        return reuse_for(length, ("length", B, T, device), lambda: as_lengths(length, B, T, device, "MotionDiffuse length"))
     return as_lengths(length, B, T, device, "MotionDiffuse length")
 
 
@@ -83,6 +86,12 @@ def _sparse_forward(self, x, timesteps, length=None, text=None, xf_proj=None, xf
         xf_proj, xf_out = self.encode_text(text, x.device)
     emb = self.time_embed(state.extra(timesteps, self.latent_dim)) + xf_proj
 
+    with lipschitz_pass(self):                             # training: all Lipschitz weights at once
+        return _sparse_body(self, state, x, emb, xf_out, timesteps, length, request)
+
+
+def _sparse_body(self, state: SparseState, x, emb, xf_out, timesteps, length, request):
+    B, T = x.shape[0], x.shape[1]
     h = self.joint_embed(x)
     h = h + self.sequence_embedding.unsqueeze(0)[:, :T, :]
 
@@ -90,12 +99,12 @@ def _sparse_forward(self, x, timesteps, length=None, text=None, xf_proj=None, xf
     state.last_mask = plan.mask
     D = h.shape[-1]
     K = plan.capacity
-    base = torch.arange(B, device=x.device)
-    hk = gather_rows(h.reshape(B * T, D), (plan.index + base[:, None] * T).reshape(-1)).view(B, K, D)
+    base = consts.arange(B, x.device)
+    hk = gather_rows(h.reshape(B * T, D), torch.add(plan.index, base[:, None], alpha=T).reshape(-1)).view(B, K, D)
     src_mask = plan.valid.to(h.dtype).unsqueeze(-1)                      # empty slots masked
     for block in self.temporal_decoder_blocks:
         hk = block(hk, xf_out, emb, src_mask)
-    rows = (base[None] * K + torch.arange(K, device=x.device)[:, None])  # [K, B] rows of hk
+    rows = consts.arange(B * K, x.device).view(B, K).t()                 # [K, B] rows of hk: b * K + k
     h = fill_frames(hk.reshape(B * K, D), rows, plan, 0).transpose(0, 1)  # [B, T, D]
     out = self.out(h).view(B, T, -1)
     if plan.cubic is not None:  # sample_interpolation="cubic": C¹ through the keyframe outputs

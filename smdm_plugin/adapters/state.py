@@ -14,6 +14,8 @@ from typing import Any, Dict, List, Optional, Tuple
 import torch
 import torch.nn as nn
 
+from ..core import consts
+from ..core.attention import compute_dtype
 from ..core.checks import as_lengths, compiling, host_checkable, require
 from ..core.config import STATE_ATTR, SparseConfig  # STATE_ATTR: the attribute the state lives under
 from ..core.plan import KeyframePlan
@@ -61,6 +63,7 @@ class SparseState:
     diffusions: List["weakref.ref"] = field(default_factory=list)
     plan: Optional[KeyframePlan] = None
     embed_rows: Optional[Tuple[torch.Tensor, int, int]] = None
+    lipschitz_pass: Optional[Any] = None          # core.lipschitz.lipschitz_pass of the running call
     family: Any = None
     last_mask: Optional[torch.Tensor] = None
     extra: Any = None
@@ -123,9 +126,12 @@ def lengths_from_y(y: Dict[str, Any], B: int, N: int, device: torch.device) -> t
     ``N``, as the dense model treats every frame of the window as valid, with a warning."""
     mask = y.get("mask")
     if isinstance(mask, torch.Tensor) and mask.shape[-1] == N and mask.numel() == B * N:
-        lengths = mask.reshape(B, N).to(device=device, dtype=torch.long).sum(1)
-        require(lengths >= 2, f"y['mask'] must mark at least 2 valid frames of the N={N} in every sample")
-        return lengths
+        def from_mask() -> torch.Tensor:
+            m = mask.reshape(B, N).to(device=device)
+            lengths = m.sum(1) if m.dtype == torch.bool else m.to(torch.long).sum(1)   # a bool sum is long
+            require(lengths >= 2, f"y['mask'] must mark at least 2 valid frames of the N={N} in every sample")
+            return lengths
+        return reuse_for(mask, ("mask", B, N, device), from_mask)
     if isinstance(mask, torch.Tensor) and mask.dim() and mask.shape[-1] != N and y.get("lengths") is not None:
         if not compiling():
             warnings.warn(f"y['mask'] covers {mask.shape[-1]} frames but the motion has N={N}: y['lengths'] "
@@ -134,6 +140,26 @@ def lengths_from_y(y: Dict[str, Any], B: int, N: int, device: torch.device) -> t
     if y.get("lengths") is not None:
         return as_lengths(y["lengths"], B, N, device, "y['lengths']")
     return torch.full((B,), N, dtype=torch.long, device=device)
+
+
+_REUSED: List[tuple] = []          # (source tensor, its version, key, result): the last few
+
+
+def reuse_for(source: torch.Tensor, key: tuple, compute) -> torch.Tensor:
+    """``compute()``, or its result for the same ``source`` tensor (the same object, unchanged
+    since: same version) and ``key`` from one of the last few calls: the lengths of a sampling loop's
+    ``y['mask']`` are read and validated once, not at every step and guidance pass (and once per
+    training step: the diffusion wrapper's x0 call and the model call share them). Not while
+    tracing (the traced graph computes them)."""
+    if compiling():
+        return compute()
+    for src, version, k, out in _REUSED:
+        if src is source and version == source._version and k == key:
+            return out
+    out = compute()
+    _REUSED.insert(0, (source, source._version, key, out))
+    del _REUSED[4:]
+    return out
 
 
 def keyframe_plan(state: SparseState, frames: torch.Tensor, timesteps: Any, lengths: torch.Tensor,
@@ -156,7 +182,7 @@ def keyframe_plan(state: SparseState, frames: torch.Tensor, timesteps: Any, leng
     device = frames.device
     taps = None                                            # C¹ fill taps looked up (sampling, uniform mask)
     if mask is not None:                                   # training (or a caller's own mask)
-        valid = torch.arange(N, device=device)[None] < lengths[:, None]
+        valid = consts.arange(N, device)[None] < lengths[:, None]
         # a mask chosen while loading (keyframe_collate) is still on the CPU: upstream loops move
         # y's tensors, not the KeyframeRequest; copy it without waiting for the device
         mask = torch.as_tensor(mask).to(device, non_blocking=True)
@@ -170,6 +196,13 @@ def keyframe_plan(state: SparseState, frames: torch.Tensor, timesteps: Any, leng
         check, cubic = True, None
     else:                                                  # sampling: the schedule on x_t
         t = timesteps if timesteps is not None else torch.zeros(B, dtype=torch.long, device=device)
+        if forced is None and state.schedule.late_steps == 0:   # the uniform mask: a table lookup
+            cubic = state.schedule.cubic_samples(t, B, device, frames.shape[-1])
+            if cubic is not None and not state.variant.prefix_len:
+                f_tab, w_tab = state.schedule.cubic_taps(N, device)
+                taps = (f_tab[lengths], w_tab[lengths])
+            return state.schedule.uniform_plan(lengths, N, state.variant.prefix_len, cubic, taps,
+                                               compute_dtype(frames))   # the key bias in the attention's dtype
         mask = state.schedule.sampling_mask(frames, t, lengths, forced, checked=True)
         capacity = state.schedule.capacity(N, training=False, forced=protected_count(forced, lengths))
         check = False                                      # 2..capacity keyframes by construction

@@ -20,10 +20,12 @@ all alike):
 
 plus, for the sparse variants, the share of the step spent in keyframe selection and in the
 interpolation back to all frames, and peak memory (CUDA: max allocated; CPU: the peak rise of the
-process RSS). ``--amp bf16`` runs under ``torch.autocast``; ``--compile`` wraps dense and sparse
-models alike in ``torch.compile`` (the same choice for both). Medians of ``--repeats`` after
-``--warmup`` runs (compilation happens in the warm-up). The table names the device, the mode and
-the attention backend the sparse model ran.
+process RSS), and each cell's kernel launches (:func:`launches`). ``--amp bf16`` runs under
+``torch.autocast``; ``--compile MODE [MODE ...]`` compiles dense and sparse models alike with each
+mode (the helper of ``--sparse_compile``, docs/compile.md; default on CUDA: eager and
+reduce-overhead, one table; speed-ups against the dense model at the same mode). Medians of
+``--repeats`` after ``--warmup`` runs (compilation happens in the warm-up). The table names the
+device, the mode and the attention backend the sparse model ran.
 
 ``smdm bench keyframes`` times VW selection alone on ``[64, 196, 64]``.
 """
@@ -37,11 +39,13 @@ import statistics
 import sys
 import threading
 import time
+import warnings
 from typing import Any, Callable, Dict, List, Optional, Sequence, Tuple
 
 import torch
 
 from ..core.config import BACKENDS
+from ..integrations.compile import COMPILE_MODES
 from ..core.registry import Registry
 from .common.args import add_overwrite, device_type, float_range, int_range, resolve_device
 from .common.threads import THREADS_HELP
@@ -374,9 +378,51 @@ def _autocast(device: torch.device, amp: str):
 
 
 def _compiled(model: torch.nn.Module, compile_mode: str) -> torch.nn.Module:
-    if compile_mode == "none":
-        return model
-    return torch.compile(model, mode=None if compile_mode == "default" else compile_mode, fullgraph=True)
+    """``model`` compiled in place by the helper every integration uses (``--sparse_compile``,
+    ``smdm train --compile``; docs/compile.md): the denoiser, guidance wrapper around it eager."""
+    from ..integrations.compile import compile_model
+
+    if compile_mode != "none":
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")        # reduce-overhead off CUDA: stated in the table instead
+            compile_model(model, compile_mode)
+    return model
+
+
+def _applied(model: torch.nn.Module) -> str:
+    """How ``model`` ran: ``eager`` or the compile mode that applied (reduce-overhead falls back to
+    default without CUDA)."""
+    from ..integrations.compile import compile_setting
+
+    s = compile_setting(model)
+    return "eager" if s is None else s.mode
+
+
+#: host-side launch calls the CUDA profiler records (a CUDA graph replay is one cudaGraphLaunch)
+_CUDA_LAUNCH_CALLS = ("cudaLaunchKernel", "cudaLaunchKernelExC", "cuLaunchKernel", "cuLaunchKernelEx",
+                      "cudaGraphLaunch", "cudaLaunchCooperativeKernel")
+
+
+def launches(fn: Callable[[], None], device: torch.device, compiled: bool) -> Optional[int]:
+    """Kernel launches of one call of ``fn`` (already warmed up). Eager: counted as CUDA runs them
+    (:mod:`smdm_plugin.core.launches`, on any device). Compiled: on CUDA the launch calls the
+    profiler records (a CUDA graph replay counts once); elsewhere None (a compiler's fused kernels
+    bypass the dispatcher: nothing CUDA-equivalent to count)."""
+    if not compiled:
+        from ..core.launches import count_launches
+
+        return count_launches(fn, warmup=0).count
+    if device.type != "cuda":
+        return None
+    try:
+        from torch.profiler import ProfilerActivity, profile
+
+        with profile(activities=[ProfilerActivity.CPU, ProfilerActivity.CUDA]) as prof:
+            fn()
+            torch.cuda.synchronize(device)
+        return int(sum(e.count for e in prof.key_averages() if e.key in _CUDA_LAUNCH_CALLS))
+    except Exception:  # a profiler that cannot run here: say so in the table, never fail the bench
+        return None
 
 
 def _train_step_fn(work: Workload, model, diffusion, batch, device, amp: str, compile_mode: str, seed: int = 0
@@ -403,7 +449,7 @@ def _train_step_fn(work: Workload, model, diffusion, batch, device, amp: str, co
 
 def _sample_step_fn(work: Workload, model, diffusion, batch, device, amp: str, compile_mode: str
                     ) -> Callable[[], None]:
-    den = _compiled(work.denoiser(model), compile_mode)
+    den = work.denoiser(_compiled(model, compile_mode))
     B = batch["x"].shape[0]
     state = getattr(model, "_smdm_state", None)
     late = state.schedule.late_steps if state is not None else 1
@@ -420,7 +466,7 @@ def _sample_step_fn(work: Workload, model, diffusion, batch, device, amp: str, c
 
 def _sample_loop_fn(work: Workload, model, diffusion, batch, device, amp: str, compile_mode: str
                     ) -> Callable[[], None]:
-    den = _compiled(work.denoiser(model), compile_mode)
+    den = work.denoiser(_compiled(model, compile_mode))
     shape = tuple(batch["x"].shape)
     g = torch.Generator(device=device).manual_seed(0)
 
@@ -472,7 +518,7 @@ def _overhead_fns(work: Workload, model, batch, device, train: bool):
 def run_bench(archs: Optional[Sequence[str]] = None, reductions: Sequence[float] = (0.6, 0.7, 0.8, 0.9),
               batch: int = 64, frames: int = 196, repeats: int = 3, warmup: int = 1, device: str = "auto",
               quick: bool = False, backend: str = "auto", steps: int = 50, fastpath: bool = False,
-              modes: Sequence[str] = ("train", "sample"), amp: str = "fp32", compile_mode: str = "none",
+              modes: Sequence[str] = ("train", "sample"), amp: str = "fp32", compile_mode: Any = "none",
               progress: Optional[Callable[[str], None]] = None, fsq: str = "paper", family: str = "mdm",
               root: Optional[str] = None) -> Dict[str, Any]:
     """Dense and sparse, interleaved per repeat; wall-clock, process CPU time, peak memory.
@@ -507,15 +553,18 @@ def _run_bench(work: Workload, archs, reductions, batch, frames, repeats, warmup
     rows: List[Dict[str, Any]] = []
     variants: List[Optional[float]] = [None] + list(reductions)
     makers = {"train": _train_step_fn, "sample": _sample_step_fn, "loop": _sample_loop_fn}
+    compile_modes = compile_modes_of(compile_mode)
     for arch in archs:
         for mode in modes:
             sparse_kw = {"dynamic_update": True} if mode == "sample" else {}
             cells = []
-            for red in variants:
-                model, diffusion = build(arch, red, dev, quick, steps, backend, fsq=fsq, family=work.family,
-                                         frames=frames, root=root, **sparse_kw)
-                fn = makers[mode](work, model, diffusion, data, dev, amp, compile_mode)
-                cells.append({"red": red, "model": model, "fn": fn, "wall": [], "cpu": [], "mem": 0})
+            for cmode in compile_modes:                # dense and sparse at each compile mode: one table
+                for red in variants:
+                    model, diffusion = build(arch, red, dev, quick, steps, backend, fsq=fsq, family=work.family,
+                                             frames=frames, root=root, **sparse_kw)
+                    fn = makers[mode](work, model, diffusion, data, dev, amp, cmode)
+                    cells.append({"red": red, "model": model, "fn": fn, "wall": [], "cpu": [], "mem": 0,
+                                  "compile": cmode})
             for _ in range(warmup):
                 for c in cells:
                     c["fn"]()
@@ -529,12 +578,16 @@ def _run_bench(work: Workload, archs, reductions, batch, frames, repeats, warmup
                         c["wall"].append(time.perf_counter() - w0)
                         c["cpu"].append(time.process_time() - c0)
                     c["mem"] = max(c["mem"], mem.peak)
-            dense = cells[0]
-            d_wall, d_cpu = statistics.median(dense["wall"]), statistics.median(dense["cpu"])
             for c in cells:
+                c["launches"] = launches(c["fn"], dev, c["compile"] != "none")
+            for c in cells:
+                dense = next(d for d in cells if d["red"] is None and d["compile"] == c["compile"])
+                d_wall, d_cpu = statistics.median(dense["wall"]), statistics.median(dense["cpu"])
                 red, wall, cpu = c["red"], statistics.median(c["wall"]), statistics.median(c["cpu"])
                 row: Dict[str, Any] = {
                     "family": work.family, "arch": arch, "mode": mode, "reduction": 0.0 if red is None else red,
+                    "compile": c["compile"], "compile_applied": _applied(c["model"]), "launches": c["launches"],
+                    "sparse_backend": work.backend(backend, dev, c["compile"]),
                     "variant": "dense" if red is None else f"sparse {int(round(red * 100))}%",
                     "median_s": wall, "cpu_s": cpu, "times_s": c["wall"], "cpu_times_s": c["cpu"],
                     "speedup": d_wall / wall, "cpu_speedup": d_cpu / cpu, "peak_mem_mib": c["mem"] / 2 ** 20,
@@ -555,10 +608,21 @@ def _run_bench(work: Workload, archs, reductions, batch, frames, repeats, warmup
         "family": work.family, "model_source": work.source(root), "device": str(dev), "device_name": _device_name(dev), "torch": torch.__version__,
         "threads": torch.get_num_threads(), "batch": batch, "frames": frames,
         "lengths": [int(v) for v in data["lengths"]], "model": work.size(quick), "quick": bool(quick), "repeats": repeats,
-        "warmup": warmup, "backend": backend, "sparse_backend": work.backend(backend, dev, compile_mode), "amp": amp,
-        "compile": compile_mode, "fastpath": bool(fastpath), "diffusion_steps": steps, "fsq": fsq,
+        "warmup": warmup, "backend": backend,
+        "sparse_backend": " / ".join(dict.fromkeys(work.backend(backend, dev, m) for m in compile_modes)), "amp": amp,
+        "compile": ", ".join(compile_modes), "compile_modes": compile_modes, "fastpath": bool(fastpath), "diffusion_steps": steps, "fsq": fsq,
         "load_average": _loadavg(), "rows": rows, "targets": TARGETS,
     }
+
+
+def compile_modes_of(compile_mode: Any) -> List[str]:
+    """``--compile``'s modes as a list (one mode or several; each checked, duplicates dropped)."""
+    from ..integrations.compile import check_compile_mode
+
+    modes = [compile_mode] if isinstance(compile_mode, str) else list(compile_mode)
+    if not modes:
+        raise ValueError("run_bench: compile_mode: give at least one of none, default, reduce-overhead")
+    return list(dict.fromkeys(check_compile_mode(m, "--compile") for m in modes))
 
 
 def _loadavg() -> Optional[List[float]]:
@@ -576,9 +640,14 @@ def _device_name(dev: torch.device) -> str:
     return f"{platform.processor() or platform.machine()} ({os.cpu_count()} cores)"
 
 
+def _launch_cell(r: Dict[str, Any]) -> str:
+    return "—" if r.get("launches") is None else str(r["launches"])
+
+
 def _row_line(r: Dict[str, Any]) -> str:
     ov = f" overhead {100 * r['overhead_share']:.1f}%" if "overhead_share" in r else ""
-    return (f"{r['arch']} {r['mode']:6s} {r['variant']:10s} {r['median_s'] * 1000:9.1f} ms "
+    return (f"{r['arch']} {r['mode']:6s} {r.get('compile_applied', 'eager'):15s} {r['variant']:10s} "
+            f"{r['median_s'] * 1000:9.1f} ms {_launch_cell(r):>6s} launches "
             f"x{r['speedup']:.2f} (cpu x{r['cpu_speedup']:.2f}){ov}")
 
 
@@ -589,8 +658,13 @@ def _fsq_note(result: Dict[str, Any]) -> str:
     return FSQ_CHOICES[result.get("fsq", "paper")]
 
 
+def _compile_label(mode: str) -> str:
+    return "eager" if mode in ("none", "eager") else f"torch.compile {mode}"
+
+
 def markdown(result: Dict[str, Any]) -> str:
-    mode = f"{result['amp']}, {'eager' if result['compile'] == 'none' else 'torch.compile ' + result['compile']}"
+    modes = result.get("compile_modes") or [result["compile"]]
+    mode = f"{result['amp']}, " + " and ".join(_compile_label(m) for m in modes)
     lines = [f"device: {result['device_name']} ({result['device']}), torch {result['torch']}, "
              f"{result['threads']} threads; {mode}; sparse attention backend: {result['sparse_backend']}; "
              f"FSQ keys: {_fsq_note(result)}; model family: {result.get('family', 'mdm')} "
@@ -599,18 +673,26 @@ def markdown(result: Dict[str, Any]) -> str:
              f"T = {result['diffusion_steps']}; median of {result['repeats']} (dense and sparse interleaved) "
              f"after {result['warmup']} warm-up; load average {result.get('load_average')}",
              "",
-             "| arch | step | variant | wall (ms) | speed-up | CPU time (ms) | speed-up (CPU) | "
+             "| arch | step | compile | variant | wall (ms) | launches | speed-up | CPU time (ms) | speed-up (CPU) | "
              "selection (ms) | interpolation (ms) | overhead share | peak mem (MiB) | mem vs dense |",
-             "| --- | --- | --- | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: |"]
+             "| --- | --- | --- | --- | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: |"]
     for r in result["rows"]:
         sel = f"{r['select_s'] * 1000:.1f}" if "select_s" in r else "—"
         itp = f"{r['interp_s'] * 1000:.1f}" if "interp_s" in r else "—"
         ov = f"{100 * r['overhead_share']:.1f}%" if "overhead_share" in r else "—"
         mr = ("—" if r["variant"] == "dense" or r.get("mem_ratio") is None or result.get("quick")
               else f"{r['mem_ratio']:.2f}")
-        lines.append(f"| {r['arch']} | {r['mode']} | {r['variant']} | {r['median_s'] * 1000:.1f} | "
-                     f"{r['speedup']:.2f}× | {r['cpu_s'] * 1000:.1f} | {r['cpu_speedup']:.2f}× | "
+        applied = r.get("compile_applied", "eager")
+        cm = _compile_label(applied) + (f" (asked {r['compile']})" if r.get("compile", "none") not in
+                                        ("none", applied) else "")
+        lines.append(f"| {r['arch']} | {r['mode']} | {cm} | {r['variant']} | {r['median_s'] * 1000:.1f} | "
+                     f"{_launch_cell(r)} | {r['speedup']:.2f}× | {r['cpu_s'] * 1000:.1f} | {r['cpu_speedup']:.2f}× | "
                      f"{sel} | {itp} | {ov} | {r['peak_mem_mib']:.0f} | {mr} |")
+    lines += ["", "launches: kernel launches of the timed call, counted as CUDA runs them (smdm_plugin.core.launches; "
+              "eager cells, any device: off CUDA the sparse model's own CPU path, which packs keyframes; a GPU runs "
+              "the static-shape path); compiled cells: on CUDA the launch calls the profiler records (a CUDA "
+              "graph replay counts once), elsewhere — (a compiler's fused kernels bypass the dispatcher). "
+              "Speed-ups are against the dense model at the same compile mode."]
     at = [r for r in result["rows"] if abs(r["reduction"] - 0.8) < 1e-9]
     if result.get("quick"):  # a smoke test: fixed costs dominate at this size, so targets would mislead
         lines += ["", "--quick: a tiny model and batch, to check that the benchmark runs. At this size fixed "
@@ -677,9 +759,11 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--fsq", choices=list(FSQ_CHOICES), default=None,
                    help="FSQ attention keys on: " + "; ".join(f"{k}: {v}" for k, v in FSQ_CHOICES.items())
                         + " (default paper; --family mdm only: MotionDiffuse's attention is linear)")
-    p.add_argument("--compile", dest="compile_mode", default="none",
-                   choices=["none", "default", "reduce-overhead", "max-autotune"],
-                   help="torch.compile dense and sparse models alike (fullgraph) with this mode")
+    p.add_argument("--compile", dest="compile_mode", nargs="+", default=None, choices=list(COMPILE_MODES),
+                   metavar="MODE",
+                   help="torch.compile dense and sparse models alike with each mode, one table: none (eager), default, "
+                        "reduce-overhead (CUDA graphs; CUDA only, else default) — the helper of --sparse_compile "
+                        "(docs/compile.md). Default: none reduce-overhead on CUDA, none elsewhere")
     p.add_argument("--threads", type=int_range(1), default=None, help=THREADS_HELP)
     p.add_argument("--fastpath", action="store_true",
                    help="leave torch's MHA/Transformer fast path enabled (default: off for dense and sparse)")
@@ -738,6 +822,8 @@ def main_bench(args: argparse.Namespace, parser: argparse.ArgumentParser) -> Dic
                 check_new_file(p, args.overwrite, "smdm bench: --out")
         except OutputExistsError as e:
             parser.error(str(e))
+    if args.compile_mode is None:
+        args.compile_mode = ["none", "reduce-overhead"] if resolve_device(args.device).type == "cuda" else ["none"]
     from .common.threads import apply_threads
     apply_threads(args.threads)
     note = busy_note(torch.get_num_threads()) if resolve_device(args.device).type == "cpu" else None

@@ -12,6 +12,7 @@ import numpy as np
 import torch
 
 from ..core.config import CONFIG_FILENAME, SparseConfig
+from ..integrations.compile import COMPILE_MODES
 from ..integrations.distributed import init_distributed
 from ..io.checkpoint import BACKBONE_FILENAME
 from ..io.files import (atomic_open, atomic_write_json, atomic_write_text, describe_changes, digests_fingerprint,
@@ -68,7 +69,10 @@ def build_parser() -> argparse.ArgumentParser:
     t.add_argument("--seed", type=int_range(0), default=0, help="random seed (default 0)")
     t.add_argument("--save-every", type=int_range(0), default=0,
                    help="also save a checkpoint every this many steps (default 0: only at the end)")
-    t.add_argument("--compile", action="store_true", help="torch.compile the model")
+    t.add_argument("--compile", nargs="?", const="default", default="none", choices=COMPILE_MODES, metavar="MODE",
+                   help="torch.compile the model once before the loop, dense or sparse: none (default), default "
+                        "(also the bare --compile) or reduce-overhead (CUDA graphs; CUDA only, else default with a "
+                        "warning); docs/compile.md")
     t.add_argument("--compile-backend", default="inductor", help="torch.compile backend (default: inductor)")
     m = p.add_argument_group("model (TinyMDM)")
     m.add_argument("--arch", choices=("trans_enc", "trans_dec"), default=DEFAULT_MODEL["arch"],
@@ -146,12 +150,17 @@ OUTPUT_FILES = (BACKBONE_FILENAME, CONFIG_FILENAME, TRAIN_CONFIG_FILENAME, TRAIN
 OUTPUT_PATTERNS = OUTPUT_FILES + ("model[0-9][0-9][0-9][0-9][0-9][0-9][0-9][0-9][0-9].pt",)
 
 
-def write_logs(folder: str, losses: Sequence[float], result: Optional[TrainResult] = None) -> None:
-    """``losses.csv`` (step, loss), ``loss.png`` and, with ``result``, ``result.json``."""
+def write_logs(folder: str, losses: Sequence[float], result: Optional[TrainResult] = None,
+               compile_setting: Optional[Dict[str, Any]] = None) -> None:
+    """``losses.csv`` (step, loss), ``loss.png`` and, with ``result``, ``result.json`` (with
+    ``compile_setting``: how the model ran, under ``compile``)."""
     lines = ["step,loss"] + [f"{i + 1},{v:.9g}" for i, v in enumerate(losses)]
     atomic_write_text(os.path.join(folder, "losses.csv"), "\n".join(lines) + "\n")
     if result is not None:
-        atomic_write_json(os.path.join(folder, "result.json"), result.to_dict())
+        d = result.to_dict()
+        if compile_setting is not None:
+            d["compile"] = compile_setting
+        atomic_write_json(os.path.join(folder, "result.json"), d)
     if losses:
         import matplotlib
 
@@ -236,12 +245,13 @@ def main(argv: Optional[List[str]] = None) -> int:
                         print(f"smdm train: {e}", file=sys.stderr)
                         od.abandon(keep=od.resumed_from == od.path)  # an interrupted run's folder stays as it was
                     return 2
+            extra["compile_applied"] = trainer.compile_setting.to_dict()  # after --resume's data check
             if ctx.is_main:
                 kind = "sparse" if cfg.sparse is not None else "dense"
                 print(f"smdm train: {kind} TinyMDM, {len(data)} motions from {a.data} ({a.split}), {cfg.steps} steps "
                       f"x global batch {trainer.global_batch} ({ctx.world_size} process(es) x {cfg.batch}) on "
                       f"{ctx.device}" + (f", backend {torch.distributed.get_backend()}" if ctx.distributed else "")
-                      + note, flush=True)
+                      + f", {trainer.compile_setting.describe()}" + note, flush=True)
                 if trainer.init_origin is not None:
                     print(f"smdm train: initialised from the dense checkpoint {trainer.init_origin['path']} "
                           f"({trainer.init_origin['digest'][:19]}...)"
@@ -268,7 +278,7 @@ def main(argv: Optional[List[str]] = None) -> int:
                 raise
             trainer.save(folder, extra)
             if ctx.is_main:
-                write_logs(folder, trainer.losses, result)
+                write_logs(folder, trainer.losses, result, trainer.compile_setting.to_dict())
             ctx.barrier()
         if ctx.is_main:
             path = os.path.join(a.out, trainer.checkpoint_name())

@@ -75,6 +75,14 @@ def attend_with_weights(attn: nn.Module, q: Tensor, k: Tensor, v: Tensor, mask: 
     return F.dropout(weights, p=attn.dropout, training=attn.training) @ v, weights
 
 
+def compute_dtype(t: Tensor) -> torch.dtype:
+    """The dtype a matmul on ``t`` runs in: autocast's for ``t``'s device when it is on, else
+    ``t``'s."""
+    if torch.is_autocast_enabled(t.device.type):
+        return torch.get_autocast_dtype(t.device.type)
+    return t.dtype
+
+
 def float_mask(mask: Optional[Tensor], dtype: torch.dtype) -> Optional[Tensor]:
     """Bool (True = masked out) or float (additive) mask -> additive float mask (None stays None)."""
     if mask is None:

@@ -37,8 +37,9 @@ import torch
 import torch.nn as nn
 import torch.nn.functional as F
 
-from .attention import attend, attend_single_key, float_mask, project_qkv
-from .checks import static_shapes
+from .attention import attend, attend_single_key, compute_dtype, float_mask, project_qkv
+from . import consts
+from .checks import compiling as static_compiling, static_shapes
 from .registry import Registry
 from .fsq import FSQMultiheadAttention, _disable_transformer_fast_path
 from .plan import KeyframePlan
@@ -119,8 +120,13 @@ def _slot_rows(plan: KeyframePlan, lead: int) -> torch.Tensor:
     if not lead:
         return plan.rows
     B = plan.batch
-    lead_rows = torch.arange(lead * B, device=plan.rows.device).view(lead, B)
-    return torch.cat([lead_rows, plan.rows + lead * B], 0)
+    return torch.cat([arange_rows(lead, B, plan.rows.device), plan.rows + lead * B], 0)
+
+
+def arange_rows(n: int, B: int, device: torch.device) -> torch.Tensor:
+    """``arange(n * B).view(n, B)`` on ``device``: made once per shape and device (outside tracing),
+    a per-call constant (never written to)."""
+    return consts.arange(n * B, device).view(n, B)
 
 
 def _lead_keep(plan: KeyframePlan, lead: int, lead_padding: Optional[torch.Tensor]) -> torch.Tensor:
@@ -134,7 +140,12 @@ def _key_bias(plan: KeyframePlan, lead: int, lead_padding: Optional[torch.Tensor
               ) -> torch.Tensor:
     """Additive key padding mask ``[B, lead + K]`` (0 kept / -inf padded lead tokens and empty
     slots), made once per call: a float mask goes through every layer's attention as it is (a
-    bool one is converted again in each layer)."""
+    bool one is converted again in each layer). A looked-up plan carries it (``plan.key_bias``)."""
+    if plan.key_bias is not None and lead <= 1:
+        bias = plan.key_bias[:, 1 - lead:]
+        if lead and lead_padding is not None:                       # the caller's padding of its lead token
+            bias = torch.cat([bias[:, :1].masked_fill(lead_padding.to(torch.bool), float("-inf")), bias[:, 1:]], 1)
+        return bias if bias.dtype == dtype else bias.to(dtype)
     pad = ~plan.valid
     if lead:
         lead_pad = plan.valid.new_zeros(plan.batch, lead) if lead_padding is None else lead_padding.to(torch.bool)
@@ -158,12 +169,15 @@ def compact_backend(inner: nn.Module, x: torch.Tensor, plan: KeyframePlan, lead:
                     memory: Optional[torch.Tensor] = None, memory_key_padding_mask: Optional[torch.Tensor] = None,
                     lead_padding: Optional[torch.Tensor] = None) -> Tuple[torch.Tensor, torch.Tensor]:
     S, B, d = x.shape
-    src = _slot_rows(plan, lead)                                               # [lead + K, B]
-    R = src.shape[0]
-    xc = gather_rows(x.reshape(S * B, d), src.reshape(-1)).view(R, B, d)
-    out = _call_inner(inner, xc, _key_bias(plan, lead, lead_padding, x.dtype), memory, memory_key_padding_mask)
-    rows = torch.arange(R * B, device=x.device).view(R, B)
-    return out.reshape(R * B, d), rows
+    R = lead + plan.capacity
+    if not (torch.is_grad_enabled() and x.requires_grad):   # the slots' frames by index; lead tokens as they are
+        slots = torch.gather(x[lead:], 0, plan.index.t().unsqueeze(-1).expand(R - lead, B, d))
+        xc = torch.cat([x[:lead], slots]) if lead else slots
+    else:                                  # one gather (with autograd: one scatter back, not two + a sum)
+        xc = gather_rows(x.reshape(S * B, d), _slot_rows(plan, lead).reshape(-1)).view(R, B, d)
+    # the key bias in the dtype the attention runs in (autocast's): cast once, not in every layer
+    out = _call_inner(inner, xc, _key_bias(plan, lead, lead_padding, compute_dtype(x)), memory, memory_key_padding_mask)
+    return out.reshape(R * B, d), arange_rows(R, B, x.device)
 
 
 class _RowGather(torch.autograd.Function):
@@ -215,6 +229,30 @@ class _LerpRows(torch.autograd.Function):
         gw = g.view(*w.shape[:-1], -1)
         grad.index_add_(0, prev, (gw * (1 - w)).reshape(g.shape)).index_add_(0, nxt, (gw * w).reshape(g.shape))
         return grad, None, None, None
+
+
+class _LerpRowPairs(torch.autograd.Function):
+    """:class:`_LerpRows` with the rows of both ends in one index ``[2R]`` (``prev`` then ``next``):
+    one row gather forward, one ``index_add_`` backward."""
+
+    @staticmethod
+    def forward(ctx, h: torch.Tensor, pairs: torch.Tensor, w: torch.Tensor) -> torch.Tensor:
+        ctx.save_for_backward(pairs, w)
+        ctx.rows = h.shape[0]
+        R = pairs.shape[0] // 2
+        shape = (*w.shape[:-1], -1)                       # w [..., 1] may be a strided view
+        ends = h.index_select(0, pairs)
+        return torch.lerp(ends[:R].view(shape), ends[R:].view(shape), w).reshape(R, *h.shape[1:])
+
+    @staticmethod
+    def backward(ctx, g: torch.Tensor):
+        pairs, w = ctx.saved_tensors
+        gw = g.view(*w.shape[:-1], -1)
+        both = g.new_empty(2, *gw.shape)
+        torch.mul(gw, 1 - w, out=both[0])
+        torch.mul(gw, w, out=both[1])
+        grad = g.new_zeros(ctx.rows, *g.shape[1:])
+        return grad.index_add_(0, pairs, both.view(-1, *g.shape[1:])), None, None
 
 
 def lerp_rows(h: torch.Tensor, prev: torch.Tensor, nxt: torch.Tensor, w: torch.Tensor) -> torch.Tensor:
@@ -391,6 +429,15 @@ register_backend("compact", compact_backend)
 register_backend("varlen", varlen_backend, static_shapes=False, supports=supports_packed)
 
 
+def _lead_rows(h: torch.Tensor, rows: torch.Tensor, lead: int, B: int) -> torch.Tensor:
+    """``[lead, B, d]``: the lead tokens' output rows; a view when they are ``h``'s first rows (the
+    compact backend's rows: its cached arange)."""
+    if not static_compiling() and rows.is_contiguous() and rows.numel() == h.shape[0] \
+            and rows.data_ptr() == consts.arange(rows.numel(), rows.device).data_ptr():
+        return h[:lead * B].view(lead, B, -1)
+    return gather_rows(h, rows[:lead].reshape(-1)).view(lead, B, h.shape[-1])
+
+
 def fill_frames(h: torch.Tensor, rows: torch.Tensor, plan: KeyframePlan, lead: int,
                 interpolate: bool = True) -> torch.Tensor:
     """Every output token ``[lead + N, B, d]`` from a backend's rows: lead tokens as they are,
@@ -399,6 +446,13 @@ def fill_frames(h: torch.Tensor, rows: torch.Tensor, plan: KeyframePlan, lead: i
     d = h.shape[-1]
     B, N = plan.mask.shape
     frame_rows = rows[lead:]                                           # [K, B]
+    if interpolate and plan.slots is not None:                         # both ends in one gather
+        pairs = frame_rows.gather(0, plan.slots.t())                   # [2N, B]: prev rows, next rows
+        out = _LerpRowPairs.apply(h, pairs.reshape(-1), plan.weight.t().unsqueeze(-1).to(h.dtype))
+        out = out.view(N, B, d)
+        if lead:
+            out = torch.cat([_lead_rows(h, rows, lead, B), out], 0)
+        return out
     prev = frame_rows.gather(0, plan.prev_slot.t())                    # [N, B]
     if interpolate:
         out = lerp_rows(h, prev.reshape(-1), frame_rows.gather(0, plan.next_slot.t()).reshape(-1),
@@ -407,5 +461,5 @@ def fill_frames(h: torch.Tensor, rows: torch.Tensor, plan: KeyframePlan, lead: i
         out = h.index_select(0, prev.reshape(-1)) * plan.mask.t().reshape(-1, 1).to(h.dtype)
     out = out.view(N, B, d)
     if lead:
-        out = torch.cat([gather_rows(h, rows[:lead].reshape(-1)).view(lead, B, d), out], 0)
+        out = torch.cat([_lead_rows(h, rows, lead, B), out], 0)
     return out

@@ -16,7 +16,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
-from .attention import attend, attend_with_weights, float_mask, project_qkv
+from .attention import attend, attend_with_weights, compute_dtype, float_mask, project_qkv
 from .checks import compiling
 
 __all__ = ["FSQ", "FSQMultiheadAttention", "quantize_attention_keys"]
@@ -64,6 +64,22 @@ class FSQ(nn.Module):
         self.register_buffer("_shift", shift.float(), persistent=False)
         self.register_buffer("_half_width", (lv // 2).float(), persistent=False)
         self.register_buffer("_basis", basis, persistent=False)
+        self._cast: dict = {}                                    # per-dtype copies of the constants
+
+    def constants(self, dtype: torch.dtype) -> Tuple[Tensor, Tensor, Tensor, Tensor]:
+        """``(neg_offset, half_l, shift, half_width)`` ``[d]`` in ``dtype``: cast once per dtype and
+        device (outside tracing), not at every use (under autocast, each use of a float32 buffer
+        in a bf16 op would be a cast kernel); keyed on the buffers' storage and version."""
+        bufs = (self._neg_offset, self._half_l, self._shift, self._half_width)
+        if bufs[0].dtype == dtype:
+            return bufs
+        if compiling():
+            return tuple(b.to(dtype) for b in bufs)
+        key = tuple((b.data_ptr(), b._version) for b in bufs)
+        hit = self._cast.get(dtype)
+        if hit is None or hit[0] != key:
+            hit = self._cast[dtype] = (key, tuple(b.to(dtype) for b in bufs))
+        return hit[1]
 
     @property
     def dim(self) -> int:
@@ -77,8 +93,9 @@ class FSQ(nn.Module):
         """``[..., d]``: each channel squashed into ``(-floor(L/2) - 0.5, ceil(L/2) - 0.5)``
         (``tanh(z + shift) * half_l - offset``, as one fused multiply-add; ``shifted``: ``z``
         already holds ``+ shift``)."""
-        t = torch.tanh(z if shifted else z + self._shift.to(z.dtype))
-        return torch.addcmul(self._neg_offset.to(z.dtype), t, self._half_l.to(z.dtype))
+        neg_offset, half_l, shift, _ = self.constants(z.dtype)
+        t = torch.tanh(z if shifted else z + shift)
+        return torch.addcmul(neg_offset, t, half_l)
 
     @staticmethod
     def round(b: Tensor) -> Tensor:
@@ -88,7 +105,7 @@ class FSQ(nn.Module):
     def forward(self, z: Tensor) -> Tensor:
         if z.shape[-1] != self.dim:
             raise ValueError(f"FSQ: input must be [..., {self.dim}], got {tuple(z.shape)}")
-        return self.round(self.bound(z)) / self._half_width.to(z.dtype)
+        return self.round(self.bound(z)) / self.constants(z.dtype)[3]
 
     def codes_to_indices(self, codes: Tensor) -> Tensor:
         """``[..., d]`` grid codes (as returned by ``forward``) -> ``[...]`` long in
@@ -158,7 +175,8 @@ class FSQMultiheadAttention(nn.Module):
         self.key_down = nn.Linear(self.head_dim, self.fsq.dim, **fk)
         self.key_up = nn.Linear(self.fsq.dim, self.head_dim, **fk)
         self.quantize = True
-        self._fold_cache: Optional[Tuple[tuple, Tuple[Tensor, Tensor]]] = None
+        self._fold_cache: Optional[Tuple[tuple, Tuple[Tensor, ...]]] = None
+        self._call_fold: Optional[Tuple[Tensor, ...]] = None     # set by fold_keys for one call
         self._reset_parameters()
         self.register_forward_pre_hook(_disable_transformer_fast_path)
 
@@ -207,25 +225,37 @@ class FSQMultiheadAttention(nn.Module):
         one fused multiply-add on the rows. The result has ``k``'s shape (strides may differ)."""
         S, hd = k.shape[-2:]
         kb = k.movedim(-2, 0).reshape(S, -1, hd)                        # [S, M, hd]: a view for the keys
-        down_bias, up_weight = self._folded()                            # of F.linear(...).chunk(3)
-        z = torch.baddbmm(down_bias, kb, self.key_down.weight.t().expand(S, hd, self.fsq.dim))
+        down_bias, down_weight_t, up_weight, up_bias = self._folded(compute_dtype(k))
+        # W^T as the transpose of W expanded (not W^T expanded): the same values, and the weight's
+        # gradient (the sum over the heads) comes out in W's own layout (no copy into it)
+        down_weight = down_weight_t.t().expand(S, self.fsq.dim, hd).transpose(1, 2)
+        z = torch.baddbmm(down_bias, kb, down_weight)
         r = self.fsq.round(self.fsq.bound(z, shifted=True))              # [S, M, d] integer levels
-        out = F.linear(r.view(-1, self.fsq.dim), up_weight, self.key_up.bias)   # [S*M, hd]
+        out = F.linear(r.view(-1, self.fsq.dim), up_weight, up_bias)   # [S*M, hd]
         return out.view(S, *k.shape[:-2], hd).movedim(0, -2)
 
-    def _folded(self) -> Tuple[Tensor, Tensor]:
+    def _folded(self, dtype: torch.dtype) -> Tuple[Tensor, Tensor, Tensor, Tensor]:
         """FSQ's constant affine steps folded into the two projections: ``(key_down.bias + shift
-        [d], key_up.weight / floor(L/2) [head_dim, d])``. Without autograd (sampling) and outside
-        tracing, cached: keyed on the parameters' storage and version, as the Lipschitz layers."""
-        bias, weight, fsq = self.key_down.bias, self.key_up.weight, self.fsq
+        [d], key_down.weight.t() [head_dim, d], key_up.weight / floor(L/2) [head_dim, d],
+        key_up.bias [head_dim])``. Without autograd (sampling) and outside tracing, cached in the
+        compute ``dtype`` (autocast's, else the keys'): keyed on the parameters' storage and
+        version, as the Lipschitz layers; so a sampling call under autocast casts none of them (the
+        values autocast would make). With autograd: the parameters' dtype (autocast casts them)."""
+        call = self.__dict__.get("_call_fold")
+        if call is not None:
+            return call
+        down, up, fsq = self.key_down, self.key_up, self.fsq
         key = None
         if not torch.is_grad_enabled() and not compiling():
-            key = (bias.data_ptr(), bias._version, weight.data_ptr(), weight._version,
-                   fsq._shift.data_ptr(), fsq._half_width.data_ptr())
+            key = (dtype,) + tuple((t.data_ptr(), t._version) for t in (
+                down.bias, down.weight, up.weight, up.bias, fsq._shift, fsq._half_width))
             if self._fold_cache is not None and self._fold_cache[0] == key:
                 return self._fold_cache[1]
-        out = (bias + fsq._shift.to(bias.dtype), weight / fsq._half_width.to(weight.dtype))
-        self._fold_cache = None if key is None else (key, out)
+        _, _, shift, half_width = fsq.constants(down.bias.dtype)
+        out = (down.bias + shift, down.weight.t(), up.weight / half_width, up.bias)
+        if key is not None:
+            out = tuple(t.to(dtype) for t in out)
+            self._fold_cache = (key, out)
         return out
 
     def forward(self, query: Tensor, key: Tensor, value: Tensor,
@@ -307,6 +337,46 @@ class FSQMultiheadAttention(nn.Module):
     def extra_repr(self) -> str:
         return (f"embed_dim={self.embed_dim}, num_heads={self.num_heads}, "
                 f"dropout={self.dropout}, batch_first={self.batch_first}, quantize={self.quantize}")
+
+
+class fold_keys:
+    """Context manager, for one call with autograd: the folded key projections
+    (:meth:`FSQMultiheadAttention._folded`) of every layer in ``attns`` made at once, as stacked
+    tensors: ``bias + shift`` and ``weight / floor(L/2)`` are one op each for all layers instead of
+    one per layer, and under autocast each parameter kind is cast once for all layers (autocast
+    would cast each layer's non-leaf folds, forward and backward). The same values as per layer.
+    Without autograd (cached per layer), under ``torch.compile`` (which fuses the folds itself), with
+    fewer than two layers, or layers of different levels or dtypes, it does nothing."""
+
+    def __init__(self, attns: Sequence["FSQMultiheadAttention"], like: Tensor) -> None:
+        self.attns = [a for a in attns if a.quantize]
+        self.like = like
+
+    def __enter__(self) -> "fold_keys":
+        attns = self.attns
+        if (len(attns) < 2 or not torch.is_grad_enabled() or compiling()
+                or len({(a.fsq.levels_list, a.key_down.weight.dtype, a.key_down.weight.device) for a in attns}) != 1):
+            self.attns = []
+            return self
+        dtype = compute_dtype(self.like)
+        _, _, shift, half_width = attns[0].fsq.constants(attns[0].key_down.bias.dtype)
+        down_b = torch.stack([a.key_down.bias for a in attns]) + shift              # [G, d]
+        up_w = torch.stack([a.key_up.weight for a in attns]) / half_width            # [G, hd, d]
+        if dtype != down_b.dtype:                                # one cast per kind for all layers
+            down_w = torch.stack([a.key_down.weight for a in attns]).to(dtype).transpose(1, 2)
+            up_b = torch.stack([a.key_up.bias for a in attns]).to(dtype).unbind(0)
+            down_b, up_w = down_b.to(dtype), up_w.to(dtype)
+        else:
+            down_w = [a.key_down.weight.t() for a in attns]
+            up_b = [a.key_up.bias for a in attns]
+        for a, folds in zip(attns, zip(down_b.unbind(0), down_w if isinstance(down_w, list) else down_w.unbind(0),
+                                      up_w.unbind(0), up_b)):
+            a._call_fold = folds
+        return self
+
+    def __exit__(self, *exc) -> None:
+        for a in self.attns:
+            a._call_fold = None
 
 
 def quantize_attention_keys(module: nn.Module, levels: Sequence[int]) -> int:

@@ -8,8 +8,8 @@ a table of :data:`TABLE_SIZE` uniforms made from the schedule's seed with a priv
 (:func:`noise_table`). Each training mask reads a window of it at an offset set by a step counter:
 ``table[(step * STRIDE + i) mod TABLE_SIZE]`` for its ``i``-th number, with ``step`` an int64 tensor
 on the device (the sparse model's persistent buffer :data:`NOISE_STEP`, advanced in place once per
-mask: no host sync, saved and restored with the weights). A mask costs four small ops (offset,
-index, modulo, gather) plus the step's increment (a hash of the counter per number would cost
+mask: no host sync, saved and restored with the weights). A mask costs three small ops (offset,
+modulo, gather) plus the step's increment (a hash of the counter per number would cost
 dozens, over the launch budget of a training step). Same seed and step: the same numbers.
 
 How random: the offsets of successive steps follow a Weyl sequence (``STRIDE / TABLE_SIZE`` ≈ the
@@ -25,6 +25,8 @@ from __future__ import annotations
 from typing import Tuple
 
 import torch
+
+from . import consts
 
 #: the sparse model's persistent int64 buffer holding the mask-noise step (saved with the weights)
 NOISE_STEP = "smdm_mask_noise_step"
@@ -86,8 +88,8 @@ class CounterNoise:
             numel *= int(n)
         start, self.used = self.used, self.used + numel
         device = self.table.device
-        if self.step.dim() == 0:
-            pos = torch.arange(start, start + numel, device=device) + self.step * STRIDE
+        if self.step.dim() == 0:                             # start + i + step * STRIDE: one op
+            pos = torch.add(consts.arange(start + numel, device)[start:], self.step, alpha=STRIDE)
         else:                                                # a window per row, at the row's step
             rows = int(shape[0])
             cols = numel // max(rows, 1)

@@ -19,6 +19,7 @@ from typing import Optional, Tuple, Union
 
 import torch
 
+from . import consts
 from .checks import require
 
 
@@ -43,6 +44,11 @@ class KeyframePlan:
         taps: ``(frames [B, N, 4] long, weights [B, N, 4] float32)`` of that C¹ fill when they were
             looked up in a table (the sampling schedule's uniform masks), else None (computed from
             the plan's slots by :func:`~smdm_plugin.core.interpolation.catmull_rom_taps`).
+        key_bias: ``[B, 1 + K]`` float32 or None: the additive key padding mask of one lead token
+            and the slots (0 kept, -inf empty slots; column 0 is a lead token's 0), looked up with
+            the plan (:meth:`PlanTables.lookup`); ``key_bias[:, 1 - lead:]`` serves ``lead <= 1``.
+        slots: ``[B, 2N]`` long or None: ``prev_slot | next_slot`` side by side (those two are its
+            views), so the fill gathers both ends at once.
     """
 
     mask: torch.Tensor
@@ -52,9 +58,22 @@ class KeyframePlan:
     prev_slot: torch.Tensor
     next_slot: torch.Tensor
     weight: torch.Tensor
-    rows: torch.Tensor
+    slot_rows: Optional[torch.Tensor]
     cubic: Union[None, bool, torch.Tensor] = None
     taps: Optional[Tuple[torch.Tensor, torch.Tensor]] = None
+    key_bias: Optional[torch.Tensor] = None
+    slots: Optional[torch.Tensor] = None
+    rows_from: Optional[Tuple[torch.Tensor, torch.Tensor, torch.Tensor]] = None
+
+    @property
+    def rows(self) -> torch.Tensor:
+        """``[K, B]`` long, contiguous (see the class docstring). A looked-up plan makes it when it
+        is read (2 ops; the static sampling path never reads it): ``rows_from`` = ``(arange(B),
+        index table transposed [K, N+1], lengths [B])``."""
+        if self.slot_rows is not None:
+            return self.slot_rows
+        batch_index, index_t, lengths = self.rows_from
+        return torch.add(batch_index, index_t.index_select(1, lengths), alpha=lengths.shape[0])
 
     @property
     def capacity(self) -> int:
@@ -84,7 +103,7 @@ class KeyframePlan:
         K = N if capacity is None else int(capacity)
         if not 1 <= K <= N:
             raise ValueError(f"KeyframePlan: capacity must be in [1, N={N}], got {capacity}")
-        idx = torch.arange(N, device=mask.device)
+        idx = consts.arange(N, mask.device)
         seen = torch.cumsum(mask, 1)                                   # keyframes at or before n
         count = seen[:, -1]
         if check:
@@ -95,13 +114,85 @@ class KeyframePlan:
         index = torch.sort(mask, dim=1, descending=True, stable=True).indices[:, :K]
         valid = idx[:K] < count[:, None]
         before = seen - 1
-        prev_slot = before.clamp_min(0)
-        next_slot = torch.minimum(torch.where(mask, before, seen), before[:, -1:].clamp_min(0))   # <= count - 1
-        prev_f = index.gather(1, prev_slot)
-        next_f = index.gather(1, next_slot)
+        slots = torch.cat([before.clamp_min(0),
+                           torch.minimum(torch.where(mask, before, seen), before[:, -1:].clamp_min(0))], 1)
+        prev_slot, next_slot = slots[:, :N], slots[:, N:]              # next <= count - 1
+        ends = index.gather(1, slots)                                 # frames of both ends at once
+        prev_f, next_f = ends[:, :N], ends[:, N:]
         # a true division of ints: float32 (exact frame differences, one rounding)
         weight = torch.div(idx[None] - prev_f, (next_f - prev_f).clamp_min(1)).to(torch.float32).clamp(0.0, 1.0)
-        rows = torch.add(torch.arange(B, device=mask.device)[:, None], index, alpha=B).t().contiguous()
+        rows = torch.add(consts.arange(B, mask.device)[:, None], index, alpha=B).t().contiguous()
         if cubic is not None and cubic is not True:
             cubic = torch.as_tensor(cubic, device=mask.device).to(torch.bool).reshape(-1).expand(B)
-        return cls(mask, index, valid, count, prev_slot, next_slot, weight, rows, cubic, taps)
+        return cls(mask, index, valid, count, prev_slot, next_slot, weight, rows, cubic, taps, slots=slots)
+
+
+def _packed(t: torch.Tensor) -> torch.Tensor:
+    """``[R, n]`` of any dtype as int64 columns ``[R, ceil(n·size / 8)]`` (zero padded): the same
+    bytes, to share one int64 table row; ``.view(dtype)[:, :n]`` of the columns gives ``t`` back."""
+    R, n = t.shape
+    per = 8 // t.element_size()
+    pad = (-n) % per
+    if pad:
+        t = torch.cat([t, t.new_zeros(R, pad)], 1)
+    return t.contiguous().view(torch.int64)
+
+
+@dataclass(frozen=True)
+class PlanTables:
+    """The plans of a fixed mask per length, as lookup tables (the sampling schedule's uniform
+    masks): row ``L`` belongs to a sample of ``L`` valid frames. A call looks its plan up with 3
+    ops (one row lookup; the slot rows, when read: a lookup and an add) instead of building it (~25).
+
+    ``table [N+1, C]`` int64: per length, side by side, ``index [K] | count [1] | prev_slot [N] |
+    next_slot [N]`` as int64, then the bytes of ``weight [N]`` float32, ``key bias [1+K]`` float32
+    and bfloat16, ``mask [N] | valid [K]`` bool (``column`` holds where each starts, in int64
+    columns; the other dtypes are views of the looked-up row, no copy). ``index_t [K, N+1]``: the
+    index transposed (the slot rows come out ``[K, B]`` contiguous).
+    """
+
+    table: torch.Tensor
+    index_t: torch.Tensor
+    frames: int
+    capacity: int
+
+    @classmethod
+    def build(cls, masks: torch.Tensor, capacity: int) -> "PlanTables":
+        """Tables of bool ``masks [N+1, N]`` (row ``L``: the mask of length ``L``; every row needs
+        1..capacity keyframes) with ``capacity`` slots; on the masks' device."""
+        p = KeyframePlan.build(masks, capacity, check=False)
+        bias = torch.zeros(p.valid.shape[0], 1 + p.capacity, device=masks.device).masked_fill_(
+            torch.cat([p.valid.new_ones(p.valid.shape[0], 1), p.valid], 1).logical_not(), float("-inf"))
+        parts = [torch.cat([p.index, p.count[:, None], p.slots], 1), _packed(p.weight), _packed(bias),
+                 _packed(bias.to(torch.bfloat16)), _packed(torch.cat([p.mask, p.valid], 1))]
+        return cls(torch.cat(parts, 1), p.index.t().contiguous(), p.frames, p.capacity)
+
+    def to(self, device: torch.device) -> "PlanTables":
+        return PlanTables(self.table.to(device), self.index_t.to(device), self.frames, self.capacity)
+
+    def lookup(self, lengths: torch.Tensor, batch_index: torch.Tensor, cubic=None,
+               taps: Optional[Tuple[torch.Tensor, torch.Tensor]] = None,
+               dtype: torch.dtype = torch.float32) -> KeyframePlan:
+        """The plan of samples with ``lengths [B]`` (long, validated, on the tables' device);
+        ``batch_index``: ``arange(B)`` on that device (a per-call constant the caller keeps);
+        ``dtype``: of the key bias (float32 or bfloat16 are stored; others cast). Values equal
+        :meth:`KeyframePlan.build` on the looked-up masks."""
+        N, K = self.frames, self.capacity
+        B = lengths.shape[0]
+        row = self.table[lengths]                                                         # [B, C]
+        c = K + 1 + 2 * N                                   # where the weights start (int64 columns)
+        w_cols, b_cols = -(-N // 2), -(-(1 + K) // 2)
+        h_cols = -(-(1 + K) // 4)
+        weight = row[:, c:c + w_cols].view(torch.float32)[:, :N]
+        c += w_cols
+        bias32 = row[:, c:c + b_cols].view(torch.float32)[:, :1 + K]
+        c += b_cols
+        bias16 = row[:, c:c + h_cols].view(torch.bfloat16)[:, :1 + K]
+        c += h_cols
+        flags = row[:, c:].view(torch.bool)
+        bias = bias16 if dtype == torch.bfloat16 else bias32 if dtype == torch.float32 else bias32.to(dtype)
+        if cubic is not None and cubic is not True:
+            cubic = torch.as_tensor(cubic, device=lengths.device).to(torch.bool).reshape(-1).expand(B)
+        return KeyframePlan(flags[:, :N], row[:, :K], flags[:, N:N + K], row[:, K], row[:, K + 1:K + 1 + N],
+                            row[:, K + 1 + N:K + 1 + 2 * N], weight, None, cubic, taps, bias,
+                            row[:, K + 1:K + 1 + 2 * N], (batch_index, self.index_t, lengths))

@@ -20,7 +20,7 @@ from .config import SparseConfig
 from .features import KINDS, SelectionConstants, apply_selection_constants, selection_constants
 from .interpolation import catmull_rom_taps
 from .noise import CounterNoise, default_noise_salt, default_noise_seed, noise_table
-from .plan import KeyframePlan
+from .plan import KeyframePlan, PlanTables
 from .selection import (keyframe_capacity, keyframe_count_table, perturb_checked, select_checked,
                         uniform_table)
 
@@ -68,6 +68,8 @@ class MaskSchedule:
         self._tables: Dict[Tuple[int, torch.device], Tuple[torch.Tensor, torch.Tensor]] = {}
         self._consts: Dict[tuple, SelectionConstants] = {}
         self._taps: Dict[Tuple[int, torch.device], Tuple[torch.Tensor, torch.Tensor]] = {}
+        self._plans: Dict[Tuple[int, int, torch.device], PlanTables] = {}
+        self._batch_index: Dict[Tuple[int, torch.device], torch.Tensor] = {}
 
     @property
     def late_steps(self) -> int:
@@ -122,6 +124,34 @@ class MaskSchedule:
                 return taps
             self._taps[key] = taps
         return self._taps[key]
+
+    def uniform_plan(self, lengths: torch.Tensor, n_frames: int, prefix: int = 0, cubic=None,
+                     taps: Optional[Tuple[torch.Tensor, torch.Tensor]] = None,
+                     dtype: torch.dtype = torch.float32) -> KeyframePlan:
+        """The sampling plan of the uniform mask (no forced frames) of samples with ``lengths [B]``
+        (long, validated, on the device) over ``n_frames`` frames after ``prefix`` frames that are
+        always kept (DiP): looked up in per-length tables made once per ``(frames, prefix,
+        device)`` (:class:`~smdm_plugin.core.plan.PlanTables`): 3 ops instead of the mask lookup
+        and :meth:`KeyframePlan.build` (~25); the key bias in ``dtype`` (the attention's). Equal to building the plan of :meth:`sampling_mask`'s
+        uniform mask with :meth:`capacity` slots."""
+        device = lengths.device
+        key = (int(n_frames), int(prefix), device)
+        tables = self._plans.get(key)
+        if tables is None:
+            masks = uniform_table(n_frames, self.config.reduction)
+            masks[:2, 0] = True   # lengths 0 and 1 are never looked up; one keyframe keeps them well formed
+            if prefix:
+                masks = torch.cat([masks.new_ones(n_frames + 1, prefix), masks], 1)
+            tables = PlanTables.build(masks, self.capacity(n_frames, training=False) + prefix).to(device)
+            if not compiling():   # (as in tables: no cache write while tracing)
+                self._plans[key] = tables
+        B = lengths.shape[0]
+        batch_index = None if compiling() else self._batch_index.get((B, device))
+        if batch_index is None:
+            batch_index = torch.arange(B, device=device)
+            if not compiling():
+                self._batch_index[(B, device)] = batch_index
+        return tables.lookup(lengths, batch_index, cubic, taps, dtype)
 
     def noise(self, step: torch.Tensor) -> CounterNoise:
         """The counter-based random numbers at ``step`` (int64, 0-d or ``[B]``, on the device

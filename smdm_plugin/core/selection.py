@@ -28,6 +28,7 @@ from typing import Callable, Optional, Tuple
 import numpy as np
 import torch
 
+from . import consts
 from .checks import LengthsLike, as_lengths, as_mask, require
 from .kernels.vw import vw_keyframes
 from .noise import CounterNoise
@@ -216,7 +217,7 @@ def _rank_select(cand: torch.Tensor, count: torch.Tensor, generator: Optional[to
     B, N = cand.shape
     keys = torch.where(cand, _rand((B, N), generator, cand.device) if u is None else u, 2.0)
     order = keys.argsort(1)
-    rank_ok = torch.arange(N, device=cand.device)[None] < count[:, None]
+    rank_ok = consts.arange(N, cand.device)[None] < count[:, None]
     take = rank_ok & cand.gather(1, order)
     return torch.zeros_like(cand).scatter_(1, order, take)
 
@@ -348,14 +349,16 @@ def perturb_checked(mask: torch.Tensor, lengths_t: torch.Tensor, amount: float,
     B, N = mask.shape
     device = mask.device
     with torch.no_grad():
-        i = torch.arange(N, device=device)[None]
+        i = consts.arange(N, device)[None]
         valid = i < lengths_t[:, None]
         m = mask.to(torch.bool)                                        # keyframes lie in valid frames
         k = m.sum(1, dtype=torch.float32)
         mmax = torch.round(k * float(amount))                          # exact: k <= N << 2^24
         u = _rand((B, N + 1), generator, device)                        # one draw: the count, then frames
         c = torch.minimum((u[:, 0] * (2 * mmax + 1)).floor() - mmax, mmax)
-        droppable = m & (i > 0) & (i < (lengths_t - 1)[:, None])
+        # interior frames 0 < i < L - 1: i >= 1 is the cached arange's tail, i < L - 1 is i + 1 < L
+        after_first = consts.arange(N + 1, device)[None, 1:]            # i + 1
+        droppable = m & (after_first > 1) & (after_first < lengths_t[:, None])
         if protected is not None:
             droppable &= ~protected
         add = c > 0

@@ -38,6 +38,12 @@ def update_namespace(args: Any, config: SparseConfig) -> None:
 def update_args_json(path: str, config: SparseConfig) -> bool:
     """Rewrite the ``sparse*`` entries of MDM's ``args.json`` at ``path`` (present keys only, plus
     ``sparse``); False when the file is absent. Atomic."""
+    return set_json_entries(path, resolved_options(config), add=("sparse",))
+
+
+def set_json_entries(path: str, values: Dict[str, Any], add: Any = None) -> bool:
+    """Rewrite entries of a JSON options file (``args.json``): the keys of ``values`` present in
+    it, and those of ``add`` (all of them when None); False when the file is absent. Atomic."""
     if not os.path.isfile(path):
         return False
     with open(path, encoding="utf-8") as f:
@@ -45,8 +51,8 @@ def update_args_json(path: str, config: SparseConfig) -> bool:
     if not isinstance(data, dict):
         raise ValueError(f"{path}: expected a JSON object of options, got {type(data).__name__}")
     new = dict(data)
-    for k, v in resolved_options(config).items():
-        if k in data or k == "sparse":
+    for k, v in values.items():
+        if k in data or add is None or k in add:
             new[k] = v
     if new != data:
         atomic_write_json(path, new, indent=4, sort_keys=True)
@@ -57,11 +63,17 @@ def update_opt_txt(path: str, config: SparseConfig) -> bool:
     """Rewrite the ``sparse*`` lines (``key: value``) of MotionDiffuse's ``opt.txt``; lines of
     other options are kept byte for byte; absent ``sparse*`` keys are added before the end line.
     False when the file is absent. Atomic."""
+    return set_opt_entries(path, resolved_options(config))
+
+
+def set_opt_entries(path: str, options: Dict[str, Any]) -> bool:
+    """Rewrite (or add before the end line) ``key: value`` lines of MotionDiffuse's ``opt.txt``;
+    other lines byte for byte. False when the file is absent. Atomic."""
     if not os.path.isfile(path):
         return False
     with open(path, encoding="utf-8") as f:
         lines = f.read().splitlines()
-    values = {k: str(v) for k, v in resolved_options(config).items()}
+    values = {k: str(v) for k, v in options.items()}
     out, seen = [], set()
     for line in lines:
         key = line.split(":", 1)[0].strip() if ":" in line else None
@@ -97,3 +109,17 @@ def record_run_config(model: Any, weights_dir: str, args: Any, options_file: Opt
     if options_file:
         (update_opt_txt if options_file.endswith(".txt") else update_args_json)(options_file, config)
     return config
+
+
+def record_compile(args: Any, options_file: Optional[str]) -> bool:
+    """After :func:`~smdm_plugin.integrations.compile.compile_from_args`: ``sparse_compile`` and
+    ``sparse_compile_applied`` (what runs, and why it differs from what was asked) into the run's
+    options file (``args.json`` or ``opt.txt``; written by upstream before the model is built).
+    False when there is no such file or nothing to record."""
+    applied = getattr(args, "sparse_compile_applied", None)
+    if applied is None or not options_file:
+        return False
+    values = {"sparse_compile": getattr(args, "sparse_compile", "none"), "sparse_compile_applied": applied}
+    if options_file.endswith(".txt"):
+        return set_opt_entries(options_file, values)
+    return set_json_entries(options_file, values)

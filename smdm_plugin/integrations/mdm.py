@@ -27,7 +27,7 @@ from typing import Any, Optional, Tuple
 
 from ..core.config import CONFIG_FILENAME, SparseConfig
 
-__all__ = ["add_sparse_options", "sparsify_mdm", "check_mdm_state_dict", "dataset_mean_std",
+__all__ = ["add_sparse_options", "apply_compile", "sparsify_mdm", "check_mdm_state_dict", "dataset_mean_std",
            "install_hooks", "is_mdm_repo", "warn_if_upstream_steps"]
 
 
@@ -97,8 +97,11 @@ def sparsify_mdm(model: Any, args: Any, data: Any = None, diffusion: Any = None,
     2. When ``args.sparse``: sparsify the MDM/DiP model, wrap ``diffusion.training_losses``
        (keyframe masks from x0, ``lambda * L_lip``) and, when training (``args.save_dir``), write
        ``sparse_config.json`` beside the weights, bring ``args.json``'s ``sparse_*`` entries to the
-       settings that ran, and warn if the run uses upstream's 1000 diffusion steps. Without
-       ``--sparse`` (and no text option) the model is returned untouched, bit for bit.
+       settings that ran, and warn if the run uses upstream's 1000 diffusion steps.
+    3. ``--sparse_compile`` (dense or sparse): :func:`apply_compile`.
+
+    Without ``--sparse``, a text option or ``--sparse_compile`` the model is returned untouched,
+    bit for bit.
     """
     from ..adapters.surgery import is_sparse
     from ._rng import upstream_rng_untouched
@@ -107,18 +110,26 @@ def sparsify_mdm(model: Any, args: Any, data: Any = None, diffusion: Any = None,
     config = config if config is not None else SparseConfig.from_args(args)
     with upstream_rng_untouched():  # a swapped text encoder's new layers draw from a forked stream
         apply_text_options(model, config)
-    from .start import apply as apply_start, record_origin, resolve
+    from .start import resolve
 
     start = resolve(args, config, _is_training(args))   # --sparse_preset / --sparse_init_from (start.py)
     config = start.config
-    if not config.enabled:
-        return model
-    if is_sparse(model):
-        return model  # patch + launcher together: already done
+    if config.enabled and not is_sparse(model):  # sparse already: patch + launcher together
+        _sparsify(model, args, data, diffusion, config, start)
+    apply_compile(model, args)
+    return model
+
+
+def _sparsify(model: Any, args: Any, data: Any, diffusion: Any, config: SparseConfig, start: Any = None) -> None:
+    from ._rng import upstream_rng_untouched
+    from .start import Start, apply as apply_start, record_origin
+
+    start = start if start is not None else Start(config=config)
+
     mean, std = dataset_mean_std(data)
     if mean is None and config.feature != "raw":
         warnings.warn("smdm: no dataset Mean/Std on the data loader; keyframes are selected on "
-                      "normalised features", stacklevel=2)
+                      "normalised features", stacklevel=3)
     with upstream_rng_untouched():  # upstream's prompts / noise / batches stay those of a dense run
         apply_start(model, args, start, diffusion, mean, std, data)   # sparsify, or wrap / warm start
     if _is_training(args):
@@ -135,7 +146,26 @@ def sparsify_mdm(model: Any, args: Any, data: Any = None, diffusion: Any = None,
             record_run_config(model, save_dir, args, os.path.join(save_dir, "args.json"),
                               overwrite=bool(getattr(args, "overwrite", False)))
             record_origin(args, os.path.join(save_dir, "args.json"))
-    return model
+
+
+def apply_compile(model: Any, args: Any, options_file: Optional[str] = None) -> Any:
+    """``--sparse_compile`` (docs/compile.md): compile the model just built, dense or sparse, once,
+    in place (``none`` / absent: nothing happens). The setting that applies is printed and, when
+    training, written to ``args.json`` (``sparse_compile_applied``; ``options_file`` overrides
+    where). Returns the :class:`~smdm_plugin.integrations.compile.CompileSetting` or None."""
+    import sys
+
+    from ._files import record_compile
+    from .compile import compile_from_args
+
+    setting = compile_from_args(model, args)
+    if setting is None:
+        return None
+    sys.stderr.write(f"smdm: {type(model).__name__} runs {setting.describe()}\n")
+    if options_file is None and _is_training(args) and os.path.isdir(args.save_dir):
+        options_file = os.path.join(args.save_dir, "args.json")
+    record_compile(args, options_file)
+    return setting
 
 
 def check_mdm_state_dict(model: Any, state_dict: Any, model_path: Optional[str] = None) -> None:
@@ -148,6 +178,7 @@ def check_mdm_state_dict(model: Any, state_dict: Any, model_path: Optional[str] 
 
     if is_dense_wrap(model) and not state_dict_is_sparse(state_dict):
         return  # --sparse_preset: a dense checkpoint wrapped for sparse sampling (its weights load as they are)
+
     source = model_path or "checkpoint"
     if model_path and not model_is_sparse(model) and state_dict_is_sparse(state_dict):
         cfg = os.path.join(os.path.dirname(os.path.abspath(model_path)), CONFIG_FILENAME)
@@ -175,6 +206,26 @@ def _patch_parser_util(mod: Any) -> None:
 
     add_model_options._smdm_wrapped = True
     mod.add_model_options = add_model_options
+
+
+def patch_base_options(mod: Any) -> None:
+    """Wrap ``utils.parser_util.add_base_options`` (MDM and priorMDM): ``--sparse_compile`` joins
+    the ``base`` group, which ``load_args_from_model`` does not overwrite from ``args.json``."""
+    original = getattr(mod, "add_base_options", None)
+    if original is None or getattr(original, "_smdm_wrapped", False):
+        return
+
+    @functools.wraps(original)
+    def add_base_options(parser):
+        result = original(parser)
+        from .compile import add_compile_options
+
+        group = next((g for g in parser._action_groups if g.title == "base"), parser)
+        add_compile_options(group)
+        return result
+
+    add_base_options._smdm_wrapped = True
+    mod.add_base_options = add_base_options
 
 
 def _patch_model_util(mod: Any) -> None:
@@ -211,6 +262,7 @@ def install_hooks() -> None:
     from ._hooks import on_import
 
     on_import("utils.parser_util", _patch_parser_util)
+    on_import("utils.parser_util", patch_base_options)
     on_import("utils.model_util", _patch_model_util)
     for extension in (mdm_text, mdm_train, mdm_edit):
         extension.install_hooks()

@@ -134,6 +134,36 @@ def attach_trainer(trainer: Any, config: Optional[SparseConfig] = None) -> Any:
     return trainer
 
 
+def compile_trainer(trainer: Any) -> Any:
+    """``--sparse_compile`` (docs/compile.md): compile ``trainer.encoder`` (inside its DDP /
+    DataParallel wrapper), dense or sparse, once, in place; training runs write the setting that
+    applies to ``opt.txt`` (``sparse_compile``, ``sparse_compile_applied``). ``none`` / absent:
+    nothing happens. Returns the :class:`~smdm_plugin.integrations.compile.CompileSetting` or None."""
+    import sys
+
+    from ._files import record_compile
+    from .compile import compile_from_args
+
+    opt = trainer.opt
+    core = getattr(trainer.encoder, "module", trainer.encoder)
+    device = getattr(trainer, "device", None) or getattr(opt, "device", None)
+    setting = compile_from_args(core, opt, device=device)
+    if setting is None:
+        return None
+    sys.stderr.write(f"smdm: {type(core).__name__} runs {setting.describe()}\n")
+    if getattr(opt, "is_train", False) and getattr(opt, "model_dir", None):
+        record_compile(opt, os.path.join(os.path.dirname(os.path.normpath(opt.model_dir)), "opt.txt"))
+    return setting
+
+
+def add_options(parser: Any) -> Any:
+    """``--sparse*`` and ``--sparse_compile`` (what the hooks add to MotionDiffuse's option parsers)."""
+    from .compile import add_compile_options
+
+    add_sparse_options(parser)
+    return add_compile_options(parser)
+
+
 # --------------------------------------------------------------------------- import hooks
 def _patch_options(mod, cls_name: str) -> None:
     cls = getattr(mod, cls_name, None)
@@ -144,7 +174,7 @@ def _patch_options(mod, cls_name: str) -> None:
     @functools.wraps(original)
     def initialize(self):
         original(self)
-        add_sparse_options(self.parser)
+        add_options(self.parser)
 
     initialize._smdm_wrapped = True
     cls.initialize = initialize
@@ -173,6 +203,7 @@ def _patch_trainer(mod) -> None:
         if getattr(args, "sparse", False):
             attach_trainer(self)
             self.to(self.device)
+        compile_trainer(self)  # --sparse_compile, dense or sparse (none: nothing)
 
     @functools.wraps(backward)
     def backward_G(self):

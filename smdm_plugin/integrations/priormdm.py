@@ -23,7 +23,7 @@ from typing import Any, Optional
 from ..core.config import CONFIG_FILENAME, SparseConfig
 
 
-from .mdm import _is_training, add_sparse_options, dataset_mean_std  # noqa: E402,F401  (the one --sparse* adder; patches import it here)
+from .mdm import _is_training, add_sparse_options, apply_compile, dataset_mean_std, patch_base_options  # noqa: E402,F401  (the one --sparse* adder; patches import it here)
 
 
 def warn_if_not_paper_blend(args: Any) -> bool:
@@ -168,6 +168,7 @@ def _patch_model_util(mod) -> None:
         model, diffusion = original(args, data, *a, **kw)
         if getattr(args, "sparse", False) or getattr(args, "sparse_preset", None):
             sparsify_priormdm(model, args, data, diffusion)
+        apply_compile(model, args)  # --sparse_compile, dense or sparse (none: nothing)
         return model, diffusion
 
     create_model_and_diffusion._smdm_wrapped = True
@@ -181,4 +182,5 @@ def install_hooks() -> None:
     from ._hooks import on_import
 
     on_import("utils.parser_util", _patch_parser_util)
+    on_import("utils.parser_util", patch_base_options)
     on_import("utils.model_util", _patch_model_util)

@@ -31,6 +31,7 @@ import torch
 import torch.nn as nn
 
 from ..core.config import CONFIG_FILENAME, SparseConfig, sparse_config_of
+from ..integrations.compile import check_compile_mode, compile_model
 from ..integrations.distributed import DistContext, constant_buffers_kwargs, init_distributed
 from ..io.checkpoint import BACKBONE_FILENAME
 from ..io.files import atomic_open, atomic_write_json, atomic_write_text
@@ -104,8 +105,10 @@ def caption_draws(seed: int, step: int, sample_ids: Sequence[int], counts: Seque
 class TrainConfig:
     """What to train and how. ``batch`` is per process (global batch = ``batch * world_size``);
     ``model``: :class:`TinyMDM` keyword arguments (``njoints`` comes from the data); ``sparse``:
-    None trains the dense model. ``grad_clip`` 0 = off. ``compile``: ``torch.compile`` the
-    (DDP-wrapped) model with ``compile_backend``. ``text``: a
+    None trains the dense model. ``grad_clip`` 0 = off. ``compile``: ``none`` | ``default`` |
+    ``reduce-overhead`` (``True``/``False`` read as ``default``/``none``): the model compiled once,
+    in place, inside DDP, with ``compile_backend`` (:func:`smdm_plugin.integrations.compile.compile_model`;
+    docs/compile.md). ``text``: a
     :class:`~smdm_plugin.reference.text.TextConfig` trains text-conditioned (the data needs
     captions; one caption drawn per sample per step; condition dropout for classifier-free
     guidance); None (default) trains unconditionally."""
@@ -119,11 +122,12 @@ class TrainConfig:
     seed: int = 0
     model: Dict[str, Any] = field(default_factory=lambda: dict(DEFAULT_MODEL))
     sparse: Optional[SparseConfig] = None
-    compile: bool = False
+    compile: str = "none"
     compile_backend: str = "inductor"
     text: Optional[TextConfig] = None
 
     def __post_init__(self) -> None:
+        self.compile = check_compile_mode(self.compile, "TrainConfig.compile")
         checks = {"steps": self.steps >= 0, "batch": self.batch >= 1, "lr": self.lr > 0,
                   "weight_decay": self.weight_decay >= 0, "grad_clip": self.grad_clip >= 0,
                   "diffusion_steps": self.diffusion_steps >= 1}
@@ -257,13 +261,14 @@ class Trainer:
             sparsify(self.model, config.sparse, diffusion=self.diffusion, mean=data.mean, std=data.std)
         self.model.train()
         self.forward_model: nn.Module = self.model
+        #: how the model runs (``none``: eager); compiled in place before DDP wraps it
+        self.compile_setting = compile_model(self.model, config.compile, backend=config.compile_backend,
+                                             device=dev, name="TrainConfig.compile")
         if self.dist.distributed:
             from torch.nn.parallel import DistributedDataParallel
 
             self.forward_model = DistributedDataParallel(
                 self.model, device_ids=[dev.index] if dev.type == "cuda" else None, **constant_buffers_kwargs())
-        if config.compile:
-            self.forward_model = torch.compile(self.forward_model, backend=config.compile_backend)
         self.optimizer = torch.optim.AdamW(self.model.parameters(), lr=config.lr,
                                            weight_decay=config.weight_decay)
         # dropout: a stream of its own on each rank (mask noise: the model's table, core/noise.py)
@@ -386,7 +391,8 @@ class Trainer:
             raise ValueError(f"{where}: missing field(s) {', '.join(missing)}")
         saved = json.loads(state["config"])
         now = self.config.to_dict()
-        differ = sorted(k for k in set(saved) | set(now) if k != "steps" and saved.get(k) != now.get(k))
+        same = ("steps", "compile", "compile_backend")  # how it runs, not what it trains: may change on resume
+        differ = sorted(k for k in set(saved) | set(now) if k not in same and saved.get(k) != now.get(k))
         if differ:
             raise ValueError(f"{where}: saved by a run with other settings ({'; '.join(f'{k}: saved {saved.get(k)!r}, now {now.get(k)!r}' for k in differ)})")
         if int(state["world_size"]) != self.dist.world_size or len(state["rng"]) != self.dist.world_size:

@@ -25,7 +25,7 @@ Only the *harness* is changed, never upstream files:
 * ``SMDM_SEED=n`` seeds ``random``, ``numpy`` and ``torch`` before the script runs (MotionDiffuse
   seeds nothing; priorMDM seeds itself);
 * ``SMDM_RECORD=path``: every keyframe mask the plugin computes (``MaskSchedule.training_mask`` /
-  ``sampling_mask``), every mask handed to a ``KeyframeTransformer`` and, for MotionDiffuse, the
+  ``sampling_mask`` / ``uniform_plan``), every mask handed to a ``KeyframeTransformer`` and, for MotionDiffuse, the
   number of tokens entering the first decoder block (with that call's mask) is recorded, with the
   sequence lengths, and pickled to ``path`` at exit, for the tests to check.
 """
@@ -200,6 +200,15 @@ def install_recorder(path: str) -> None:
 
     MaskSchedule.training_mask = wrap_schedule("train", MaskSchedule.training_mask)
     MaskSchedule.sampling_mask = wrap_schedule("sample", MaskSchedule.sampling_mask)
+    original_uniform = getattr(MaskSchedule, "uniform_plan", None)
+    if original_uniform is not None:  # the uniform sampling mask, looked up as a plan (no sampling_mask call)
+        def uniform_plan(self, lengths, n_frames, prefix=0, *a, **k):
+            plan = original_uniform(self, lengths, n_frames, prefix, *a, **k)
+            records.append({"kind": "sample", "mask": plan.mask[:, int(prefix):].detach().cpu().numpy().copy(),
+                            "lengths": lengths.detach().cpu().numpy().copy(), "forced": None})
+            return plan
+
+        MaskSchedule.uniform_plan = uniform_plan
     original_set = KeyframeTransformer.set_plan
 
     def set_plan(self, plan):  # every call's keyframes reach the transformer as a KeyframePlan

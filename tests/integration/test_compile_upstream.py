@@ -1,0 +1,275 @@
+"""``--sparse_compile`` on the real upstream code (CPU; docs/compile.md).
+
+Each run compiles with ``SMDM_COMPILE_BACKEND=aot_eager`` (Dynamo + AOTAutograd, no code
+generation: quick on 2 cores; inductor compiles the same graphs) and writes the compile
+statistics at exit (``SMDM_COMPILE_STATS``): per model, the phases it ran in (train / eval, grad,
+motion shape), its compiled calls and ``recompiles`` (calls after the first of their phase that
+made Dynamo capture a new graph).
+
+* MDM (``smdm run``): a sparse trans_enc trains 20 steps compiled: one graph, zero recompiles,
+  the same weights as an eager run on the static-shape path (``static_mode``: what runs on a GPU;
+  the CPU's eager default packs keyframes differently, so its dropout draws differ), the setting
+  in ``args.json``, no ``_orig_mod.`` key in the checkpoint; ``sample.generate`` (classifier-free
+  guidance: 2 calls per step) from it: one graph, zero recompiles, samples equal to eager;
+  ``sample.edit`` (in-betweening: forced keyframes, a graph break at their host count): zero
+  recompiles, equal to eager. DiP: training and autoregressive sampling, zero recompiles.
+* MDM through the patch: training and ``eval.eval_humanml``, zero recompiles, finite FID.
+* priorMDM (patch): training compiled (zero recompiles, ``args.json``); DoubleTake, both takes,
+  both guidance passes: zero recompiles after each take's first call, the unfolded sample equal
+  to eager.
+* MotionDiffuse (patch): a sparse MotionTransformer trains compiled: zero recompiles, ``opt.txt``
+  states the setting, losses equal to eager within float tolerance (dropout 0 there).
+"""
+from __future__ import annotations
+
+import json
+import os
+import re
+import sys
+
+import numpy as np
+import pytest
+
+HERE = os.path.dirname(os.path.abspath(__file__))
+sys.path.insert(0, HERE)
+
+COMPILE_ENV = {"SMDM_COMPILE_BACKEND": "aot_eager"}
+
+
+def stats(path: str) -> dict:
+    with open(path) as f:
+        data = json.load(f)
+    assert len(data["models"]) >= 1, data
+    return data
+
+
+def assert_no_recompiles(data: dict, phases: int) -> None:
+    m = data["models"][-1]
+    assert m["recompiles"] == 0 and m["eager_calls"] == 0, data
+    assert m["phases"] == phases, data
+    if m["fullgraph"]:
+        assert data["graphs"] == phases, data                     # one graph per phase, none after
+
+
+# --------------------------------------------------------------------------- MDM (smdm run)
+MDM_ROOT = os.environ.get("SMDM_MDM_ROOT")
+
+
+@pytest.mark.skipif(not MDM_ROOT, reason="SMDM_MDM_ROOT not set (an MDM checkout)")
+def test_mdm_trains_20_steps_and_samples_compiled(upstream_copy, tmp_path, monkeypatch):
+    import torch
+
+    import test_mdm_upstream as M
+
+    repo = upstream_copy(MDM_ROOT, "mdm_compile")
+    runs = {}
+    for mode in ("none", "default"):
+        for k, v in COMPILE_ENV.items():
+            monkeypatch.setenv(k, v)
+        st = str(tmp_path / f"train_{mode}.json")
+        monkeypatch.setenv("SMDM_COMPILE_STATS", st)
+        save = str(tmp_path / f"save_{mode}")
+        if mode == "none":   # eager on the static-shape path (a GPU's path; same dropout draws)
+            args = ["--save_dir", save, "--num_steps", "20", *M.TINY, *M.ARCH["trans_enc"], "--sparse"]
+            code = ("import runpy, sys; from smdm_plugin.core.checks import static_mode\n"
+                    f"sys.argv = ['train_mdm'] + {args!r}\n"
+                    "with static_mode():\n    runpy.run_module('train.train_mdm', run_name='__main__')")
+            M.harness_code(repo, code, launcher=True)
+            ckpt = M.latest_checkpoint(save)
+        else:
+            proc, ckpt = M.train(repo, save, "trans_enc", 20, extra=["--sparse", "--sparse_compile", mode],
+                                 launcher=True)
+            assert_no_recompiles(stats(st), phases=1)
+            args = json.load(open(os.path.join(save, "args.json")))
+            assert args["sparse_compile"] == "default"
+            assert args["sparse_compile_applied"].startswith("torch.compile default (aot_eager, fullgraph=True)")
+        runs[mode] = M.load_sd(ckpt)
+    assert not [k for k in runs["default"] if "_orig_mod" in k] and runs["default"].keys() == runs["none"].keys()
+    for k, v in runs["none"].items():
+        assert torch.allclose(runs["default"][k].float(), v.float(), atol=1e-4), k
+
+    samples = {}
+    for mode in ("none", "default"):
+        st = str(tmp_path / f"gen_{mode}.json")
+        monkeypatch.setenv("SMDM_COMPILE_STATS", st)
+        _, res = M.generate(repo, ckpt, str(tmp_path / f"gen_{mode}"), "trans_enc",
+                            extra=["--sparse_compile", mode], launcher=True)
+        samples[mode] = res["motion"]
+        if mode == "default":
+            data = stats(st)
+            assert_no_recompiles(data, phases=1)
+            assert data["models"][-1]["compiled_calls"] == 2 * 20    # both guidance passes, 20 steps
+    assert np.allclose(samples["default"], samples["none"], atol=1e-4)
+
+    edits = {}                       # sample.edit in_between: the kept frames are forced keyframes
+    for mode in ("none", "default"):
+        st = str(tmp_path / f"edit_{mode}.json")
+        monkeypatch.setenv("SMDM_COMPILE_STATS", st)
+        out = str(tmp_path / f"edit_{mode}")
+        M.mdm(repo, "sample.edit", ["--model_path", ckpt, "--output_dir", out, "--num_samples", "2",
+                                    "--num_repetitions", "1", "--edit_mode", "in_between", "--text_condition",
+                                    "a person walks", "--sparse_compile", mode], launcher=True)
+        edits[mode] = np.load(os.path.join(out, "results.npy"), allow_pickle=True).item()["motion"]
+    m = stats(st)["models"][-1]
+    assert m["recompiles"] == 0 and m["eager_calls"] == 0 and m["compiled_calls"] == 2 * 20, m
+    assert np.allclose(edits["default"], edits["none"], atol=1e-4)
+
+
+@pytest.mark.skipif(not MDM_ROOT, reason="SMDM_MDM_ROOT not set (an MDM checkout)")
+def test_mdm_torchrun_compiled_inside_ddp(upstream_copy, tmp_path, monkeypatch):
+    """``smdm run -- torchrun --nproc_per_node 2`` (gloo): the model compiled inside MDM's DDP
+    wrapper; both ranks end with identical parameters, zero recompiles on each."""
+    import torch
+
+    import test_mdm_upstream as M
+
+    repo = upstream_copy(MDM_ROOT, "mdm_compile_ddp")
+    for k, v in COMPILE_ENV.items():
+        monkeypatch.setenv(k, v)
+    monkeypatch.setenv("SMDM_COMPILE_STATS", str(tmp_path / "rank{rank}.json"))
+    probe = tmp_path / "probe"
+    probe.mkdir()
+    M.torchrun_train(repo, str(tmp_path / "save"), str(probe), "trans_enc",
+                     ["--sparse", "--sparse_compile", "default"], launcher=True)
+    r0, r1 = (torch.load(probe / f"rank{r}.pt", weights_only=True) for r in (0, 1))
+    assert sorted(r0) == sorted(r1) and not [k for k in r0 if "_orig_mod" in k]
+    for k in r0:
+        assert torch.equal(r0[k], r1[k]), k
+    for r in (0, 1):
+        assert_no_recompiles(stats(str(tmp_path / f"rank{r}.json")), phases=1)
+
+
+# --------------------------------------------------------------------------- priorMDM DoubleTake
+PRIOR_ROOT = os.environ.get("SMDM_PRIORMDM_ROOT")
+
+
+@pytest.mark.skipif(not PRIOR_ROOT, reason="SMDM_PRIORMDM_ROOT not set")
+def test_doubletake_samples_compiled(tmp_path, monkeypatch):
+    import shutil
+
+    import test_priormdm_upstream as P
+
+    if not P.DATA:
+        pytest.skip("no HumanML3D-format data")
+    run, save = P.prepare(str(tmp_path / "priorMDM")), str(tmp_path / "save" / "sparse")
+    for k, v in COMPILE_ENV.items():
+        monkeypatch.setenv(k, v)
+    monkeypatch.setenv("SMDM_COMPILE_STATS", str(tmp_path / "train.json"))
+    P.harness(run, *P.train_args(save, 2), "--sparse_compile", "default")   # priorMDM's training, compiled
+    assert_no_recompiles(stats(str(tmp_path / "train.json")), phases=1)
+    assert json.load(open(os.path.join(save, "args.json")))["sparse_compile_applied"].startswith("torch.compile")
+    ckpt = os.path.join(save, "model000000002.pt")
+    motions = {}
+    for mode in ("none", "default"):
+        for k, v in COMPILE_ENV.items():
+            monkeypatch.setenv(k, v)
+        st = str(tmp_path / f"dt_{mode}.json")
+        monkeypatch.setenv("SMDM_COMPILE_STATS", st)
+        texts = os.path.join(run, "dt_texts.txt")
+        with open(texts, "w") as f:
+            f.write("a person walks forward\na person jumps up and down\na person waves\n")
+        P.harness(run, "-m", "sample.double_take", "--model_path", ckpt, "--num_samples", "3",
+                  "--handshake_size", str(P.H), "--blend_len", str(P.BLEND), "--skip_steps_double_take",
+                  str(P.SKIP), "--input_text", texts, "--guidance_param", "2.5", "--sparse_compile", mode)
+        out_dir = P.dt_out_dir(run, ckpt, input_text=texts)
+        motions[mode] = np.load(os.path.join(out_dir, "results.npy"), allow_pickle=True).item()["motion"]
+        shutil.rmtree(out_dir)
+        if mode == "default":
+            data = stats(st)
+            assert_no_recompiles(data, phases=2)                  # first take, second take
+            m = data["models"][-1]
+            assert m["compiled_calls"] == 2 * P.DT_STEPS + 2 * (P.DT_STEPS - P.SKIP), m
+    assert np.allclose(motions["default"], motions["none"], atol=1e-4)
+
+
+# --------------------------------------------------------------------------- MotionDiffuse
+MD_ROOT = os.environ.get("SMDM_MOTIONDIFFUSE_ROOT")
+
+
+@pytest.mark.skipif(not MD_ROOT, reason="SMDM_MOTIONDIFFUSE_ROOT not set")
+def test_motiondiffuse_trains_compiled(tmp_path, monkeypatch):
+    import test_motiondiffuse_upstream as D
+
+    if not D.DATA:
+        pytest.skip("no HumanML3D-format data")
+    losses = {}
+    for mode in ("none", "default"):
+        for k, v in COMPILE_ENV.items():
+            monkeypatch.setenv(k, v)
+        st = str(tmp_path / f"md_{mode}.json")
+        monkeypatch.setenv("SMDM_COMPILE_STATS", st)
+        t2m = D.prepare(str(tmp_path / f"md_{mode}"))
+        out = D.harness(t2m, *D.train_args(3), "--sparse_compile", mode, anomaly=False)  # 21 iterations
+        losses[mode] = np.array([float(v) for v in re.findall(r"loss_mot_rec: (\S+)", out)])
+        if mode == "default":
+            assert_no_recompiles(stats(st), phases=1)
+            opt = open(os.path.join(t2m, "checkpoints", "t2m", "sparse_ci", "opt.txt")).read()
+            assert "sparse_compile: default" in opt and "sparse_compile_applied: torch.compile default" in opt
+    assert len(losses["default"]) >= 20 and np.allclose(losses["default"], losses["none"], rtol=1e-3, atol=1e-5)
+
+
+# --------------------------------------------------------------------------- MDM eval (patch route)
+@pytest.mark.skipif(not MDM_ROOT, reason="SMDM_MDM_ROOT not set (an MDM checkout)")
+def test_mdm_patch_trains_and_evaluates_compiled(tmp_path, monkeypatch):
+    """``patches/mdm.patch`` carries the flag (``base`` group): training and ``eval.eval_humanml``
+    (guided sampling of the evaluation batches) compiled, zero recompiles, finite FID."""
+    import glob
+
+    import test_mdm_eval_upstream as E
+
+    if not os.path.isfile(os.path.join(E.LARGE, "test.txt")):
+        pytest.skip("no cmu-humanml3d-large data")
+    import tempfile
+
+    from _upstream import copy_checkout, git_apply, link_humanml3d
+
+    repo = tempfile.mkdtemp(dir=str(tmp_path))
+    copy_checkout(MDM_ROOT, repo)
+    link_humanml3d(repo, os.path.abspath(E.LARGE))
+    assert git_apply(os.path.join(E.PATCHES, "mdm.patch"), repo).returncode == 0
+    E.write_evaluator(repo, E.LARGE)
+    for k, v in COMPILE_ENV.items():
+        monkeypatch.setenv(k, v)
+    save = str(tmp_path / "sparse")
+    st = str(tmp_path / "train.json")
+    monkeypatch.setenv("SMDM_COMPILE_STATS", st)
+    E.harness(repo, ["train.train_mdm", "--save_dir", save, "--num_steps", "10", *E.TINY, "--sparse",
+                     "--sparse_compile", "default"])
+    assert_no_recompiles(stats(st), phases=1)
+    assert json.load(open(os.path.join(save, "args.json")))["sparse_compile"] == "default"
+    ckpt = sorted(glob.glob(os.path.join(save, "model*.pt")))[-1]
+    st = str(tmp_path / "eval.json")
+    monkeypatch.setenv("SMDM_COMPILE_STATS", st)
+    proc = E.harness(repo, ["--model_path", ckpt, "--eval_mode", "debug", "--sparse_compile", "default"], code=E.EVAL)
+    assert "EVAL_MODEL_SPARSE=True" in proc.stdout + proc.stderr
+    m = stats(st)["models"][-1]
+    assert m["recompiles"] == 0 and m["compiled_calls"] > 0, m
+    text = open(glob.glob(os.path.join(save, "eval_humanml_*_debug.log"))[0]).read()
+    fids = [float(v) for v in re.findall(r"\[vald\] FID: ([-0-9.eE+naninf]+)", text)]
+    assert fids and all(np.isfinite(fids)), text[-2000:]
+
+
+@pytest.mark.skipif(not MDM_ROOT, reason="SMDM_MDM_ROOT not set (an MDM checkout)")
+def test_dip_trains_and_samples_autoregressively_compiled(upstream_copy, tmp_path, monkeypatch):
+    """DiP (DistilBERT features of batch-dependent length, padded to a fixed bucket; the prefix is
+    the previous window's tail): one graph in training, one in autoregressive guided sampling,
+    zero recompiles, samples equal to eager."""
+    import test_mdm_upstream as M
+
+    repo = upstream_copy(MDM_ROOT, "mdm_compile_dip")
+    for k, v in COMPILE_ENV.items():
+        monkeypatch.setenv(k, v)
+    st = str(tmp_path / "train.json")
+    monkeypatch.setenv("SMDM_COMPILE_STATS", st)
+    _, ckpt = M.train(repo, str(tmp_path / "dip"), "dip", 6, extra=["--sparse", "--sparse_compile", "default"],
+                      launcher=True)
+    assert_no_recompiles(stats(st), phases=1)
+    samples = {}
+    for mode in ("none", "default"):
+        st = str(tmp_path / f"gen_{mode}.json")
+        monkeypatch.setenv("SMDM_COMPILE_STATS", st)
+        _, res = M.generate(repo, ckpt, str(tmp_path / f"gen_{mode}"), "dip", extra=["--sparse_compile", mode],
+                            launcher=True)
+        samples[mode] = res["motion"]
+    assert_no_recompiles(stats(st), phases=1)
+    assert np.allclose(samples["default"], samples["none"], atol=1e-4)
