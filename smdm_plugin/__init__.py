@@ -39,6 +39,7 @@ _EXPORTS: Dict[str, str] = {
     # adapters: model surgery
     "sparsify": "adapters.surgery", "unsparsify": "adapters.surgery", "is_sparse": "adapters.surgery",
     "set_mean_std": "adapters.surgery", "detect_variant": "adapters.mdm",
+    "wrap_dense": "adapters.warm", "warm_start": "adapters.warm", "is_dense_wrap": "adapters.warm",
     "ModelFamily": "adapters.family", "register_family": "adapters.family", "families": "adapters.family",
     "CallInputs": "adapters.family",
     "KeyframeRequest": "adapters.request", "KEYFRAMES_KEY": "adapters.request", "with_forced": "adapters.request",
@@ -98,6 +99,7 @@ if TYPE_CHECKING:  # pragma: no cover - for type checkers and IDEs
     from .adapters.request import KEYFRAMES_KEY, KeyframeRequest, with_forced
     from .adapters.mdm import detect_variant
     from .adapters.surgery import is_sparse, set_mean_std, sparsify, unsparsify
+    from .adapters.warm import is_dense_wrap, warm_start, wrap_dense
     from .core.attention_backends import available_backends, get_backend, register_backend
     from .core.config import ConfigTypeError, SparseConfig, load_preset, sparse_config_of
     from .core.features import extract_selection_features

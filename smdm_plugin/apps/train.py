@@ -49,6 +49,15 @@ def build_parser() -> argparse.ArgumentParser:
                    help="continue the run in --out (interrupted, or finished and given more --steps) from its last "
                         "checkpoint: weights, optimiser, random streams and step count, as if never stopped; "
                         "the data must have the same content (a copy elsewhere is fine)")
+    p.add_argument("--init-from", metavar="PATH", default=None,
+                   help="start from a DENSE checkpoint (an smdm train --out folder of the same model options, or its "
+                        "model*.pt): its weights are loaded; with --sparse the recipe's new layers are fitted to the "
+                        "dense ones (warm start, errors printed); fresh optimiser; train_config.json records the "
+                        "origin (path + sha256)")
+    p.add_argument("--init-amplitude", type=float_range(0.0, 3.0, lo_open=True), default=0.05, metavar="RAD",
+                   help="with --init-from --sparse: largest pre-activation (radians) of the fitted sine layers; small "
+                        "= closer to the dense layer, larger = larger first-layer weights, which Adam's fixed step "
+                        "moves relatively less (default 0.05)")
     t = p.add_argument_group("training")
     t.add_argument("--steps", type=int_range(1), default=1000, help="optimiser steps (default: 1000)")
     t.add_argument("--batch", type=int_range(1), default=16,
@@ -108,6 +117,8 @@ def _parse(argv: Optional[List[str]]) -> Tuple[Any, TrainConfig]:
     a = p.parse_args(argv)
     if a.resume and a.overwrite:
         p.error("argument --overwrite: not allowed with argument --resume")
+    if a.resume and a.init_from:
+        p.error("argument --init-from: not allowed with argument --resume (the run's weights come from its checkpoint)")
     if a.min_frames > a.max_frames:
         p.error(f"--min-frames ({a.min_frames}) must be <= --max-frames ({a.max_frames})")
     if a.latent_dim % a.heads:
@@ -213,7 +224,13 @@ def main(argv: Optional[List[str]] = None) -> int:
                 return 2
             # written in --out itself (OutputDir live): each checkpoint visible as it is made
             folder = od.path if od is not None else os.path.abspath(a.out)  # other ranks only read it (--resume)
-            trainer = Trainer(cfg, data, dist=ctx)
+            try:
+                trainer = Trainer(cfg, data, dist=ctx, init_from=a.init_from, init_amplitude=a.init_amplitude)
+            except (FileNotFoundError, ValueError) as e:
+                if od is not None:
+                    print(f"smdm train: {e}", file=sys.stderr)
+                    od.abandon(keep=False)
+                return 2
             digests = file_digests(a.data, split.files)  # the data by content: a copy elsewhere is the same data
             extra = {"data": os.path.abspath(a.data), "split": a.split, "min_frames": a.min_frames,
                      "max_frames": a.max_frames, "data_fingerprint": digests_fingerprint(digests)}
@@ -235,6 +252,11 @@ def main(argv: Optional[List[str]] = None) -> int:
                       f"x global batch {trainer.global_batch} ({ctx.world_size} process(es) x {cfg.batch}) on "
                       f"{ctx.device}" + (f", backend {torch.distributed.get_backend()}" if ctx.distributed else "")
                       + f", {trainer.compile_setting.describe()}" + note, flush=True)
+                if trainer.init_origin is not None:
+                    print(f"smdm train: initialised from the dense checkpoint {trainer.init_origin['path']} "
+                          f"({trainer.init_origin['digest'][:19]}...)"
+                          + (f"; {trainer.init_origin['fit_summary']}" if "fit_summary" in trainer.init_origin else ""),
+                          flush=True)
 
             if ctx.is_main:
                 write_data_digests(folder, digests)

@@ -19,6 +19,7 @@ checkpoint's ``args.json``): a sparse checkpoint samples sparse without extra fl
 """
 from __future__ import annotations
 
+import argparse
 import functools
 import os
 import warnings
@@ -44,6 +45,10 @@ def add_sparse_options(group: Any) -> Any:
     if "--sparse" in getattr(group, "_option_string_actions", {}):
         return group
     SparseConfig.add_argparse_args(group)
+    if not isinstance(group, argparse.ArgumentParser):  # MDM / DiP / priorMDM's 'model' group (not MotionDiffuse)
+        from .start import add_start_options
+
+        add_start_options(group)   # --sparse_preset / --sparse_init_from: a dense checkpoint in (start.py)
     return group
 
 
@@ -105,22 +110,28 @@ def sparsify_mdm(model: Any, args: Any, data: Any = None, diffusion: Any = None,
     config = config if config is not None else SparseConfig.from_args(args)
     with upstream_rng_untouched():  # a swapped text encoder's new layers draw from a forked stream
         apply_text_options(model, config)
+    from .start import resolve
+
+    start = resolve(args, config, _is_training(args))   # --sparse_preset / --sparse_init_from (start.py)
+    config = start.config
     if config.enabled and not is_sparse(model):  # sparse already: patch + launcher together
-        _sparsify(model, args, data, diffusion, config)
+        _sparsify(model, args, data, diffusion, config, start)
     apply_compile(model, args)
     return model
 
 
-def _sparsify(model: Any, args: Any, data: Any, diffusion: Any, config: SparseConfig) -> None:
-    from ..adapters.surgery import sparsify
+def _sparsify(model: Any, args: Any, data: Any, diffusion: Any, config: SparseConfig, start: Any = None) -> None:
     from ._rng import upstream_rng_untouched
+    from .start import Start, apply as apply_start, record_origin
+
+    start = start if start is not None else Start(config=config)
 
     mean, std = dataset_mean_std(data)
     if mean is None and config.feature != "raw":
         warnings.warn("smdm: no dataset Mean/Std on the data loader; keyframes are selected on "
                       "normalised features", stacklevel=3)
     with upstream_rng_untouched():  # upstream's prompts / noise / batches stay those of a dense run
-        sparsify(model, config, diffusion=diffusion, mean=mean, std=std)
+        apply_start(model, args, start, diffusion, mean, std, data)   # sparsify, or wrap / warm start
     if _is_training(args):
         steps = getattr(args, "diffusion_steps", None)
         if steps is None and diffusion is not None:
@@ -134,6 +145,7 @@ def _sparsify(model: Any, args: Any, data: Any, diffusion: Any, config: SparseCo
 
             record_run_config(model, save_dir, args, os.path.join(save_dir, "args.json"),
                               overwrite=bool(getattr(args, "overwrite", False)))
+            record_origin(args, os.path.join(save_dir, "args.json"))
 
 
 def apply_compile(model: Any, args: Any, options_file: Optional[str] = None) -> Any:
@@ -161,6 +173,11 @@ def check_mdm_state_dict(model: Any, state_dict: Any, model_path: Optional[str] 
     ``args.json`` without the ``sparse`` keys) or the reverse; see
     :func:`smdm_plugin.io.checkpoint.check_state_dict`."""
     from ..io.checkpoint import check_state_dict, model_is_sparse, state_dict_is_sparse
+
+    from ..adapters.warm import is_dense_wrap
+
+    if is_dense_wrap(model) and not state_dict_is_sparse(state_dict):
+        return  # --sparse_preset: a dense checkpoint wrapped for sparse sampling (its weights load as they are)
 
     source = model_path or "checkpoint"
     if model_path and not model_is_sparse(model) and state_dict_is_sparse(state_dict):

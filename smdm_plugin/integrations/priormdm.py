@@ -50,10 +50,13 @@ def sparsify_priormdm(model: Any, args: Any, data: Any = None, diffusion: Any = 
     ``args.json``'s ``sparse_*`` entries to what ran; DoubleTake sampling writes it beside its
     ``results.npy``. Returns the model (changed in place)."""
     from ..adapters.doubletake import attach_doubletake_forcing
-    from ..adapters.surgery import is_sparse, sparsify
+    from ..adapters.surgery import is_sparse
     from ._rng import upstream_rng_untouched
+    from .start import apply as apply_start, record_origin, resolve
 
     config = config if config is not None else SparseConfig.from_args(args)
+    start = resolve(args, config, _is_training(args))   # --sparse_preset / --sparse_init_from (start.py)
+    config = start.config
     if not config.enabled or is_sparse(model):
         return model
     mean, std = dataset_mean_std(data)
@@ -61,7 +64,7 @@ def sparsify_priormdm(model: Any, args: Any, data: Any = None, diffusion: Any = 
         warnings.warn("smdm: no dataset Mean/Std found on the data loader; keyframes are selected "
                       "on normalised features")
     with upstream_rng_untouched():  # a sparse DoubleTake draws the same prompts / noise as a dense one
-        sparsify(model, config, diffusion=diffusion, mean=mean, std=std)
+        apply_start(model, args, start, diffusion, mean, std, data)   # sparsify, or wrap / warm start
     doubletake = "doubletake" in type(model).__name__.lower()
     if doubletake:
         attach_doubletake_forcing(model)
@@ -72,6 +75,7 @@ def sparsify_priormdm(model: Any, args: Any, data: Any = None, diffusion: Any = 
 
         record_run_config(model, save_dir, args, os.path.join(save_dir, "args.json"),
                           overwrite=bool(getattr(args, "overwrite", False)))
+        record_origin(args, os.path.join(save_dir, "args.json"))
     elif doubletake and getattr(args, "model_path", None):
         record_doubletake_output(model, args)
     return model
@@ -162,7 +166,7 @@ def _patch_model_util(mod) -> None:
     @functools.wraps(original)
     def create_model_and_diffusion(args, data, *a, **kw):
         model, diffusion = original(args, data, *a, **kw)
-        if getattr(args, "sparse", False):
+        if getattr(args, "sparse", False) or getattr(args, "sparse_preset", None):
             sparsify_priormdm(model, args, data, diffusion)
         apply_compile(model, args)  # --sparse_compile, dense or sparse (none: nothing)
         return model, diffusion

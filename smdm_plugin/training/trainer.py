@@ -229,7 +229,7 @@ class Trainer:
     """
 
     def __init__(self, config: TrainConfig, data: MotionSet, dist: Optional[DistContext] = None,
-                 device: str = "auto") -> None:
+                 device: str = "auto", init_from: Optional[str] = None, init_amplitude: float = 0.05) -> None:
         from ..adapters.surgery import sparsify
         from ..reference.backbone import TinyMDM
         from ..reference.diffusion import SimpleDiffusion
@@ -253,7 +253,11 @@ class Trainer:
             self.text_embeddings = [enc(caps) for caps in data.captions]
         self.model = TinyMDM(**self.backbone_args).to(dev)
         self.diffusion = SimpleDiffusion(config.diffusion_steps)
-        if config.sparse is not None:
+        #: where the initial weights came from (``init_from``: path, digest, fit errors), else None
+        self.init_origin: Optional[Dict[str, Any]] = None
+        if init_from is not None:   # dense weights in; sparse: new layers fitted to the dense ones
+            self.init_origin = init_from_dense(self, init_from, amplitude=init_amplitude)
+        elif config.sparse is not None:
             sparsify(self.model, config.sparse, diffusion=self.diffusion, mean=data.mean, std=data.std)
         self.model.train()
         self.forward_model: nn.Module = self.model
@@ -436,7 +440,8 @@ class Trainer:
                 np.save(f, np.asarray(value, np.float32))
         atomic_write_json(os.path.join(folder, TRAIN_CONFIG_FILENAME),
                           {**self.config.to_dict(), "world_size": self.dist.world_size,
-                           "global_batch": self.global_batch, "step": self.step_count, **(extra or {})})
+                           "global_batch": self.global_batch, "step": self.step_count,
+                           **({"init_from": self.init_origin} if self.init_origin else {}), **(extra or {})})
         rep = MOTION_REPRESENTATIONS.get(self.data.feature_dim)
         if rep is not None:  # motion.json: the folder is also a model smdm inbetween reads (io.bundle)
             from ..io.bundle import write_motion_meta
@@ -598,6 +603,77 @@ def resume(trainer: "Trainer", folder: str) -> str:
     step = int(state.get("step", -1)) if isinstance(state, dict) else -1
     weights = read_state_dict(os.path.join(folder, f"model{step:09d}.pt"))
     trainer.load_state(state, weights, where=path)
+    try:  # a warm-started run keeps its record of the dense origin
+        with open(os.path.join(folder, TRAIN_CONFIG_FILENAME), encoding="utf-8") as f:
+            origin = json.load(f).get("init_from")
+        trainer.init_origin = origin if isinstance(origin, dict) else trainer.init_origin
+    except (OSError, ValueError, AttributeError):
+        pass
     if trainer.step_count > trainer.config.steps:
         raise ValueError(f"--resume: {path} is at step {trainer.step_count}, past --steps {trainer.config.steps}")
     return f"resumed at step {trainer.step_count}"
+
+
+def dense_checkpoint_path(path: str) -> str:
+    """The weights file of ``path``: a ``model*.pt`` file, or a folder's last one (``FileNotFoundError``
+    naming ``path`` when there is none)."""
+    import re
+
+    if os.path.isdir(path):
+        names = sorted(n for n in os.listdir(path) if re.fullmatch(r"model\d{9}\.pt", n))
+        if not names:
+            raise FileNotFoundError(f"--init-from: no model*.pt in {path!r}")
+        return os.path.join(path, names[-1])
+    if not os.path.isfile(path):
+        raise FileNotFoundError(f"--init-from: no such checkpoint: {path!r}")
+    return path
+
+
+def init_from_dense(trainer: "Trainer", path: str, probe_motions: int = 16, amplitude: float = 0.05) -> Dict[str, Any]:
+    """Load a dense checkpoint (``smdm train --out`` folder or its ``model*.pt``) into ``trainer``'s
+    freshly built dense model; when the run is sparse, sparsify it with the new layers fitted to the
+    dense ones on noised training motions (:func:`smdm_plugin.adapters.warm.warm_start`). The
+    optimiser is built afterwards (fresh). Returns the origin record (path, content digest, fit
+    errors). ``ValueError`` naming the file when it is sparse or of another TinyMDM size."""
+    from ..adapters.warm import diffusion_probe, file_digest, warm_start
+    from ..io.checkpoint import read_state_dict, state_dict_is_sparse
+
+    weights = dense_checkpoint_path(path)
+    sd = read_state_dict(weights)
+    if state_dict_is_sparse(sd):
+        raise ValueError(f"--init-from: {weights} holds a sparse model; continue it with --resume, or start from a "
+                         "dense checkpoint")
+    bpath = os.path.join(os.path.dirname(os.path.abspath(weights)), BACKBONE_FILENAME)
+    if os.path.isfile(bpath):
+        with open(bpath, encoding="utf-8") as f:
+            saved = json.load(f)
+        differ = {k: (saved.get(k), v) for k, v in trainer.backbone_args.items() if saved.get(k, v) != v}
+        if differ:
+            raise ValueError(f"--init-from: {bpath} describes another model ("
+                             + "; ".join(f"{k}: saved {a!r}, now {b!r}" for k, (a, b) in differ.items())
+                             + "); pass the same model options")
+    try:
+        trainer.model.load_state_dict(sd)
+    except RuntimeError as e:
+        raise ValueError(f"--init-from: {weights} does not fit the model: {str(e).splitlines()[0]}") from None
+    origin: Dict[str, Any] = {"path": os.path.abspath(weights), "digest": file_digest(weights)}
+    config = trainer.config.sparse
+    if config is None:
+        return origin
+    data, dev = trainer.data, trainer.dist.device
+    ids = torch.arange(min(probe_motions, len(data)))
+    x, lengths = data.padded(ids)
+    x = x.permute(0, 2, 1).unsqueeze(2).to(dev)                     # [b, D, 1, N]
+    N = data.max_frames
+    y: Dict[str, Any] = {"mask": (torch.arange(N, device=dev) < lengths.to(dev)[:, None]).view(len(ids), 1, 1, N),
+                         "lengths": lengths.to(dev)}
+    if trainer.text_embeddings is not None:
+        y["text_embed"] = torch.stack([trainer.text_embeddings[int(i)][0] for i in ids]).unsqueeze(0).to(dev)
+    probe = diffusion_probe(x, {"y": y}, trainer.diffusion.q_sample, trainer.diffusion.num_timesteps,
+                            seed=trainer.config.seed)
+    report = warm_start(trainer.model, config, probe, diffusion=trainer.diffusion, mean=data.mean, std=data.std,
+                        amplitude=amplitude)
+    origin["amplitude"] = amplitude
+    origin["fit"] = report.to_dict()
+    origin["fit_summary"] = report.summary()
+    return origin
