@@ -199,3 +199,23 @@ def test_t2m_recipe_pretrains_then_freezes_the_movement_encoder():
     assert any(not torch.equal(snaps[5][k], snaps[7][k]) for k in gru)
     with pytest.raises(ValueError, match="recipe"):
         TrainSettings(recipe="mine")
+
+
+def test_decisive_study_configs_resolve():
+    """configs/ablations/decisive_t{10,50}.yaml: dense vs sparse, >= 256-D x 4 layers, >= 3 seeds, >= 20
+    CPU-minutes per run, T = 10 and 50, scored with the T2M-recipe evaluator."""
+    from smdm_plugin.apps.ablate.study import load_study
+    from smdm_plugin.apps.ablate.study_evaluator import T2MSettings
+
+    Ts = set()
+    for name in ("decisive_t10", "decisive_t50"):
+        c = load_study(name)
+        Ts.add(c["diffusion_steps"])
+        assert c["model"]["latent_dim"] >= 256 and c["model"]["num_layers"] >= 4 and len(c["seeds"]) >= 3
+        assert c["clock"] == "cpu" and max(c["snapshots"]["seconds"]) >= 20 * 60
+        assert any(v.get("dense") for v in c["variants"]) and any(not v.get("dense") for v in c["variants"])
+        s = T2MSettings(**{k: v for k, v in c["evaluator"].items() if k != "kind"})
+        assert s.recipe == "t2m"
+    assert Ts == {10, 50}
+    with pytest.raises(TypeError, match="recipe"):
+        T2MSettings(recipe="mine")

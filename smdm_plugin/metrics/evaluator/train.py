@@ -5,7 +5,7 @@ given and otherwise word embeddings learned from the captions, by one of two rec
 * ``t2m`` (``smdm evaluator train``'s default) — T2M's: first the movement encoder is trained as an
   auto-encoder (decomposition stage: with :class:`~smdm_plugin.metrics.evaluator.networks.MovementConvDecoder`,
   L1 reconstruction of every feature + 0.001 L1 sparsity + 0.1 L1 smoothness of the movement code,
-  random windows of ``ae_window`` frames), then it is **frozen** and the motion and text BiGRUs are
+  random windows of ``ae_window`` frames, Adam 1e-4 as T2M), then it is **frozen** and the motion and text BiGRUs are
   trained with T2M's margin loss (positive pairs: squared distance; negatives, the batch shifted by a
   random 1..B-1: squared shortfall below ``margin`` 10), Adam 1e-4, gradients clipped at 0.5, at
   T2M's sizes (:data:`T2M_SIZES`). The frozen auto-encoder keeps what the motion looks like
@@ -65,7 +65,7 @@ class TrainSettings:
     batch: int = 32
     lr: Optional[float] = None
     ae_epochs: int = 50
-    ae_lr: float = 1e-3
+    ae_lr: float = 1e-4
     ae_window: int = 64
     margin: float = 10.0
     temperature: float = 0.1
