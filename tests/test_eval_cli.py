@@ -28,11 +28,12 @@ def _data():
 
 @pytest.fixture(scope="module")
 def trained(tmp_path_factory):
-    """An evaluator trained for a few epochs on the large CMU set (HumanML3D 263-D features)."""
+    """An evaluator trained for a few epochs on the large CMU set (HumanML3D 263-D features), with 0.4's
+    quick one-stage recipe (the T2M recipe's own tests: test_evaluator_check.py)."""
     data = _data()
     out = tmp_path_factory.mktemp("ev") / "ev"
-    assert smdm(["evaluator", "train", "--data", data, "--out", str(out), "--epochs", "8", "--no-progress",
-                 "--threads", "1"]) == 0
+    assert smdm(["evaluator", "train", "--data", data, "--out", str(out), "--epochs", "8", "--recipe", "contrastive",
+                 "--no-progress", "--threads", "1"]) == 0
     return data, str(out)
 
 
@@ -72,11 +73,12 @@ def test_real_against_itself_and_noised(trained, tmp_path):
         np.save(mdir / f"{i}.npy", m)
     rdir = tmp_path / "r"
     assert smdm(["eval", "--data", data, "--evaluator", out, "--motions", str(mdir), "--out", str(rdir),
-                 "--threads", "1"]) == 0
+                 "--protocol", "fixed", "--threads", "1"]) == 0
     res = json.load(open(rdir / "metrics.json"))
     assert res["fid"] == pytest.approx(worse.fid, rel=1e-4)
     assert res["r_precision_top3"] == pytest.approx(worse.r_precision_top3)
     assert res["protocol"]["pool_size"] == 32 and res["protocol"]["n_scored"] == 32
+    assert res["real"]["fid"] == 0.0 and res["replications"] == 1
     assert res["real"]["jitter"] < res["jitter"]  # noise is jerky
     assert (rdir / "metrics.md").exists() and (rdir / "metrics.png").exists()
     # never over an existing result without --overwrite
@@ -84,6 +86,28 @@ def test_real_against_itself_and_noised(trained, tmp_path):
                         str(mdir), "--out", str(rdir)], capture_output=True, text=True, cwd=REPO,
                        env={**os.environ, "PYTHONPATH": REPO})
     assert r.returncode == 2 and "--overwrite" in r.stderr and "Traceback" not in r.stderr
+    # upstream's protocol (the default): 20 replications of drop-last draws of 32, a real-vs-real floor > 0
+    # below the noised motions' FID; the same numbers as the draws computed here
+    up = tmp_path / "up"
+    assert smdm(["eval", "--data", data, "--evaluator", out, "--motions", str(mdir), "--out", str(up),
+                 "--threads", "1"]) == 0
+    res = json.load(open(up / "metrics.json"))
+    assert res["replications"] == 20 and res["protocol"]["name"] == "upstream"
+    assert res["protocol"]["n_generated"] == 32 and res["protocol"]["pool_size"] == 32
+    assert 0 < res["real"]["fid"] < res["fid"] and res["real"]["fid_interval"] > 0
+    from smdm_plugin.metrics.evaluator.protocol import replication
+    from smdm_plugin.metrics.evaluator.score import embed_captions, embed_motions, score_embeddings
+
+    rep = replication("upstream", [len(m) for m in test.motions], [len(c) for c in test.captions], seed=1)
+    by_id = dict(zip(test.ids, noised))
+    r1 = score_embeddings(embed_motions(ev, rep.reference.motions(test.motions)),
+                          embed_captions(ev, [c.tokens for c in rep.scored.captions(test.captions)]),
+                          embed_motions(ev, [by_id[test.ids[i]][:n] for i, n in
+                                                 zip(rep.scored.index, rep.scored.length)]), seed=1,
+                          scored_real=embed_motions(ev, rep.scored.motions(test.motions)))
+    assert res["metrics"]["fid"]["values"][1] == pytest.approx(r1.fid, rel=1e-6)
+    assert res["rows"][1]["real_fid"] == pytest.approx(r1.real_fid, rel=1e-6)
+    assert "real-vs-real floor" in (up / "metrics.md").read_text()
 
 
 def test_eval_with_a_model_and_resume(tmp_path):
@@ -98,9 +122,9 @@ def test_eval_with_a_model_and_resume(tmp_path):
     from smdm_plugin.reference.diffusion import SimpleDiffusion
 
     ev = tmp_path / "ev"
-    assert smdm(["evaluator", "train", "--out", str(ev), "--epochs", "2", "--no-progress", "--threads", "1"]) == 0
-    assert smdm(["evaluator", "train", "--out", str(ev), "--epochs", "3", "--resume", "--no-progress",
-                 "--threads", "1"]) == 0
+    small = ["--hidden", "32", "--dim", "16", "--ae-epochs", "2", "--no-progress", "--threads", "1"]
+    assert smdm(["evaluator", "train", "--out", str(ev), "--epochs", "2"] + small) == 0
+    assert smdm(["evaluator", "train", "--out", str(ev), "--epochs", "3", "--resume"] + small) == 0
     assert json.load(open(ev / "evaluator.json"))["epochs"] == 3
     train = load_split(None, "train")
     backbone = {"njoints": 66, "nfeats": 1, "latent_dim": 32, "ff_size": 64, "num_layers": 1, "num_heads": 4,
@@ -140,7 +164,8 @@ def test_bad_input_is_one_line(args, needle):
 
 def test_eval_missing_motions_and_wrong_evaluator(tmp_path):
     ev = tmp_path / "ev"
-    assert smdm(["evaluator", "train", "--out", str(ev), "--epochs", "1", "--no-progress", "--threads", "1"]) == 0
+    assert smdm(["evaluator", "train", "--out", str(ev), "--epochs", "1", "--ae-epochs", "1", "--hidden", "16", "--dim",
+                 "8", "--no-progress", "--threads", "1"]) == 0
     (tmp_path / "m").mkdir()
     r = subprocess.run([sys.executable, "-m", "smdm_plugin", "eval", "--evaluator", str(ev), "--motions",
                         str(tmp_path / "m"), "--out", str(tmp_path / "r")], capture_output=True, text=True, cwd=REPO,
@@ -154,13 +179,14 @@ def test_eval_missing_motions_and_wrong_evaluator(tmp_path):
 
 
 def test_resume_continues_exactly_and_glove(tmp_path):
-    """3 epochs in one go == 2 epochs, then --resume to 3 (same weights); --glove: frozen GloVe words."""
+    """2 auto-encoder + 3 matching epochs in one go == 2 + 2, then --resume to 3 (same weights); --glove:
+    frozen GloVe words."""
     import pickle
 
     import torch
 
     a, b = tmp_path / "a", tmp_path / "b"
-    common = ["--no-progress", "--threads", "1", "--hidden", "16", "--dim", "8"]
+    common = ["--no-progress", "--threads", "1", "--hidden", "16", "--dim", "8", "--ae-epochs", "2"]
     assert smdm(["evaluator", "train", "--out", str(a), "--epochs", "3"] + common) == 0
     assert smdm(["evaluator", "train", "--out", str(b), "--epochs", "2"] + common) == 0
     assert smdm(["evaluator", "train", "--out", str(b), "--epochs", "3", "--resume"] + common) == 0
@@ -183,3 +209,66 @@ def test_resume_continues_exactly_and_glove(tmp_path):
     ev = load_evaluator(str(g))
     assert not ev.config.learned_words and ev.config.dim_word == 20 and ev.config.vocab_size == len(words)
     torch.testing.assert_close(ev.words.weight, torch.from_numpy(np.load(glove / "our_vab_data.npy")))
+
+
+def test_text_model_is_sampled_with_its_captions_and_guidance(tmp_path, monkeypatch):
+    """`smdm eval --model` on a `smdm train --text` model: every denoiser call gets the text embedding of
+    the drawn caption of its motion, half the calls unconditional (classifier-free guidance at the saved
+    scale); sampling it without captions is refused. Fails if the model is sampled without its text."""
+    import torch
+
+    from smdm_plugin.apps import train as trainer
+    from smdm_plugin.apps.evaluate import Generator
+    from smdm_plugin.metrics.evaluator.protocol import replication
+    from smdm_plugin.reference.text import HashedBagOfWords
+
+    data = _data()
+    model = tmp_path / "m"
+    assert trainer.main(["--data", data, "--steps", "2", "--batch", "2", "--max-frames", "48", "--diffusion-steps", "3",
+                         "--latent-dim", "16", "--layers", "1", "--heads", "2", "--ff-size", "32", "--no-progress",
+                         "--threads", "1", "--out", str(model), "--text", "--guidance-scale", "3"]) == 0
+    gen = Generator(str(model), "cpu")
+    assert gen.text is not None and "guidance 3" in gen.conditioning
+    calls = []
+    inner = gen.model
+
+    class Spy(torch.nn.Module):
+        njoints = inner.njoints
+
+        def forward(self, x, t, y):
+            calls.append(dict(y))
+            return inner(x, t, y)
+
+    gen.model = Spy()
+    texts = ["a person walks forward", "someone jumps twice", "a man waves"]
+    out = gen.generate([40, 44, 48], seed=0, texts=texts)
+    assert [len(m) for m in out] == [40, 44, 48]
+    assert len(calls) == 2 * 3  # 3 diffusion steps, a conditional and an unconditional call each
+    want = torch.from_numpy(HashedBagOfWords(512, 0).encode(texts)).unsqueeze(0)
+    for y in calls:
+        torch.testing.assert_close(y["text_embed"], want)
+    assert sum(bool(y.get("uncond")) for y in calls) == 3
+    with pytest.raises(ValueError, match="needs one caption per motion"):
+        gen.generate([40], seed=0)
+    # through the CLI: the texts encoded are the scored draw's captions, one draw per motion and replication
+    seen = []
+    real_encode = HashedBagOfWords.encode
+
+    def encode(self, texts):
+        seen.append(list(texts))
+        return real_encode(self, texts)
+
+    monkeypatch.setattr(HashedBagOfWords, "encode", encode)
+    ev = tmp_path / "ev"
+    assert smdm(["evaluator", "train", "--data", data, "--out", str(ev), "--epochs", "1", "--ae-epochs", "1",
+                 "--hidden", "16", "--dim", "8", "--no-progress", "--threads", "1"]) == 0
+    assert smdm(["eval", "--data", data, "--evaluator", str(ev), "--model", str(model), "--out", str(tmp_path / "r"),
+                 "--replications", "2", "--threads", "1"]) == 0
+    test = load_split(data, "test")
+    want = []
+    for r in range(2):
+        rep = replication("upstream", [len(m) for m in test.motions], [len(c) for c in test.captions], seed=r)
+        want.append([c.text for c in rep.scored.captions(test.captions)])
+    assert seen == want
+    res = json.load(open(tmp_path / "r" / "metrics.json"))
+    assert res["protocol"]["sampling"].startswith("text (hashed_bow, guidance 3")

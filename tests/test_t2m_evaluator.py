@@ -243,7 +243,7 @@ def test_smdm_eval_reads_upstream_layout(tmp_path):
     for i, m in zip(test.ids, test.motions):
         np.save(mdir / f"{i}.npy", m)
     assert smdm(["eval", "--data", str(large), "--evaluator", str(root), "--motions", str(mdir), "--out",
-                 str(tmp_path / "r"), "--threads", "1"]) == 0
+                 str(tmp_path / "r"), "--protocol", "fixed", "--threads", "1"]) == 0
     res = json.load(open(tmp_path / "r" / "metrics.json"))
     assert res["protocol"]["evaluator"].startswith("upstream")
     assert abs(res["fid"]) < 1e-4 and res["r_precision_top3"] == res["real"]["r_precision_top3"]

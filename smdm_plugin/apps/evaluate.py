@@ -33,6 +33,7 @@ OUTPUT_FILES = ("metrics.json", "metrics.md", "metrics.png")
 
 
 def build_parser() -> argparse.ArgumentParser:
+    from ..metrics.evaluator.protocol import EVAL_MODES, PROTOCOLS
     from .common.args import add_overwrite, device_type, existing_path, int_range
 
     p = argparse.ArgumentParser(prog="smdm eval", description=__doc__.split("\n\n")[0],
@@ -52,11 +53,20 @@ def build_parser() -> argparse.ArgumentParser:
                      help="folder of <id>.npy raw feature motions [L, D], one per id of --split")
     src.add_argument("--model", type=existing_path("dir"), metavar="MODEL",
                      help="a model folder (smdm train --out, or smdm demo's DIR/dense, DIR/sparse) to generate from")
+    p.add_argument("--protocol", choices=PROTOCOLS, default="upstream",
+                   help="upstream (default): per replication, shuffled drop-last draws of 32 motions with a random "
+                        "caption and crop each, FID against another such draw of the real motions, as MDM's "
+                        "eval_humanml; fixed: every motion, offset 0, FID against all real motions (0.4's)")
+    p.add_argument("--eval-mode", choices=tuple(EVAL_MODES), default="wo_mm",
+                   help="upstream's eval modes: replications (debug 5, wo_mm 20, mm_short 5, full 20) and whether "
+                        "multimodality runs (mm_short, full) (default: wo_mm)")
     p.add_argument("--replications", type=int_range(1, 1000), default=None,
-                   help="generations of the whole split for the interval (default: 3 with --model, 1 with --motions)")
-    p.add_argument("--mm-repeats", type=int_range(0, 1000), default=11,
+                   help="replications for the interval (default: --eval-mode's; with --protocol fixed: 3 with "
+                        "--model, 1 with --motions)")
+    p.add_argument("--mm-repeats", type=int_range(0, 1000), default=None,
                    help="with --model: generations per caption for multimodality, over --mm-captions captions "
-                        "(0: off; default 11, T2M: 30)")
+                        "(0: off; default 11 when --eval-mode has multimodality or --protocol is fixed, else 0; "
+                        "T2M: 30)")
     p.add_argument("--mm-captions", type=int_range(1, 100000), default=10, help="(default 10, T2M: 100)")
     p.add_argument("--inbetween-every", type=int_range(0, 10000), default=0, metavar="K",
                    help="with --model: in-betweening; every motion passes through the real motion's frames 0, K, "
@@ -93,15 +103,20 @@ def load_motion_folder(folder: str, ids: List[str], dim: int) -> List[np.ndarray
 
 
 class Generator:
-    """A model folder that generates raw features for given lengths: ``smdm train``'s (``model*.pt``,
-    HumanML3D 263-D) or a bundle (``motion.json``: ``smdm demo``'s, any representation)."""
+    """A model folder that generates raw features for given lengths and captions, sampled as the model
+    is used: ``smdm train``'s (``model*.pt``, HumanML3D 263-D; with ``text_encoder.json`` it is
+    text-conditioned and is sampled with each motion's caption and the saved classifier-free guidance
+    scale) or a bundle (``motion.json``: ``smdm demo``'s, unconditional, any representation)."""
 
     def __init__(self, folder: str, device) -> None:
         import json
 
         from ..reference.diffusion import SimpleDiffusion
+        from ..reference.text import load_text_config
 
         self.device = device
+        self.text = None      # the hashed bag-of-words conditioning of smdm train --text (text_encoder.json)
+        self.swapped = None   # or the id of a swapped-in transformers encoder (the model reads y["text"])
         if os.path.isfile(os.path.join(folder, "motion.json")):
             from ..io.bundle import load_bundle
 
@@ -121,20 +136,44 @@ class Generator:
             self.representation = "humanml3d" if len(self.mean) == 263 else "raw"
             self.max_frames = int(tc.get("max_frames", 196))
             self.label = "sparse" if config is not None else "dense"
+        # either layout: text_encoder.json beside the weights (smdm train --text), or a swapped encoder
+        self.text = load_text_config(folder)
+        if self.text is None:
+            from ..adapters.text_encoder import swapped_text_encoder
+
+            self.swapped = swapped_text_encoder(self.model)
+
+    @property
+    def conditioning(self) -> str:
+        """How it is sampled, for tables: ``unconditional`` or the text encoder and guidance scale."""
+        if self.text is not None:
+            return f"text ({self.text.encoder}, guidance {self.text.guidance_scale:g})"
+        if self.swapped is not None:
+            return f"text (swapped encoder {self.swapped}, no guidance scale saved: none)"
+        return "unconditional"
 
     def generate(self, lengths: List[int], seed: int, batch: int = 64, targets: Optional[List[np.ndarray]] = None,
-                 every: int = 0) -> List[np.ndarray]:
-        """One motion ``[L_i, D]`` (raw features) per length (cut to the model's ``max_frames``); with
-        ``targets`` (raw ``[L_i, D]``) and ``every`` > 0, in-betweening: each passes through its
-        target's :func:`keyframe_frames` (``smdm_plugin.sample_inbetween``)."""
+                 every: int = 0, texts: Optional[List[str]] = None) -> List[np.ndarray]:
+        """One motion ``[L_i, D]`` (raw features) per length (cut to the model's ``max_frames``), a
+        text-conditioned model with ``texts[i]`` (required then); with ``targets`` (raw ``[L_i, D]``)
+        and ``every`` > 0, in-betweening: each passes through its target's :func:`keyframe_frames`
+        (``smdm_plugin.sample_inbetween``)."""
         import torch
 
+        from ..reference.text import guided, sample_with_text, text_condition
+
+        if (self.text is not None or self.swapped is not None) and (texts is None or len(texts) != len(lengths)):
+            raise ValueError(f"a text-conditioned model needs one caption per motion, got "
+                             f"{'none' if texts is None else len(texts)} for {len(lengths)}")
         out: List[np.ndarray] = []
         gen = torch.Generator(device=self.device).manual_seed(seed)
         mean, std = torch.from_numpy(self.mean), torch.from_numpy(self.std)
+        fn = self.model if self.text is None else guided(self.model, self.text)
         for s in range(0, len(lengths), batch):
             L = torch.tensor([min(int(v), self.max_frames) for v in lengths[s:s + batch]])
             N = int(L.max())
+            cap = None if self.text is None else list(texts[s:s + batch])
+            raw = {"text": list(texts[s:s + batch])} if self.swapped is not None else {}
             with torch.no_grad():
                 if targets is not None and every > 0:
                     from ..adapters.inbetween import keyframe_constraint, sample_inbetween
@@ -144,11 +183,15 @@ class Generator:
                         tgt[i, :int(L[i])] = (torch.from_numpy(t[:int(L[i])]) - mean) / std
                     frames = keyframe_frames(L, N, every)
                     c = keyframe_constraint(tgt.to(self.device), frames.to(self.device), L.to(self.device))
-                    x = sample_inbetween(self.model, self.diffusion, c, generator=gen)
+                    ty = raw if cap is None else text_condition(self.text, cap, self.device)
+                    x = sample_inbetween(fn, self.diffusion, c, y=ty or None, generator=gen)
+                elif cap is not None:
+                    x = sample_with_text(self.model, self.diffusion, self.text, cap, L, N, self.device, gen)
+                    x = x.squeeze(2).permute(0, 2, 1)
                 else:
                     y = {"mask": (torch.arange(N)[None] < L[:, None]).view(len(L), 1, 1, N).to(self.device),
-                         "lengths": L.to(self.device)}
-                    x = self.diffusion.p_sample_loop(self.model, (len(L), len(self.mean), 1, N), {"y": y},
+                         "lengths": L.to(self.device), **raw}
+                    x = self.diffusion.p_sample_loop(fn, (len(L), len(self.mean), 1, N), {"y": y},
                                                      device=self.device, generator=gen)
                     x = x.squeeze(2).permute(0, 2, 1)
             feats = x.float().cpu().numpy() * self.std + self.mean
@@ -201,8 +244,16 @@ def markdown(metrics: Dict[str, Dict[str, Any]], real: Dict[str, Any], label: st
 
     lines.append(f"| {label} | " + " | ".join(cell(metrics[k]["mean"], f, metrics[k]["interval"]) for k, _, f in COLUMNS)
                  + " |")
-    lines.append("| real (the split itself) | " + " | ".join(cell(real.get(k), f) for k, _, f in COLUMNS) + " |")
+    lines.append("| real (the split itself) | " + " | ".join(cell(real.get(k), f, real.get("fid_interval") if k == "fid"
+                                                                   else None) for k, _, f in COLUMNS) + " |")
+    fixed = protocol.get("name") == "fixed"
     notes = [f"{R} replication(s): mean ± 1.96·std/√R." if R > 1 else "1 replication (no interval).",
+             ("Protocol fixed: every motion of the split, offset 0, FID against all of them (the real row's FID is 0 "
+              "by construction)." if fixed else
+              f"Protocol upstream (MDM's eval_humanml, eval mode {protocol.get('eval_mode')}): per replication a "
+              f"reference draw and a scored draw of {protocol['pool_size']} motions (shuffled, drop-last), random "
+              "caption and crop each; the real row's FID is the real-vs-real floor, what a perfect generator "
+              "scores."),
              f"R-precision and matching score: batches of {protocol['pool_size']} motions ({protocol['n_scored']} of "
              f"{protocol['n_real']} scored; chance top-1 = {1 / protocol['pool_size']:.3f})"
              + ("; fewer than 32 motions: one batch of all, easier than the field's 32." if protocol['pool_size'] < 32
@@ -211,6 +262,23 @@ def markdown(metrics: Dict[str, Dict[str, Any]], real: Dict[str, Any], label: st
                  f" Multimodality: {protocol['multimodality_times']} pairs." if protocol.get("multimodality_times") else ""),
              f"Evaluator: {protocol['evaluator']}."]
     return "\n".join(lines) + "\n\n" + "\n".join(f"* {n}" for n in notes) + "\n"
+
+
+def sensitivity_note(folder: str, ev: Any) -> str:
+    """What the evaluator can resolve, for the table: its saved sensitivity table (``smdm evaluator
+    check``), or a line saying there is none or it does not fit the weights."""
+    from ..metrics.evaluator.check import load_check
+
+    try:
+        table = load_check(folder, ev)
+    except ValueError as e:
+        return f"\n**Evaluator sensitivity:** not shown: {e}\n"
+    if table is None:
+        return ("\n**Evaluator sensitivity:** unknown; `smdm evaluator check EDIR --data DIR` measures what this "
+                "evaluator resolves (noise, smoothing, time reversal, foot sliding, caption swap).\n")
+    return (f"\n**Evaluator sensitivity** (`{os.path.join(folder, 'sensitivity.json')}`, on {table.data} "
+            f"{table.split}): what a degradation of the real motions scores, beside the real floor.\n\n"
+            + table.markdown())
 
 
 def plot(metrics: Dict[str, Dict[str, Any]], real: Dict[str, Any], label: str, path: str) -> None:
@@ -299,56 +367,85 @@ def _evaluate(a: argparse.Namespace, folder: str, dev: Any, real: Any, layout: s
     from ..metrics.evaluator.model import evaluator_info
     from ..metrics.evaluator.score import embed_captions, embed_motions, motion_quality, score_embeddings
 
-    R = a.replications or (3 if a.model else 1)
-    lengths = [len(m) for m in real.motions]
+    from ..metrics.evaluator.protocol import EVAL_MODES, replication
+
+    fixed = a.protocol == "fixed"
+    mode_reps, mode_mm = EVAL_MODES[a.eval_mode]
+    R = a.replications or ((3 if a.model else 1) if fixed else mode_reps)
+    mm_repeats = a.mm_repeats if a.mm_repeats is not None else (11 if (fixed or mode_mm) else 0)
     label = (f"{gen_model.label} model" if gen_model else "motions") + f" ({os.path.basename(os.path.normpath(a.model or a.motions))})"
+    how = f", sampled {gen_model.conditioning}" if gen_model else ""
     print(f"smdm eval: {len(real)} {a.split} motions from {a.data or 'the embedded CMU clips'}; evaluator "
-          f"{layout} ({a.evaluator}); {label}; {R} replication(s) on {dev}", flush=True)
-    real_emb = embed_motions(ev, real.motions)
+          f"{layout} ({a.evaluator}); {label}{how}; {R} replication(s) of the {a.protocol} protocol on {dev}", flush=True)
+    lengths = [len(m) for m in real.motions]
+    ncap = [len(c) for c in real.captions]
     rows: List[Dict[str, Any]] = []
     res = None
     for r in range(R):
-        motions = given if given is not None else gen_model.generate(
-            lengths, seed=a.seed * 1000 + r, targets=real.motions if a.inbetween_every else None,
-            every=a.inbetween_every)
-        text = embed_captions(ev, real.first_captions(seed=a.seed * 1000 + r))
+        seed = a.seed * 1000 + r
+        rep = replication(a.protocol, lengths, ncap, seed=seed)
+        real_emb = embed_motions(ev, rep.reference.motions(real.motions))
+        scored = rep.scored.motions(real.motions)
+        caps = rep.scored.captions(real.captions)
+        if given is not None:  # a motion per id, its first frames up to the drawn length (as a model generates it)
+            motions = [given[i][:n] for i, n in zip(rep.scored.index, rep.scored.length)]
+        else:
+            motions = gen_model.generate([len(m) for m in scored], seed=seed, texts=[c.text for c in caps],
+                                         targets=scored if a.inbetween_every else None, every=a.inbetween_every)
+        text = embed_captions(ev, [c.tokens for c in caps])
         mm = None
-        if gen_model is not None and a.mm_repeats >= 2:
-            k = min(a.mm_captions, len(real))
-            mm = np.stack([embed_motions(ev, gen_model.generate([lengths[c]] * a.mm_repeats,
-                                                                seed=(a.seed * 1000 + r) * 100003 + c + 1))
+        if gen_model is not None and mm_repeats >= 2:
+            k = min(a.mm_captions, len(scored))
+            mm = np.stack([embed_motions(ev, gen_model.generate([len(scored[c])] * mm_repeats,
+                                                                seed=seed * 100003 + c + 1,
+                                                                texts=[caps[c].text] * mm_repeats))
                            for c in range(k)])
-        res = score_embeddings(real_emb, text, embed_motions(ev, motions), mm, seed=a.seed * 1000 + r)
+        res = score_embeddings(real_emb, text, embed_motions(ev, motions), mm, seed=seed,
+                               scored_real=None if fixed else embed_motions(ev, scored))
         q = motion_quality(motions, fps=real.fps, representation=real.representation)
         if gen_model is not None and a.inbetween_every:
-            q["keyframe_error"] = inbetween_error(motions, real.motions, a.inbetween_every, real.representation)
+            q["keyframe_error"] = inbetween_error(motions, scored, a.inbetween_every, real.representation)
         rows.append({**res.to_dict(), **q})
-        print(f"  replication {r + 1}/{R}: FID {res.fid:.3f}, R-precision top-3 {res.r_precision_top3:.3f}, "
-              f"diversity {res.diversity:.3f}, jitter {q['jitter']:.1f} m/s³", flush=True)
+        print(f"  replication {r + 1}/{R}: FID {res.fid:.3f} (real {res.real_fid:.3f}), R-precision top-3 "
+              f"{res.r_precision_top3:.3f} (real {res.real_r_precision_top3:.3f}), diversity {res.diversity:.3f}, "
+              f"jitter {q['jitter']:.1f} m/s³", flush=True)
     metrics = {k: _summary([row.get(k) for row in rows]) for k, _, _ in COLUMNS}
     rq = motion_quality(real.motions, fps=real.fps, representation=real.representation)
-    # the real row: the same caption draws and pairs as the generated rows, averaged over the replications
-    real_row = {"fid": 0.0, **{k: float(np.mean([row[f"real_{k}"] for row in rows]))
-                               for k in ("r_precision_top1", "r_precision_top2", "r_precision_top3", "matching_score",
-                                         "diversity")}, "multimodality": None, **rq, "keyframe_error": None}
-    protocol = {"pool_size": res.pool_size, "n_scored": res.n_scored, "n_real": res.n_real,
-                "diversity_times": res.diversity_times, "multimodality_times": res.multimodality_times,
+    # the real row: the real motions of the scored draws with the same captions and pairs, averaged over the
+    # replications; its FID (the real-vs-real floor) with its interval
+    real_keys = ("fid", "r_precision_top1", "r_precision_top2", "r_precision_top3", "matching_score", "diversity")
+    real_row = {**{k: float(np.mean([row[f"real_{k}"] for row in rows])) for k in real_keys},
+                "multimodality": None, **rq, "keyframe_error": None}
+    real_row["fid_interval"] = _summary([row["real_fid"] for row in rows])["interval"]
+    protocol = {"name": a.protocol, "eval_mode": None if fixed else a.eval_mode,
+                "pool_size": res.pool_size, "n_scored": res.n_scored, "n_real": res.n_real,
+                "n_generated": res.n_generated, "diversity_times": res.diversity_times,
+                "multimodality_times": res.multimodality_times,
                 "evaluator": f"{layout} ({os.path.abspath(a.evaluator)})",
+                "sampling": gen_model.conditioning if gen_model else None,
                 "caption": "one random caption per motion per replication (seeded)",
-                "motion_reading": "first min(L, 196) frames rounded down to a multiple of 4, zero-padded to 196"}
+                "motion_reading": ("first min(L, 196) frames rounded down to a multiple of 4, zero-padded to 196; FID "
+                                   "against all real motions" if fixed else
+                                   "per replication, two shuffled drop-last draws of 32: a reference draw (FID's real "
+                                   "statistics) and a scored draw (captions, lengths, the real row), each motion "
+                                   "cropped at random as upstream's loader (min(L, 196) rounded down to a multiple of "
+                                   "4, a third of the time 4 frames shorter, random offset)")}
     out = {"metrics": metrics, "real": real_row, "protocol": protocol, "replications": R, "rows": rows,
            "source": {"motions": a.motions and os.path.abspath(a.motions), "model": a.model and os.path.abspath(a.model),
                       "data": os.path.abspath(a.data) if a.data else "embedded CMU clips", "split": a.split,
-                      "seed": a.seed, "mm_repeats": a.mm_repeats if a.model else 0,
+                      "seed": a.seed, "mm_repeats": mm_repeats if a.model else 0,
                       "mm_captions": a.mm_captions if a.model else 0},
            "evaluator_info": {k: v for k, v in evaluator_info(a.evaluator).items() if k != "history"}}
     for k, _, _ in COLUMNS:  # flat means for readers that want one number per metric
         out[k] = metrics[k]["mean"]
     atomic_write_json(os.path.join(folder, "metrics.json"), out)
     table = markdown(metrics, real_row, label, R, protocol)
-    if gen_model is not None:
-        table += ("* The in-package TinyMDM is trained without text: its R-precision and matching score measure how "
-                  "close its motions are to the split's captions, not text conditioning.\n")
+    if gen_model is not None and gen_model.text is None:
+        table += ("* The model is unconditional (trained without text): its R-precision and matching score measure "
+                  "how close its motions are to the split's captions, not text conditioning.\n")
+    elif gen_model is not None:
+        table += (f"* Sampled as the model is used: each motion from its drawn caption, {gen_model.conditioning}.\n")
+    table += sensitivity_note(a.evaluator, ev)
     atomic_write_text(os.path.join(folder, "metrics.md"), table)
     plot(metrics, real_row, label.split(" (")[0], os.path.join(folder, "metrics.png"))
     print("\n" + table)

@@ -1,8 +1,10 @@
 """``smdm evaluator train``: train a T2M-architecture evaluator on your own captioned motion and
-report how far to trust it (held-out R-precision beside the weights).
+report how far to trust it (held-out R-precision beside the weights); ``smdm evaluator check``:
+measure what it can resolve (the sensitivity table, ``EDIR/sensitivity.json``).
 
     smdm evaluator train --data dataset/MyMotion --out evaluators/mine      # HumanML3D layout
     smdm evaluator train --out evaluators/cmu                               # the embedded CMU clips
+    smdm evaluator check evaluators/mine --data dataset/MyMotion            # noise, smoothing, reversal, ...
 
 The folder it writes (``evaluator.json``: config, vocabulary, held-out accuracy, history;
 ``evaluator.pt``; ``metrics.json``; ``train_state.pt`` for ``--resume``) is what ``smdm eval
@@ -23,15 +25,16 @@ from .common.threads import THREADS_HELP
 
 
 def build_parser() -> argparse.ArgumentParser:
-    from ..metrics.evaluator.train import OWN_SIZES, TrainSettings
+    from ..metrics.evaluator.train import DEFAULT_RECIPE, OWN_SIZES, RECIPES, T2M_SIZES, TrainSettings
     from .common.args import add_overwrite, device_type, existing_path, float_range, int_range
 
-    d = TrainSettings()
+    d = TrainSettings(recipe=DEFAULT_RECIPE)
     p = argparse.ArgumentParser(
         prog="smdm evaluator train",
-        description="Train the T2M evaluator's architecture (movement conv encoder, motion and text BiGRUs) "
-                    "contrastively on the train split of a HumanML3D-format folder (default: the CMU clips "
-                    "embedded in the package), and write its held-out R-precision beside the weights.")
+        description="Train the T2M evaluator's architecture (movement conv encoder, motion and text BiGRUs) on the "
+                    "train split of a HumanML3D-format folder (default: the CMU clips embedded in the package) with "
+                    "T2M's recipe (movement auto-encoder, then a margin loss with the movement encoder frozen), and "
+                    "write its held-out R-precision beside the weights.")
     p.add_argument("--data", type=existing_path("dir"), default=None, metavar="DIR",
                    help="HumanML3D-format folder: new_joint_vecs/, texts/ (caption#word/POS ...#from#to), Mean.npy, "
                         "Std.npy, train.txt (+ val.txt, test.txt for the held-out accuracy); default: the embedded "
@@ -40,15 +43,28 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--glove", type=existing_path("dir"), default=None, metavar="DIR",
                    help="T2M's GloVe folder (our_vab_data.npy, our_vab_words.pkl, our_vab_idx.pkl); default: word "
                         "embeddings learned from the training captions")
-    p.add_argument("--epochs", type=int_range(1, 100000), default=d.epochs, help=f"passes over the train split (default: {d.epochs})")
+    p.add_argument("--recipe", choices=RECIPES, default=d.recipe,
+                   help="t2m: T2M's two stages (movement auto-encoder, then the BiGRUs with a margin loss on shifted "
+                        "negatives, movement encoder frozen) at T2M's sizes; contrastive: 0.4's one stage (batch "
+                        f"cross-entropy, everything trained, small sizes) (default: {d.recipe})")
+    p.add_argument("--epochs", type=int_range(1, 100000), default=None,
+                   help=f"text-motion matching epochs (default: {d.epochs} for t2m, 60 for contrastive)")
+    p.add_argument("--ae-epochs", type=int_range(0, 100000), default=d.ae_epochs,
+                   help=f"t2m: movement auto-encoder epochs before matching (default: {d.ae_epochs})")
+    p.add_argument("--margin", type=float_range(0.0, lo_open=True), default=d.margin,
+                   help=f"t2m: distance negatives are pushed beyond (default: {d.margin}, T2M's)")
     p.add_argument("--batch", type=int_range(2, 4096), default=d.batch, help=f"motions per step (default: {d.batch})")
-    p.add_argument("--lr", type=float_range(0.0, lo_open=True), default=d.lr, help=f"Adam (default: {d.lr})")
+    p.add_argument("--lr", type=float_range(0.0, lo_open=True), default=None,
+                   help=f"Adam, matching stage (default: {d.lr} for t2m, 1e-3 for contrastive)")
     p.add_argument("--seed", type=int_range(0), default=d.seed,
                    help=f"seed of the initial weights, the batch order and the caption draws (default: {d.seed})")
-    p.add_argument("--dim", type=int_range(4, 4096), default=OWN_SIZES["dim_coemb"],
-                   help=f"co-embedding size (default: {OWN_SIZES['dim_coemb']}; upstream's: 512)")
-    p.add_argument("--hidden", type=int_range(4, 8192), default=OWN_SIZES["dim_motion_hidden"],
-                   help=f"hidden size of every encoder (default: {OWN_SIZES['dim_motion_hidden']}; upstream's: 512 / 1024)")
+    p.add_argument("--dim", type=int_range(4, 4096), default=None,
+                   help=f"co-embedding size (default: {T2M_SIZES['dim_coemb']} for t2m, as upstream; "
+                        f"{OWN_SIZES['dim_coemb']} for contrastive)")
+    p.add_argument("--hidden", type=int_range(4, 8192), default=None,
+                   help=f"hidden size of every encoder (default: the recipe's: t2m {T2M_SIZES['dim_movement_hidden']} "
+                        f"and {T2M_SIZES['dim_motion_hidden']} for the motion BiGRU, as upstream; contrastive "
+                        f"{OWN_SIZES['dim_motion_hidden']})")
     p.add_argument("--resume", action="store_true", help=f"continue from --out/{STATE_FILENAME} (to --epochs)")
     add_overwrite(p)
     p.add_argument("--device", type=device_type, default="auto", help="auto (CUDA, else MPS, else CPU), cpu, cuda, mps")
@@ -65,12 +81,18 @@ def main(argv: Optional[List[str]] = None) -> int:
         return 2
     if argv[0] in ("-h", "--help"):
         top = argparse.ArgumentParser(prog="smdm evaluator", description="T2M-style text-motion evaluators")
-        sub = top.add_subparsers(dest="command", metavar="train")
+        sub = top.add_subparsers(dest="command", metavar="{train,check}")
         sub.add_parser("train", parents=[build_parser()], add_help=False,
                        help="train an evaluator on a HumanML3D-format folder (or the embedded clips)")
+        sub.add_parser("check", parents=[build_check_parser()], add_help=False,
+                       help="measure what an evaluator resolves (noise, smoothing, reversal, foot sliding, caption "
+                            "swap, the real-vs-real floor) and save the table beside it")
         top.parse_args(argv)      # prints the help and exits 0
+    if argv[0] == "check":
+        p = build_check_parser()
+        return run_check(p.parse_args(argv[1:]), p)
     if argv[0] != "train":
-        print(f"smdm evaluator: error: unknown subcommand {argv[0]!r} (expected: train)", file=sys.stderr)
+        print(f"smdm evaluator: error: unknown subcommand {argv[0]!r} (expected: train, check)", file=sys.stderr)
         return 2
     p = build_parser()
     a = p.parse_args(argv[1:])
@@ -81,7 +103,7 @@ def run(a: argparse.Namespace, p: argparse.ArgumentParser) -> int:
     from ..io.files import OutputExistsError
     from ..io.outdir import OutputDir, open_or_refuse
     from ..metrics.evaluator.data import load_split, split_names
-    from ..metrics.evaluator.train import OWN_SIZES, TrainSettings, build_evaluator
+    from ..metrics.evaluator.train import build_evaluator
 
     from .common.threads import apply_threads
 
@@ -103,9 +125,7 @@ def run(a: argparse.Namespace, p: argparse.ArgumentParser) -> int:
     except (FileNotFoundError, ValueError) as e:
         print(f"smdm evaluator train: {e}", file=sys.stderr)
         return 2
-    sizes = dict(OWN_SIZES, dim_coemb=a.dim, dim_movement_hidden=a.hidden, dim_movement_latent=a.hidden,
-                 dim_motion_hidden=a.hidden, dim_text_hidden=a.hidden)
-    settings = TrainSettings(epochs=a.epochs, batch=a.batch, lr=a.lr, seed=a.seed, sizes=sizes)
+    settings = settings_from_args(a)
     try:
         from .common.args import resolve_device
 
@@ -151,8 +171,9 @@ def _train(a: argparse.Namespace, od: Any, settings: Any, ev: Any, train: Any, h
             if state.get("settings") != _settings_dict(settings, a):
                 raise ValueError(f"--resume: {STATE_FILENAME} in {a.out!r} was written with other settings "
                                  f"({state.get('settings')}); use the same options (only --epochs may grow)")
-            if int(state.get("epoch", 0)) > settings.epochs:
-                raise ValueError(f"--resume: {a.out!r} is at epoch {state['epoch']}, past --epochs {settings.epochs}")
+            if int(state.get("epoch", 0)) > settings.pretrain_epochs + settings.epochs:
+                raise ValueError(f"--resume: {a.out!r} is at epoch {state['epoch']}, past --ae-epochs + --epochs "
+                                 f"{settings.pretrain_epochs + settings.epochs}")
         except ValueError as e:
             print(f"smdm evaluator train: error: {e}", file=sys.stderr)
             od.abandon(keep=od.resumed_from == od.path)  # an interrupted run's folder stays as it was
@@ -183,15 +204,19 @@ def _train(a: argparse.Namespace, od: Any, settings: Any, ev: Any, train: Any, h
     metrics = {s: held_out_accuracy(ev, d, settings.eval_draws, seed=a.seed) for s, d in held.items()}
     metrics["train"] = held_out_accuracy(ev, train, settings.eval_draws, seed=a.seed)
     info = {"data": os.path.abspath(a.data) if a.data else "embedded CMU clips", "representation": train.representation,
-            "n_train": len(train), "best_epoch": st["best"]["epoch"], "epochs": st["epoch"],
+            "n_train": len(train), "recipe": settings.recipe, "best_epoch": st["best"]["epoch"] - settings.pretrain_epochs,
+            "epochs": st["epoch"] - settings.pretrain_epochs, "ae_epochs": settings.pretrain_epochs,
             "train_seconds": st["seconds"], "settings": _settings_dict(settings, a),
             "selected_on": "val" if "val" in held else ("test" if held else "last epoch"),
             "metrics": metrics, "history": st["history"]}
     save_evaluator(ev, folder, info)
     atomic_write_json(os.path.join(folder, "metrics.json"), {k: info[k] for k in ("metrics", "best_epoch", "epochs",
                                                                                   "train_seconds", "selected_on")})
-    print(f"trained {st['epoch']} epochs in {st['seconds']:.1f} s (kept epoch {st['best']['epoch']}, "
-          f"chosen on {info['selected_on']}); wall {time.perf_counter() - t0:.1f} s")
+    print(f"trained {settings.pretrain_epochs} auto-encoder + {info['epochs']} matching epochs ({settings.recipe}) in "
+          f"{st['seconds']:.1f} s (kept matching epoch {info['best_epoch']}, chosen on {info['selected_on']}); wall "
+          f"{time.perf_counter() - t0:.1f} s")
+    print(f"next: smdm evaluator check {a.out}" + (f" --data {a.data}" if a.data else "")
+          + "   (what this evaluator can resolve)")
     print("| split | motions | pool | R-precision top-1 | top-3 | chance top-1 / top-3 | matching score |")
     print("| --- | ---: | ---: | ---: | ---: | ---: | ---: |")
     for s, m in metrics.items():
@@ -202,9 +227,93 @@ def _train(a: argparse.Namespace, od: Any, settings: Any, ev: Any, train: Any, h
     return 0
 
 
+def build_check_parser() -> argparse.ArgumentParser:
+    from ..metrics.evaluator.protocol import PROTOCOLS
+    from .common.args import device_type, existing_path, int_range
+
+    p = argparse.ArgumentParser(
+        prog="smdm evaluator check",
+        description="The sensitivity table of an evaluator on a split: FID, FID / diversity², R-precision and matching "
+                    "score of the real motions degraded (noise 0.1 / 0.3 / 1.0 x Std, 9-frame moving average, time "
+                    "reversal, foot sliding, caption swap) beside the real-vs-real floor, under smdm eval's protocol. "
+                    "Written to EDIR/sensitivity.json; smdm eval shows it beside every result.")
+    p.add_argument("evaluator", type=existing_path("dir"), metavar="EDIR",
+                   help="an evaluator folder (trained here, or upstream's finest.tar layout)")
+    p.add_argument("--data", type=existing_path("dir"), default=None, metavar="DIR",
+                   help="HumanML3D-format folder the evaluator reads (default: the embedded CMU clips)")
+    p.add_argument("--split", default="test", help="the split to degrade (default: test)")
+    p.add_argument("--glove", type=existing_path("dir"), default=None, metavar="DIR",
+                   help="GloVe folder for upstream's evaluator when it is not EDIR/glove")
+    p.add_argument("--protocol", choices=PROTOCOLS, default="upstream",
+                   help="upstream: per replication, draws of 32 motions with random crops and captions (default); "
+                        "fixed: every motion, offset 0")
+    p.add_argument("--replications", type=int_range(1, 10000), default=20, help="replications (default: 20)")
+    p.add_argument("--seed", type=int_range(0), default=0, help="seed of the draws and the noise (default: 0)")
+    p.add_argument("--device", type=device_type, default="auto", help="auto (CUDA, else MPS, else CPU), cpu, cuda, mps")
+    p.add_argument("--threads", type=int_range(1, 1024), default=None, help=THREADS_HELP)
+    return p
+
+
+def run_check(a: argparse.Namespace, p: argparse.ArgumentParser) -> int:
+    """``smdm evaluator check``: measure, print and save the table (under EDIR's lock)."""
+    from ..io.outdir import OutputLock, OutputLockedError, describe_os_error
+    from ..metrics.evaluator.check import save_check, sensitivity
+    from ..metrics.evaluator.data import load_split
+    from ..metrics.evaluator.model import evaluator_layout, load_evaluator
+    from .common.args import resolve_device
+    from .common.threads import apply_threads
+
+    apply_threads(a.threads)
+    try:
+        layout = evaluator_layout(a.evaluator)
+        ev = load_evaluator(a.evaluator, glove=a.glove, device=resolve_device(a.device))
+        data = load_split(a.data, a.split)
+    except (FileNotFoundError, ValueError) as e:
+        print(f"smdm evaluator check: {e}", file=sys.stderr)
+        return 2
+    D = data.motions[0].shape[1]
+    if ev.config.dim_pose != D or (layout == "own" and ev.config.representation != data.representation):
+        p.error(f"argument EDIR: it reads {ev.config.representation} [{ev.config.dim_pose}] features, the data "
+                f"({a.data or 'embedded clips'}) has {data.representation} [{D}]")
+    if data.representation not in ("humanml3d", "joints66"):
+        p.error(f"argument --data: representation {data.representation!r} has no foot-sliding row")
+    print(f"smdm evaluator check: {a.evaluator} ({layout}) on {len(data)} {a.split} motions of "
+          f"{a.data or 'the embedded CMU clips'}; {a.replications} replications, {a.protocol} protocol", flush=True)
+    try:
+        with OutputLock(a.evaluator, command="smdm evaluator check", what="EDIR"):
+            table = sensitivity(ev, data, replications=a.replications, seed=a.seed, protocol=a.protocol,
+                                data_name=os.path.abspath(a.data) if a.data else "embedded CMU clips", split=a.split)
+            path = save_check(table, a.evaluator)
+    except OutputLockedError as e:
+        print(f"smdm evaluator check: error: {e}", file=sys.stderr)
+        return 2
+    except OSError as e:
+        print(f"smdm evaluator check: error: {describe_os_error(e)}", file=sys.stderr)
+        return 1
+    print("\n" + table.markdown())
+    print(f"saved {os.path.abspath(path)}")
+    return 0
+
+
+def settings_from_args(a: argparse.Namespace) -> Any:
+    """The :class:`~smdm_plugin.metrics.evaluator.train.TrainSettings` the options ask for (the recipe's
+    defaults where an option is not given)."""
+    from ..metrics.evaluator.train import TrainSettings
+
+    d = TrainSettings(recipe=a.recipe)
+    sizes = dict(d.sizes)
+    if a.hidden is not None:
+        sizes.update(dim_movement_hidden=a.hidden, dim_movement_latent=a.hidden, dim_motion_hidden=a.hidden,
+                     dim_text_hidden=a.hidden)
+    if a.dim is not None:
+        sizes["dim_coemb"] = a.dim
+    return TrainSettings(recipe=a.recipe, epochs=a.epochs, batch=a.batch, lr=a.lr, ae_epochs=a.ae_epochs,
+                         margin=a.margin, seed=a.seed, sizes=sizes)
+
+
 def _settings_dict(settings, a: argparse.Namespace) -> dict:
-    return {"batch": settings.batch, "lr": settings.lr, "seed": settings.seed, "temperature": settings.temperature,
-            "sizes": settings.sizes, "glove": os.path.abspath(a.glove) if a.glove else None,
+    return {**{k: v for k, v in settings.to_dict().items() if k not in ("epochs", "eval_draws")},
+            "glove": os.path.abspath(a.glove) if a.glove else None,
             "data": os.path.abspath(a.data) if a.data else None}
 
 

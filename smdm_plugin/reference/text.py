@@ -148,6 +148,19 @@ def load_text_config(folder: str) -> "TextConfig | None":
         raise ValueError(f"{path}: not a valid text encoder config ({e})") from None
 
 
+def text_condition(config: TextConfig, texts: Sequence[str], device: Any = "cpu") -> Dict[str, torch.Tensor]:
+    """The model's text conditioning of one caption per sample: ``{"text_embed": [1, B, dim]}``."""
+    return {"text_embed": config.build()(list(texts)).unsqueeze(0).to(device)}
+
+
+def guided(model: torch.nn.Module, config: TextConfig) -> torch.nn.Module:
+    """What sampling calls: ``model`` wrapped in classifier-free guidance at ``config.guidance_scale``
+    (``model`` itself at scale 1)."""
+    from .diffusion import ClassifierFreeGuidance
+
+    return model if config.guidance_scale == 1.0 else ClassifierFreeGuidance(model, config.guidance_scale)
+
+
 @torch.no_grad()
 def sample_with_text(model: torch.nn.Module, diffusion: Any, config: TextConfig, texts: Sequence[str],
                      lengths: torch.Tensor, frames: int, device: Any = "cpu",
@@ -156,15 +169,12 @@ def sample_with_text(model: torch.nn.Module, diffusion: Any, config: TextConfig,
     ``lengths [B]`` are padding), text-conditioned with classifier-free guidance at
     ``config.guidance_scale`` (two model calls per step; scale 1: the conditional model alone).
     ``model`` must be in eval mode (no condition dropout)."""
-    from .diffusion import ClassifierFreeGuidance
-
     B = len(texts)
     if tuple(lengths.shape) != (B,):
         raise ValueError(f"sample_with_text: lengths must be [B]=[{B}], got {tuple(lengths.shape)}")
-    emb = config.build()(list(texts)).unsqueeze(0).to(device)  # [1, B, dim]
     L = lengths.to(device)
     y = {"mask": (torch.arange(frames, device=device) < L[:, None]).view(B, 1, 1, frames), "lengths": L,
-         "text_embed": emb}
-    fn = model if config.guidance_scale == 1.0 else ClassifierFreeGuidance(model, config.guidance_scale)
+         **text_condition(config, texts, device)}
     J = getattr(model, "njoints", 263)
-    return diffusion.p_sample_loop(fn, (B, J, 1, frames), {"y": y}, device=device, generator=generator)
+    return diffusion.p_sample_loop(guided(model, config), (B, J, 1, frames), {"y": y}, device=device,
+                                   generator=generator)

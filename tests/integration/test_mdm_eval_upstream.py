@@ -120,3 +120,107 @@ def test_eval_humanml_on_a_sparse_checkpoint(repos, launcher, tmp_path):
     fids = [float(v) for v in re.findall(r"\[vald\] FID: ([-0-9.eE+naninf]+)", text)]
     assert fids and all(np.isfinite(fids)), text[-2000:]
     assert "EVAL_MODEL_SPARSE=True" in out, "the sparse model was not restored from args.json"
+
+
+# ----------------------------------------------------------------------------------------- sensitivity
+def train_reference_evaluator(mdm_root: str, data: str, out: str, ae_steps: int = 200, steps: int = 150,
+                              seed: int = 0) -> str:
+    """T2M's evaluator trained with upstream's own code on ``data``'s train split, saved in upstream's
+    layout in ``out``: MDM's ``modules.py`` networks at upstream's sizes, the decomposition stage with
+    ``DecompTrainerV3`` (movement auto-encoder, windows of 24 frames, batch 32, Adam 1e-4 as T2M's
+    ``train_decomp_v3``), then ``TextMotionMatchTrainer`` (margin 10, Adam 1e-4, batch 32 sorted by
+    caption length, the movement encoder frozen) for ``steps`` steps; captions through upstream's
+    ``WordVectorizer`` over random GloVe vectors (the published ones are not here), motions cropped as
+    ``Text2MotionDatasetV2`` does."""
+    import random
+    import types
+
+    import torch
+
+    from smdm_plugin.metrics.evaluator.data import load_split
+    from smdm_plugin.metrics.evaluator.protocol import upstream_crop
+
+    sys.path.insert(0, mdm_root)
+    from data_loaders.humanml.networks import modules, trainers
+    from data_loaders.humanml.utils.word_vectorizer import POS_enumerator, WordVectorizer
+
+    torch.manual_seed(seed)
+    random.seed(seed)
+    np.random.seed(seed)
+    rng = np.random.default_rng(seed)
+    write_evaluator(out, data)  # random GloVe files over the data's words (+ networks, replaced below)
+    vec = WordVectorizer(os.path.join(out, "glove"), "our_vab")
+    train = load_split(data, "train")
+    mean, std = train.mean, train.std
+    opt = types.SimpleNamespace(device="cpu", is_train=False, lambda_sparsity=0.001, lambda_smooth=0.1,
+                                negative_margin=10.0, unit_length=4, lr=1e-4)
+    enc = modules.MovementConvEncoder(259, 512, 512)
+    dec = modules.MovementConvDecoder(512, 512, 263)
+    decomp = trainers.DecompTrainerV3(opt, enc, dec)
+    decomp.l1_criterion = torch.nn.L1Loss()
+    decomp.opt_movement_enc = torch.optim.Adam(enc.parameters(), lr=1e-4)
+    decomp.opt_movement_dec = torch.optim.Adam(dec.parameters(), lr=1e-4)
+    for _ in range(ae_steps):
+        idx = rng.choice(len(train), 32)
+        win = []
+        for i in idx:
+            s = int(rng.integers(0, len(train.motions[i]) - 24 + 1))
+            win.append((train.motions[i][s:s + 24] - mean) / std)
+        decomp.forward(torch.tensor(np.stack(win)).float())
+        decomp.update()
+    text = modules.TextEncoderBiGRUCo(300, len(POS_enumerator), 512, 512, "cpu")
+    motion = modules.MotionEncoderBiGRUCo(512, 1024, 512, "cpu")
+    tm = trainers.TextMotionMatchTrainer(opt, text, motion, enc)
+    tm.contrastive_loss = modules.ContrastiveLoss(10.0)
+    tm.opt_text_encoder = torch.optim.Adam(text.parameters(), lr=1e-4)
+    tm.opt_motion_encoder = torch.optim.Adam(motion.parameters(), lr=1e-4)
+    for _ in range(steps):
+        items = []
+        for i in rng.choice(len(train), 32, replace=False):
+            cap = train.captions[i][int(rng.integers(len(train.captions[i])))].tokens[:20]
+            toks = ["sos/OTHER"] + cap + ["eos/OTHER"]
+            n_tok = len(toks)
+            toks += ["unk/OTHER"] * (22 - n_tok)
+            s, n = upstream_crop(len(train.motions[i]), rng)
+            m = np.zeros((196, 263), np.float32)
+            m[:n] = (train.motions[i][s:s + n] - mean) / std
+            items.append((np.stack([vec[t][0] for t in toks]), np.stack([vec[t][1] for t in toks]), n_tok, m, n))
+        items.sort(key=lambda it: it[2], reverse=True)
+        batch = (torch.tensor(np.stack([it[0] for it in items])).float(),
+                 torch.tensor(np.stack([it[1] for it in items])).float(), None,
+                 torch.tensor([it[2] for it in items]), torch.tensor(np.stack([it[3] for it in items])),
+                 torch.tensor([it[4] for it in items]), None)
+        tm.train_mode()
+        tm.forward(batch)
+        tm.update()
+    ck = os.path.join(out, "t2m", "text_mot_match", "model", "finest.tar")
+    torch.save({"movement_encoder": enc.state_dict(), "motion_encoder": motion.state_dict(),
+                "text_encoder": text.state_dict(), "epoch": steps}, ck)
+    np.save(os.path.join(out, "mean.npy"), mean)
+    np.save(os.path.join(out, "std.npy"), std)
+    return out
+
+
+def test_default_evaluator_is_as_sensitive_as_t2m_reference(tmp_path):
+    """`smdm evaluator train` (defaults) against T2M's evaluator trained with upstream's code on the same
+    data (:func:`train_reference_evaluator`): paired FID / diversity² of noise 0.3 and 1.0 Std, the
+    9-frame moving average and time reversal at least half the reference's (a seed's spread), and
+    R-precision that falls for time-reversed and caption-swapped motion. About 10 minutes on one thread."""
+    from smdm_plugin.apps.cli import main as smdm
+    from smdm_plugin.metrics.evaluator import load_evaluator
+    from smdm_plugin.metrics.evaluator.check import sensitivity
+    from smdm_plugin.metrics.evaluator.data import load_split
+
+    test = load_split(LARGE, "test")
+    ref = load_evaluator(train_reference_evaluator(ROOT, LARGE, str(tmp_path / "ref")))
+    ours = tmp_path / "ours"
+    assert smdm(["evaluator", "train", "--data", LARGE, "--out", str(ours), "--no-progress", "--threads", "1"]) == 0
+    tables = {k: sensitivity(ev, test, replications=10, seed=0) for k, ev in (("ref", ref),
+                                                                               ("ours", load_evaluator(str(ours))))}
+    for k, t in tables.items():
+        print(f"\n{k}\n{t.markdown()}")
+    for name in ("noise_0.3", "noise_1.0", "smooth_9", "reversed"):
+        assert tables["ours"].row(name).paired >= 0.5 * tables["ref"].row(name).paired, name
+    o = tables["ours"]
+    assert o.row("reversed").top3[0] < o.row("real").top3[0]
+    assert o.row("caption_swap").resolved and o.row("reversed").resolved and o.row("noise_1.0").resolved

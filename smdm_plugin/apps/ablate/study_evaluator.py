@@ -60,14 +60,27 @@ def cached_evaluator(folder: str, build: Callable[[], MotionTextEvaluator],
 # ----------------------------------------------------------------------------------------- T2M (branch eval)
 @dataclass(frozen=True)
 class T2MSettings:
-    """Training of the T2M-architecture evaluator (:mod:`smdm_plugin.metrics.evaluator`, as
-    ``smdm evaluator train`` does it): ``epochs``, ``batch``, ``lr``, ``temperature``, ``seed``."""
+    """Training of the T2M-architecture evaluator (:mod:`smdm_plugin.metrics.evaluator.train`):
+    ``recipe`` (``contrastive``: 0.4's one stage, the default of configs written before it;
+    ``t2m``: T2M's two stages, ``smdm evaluator train``'s default), ``epochs`` (matching epochs),
+    ``ae_epochs`` and ``margin`` (``t2m`` only), ``batch``, ``lr``, ``temperature`` (``contrastive``
+    only), ``seed``. A config's evaluator key is its ``evaluator`` mapping as written, so the fields
+    added later leave earlier caches and results valid."""
 
     epochs: int = 60
     batch: int = 32
     lr: float = 1e-3
     temperature: float = 0.1
     seed: int = 0
+    recipe: str = "contrastive"
+    ae_epochs: int = 50
+    margin: float = 10.0
+
+    def __post_init__(self) -> None:
+        from ...metrics.evaluator.train import RECIPES
+
+        if self.recipe not in RECIPES:
+            raise TypeError(f"recipe={self.recipe!r}: expected one of {RECIPES}")
 
 
 class T2MEvaluator:
@@ -111,17 +124,19 @@ def train_t2m(data: Any, settings: T2MSettings, log: Callable[[str], Any] = prin
     from ...metrics.evaluator.data import load_captioned
     from ...metrics.evaluator.train import TrainSettings, build_evaluator, held_out_accuracy, train_evaluator
 
-    ts = TrainSettings(epochs=settings.epochs, batch=settings.batch, lr=settings.lr,
-                       temperature=settings.temperature, seed=settings.seed)
+    ts = TrainSettings(recipe=settings.recipe, epochs=settings.epochs, batch=settings.batch, lr=settings.lr,
+                       temperature=settings.temperature, seed=settings.seed, ae_epochs=settings.ae_epochs,
+                       margin=settings.margin)
     train = load_captioned(data.root, "train")
     val = load_captioned(data.root, "val") if os.path.exists(os.path.join(data.root, "val.txt")) else None
     ev = build_evaluator(train, ts)
     st = train_evaluator(ev, train, val, ts)
     acc = held_out_accuracy(ev, load_captioned(data.root, data.split), seed=settings.seed)
-    report = {"kept_epoch": st["best"]["epoch"], "train_seconds": st["seconds"], "held_out": acc,
+    report = {"kept_epoch": st["best"]["epoch"] - ts.pretrain_epochs, "recipe": ts.recipe, "train_seconds": st["seconds"], "held_out": acc,
               "train_motions": len(train)}
     log(f"  evaluator (t2m): held-out {data.split} top-1 {acc['top1']:.3f}, top-3 {acc['top3']:.3f} (pool "
-        f"{acc['pool_size']}; chance top-1 {acc['chance_top1']:.3f}), kept epoch {st['best']['epoch']}")
+        f"{acc['pool_size']}; chance top-1 {acc['chance_top1']:.3f}), {ts.recipe} recipe, kept matching epoch "
+        f"{st['best']['epoch'] - ts.pretrain_epochs}")
     return T2MEvaluator(ev, report)
 
 

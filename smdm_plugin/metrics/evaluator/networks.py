@@ -39,6 +39,22 @@ class MovementConvEncoder(nn.Module):
         return self.out_net(self.main(x.transpose(1, 2)).transpose(1, 2))
 
 
+class MovementConvDecoder(nn.Module):
+    """The movement auto-encoder's decoder (training only, T2M's decomposition stage):
+    ``[B, S, input_size] -> [B, 4 S, output_size]`` (two transposed convolutions, kernel 4, stride 2)."""
+
+    def __init__(self, input_size: int, hidden_size: int, output_size: int) -> None:
+        super().__init__()
+        self.main = nn.Sequential(
+            nn.ConvTranspose1d(input_size, hidden_size, kernel_size=4, stride=2, padding=1), nn.LeakyReLU(0.2),
+            nn.ConvTranspose1d(hidden_size, output_size, kernel_size=4, stride=2, padding=1), nn.LeakyReLU(0.2))
+        self.out_net = nn.Linear(output_size, output_size)
+        _xavier(self)
+
+    def forward(self, z: torch.Tensor) -> torch.Tensor:
+        return self.out_net(self.main(z.transpose(1, 2)).transpose(1, 2))
+
+
 class _BiGRUCo(nn.Module):
     """Shared body of the two co-embedding encoders: ``input_emb``, ``gru``, ``output_net``, ``hidden``."""
 
@@ -84,7 +100,7 @@ class TextEncoderBiGRUCo(_BiGRUCo):
 def _xavier(module: nn.Module) -> None:
     """Xavier-normal weights, zero biases for the convolutions and linear layers (as the paper's code)."""
     for m in module.modules():
-        if isinstance(m, (nn.Conv1d, nn.Linear)):
+        if isinstance(m, (nn.Conv1d, nn.ConvTranspose1d, nn.Linear)):
             nn.init.xavier_normal_(m.weight)
             if m.bias is not None:
                 nn.init.zeros_(m.bias)

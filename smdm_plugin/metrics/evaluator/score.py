@@ -35,7 +35,8 @@ class EvalResult:
     ``fid`` (generated vs real embeddings); ``diversity`` (``diversity_times`` pairs);
     ``r_precision_top1..3`` and ``matching_score`` (pool of ``pool_size``, ``n_scored`` motions in
     full batches); ``multimodality`` (``None`` unless several generations per caption were given);
-    ``real_*``: the real motions' diversity, R-precision and matching score (the ground-truth row);
+    ``real_*``: the real motions' diversity, R-precision and matching score (the ground-truth row),
+    ``real_fid`` their FID against ``real`` (the floor: 0 when they are the same motions);
     ``n_real``/``n_generated``: motions embedded."""
 
     fid: float
@@ -56,6 +57,7 @@ class EvalResult:
     diversity_times: int
     multimodality: Optional[float] = None
     multimodality_times: Optional[int] = None
+    real_fid: float = 0.0
 
     def to_dict(self) -> Dict[str, Any]:
         return asdict(self)
@@ -106,17 +108,21 @@ def embed_captions(evaluator: Evaluator, captions: Sequence[Sequence[str]], batc
 
 def score_embeddings(real: np.ndarray, text: np.ndarray, generated: np.ndarray, mm: Optional[np.ndarray] = None,
                      seed: int = 0, pool: int = R_PRECISION_POOL, diversity_times: int = DIVERSITY_TIMES,
-                     mm_times: int = MULTIMODALITY_TIMES) -> EvalResult:
-    """:class:`EvalResult` from embeddings: ``real [Nr, C]``, ``text [Ng, C]`` (caption ``i`` of
-    generated motion ``i``; ``Ng == Nr`` when the generated motions follow the real ones),
-    ``generated [Ng, C]``, ``mm [Cm, R, C]`` (R generations per caption) or None."""
+                     mm_times: int = MULTIMODALITY_TIMES, scored_real: Optional[np.ndarray] = None) -> EvalResult:
+    """:class:`EvalResult` from embeddings: ``real [Nr, C]`` (the statistics FID is measured
+    against), ``text [Ng, C]`` (caption ``i`` of generated motion ``i``), ``generated [Ng, C]``,
+    ``mm [Cm, R, C]`` (R generations per caption) or None, ``scored_real [Ng, C]``: the real motions
+    the captions belong to (the ground-truth row; default ``real`` when it has ``Ng`` rows)."""
     if text.shape != generated.shape:
         raise ValueError(f"score_embeddings: text and generated must both be [N, C], got {text.shape}, "
                          f"{generated.shape}")
+    if scored_real is not None and scored_real.shape != text.shape:
+        raise ValueError(f"score_embeddings: scored_real must be [N, C] as text, got {scored_real.shape}, {text.shape}")
+    own = scored_real if scored_real is not None else (real if real.shape == text.shape else None)
     rg = retrieval(text, generated, pool=pool, seed=seed)
-    rr = retrieval(text, real, pool=pool, seed=seed) if real.shape == text.shape else None
+    rr = retrieval(text, own, pool=pool, seed=seed) if own is not None else None
     div, times = diversity(generated, diversity_times, seed=seed)
-    rdiv, _ = diversity(real, diversity_times, seed=seed)
+    rdiv, _ = diversity(own if own is not None else real, diversity_times, seed=seed)
     mmv, mmt = multimodality(mm, mm_times, seed=seed) if mm is not None else (None, None)
     nan = float("nan")
     return EvalResult(fid=frechet_distance(real, generated), diversity=div,
@@ -126,7 +132,8 @@ def score_embeddings(real: np.ndarray, text: np.ndarray, generated: np.ndarray, 
                       real_r_precision_top3=rr.top3 if rr else nan,
                       real_matching_score=rr.matching_score if rr else nan,
                       pool_size=rg.pool_size, n_scored=rg.n_scored, n_real=len(real), n_generated=len(generated),
-                      diversity_times=times, multimodality=mmv, multimodality_times=mmt)
+                      diversity_times=times, multimodality=mmv, multimodality_times=mmt,
+                      real_fid=0.0 if scored_real is None else frechet_distance(real, scored_real))
 
 
 def score_motions(evaluator: Evaluator, real_features: Motions, real_lengths: Optional[Sequence[int]],
