@@ -9,6 +9,7 @@ import errno
 import hashlib
 import json
 import os
+import shutil
 from pathlib import Path
 from typing import List
 
@@ -224,3 +225,61 @@ def test_evaluator_resume_without_a_run_is_refused_and_leaves_nothing(tmp_path, 
     assert _train_ev(tmp_path / "ev", "--resume") == 2
     assert "holds no run to continue" in _one_line(capsys.readouterr().err)
     assert os.listdir(tmp_path) == []
+
+
+# ------------------------------------------------------------------------------ unreadable inputs
+def test_an_empty_npy_among_the_motions_is_one_line(tmp_path, evaluator, motions, capsys):
+    """0.4.0: an EOFError traceback from np.load. Now one line naming the file, exit 2, no output."""
+    import shutil
+
+    folder = tmp_path / "m"
+    shutil.copytree(motions, folder)
+    bad = sorted(folder.glob("*.npy"))[0]
+    bad.write_bytes(b"")
+    out = tmp_path / "res"
+    capsys.readouterr()
+    assert cli.main(_eval_args(evaluator, folder, out)) == 2
+    line = _one_line(capsys.readouterr().err)
+    assert str(bad) in line and "not a readable .npy file" in line
+    assert not out.exists()
+
+
+# ------------------------------------------------------------------------------ resume by content
+def _captioned(root: Path) -> Path:
+    """A HumanML3D-format folder with captions (texts/<id>.txt)."""
+    import sys
+
+    sys.path.insert(0, os.path.dirname(__file__))
+    from synthetic_data import write_humanml3d
+
+    write_humanml3d(root)
+    (root / "texts").mkdir()
+    words = ["walks forward", "jumps up", "turns left", "waves a hand", "sits down", "kicks"]
+    for split in ("train", "val"):
+        for k, i in enumerate((root / f"{split}.txt").read_text().split()):
+            w = words[(k + (split == "val")) % len(words)]
+            tokens = " ".join(f"{t}/VERB" for t in w.split())
+            (root / "texts" / f"{i}.txt").write_text(f"a person {w}#a/DET person/NOUN {tokens}#0.0#0.0\n")
+    return root
+
+
+def test_evaluator_resume_knows_the_data_by_content(tmp_path, capsys):
+    """0.4.0 compared the path: an identical copy elsewhere was refused (other settings), data
+    changed in place resumed. Now the data is known by content; a change is named."""
+    data = _captioned(tmp_path / "data")
+    copy = tmp_path / "elsewhere"
+    out = tmp_path / "ev"
+    assert _train_ev(out, "--data", str(data), "--epochs", "1", "--ae-epochs", "1") == 0
+    shutil.copytree(data, copy)
+    capsys.readouterr()
+    assert _train_ev(out, "--data", str(copy), "--epochs", "2", "--ae-epochs", "1", "--resume") == 0
+    f = copy / "new_joint_vecs" / "train001.npy"
+    a = np.load(f)
+    a[3, 7] += 1.0  # same name, same size: only the content tells
+    np.save(f, a)
+    before = _snapshot(out)
+    capsys.readouterr()
+    assert _train_ev(out, "--data", str(copy), "--epochs", "3", "--ae-epochs", "1", "--resume") == 2
+    line = _one_line(capsys.readouterr().err)
+    assert "was trained on other data" in line and "changed: train/train001" in line, line
+    assert _snapshot(out) == before and not os.path.exists(lock_path(out))

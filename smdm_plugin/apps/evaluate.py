@@ -18,6 +18,7 @@ from typing import Any, Dict, List, Optional
 
 import numpy as np
 
+from ..io.validate import load_feature_motion
 from .common.threads import THREADS_HELP
 
 #: metrics.json keys, in table order: (key, label, format)
@@ -87,19 +88,7 @@ def load_motion_folder(folder: str, ids: List[str], dim: int) -> List[np.ndarray
     if missing:
         raise ValueError(f"--motions {folder!r}: missing {len(missing)} of {len(ids)} motions "
                          f"({', '.join(m + '.npy' for m in missing[:3])}{', ...' if len(missing) > 3 else ''})")
-    out = []
-    for i in ids:
-        path = os.path.join(folder, f"{i}.npy")
-        try:
-            m = np.load(path, allow_pickle=False)
-        except (ValueError, OSError) as e:
-            raise ValueError(f"{path}: not a numpy array file ({e})") from None
-        if m.ndim != 2 or m.shape[1] != dim or len(m) < 4 or not np.issubdtype(m.dtype, np.floating):
-            raise ValueError(f"{path}: expected raw features [L >= 4, {dim}] float, got {m.shape} {m.dtype}")
-        if not np.isfinite(m).all():
-            raise ValueError(f"{path}: has non-finite values")
-        out.append(m.astype(np.float32))
-    return out
+    return [load_feature_motion(os.path.join(folder, f"{i}.npy"), dim) for i in ids]
 
 
 class Generator:

@@ -110,8 +110,8 @@ def run(a: argparse.Namespace, p: argparse.ArgumentParser) -> int:
     if a.resume and a.overwrite:
         p.error("argument --overwrite: not allowed with argument --resume")
     apply_threads(a.threads)
-    # as smdm train: locked, apart from the inputs, written in .<name>.partial (kept when interrupted, for
-    # --resume) and swapped in as one unit; --resume continues an interrupted or a finished run
+    # as smdm train: locked, apart from the inputs, written into --out as it trains (each file atomic;
+    # docs/reliability.md); --resume continues an interrupted or a finished run on the same data
     od = OutputDir(a.out, overwrite=a.overwrite, inputs={"--data": a.data, "--glove": a.glove},
                    command="smdm evaluator train", owns=OUTPUTS, resumable=True, resume=a.resume)
     try:
@@ -149,7 +149,7 @@ def run(a: argparse.Namespace, p: argparse.ArgumentParser) -> int:
 
 def _train(a: argparse.Namespace, od: Any, settings: Any, ev: Any, train: Any, held: Dict[str, Any]) -> int:
     """Train ``ev`` (with ``--resume``: from the state in ``od.path``) and write :data:`OUTPUTS` into
-    ``od.path``, the partial folder of ``--out`` (an :class:`~smdm_plugin.io.outdir.OutputDir`);
+    ``od.path`` (``--out`` itself: each file written atomically as training goes; an :class:`~smdm_plugin.io.outdir.OutputDir`);
     a refused resume abandons ``od`` and returns 2."""
     import time
 
@@ -162,13 +162,15 @@ def _train(a: argparse.Namespace, od: Any, settings: Any, ev: Any, train: Any, h
 
     folder = od.path
     state_path = os.path.join(folder, STATE_FILENAME)
+    digests = data_digests(train, held)
     state = None
     if a.resume:
         try:
             if not os.path.isfile(state_path):
                 raise ValueError(f"--resume: no {STATE_FILENAME} in {a.out!r} to resume from")
             state = read_state_dict(state_path, what="evaluator training state")
-            if state.get("settings") != _settings_dict(settings, a):
+            _check_same_data(state, digests, a)
+            if state.get("settings") != _settings_dict(settings, a, digests):
                 raise ValueError(f"--resume: {STATE_FILENAME} in {a.out!r} was written with other settings "
                                  f"({state.get('settings')}); use the same options (only --epochs may grow)")
             if int(state.get("epoch", 0)) > settings.pretrain_epochs + settings.epochs:
@@ -190,7 +192,7 @@ def _train(a: argparse.Namespace, od: Any, settings: Any, ev: Any, train: Any, h
 
     def save_state(st):
         with atomic_open(state_path, "wb") as f:
-            torch.save({**st, "settings": _settings_dict(settings, a)}, f)
+            torch.save({**st, "settings": _settings_dict(settings, a, digests), "data_digests": digests}, f)
         saved[0] = st["epoch"]
 
     t0 = time.perf_counter()
@@ -206,7 +208,7 @@ def _train(a: argparse.Namespace, od: Any, settings: Any, ev: Any, train: Any, h
     info = {"data": os.path.abspath(a.data) if a.data else "embedded CMU clips", "representation": train.representation,
             "n_train": len(train), "recipe": settings.recipe, "best_epoch": st["best"]["epoch"] - settings.pretrain_epochs,
             "epochs": st["epoch"] - settings.pretrain_epochs, "ae_epochs": settings.pretrain_epochs,
-            "train_seconds": st["seconds"], "settings": _settings_dict(settings, a),
+            "train_seconds": st["seconds"], "settings": _settings_dict(settings, a, digests),
             "selected_on": "val" if "val" in held else ("test" if held else "last epoch"),
             "metrics": metrics, "history": st["history"]}
     save_evaluator(ev, folder, info)
@@ -311,10 +313,51 @@ def settings_from_args(a: argparse.Namespace) -> Any:
                          margin=a.margin, seed=a.seed, sizes=sizes)
 
 
-def _settings_dict(settings, a: argparse.Namespace) -> dict:
+def data_digests(train: Any, held: Dict[str, Any]) -> Dict[str, str]:
+    """``split/id`` -> sha256 (16 hex digits) of what was read for that motion (features, their
+    shape and dtype, captions), plus each split's ``Mean+Std``: the data by content, wherever it
+    lies (``--resume`` compares these, not the path)."""
+    import hashlib
+
+    import numpy as np
+
+    out: Dict[str, str] = {}
+    for split, d in (("train", train), *sorted(held.items())):
+        for i, m, caps in zip(d.ids, d.motions, d.captions):
+            h = hashlib.sha256(f"{m.shape}{m.dtype}".encode())
+            h.update(np.ascontiguousarray(m).tobytes())
+            h.update("\0".join(repr(c) for c in caps).encode())
+            out[f"{split}/{i}"] = h.hexdigest()[:16]
+        h = hashlib.sha256(np.ascontiguousarray(d.mean, dtype=np.float64).tobytes())
+        h.update(np.ascontiguousarray(d.std, dtype=np.float64).tobytes())
+        out[f"{split}/Mean+Std"] = h.hexdigest()[:16]
+    return out
+
+
+def _check_same_data(state: Dict[str, Any], digests: Dict[str, str], a: argparse.Namespace) -> None:
+    """``ValueError`` naming what changed when the run was trained on other data. Runs saved before
+    content digests (0.4) are compared by path."""
+    from ..io.files import describe_changes, digests_fingerprint
+
+    saved = (state.get("settings") or {}).get("data")
+    old = state.get("data_digests")
+    if not isinstance(old, dict):  # a 0.4 run: the data by path
+        now = os.path.abspath(a.data) if a.data else None
+        if saved != now:
+            raise ValueError(f"--resume: {a.out!r} was trained on other data (saved {saved!r}, now {now!r})")
+        state["settings"] = {**state["settings"], "data": digests_fingerprint(digests)}
+        return
+    if digests_fingerprint(old) != digests_fingerprint(digests):
+        raise ValueError(f"--resume: {a.out!r} was trained on other data (--data {a.data or 'embedded clips'}: "
+                         f"{describe_changes(old, digests)}); resume with the same data, or start a new run")
+
+
+def _settings_dict(settings, a: argparse.Namespace, digests: Dict[str, str]) -> dict:
+    from ..io.files import digests_fingerprint
+
     return {**{k: v for k, v in settings.to_dict().items() if k not in ("epochs", "eval_draws")},
             "glove": os.path.abspath(a.glove) if a.glove else None,
-            "data": os.path.abspath(a.data) if a.data else None}
+            "data": digests_fingerprint(digests)}
 
 
 if __name__ == "__main__":
