@@ -19,7 +19,8 @@ within about a minute on 2 cores; they change sizes and speed, never which files
 * ``smdm inbetween``: ``--no-gif --quiet`` (the GIF is the renderer's, tested in test_render.py);
 * ``smdm render``: ``--stride 10 --quiet`` (every 10th frame);
 * ``smdm bench``: ``--quick``; ``smdm ablate``: ``--steps 2``; ``smdm train``: ``--steps 2``;
-  ``smdm evaluator train``: ``--epochs 2``; ``smdm eval``: ``--replications 1 --mm-repeats 0``;
+  ``smdm evaluator train``: ``--epochs 2 --ae-epochs 2``; ``smdm evaluator check``: ``--replications 2``;
+  ``smdm eval``: ``--replications 1 --mm-repeats 0``;
   every command: ``--threads 1`` where it has the option.
 """
 from __future__ import annotations
@@ -45,7 +46,8 @@ SMALL = {
     "bench": ["--quick", "--threads", "1"],
     "ablate": ["--steps", "2", "--threads", "1", "--no-progress"],
     "train": ["--steps", "2", "--threads", "1", "--no-progress"],
-    "evaluator": ["--epochs", "2", "--threads", "1", "--no-progress"],
+    "evaluator train": ["--epochs", "2", "--ae-epochs", "2", "--threads", "1", "--no-progress"],
+    "evaluator check": ["--replications", "2", "--threads", "1"],
     "eval": ["--replications", "1", "--mm-repeats", "0", "--threads", "1"],
 }
 
@@ -76,7 +78,9 @@ def readme_commands(text: str) -> List[Tuple[str, Optional[str]]]:
 
 
 def with_small_flags(words: List[str]) -> List[str]:
-    extra, given = SMALL.get(words[1], []), set(words)
+    """``words`` plus the small-size flags of its command (``SMALL[sub]`` or ``SMALL["sub subsub"]``)."""
+    key = " ".join(words[1:3]) if " ".join(words[1:3]) in SMALL else words[1]
+    extra, given = SMALL.get(key, []), set(words)
     add, i = [], 0
     while i < len(extra):  # a flag and its values, unless the command gives the flag itself
         j = i + 1
