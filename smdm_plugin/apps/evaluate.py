@@ -304,7 +304,7 @@ def main(argv: Optional[List[str]] = None) -> int:
     from ..io.files import OutputExistsError
     from ..io.outdir import OutputDir, run_in_output_dir
     from ..metrics.evaluator.data import load_split
-    from ..metrics.evaluator.model import evaluator_layout, load_evaluator
+    from ..metrics.evaluator.model import evaluator_layout, feature_mismatch, load_evaluator
     from .common.args import resolve_device
 
     if a.inbetween_every and not a.model:
@@ -330,9 +330,9 @@ def main(argv: Optional[List[str]] = None) -> int:
         print(f"smdm eval: {e}", file=sys.stderr)
         return 2
     D = real.motions[0].shape[1]
-    if ev.config.dim_pose != D or (layout == "own" and ev.config.representation != real.representation):
-        p.error(f"argument --evaluator: it reads {ev.config.representation} [{ev.config.dim_pose}] features, the "
-                f"data ({a.data or 'embedded clips'}) has {real.representation} [{D}]")
+    why = feature_mismatch(ev, layout, real.representation, D)
+    if why:
+        p.error(f"argument --evaluator: {why}, the data ({a.data or 'embedded clips'}) has {real.representation} [{D}]")
     try:
         gen_model = Generator(a.model, dev) if a.model else None
         if gen_model is not None and len(gen_model.mean) != D:

@@ -261,7 +261,7 @@ def run_check(a: argparse.Namespace, p: argparse.ArgumentParser) -> int:
     from ..io.outdir import OutputLock, OutputLockedError, describe_os_error
     from ..metrics.evaluator.check import save_check, sensitivity
     from ..metrics.evaluator.data import load_split
-    from ..metrics.evaluator.model import evaluator_layout, load_evaluator
+    from ..metrics.evaluator.model import evaluator_layout, feature_mismatch, load_evaluator
     from .common.args import resolve_device
     from .common.threads import apply_threads
 
@@ -274,9 +274,9 @@ def run_check(a: argparse.Namespace, p: argparse.ArgumentParser) -> int:
         print(f"smdm evaluator check: {e}", file=sys.stderr)
         return 2
     D = data.motions[0].shape[1]
-    if ev.config.dim_pose != D or (layout == "own" and ev.config.representation != data.representation):
-        p.error(f"argument EDIR: it reads {ev.config.representation} [{ev.config.dim_pose}] features, the data "
-                f"({a.data or 'embedded clips'}) has {data.representation} [{D}]")
+    why = feature_mismatch(ev, layout, data.representation, D)
+    if why:
+        p.error(f"argument EDIR: {why}, the data ({a.data or 'embedded clips'}) has {data.representation} [{D}]")
     if data.representation not in ("humanml3d", "joints66"):
         p.error(f"argument --data: representation {data.representation!r} has no foot-sliding row")
     print(f"smdm evaluator check: {a.evaluator} ({layout}) on {len(data)} {a.split} motions of "

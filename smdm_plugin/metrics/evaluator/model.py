@@ -296,6 +296,15 @@ def load_evaluator(path: str, glove: Optional[str] = None, mean: Optional[np.nda
     return load_upstream_evaluator(path, glove=glove, mean=mean, std=std, device=device)
 
 
+def feature_mismatch(evaluator: Evaluator, layout: str, representation: str, dim: int) -> Optional[str]:
+    """Why ``evaluator`` (of ``layout``) cannot read ``representation [dim]`` features, or None:
+    "it reads humanml3d [263] features" (the caller names its argument and the data)."""
+    cfg = evaluator.config
+    if cfg.dim_pose != dim or (layout == "own" and cfg.representation != representation):
+        return f"it reads {cfg.representation} [{cfg.dim_pose}] features"
+    return None
+
+
 def evaluator_info(path: str) -> Dict[str, Any]:
     """What ``evaluator.json`` says beside the config (held-out accuracy, data, ...); ``{}`` for upstream's."""
     p = os.path.join(path, CONFIG_FILENAME)
