@@ -272,3 +272,19 @@ def test_text_model_is_sampled_with_its_captions_and_guidance(tmp_path, monkeypa
     assert seen == want
     res = json.load(open(tmp_path / "r" / "metrics.json"))
     assert res["protocol"]["sampling"].startswith("text (hashed_bow, guidance 3")
+
+
+@pytest.mark.parametrize("command", ["eval", "check"])
+def test_evaluator_of_other_features_is_one_line_naming_both(trained, tmp_path, capsys, command):
+    """An evaluator trained on HumanML3D 263-D features given the embedded clips (joints66): refused
+    before anything runs, naming the argument, what the evaluator reads and what the data has."""
+    _, ev = trained
+    (tmp_path / "m").mkdir()
+    argv = (["eval", "--evaluator", ev, "--motions", str(tmp_path / "m"), "--out", str(tmp_path / "r")]
+            if command == "eval" else ["evaluator", "check", ev])
+    with pytest.raises(SystemExit) as e:
+        smdm(argv + ["--threads", "1"])
+    err = capsys.readouterr().err.strip().splitlines()[-1]
+    assert e.value.code == 2 and "it reads humanml3d [263] features" in err and "joints66 [66]" in err, err
+    assert ("--evaluator" if command == "eval" else "EDIR") in err
+    assert not (tmp_path / "r").exists() and not os.path.exists(os.path.join(ev, "sensitivity.json"))
