@@ -44,3 +44,38 @@ def test_patch_only_adds_and_its_plugin_imports_exist(patch):
     for module, name in names:
         mod = importlib.import_module(module)
         assert hasattr(mod, name), f"{patch.name} imports {name} from {module}, which has no such name"
+
+
+def _guard_of(lines: list, k: int) -> tuple:
+    """The nearest enclosing added line of ``lines[k]`` (smaller indentation), and its index."""
+    indent = len(lines[k]) - len(lines[k].lstrip())
+    for j in range(k - 1, -1, -1):
+        ln = lines[j]
+        if ln.strip() and not ln.lstrip().startswith("#") and len(ln) - len(ln.lstrip()) < indent:
+            return ln.strip(), j
+    return "", -1
+
+
+@pytest.mark.parametrize("patch", PATCHES, ids=lambda p: p.name)
+def test_patch_degrades_to_upstream_without_the_plugin(patch):
+    """Every plugin import a patch adds either sits under a flag only the plugin defines
+    (``if getattr(args, 'sparse...``) or alone in a ``try:`` whose ``except ImportError`` falls back
+    to upstream, with the calls in its ``else:`` (so an ImportError inside the plugin is not
+    swallowed): a colleague without smdm-plugin runs the patched checkout as upstream."""
+    lines = added_lines(patch)
+    for k, line in enumerate(lines):
+        if not IMPORT.match(line):
+            continue
+        guard, j = _guard_of(lines, k)
+        if guard.startswith("if ") and "getattr(" in guard and "sparse" in guard:
+            continue
+        assert guard.startswith("try:"), f"{patch.name}: {line.strip()!r} is not guarded (enclosing: {guard!r})"
+        indent = len(lines[j]) - len(lines[j].lstrip())
+        body, m = [], j + 1
+        while m < len(lines) and (not lines[m].strip() or len(lines[m]) - len(lines[m].lstrip()) > indent):
+            body.append(lines[m].strip())
+            m += 1
+        assert m < len(lines) and lines[m].strip().startswith("except ImportError"), \
+            f"{patch.name}: the try around {line.strip()!r} has no 'except ImportError' next"
+        calls = [b for b in body if b and not b.startswith("#") and not IMPORT.match(" " + b)]
+        assert not calls, f"{patch.name}: the try around {line.strip()!r} also runs {calls} (move it to 'else:')"

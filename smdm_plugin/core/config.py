@@ -306,6 +306,23 @@ class SparseConfig:
         return {f.name: (getattr(self, f.name), getattr(other, f.name)) for f in dataclasses.fields(self)
                 if f.name not in skip and getattr(self, f.name) != getattr(other, f.name)}
 
+    def summary(self) -> str:
+        """The settings that shape a run, in one line (what the upstream integrations log):
+        ``reduction 0.8 (vw keyframes, mask noise 0.1), FSQ keys on, Lipschitz MLPs on (λ 0), ...``."""
+        onoff = {True: "on", False: "off", None: "auto"}
+        parts = [f"reduction {self.reduction:g} ({self.selector} keyframes, mask noise {self.mask_noise:g})",
+                 f"FSQ keys {onoff[self.fsq]}",
+                 f"Lipschitz MLPs {onoff[self.lipschitz]}" + (f" (λ {self.lipschitz_lambda:g})" if self.lipschitz else ""),
+                 f"fill {self.sample_interpolation}", f"dynamic update {onoff[self.dynamic_update]} (γ {self.gamma:g})",
+                 f"T {self.diffusion_steps}"]
+        if self.prefix_frames:
+            parts.append(f"{self.prefix_frames} prefix frames dense")
+        if not self.interpolate:
+            parts.append("keyframe-only loss")
+        if self.text_encoder:
+            parts.append(f"text encoder {self.text_encoder}")
+        return ", ".join(parts)
+
     # ------------------------------------------------------------------ (de)serialisation
     def to_dict(self) -> Dict[str, Any]:
         d = dataclasses.asdict(self)

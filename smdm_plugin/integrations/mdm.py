@@ -132,6 +132,9 @@ def _sparsify(model: Any, args: Any, data: Any, diffusion: Any, config: SparseCo
                       "normalised features", stacklevel=3)
     with upstream_rng_untouched():  # upstream's prompts / noise / batches stay those of a dense run
         apply_start(model, args, start, diffusion, mean, std, data)   # sparsify, or wrap / warm start
+    from .announce import announce_sparse_mode
+
+    announce_sparse_mode(model, "MDM/DiP")
     if _is_training(args):
         steps = getattr(args, "diffusion_steps", None)
         if steps is None and diffusion is not None:

@@ -124,6 +124,9 @@ def attach_trainer(trainer: Any, config: Optional[SparseConfig] = None) -> Any:
         mean, std = mean_std_from_opt(opt)
         with upstream_rng_untouched():  # upstream's batches / noise stay those of a dense run
             sparsify(core, config, mean=mean, std=std, diffusion=trainer.diffusion, family="motiondiffuse")
+        from .announce import announce_sparse_mode
+
+        announce_sparse_mode(core, "MotionDiffuse")
     if config.enabled and getattr(opt, "is_train", False) and getattr(opt, "model_dir", None):
         # sparse_config.json (never replacing another config unasked), and opt.txt's sparse_* as
         # they ran (e.g. sparse_fsq False: FSQ keys cannot apply to linear attention, with a warning)

@@ -66,6 +66,9 @@ def sparsify_priormdm(model: Any, args: Any, data: Any = None, diffusion: Any = 
     with upstream_rng_untouched():  # a sparse DoubleTake draws the same prompts / noise as a dense one
         apply_start(model, args, start, diffusion, mean, std, data)   # sparsify, or wrap / warm start
     doubletake = "doubletake" in type(model).__name__.lower()
+    from .announce import announce_sparse_mode
+
+    announce_sparse_mode(model, "priorMDM DoubleTake" if doubletake else "priorMDM")
     if doubletake:
         attach_doubletake_forcing(model)
         warn_if_not_paper_blend(args)

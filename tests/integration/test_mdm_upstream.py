@@ -244,6 +244,39 @@ def test_flag_off_equals_upstream_bit_for_bit(pristine, patched, tmp_path):
         assert np.array_equal(motion, ref_motion), f"{name}: samples differ from upstream"
 
 
+@needs_mdm
+def test_patched_checkout_without_the_plugin_runs_as_upstream(pristine, patched, tmp_path):
+    """A colleague without smdm-plugin (``import smdm_plugin`` fails) runs the patched checkout as
+    upstream: training and sampling work, bit for bit upstream's; ``--sparse`` is then an unknown
+    argument (argparse), not a traceback from the plugin's imports."""
+    blocker = tmp_path / "no_plugin" / "smdm_plugin"
+    blocker.mkdir(parents=True)
+    (blocker / "__init__.py").write_text('raise ImportError("smdm-plugin is not installed (test)")\n')
+    env = plugin_env(ENV)
+    env["PYTHONPATH"] = str(blocker.parent) + os.pathsep + env["PYTHONPATH"]
+
+    def run(repo, module, args, check=True):
+        return run_logged([sys.executable, HARNESS, module, *args], cwd=repo, env=env, check=check)
+
+    runs = {}
+    for name, repo in (("upstream", pristine), ("patched", patched)):
+        save = str(tmp_path / name)
+        run(repo, "train.train_mdm", ["--save_dir", save, "--num_steps", "3", *TINY, *ARCH["trans_enc"]])
+        ckpt = latest_checkpoint(save)
+        out = str(tmp_path / f"gen_{name}")
+        run(repo, "sample.generate", ["--model_path", ckpt, "--output_dir", out, "--num_samples", "2",
+                                      "--num_repetitions", "1", "--seed", "3", *GEN["trans_enc"]])
+        runs[name] = (load_sd(ckpt), np.load(os.path.join(out, "results.npy"), allow_pickle=True).item()["motion"])
+        assert not os.path.exists(os.path.join(save, "sparse_config.json"))
+        assert "sparse" not in json.load(open(os.path.join(save, "args.json")))
+    (ref_sd, ref_motion), (sd, motion) = runs["upstream"], runs["patched"]
+    assert sorted(sd) == sorted(ref_sd) and all(bool((ref_sd[k] == sd[k]).all()) for k in ref_sd)
+    assert np.array_equal(motion, ref_motion)
+    proc = run(patched, "train.train_mdm", ["--save_dir", str(tmp_path / "flag"), "--num_steps", "1", *TINY,
+                                            *ARCH["trans_enc"], "--sparse"], check=False)
+    assert proc.returncode == 2 and "unrecognized arguments: --sparse" in proc.stderr, proc.stderr[-800:]
+
+
 EQUIV = r"""
 import argparse, numpy as np, torch
 from utils import parser_util
