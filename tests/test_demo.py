@@ -11,6 +11,7 @@ import sys
 import warnings
 
 import numpy as np
+import torch
 import pytest
 
 from smdm_plugin.apps import demo
@@ -99,7 +100,7 @@ def test_quick_demo_skips_unusable_files_keeps_given_flags_and_leaves_models(bvh
     assert len(rows) == 2 and all(r.split("|")[3].strip() == "0.0" for r in rows)
     from PIL import Image
 
-    assert Image.open(out / "inbetween.gif").n_frames == 30  # 60 frames, every 2nd in --quick
+    assert Image.open(out / "inbetween.gif").n_frames == 60  # 120 frames, every 2nd in --quick
     # the trained models are folders smdm inbetween reads
     from smdm_plugin.io.bundle import load_bundle
 
@@ -369,3 +370,14 @@ def test_mismatched_evaluator_is_one_line(tmp_path, capsys):
     g = demo.GeneratedSet(torch.zeros(2, 60, 66), torch.full((2,), 60), torch.zeros(2, 60, 22, 3), "joints66")
     with pytest.raises(ValueError, match="evaluator reads humanml3d"):
         demo.evaluator_scores({"dense": g}, np.zeros((2, 60, 22, 3), np.float32), ev)
+
+
+def test_loss_plot_legend_and_title_give_the_same_speed():
+    """0.4.0's title said "sparse runs 4.09x the steps per second" while its legend read 0.68 vs
+    1.67 steps/s (whole-run rates): the legend now shows the equal-steps rates the title compares."""
+    from smdm_plugin.apps.demo import equal_step_rates
+    from smdm_plugin.training.trainer import race_fair
+
+    train = race_fair({"dense": _FakeTrainer(0.004), "sparse": _FakeTrainer(0.001)}, seconds=0.2, progress=False)
+    rates = equal_step_rates(train)
+    assert rates["sparse"] / rates["dense"] == pytest.approx(train["speed_ratio"], rel=1e-9)

@@ -14,8 +14,8 @@ Skipped, by these explicit rules (:data:`SKIP`), each with its reason:
 Small-size flags (:data:`SMALL`) are appended where a command has them, to keep the whole run
 within about a minute on 2 cores; they change sizes and speed, never which files are written or read:
 
-* ``smdm demo``: ``--quick --frames 120 --no-gif`` (``--frames 120``: the later in-betweening
-  examples place keyframes up to frame 119, as the full-size demo allows);
+* ``smdm demo``: ``--quick --no-gif`` (``--quick`` keeps 120 frames, so the later in-betweening
+  examples, with keyframes up to frame 119, run on its models as on the full-size demo's);
 * ``smdm inbetween``: ``--no-gif --quiet`` (the GIF is the renderer's, tested in test_render.py);
 * ``smdm render``: ``--stride 10 --quiet`` (every 10th frame);
 * ``smdm bench``: ``--quick``; ``smdm ablate``: ``--steps 2``; ``smdm train``: ``--steps 2``;
@@ -40,7 +40,7 @@ README = ROOT / "README.md"
 
 #: extra flags per command (added when the command does not already give them)
 SMALL = {
-    "demo": ["--quick", "--frames", "120", "--no-gif", "--threads", "1"],
+    "demo": ["--quick", "--no-gif", "--threads", "1"],
     "inbetween": ["--no-gif", "--quiet", "--threads", "1"],
     "render": ["--stride", "10", "--quiet"],
     "bench": ["--quick", "--threads", "1"],

@@ -90,6 +90,13 @@ def training_crops(clips, length: int, stride: int) -> List[np.ndarray]:
     return crops
 
 
+def equal_step_rates(train: Dict[str, Any]) -> Dict[str, float]:
+    """Steps per second of each trainer over the race's equal steps (what ``speed_ratio`` compares:
+    sparse / dense of these is exactly it), from :func:`~smdm_plugin.training.trainer.race_fair`'s result."""
+    eq = train["equal_steps"]
+    return {name: eq["steps"] / max(sec, 1e-9) for name, sec in eq["seconds"].items()}
+
+
 def plot_losses(train: Dict[str, Any], path: str) -> None:
     import matplotlib
 
@@ -97,6 +104,7 @@ def plot_losses(train: Dict[str, Any], path: str) -> None:
     import matplotlib.pyplot as plt
 
     fig, axes = plt.subplots(1, 2, figsize=(12, 4))
+    rates = equal_step_rates(train)   # the legend and the title give the same measure
     for name, col in (("dense", "tab:blue"), ("sparse", "tab:red")):
         r = train[name]
         if not r["loss"]:
@@ -104,7 +112,7 @@ def plot_losses(train: Dict[str, Any], path: str) -> None:
         loss = np.asarray(r["loss"])
         k = max(1, len(loss) // 25)
         smooth = np.convolve(loss, np.ones(k) / k, mode="valid")
-        lab = f"{name} ({r['steps_per_s']:.2f} steps/s)"
+        lab = f"{name} ({rates[name]:.2f} steps/s over the first {train['equal_steps']['steps']} steps)"
         axes[0].plot(np.arange(len(smooth)) + k, smooth, color=col, label=lab)
         axes[1].plot(np.asarray(r["time"])[k - 1:], smooth, color=col, label=lab)
     axes[0].set_xlabel("training step")
@@ -177,7 +185,8 @@ def inbetween_demo(bundles: Dict[str, Any], clip: Tuple[str, np.ndarray], length
 
 # ----------------------------------------------------------------------------------------- CLI
 #: options ``--quick`` shrinks, unless given: (normal default, quick value)
-QUICK = {"max_clips": (None, 1), "reductions": ([0.6, 0.7, 0.8, 0.9], [0.8]), "frames": (120, 60),
+#: (--frames stays 120 in --quick: the README's next commands place keyframes up to frame 119 on its models)
+QUICK = {"max_clips": (None, 1), "reductions": ([0.6, 0.7, 0.8, 0.9], [0.8]),
          "batch": (32, 4), "latent": (256, 32), "layers": (4, 1)}
 
 
@@ -191,7 +200,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="keyframe study: fractions of frames dropped (default 0.6 0.7 0.8 0.9)")
     p.add_argument("--train-reduction", type=float_range(0, 1, hi_open=True), default=0.8,
                    help="fraction of frames the sparse model drops in training, in [0, 1) (default 0.8)")
-    p.add_argument("--frames", type=int_range(20, 196), default=None,
+    p.add_argument("--frames", type=int_range(20, 196), default=120,
                    help="training crop and in-betweening length (frames at 20 fps; default 120)")
     p.add_argument("--batch", type=int_range(1, 4096), default=None, help="default 32")
     p.add_argument("--latent", type=int_range(4, 4096), default=None, help="a multiple of 4 (heads); default 256")
