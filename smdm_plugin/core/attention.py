@@ -56,19 +56,21 @@ def attend_single_key(attn: nn.Module, value: Tensor, sample: Tensor) -> Tensor:
     return o
 
 
-def attend(attn: nn.Module, q: Tensor, k: Tensor, v: Tensor, mask: Optional[Tensor]) -> Tensor:
-    """``F.scaled_dot_product_attention`` of heads ``q [B, H, L, hd]``, ``k, v [B, H, S, hd]`` with
-    an additive ``mask`` broadcastable to ``[B, H, L, S]`` (or None) and ``attn``'s dropout in
-    training: ``[B, H, L, hd]``."""
+def attend(attn: nn.Module, q: Tensor, k: Tensor, v: Tensor, mask: Optional[Tensor],
+           scale: Optional[float] = None) -> Tensor:
+    """``F.scaled_dot_product_attention`` of heads ``q, k [B, H, L|S, e]``, ``v [B, H, S, hd]``
+    with an additive ``mask`` broadcastable to ``[B, H, L, S]`` (or None), ``scale`` (None:
+    ``1/sqrt(e)``) and ``attn``'s dropout in training: ``[B, H, L, hd]``."""
     p = attn.dropout if attn.training else 0.0
-    return F.scaled_dot_product_attention(q, k, v, attn_mask=mask, dropout_p=p)
+    return F.scaled_dot_product_attention(q, k, v, attn_mask=mask, dropout_p=p, scale=scale)
 
 
-def attend_with_weights(attn: nn.Module, q: Tensor, k: Tensor, v: Tensor, mask: Optional[Tensor]
-                        ) -> Tuple[Tensor, Tensor]:
+def attend_with_weights(attn: nn.Module, q: Tensor, k: Tensor, v: Tensor, mask: Optional[Tensor],
+                        scale: Optional[float] = None) -> Tuple[Tensor, Tensor]:
     """:func:`attend` that also returns the attention weights ``[B, H, L, S]`` (before dropout),
     written out (SDPA does not return them): ``(out [B, H, L, hd], weights)``."""
-    scores = q @ k.transpose(-2, -1) / math.sqrt(q.shape[-1])
+    scores = q @ k.transpose(-2, -1)
+    scores = scores / math.sqrt(q.shape[-1]) if scale is None else scores * scale
     if mask is not None:
         scores = scores + mask
     weights = torch.softmax(scores, dim=-1)

@@ -10,7 +10,7 @@ straight-through estimator and rescales to ``[-1, 1]``. :class:`FSQMultiheadAtte
 from __future__ import annotations
 
 import math
-from typing import Any, Optional, Sequence, Tuple
+from typing import Any, List, Optional, Sequence, Tuple
 
 import torch
 import torch.nn.functional as F
@@ -18,6 +18,7 @@ from torch import Tensor, nn
 
 from .attention import attend, attend_with_weights, compute_dtype, float_mask, project_qkv
 from .checks import compiling
+from .kernels.fsq_code import fsq_code
 
 __all__ = ["FSQ", "FSQMultiheadAttention", "quantize_attention_keys"]
 
@@ -176,7 +177,21 @@ class FSQMultiheadAttention(nn.Module):
         self.key_up = nn.Linear(self.fsq.dim, self.head_dim, **fk)
         self.quantize = True
         self._fold_cache: Optional[Tuple[tuple, Tuple[Tensor, ...]]] = None
-        self._call_fold: Optional[Tuple[Tensor, ...]] = None     # set by fold_keys for one call
+        self._proj_cache: Optional[Tuple[tuple, Tuple[Tensor, Tensor]]] = None
+        self._call_proj: Optional[Tuple[Tensor, Tensor]] = None    # set by fold_keys for one call
+        # the code channels of the folded path (:meth:`_forward_folded`): the ``d`` FSQ channels and
+        # zeros up to a multiple of 8 (the head sizes GPU attention kernels take); per channel the
+        # bound's ``neg_offset`` and ``half_l`` (0 on the padding: its codes are 0), tiled over the heads
+        pad = self.code_dim - self.fsq.dim
+        self.register_buffer("_code_neg_offset", F.pad(self.fsq._neg_offset, (0, pad)).repeat(self.num_heads),
+                             persistent=False)
+        self.register_buffer("_code_half_l", F.pad(self.fsq._half_l, (0, pad)).repeat(self.num_heads),
+                             persistent=False)
+        # key_up.bias adds q·bias to every key's logit of a query: softmax does not see it (its
+        # gradient is exactly 0), and the folded path does not read it; frozen, so that optimizers
+        # and DDP (find_unused_parameters=False) see no trainable parameter without a gradient
+        self.key_up.bias.requires_grad_(False)
+        self._code_cast: dict = {}
         self._reset_parameters()
         self.register_forward_pre_hook(_disable_transformer_fast_path)
 
@@ -241,9 +256,6 @@ class FSQMultiheadAttention(nn.Module):
         compute ``dtype`` (autocast's, else the keys'): keyed on the parameters' storage and
         version, as the Lipschitz layers; so a sampling call under autocast casts none of them (the
         values autocast would make). With autograd: the parameters' dtype (autocast casts them)."""
-        call = self.__dict__.get("_call_fold")
-        if call is not None:
-            return call
         down, up, fsq = self.key_down, self.key_up, self.fsq
         key = None
         if not torch.is_grad_enabled() and not compiling():
@@ -257,6 +269,75 @@ class FSQMultiheadAttention(nn.Module):
             out = tuple(t.to(dtype) for t in out)
             self._fold_cache = (key, out)
         return out
+
+    @property
+    def code_dim(self) -> int:
+        """``P``: channels of a head's query and key on the folded path: the ``d`` FSQ channels,
+        zeros up to a multiple of 8."""
+        return -(-self.fsq.dim // 8) * 8
+
+    def code_constants(self, dtype: torch.dtype) -> Tuple[Tensor, Tensor]:
+        """``(neg_offset, half_l)`` ``[H·P]`` of the folded path's bound (every head's ``P``
+        channels) in ``dtype`` (cast once per dtype outside tracing, as :meth:`FSQ.constants`)."""
+        bufs = (self._code_neg_offset, self._code_half_l)
+        if bufs[0].dtype == dtype:
+            return bufs
+        if compiling():
+            return tuple(b.to(dtype) for b in bufs)
+        key = tuple((b.data_ptr(), b._version) for b in bufs)
+        hit = self._code_cast.get(dtype)
+        if hit is None or hit[0] != key:
+            hit = self._code_cast[dtype] = (key, tuple(b.to(dtype) for b in bufs))
+        return hit[1]
+
+    def _projection(self, dtype: torch.dtype) -> Tuple[Tensor, Tensor]:
+        """This layer's folded in-projection (:func:`folded_projections`) for a call computing in
+        ``dtype``: the one :class:`fold_keys` made for all layers, else, without autograd and
+        outside tracing, cached in ``dtype`` (keyed on the parameters' storage and version), else
+        made for this layer alone."""
+        call = self.__dict__.get("_call_proj")
+        if call is not None:
+            return call
+        key = None
+        if not torch.is_grad_enabled() and not compiling():
+            key = (dtype,) + tuple((t.data_ptr(), t._version) for t in self._fold_inputs())
+            if self._proj_cache is not None and self._proj_cache[0] == key:
+                return self._proj_cache[1]
+        out = folded_projections([self], None if key is None else dtype)[0]
+        if key is not None:
+            self._proj_cache = (key, out)
+        return out
+
+    def _fold_inputs(self) -> Tuple[Tensor, ...]:
+        b = self.in_proj_bias
+        return (self.in_proj_weight, self.key_down.weight, self.key_down.bias, self.key_up.weight,
+                self.fsq._shift, self.fsq._half_width) + (() if b is None else (b,))
+
+    def _forward_folded(self, x: Tensor, bf: bool, mask: Optional[Tensor], need_weights: bool
+                        ) -> Tuple[Tensor, Optional[Tensor]]:
+        """Self-attention on the folded path: one in-projection gives each head's query code
+        ``q·key_up.weight / floor(L/2)``, key pre-code ``key_down(k) + shift`` (``P`` channels each,
+        zero-padded) and the values; the keys' codes are ``round(bound(.))``; attention on
+        ``P``-channel queries and keys with the scale of ``head_dim``. The same attention as
+        ``q·key_up(FSQ(key_down(k)))`` in real arithmetic (``q·key_up.bias`` is the same for every
+        key of a query: softmax drops it), without key_down / key_up on the activations.
+        ``x [T, B, E]`` (``[B, T, E]`` with ``bf``)."""
+        E, H, hd, P = self.embed_dim, self.num_heads, self.head_dim, self.code_dim
+        weight, bias = self._projection(compute_dtype(x))
+        qc, z, v = F.linear(x, weight, bias).split([H * P, H * P, E], dim=-1)
+        neg_offset, half_l = self.code_constants(torch.float32)
+        r = fsq_code(z, neg_offset, half_l)                        # [.., H·P] codes, one op each way
+        qc, r, v = self._heads_of(qc, bf, P), self._heads_of(r, bf, P), self._heads(v, bf)
+        scale = 1.0 / math.sqrt(hd)
+        if need_weights:
+            return attend_with_weights(self, qc, r, v, mask, scale)
+        return attend(self, qc, r, v, mask, scale), None
+
+    def _heads_of(self, x: Tensor, batch_first: bool, size: int) -> Tensor:
+        """``[B, T, H·size]`` (``batch_first``) or ``[T, B, H·size]`` -> ``[B, H, T, size]`` (a view)."""
+        if not batch_first:
+            x = x.transpose(0, 1)
+        return x.unflatten(-1, (self.num_heads, size)).transpose(1, 2)
 
     def forward(self, query: Tensor, key: Tensor, value: Tensor,
                 key_padding_mask: Optional[Tensor] = None, need_weights: bool = True,
@@ -272,20 +353,39 @@ class FSQMultiheadAttention(nn.Module):
                 key_padding_mask = key_padding_mask.unsqueeze(0)
         bf = not unbatched and self.batch_first                    # else [T, B, E]
         E, H, hd = self.embed_dim, self.num_heads, self.head_dim
-        q, k, v = project_qkv(self, query, key, value)             # in the input's own layout
-        B = q.shape[0] if bf else q.shape[1]
-        L, S = q.shape[1 if bf else 0], k.shape[1 if bf else 0]
-        q, v = self._heads(q, bf), self._heads(v, bf)               # [B, H, T, hd]
-        if self.quantize:                                           # [T, B, H, hd] or [B, T, H, hd]
-            k = self.quantize_keys(k.unflatten(-1, (H, hd)))
-            k = (k if bf else k.transpose(0, 1)).transpose(1, 2)
+        B = query.shape[0] if bf else query.shape[1]
+        L, S = query.shape[1 if bf else 0], key.shape[1 if bf else 0]
+        dt = compute_dtype(query) if query.is_floating_point() else query.dtype
+        mask = self._mask(attn_mask, key_padding_mask, is_causal, B, L, S, dt, query.device)
+        if self.quantize and query is key and key is value:
+            out, weights = self._forward_folded(query, bf, mask, need_weights)
         else:
-            k = self._heads(k, bf)
-        # combined additive mask, broadcastable to [B, H, L, S]
-        dt = q.dtype
+            q, k, v = project_qkv(self, query, key, value)         # in the input's own layout
+            q, v = self._heads(q, bf), self._heads(v, bf)           # [B, H, T, hd]
+            if self.quantize:                                       # [T, B, H, hd] or [B, T, H, hd]
+                k = self.quantize_keys(k.unflatten(-1, (H, hd)))
+                k = (k if bf else k.transpose(0, 1)).transpose(1, 2)
+            else:
+                k = self._heads(k, bf)
+            if need_weights:
+                out, weights = attend_with_weights(self, q, k, v, mask)   # weights [B, H, L, S]
+            else:
+                out, weights = attend(self, q, k, v, mask), None
+        if weights is not None and average_attn_weights:
+            weights = weights.mean(dim=1)
+        out = out.permute(0, 2, 1, 3) if bf else out.permute(2, 0, 1, 3)   # [B, L, H, hd] / [L, B, H, hd]
+        out = self.out_proj(out.reshape(-1, E)).view(*out.shape[:2], E)
+        if unbatched:
+            return out.squeeze(1), None if weights is None else weights.squeeze(0)
+        return out, weights
+
+    def _mask(self, attn_mask: Optional[Tensor], key_padding_mask: Optional[Tensor], is_causal: bool,
+              B: int, L: int, S: int, dt: torch.dtype, device: torch.device) -> Optional[Tensor]:
+        """The combined additive mask in ``dt``, broadcastable to ``[B, H, L, S]``, or None."""
+        H = self.num_heads
         mask = float_mask(attn_mask, dt)
         if mask is None and is_causal:
-            mask = torch.full((L, S), float("-inf"), dtype=dt, device=q.device).triu(1)
+            mask = torch.full((L, S), float("-inf"), dtype=dt, device=device).triu(1)
         if mask is not None:
             if mask.shape[-2:] != (L, S) or mask.dim() not in (2, 3):
                 raise ValueError(f"FSQMultiheadAttention: attn_mask must be [L={L}, S={S}] or "
@@ -298,17 +398,7 @@ class FSQMultiheadAttention(nn.Module):
                                  f"S={S}], got {tuple(kpm.shape)}")
             kpm = kpm.view(B, 1, 1, S)
             mask = kpm if mask is None else mask + kpm
-
-        if need_weights:
-            out, weights = attend_with_weights(self, q, k, v, mask)   # weights [B, H, L, S]
-            weights = weights.mean(dim=1) if average_attn_weights else weights
-        else:
-            out, weights = attend(self, q, k, v, mask), None
-        out = out.permute(0, 2, 1, 3) if bf else out.permute(2, 0, 1, 3)   # [B, L, H, hd] / [L, B, H, hd]
-        out = self.out_proj(out.reshape(-1, E)).view(*out.shape[:2], E)
-        if unbatched:
-            return out.squeeze(1), None if weights is None else weights.squeeze(0)
-        return out, weights
+        return mask
 
     def _forward_nested(self, query: Tensor, key: Tensor, value: Tensor, need_weights: bool,
                         attn_mask: Optional[Tensor], average_attn_weights: bool, is_causal: bool
@@ -339,14 +429,59 @@ class FSQMultiheadAttention(nn.Module):
                 f"dropout={self.dropout}, batch_first={self.batch_first}, quantize={self.quantize}")
 
 
+def _stack(ts: Sequence[Tensor]) -> Tensor:
+    """``[G, ...]``: ``torch.stack``, a view for one tensor."""
+    return ts[0].unsqueeze(0) if len(ts) == 1 else torch.stack(list(ts))
+
+
+def folded_projections(attns: Sequence["FSQMultiheadAttention"], dtype: Optional[torch.dtype] = None
+                       ) -> List[Tuple[Tensor, Tensor]]:
+    """The in-projections of the folded path (:meth:`FSQMultiheadAttention._forward_folded`) of
+    every layer in ``attns`` (the same sizes, levels and dtype), made at once for all layers:
+    ``(weight [2·H·P + E, E], bias [2·H·P + E])`` per layer, rows ``[query codes (H·P), key
+    pre-codes (H·P), values (E)]``. Per head ``h``, with ``U = [key_up.weight / floor(L/2) | 0]
+    [hd, P]`` and ``D = [key_down.weight; 0] [P, hd]``: query codes ``U^T (W_q,h x + b_q,h)``, key
+    pre-codes ``D (W_k,h x + b_k,h) + [key_down.bias + shift; 0]``. Differentiable in every
+    parameter it reads; computed in the parameters' dtype, then cast to ``dtype`` when given."""
+    a0 = attns[0]
+    E, H, hd, d, P = a0.embed_dim, a0.num_heads, a0.head_dim, a0.fsq.dim, a0.code_dim
+    G = len(attns)
+    W = _stack([a.in_proj_weight for a in attns])                          # [G, 3E, E]
+    Wq, Wk, Wv = W.split(E, 1)
+    Wd, bd = _stack([a.key_down.weight for a in attns]), _stack([a.key_down.bias for a in attns])   # [G, d, hd], [G, d]
+    Wu = _stack([a.key_up.weight for a in attns])                          # [G, hd, d]
+    _, _, shift, half_width = a0.fsq.constants(Wu.dtype)
+    # (every product below consumes U and D in their own layout, so that their gradients, and the
+    # parameters' through the stacks, come out contiguous: no copy per layer when they are stored)
+    U = F.pad(Wu / half_width, (0, P - d))                                  # [G, hd, P]
+    D = F.pad(Wd, (0, 0, 0, P - d))                                         # [G, P, hd]
+    q_rows = torch.matmul(Wq.unflatten(1, (H, hd)).mT, U.unsqueeze(1)).mT  # [G, H, P, E]
+    k_rows = torch.matmul(D.unsqueeze(1), Wk.unflatten(1, (H, hd)))        # [G, H, P, E]
+    k_bias = F.pad(bd + shift, (0, P - d)).unsqueeze(-1)                    # [G, P, 1]
+    if a0.in_proj_bias is not None:
+        bq, bk, bv = _stack([a.in_proj_bias for a in attns]).split(E, 1)   # [G, E] each
+        q_bias = torch.bmm(bq.unflatten(1, (H, hd)), U)                     # [G, H, P]
+        k_bias = torch.baddbmm(k_bias, D, bk.unflatten(1, (H, hd)).mT).mT  # [G, H, P]
+    else:
+        q_bias, k_bias, bv = k_bias.new_zeros(G, H, P), k_bias.mT.expand(G, H, P), k_bias.new_zeros(G, E)
+    # rows in blocks of P (no copy of the transposed query rows): [G, 2H + E/P, P, E] when P divides E
+    blocks = E % P == 0
+    weight = torch.cat([q_rows, k_rows, Wv.unflatten(1, (E // P, P))], 1).flatten(1, 2) if blocks else \
+        torch.cat([q_rows.flatten(1, 2), k_rows.flatten(1, 2), Wv], 1)     # [G, 2HP + E, E]
+    bias = torch.cat([q_bias, k_bias, bv.unflatten(1, (E // P, P))], 1).flatten(1) if blocks else \
+        torch.cat([q_bias.flatten(1), k_bias.flatten(1), bv], 1)           # [G, 2HP + E]
+    if dtype is not None and dtype != weight.dtype:
+        weight, bias = weight.to(dtype), bias.to(dtype)
+    return list(zip(weight.unbind(0), bias.unbind(0)))
+
+
 class fold_keys:
-    """Context manager, for one call with autograd: the folded key projections
-    (:meth:`FSQMultiheadAttention._folded`) of every layer in ``attns`` made at once, as stacked
-    tensors: ``bias + shift`` and ``weight / floor(L/2)`` are one op each for all layers instead of
-    one per layer, and under autocast each parameter kind is cast once for all layers (autocast
-    would cast each layer's non-leaf folds, forward and backward). The same values as per layer.
-    Without autograd (cached per layer), under ``torch.compile`` (which fuses the folds itself), with
-    fewer than two layers, or layers of different levels or dtypes, it does nothing."""
+    """Context manager, for one call with autograd: the folded in-projections
+    (:func:`folded_projections`) of every layer in ``attns`` made at once, as stacked tensors (a
+    fixed number of kernels for all layers, not a few per layer; under autocast one cast of the
+    stacked result, not one per layer and use). Without autograd (cached per layer), under
+    ``torch.compile`` (which fuses the folds itself), with fewer than two layers, or layers of
+    different sizes, levels or dtypes, it does nothing."""
 
     def __init__(self, attns: Sequence["FSQMultiheadAttention"], like: Tensor) -> None:
         self.attns = [a for a in attns if a.quantize]
@@ -355,28 +490,17 @@ class fold_keys:
     def __enter__(self) -> "fold_keys":
         attns = self.attns
         if (len(attns) < 2 or not torch.is_grad_enabled() or compiling()
-                or len({(a.fsq.levels_list, a.key_down.weight.dtype, a.key_down.weight.device) for a in attns}) != 1):
+                or len({(a.fsq.levels_list, a.embed_dim, a.num_heads, a.in_proj_bias is None,
+                         a.in_proj_weight.dtype, a.in_proj_weight.device) for a in attns}) != 1):
             self.attns = []
             return self
-        dtype = compute_dtype(self.like)
-        _, _, shift, half_width = attns[0].fsq.constants(attns[0].key_down.bias.dtype)
-        down_b = torch.stack([a.key_down.bias for a in attns]) + shift              # [G, d]
-        up_w = torch.stack([a.key_up.weight for a in attns]) / half_width            # [G, hd, d]
-        if dtype != down_b.dtype:                                # one cast per kind for all layers
-            down_w = torch.stack([a.key_down.weight for a in attns]).to(dtype).transpose(1, 2)
-            up_b = torch.stack([a.key_up.bias for a in attns]).to(dtype).unbind(0)
-            down_b, up_w = down_b.to(dtype), up_w.to(dtype)
-        else:
-            down_w = [a.key_down.weight.t() for a in attns]
-            up_b = [a.key_up.bias for a in attns]
-        for a, folds in zip(attns, zip(down_b.unbind(0), down_w if isinstance(down_w, list) else down_w.unbind(0),
-                                      up_w.unbind(0), up_b)):
-            a._call_fold = folds
+        for a, proj in zip(attns, folded_projections(attns, compute_dtype(self.like))):
+            a._call_proj = proj
         return self
 
     def __exit__(self, *exc) -> None:
         for a in self.attns:
-            a._call_fold = None
+            a._call_proj = None
 
 
 def quantize_attention_keys(module: nn.Module, levels: Sequence[int]) -> int:
