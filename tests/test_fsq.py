@@ -1,5 +1,9 @@
 """FSQ quantiser and the FSQ-key ``nn.MultiheadAttention`` drop-in."""
+import importlib.util
 import math
+import os
+import subprocess
+import sys
 import warnings
 
 import pytest
@@ -271,3 +275,155 @@ def test_inside_transformer_decoder_self_attention_only(batch_first):
         y = dec(tgt, mem, tgt_key_padding_mask=tkpm,
                 tgt_mask=nn.Transformer.generate_square_subsequent_mask(6), tgt_is_causal=True)
     assert y.shape == tgt.shape and torch.isfinite(y).all()
+
+
+# ----------------------------------------------------------------------------- the folded path (issue 27)
+def _self_attention_pair(bias, batch_first, seed=0):
+    """An FSQ attention layer in training mode (no dropout) with random key projections."""
+    torch.manual_seed(seed)
+    attn = FSQMultiheadAttention(32, 4, bias=bias, batch_first=batch_first, levels=(8, 8, 8, 5, 5, 5))
+    with torch.no_grad():
+        for p in (attn.key_down.weight, attn.key_down.bias, attn.key_up.weight, attn.key_up.bias):
+            p.normal_()
+        if bias:
+            attn.in_proj_bias.normal_()
+    return attn.train()
+
+
+@pytest.mark.parametrize("batch_first", [False, True])
+@pytest.mark.parametrize("bias", [True, False])
+def test_folded_self_attention_equals_the_unfolded_computation(bias, batch_first):
+    """Self-attention (query is key is value) runs the folded path: key_down / key_up folded into
+    the in-projection, P-channel query codes and key codes. Its output and the gradient of every
+    trainable parameter equal the unfolded path's (the same module given a copy of the keys:
+    key_down(k), FSQ, key_up(.), full-width attention), with a key padding mask."""
+    attn = _self_attention_pair(bias, batch_first)
+    assert attn.code_dim % 8 == 0 and attn.code_dim >= attn.fsq.dim
+    g = torch.Generator().manual_seed(3)
+    x = torch.randn(2, 9, 32, generator=g) if batch_first else torch.randn(9, 2, 32, generator=g)
+    kpm = torch.zeros(2, 9, dtype=torch.bool)
+    kpm[1, 6:] = True
+    grads = []
+    for folded in (True, False):
+        attn.zero_grad(set_to_none=True)
+        xi = x.clone().requires_grad_()
+        key = xi if folded else xi.clone()                  # a copy: not `query is key`, the unfolded path
+        out, w = attn(xi, key, key if not folded else xi, key_padding_mask=kpm, need_weights=True)
+        (out * torch.linspace(-1, 1, out.numel()).view_as(out)).sum().backward()
+        grads.append((out.detach(), w.detach(), xi.grad,
+                      {n: p.grad for n, p in attn.named_parameters() if p.requires_grad}))
+    (o1, w1, x1, p1), (o2, w2, x2, p2) = grads
+    torch.testing.assert_close(o1, o2, rtol=1e-4, atol=1e-5)
+    torch.testing.assert_close(w1, w2, rtol=1e-4, atol=1e-5)
+    torch.testing.assert_close(x1, x2, rtol=1e-4, atol=1e-5)
+    assert p1.keys() == p2.keys() and "key_up.bias" not in p1
+    for n in p1:
+        assert p1[n] is not None, f"{n}: no gradient on the folded path"
+        torch.testing.assert_close(p1[n], p2[n], rtol=1e-3, atol=1e-5, msg=n)
+
+
+def test_key_up_bias_is_inert_and_frozen():
+    """``q·key_up.bias`` is the same for every key of a query: changing key_up.bias changes no
+    output (softmax drops it), so it is frozen (no trainable parameter without a gradient: DDP
+    with find_unused_parameters=False and optimizers see none)."""
+    attn = _self_attention_pair(True, False).eval()
+    x = torch.randn(7, 2, 32)
+    ref, _ = attn(x, x.clone(), x.clone(), need_weights=False)      # the unfolded path reads key_up.bias
+    with torch.no_grad():
+        attn.key_up.bias.add_(5.0)
+    moved, _ = attn(x, x.clone(), x.clone(), need_weights=False)
+    torch.testing.assert_close(moved, ref, rtol=1e-4, atol=1e-5)
+    assert not attn.key_up.bias.requires_grad
+    attn.train()
+    attn(x, x, x)[0].sum().backward()
+    assert all(p.grad is not None for p in attn.parameters() if p.requires_grad)
+
+
+def test_all_layers_folded_at_once_equal_each_layer_folded_alone():
+    """``fold_keys`` (training: every layer's folded in-projection from one stacked computation)
+    gives the same outputs and gradients as each layer folding its own."""
+    from smdm_plugin.core.fsq import fold_keys
+
+    layers = [_self_attention_pair(True, False, seed=s) for s in range(3)]
+    x = torch.randn(6, 2, 32)
+    res = []
+    for together in (True, False):
+        for a in layers:
+            a.zero_grad(set_to_none=True)
+        with fold_keys(layers if together else [], x):
+            h = x
+            for a in layers:
+                h = a(h, h, h, need_weights=False)[0]
+        h.pow(2).sum().backward()
+        res.append((h.detach(), [p.grad.clone() for a in layers for p in a.parameters() if p.requires_grad]))
+    torch.testing.assert_close(res[0][0], res[1][0], rtol=1e-5, atol=1e-6)
+    for a, b in zip(res[0][1], res[1][1]):
+        torch.testing.assert_close(a, b, rtol=1e-4, atol=1e-6)
+
+
+# ----------------------------------------------------------------------------- smdm::fsq_code
+def test_fsq_code_op_equals_its_formula_with_a_straight_through_gradient():
+    """``smdm::fsq_code``: ``round(tanh(z)·half_l + neg_offset)`` in float32, in z's dtype, for
+    strided z (a column block) and bfloat16; gradient ``g·half_l·(1 - tanh(z)²)``; one op each way
+    in eager mode (opcheck: schema, fake tensor, autograd registration)."""
+    from smdm_plugin.core.kernels.fsq_code import fsq_code
+    from smdm_plugin.core.launches import count_launches
+
+    attn = _self_attention_pair(True, False)
+    neg, half = attn.code_constants(torch.float32)
+    C = neg.shape[0]
+    base = torch.randn(5, 3, 2 * C, dtype=torch.float64) * 2
+    z = base[..., C:].float().requires_grad_()                      # strided rows, like the in-projection's block
+    r = fsq_code(z, neg, half)
+    ref = torch.round(torch.tanh(z.detach().double()) * half.double() + neg.double()).float()
+    assert torch.equal(r, ref) and r.dtype == torch.float32
+    g = torch.randn_like(r)
+    r.backward(g)
+    torch.testing.assert_close(z.grad, g * half * (1 - torch.tanh(z.detach()) ** 2))
+    zb = z.detach().bfloat16()
+    rb = fsq_code(zb, neg, half)
+    assert rb.dtype == torch.bfloat16
+    assert torch.equal(rb.float(), torch.round(torch.addcmul(neg, torch.tanh(zb.float()), half)))
+    zz = z.detach().clone().requires_grad_()
+    assert count_launches(lambda: fsq_code(zz, neg, half).sum().backward()).ops["smdm.fsq_code.default"] == 1
+    if hasattr(torch.library, "opcheck"):
+        torch.library.opcheck(torch.ops.smdm.fsq_code.default, (zz, neg, half))
+
+
+def test_fsq_code_compiles_fullgraph_and_equals_eager():
+    from smdm_plugin.core.kernels.fsq_code import fsq_code
+
+    attn = _self_attention_pair(True, False)
+    neg, half = attn.code_constants(torch.float32)
+    z = torch.randn(4, 7, neg.shape[0], requires_grad=True)
+    fn = torch.compile(lambda t: fsq_code(t, neg, half), fullgraph=True, backend="aot_eager")
+    out = fn(z)
+    assert torch.equal(out, fsq_code(z.detach(), neg, half))
+    out.sum().backward()
+    torch.testing.assert_close(z.grad, half * (1 - torch.tanh(z.detach()) ** 2))
+
+
+@pytest.mark.skipif(importlib.util.find_spec("triton") is None, reason="triton is not installed")
+def test_fsq_code_triton_kernels_equal_the_composite_in_interpreter_mode():
+    """The CUDA kernels' code, run by Triton's interpreter on the CPU: codes and gradients equal the
+    composite on strided float32 and bfloat16 input."""
+    code = (
+        "import torch\n"
+        "from smdm_plugin.core.kernels.fsq_code import fsq_code_composite, fsq_code_grad_composite\n"
+        "from smdm_plugin.core.kernels.fsq_triton import fsq_code_triton, fsq_code_backward_triton\n"
+        "torch.manual_seed(0)\n"
+        "C = 32\n"
+        "neg = torch.randn(C).round() / 2\n"
+        "half = torch.rand(C) * 3\n"
+        "bad = 0\n"
+        "for dt in (torch.float32, torch.bfloat16):\n"
+        "    z = (torch.randn(6, 5, 3 * C) * 2).to(dt)[..., C:2 * C]\n"
+        "    g = torch.randn(6, 5, C).to(dt)\n"
+        "    bad += int(not torch.equal(fsq_code_triton(z, neg, half), fsq_code_composite(z, neg, half)))\n"
+        "    bad += int(not torch.allclose(fsq_code_backward_triton(g, z, half).float(),\n"
+        "                                  fsq_code_grad_composite(g, z, half).float(), rtol=1e-2, atol=1e-3))\n"
+        "print('mismatches', bad)\n")
+    env = {**os.environ, "TRITON_INTERPRET": "1"}
+    res = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env, timeout=600)
+    assert res.returncode == 0, res.stderr[-2000:]
+    assert "mismatches 0" in res.stdout, res.stdout + res.stderr[-2000:]

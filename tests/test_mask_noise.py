@@ -3,6 +3,10 @@ leaves the global stream where a dense one leaves it; the noise is still uniform
 and for every sample; the same seed gives the same masks, and the step counter travels with the
 weights (so a resumed run continues the same sequence)."""
 import copy
+import importlib.util
+import os
+import subprocess
+import sys
 
 import numpy as np
 import pytest
@@ -169,3 +173,73 @@ def test_ranks_draw_other_masks_from_equal_buffers(monkeypatch):
     ma = a._smdm_state.schedule.training_mask(frames, y["lengths"], None, model_noise(a))
     mb = b._smdm_state.schedule.training_mask(frames, y["lengths"], None, model_noise(b))
     assert not torch.equal(ma, mb) and int(getattr(a, NOISE_STEP)) == int(getattr(b, NOISE_STEP)) == 1
+
+
+# ----------------------------------------------------------------------------- smdm::perturb_mask (issue 27)
+def _noise_cases(seed, B=24, N=50):
+    g = torch.Generator().manual_seed(seed)
+    lengths = torch.randint(4, N + 1, (B,), generator=g)
+    valid = torch.arange(N)[None] < lengths[:, None]
+    mask = (torch.rand(B, N, generator=g) < 0.3) & valid
+    mask[torch.arange(B), 0] = True
+    mask[torch.arange(B), lengths - 1] = True
+    protected = (torch.rand(B, N, generator=g) < 0.1) & mask
+    u = torch.rand(B, N + 1, generator=g)
+    u[:, 1:9] = u[:, 1:2]                                   # tied uniforms: the lower frame first
+    return mask, lengths, u, protected
+
+
+def _slow_perturb(mask, lengths, u, amount, protected):
+    """The noise rule written out per sample with Python lists (the reference)."""
+    out = mask.clone()
+    for b in range(mask.shape[0]):
+        L, m = int(lengths[b]), mask[b].tolist()
+        k = sum(m)
+        mm = float(torch.round(torch.tensor(k, dtype=torch.float32) * torch.tensor(amount, dtype=torch.float32)))
+        c = min(float(torch.floor(u[b, 0] * torch.tensor(2 * mm + 1, dtype=torch.float32))) - mm, mm)
+        prot = protected[b].tolist() if protected is not None else [False] * len(m)
+        if c > 0:
+            cand, n = [i for i in range(L) if not m[i]], int(c)
+        else:
+            cand, n = [i for i in range(1, L - 1) if m[i] and not prot[i]], int(min(-c, k - 2))
+        for i in sorted(cand, key=lambda i: (float(u[b, 1 + i]), i))[:n]:
+            out[b, i] = not out[b, i]
+    return out
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_perturb_op_equals_the_rule_written_out(seed):
+    """``smdm::perturb_mask`` (one op: the composite on the CPU) equals the per-sample rule, with
+    protected frames and tied uniforms, for several amounts."""
+    from smdm_plugin.core.kernels.perturb import perturb_mask_op
+    from smdm_plugin.core.launches import count_launches
+
+    mask, lengths, u, protected = _noise_cases(seed)
+    for amount in (0.1, 0.5, 1.0):
+        for prot in (None, protected):
+            assert torch.equal(perturb_mask_op(mask, lengths, u, amount, prot),
+                               _slow_perturb(mask, lengths, u, amount, prot))
+    assert count_launches(lambda: perturb_mask_op(mask, lengths, u, 0.1, protected)).count == 1
+
+
+@pytest.mark.skipif(importlib.util.find_spec("triton") is None, reason="triton is not installed")
+def test_perturb_triton_kernel_equals_the_composite_in_interpreter_mode():
+    """The CUDA kernel's code, run by Triton's interpreter on the CPU, gives the composite's masks."""
+    code = (
+        "import torch, sys\n"
+        f"sys.path.insert(0, {os.path.dirname(__file__)!r})\n"
+        "from test_mask_noise import _noise_cases\n"
+        "from smdm_plugin.core.kernels.perturb import perturb_composite\n"
+        "from smdm_plugin.core.kernels.perturb_triton import perturb_triton\n"
+        "bad = 0\n"
+        "for seed in (0, 1, 2):\n"
+        "    mask, lengths, u, protected = _noise_cases(seed)\n"
+        "    for amount in (0.1, 0.5, 1.0):\n"
+        "        for prot in (None, protected):\n"
+        "            bad += int(not torch.equal(perturb_triton(mask, lengths, u, amount, prot),\n"
+        "                                       perturb_composite(mask, lengths, u, amount, prot)))\n"
+        "print('mismatches', bad)\n")
+    env = {**os.environ, "TRITON_INTERPRET": "1"}
+    res = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env, timeout=600)
+    assert res.returncode == 0, res.stderr[-2000:]
+    assert "mismatches 0" in res.stdout, res.stdout + res.stderr[-2000:]

@@ -30,6 +30,7 @@ import torch
 
 from . import consts
 from .checks import LengthsLike, as_lengths, as_mask, require
+from .kernels.perturb import perturb_mask_op, rank_select
 from .kernels.vw import vw_keyframes
 from .noise import CounterNoise
 from .scalars import as_float
@@ -214,12 +215,7 @@ def _rank_select(cand: torch.Tensor, count: torch.Tensor, generator: Optional[to
                  u: Optional[torch.Tensor] = None) -> torch.Tensor:
     """``[B, N]`` bool: ``count[b]`` random entries among ``cand[b]`` (fewer if not enough);
     ``u``: the ``[B, N]`` uniforms to rank by (default: drawn from ``generator``)."""
-    B, N = cand.shape
-    keys = torch.where(cand, _rand((B, N), generator, cand.device) if u is None else u, 2.0)
-    order = keys.argsort(1)
-    rank_ok = consts.arange(N, cand.device)[None] < count[:, None]
-    take = rank_ok & cand.gather(1, order)
-    return torch.zeros_like(cand).scatter_(1, order, take)
+    return rank_select(cand, count, _rand(cand.shape, generator, cand.device) if u is None else u)
 
 
 def _random(lengths: torch.Tensor, k: torch.Tensor, N: int, generator: Optional[torch.Generator]
@@ -345,23 +341,10 @@ def perturb_mask(mask: torch.Tensor, lengths: LengthsLike = None, amount: float 
 def perturb_checked(mask: torch.Tensor, lengths_t: torch.Tensor, amount: float,
                     generator: Optional[torch.Generator] = None, protected: Optional[torch.Tensor] = None
                     ) -> torch.Tensor:
-    """:func:`perturb_mask` on inputs already checked (lengths ``[B]`` long on the mask's device)."""
+    """:func:`perturb_mask` on inputs already checked (lengths ``[B]`` long on the mask's device):
+    one draw of ``[B, N + 1]`` uniforms (the count, then the frames), then ``smdm::perturb_mask``
+    (:mod:`~smdm_plugin.core.kernels.perturb`: one op)."""
     B, N = mask.shape
-    device = mask.device
     with torch.no_grad():
-        i = consts.arange(N, device)[None]
-        valid = i < lengths_t[:, None]
-        m = mask.to(torch.bool)                                        # keyframes lie in valid frames
-        k = m.sum(1, dtype=torch.float32)
-        mmax = torch.round(k * float(amount))                          # exact: k <= N << 2^24
-        u = _rand((B, N + 1), generator, device)                        # one draw: the count, then frames
-        c = torch.minimum((u[:, 0] * (2 * mmax + 1)).floor() - mmax, mmax)
-        # interior frames 0 < i < L - 1: i >= 1 is the cached arange's tail, i < L - 1 is i + 1 < L
-        after_first = consts.arange(N + 1, device)[None, 1:]            # i + 1
-        droppable = m & (after_first > 1) & (after_first < lengths_t[:, None])
-        if protected is not None:
-            droppable &= ~protected
-        add = c > 0
-        cand = torch.where(add[:, None], valid & ~m, droppable)
-        count = torch.where(add, c, torch.minimum(-c, torch.minimum(k - 2, droppable.sum(1, dtype=torch.float32))))
-        return m ^ _rank_select(cand, count, generator, u[:, 1:])
+        u = _rand((B, N + 1), generator, mask.device)
+        return perturb_mask_op(mask, lengths_t, u, float(amount), protected)

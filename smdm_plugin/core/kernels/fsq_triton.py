@@ -1,7 +1,9 @@
 """The Triton kernels of ``smdm::fsq_code`` and its backward (the ``cuda`` kernels; see
 :mod:`.fsq_code`). Elementwise over ``z``'s rows of ``C`` channels (rows may be strided: the key
-pre-codes are a column block of the in-projection's output); float32 maths, round half to even
-(``rint``), the composite's values. Importing this module needs ``triton``."""
+pre-codes are a column block of the in-projection's output); float32 maths, tanh from ``exp`` and
+round half to even: the composite's values, but for a pre-code within the last bits of tanh of a
+level boundary. The kernels use only core ``tl`` ops, so Triton's interpreter runs them on the CPU
+(the tests). Importing this module needs ``triton``."""
 from __future__ import annotations
 
 from typing import Tuple
@@ -10,12 +12,22 @@ import torch
 import triton
 import triton.language as tl
 
-try:  # triton >= 3
-    from triton.language.extra import libdevice
-except ImportError:  # pragma: no cover - older triton
-    from triton.language import math as libdevice
-
 BLOCK = 1024
+
+
+@triton.jit
+def _tanh(z):
+    """``tanh(z)`` from ``exp(-2|z|)`` (stable; the composite's ``torch.tanh`` to the last bits)."""
+    e = tl.exp(-2.0 * tl.abs(z))
+    t = (1.0 - e) / (1.0 + e)
+    return tl.where(z < 0, -t, t)
+
+
+@triton.jit
+def _round_half_even(x):
+    """``torch.round``: to the nearest integer, ties to even."""
+    r = tl.floor(x + 0.5)
+    return tl.where((r - x == 0.5) & (r - 2.0 * tl.floor(r * 0.5) != 0.0), r - 1.0, r)
 
 
 @triton.jit
@@ -26,7 +38,7 @@ def _code_kernel(Z, NEG, HALF, OUT, n, C, zs, BLOCK: tl.constexpr):
     z = tl.load(Z + row * zs + col, mask=m, other=0.0).to(tl.float32)
     neg = tl.load(NEG + col, mask=m, other=0.0)
     half = tl.load(HALF + col, mask=m, other=0.0)
-    r = libdevice.rint(libdevice.tanh(z) * half + neg)
+    r = _round_half_even(_tanh(z) * half + neg)
     tl.store(OUT + offs, r.to(OUT.dtype.element_ty), mask=m)
 
 
@@ -38,7 +50,7 @@ def _grad_kernel(G, Z, HALF, OUT, n, C, gs, zs, BLOCK: tl.constexpr):
     g = tl.load(G + row * gs + col, mask=m, other=0.0).to(tl.float32)
     z = tl.load(Z + row * zs + col, mask=m, other=0.0).to(tl.float32)
     half = tl.load(HALF + col, mask=m, other=0.0)
-    t = libdevice.tanh(z)
+    t = _tanh(z)
     tl.store(OUT + offs, (g * half * (1.0 - t * t)).to(OUT.dtype.element_ty), mask=m)
 
 
