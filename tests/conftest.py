@@ -50,3 +50,24 @@ def hml_batch(hml_dir):
         lengths.append(L)
     x = torch.from_numpy(x).permute(0, 2, 1).unsqueeze(2).contiguous()
     return x, torch.tensor(lengths), mean, std
+
+
+@pytest.fixture(scope="session")
+def triton_interpreter():
+    """``run(code) -> stdout``: Python ``code`` in a fresh interpreter with Triton's interpreter on
+    (``TRITON_INTERPRET=1``: a CUDA kernel's code runs on the CPU), failing the test on a non-zero
+    exit; the test is skipped where ``triton`` is not installed."""
+    import importlib.util
+    import os
+    import subprocess
+    import sys
+
+    if importlib.util.find_spec("triton") is None:
+        pytest.skip("triton is not installed")
+
+    def run(code: str, timeout: float = 900) -> str:
+        env = {**os.environ, "TRITON_INTERPRET": "1"}
+        res = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env, timeout=timeout)
+        assert res.returncode == 0, res.stderr[-2000:]
+        return res.stdout
+    return run

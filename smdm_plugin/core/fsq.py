@@ -36,6 +36,21 @@ class _RoundSTE(torch.autograd.Function):
         return g
 
 
+def cast_once(cache: dict, bufs: Tuple[Tensor, ...], dtype: torch.dtype) -> Tuple[Tensor, ...]:
+    """``bufs`` in ``dtype``: cast once per dtype (outside tracing) and kept in ``cache``, keyed on the
+    buffers' storage and version (a move or an in-place update makes new copies), not at every use
+    (under autocast, each use of a float32 buffer in a bf16 op would be a cast kernel)."""
+    if bufs[0].dtype == dtype:
+        return bufs
+    if compiling():
+        return tuple(b.to(dtype) for b in bufs)
+    key = tuple((b.data_ptr(), b._version) for b in bufs)
+    hit = cache.get(dtype)
+    if hit is None or hit[0] != key:
+        hit = cache[dtype] = (key, tuple(b.to(dtype) for b in bufs))
+    return hit[1]
+
+
 class FSQ(nn.Module):
     """Finite scalar quantiser. ``[..., d] -> [..., d]`` with ``d = len(levels)``.
 
@@ -71,16 +86,7 @@ class FSQ(nn.Module):
         """``(neg_offset, half_l, shift, half_width)`` ``[d]`` in ``dtype``: cast once per dtype and
         device (outside tracing), not at every use (under autocast, each use of a float32 buffer
         in a bf16 op would be a cast kernel); keyed on the buffers' storage and version."""
-        bufs = (self._neg_offset, self._half_l, self._shift, self._half_width)
-        if bufs[0].dtype == dtype:
-            return bufs
-        if compiling():
-            return tuple(b.to(dtype) for b in bufs)
-        key = tuple((b.data_ptr(), b._version) for b in bufs)
-        hit = self._cast.get(dtype)
-        if hit is None or hit[0] != key:
-            hit = self._cast[dtype] = (key, tuple(b.to(dtype) for b in bufs))
-        return hit[1]
+        return cast_once(self._cast, (self._neg_offset, self._half_l, self._shift, self._half_width), dtype)
 
     @property
     def dim(self) -> int:
@@ -279,16 +285,7 @@ class FSQMultiheadAttention(nn.Module):
     def code_constants(self, dtype: torch.dtype) -> Tuple[Tensor, Tensor]:
         """``(neg_offset, half_l)`` ``[H·P]`` of the folded path's bound (every head's ``P``
         channels) in ``dtype`` (cast once per dtype outside tracing, as :meth:`FSQ.constants`)."""
-        bufs = (self._code_neg_offset, self._code_half_l)
-        if bufs[0].dtype == dtype:
-            return bufs
-        if compiling():
-            return tuple(b.to(dtype) for b in bufs)
-        key = tuple((b.data_ptr(), b._version) for b in bufs)
-        hit = self._code_cast.get(dtype)
-        if hit is None or hit[0] != key:
-            hit = self._code_cast[dtype] = (key, tuple(b.to(dtype) for b in bufs))
-        return hit[1]
+        return cast_once(self._code_cast, (self._code_neg_offset, self._code_half_l), dtype)
 
     def _projection(self, dtype: torch.dtype) -> Tuple[Tensor, Tensor]:
         """This layer's folded in-projection (:func:`folded_projections`) for a call computing in

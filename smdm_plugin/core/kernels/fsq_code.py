@@ -59,30 +59,23 @@ def _on_cuda(name: str, composite, *args: Tensor) -> Tensor:
     return composite(*args)
 
 
+def _register(name: str, composite, triton_name: str, fake):
+    """``smdm::<name>``: ``composite`` on every device, the Triton kernel ``triton_name`` on CUDA."""
+    op = torch.library.custom_op(f"smdm::{name}", mutates_args=())(composite)
+    op.register_kernel("cuda")(lambda *args: _on_cuda(triton_name, composite, *args))
+    op.register_fake(fake)
+    return op
+
+
 if hasattr(torch.library, "custom_op"):
-    @torch.library.custom_op("smdm::fsq_code", mutates_args=())
-    def _code_op(z: Tensor, neg_offset: Tensor, half_l: Tensor) -> Tensor:
-        return fsq_code_composite(z, neg_offset, half_l)
-
-    @_code_op.register_kernel("cuda")
-    def _code_cuda(z: Tensor, neg_offset: Tensor, half_l: Tensor) -> Tensor:
-        return _on_cuda("fsq_code_triton", fsq_code_composite, z, neg_offset, half_l)
-
-    @_code_op.register_fake
     def _code_fake(z: Tensor, neg_offset: Tensor, half_l: Tensor) -> Tensor:
         return torch.empty_like(z, memory_format=torch.contiguous_format)
 
-    @torch.library.custom_op("smdm::fsq_code_backward", mutates_args=())
-    def _grad_op(grad: Tensor, z: Tensor, half_l: Tensor) -> Tensor:
-        return fsq_code_grad_composite(grad, z, half_l)
-
-    @_grad_op.register_kernel("cuda")
-    def _grad_cuda(grad: Tensor, z: Tensor, half_l: Tensor) -> Tensor:
-        return _on_cuda("fsq_code_backward_triton", fsq_code_grad_composite, grad, z, half_l)
-
-    @_grad_op.register_fake
     def _grad_fake(grad: Tensor, z: Tensor, half_l: Tensor) -> Tensor:
         return torch.empty_like(z, dtype=grad.dtype, memory_format=torch.contiguous_format)
+
+    _code_op = _register("fsq_code", fsq_code_composite, "fsq_code_triton", _code_fake)
+    _grad_op = _register("fsq_code_backward", fsq_code_grad_composite, "fsq_code_backward_triton", _grad_fake)
 
     def _setup(ctx, inputs: Tuple[Tensor, Tensor, Tensor], output: Tensor) -> None:
         z, _, half_l = inputs
