@@ -70,8 +70,7 @@ import numpy as np
 import torch
 
 from ...io.files import OutputExistsError, atomic_write_json, atomic_write_text
-from ..common.args import add_overwrite, device_type, existing_path, int_range, resolve_device
-from ..common.threads import THREADS_HELP
+from ..common.args import add_common_flags, add_overwrite, existing_path, int_range, note_printer, progress_of, resolve_device
 from ..common.provenance import differences, make_provenance
 from .grid import SHARED_SETTINGS, load_config, select_variants, slug, sparse_config
 from .report import check_record, write_report
@@ -439,16 +438,13 @@ def build_parser() -> argparse.ArgumentParser:
                    help="HumanML3D-format folder: new_joint_vecs/, Mean.npy, Std.npy, train.txt, val.txt or "
                         "test.txt (default: the grid's 'data'; required when the grid has none)")
     p.add_argument("--steps", type=int_range(1), default=None, help="override the config's steps per variant (>= 1)")
-    p.add_argument("--device", type=device_type, default="auto", help="auto (CUDA, else MPS, else CPU), cpu, cuda[:N], mps")
     p.add_argument("--only", nargs="+", default=None, metavar="VARIANT",
                    help="run only these variants (names or folder names); the other rows are kept")
-    p.add_argument("--threads", type=int_range(1), default=None,
-                   help=THREADS_HELP)
     g = p.add_mutually_exclusive_group()
     g.add_argument("--resume", action="store_true",
                    help="continue in an existing --out: reuse results with the same provenance, run the rest")
     add_overwrite(g)
-    p.add_argument("--no-progress", action="store_true", help="no progress bars")
+    add_common_flags(p)
     p.add_argument("--quick", action="store_true",
                    help="the quick (seconds) variant of a study config (quality_compute): see smdm_plugin.apps.ablate.study")
     return p
@@ -489,8 +485,8 @@ def main(argv: Optional[List[str]] = None) -> int:
         print(f"smdm ablate: error: {e}", file=sys.stderr)
         return 2
     try:
-        results = run_ablation(cfg, a.out, data_root, a.device, a.only, progress=not a.no_progress and ctx.is_main,
-                               resume=a.resume, overwrite=a.overwrite, dist=ctx)
+        results = run_ablation(cfg, a.out, data_root, a.device, a.only, progress=progress_of(a) and ctx.is_main,
+                               log=note_printer(a), resume=a.resume, overwrite=a.overwrite, dist=ctx)
     except (OutputExistsError, FileNotFoundError, ValueError, PermissionError, NotADirectoryError) as e:
         if ctx.is_main:
             print(f"smdm ablate: error: {e}", file=sys.stderr)
@@ -505,7 +501,7 @@ def main(argv: Optional[List[str]] = None) -> int:
         return 0
     with open(os.path.join(a.out, "results.md")) as f:
         print("\n" + f.read())
-    print(f"results: {os.path.abspath(a.out)}")
+    note_printer(a)(f"results: {os.path.abspath(a.out)}")
     return 0 if all(r.get("status") == "ok" for r in results if r["name"] in selected) else 1
 
 if __name__ == "__main__":

@@ -45,7 +45,7 @@ import torch
 
 from ...core.config import closest
 from ...io.files import OutputExistsError, atomic_open, atomic_write_json, atomic_write_text
-from ..common.args import add_overwrite, device_type, existing_path, resolve_device
+from ..common.args import add_common_flags, add_overwrite, existing_path, note_printer, progress_of, resolve_device
 from . import check_out_dir, read_cached
 from .grid import (AblateConfigError, _check, _check_keys, config_path, over_defaults, select_variants, slug,
                    sparse_config)
@@ -605,17 +605,14 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--out", default=os.path.join("results", KIND), help=f"results folder (default results/{KIND})")
     p.add_argument("--data", type=existing_path("dir"), default=None,
                    help=f"HumanML3D-format folder with texts/ (default: config 'data' or {DEFAULT_DATA})")
-    p.add_argument("--device", type=device_type, default="cpu", help="cpu (default), cuda[:N], mps, auto")
     p.add_argument("--only", nargs="+", default=None, metavar="VARIANT", help="run only these variants")
     p.add_argument("--seeds", nargs="+", type=int, default=None, help="run only these seeds of the config")
-    p.add_argument("--threads", type=int, default=1,
-                   help="torch.set_num_threads (default 1: the CPU-time clock then measures one core's work)")
     g = p.add_mutually_exclusive_group()
     g.add_argument("--resume", action="store_true", help="reuse (variant, seed) results with the same provenance")
     add_overwrite(g)
     p.add_argument("--report-only", action="store_true",
                    help="with --resume: train nothing, rebuild the report from the finished runs in --out")
-    p.add_argument("--no-progress", action="store_true", help="(accepted for smdm ablate compatibility)")
+    add_common_flags(p, device="cpu", threads_default=1)  # 1 thread: the CPU-time clock measures one core's work
     return p
 
 
@@ -624,8 +621,6 @@ def main(argv: Optional[List[str]] = None) -> int:
     a = p.parse_args(argv)
     if a.report_only and not a.resume:
         p.error("argument --report-only: needs --resume (an existing results folder)")
-    if a.threads < 1:
-        p.error(f"argument --threads: expected an int >= 1, got {a.threads}")
     name = a.config
     if a.quick and not name.endswith("_quick"):
         base = name[:-5] if name.endswith(".yaml") else name
@@ -642,7 +637,7 @@ def main(argv: Optional[List[str]] = None) -> int:
     cfg["data"] = data_root
     try:
         runs = run_study(cfg, a.out, data_root, a.device, a.only, a.seeds, a.resume, a.overwrite,
-                         report_only=a.report_only)
+                         log=print if progress_of(a) else _silent, report_only=a.report_only)
     except (OutputExistsError, FileNotFoundError, ValueError, PermissionError, NotADirectoryError) as e:
         print(f"smdm ablate: error: {e}", file=sys.stderr)
         return 2
@@ -651,5 +646,9 @@ def main(argv: Optional[List[str]] = None) -> int:
         return 130
     with open(os.path.join(a.out, "results.md"), encoding="utf-8") as f:
         print("\n" + f.read())
-    print(f"results: {os.path.abspath(a.out)}")
+    note_printer(a)(f"results: {os.path.abspath(a.out)}")
     return 0 if all(r.get("status") == "ok" for rs in runs.values() for r in rs) else 1
+
+
+def _silent(*_: Any, **__: Any) -> None:
+    """The study's log under --no-progress / --quiet: nothing."""
