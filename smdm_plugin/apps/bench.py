@@ -44,7 +44,7 @@ from typing import Any, Callable, Dict, List, Optional, Sequence, Tuple
 
 import torch
 
-from ..core.config import BACKENDS
+from ..core.config import BACKENDS, sparse_config_of
 from ..integrations.compile import COMPILE_MODES
 from ..core.registry import Registry
 from .common.args import add_common_flags, add_overwrite, float_range, int_range, note_printer, progress_of, resolve_device
@@ -450,8 +450,10 @@ def _sample_step_fn(work: Workload, model, diffusion, batch, device, amp: str, c
                     ) -> Callable[[], None]:
     den = work.denoiser(_compiled(model, compile_mode))
     B = batch["x"].shape[0]
-    state = getattr(model, "_smdm_state", None)
-    late = state.schedule.late_steps if state is not None else 1
+    from ..core.schedule import MaskSchedule
+
+    config = sparse_config_of(model)  # the public accessor, not the model's private state
+    late = MaskSchedule(config).late_steps if config is not None else 1
     t = torch.full((B,), max(0, late - 1), dtype=torch.long, device=device)
     x_t = diffusion.q_sample(batch["x"], t)
 
