@@ -48,7 +48,7 @@ SMALL = {
     "train": ["--steps", "2", "--threads", "1", "--no-progress"],
     "evaluator train": ["--epochs", "2", "--ae-epochs", "2", "--threads", "1", "--no-progress"],
     "evaluator check": ["--replications", "2", "--threads", "1"],
-    "eval": ["--replications", "1", "--mm-repeats", "0", "--threads", "1"],
+    "eval": ["--replications", "1", "--mm-repeats", "0", "--threads", "1", "--no-progress"],
 }
 
 #: (rule, reason): a command matching the regular expression is not run

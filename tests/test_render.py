@@ -138,7 +138,7 @@ def test_render_bvh(tmp_path, mocap_files):
     files = find_bvh([os.path.dirname(mocap_files[0])])
     if not files:
         pytest.skip("no BVH clip available")
-    p = render(os.path.abspath(files[0]), "--stride", "40", "--out", "c.gif", "--quiet", "--size", "1.5", cwd=tmp_path)
+    p = render(os.path.abspath(files[0]), "--stride", "40", "--out", "c.gif", "--no-progress", "--size", "1.5", cwd=tmp_path)
     assert p.returncode == 0, p.stderr
     n = int(p.stdout.split(": ")[1].split()[0])  # "<file>: N frames, 22 joints (bvh)"
     assert Image.open(tmp_path / "c.gif").n_frames == len(range(0, n, 40))

@@ -44,11 +44,10 @@ from typing import Any, Callable, Dict, List, Optional, Sequence, Tuple
 
 import torch
 
-from ..core.config import BACKENDS
+from ..core.config import BACKENDS, sparse_config_of
 from ..integrations.compile import COMPILE_MODES
 from ..core.registry import Registry
-from .common.args import add_overwrite, device_type, float_range, int_range, resolve_device
-from .common.threads import THREADS_HELP
+from .common.args import add_common_flags, add_overwrite, float_range, int_range, note_printer, progress_of, resolve_device
 
 TARGETS = {"train": 4.0, "sample": 3.5, "loop": 3.0, "overhead": 0.10}  # at 80% reduction
 MODES = ("train", "sample", "loop")
@@ -451,8 +450,10 @@ def _sample_step_fn(work: Workload, model, diffusion, batch, device, amp: str, c
                     ) -> Callable[[], None]:
     den = work.denoiser(_compiled(model, compile_mode))
     B = batch["x"].shape[0]
-    state = getattr(model, "_smdm_state", None)
-    late = state.schedule.late_steps if state is not None else 1
+    from ..core.schedule import MaskSchedule
+
+    config = sparse_config_of(model)  # the public accessor, not the model's private state
+    late = MaskSchedule(config).late_steps if config is not None else 1
     t = torch.full((B,), max(0, late - 1), dtype=torch.long, device=device)
     x_t = diffusion.q_sample(batch["x"], t)
 
@@ -748,7 +749,6 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--frames", type=int_range(2), default=None, help="frames per motion (default 196)")
     p.add_argument("--repeats", type=int_range(1), default=None, help="timed runs per cell, median reported (default 3)")
     p.add_argument("--warmup", type=int_range(0), default=None, help="untimed runs before timing (default 1)")
-    p.add_argument("--device", type=device_type, default="auto", help="auto (cuda if available) | cpu | cuda | cuda:N | mps")
     p.add_argument("--backend", default="auto", choices=BACKENDS,
                    help="keyframe attention backend of the sparse model")
     p.add_argument("--modes", nargs="+", default=["train", "sample"], choices=list(MODES),
@@ -764,7 +764,6 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="torch.compile dense and sparse models alike with each mode, one table: none (eager), default, "
                         "reduce-overhead (CUDA graphs; CUDA only, else default) — the helper of --sparse_compile "
                         "(docs/compile.md). Default: none reduce-overhead on CUDA, none elsewhere")
-    p.add_argument("--threads", type=int_range(1), default=None, help=THREADS_HELP)
     p.add_argument("--fastpath", action="store_true",
                    help="leave torch's MHA/Transformer fast path enabled (default: off for dense and sparse)")
     p.add_argument("--quick", action="store_true",
@@ -772,6 +771,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                         "(values you pass win)")
     p.add_argument("--out", default=None, help="write the result as <out>.json and the table as <out>.md")
     add_overwrite(p)
+    add_common_flags(p)  # --no-progress: no per-cell lines on stderr
 
 
 def busy_note(threads: int) -> Optional[str]:
@@ -827,17 +827,19 @@ def main_bench(args: argparse.Namespace, parser: argparse.ArgumentParser) -> Dic
     from .common.threads import apply_threads
     apply_threads(args.threads)
     note = busy_note(torch.get_num_threads()) if resolve_device(args.device).type == "cpu" else None
+    say = note_printer(args)
     if note:
-        print(note, file=sys.stderr)
+        say(note, file=sys.stderr)
     result = run_bench(args.arch, args.reductions, args.batch, args.frames, args.repeats, args.warmup, args.device,
                        args.quick, args.backend, args.steps, args.fastpath, args.modes, args.amp, args.compile_mode,
-                       progress=lambda s: print(s, file=sys.stderr, flush=True), fsq=args.fsq, family=args.family, root=root)
+                       progress=(lambda s: print(s, file=sys.stderr, flush=True)) if progress_of(args) else None,
+                       fsq=args.fsq, family=args.family, root=root)
     table = markdown(result)
     print(table)
     if paths:
         atomic_write_json(paths[0], result)
         atomic_write_text(paths[1], table + "\n")
-        print(f"\nwrote {paths[0]} and {paths[1]}")
+        say(f"\nwrote {paths[0]} and {paths[1]}")
     return result
 
 
@@ -852,8 +854,11 @@ def main(argv: Optional[List[str]] = None) -> int:
         p.add_argument("--reduction", type=float_range(0.0, 1.0, hi_open=True), default=0.8,
                        help="fraction of frames dropped, in [0, 1) (default 0.8)")
         p.add_argument("--repeats", type=int_range(1), default=5, help="timed calls, median reported (default 5)")
-        p.add_argument("--device", type=device_type, default="auto", help="auto (CUDA, else MPS, else CPU), cpu, cuda, cuda:N or mps (default auto)")
+        add_common_flags(p, progress=False, quiet=False, why_not="it prints only its result")
         a = p.parse_args(argv[1:])
+        from .common.threads import apply_threads
+
+        apply_threads(a.threads)
         r = bench_keyframes(a.batch, a.frames, a.dims, a.reduction, a.repeats, a.device)
         print(f"VW keyframe selection on {r['shape']} (reduction {r['reduction']}, {r['device']}): "
               f"{r['median_s'] * 1000:.2f} ms (median of {len(r['times_s'])})")

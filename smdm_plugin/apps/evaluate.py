@@ -19,7 +19,7 @@ from typing import Any, Dict, List, Optional
 import numpy as np
 
 from ..io.validate import load_feature_motion
-from .common.threads import THREADS_HELP
+from .common.args import note_printer, progress_of
 
 #: metrics.json keys, in table order: (key, label, format)
 COLUMNS = (("fid", "FID ↓", ".3f"), ("r_precision_top1", "R-prec. top-1 ↑", ".3f"),
@@ -35,7 +35,7 @@ OUTPUT_FILES = ("metrics.json", "metrics.md", "metrics.png")
 
 def build_parser() -> argparse.ArgumentParser:
     from ..metrics.evaluator.protocol import EVAL_MODES, PROTOCOLS
-    from .common.args import add_overwrite, device_type, existing_path, int_range
+    from .common.args import add_common_flags, add_overwrite, existing_path, int_range
 
     p = argparse.ArgumentParser(prog="smdm eval", description=__doc__.split("\n\n")[0],
                                 epilog="example: smdm eval --data dataset/HumanML3D --evaluator checkpoints "
@@ -76,8 +76,7 @@ def build_parser() -> argparse.ArgumentParser:
     add_overwrite(p)
     p.add_argument("--seed", type=int_range(0), default=0,
                    help="seed of the caption draws, the generation noise and T2M's random pairs (default 0)")
-    p.add_argument("--device", type=device_type, default="auto", help="auto (CUDA, else MPS, else CPU), cpu, cuda, mps")
-    p.add_argument("--threads", type=int_range(1, 1024), default=None, help=THREADS_HELP)
+    add_common_flags(p)  # --no-progress: no per-replication lines; --quiet: no header line either
     return p
 
 
@@ -344,7 +343,7 @@ def main(argv: Optional[List[str]] = None) -> int:
     status = run_in_output_dir(lambda folder: _evaluate(a, folder, dev, real, layout, ev, gen_model, given),
                                a.out, **out_kw)
     if status == 0:
-        print(f"outputs: {os.path.abspath(a.out)}")
+        note_printer(a)(f"outputs: {os.path.abspath(a.out)}")
     return status
 
 
@@ -364,7 +363,8 @@ def _evaluate(a: argparse.Namespace, folder: str, dev: Any, real: Any, layout: s
     mm_repeats = a.mm_repeats if a.mm_repeats is not None else (11 if (fixed or mode_mm) else 0)
     label = (f"{gen_model.label} model" if gen_model else "motions") + f" ({os.path.basename(os.path.normpath(a.model or a.motions))})"
     how = f", sampled {gen_model.conditioning}" if gen_model else ""
-    print(f"smdm eval: {len(real)} {a.split} motions from {a.data or 'the embedded CMU clips'}; evaluator "
+    say, progress = note_printer(a), progress_of(a)
+    say(f"smdm eval: {len(real)} {a.split} motions from {a.data or 'the embedded CMU clips'}; evaluator "
           f"{layout} ({a.evaluator}); {label}{how}; {R} replication(s) of the {a.protocol} protocol on {dev}", flush=True)
     lengths = [len(m) for m in real.motions]
     ncap = [len(c) for c in real.captions]
@@ -395,9 +395,10 @@ def _evaluate(a: argparse.Namespace, folder: str, dev: Any, real: Any, layout: s
         if gen_model is not None and a.inbetween_every:
             q["keyframe_error"] = inbetween_error(motions, scored, a.inbetween_every, real.representation)
         rows.append({**res.to_dict(), **q})
-        print(f"  replication {r + 1}/{R}: FID {res.fid:.3f} (real {res.real_fid:.3f}), R-precision top-3 "
-              f"{res.r_precision_top3:.3f} (real {res.real_r_precision_top3:.3f}), diversity {res.diversity:.3f}, "
-              f"jitter {q['jitter']:.1f} m/s³", flush=True)
+        if progress:
+            print(f"  replication {r + 1}/{R}: FID {res.fid:.3f} (real {res.real_fid:.3f}), R-precision top-3 "
+                  f"{res.r_precision_top3:.3f} (real {res.real_r_precision_top3:.3f}), diversity {res.diversity:.3f}, "
+                  f"jitter {q['jitter']:.1f} m/s³", flush=True)
     metrics = {k: _summary([row.get(k) for row in rows]) for k, _, _ in COLUMNS}
     rq = motion_quality(real.motions, fps=real.fps, representation=real.representation)
     # the real row: the real motions of the scored draws with the same captions and pairs, averaged over the

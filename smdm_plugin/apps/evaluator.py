@@ -21,12 +21,12 @@ STATE_FILENAME = "train_state.pt"
 OUTPUTS = ("evaluator.json", "evaluator.pt", "metrics.json", STATE_FILENAME)
 
 
-from .common.threads import THREADS_HELP
+from .common.args import note_printer, progress_of
 
 
 def build_parser() -> argparse.ArgumentParser:
     from ..metrics.evaluator.train import DEFAULT_RECIPE, OWN_SIZES, RECIPES, T2M_SIZES, TrainSettings
-    from .common.args import add_overwrite, device_type, existing_path, float_range, int_range
+    from .common.args import add_common_flags, add_overwrite, existing_path, float_range, int_range
 
     d = TrainSettings(recipe=DEFAULT_RECIPE)
     p = argparse.ArgumentParser(
@@ -67,9 +67,7 @@ def build_parser() -> argparse.ArgumentParser:
                         f"{OWN_SIZES['dim_motion_hidden']})")
     p.add_argument("--resume", action="store_true", help=f"continue from --out/{STATE_FILENAME} (to --epochs)")
     add_overwrite(p)
-    p.add_argument("--device", type=device_type, default="auto", help="auto (CUDA, else MPS, else CPU), cpu, cuda, mps")
-    p.add_argument("--threads", type=int_range(1, 1024), default=None, help=THREADS_HELP)
-    p.add_argument("--no-progress", action="store_true", help="no progress bar")
+    add_common_flags(p)
     return p
 
 
@@ -143,7 +141,7 @@ def run(a: argparse.Namespace, p: argparse.ArgumentParser) -> int:
             return 2
         status = _train(a, od, settings, ev, train, held)
     if status == 0:
-        print(f"saved {os.path.abspath(a.out)}")
+        note_printer(a)(f"saved {os.path.abspath(a.out)}")
     return status
 
 
@@ -180,8 +178,8 @@ def _train(a: argparse.Namespace, od: Any, settings: Any, ev: Any, train: Any, h
             print(f"smdm evaluator train: error: {e}", file=sys.stderr)
             od.abandon(keep=od.resumed_from == od.path)  # an interrupted run's folder stays as it was
             return 2
-    source = a.data or "the embedded CMU clips"
-    print(f"smdm evaluator train: {len(train)} training motions ({train.representation}, "
+    source, say = a.data or "the embedded CMU clips", note_printer(a)
+    say(f"smdm evaluator train: {len(train)} training motions ({train.representation}, "
           f"{train.motions[0].shape[1]}-D) from {source}; held out: "
           + (", ".join(f"{s} {len(d)}" for s, d in held.items()) or "none")
           + f"; words: {'GloVe ' + a.glove if a.glove else f'learned ({ev.config.vocab_size} words)'}; "
@@ -197,7 +195,7 @@ def _train(a: argparse.Namespace, od: Any, settings: Any, ev: Any, train: Any, h
 
     t0 = time.perf_counter()
     try:
-        st = train_evaluator(ev, train, val, settings, state=state, progress=not a.no_progress, on_epoch=save_state)
+        st = train_evaluator(ev, train, val, settings, state=state, progress=progress_of(a), on_epoch=save_state)
     except KeyboardInterrupt:
         print("\nsmdm evaluator train: interrupted; " + (
             f"rerun with --resume to continue from epoch {saved[0]}" if saved[0] else "no epoch was finished"),
@@ -217,7 +215,7 @@ def _train(a: argparse.Namespace, od: Any, settings: Any, ev: Any, train: Any, h
     print(f"trained {settings.pretrain_epochs} auto-encoder + {info['epochs']} matching epochs ({settings.recipe}) in "
           f"{st['seconds']:.1f} s (kept matching epoch {info['best_epoch']}, chosen on {info['selected_on']}); wall "
           f"{time.perf_counter() - t0:.1f} s")
-    print(f"next: smdm evaluator check {a.out}" + (f" --data {a.data}" if a.data else "")
+    say(f"next: smdm evaluator check {a.out}" + (f" --data {a.data}" if a.data else "")
           + "   (what this evaluator can resolve)")
     print("| split | motions | pool | R-precision top-1 | top-3 | chance top-1 / top-3 | matching score |")
     print("| --- | ---: | ---: | ---: | ---: | ---: | ---: |")
@@ -231,7 +229,7 @@ def _train(a: argparse.Namespace, od: Any, settings: Any, ev: Any, train: Any, h
 
 def build_check_parser() -> argparse.ArgumentParser:
     from ..metrics.evaluator.protocol import PROTOCOLS
-    from .common.args import device_type, existing_path, int_range
+    from .common.args import add_common_flags, existing_path, int_range
 
     p = argparse.ArgumentParser(
         prog="smdm evaluator check",
@@ -251,8 +249,7 @@ def build_check_parser() -> argparse.ArgumentParser:
                         "fixed: every motion, offset 0")
     p.add_argument("--replications", type=int_range(1, 10000), default=20, help="replications (default: 20)")
     p.add_argument("--seed", type=int_range(0), default=0, help="seed of the draws and the noise (default: 0)")
-    p.add_argument("--device", type=device_type, default="auto", help="auto (CUDA, else MPS, else CPU), cpu, cuda, mps")
-    p.add_argument("--threads", type=int_range(1, 1024), default=None, help=THREADS_HELP)
+    add_common_flags(p, progress=False, why_not="it shows no progress")
     return p
 
 
@@ -279,7 +276,8 @@ def run_check(a: argparse.Namespace, p: argparse.ArgumentParser) -> int:
         p.error(f"argument EDIR: {why}, the data ({a.data or 'embedded clips'}) has {data.representation} [{D}]")
     if data.representation not in ("humanml3d", "joints66"):
         p.error(f"argument --data: representation {data.representation!r} has no foot-sliding row")
-    print(f"smdm evaluator check: {a.evaluator} ({layout}) on {len(data)} {a.split} motions of "
+    say = note_printer(a)
+    say(f"smdm evaluator check: {a.evaluator} ({layout}) on {len(data)} {a.split} motions of "
           f"{a.data or 'the embedded CMU clips'}; {a.replications} replications, {a.protocol} protocol", flush=True)
     try:
         with OutputLock(a.evaluator, command="smdm evaluator check", what="EDIR"):
@@ -293,7 +291,7 @@ def run_check(a: argparse.Namespace, p: argparse.ArgumentParser) -> int:
         print(f"smdm evaluator check: error: {describe_os_error(e)}", file=sys.stderr)
         return 1
     print("\n" + table.markdown())
-    print(f"saved {os.path.abspath(path)}")
+    say(f"saved {os.path.abspath(path)}")
     return 0
 
 

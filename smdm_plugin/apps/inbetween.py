@@ -35,8 +35,7 @@ import torch
 from ..adapters.inbetween import POLICIES
 from ..reference.diffusion import IMPUTATIONS
 from ..metrics.inbetween import keyframe_metrics
-from .common.args import add_overwrite, device_type, int_range
-from .common.threads import THREADS_HELP
+from .common.args import add_common_flags, add_overwrite, int_range, note_printer, progress_of
 from .common.inbetween import model_inputs, plan_keyframes, run_inbetween, summary_markdown
 from .common.motion_files import ACCEPTED, add_motion_file_options
 
@@ -68,9 +67,7 @@ def build_parser() -> argparse.ArgumentParser:
     add_motion_file_options(p)
     p.add_argument("--out", default=os.path.join("smdm_out", "inbetween"), help="output folder")
     p.add_argument("--no-gif", action="store_true", help="skip the animation")
-    p.add_argument("--device", type=device_type, default="auto", help="auto (CUDA, else MPS, else CPU), cpu, cuda, cuda:N or mps (default auto)")
-    p.add_argument("--threads", type=int_range(1, 256), default=None, help=THREADS_HELP)
-    p.add_argument("--quiet", action="store_true", help="no progress bars")
+    add_common_flags(p)
     add_overwrite(p)
     return p
 
@@ -132,12 +129,13 @@ def _write(a: argparse.Namespace, out: str, bundles: List[Any], source: Any, kf:
     names = [os.path.basename(os.path.normpath(m)) or f"model{i}" for i, m in enumerate(models)]
     names = [n if names.count(n) == 1 else f"{n}{i}" for i, n in enumerate(names)]
     how = f"placed at frames {kf.frames}" if kf.placed else f"from frames {kf.source_frames}"
-    print(f"smdm inbetween: {len(kf.frames)} keyframes {how} of {a.keyframes} "
+    say = note_printer(a)
+    say(f"smdm inbetween: {len(kf.frames)} keyframes {how} of {a.keyframes} "
           f"({source.kind}) -> {kf.length} frames at {fps:g} fps on {dev}; imputation {a.imputation}, "
           f"forced keyframes: {a.forced}")
     rows, results = [], []
     for name, b in zip(names, bundles):
-        res = run_inbetween(b, source, kf, a.samples, a.seed, a.imputation, a.forced, dev, progress=not a.quiet)
+        res = run_inbetween(b, source, kf, a.samples, a.seed, a.imputation, a.forced, dev, progress=progress_of(a))
         results.append(res)
         seg = kf.segment(len(source.joints)) is not None
         known = seg or b.representation.name != "humanml3d"  # placed 263-D poses: no global position
@@ -164,9 +162,9 @@ def _write(a: argparse.Namespace, out: str, bundles: List[Any], source: Any, kf:
         if kf.segment(len(source.joints)) is not None:
             panels.append(Panel(results[0].target, "keyframe source", kf.frames))
         panels += [Panel(r.joints[0], f"{n}: {r.label}", kf.frames) for n, r in zip(names, results)]
-        render_gif(panels, os.path.join(out, "inbetween.gif"), fps=fps, overwrite=True, progress=not a.quiet,
+        render_gif(panels, os.path.join(out, "inbetween.gif"), fps=fps, overwrite=True, progress=progress_of(a),
                    suptitle=f"in-betweening {len(kf.frames)} keyframes (red) of {os.path.basename(a.keyframes)}")
-    print(f"outputs: {os.path.abspath(a.out)}")
+    say(f"outputs: {os.path.abspath(a.out)}")
     return 0
 
 

@@ -16,7 +16,7 @@ from typing import List, Optional
 
 from ..io.files import OutputExistsError, check_new_file
 from ..core.config import SparseConfig
-from .common.args import add_overwrite, existing_path, float_range
+from .common.args import add_common_flags, add_overwrite, existing_path, float_range, note_printer
 
 #: the library's default (docs/defaults.md), as in smdm demo
 FRAME_INDEX_SCALE: float = SparseConfig.frame_index_scale
@@ -37,6 +37,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--plot", default=None, metavar="FILE",
                    help=f"write the keyframe figure of the first window here ({', '.join(PLOT_FORMATS)})")
     add_overwrite(p)
+    add_common_flags(p, device=None, progress=False, why_not="it selects keyframes on the CPU and shows no progress")
     return p
 
 
@@ -57,6 +58,10 @@ def main(argv: Optional[List[str]] = None) -> int:
         if not os.path.isdir(folder):
             p.error(f"argument --plot: the folder {folder!r} does not exist")
     from .common import keyframe_study as ks  # torch, numpy: after the arguments are checked
+    from .common.threads import apply_threads
+
+    apply_threads(a.threads)
+    say = note_printer(a)
 
     if a.bvh and not ks.find_bvh(a.bvh):
         print(f"smdm keyframes: no .bvh file in {', '.join(a.bvh)}", file=sys.stderr)
@@ -74,7 +79,7 @@ def main(argv: Optional[List[str]] = None) -> int:
         print(f"smdm keyframes: error: none of the BVH files of {source} could be used (see above); a CMU skeleton "
               "is needed (22-joint mapping), or give no file to use the embedded CMU clips", file=sys.stderr)
         return 2
-    print(f"smdm keyframes: motion from {source}", file=sys.stderr)
+    say(f"smdm keyframes: motion from {source}", file=sys.stderr)
     wins = ks.windows(clips, 196)
     try:
         ks.require_windows(wins, clips)
@@ -87,7 +92,7 @@ def main(argv: Optional[List[str]] = None) -> int:
         # written atomically (a temporary file beside the target, then renamed): never a half-written figure
         ks.plot_keyframes(w, f"{name} frames {start}-{start + len(w) - 1}", 0.8, a.plot,
                           frame_index_scale=a.frame_index_scale)
-        print(f"wrote {a.plot}")
+        say(f"wrote {a.plot}")
     return 0
 
 

@@ -15,7 +15,7 @@ import os
 import sys
 from typing import List, Optional
 
-from .common.args import add_overwrite, float_range, int_range
+from .common.args import add_common_flags, add_overwrite, float_range, int_range, note_printer, progress_of
 from .common.motion_files import ACCEPTED, add_motion_file_options
 
 
@@ -32,7 +32,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--stride", type=int_range(1), default=1, help="draw every STRIDE-th frame, same speed (default 1)")
     add_motion_file_options(p)
     p.add_argument("--size", type=float_range(1, 20), default=3.0, help="panel size in inches at 80 dpi (default 3)")
-    p.add_argument("--quiet", action="store_true", help="no progress bar")
+    add_common_flags(p, device=None, threads=False, why_not="it draws with matplotlib on the CPU, no torch")
     add_overwrite(p)
     return p
 
@@ -69,10 +69,10 @@ def main(argv: Optional[List[str]] = None) -> int:
         title = a.titles[k] if a.titles else os.path.basename(path)
         panels.append(Panel(m.joints, title, a.keyframes, chains=m.chains))
         rates.append(m.fps)
-        print(f"{path}: {len(m.joints)} frames, {m.joints.shape[1]} joints ({m.kind})")
+        note_printer(a)(f"{path}: {len(m.joints)} frames, {m.joints.shape[1]} joints ({m.kind})")
     try:
         render_gif(panels, out, fps=rates[0], stride=a.stride, panel_size=a.size,
-                   overwrite=a.overwrite, progress=not a.quiet)
+                   overwrite=a.overwrite, progress=progress_of(a))
     except OutputExistsError as e:
         p.error(str(e))
     frames = len(range(0, max(len(q.joints) for q in panels), a.stride))

@@ -22,8 +22,8 @@ from ..reference.text import TextConfig
 from ..training.data import MotionSet, check_clip_lengths
 from ..training.trainer import (DEFAULT_MODEL, TRAIN_CONFIG_FILENAME, TRAIN_STATE_FILENAME, TrainConfig, Trainer,
                                 TrainResult, resume)
-from .common.args import add_overwrite, device_type, float_range, int_range
-from .common.threads import THREADS_HELP, apply_threads
+from .common.args import add_common_flags, add_overwrite, float_range, int_range, note_printer, progress_of
+from .common.threads import apply_threads
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -100,10 +100,7 @@ def build_parser() -> argparse.ArgumentParser:
         if action.dest in _NOT_CLI_SPARSE:
             action.help = argparse.SUPPRESS
     r = p.add_argument_group("run")
-    r.add_argument("--device", type=device_type, default="auto",
-                   help="auto (cuda:LOCAL_RANK when CUDA is available), cpu, cuda, cuda:N, mps")
-    r.add_argument("--threads", type=int_range(1, 1024), default=None, help=THREADS_HELP)
-    r.add_argument("--no-progress", action="store_true", help="no progress bar")
+    add_common_flags(r, device_help="auto (cuda:LOCAL_RANK when CUDA is available), cpu, cuda, cuda:N, mps")
     return p
 
 
@@ -192,6 +189,7 @@ def main(argv: Optional[List[str]] = None) -> int:
     from ..io.outdir import OutputDir
 
     a, cfg = _parse(argv)
+    say = note_printer(a)
     apply_threads(a.threads)
     try:
         split = load_humanml3d(a.data, a.split, a.max_frames, a.min_frames, captions=a.text)
@@ -248,12 +246,12 @@ def main(argv: Optional[List[str]] = None) -> int:
             extra["compile_applied"] = trainer.compile_setting.to_dict()  # after --resume's data check
             if ctx.is_main:
                 kind = "sparse" if cfg.sparse is not None else "dense"
-                print(f"smdm train: {kind} TinyMDM, {len(data)} motions from {a.data} ({a.split}), {cfg.steps} steps "
+                say(f"smdm train: {kind} TinyMDM, {len(data)} motions from {a.data} ({a.split}), {cfg.steps} steps "
                       f"x global batch {trainer.global_batch} ({ctx.world_size} process(es) x {cfg.batch}) on "
                       f"{ctx.device}" + (f", backend {torch.distributed.get_backend()}" if ctx.distributed else "")
                       + f", {trainer.compile_setting.describe()}" + note, flush=True)
                 if trainer.init_origin is not None:
-                    print(f"smdm train: initialised from the dense checkpoint {trainer.init_origin['path']} "
+                    say(f"smdm train: initialised from the dense checkpoint {trainer.init_origin['path']} "
                           f"({trainer.init_origin['digest'][:19]}...)"
                           + (f"; {trainer.init_origin['fit_summary']}" if "fit_summary" in trainer.init_origin else ""),
                           flush=True)
@@ -268,7 +266,7 @@ def main(argv: Optional[List[str]] = None) -> int:
                         write_logs(folder, tr.losses)
 
             try:
-                result = trainer.train(progress=not a.no_progress, callback=every)
+                result = trainer.train(progress=progress_of(a), callback=every)
             except KeyboardInterrupt:
                 if ctx.is_main:
                     done = (trainer.step_count // a.save_every) * a.save_every if a.save_every else 0
@@ -284,7 +282,8 @@ def main(argv: Optional[List[str]] = None) -> int:
             path = os.path.join(a.out, trainer.checkpoint_name())
             print(f"smdm train: {result.steps} steps in {result.seconds:.1f} s ({result.steps_per_s:.2f} steps/s, "
                   f"{result.samples_per_s:.1f} samples/s), final loss {result.final_loss:.4f}; ranks in sync: "
-                  f"max |difference| {result.max_divergence:.3g}\nsaved {path}")
+                  f"max |difference| {result.max_divergence:.3g}")
+            say(f"saved {path}")
         return 0
     finally:
         shutdown_distributed(ctx)

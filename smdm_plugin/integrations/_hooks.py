@@ -1,14 +1,16 @@
-"""A small ``sys.meta_path`` finder that runs a callback right after a named module executes.
+"""Import hooks of the upstream integrations: a small ``sys.meta_path`` finder that runs a callback
+right after a named module executes (:func:`on_import`), and the one way an upstream function is
+replaced by our wrapper, once (:func:`wrap_once`).
 
-Used by the upstream integrations (``install_hooks()``) to wrap functions of an upstream module
-before any other module imports them by name (``from utils.model_util import ...``).
+The integrations' ``install_hooks()`` use both to wrap functions of an upstream module before any
+other module imports them by name (``from utils.model_util import ...``).
 """
 from __future__ import annotations
 
 import importlib.abc
 import importlib.machinery
 import sys
-from typing import Callable, Dict, List
+from typing import Any, Callable, Dict, List
 
 _CALLBACKS: Dict[str, List[Callable]] = {}
 
@@ -62,3 +64,21 @@ def on_import(module_name: str, callback: Callable) -> None:
     mod = sys.modules.get(module_name)
     if mod is not None:
         callback(mod)
+
+
+WRAPPED = "_smdm_wrapped"  # the marker on our wrappers (docs/architecture.md, "State")
+
+
+def wrap_once(owner: Any, name: str, make: Callable[[Callable], Callable], marker: str = WRAPPED) -> bool:
+    """Replace ``owner.<name>`` (a module's function, a class's method) by ``make(original)`` and
+    mark the wrapper with ``marker`` so that installing twice (the patch and the launcher, two
+    ``install_hooks()`` calls) does not wrap twice. Nothing happens when ``owner`` has no such
+    attribute or it already carries ``marker``. ``make`` keeps the original's signature and return
+    value (``functools.wraps``). Returns whether it wrapped."""
+    original = getattr(owner, name, None)
+    if original is None or getattr(original, marker, False):
+        return False
+    wrapped = make(original)
+    setattr(wrapped, marker, True)
+    setattr(owner, name, wrapped)
+    return True

@@ -26,9 +26,11 @@ import warnings
 from typing import Any, Optional, Tuple
 
 from ..core.config import CONFIG_FILENAME, SparseConfig
+from ._hooks import wrap_once
+from .registry import Integration, register_integration
 
 __all__ = ["add_sparse_options", "apply_compile", "sparsify_mdm", "check_mdm_state_dict", "dataset_mean_std",
-           "install_hooks", "is_mdm_repo", "warn_if_upstream_steps"]
+           "install_hooks", "is_mdm_repo", "patch_base_options", "patch_model_options", "warn_if_upstream_steps"]
 
 
 def is_mdm_repo(path: str) -> bool:
@@ -191,67 +193,56 @@ def check_mdm_state_dict(model: Any, state_dict: Any, model_path: Optional[str] 
 
 
 # --------------------------------------------------------------------------- import hooks
-def _patch_parser_util(mod: Any) -> None:
-    original = getattr(mod, "add_model_options", None)
-    if original is None or getattr(original, "_smdm_wrapped", False):
-        return
+def patch_model_options(mod: Any) -> None:
+    """Wrap ``utils.parser_util.add_model_options`` (MDM and priorMDM): ``--sparse*`` join the
+    ``model`` group, which ``args.json`` records and ``load_args_from_model`` restores."""
+    def make(original):
+        @functools.wraps(original)
+        def add_model_options(parser):
+            result = original(parser)
+            group = next((g for g in parser._action_groups if g.title == "model"), None)
+            add_sparse_options(group if group is not None else parser.add_argument_group("model"))
+            return result
+        return add_model_options
 
-    @functools.wraps(original)
-    def add_model_options(parser):
-        result = original(parser)
-        for group in parser._action_groups:
-            if group.title == "model":
-                add_sparse_options(group)
-                break
-        else:  # pragma: no cover - MDM always has a 'model' group
-            add_sparse_options(parser.add_argument_group("model"))
-        return result
-
-    add_model_options._smdm_wrapped = True
-    mod.add_model_options = add_model_options
+    wrap_once(mod, "add_model_options", make)
 
 
 def patch_base_options(mod: Any) -> None:
     """Wrap ``utils.parser_util.add_base_options`` (MDM and priorMDM): ``--sparse_compile`` joins
     the ``base`` group, which ``load_args_from_model`` does not overwrite from ``args.json``."""
-    original = getattr(mod, "add_base_options", None)
-    if original is None or getattr(original, "_smdm_wrapped", False):
-        return
+    def make(original):
+        @functools.wraps(original)
+        def add_base_options(parser):
+            result = original(parser)
+            from .compile import add_compile_options
 
-    @functools.wraps(original)
-    def add_base_options(parser):
-        result = original(parser)
-        from .compile import add_compile_options
+            group = next((g for g in parser._action_groups if g.title == "base"), parser)
+            add_compile_options(group)
+            return result
+        return add_base_options
 
-        group = next((g for g in parser._action_groups if g.title == "base"), parser)
-        add_compile_options(group)
-        return result
-
-    add_base_options._smdm_wrapped = True
-    mod.add_base_options = add_base_options
+    wrap_once(mod, "add_base_options", make)
 
 
 def _patch_model_util(mod: Any) -> None:
-    original = getattr(mod, "create_model_and_diffusion", None)
-    if original is not None and not getattr(original, "_smdm_wrapped", False):
+    def make_create(original):
         @functools.wraps(original)
         def create_model_and_diffusion(args, data, *a, **kw):
             model, diffusion = original(args, data, *a, **kw)
             sparsify_mdm(model, args, data, diffusion)
             return model, diffusion
+        return create_model_and_diffusion
 
-        create_model_and_diffusion._smdm_wrapped = True
-        mod.create_model_and_diffusion = create_model_and_diffusion
-
-    load_wo_clip = getattr(mod, "load_model_wo_clip", None)
-    if load_wo_clip is not None and not getattr(load_wo_clip, "_smdm_wrapped", False):
-        @functools.wraps(load_wo_clip)
+    def make_load(original):
+        @functools.wraps(original)
         def load_model_wo_clip(model, state_dict, *a, **kw):
             check_mdm_state_dict(model, state_dict)
-            return load_wo_clip(model, state_dict, *a, **kw)
+            return original(model, state_dict, *a, **kw)
+        return load_model_wo_clip
 
-        load_model_wo_clip._smdm_wrapped = True
-        mod.load_model_wo_clip = load_model_wo_clip  # load_saved_model looks it up here
+    wrap_once(mod, "create_model_and_diffusion", make_create)
+    wrap_once(mod, "load_model_wo_clip", make_load)  # load_saved_model looks it up here
 
 
 def install_hooks() -> None:
@@ -264,8 +255,13 @@ def install_hooks() -> None:
     from . import mdm_edit, mdm_text, mdm_train
     from ._hooks import on_import
 
-    on_import("utils.parser_util", _patch_parser_util)
+    on_import("utils.parser_util", patch_model_options)
     on_import("utils.parser_util", patch_base_options)
     on_import("utils.model_util", _patch_model_util)
     for extension in (mdm_text, mdm_train, mdm_edit):
         extension.install_hooks()
+
+
+register_integration(Integration(
+    "mdm", detect=is_mdm_repo, install_hooks=install_hooks, priority=0,
+    layout="model/mdm.py + utils/model_util.py (MDM/DiP)"))

@@ -29,6 +29,8 @@ from typing import Any, Dict, Optional
 
 import torch
 
+from ._hooks import wrap_once
+
 ENV_POLICY = "SMDM_EDIT_FORCED"
 DEFAULT_POLICY = "ends"
 
@@ -93,23 +95,20 @@ def add_forced_keyframes(model: Any, model_kwargs: Dict[str, Any], policy: Optio
 
 
 def _patch_gaussian_diffusion(mod: Any) -> None:
-    cls = getattr(mod, "GaussianDiffusion", None)
-    original = getattr(cls, "p_sample_loop", None)
-    if original is None or getattr(original, "_smdm_wrapped", False):
-        return
-    signature = inspect.signature(original)
+    def make(original):
+        signature = inspect.signature(original)
 
-    @functools.wraps(original)
-    def p_sample_loop(self, *args, **kwargs):
-        bound = signature.bind(self, *args, **kwargs)
-        kw = bound.arguments.get("model_kwargs")
-        new = forced_for_edit(bound.arguments.get("model"), kw)
-        if new is not kw:
-            bound.arguments["model_kwargs"] = new
-        return original(*bound.args, **bound.kwargs)
+        @functools.wraps(original)
+        def p_sample_loop(self, *args, **kwargs):
+            bound = signature.bind(self, *args, **kwargs)
+            kw = bound.arguments.get("model_kwargs")
+            new = forced_for_edit(bound.arguments.get("model"), kw)
+            if new is not kw:
+                bound.arguments["model_kwargs"] = new
+            return original(*bound.args, **bound.kwargs)
+        return p_sample_loop
 
-    p_sample_loop._smdm_wrapped = True
-    cls.p_sample_loop = p_sample_loop
+    wrap_once(getattr(mod, "GaussianDiffusion", None), "p_sample_loop", make)
 
 
 def install_hooks() -> None:

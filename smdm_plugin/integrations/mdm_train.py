@@ -40,6 +40,7 @@ import tempfile
 from dataclasses import dataclass
 from typing import Any, Optional
 
+from ._hooks import wrap_once
 from .distributed import DistContext, constant_buffers_kwargs, launched_by_torchrun
 
 
@@ -72,14 +73,7 @@ def _run() -> _Run:
     return _RUN
 
 
-def _wrap(mod: Any, name: str, make) -> None:
-    """Replace ``mod.name`` by ``make(original)`` once."""
-    original = getattr(mod, name, None)
-    if original is None or getattr(original, "_smdm_ddp", False):
-        return
-    wrapped = make(original)
-    wrapped._smdm_ddp = True
-    setattr(mod, name, wrapped)
+_wrap = functools.partial(wrap_once, marker="_smdm_ddp")  # owner.name -> make(original), once; its own marker
 
 
 # --------------------------------------------------------------------------- utils.parser_util

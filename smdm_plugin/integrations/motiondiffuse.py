@@ -30,7 +30,9 @@ import numpy as np
 from ..core.config import CONFIG_FILENAME, SparseConfig
 
 
-from .mdm import add_sparse_options  # noqa: E402,F401  (the one --sparse* adder; patches import it here)
+from ._hooks import wrap_once
+from .mdm import add_sparse_options  # noqa: F401  (the one --sparse* adder; patches import it here)
+from .registry import Integration, register_integration
 
 
 def _coerce(value: Any, default: Any) -> Any:
@@ -169,18 +171,14 @@ def add_options(parser: Any) -> Any:
 
 # --------------------------------------------------------------------------- import hooks
 def _patch_options(mod, cls_name: str) -> None:
-    cls = getattr(mod, cls_name, None)
-    if cls is None or getattr(cls.initialize, "_smdm_wrapped", False):
-        return
-    original = cls.initialize
+    def make(original):
+        @functools.wraps(original)
+        def initialize(self):
+            original(self)
+            add_options(self.parser)
+        return initialize
 
-    @functools.wraps(original)
-    def initialize(self):
-        original(self)
-        add_options(self.parser)
-
-    initialize._smdm_wrapped = True
-    cls.initialize = initialize
+    wrap_once(getattr(mod, cls_name, None), "initialize", make)
 
 
 def _cpu_fallback(opt: Any) -> None:
@@ -194,32 +192,32 @@ def _cpu_fallback(opt: Any) -> None:
 
 
 def _patch_trainer(mod) -> None:
+    def make_init(init):
+        @functools.wraps(init)
+        def __init__(self, args, encoder, *a, **kw):
+            _cpu_fallback(args)
+            init(self, args, encoder, *a, **kw)
+            if getattr(args, "sparse", False):
+                attach_trainer(self)
+                self.to(self.device)
+            compile_trainer(self)  # --sparse_compile, dense or sparse (none: nothing)
+        return __init__
+
+    def make_backward(backward):
+        @functools.wraps(backward)
+        def backward_G(self):
+            logs = backward(self)
+            if getattr(self.opt, "sparse", False):
+                from ..adapters.motiondiffuse import trainer_loss
+
+                self.loss_mot_rec = trainer_loss(self, self.loss_mot_rec)
+                logs["loss_mot_rec"] = self.loss_mot_rec.item()
+            return logs
+        return backward_G
+
     cls = getattr(mod, "DDPMTrainer", None)
-    if cls is None or getattr(cls.__init__, "_smdm_wrapped", False):
-        return
-    init, backward = cls.__init__, cls.backward_G
-
-    @functools.wraps(init)
-    def __init__(self, args, encoder, *a, **kw):
-        _cpu_fallback(args)
-        init(self, args, encoder, *a, **kw)
-        if getattr(args, "sparse", False):
-            attach_trainer(self)
-            self.to(self.device)
-        compile_trainer(self)  # --sparse_compile, dense or sparse (none: nothing)
-
-    @functools.wraps(backward)
-    def backward_G(self):
-        logs = backward(self)
-        if getattr(self.opt, "sparse", False):
-            from ..adapters.motiondiffuse import trainer_loss
-
-            self.loss_mot_rec = trainer_loss(self, self.loss_mot_rec)
-            logs["loss_mot_rec"] = self.loss_mot_rec.item()
-        return logs
-
-    __init__._smdm_wrapped = True
-    cls.__init__, cls.backward_G = __init__, backward_G
+    wrap_once(cls, "__init__", make_init)
+    wrap_once(cls, "backward_G", make_backward)
 
 
 def install_hooks() -> None:
@@ -230,3 +228,16 @@ def install_hooks() -> None:
     on_import("options.train_options", lambda m: _patch_options(m, "TrainCompOptions"))
     on_import("options.evaluate_options", lambda m: _patch_options(m, "TestOptions"))
     on_import("trainers.ddpm_trainer", _patch_trainer)
+
+
+def is_motiondiffuse_repo(path: str) -> bool:
+    """A MotionDiffuse checkout: the repository root (has ``text2motion/``) or that folder
+    (``trainers/ddpm_trainer.py`` + ``models/transformer.py``; ``tools/train.py``'s cwd)."""
+    j = os.path.join
+    return os.path.isdir(j(path, "text2motion")) or (
+        os.path.isfile(j(path, "trainers", "ddpm_trainer.py")) and os.path.isfile(j(path, "models", "transformer.py")))
+
+
+register_integration(Integration(
+    "motiondiffuse", detect=is_motiondiffuse_repo, install_hooks=install_hooks, priority=20,
+    layout="text2motion/ (MotionDiffuse, root or that folder)"))

@@ -23,7 +23,10 @@ from typing import Any, Optional
 from ..core.config import CONFIG_FILENAME, SparseConfig
 
 
-from .mdm import _is_training, add_sparse_options, apply_compile, dataset_mean_std, patch_base_options  # noqa: E402,F401  (the one --sparse* adder; patches import it here)
+from ._hooks import wrap_once
+from .mdm import (_is_training, add_sparse_options, apply_compile, dataset_mean_std,  # noqa: F401  (the one
+                  patch_base_options, patch_model_options)                           # --sparse* adder; patches import it here)
+from .registry import Integration, register_integration
 
 
 def warn_if_not_paper_blend(args: Any) -> bool:
@@ -144,38 +147,18 @@ def record_doubletake_output(model: Any, args: Any) -> None:
 
 
 # --------------------------------------------------------------------------- import hooks
-def _patch_parser_util(mod) -> None:
-    original = getattr(mod, "add_model_options", None)
-    if original is None or getattr(original, "_smdm_wrapped", False):
-        return
-
-    @functools.wraps(original)
-    def add_model_options(parser):
-        original(parser)
-        for group in parser._action_groups:
-            if group.title == "model":
-                add_sparse_options(group)
-                break
-
-    add_model_options._smdm_wrapped = True
-    mod.add_model_options = add_model_options
-
-
 def _patch_model_util(mod) -> None:
-    original = getattr(mod, "create_model_and_diffusion", None)
-    if original is None or getattr(original, "_smdm_wrapped", False):
-        return
+    def make(original):
+        @functools.wraps(original)
+        def create_model_and_diffusion(args, data, *a, **kw):
+            model, diffusion = original(args, data, *a, **kw)
+            if getattr(args, "sparse", False) or getattr(args, "sparse_preset", None):
+                sparsify_priormdm(model, args, data, diffusion)
+            apply_compile(model, args)  # --sparse_compile, dense or sparse (none: nothing)
+            return model, diffusion
+        return create_model_and_diffusion
 
-    @functools.wraps(original)
-    def create_model_and_diffusion(args, data, *a, **kw):
-        model, diffusion = original(args, data, *a, **kw)
-        if getattr(args, "sparse", False) or getattr(args, "sparse_preset", None):
-            sparsify_priormdm(model, args, data, diffusion)
-        apply_compile(model, args)  # --sparse_compile, dense or sparse (none: nothing)
-        return model, diffusion
-
-    create_model_and_diffusion._smdm_wrapped = True
-    mod.create_model_and_diffusion = create_model_and_diffusion
+    wrap_once(mod, "create_model_and_diffusion", make)
 
 
 def install_hooks() -> None:
@@ -184,6 +167,16 @@ def install_hooks() -> None:
     that already carries ``patches/priormdm.patch`` is not sparsified twice)."""
     from ._hooks import on_import
 
-    on_import("utils.parser_util", _patch_parser_util)
+    on_import("utils.parser_util", patch_model_options)
     on_import("utils.parser_util", patch_base_options)
     on_import("utils.model_util", _patch_model_util)
+
+
+def is_priormdm_repo(path: str) -> bool:
+    """A priorMDM checkout: MDM's layout plus ``model/DoubleTake_MDM.py``."""
+    return os.path.isfile(os.path.join(path, "model", "DoubleTake_MDM.py"))
+
+
+register_integration(Integration(
+    "priormdm", detect=is_priormdm_repo, install_hooks=install_hooks, priority=10,
+    layout="model/DoubleTake_MDM.py (priorMDM)"))

@@ -62,19 +62,18 @@ import os
 import shutil
 import sys
 import time
-import traceback
-from dataclasses import dataclass
-from typing import TYPE_CHECKING, Any, Callable, Dict, List, Optional, Sequence, Set, Tuple
+from typing import TYPE_CHECKING, Any, Callable, Dict, List, Optional, Sequence, Set
 
 import numpy as np
 import torch
 
 from ...io.files import OutputExistsError, atomic_write_json, atomic_write_text
-from ..common.args import add_overwrite, device_type, existing_path, int_range, resolve_device
-from ..common.threads import THREADS_HELP
-from ..common.provenance import differences, make_provenance
+from ..common.args import add_common_flags, add_overwrite, existing_path, int_range, note_printer, progress_of, resolve_device
+from ..common.provenance import make_provenance
 from .grid import SHARED_SETTINGS, load_config, select_variants, slug, sparse_config
-from .report import check_record, write_report
+from .report import write_report
+from .results import (FAILED_FILE, RESULT_FILE, Action, CacheState, Cached, Planned, Record, Status,  # noqa: F401
+                      failure_record, is_ok, read_cached, row_from_cache)                                # (re-exported)
 
 if TYPE_CHECKING:
     from ...training.data import MotionData
@@ -124,7 +123,7 @@ def run_variant(cfg: Dict[str, Any], variant: Dict[str, Any], data: "MotionData"
     # losses of the whole run (a resumed one included); speed: the steps this call made
     model, diffusion, losses, train_s = trainer.model, trainer.diffusion, list(trainer.losses), result.seconds
     if not trainer.dist.is_main:
-        return {"name": variant["name"], "status": "ok", "steps": steps, "rank": trainer.dist.rank}
+        return {"name": variant["name"], "status": Status.OK, "steps": steps, "rank": trainer.dist.rank}
     N = data.train.max_frames
 
     # evaluation: sample unconditionally (the variant's own sampling schedule), EES
@@ -144,7 +143,7 @@ def run_variant(cfg: Dict[str, Any], variant: Dict[str, Any], data: "MotionData"
     k = max(1, len(losses) // 10)
     smooth = np.convolve(losses, np.ones(k) / k, mode="valid") if losses else np.array([np.nan])
     return {
-        "name": variant["name"], "status": "ok", "steps": steps,
+        "name": variant["name"], "status": Status.OK, "steps": steps,
         "final_loss": float(np.mean(losses[-k:])), "best_loss": float(np.min(smooth)), "val_loss": val_loss,
         "steps_per_s": result.steps / train_s if train_s > 0 else float("nan"), "train_s": train_s,
         "sample_s": sample_s, "resumed_at": steps - result.steps,
@@ -157,17 +156,6 @@ def run_variant(cfg: Dict[str, Any], variant: Dict[str, Any], data: "MotionData"
 
 
 # ----------------------------------------------------------------------------------------- results folder
-@dataclass
-class Cached:
-    """What a variant's folder holds. ``state``: ``missing``, ``current`` (a result whose
-    provenance matches), ``stale`` (a result from another run; ``reason`` says how it differs),
-    ``failed`` (``failed.json``) or ``corrupt`` (an unreadable ``result.json``)."""
-
-    state: str
-    record: Optional[Dict[str, Any]] = None
-    reason: str = ""
-
-
 def variant_settings(cfg: Dict[str, Any], variant: Dict[str, Any]) -> Dict[str, Any]:
     """Everything but the data that shapes a variant's result: the grid's shared settings, the
     variant entry and its resolved ``SparseConfig`` (``"invalid: ..."`` when it does not validate).
@@ -184,43 +172,6 @@ def variant_provenance(cfg: Dict[str, Any], variant: Dict[str, Any], data: Motio
                        device: torch.device) -> Dict[str, Any]:
     return make_provenance(variant_settings(cfg, variant), data.fingerprint, cfg["steps"], cfg["seed"], device.type,
                            data_root=os.path.abspath(str(data.root)), data_files=len(data.files))
-
-
-def read_cached(vdir: str, provenance: Dict[str, Any]) -> Cached:
-    """Classify what ``vdir`` holds against the ``provenance`` of the run about to happen."""
-    res_path, fail_path = os.path.join(vdir, "result.json"), os.path.join(vdir, "failed.json")
-    if os.path.exists(res_path):
-        try:
-            with open(res_path) as f:
-                rec = json.load(f)
-            if not isinstance(rec, dict) or rec.get("status") != "ok":
-                raise ValueError("not a result record")
-            bad = check_record(rec)
-            if bad is not None:  # e.g. edited by hand: reported as corrupt, never a crash of the report
-                raise ValueError(f"not a result record: {bad}")
-        except (OSError, ValueError) as e:  # json.JSONDecodeError is a ValueError
-            return Cached("corrupt", None, f"unreadable {res_path} ({type(e).__name__}: {e})")
-        why = differences(rec.get("provenance"), provenance)
-        return Cached("stale", rec, "; ".join(why)) if why else Cached("current", rec)
-    if os.path.exists(fail_path):
-        try:
-            with open(fail_path) as f:
-                rec = dict(json.load(f))
-        except (OSError, ValueError, TypeError) as e:
-            rec = {"error": f"unreadable {fail_path} ({type(e).__name__})"}
-        return Cached("failed", rec, str(rec.get("error", "")))
-    return Cached("missing")
-
-
-def row_from_cache(name: str, cached: Cached) -> Dict[str, Any]:
-    """The report row of a variant not run now."""
-    if cached.state == "current":
-        return {**(cached.record or {}), "name": name, "reused": True}
-    if cached.state == "failed":
-        return {**(cached.record or {}), "name": name, "status": "failed"}
-    if cached.state in ("stale", "corrupt"):
-        return {"name": name, "status": cached.state, "reason": cached.reason}
-    return {"name": name, "status": "not run"}
 
 
 def check_out_dir(out: str, resume: bool = False, overwrite: bool = False) -> None:
@@ -263,7 +214,7 @@ def run_one(cfg: Dict[str, Any], variant: Dict[str, Any], data: "MotionData", de
     """Run one variant and record it (atomically): ``result.json`` (its stale ``failed.json``
     removed) or, when it raises, ``failed.json`` (a previous ``result.json`` removed)."""
     name = variant["name"]
-    res_path, fail_path = os.path.join(vdir, "result.json"), os.path.join(vdir, "failed.json")
+    res_path, fail_path = os.path.join(vdir, RESULT_FILE), os.path.join(vdir, FAILED_FILE)
     os.makedirs(vdir, exist_ok=True)
     atomic_write_json(os.path.join(vdir, "config.json"), variant_settings(cfg, variant))
     # an interrupted variant's checkpoint (smdm train's mechanism), used only by the same provenance
@@ -277,8 +228,7 @@ def run_one(cfg: Dict[str, Any], variant: Dict[str, Any], data: "MotionData", de
     try:
         res = run_variant(cfg, variant, data, dev, progress, dist, checkpoint_dir=ckpt)
     except Exception as e:  # recorded, the other variants go on
-        rec = {"name": name, "status": "failed", "error": f"{type(e).__name__}: {e}",
-               "traceback": traceback.format_exc(), "wall_s": time.perf_counter() - t0, "provenance": provenance}
+        rec = failure_record(name, e, provenance, wall_s=time.perf_counter() - t0)
         atomic_write_json(fail_path, rec)
         _remove(res_path)
         log(f"  {name}: FAILED ({rec['error']}); see {fail_path}")
@@ -342,7 +292,7 @@ def _run_locked(cfg: Dict[str, Any], out: str, data_root: str, ctx, selected: Se
         f"{data_root} (fingerprint {data.fingerprint}); {cfg['steps']} steps x batch {cfg['batch']} per variant "
         f"on {dev}" + (f", {ctx.world_size} processes (DDP; batch per process)" if ctx.distributed else ""))
 
-    def make_plan() -> List[Tuple[Dict[str, Any], str, Dict[str, Any], Cached, str]]:
+    def make_plan() -> List[Planned]:
         plan, conflicts = [], []
         for variant in cfg["variants"]:
             name = variant["name"]
@@ -350,18 +300,18 @@ def _run_locked(cfg: Dict[str, Any], out: str, data_root: str, ctx, selected: Se
             prov = variant_provenance(cfg, variant, data, dev)
             cached = read_cached(vdir, prov)
             if name not in selected:
-                action = "keep"
-            elif overwrite or cached.state in ("missing", "failed", "corrupt"):
-                action = "run"
-            elif cached.state == "current":
-                action = "keep"
+                action = Action.KEEP
+            elif overwrite or cached.state in (CacheState.MISSING, CacheState.FAILED, CacheState.CORRUPT):
+                action = Action.RUN
+            elif cached.state is CacheState.CURRENT:
+                action = Action.KEEP
             else:
                 conflicts.append(f"{name!r} ({cached.reason})")
-                action = "conflict"
+                action = Action.CONFLICT
             invalid = prov["settings"]["sparse_config"]
-            if action == "run" and isinstance(invalid, str):
+            if action is Action.RUN and isinstance(invalid, str):
                 log(f"  {name}: {invalid} -- it will be reported as failed")
-            plan.append((variant, vdir, prov, cached, action))
+            plan.append(Planned(variant, vdir, prov, cached, action))
         if conflicts:
             raise StaleResultsError(
                 f"--out {out!r} holds {len(conflicts)} result(s) from another run: {'; '.join(conflicts)}. Pass "
@@ -370,10 +320,10 @@ def _run_locked(cfg: Dict[str, Any], out: str, data_root: str, ctx, selected: Se
 
     plan = _on_main(ctx, make_plan)  # rank 0 reads the folder; every rank follows its plan
     if not main_rank:
-        for variant, vdir, prov, cached, action in plan:
-            if action == "run":
+        for item in plan:
+            if item.action is Action.RUN:
                 try:
-                    run_variant(cfg, variant, data, dev, False, ctx)
+                    run_variant(cfg, item.variant, data, dev, False, ctx)
                 except Exception:  # rank 0 fails alike and records it
                     pass
         return []
@@ -387,16 +337,18 @@ def _run_locked(cfg: Dict[str, Any], out: str, data_root: str, ctx, selected: Se
         "device": dev.type, "updated": time.strftime("%Y-%m-%dT%H:%M:%S%z")})
     atomic_write_text(os.path.join(out, "config.yaml"), yaml.safe_dump(cfg, sort_keys=False))
     real = feature_quality(*data.val.padded(), data.mean, data.std)
-    rows = [row_from_cache(v["name"], c) for v, _, _, c, _ in plan]
+    rows = [row_from_cache(item.variant["name"], item.cached) for item in plan]
     try:
-        for k, (variant, vdir, prov, cached, action) in enumerate(plan):
-            if action != "run":
-                if variant["name"] in selected:
-                    log(f"  {variant['name']}: reused (same provenance; {os.path.join(vdir, 'result.json')})")
+        for k, item in enumerate(plan):
+            name, cached = item.variant["name"], item.cached
+            if item.action is not Action.RUN:
+                if name in selected:
+                    log(f"  {name}: reused (same provenance; {os.path.join(item.vdir, RESULT_FILE)})")
                 continue
-            if cached.state in ("corrupt", "stale"):
-                log(f"  {variant['name']}: replacing {cached.state} result ({cached.reason})")
-            rows[k] = run_one(cfg, variant, data, dev, vdir, prov, progress, log, ctx, resume=resume)
+            if cached.state in (CacheState.CORRUPT, CacheState.STALE):
+                log(f"  {name}: replacing {cached.state} result ({cached.reason})")
+            rows[k] = run_one(cfg, item.variant, data, dev, item.vdir, item.provenance, progress, log, ctx,
+                              resume=resume)
     finally:  # the report is written even when interrupted (Ctrl-C): it then shows what is done
         write_report(rows, out, real["ees"], cfg, data.fingerprint, real=real)
     return rows
@@ -439,16 +391,13 @@ def build_parser() -> argparse.ArgumentParser:
                    help="HumanML3D-format folder: new_joint_vecs/, Mean.npy, Std.npy, train.txt, val.txt or "
                         "test.txt (default: the grid's 'data'; required when the grid has none)")
     p.add_argument("--steps", type=int_range(1), default=None, help="override the config's steps per variant (>= 1)")
-    p.add_argument("--device", type=device_type, default="auto", help="auto (CUDA, else MPS, else CPU), cpu, cuda[:N], mps")
     p.add_argument("--only", nargs="+", default=None, metavar="VARIANT",
                    help="run only these variants (names or folder names); the other rows are kept")
-    p.add_argument("--threads", type=int_range(1), default=None,
-                   help=THREADS_HELP)
     g = p.add_mutually_exclusive_group()
     g.add_argument("--resume", action="store_true",
                    help="continue in an existing --out: reuse results with the same provenance, run the rest")
     add_overwrite(g)
-    p.add_argument("--no-progress", action="store_true", help="no progress bars")
+    add_common_flags(p)
     p.add_argument("--quick", action="store_true",
                    help="the quick (seconds) variant of a study config (quality_compute): see smdm_plugin.apps.ablate.study")
     return p
@@ -489,8 +438,8 @@ def main(argv: Optional[List[str]] = None) -> int:
         print(f"smdm ablate: error: {e}", file=sys.stderr)
         return 2
     try:
-        results = run_ablation(cfg, a.out, data_root, a.device, a.only, progress=not a.no_progress and ctx.is_main,
-                               resume=a.resume, overwrite=a.overwrite, dist=ctx)
+        results = run_ablation(cfg, a.out, data_root, a.device, a.only, progress=progress_of(a) and ctx.is_main,
+                               log=note_printer(a), resume=a.resume, overwrite=a.overwrite, dist=ctx)
     except (OutputExistsError, FileNotFoundError, ValueError, PermissionError, NotADirectoryError) as e:
         if ctx.is_main:
             print(f"smdm ablate: error: {e}", file=sys.stderr)
@@ -505,8 +454,8 @@ def main(argv: Optional[List[str]] = None) -> int:
         return 0
     with open(os.path.join(a.out, "results.md")) as f:
         print("\n" + f.read())
-    print(f"results: {os.path.abspath(a.out)}")
-    return 0 if all(r.get("status") == "ok" for r in results if r["name"] in selected) else 1
+    note_printer(a)(f"results: {os.path.abspath(a.out)}")
+    return 0 if all(is_ok(r) for r in results if r["name"] in selected) else 1
 
 if __name__ == "__main__":
     sys.exit(main())

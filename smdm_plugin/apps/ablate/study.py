@@ -37,7 +37,7 @@ import math
 import os
 import sys
 import time
-import traceback
+from dataclasses import dataclass
 from typing import Any, Callable, Dict, List, Optional, Sequence, Tuple
 
 import numpy as np
@@ -45,8 +45,10 @@ import torch
 
 from ...core.config import closest
 from ...io.files import OutputExistsError, atomic_open, atomic_write_json, atomic_write_text
-from ..common.args import add_overwrite, device_type, existing_path, resolve_device
-from . import check_out_dir, read_cached
+from ..common.args import add_common_flags, add_overwrite, existing_path, note_printer, progress_of, resolve_device
+from . import check_out_dir
+from .results import (FAILED_FILE, RESULT_FILE, CacheState, Cached, Record, Status, failure_record, is_ok, read_cached,
+                      status_of)
 from .grid import (AblateConfigError, _check, _check_keys, config_path, over_defaults, select_variants, slug,
                    sparse_config)
 from ...io.files import fingerprint_files
@@ -309,7 +311,7 @@ def run_seed(cfg: Dict[str, Any], variant: Dict[str, Any], seed: int, data: Stud
             f"{trainer.step_count}, {t_now:.1f} s {cfg['clock']}, FID {m['fid']:.3f}, R@3 {m['r_precision_top3']:.3f}, "
             f"j/s {m['jitter_per_speed']:.0f}")
     _ = clock
-    return {"name": variant["name"], "seed": int(seed), "status": "ok", "steps": trainer.step_count,
+    return {"name": variant["name"], "seed": int(seed), "status": Status.OK, "steps": trainer.step_count,
             "steps_per_cpu_s": trainer.step_count / max(spent["cpu"], 1e-9), "train_cpu_s": spent["cpu"],
             "train_wall_s": spent["wall"], "eval_wall_s": eval_s, "snapshots": snaps,
             "sparse_config": None if sc is None else sc.to_dict(), "losses": trainer.losses}
@@ -343,7 +345,7 @@ def aggregate(cfg: Dict[str, Any], runs: Dict[str, List[Dict[str, Any]]]) -> Lis
     rows = []
     marks = [("steps", a) for a in cfg["snapshots"]["steps"]] + [("seconds", a) for a in cfg["snapshots"]["seconds"]]
     for v in cfg["variants"]:
-        recs = [r for r in runs.get(v["name"], []) if r.get("status") == "ok"]
+        recs = [r for r in runs.get(v["name"], []) if is_ok(r)]
         for kind, at in marks:
             snaps = [s for r in recs for s in r["snapshots"] if s["kind"] == kind and s["at"] == at]
             row: Dict[str, Any] = {"variant": v["name"], "kind": kind, "at": at,
@@ -420,7 +422,7 @@ def write_outputs(cfg: Dict[str, Any], out: str, runs: Dict[str, List[Dict[str, 
               f"FID of the real train motions against them: {ref['fid_train_vs_eval']:.3f} (FID of the set against "
               f"itself is 0). Retrieval pool {ref['retrieval_pool']} ({ref['retrieval_scored']} motions scored; "
               f"chance R@1 {1 / ref['retrieval_pool']:.3f}).", ""]
-    failed = [(n, r) for n, rs in runs.items() for r in rs if r.get("status") == "failed"]
+    failed = [(n, r) for n, rs in runs.items() for r in rs if status_of(r) is Status.FAILED]
     for n, r in failed:
         lines.append(f"{n} seed {r.get('seed')} failed: {r.get('error')}")
     lines.append("Plot: fid_vs_time.png (FID against training time, mean ± 95% interval over seeds).")
@@ -484,14 +486,38 @@ def build_evaluator(cfg: Dict[str, Any], data: StudyData, out: str, log: Callabl
     return cached_evaluator(folder, build, load), key, folder
 
 
+@dataclass(frozen=True)
+class StudyRun:
+    """One (variant, seed) of the study: its folder, the settings and provenance of a run now, what
+    the folder holds and whether this invocation runs it (``run``)."""
+
+    variant: Dict[str, Any]
+    seed: int
+    vdir: str
+    settings: Dict[str, Any]
+    provenance: Dict[str, Any]
+    cached: Cached
+    run: bool
+
+
+@dataclass(frozen=True)
+class Reference:
+    """The evaluator and what every run is scored against: caption and real-motion embeddings
+    (``[M, d]`` float64 numpy), the real motions' own scores (``fid_train_vs_eval`` included)."""
+
+    evaluator: Any
+    key: str
+    text_emb: np.ndarray
+    real_emb: np.ndarray
+    scores: Dict[str, Any]
+
+
 def run_study(cfg: Dict[str, Any], out: str, data_root: str, device: str = "cpu", only: Optional[Sequence[str]] = None,
               seeds: Optional[Sequence[int]] = None, resume: bool = False, overwrite: bool = False,
-              log: Callable[[str], Any] = print, report_only: bool = False) -> Dict[str, List[Dict[str, Any]]]:
+              log: Callable[[str], Any] = print, report_only: bool = False) -> Dict[str, List[Record]]:
     """Run the study ``cfg`` into ``out`` (see the module docstring); returns ``{variant: [run per seed]}``.
     ``report_only`` (with ``resume``): train nothing, rebuild the report from the current results
     (e.g. while other processes, each with its own ``--only``/``--seeds``, still run)."""
-    import yaml
-
     if resume and overwrite:
         raise ValueError("run_study: resume and overwrite exclude each other")
     selected = select_variants(cfg, only)
@@ -505,35 +531,68 @@ def run_study(cfg: Dict[str, Any], out: str, data_root: str, device: str = "cpu"
     log(f"study {cfg['name']}: {len(data.train)} training / {len(data.ids)} evaluation motions from {data_root} "
         f"(fingerprint {data.fingerprint}); snapshots at {cfg['snapshots']['steps']} steps and "
         f"{cfg['snapshots']['seconds']} s ({cfg['clock']}); seeds {run_seeds}; device {dev}")
-    os.makedirs(out, exist_ok=True)
+    _write_study_files(cfg, out, data, data_root, dev)
+    ref = _reference(cfg, data, out, log)
+    meta = _meta(cfg, data, data_root, ref, dev)
+    plan = _plan(cfg, out, data, ref.key, dev, selected, run_seeds, report_only, overwrite)
+    runs: Dict[str, List[Record]] = {v["name"]: [] for v in cfg["variants"]}
+    try:
+        for item in plan:
+            rec = _run_one(cfg, item, data, ref, dev, log) if item.run else (
+                {**item.cached.record, "reused": True} if item.cached.state is CacheState.CURRENT else None)
+            if rec is not None:
+                runs[item.variant["name"]].append(rec)
+    finally:  # the report is written even when interrupted: it shows what is done
+        write_outputs(cfg, out, runs, ref.scores, meta)
+    return runs
+
+
+def _write_study_files(cfg: Dict[str, Any], out: str, data: StudyData, data_root: str, dev: torch.device) -> None:
+    """``out/`` with its manifest (what the folder is, last run) and ``config.yaml`` (the config as run)."""
+    import yaml
+
     from ... import __version__
 
+    os.makedirs(out, exist_ok=True)
     atomic_write_json(os.path.join(out, MANIFEST), {
         "tool": "smdm ablate", "kind": KIND, "format": 1, "grid": cfg["name"],
         "variants": [v["name"] for v in cfg["variants"]], "seeds": cfg["seeds"], "package_version": __version__,
         "data_root": os.path.abspath(data_root), "data_fingerprint": data.fingerprint, "device": dev.type,
         "updated": time.strftime("%Y-%m-%dT%H:%M:%S%z")})
     atomic_write_text(os.path.join(out, "config.yaml"), yaml.safe_dump(cfg, sort_keys=False))
-    evaluator, ev_key, ev_folder = build_evaluator(cfg, data, out, log)
+
+
+def _reference(cfg: Dict[str, Any], data: StudyData, out: str, log: Callable[[str], Any]) -> Reference:
+    """The (cached) evaluator, the embeddings of the captions and real motions, and the real motions' scores."""
+    from ...metrics.t2m import frechet_distance
+
+    evaluator, key, _ = build_evaluator(cfg, data, out, log)
     text_emb = evaluator.embed_text(data.caption_objs).double().numpy()
     real_emb = evaluator.embed_motion(data.raw, data.lengths).double().numpy()
-    reference = score_set(evaluator, data.raw, data.norm, data.lengths, text_emb, real_emb, data.mean, data.std)
+    scores = score_set(evaluator, data.raw, data.norm, data.lengths, text_emb, real_emb, data.mean, data.std)
     train_x, train_L = data.train.padded()
     train_emb = evaluator.embed_motion(train_x * torch.from_numpy(data.std) + torch.from_numpy(data.mean),
                                        train_L).double().numpy()
-    from ...metrics.t2m import frechet_distance
+    scores["fid_train_vs_eval"] = frechet_distance(train_emb, real_emb)
+    return Reference(evaluator, key, text_emb, real_emb, scores)
 
-    reference["fid_train_vs_eval"] = frechet_distance(train_emb, real_emb)
-    meta = {"data": data_root, "data_fingerprint": data.fingerprint, "train_motions": len(data.train),
-            "eval_motions": len(data.ids), "evaluator_key": ev_key,
-            "evaluator": f"{cfg['evaluator']['kind']} {getattr(evaluator, 'report', {})}", "device": dev.type,
+
+def _meta(cfg: Dict[str, Any], data: StudyData, data_root: str, ref: Reference, dev: torch.device) -> Dict[str, Any]:
+    """What the report says about the run (data, evaluator, device, version, threads)."""
+    from ... import __version__
+
+    return {"data": data_root, "data_fingerprint": data.fingerprint, "train_motions": len(data.train),
+            "eval_motions": len(data.ids), "evaluator_key": ref.key,
+            "evaluator": f"{cfg['evaluator']['kind']} {getattr(ref.evaluator, 'report', {})}", "device": dev.type,
             "package_version": __version__, "torch_threads": torch.get_num_threads()}
 
-    runs: Dict[str, List[Dict[str, Any]]] = {}
-    plan = []
-    conflicts = []
+
+def _plan(cfg: Dict[str, Any], out: str, data: StudyData, ev_key: str, dev: torch.device, selected: Sequence[str],
+          run_seeds: Sequence[int], report_only: bool, overwrite: bool) -> List[StudyRun]:
+    """Every (variant, seed) of the config, in order, with what this invocation does with it; a stale
+    result that would be replaced without ``overwrite`` stops the study before anything trains."""
+    plan, conflicts = [], []
     for v in cfg["variants"]:
-        runs[v["name"]] = []
         for s in cfg["seeds"]:
             vdir = os.path.join(out, slug(v["name"]), f"seed{s}")
             settings = {**{k: cfg[k] for k in RUN_SETTINGS}, "variant": v, "evaluator_key": ev_key}
@@ -546,43 +605,41 @@ def run_study(cfg: Dict[str, Any], out: str, data_root: str, device: str = "cpu"
                                    clock=cfg["clock"])
             cached = read_cached(vdir, prov)
             run_it = (not report_only and v["name"] in selected and s in run_seeds
-                      and (overwrite or cached.state != "current"))
-            if run_it and cached.state == "stale" and not overwrite:
+                      and (overwrite or cached.state is not CacheState.CURRENT))
+            if run_it and cached.state is CacheState.STALE and not overwrite:
                 conflicts.append(f"{v['name']!r} seed {s} ({cached.reason})")
-            plan.append((v, s, vdir, prov, cached, run_it, settings))
+            plan.append(StudyRun(v, s, vdir, settings, prov, cached, run_it))
     if conflicts:
         raise OutputExistsError(f"--out {out!r} holds {len(conflicts)} result(s) from another run: "
                                 f"{'; '.join(conflicts)}. Pass --overwrite to run them again, or pick another --out")
+    return plan
+
+
+def _run_one(cfg: Dict[str, Any], item: StudyRun, data: StudyData, ref: Reference, dev: torch.device,
+             log: Callable[[str], Any]) -> Record:
+    """Train and score one (variant, seed), record it atomically (``result.json``, or ``failed.json``
+    when it raises: the other runs go on) and return the record."""
+    name, s, vdir = item.variant["name"], item.seed, item.vdir
+    res_path, fail_path = os.path.join(vdir, RESULT_FILE), os.path.join(vdir, FAILED_FILE)
+    os.makedirs(vdir, exist_ok=True)
+    atomic_write_json(os.path.join(vdir, "config.json"), item.settings)
+    log(f"  {name} seed {s}: training")
+    t0 = time.perf_counter()
     try:
-        for v, s, vdir, prov, cached, run_it, settings in plan:
-            if not run_it:
-                if cached.state == "current":
-                    runs[v["name"]].append({**cached.record, "reused": True})
-                continue
-            os.makedirs(vdir, exist_ok=True)
-            atomic_write_json(os.path.join(vdir, "config.json"), settings)
-            log(f"  {v['name']} seed {s}: training")
-            t0 = time.perf_counter()
-            try:
-                rec = run_seed(cfg, v, s, data, evaluator, text_emb, real_emb, dev, log)
-            except Exception as e:  # recorded; the other runs go on
-                rec = {"name": v["name"], "seed": s, "status": "failed", "error": f"{type(e).__name__}: {e}",
-                       "traceback": traceback.format_exc(), "provenance": prov}
-                atomic_write_json(os.path.join(vdir, "failed.json"), rec)
-                if os.path.exists(os.path.join(vdir, "result.json")):
-                    os.remove(os.path.join(vdir, "result.json"))
-                log(f"  {v['name']} seed {s}: FAILED ({rec['error']})")
-                runs[v["name"]].append(rec)
-                continue
-            rec["wall_s"] = time.perf_counter() - t0
-            rec["provenance"] = prov
-            atomic_write_json(os.path.join(vdir, "result.json"), rec, indent=None)
-            if os.path.exists(os.path.join(vdir, "failed.json")):
-                os.remove(os.path.join(vdir, "failed.json"))
-            runs[v["name"]].append(rec)
-    finally:  # the report is written even when interrupted: it shows what is done
-        write_outputs(cfg, out, runs, reference, meta)
-    return runs
+        rec = run_seed(cfg, item.variant, s, data, ref.evaluator, ref.text_emb, ref.real_emb, dev, log)
+    except Exception as e:  # recorded; the other runs go on
+        rec = failure_record(name, e, item.provenance, seed=s)
+        atomic_write_json(fail_path, rec)
+        if os.path.exists(res_path):
+            os.remove(res_path)
+        log(f"  {name} seed {s}: FAILED ({rec['error']})")
+        return rec
+    rec["wall_s"] = time.perf_counter() - t0
+    rec["provenance"] = item.provenance
+    atomic_write_json(res_path, rec, indent=None)
+    if os.path.exists(fail_path):
+        os.remove(fail_path)
+    return rec
 
 
 # ----------------------------------------------------------------------------------------- CLI
@@ -605,17 +662,14 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--out", default=os.path.join("results", KIND), help=f"results folder (default results/{KIND})")
     p.add_argument("--data", type=existing_path("dir"), default=None,
                    help=f"HumanML3D-format folder with texts/ (default: config 'data' or {DEFAULT_DATA})")
-    p.add_argument("--device", type=device_type, default="cpu", help="cpu (default), cuda[:N], mps, auto")
     p.add_argument("--only", nargs="+", default=None, metavar="VARIANT", help="run only these variants")
     p.add_argument("--seeds", nargs="+", type=int, default=None, help="run only these seeds of the config")
-    p.add_argument("--threads", type=int, default=1,
-                   help="torch.set_num_threads (default 1: the CPU-time clock then measures one core's work)")
     g = p.add_mutually_exclusive_group()
     g.add_argument("--resume", action="store_true", help="reuse (variant, seed) results with the same provenance")
     add_overwrite(g)
     p.add_argument("--report-only", action="store_true",
                    help="with --resume: train nothing, rebuild the report from the finished runs in --out")
-    p.add_argument("--no-progress", action="store_true", help="(accepted for smdm ablate compatibility)")
+    add_common_flags(p, device="cpu", threads_default=1)  # 1 thread: the CPU-time clock measures one core's work
     return p
 
 
@@ -624,8 +678,6 @@ def main(argv: Optional[List[str]] = None) -> int:
     a = p.parse_args(argv)
     if a.report_only and not a.resume:
         p.error("argument --report-only: needs --resume (an existing results folder)")
-    if a.threads < 1:
-        p.error(f"argument --threads: expected an int >= 1, got {a.threads}")
     name = a.config
     if a.quick and not name.endswith("_quick"):
         base = name[:-5] if name.endswith(".yaml") else name
@@ -642,7 +694,7 @@ def main(argv: Optional[List[str]] = None) -> int:
     cfg["data"] = data_root
     try:
         runs = run_study(cfg, a.out, data_root, a.device, a.only, a.seeds, a.resume, a.overwrite,
-                         report_only=a.report_only)
+                         log=print if progress_of(a) else _silent, report_only=a.report_only)
     except (OutputExistsError, FileNotFoundError, ValueError, PermissionError, NotADirectoryError) as e:
         print(f"smdm ablate: error: {e}", file=sys.stderr)
         return 2
@@ -651,5 +703,9 @@ def main(argv: Optional[List[str]] = None) -> int:
         return 130
     with open(os.path.join(a.out, "results.md"), encoding="utf-8") as f:
         print("\n" + f.read())
-    print(f"results: {os.path.abspath(a.out)}")
-    return 0 if all(r.get("status") == "ok" for rs in runs.values() for r in rs) else 1
+    note_printer(a)(f"results: {os.path.abspath(a.out)}")
+    return 0 if all(is_ok(r) for rs in runs.values() for r in rs) else 1
+
+
+def _silent(*_: Any, **__: Any) -> None:
+    """The study's log under --no-progress / --quiet: nothing."""

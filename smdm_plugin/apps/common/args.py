@@ -1,11 +1,12 @@
-"""Argument types shared by the ``smdm`` commands: every numeric option range-checked by argparse
+"""Arguments shared by the ``smdm`` commands: every numeric option range-checked by argparse
 (a bad value is one line naming the option, exit status 2, no traceback), devices that exist,
-output paths that are never overwritten without ``--overwrite``."""
+output paths that are never overwritten without ``--overwrite``, and the common flags every
+command takes (:func:`add_common_flags`: ``--device``, ``--threads``, ``--no-progress``, ``--quiet``)."""
 from __future__ import annotations
 
 import argparse
 import os
-from typing import TYPE_CHECKING, Callable
+from typing import TYPE_CHECKING, Any, Callable, Optional
 
 if TYPE_CHECKING:
     import torch
@@ -14,7 +15,7 @@ if TYPE_CHECKING:
 from ...core.config import float_range, int_range, str2bool
 
 __all__ = ["int_range", "float_range", "str2bool", "existing_path", "device_type", "resolve_device",
-           "add_overwrite"]
+           "add_overwrite", "add_common_flags", "progress_of", "note_printer", "COMMON_FLAGS"]
 
 
 def existing_path(kind: str = "any") -> Callable[[str], str]:
@@ -73,3 +74,69 @@ def add_overwrite(p: argparse.ArgumentParser) -> None:
     """``--overwrite``: without it, a command refuses an existing output file or non-empty folder."""
     p.add_argument("--overwrite", action="store_true",
                    help="replace existing output files / write into a non-empty output folder")
+
+
+COMMON_FLAGS = ("--device", "--threads", "--no-progress", "--quiet")
+DEVICE_HELP = "auto (CUDA, else MPS, else CPU), cpu, cuda, cuda:N or mps (default {default})"
+
+
+class _NotApplicable(argparse.Action):
+    """A common flag this command cannot honour: parsed, then refused with one line saying why."""
+
+    def __init__(self, option_strings, dest, why: str = "", **kwargs: Any) -> None:
+        self.why = why
+        super().__init__(option_strings, dest, help=argparse.SUPPRESS, **kwargs)
+
+    def __call__(self, parser, namespace, values, option_string=None) -> None:
+        parser.error(f"argument {option_string}: does not apply to {parser.prog} ({self.why})")
+
+
+def add_common_flags(p: Any, *, device: Optional[str] = "auto", threads: bool = True,
+                     threads_default: Optional[int] = None, progress: bool = True, quiet: bool = True,
+                     why_not: str = "", device_help: str = "") -> None:
+    """Add the common flags to parser (or group) ``p``, one meaning everywhere:
+
+    * ``--device DEV`` (default ``device``; ``None``: the command has no device) — :func:`device_type`
+      (``device_help``: what ``auto`` means for this command, when it says more than the default help);
+    * ``--threads N`` (default ``threads_default``: the automatic choice of ``common.threads``);
+    * ``--no-progress`` — no progress bars or per-step progress lines;
+    * ``--quiet`` — ``--no-progress`` and no notes (what the command is doing, where it wrote):
+      results, warnings and errors still print (:func:`progress_of`, :func:`note_printer`).
+
+    A flag the command cannot honour (``device=None``, ``threads=False``, ...) is still parsed and
+    refused with one argparse line naming ``why_not`` (exit status 2)."""
+    def refuse(flag: str, nargs: int) -> None:
+        p.add_argument(flag, action=_NotApplicable, why=why_not or "not used by this command", nargs=nargs)
+
+    if device is not None:
+        p.add_argument("--device", type=device_type, default=device, help=device_help or DEVICE_HELP.format(default=device))
+    else:
+        refuse("--device", 1)
+    if threads:
+        from .threads import THREADS_HELP
+
+        p.add_argument("--threads", type=int_range(1, 1024), default=threads_default, metavar="N",
+                       help=THREADS_HELP if threads_default is None else f"CPU threads for torch (default {threads_default})")
+    else:
+        refuse("--threads", 1)
+    if progress:
+        p.add_argument("--no-progress", action="store_true", help="no progress bars or per-step progress lines")
+    else:
+        refuse("--no-progress", 0)
+    if quiet:
+        p.add_argument("--quiet", action="store_true",
+                       help="--no-progress, and no notes: only results, warnings and errors print")
+    else:
+        refuse("--quiet", 0)
+
+
+def progress_of(args: argparse.Namespace) -> bool:
+    """Whether the command shows progress: neither ``--no-progress`` nor ``--quiet`` was given."""
+    return not (getattr(args, "no_progress", False) or getattr(args, "quiet", False))
+
+
+def note_printer(args: argparse.Namespace) -> Callable[..., None]:
+    """``print`` for a command's notes (``print(msg, file=sys.stderr)`` as usual); silent under ``--quiet``."""
+    if getattr(args, "quiet", False):
+        return lambda *a, **kw: None
+    return print

@@ -61,10 +61,9 @@ import numpy as np
 import torch
 
 from ...io.files import atomic_open, atomic_write_json, atomic_write_text
-from ..common.args import add_overwrite, device_type, float_range, int_range
+from ..common.args import add_common_flags, add_overwrite, float_range, int_range, note_printer, progress_of
 from ..common.keyframe_study import (FRAME_INDEX_SCALE, keyframe_markdown, keyframe_study, motion_source,
                                      plot_keyframes, require_windows, windows)
-from ..common.threads import THREADS_HELP
 
 NO_BVH = """smdm demo: no BVH motion capture found.
   Pass one or more files or folders:  smdm demo --bvh path/to/clips/
@@ -206,14 +205,11 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--latent", type=int_range(4, 4096), default=None, help="a multiple of 4 (heads); default 256")
     p.add_argument("--layers", type=int_range(1, 64), default=None, help="default 4")
     p.add_argument("--every", type=int_range(2, 196), default=30, help="in-betweening: a keyframe every EVERY frames (default 30)")
-    p.add_argument("--device", type=device_type, default="auto", help="auto (CUDA, else MPS, else CPU), cpu, cuda, cuda:N or mps (default auto)")
     p.add_argument("--seed", type=int_range(0), default=0, help="random seed (default 0)")
     p.add_argument("--max-clips", type=int_range(1), default=None, help="use at most this many clips (default: all)")
     p.add_argument("--frame-index-scale", type=float_range(0, 100), default=FRAME_INDEX_SCALE, metavar="M",
                    help="metres per frame appended to the joint positions for VW selection, in the keyframe "
                         f"table and in the sparse model's training (default {FRAME_INDEX_SCALE}, the library's)")
-    p.add_argument("--threads", type=int_range(1, 1024), default=None,
-                   help=THREADS_HELP)
     p.add_argument("--no-gif", action="store_true", help="skip the in-betweening animation")
     p.add_argument("--evaluator", default=None, metavar="EDIR",
                    help="motion evaluator folder for FID and diversity: one that reads joints66 features (66-D), e.g. "
@@ -221,7 +217,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                         "on the demo's training clips at start, about 15-30 s, and save it to OUT/evaluator)")
     p.add_argument("--no-evaluator", action="store_true", help="no FID / diversity: skip the evaluator (default: off)")
     p.add_argument("--quick", action="store_true",
-                   help="a smoke run: 1 clip, 60 frames, a tiny model, 3 steps (options you give are kept)")
+                   help="a smoke run: 1 clip, a tiny model, 3 steps, no progress bars (options you give "
+                        "are kept)")
+    add_common_flags(p)
 
 
 def apply_quick(args: argparse.Namespace) -> List[str]:
@@ -253,7 +251,8 @@ def main_demo(args: argparse.Namespace) -> int:
         print(f"smdm demo: {e}", file=sys.stderr)
         return 2
     main_rank = ctx.is_main
-    say = print if main_rank else (lambda *a, **k: None)
+    say = note_printer(args) if main_rank else (lambda *a, **k: None)
+    progress = progress_of(args) and not args.quick
     try:
         quick = apply_quick(args)
         if quick:
@@ -321,7 +320,7 @@ def main_demo(args: argparse.Namespace) -> int:
                 try:
                     evaluator, ev_info = train_demo_evaluator(train_clips, os.path.join(args.out, "evaluator"),
                                                               args.seed, quick=args.quick, device=dev,
-                                                              progress=not args.quick)
+                                                              progress=progress)
                 except ValueError as e:
                     print(e, file=sys.stderr)
                     return 2
@@ -347,7 +346,7 @@ def main_demo(args: argparse.Namespace) -> int:
         say(f"\n## Training dense vs. sparse ({int(round(args.train_reduction * 100))}% dropped) for "
             f"{seconds:.0f} s in total on {dev}: {len(data)} crops of {args.frames} frames from {len(train_clips)} "
             f"clip(s), 66-D joint features, batch {procs}{args.batch}")
-        train = race_fair(trainers, seconds, max_steps=3 if args.quick else None, progress=not args.quick,
+        train = race_fair(trainers, seconds, max_steps=3 if args.quick else None, progress=progress,
                           desc="training dense + sparse")
         snapshots = train.pop("equal_steps")
         train["equal_steps"] = {k: v for k, v in snapshots.items() if k != "states"}
@@ -402,7 +401,7 @@ def main_demo(args: argparse.Namespace) -> int:
         note = " (held out from training)" if held else " (a training clip: too few clips to hold one out)"
         print(f"\n## In-betweening {clip[0]}{note}")
         itable = inbetween_demo({k: bundles[k] for k in ("dense", "sparse")}, clip, args.frames, args.every, args.out, args.seed, dev,
-                                gif=not args.no_gif, progress=not args.quick, stride=2 if args.quick else 1, note=note)
+                                gif=not args.no_gif, progress=progress, stride=2 if args.quick else 1, note=note)
         itable += "\n\n" + limits
         atomic_write_text(os.path.join(args.out, "inbetween.md"), itable + "\n")
         print(itable)
@@ -412,7 +411,7 @@ def main_demo(args: argparse.Namespace) -> int:
                                                                "out": getattr(args, "folder", args.out)}}
         summary["keyframes"]["mpjpe_mm"] = {m: {str(r): v for r, v in d.items()} for m, d in study["mpjpe_mm"].items()}
         atomic_write_json(os.path.join(args.out, "summary.json"), summary, indent=1)
-        print(f"\noutputs: {os.path.abspath(getattr(args, 'folder', args.out))}")
+        say(f"\noutputs: {os.path.abspath(getattr(args, 'folder', args.out))}")
         return 0
     finally:
         shutdown_distributed(ctx)
