@@ -65,7 +65,7 @@ _EXPORTS: Dict[str, str] = {
     # io
     "read_bvh": "io.bvh", "bvh_joint_positions": "io.bvh", "load_cmu_clip": "io.bvh",
     "BVHError": "io.bvh", "BVHWarning": "io.bvh", "OutputExistsError": "io.files",
-    "save_sparse_config": "io.checkpoint", "load_checkpoint": "adapters.checkpoint",
+    "save_sparse_config": "adapters.checkpoint", "load_checkpoint": "adapters.checkpoint",
     "check_state_dict": "io.checkpoint", "find_sparse_config": "io.checkpoint",
     # reference model
     "TinyMDM": "reference.backbone", "MotionDiffuseDenoiser": "reference.motiondiffuse_denoiser",
@@ -123,8 +123,8 @@ if TYPE_CHECKING:  # pragma: no cover - for type checkers and IDEs
     from .core.selection import keyframe_count, perturb_mask, select_keyframes, vw_reference
     from .io.bvh import BVHError, BVHWarning, bvh_joint_positions, load_cmu_clip, read_bvh
     from .io.files import OutputExistsError
-    from .adapters.checkpoint import load_checkpoint
-    from .io.checkpoint import check_state_dict, find_sparse_config, save_sparse_config
+    from .adapters.checkpoint import load_checkpoint, save_sparse_config
+    from .io.checkpoint import check_state_dict, find_sparse_config
     from .reference.backbone import TinyMDM
     from .reference.motiondiffuse_denoiser import MotionDiffuseDenoiser
     from .reference.diffusion import ClassifierFreeGuidance, SimpleDiffusion

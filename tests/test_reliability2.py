@@ -265,7 +265,7 @@ def _edit_json(path: Path, **changes) -> None:
 
 
 def test_bundle_motion_json_is_validated(tmp_path):
-    from smdm_plugin.io.bundle import load_bundle, save_bundle
+    from smdm_plugin.training.bundle import load_bundle, save_bundle
     from smdm_plugin.io.representation import Representation
     from smdm_plugin.reference.backbone import TinyMDM
     from smdm_plugin.reference.diffusion import SimpleDiffusion

@@ -130,7 +130,7 @@ def record_doubletake_output(model: Any, args: Any) -> None:
     config, since, out = sparse_config_of(model), time.time() - 1.0, doubletake_output_dir(args)
 
     def write() -> None:
-        from ..io.checkpoint import save_sparse_config
+        from ..adapters.checkpoint import save_sparse_config
 
         results = os.path.join(out, "results.npy") if out else ""
         if config is None or not os.path.isfile(results) or os.path.getmtime(results) < since:

@@ -443,8 +443,8 @@ class Trainer:
                            "global_batch": self.global_batch, "step": self.step_count,
                            **({"init_from": self.init_origin} if self.init_origin else {}), **(extra or {})})
         rep = MOTION_REPRESENTATIONS.get(self.data.feature_dim)
-        if rep is not None:  # motion.json: the folder is also a model smdm inbetween reads (io.bundle)
-            from ..io.bundle import write_motion_meta
+        if rep is not None:  # motion.json: the folder is also a model smdm inbetween reads (training.bundle)
+            from .bundle import write_motion_meta
             from ..io.representation import Representation
 
             write_motion_meta(folder, Representation(rep), self.data.mean, self.data.std, 20.0,
