@@ -7,8 +7,9 @@ from typing import Any, Iterable, Optional, Tuple, Union
 
 import torch.nn as nn
 
-from ..core.config import SparseConfig, sparse_config_of
+from ..core.config import SparseConfig
 from ..io import checkpoint as _io
+from .state import sparse_config_of
 from .surgery import is_sparse, sparsify
 from .text_encoder import swap_text_encoder, swapped_text_encoder
 

@@ -246,7 +246,7 @@ class MDMWorkload(Workload):
         return "in-package TinyMDM"
 
     def batch(self, batch: int, frames: int, device: torch.device, quick: bool) -> Dict[str, Any]:
-        from ..adapters.state import frames_layout
+        from ..adapters.mdm import frames_layout
 
         data = make_batch(batch, frames, device)
         return {**data, "frames": frames_layout(data["x"]), "kwargs": {"y": data["y"]}}
@@ -342,7 +342,7 @@ for _w in (MDMWorkload(), MotionDiffuseWorkload()):
 
 def family_choices() -> List[str]:
     """The registered model families the benchmark can time (those with a :class:`Workload`)."""
-    from ..adapters.family import FAMILIES
+    from ..adapters.families import FAMILIES
 
     return [n for n in FAMILIES.names() if n in WORKLOADS]
 

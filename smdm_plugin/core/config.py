@@ -32,20 +32,6 @@ CONFIG_VERSION = 1
 CONFIG_FILENAME = "sparse_config.json"
 #: name of the persistent buffer that marks a state dict as sparse (its value: the config version)
 MARKER = "smdm_sparse_version"
-#: the attribute a sparsified model carries its one state object under (``adapters.state.SparseState``)
-STATE_ATTR = "_smdm_state"
-
-
-def sparse_config_of(model: Any) -> Optional["SparseConfig"]:
-    """The :class:`SparseConfig` of a sparsified ``model`` (an ``nn.Module``; or of its first
-    sparsified submodule: DDP, EMA wrappers), else None. The one place a model's config lives is its
-    state (``model._smdm_state.config``)."""
-    for m in model.modules():
-        config = getattr(getattr(m, STATE_ATTR, None), "config", None)
-        if isinstance(config, SparseConfig):
-            return config
-    return None
-
 FEATURES = ("auto", "humanml3d", "kit", "raw")
 
 

@@ -125,7 +125,7 @@ def record_doubletake_output(model: Any, args: Any) -> None:
     import atexit
     import time
 
-    from ..core.config import sparse_config_of
+    from ..adapters.state import sparse_config_of
 
     config, since, out = sparse_config_of(model), time.time() - 1.0, doubletake_output_dir(args)
 

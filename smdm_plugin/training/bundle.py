@@ -20,7 +20,8 @@ import torch
 import torch.nn as nn
 
 from ..adapters.checkpoint import load_checkpoint, save_sparse_config
-from ..core.config import CONFIG_FILENAME, SparseConfig, sparse_config_of
+from ..adapters.state import sparse_config_of
+from ..core.config import CONFIG_FILENAME, SparseConfig
 from ..io.checkpoint import BACKBONE_FILENAME
 from ..io.files import atomic_open, atomic_write_json
 from ..io.representation import Representation

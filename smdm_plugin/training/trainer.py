@@ -30,7 +30,8 @@ import numpy as np
 import torch
 import torch.nn as nn
 
-from ..core.config import CONFIG_FILENAME, SparseConfig, sparse_config_of
+from ..adapters.state import sparse_config_of
+from ..core.config import CONFIG_FILENAME, SparseConfig
 from ..integrations.compile import check_compile_mode, compile_model
 from ..integrations.distributed import DistContext, constant_buffers_kwargs, init_distributed
 from ..io.checkpoint import BACKBONE_FILENAME

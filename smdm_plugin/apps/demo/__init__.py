@@ -508,7 +508,7 @@ def evaluator_scores(generated: Dict[str, GeneratedSet], reference: np.ndarray,
 
 def sparse_sampling(model: Any) -> str:
     """The sparse sampling settings of ``model`` in words (interpolation, dynamic update)."""
-    from ...core.config import sparse_config_of
+    from ...adapters.state import sparse_config_of
 
     c = sparse_config_of(model)
     if c is None:
