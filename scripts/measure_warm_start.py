@@ -121,7 +121,7 @@ def wrap_folder(dense: str, out: str, reduction: float) -> None:
     import torch
 
     from smdm_plugin.adapters.warm import wrap_dense
-    from smdm_plugin.core.config import load_preset
+    from smdm_plugin.core.presets import load_preset
     from smdm_plugin.adapters.checkpoint import save_sparse_config
     from smdm_plugin.training.trainer import load_trained
 

@@ -22,7 +22,7 @@ __version__ = "0.6.0"
 
 _EXPORTS: Dict[str, str] = {
     # core: the method
-    "SparseConfig": "core.config", "load_preset": "core.config", "sparse_config_of": "adapters.state",
+    "SparseConfig": "core.config", "load_preset": "core.presets", "sparse_config_of": "adapters.state",
     "select_keyframes": "core.selection", "register_selector": "core.selection", "perturb_mask": "core.selection",
     "vw_reference": "core.selection", "keyframe_count": "core.selection",
     "extract_selection_features": "core.features",
@@ -47,7 +47,7 @@ _EXPORTS: Dict[str, str] = {
     "keyframe_collate": "adapters.mdm",
     "swap_text_encoder": "adapters.text_encoder", "HFTextEncoder": "adapters.text_encoder",
     "install_text_cache": "adapters.text_cache", "TextEmbeddingCache": "adapters.text_cache",
-    "ConfigTypeError": "core.config",
+    "ConfigTypeError": "core.values",
     # integrations: graph capture (--sparse_compile / smdm train --compile)
     "compile_model": "integrations.compile", "CompileSetting": "integrations.compile",
     "sample_inbetween": "adapters.inbetween", "keyframe_constraint": "adapters.inbetween",
@@ -103,7 +103,9 @@ if TYPE_CHECKING:  # pragma: no cover - for type checkers and IDEs
     from .adapters.surgery import is_sparse, set_mean_std, sparsify, unsparsify
     from .adapters.warm import is_dense_wrap, warm_start, wrap_dense
     from .core.attention_backends import available_backends, get_backend, register_backend
-    from .core.config import ConfigTypeError, SparseConfig, load_preset
+    from .core.config import SparseConfig
+    from .core.presets import load_preset
+    from .core.values import ConfigTypeError
     from .adapters.state import sparse_config_of
     from .core.features import extract_selection_features
     from .core.fsq import FSQ, FSQMultiheadAttention, quantize_attention_keys, unquantize_attention_keys

@@ -24,7 +24,6 @@ import weakref
 from dataclasses import dataclass, field
 from typing import Any, List, Optional, Tuple
 
-import torch
 import torch.nn as nn
 
 from ..core.noise import NOISE_STEP, NOISE_TABLE, CounterNoise

@@ -22,7 +22,8 @@ import torch
 import torch.nn as nn
 from torch.nn.utils import parametrize
 
-from ..core.config import MARKER, SparseConfig, load_preset
+from ..core.config import MARKER, SparseConfig
+from ..core.presets import load_preset
 from ..core.fsq import FSQMultiheadAttention
 from ..core.lipschitz import LipschitzMLP, LipschitzWeight
 from .families import family_for, get_family

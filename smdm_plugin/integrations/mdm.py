@@ -25,7 +25,8 @@ import os
 import warnings
 from typing import Any, Optional, Tuple
 
-from ..core.config import CONFIG_FILENAME, SparseConfig
+from ..core.config import SparseConfig
+from ..core.config_files import CONFIG_FILENAME
 
 __all__ = ["add_sparse_options", "apply_compile", "sparsify_mdm", "check_mdm_state_dict", "dataset_mean_std",
            "install_hooks", "is_mdm_repo", "warn_if_upstream_steps"]

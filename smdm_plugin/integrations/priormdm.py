@@ -20,7 +20,8 @@ import os
 import warnings
 from typing import Any, Optional
 
-from ..core.config import CONFIG_FILENAME, SparseConfig
+from ..core.config import SparseConfig
+from ..core.config_files import CONFIG_FILENAME
 
 
 from .mdm import _is_training, add_sparse_options, apply_compile, dataset_mean_std, patch_base_options  # noqa: E402,F401  (the one --sparse* adder; patches import it here)

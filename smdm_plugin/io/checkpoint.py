@@ -12,7 +12,9 @@ from typing import Any, Dict, Iterable, Mapping, Optional, Tuple
 import torch
 import torch.nn as nn
 
-from ..core.config import CONFIG_FILENAME, MARKER, SparseConfig, disagreement
+from ..core.agreement import disagreement
+from ..core.config import MARKER, SparseConfig
+from ..core.config_files import CONFIG_FILENAME
 from .files import OutputExistsError
 from .validate import read_json_object, require_fields
 

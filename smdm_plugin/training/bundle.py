@@ -21,7 +21,8 @@ import torch.nn as nn
 
 from ..adapters.checkpoint import load_checkpoint, save_sparse_config
 from ..adapters.state import sparse_config_of
-from ..core.config import CONFIG_FILENAME, SparseConfig
+from ..core.config import SparseConfig
+from ..core.config_files import CONFIG_FILENAME
 from ..io.checkpoint import BACKBONE_FILENAME
 from ..io.files import atomic_open, atomic_write_json
 from ..io.representation import Representation

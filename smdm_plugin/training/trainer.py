@@ -31,7 +31,8 @@ import torch
 import torch.nn as nn
 
 from ..adapters.state import sparse_config_of
-from ..core.config import CONFIG_FILENAME, SparseConfig
+from ..core.config import SparseConfig
+from ..core.config_files import CONFIG_FILENAME
 from ..integrations.compile import check_compile_mode, compile_model
 from ..integrations.distributed import DistContext, constant_buffers_kwargs, init_distributed
 from ..io.checkpoint import BACKBONE_FILENAME

@@ -43,7 +43,7 @@ from typing import Any, Callable, Dict, List, Optional, Sequence, Tuple
 import numpy as np
 import torch
 
-from ...core.config import closest
+from ...core.values import closest
 from ...io.files import OutputExistsError, atomic_open, atomic_write_json, atomic_write_text
 from ..common.args import add_overwrite, device_type, existing_path, resolve_device
 from . import check_out_dir, read_cached
@@ -150,7 +150,7 @@ def resolve_study(cfg: Dict[str, Any]) -> Dict[str, Any]:
 
 
 def _range(lo: float):
-    from ...core.config import Range
+    from ...core.values import Range
 
     return Range(lo)
 
