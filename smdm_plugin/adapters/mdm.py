@@ -29,7 +29,7 @@ from typing import Any, Callable, Dict, List, Optional, Tuple
 import torch
 import torch.nn as nn
 
-from ..core.attention_backends import gather_rows, scatter_rows
+from ..core.rows import gather_rows, scatter_rows
 from ..core.checks import as_lengths, as_mask, compiling, host_checkable, require
 from ..core.config import SparseConfig
 from ..core.fsq import FSQMultiheadAttention, quantize_attention_keys

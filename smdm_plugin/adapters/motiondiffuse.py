@@ -45,7 +45,8 @@ import numpy as np
 import torch
 import torch.nn as nn
 
-from ..core.attention_backends import fill_frames, gather_rows
+from ..core.fill import fill_frames
+from ..core.rows import gather_rows
 from ..core.checks import as_lengths
 from ..core.config import SparseConfig
 from ..core.embedding import timestep_embedding

@@ -482,7 +482,7 @@ def _overhead_fns(work: Workload, model, batch, device, train: bool):
     shapes: ``(select, interp)`` callables."""
     from ..adapters.diffusion import model_noise
     from ..adapters.state import get_state
-    from ..core.attention_backends import fill_frames
+    from ..core.fill import fill_frames
 
     state = get_state(model)
     frames = batch["frames"]
