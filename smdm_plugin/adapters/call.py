@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, Any, List, Optional
+from typing import TYPE_CHECKING, Any, Callable, List, Optional
 
 import torch
 
@@ -61,7 +61,7 @@ class CallInputs:
 _REUSED: List[tuple] = []          # (source tensor, its version, key, result): the last few
 
 
-def reuse_for(source: torch.Tensor, key: tuple, compute) -> torch.Tensor:
+def reuse_for(source: torch.Tensor, key: tuple, compute: Callable[[], torch.Tensor]) -> torch.Tensor:
     """``compute()``, or its result for the same ``source`` tensor (the same object, unchanged
     since: same version) and ``key`` from one of the last few calls: the lengths of a sampling loop's
     ``y['mask']`` are read and validated once, not at every step and guidance pass (and once per
