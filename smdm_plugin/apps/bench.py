@@ -44,7 +44,8 @@ from typing import Any, Callable, Dict, List, Optional, Sequence, Tuple
 
 import torch
 
-from ..core.config import BACKENDS, sparse_config_of
+from ..adapters.state import sparse_config_of
+from ..core.config import BACKENDS
 from ..integrations.compile import COMPILE_MODES
 from ..core.registry import Registry
 from .common.args import add_common_flags, add_overwrite, float_range, int_range, note_printer, progress_of, resolve_device
@@ -166,7 +167,7 @@ FSQ_CHOICES = {"paper": "sparse only (dense = upstream MDM, sparse = the paper's
 
 class Workload:
     """How the benchmark builds, feeds and calls the in-package model of one registered model
-    family (:data:`~smdm_plugin.adapters.family.FAMILIES`). One subclass per family, registered in
+    family (:data:`~smdm_plugin.adapters.families.FAMILIES`). One subclass per family, registered in
     :data:`WORKLOADS` under the family's name; ``--family`` offers the registered families that
     have one. The sparse model is made with ``sparsify(..., family=name)``."""
 
@@ -245,7 +246,7 @@ class MDMWorkload(Workload):
         return "in-package TinyMDM"
 
     def batch(self, batch: int, frames: int, device: torch.device, quick: bool) -> Dict[str, Any]:
-        from ..adapters.state import frames_layout
+        from ..adapters.mdm import frames_layout
 
         data = make_batch(batch, frames, device)
         return {**data, "frames": frames_layout(data["x"]), "kwargs": {"y": data["y"]}}
@@ -341,7 +342,7 @@ for _w in (MDMWorkload(), MotionDiffuseWorkload()):
 
 def family_choices() -> List[str]:
     """The registered model families the benchmark can time (those with a :class:`Workload`)."""
-    from ..adapters.family import FAMILIES
+    from ..adapters.families import FAMILIES
 
     return [n for n in FAMILIES.names() if n in WORKLOADS]
 
@@ -483,7 +484,7 @@ def _overhead_fns(work: Workload, model, batch, device, train: bool):
     shapes: ``(select, interp)`` callables."""
     from ..adapters.diffusion import model_noise
     from ..adapters.state import get_state
-    from ..core.attention_backends import fill_frames
+    from ..core.fill import fill_frames
 
     state = get_state(model)
     frames = batch["frames"]
