@@ -97,7 +97,9 @@ def keyframe_plan(state: "SparseState", frames: torch.Tensor, timesteps: Any, le
     B, N = frames.shape[:2]
     device = frames.device
     taps = None                                            # C¹ fill taps looked up (sampling, uniform mask)
-    if mask is not None:                                   # training (or a caller's own mask)
+    if mask is not None and mask is state.schedule_mask and forced is None and not compiling():
+        check, cubic = False, None                         # training: the schedule's own mask (valid, in capacity)
+    elif mask is not None:                                 # training (or a caller's own mask)
         valid = consts.arange(N, device)[None] < lengths[:, None]
         # a mask chosen while loading (keyframe_collate) is still on the CPU: upstream loops move
         # y's tensors, not the KeyframeRequest; copy it without waiting for the device

@@ -107,8 +107,13 @@ def attach_diffusion(diffusion: Any, model: Optional[nn.Module] = None) -> Any:
         if mask is None:                         # else: chosen in data loading (mdm.keyframe_collate)
             mask, capacity = training_keyframes(state.schedule, call.frames, call.lengths, call.forced,
                                                 model_noise(sparse))
+            if call.forced is None:              # valid by construction: the plan checks it no more
+                state.schedule_mask = mask
         model_kwargs = family.with_keyframes(state, model_kwargs or {}, mask, capacity)
-        terms = original(model, x_start, t, model_kwargs, *args, **kwargs)
+        try:
+            terms = original(model, x_start, t, model_kwargs, *args, **kwargs)
+        finally:
+            state.schedule_mask = None
         return family.finish_losses(state, sparse, terms, mask)
 
     diffusion.training_losses = training_losses

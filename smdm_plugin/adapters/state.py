@@ -10,6 +10,7 @@ import weakref
 from dataclasses import dataclass, field
 from typing import Any, Dict, List, Optional, Tuple
 
+import torch
 import torch.nn as nn
 
 from ..core.config import SparseConfig
@@ -38,7 +39,9 @@ class SparseState:
     to the diffusions whose loss was wrapped for this model). Per call: ``plan``, the
     :class:`~smdm_plugin.core.plan.KeyframePlan` of the running call (over the model's frames, DiP
     prefix included), for families whose hooks share it (MDM: written by the model's forward
-    pre-hook, read by the embedding hooks, cleared by the forward hook).
+    pre-hook, read by the embedding hooks, cleared by the forward hook); ``schedule_mask``, the
+    training mask the diffusion wrapper made with the model's own schedule for the running step
+    (in the valid frames, within its capacity by construction: the plan does not check it again).
     """
 
     config: SparseConfig
@@ -50,6 +53,7 @@ class SparseState:
     handles: List[Any] = field(default_factory=list)
     diffusions: List["weakref.ref"] = field(default_factory=list)
     plan: Optional[KeyframePlan] = None
+    schedule_mask: Optional[torch.Tensor] = None
 
 
 class _Missing:

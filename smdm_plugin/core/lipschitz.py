@@ -90,7 +90,7 @@ class LipschitzWeight(nn.Module):
 
 class _NormalisedWeights(torch.autograd.Function):
     """Every :class:`LipschitzWeight` of one MLP in one pass, with autograd: the same values as
-    the parametrizations (the same operations, bit for bit), in ``2G + 6`` ops forward
+    the parametrizations (the same operations, bit for bit), in ``2G + 5`` ops forward
     and ``5G + 10`` backward for ``G`` layers (the parametrizations one by one: about 24 per
     layer). ``row_owner [R]`` long: the layer of each of the ``R`` output rows (all layers' rows
     stacked); inputs ``c_1..c_G, W_1..W_G``; returns ``W_hat_1..W_hat_G``. The backward is written
@@ -105,21 +105,22 @@ class _NormalisedWeights(torch.autograd.Function):
         rowsum = torch.cat([_row_abs_sum(w) for w in ws])                  # [R, 1]
         c = torch.stack([t.reshape(()) for t in cs])                          # [G]
         bound = F.softplus(c).index_select(0, row_owner).unsqueeze(1)          # [R, 1]
-        clamped = rowsum.clamp_min(eps)                                       # 0-rows: scale 1
-        ratio = bound / clamped
+        # bound / max(rowsum, eps) as the parametrization computes it: the same where rowsum >= eps;
+        # below, both ratios exceed 1 (inf for a 0-row), so the scale is 1 either way
+        ratio = bound / rowsum
         scale = ratio.clamp(max=1.0)
         sizes = [w.shape[0] for w in ws]
         ctx.sizes, ctx.eps, ctx.c_shapes = sizes, eps, [t.shape for t in cs]
-        ctx.save_for_backward(row_owner, c, rowsum, clamped, ratio, scale, *ws)
+        ctx.save_for_backward(row_owner, c, rowsum, ratio, scale, *ws)
         return tuple(w * sc for w, sc in zip(ws, scale.split(sizes)))
 
     @staticmethod
     def backward(ctx, *grads: Tensor):
-        row_owner, c, rowsum, clamped, ratio, scale, *ws = ctx.saved_tensors
+        row_owner, c, rowsum, ratio, scale, *ws = ctx.saved_tensors
         # Σ_j g·W per row as one batched dot product per layer
         gw = torch.cat([torch.bmm(g.unsqueeze(1), w.unsqueeze(2)).view(-1, 1) for g, w in zip(grads, ws)])   # [R, 1]
-        g_ratio = torch.where(ratio <= 1.0, gw, 0.0)
-        g_bound = g_ratio / clamped                                            # d/d softplus(c), per row
+        # d/d softplus(c), per row: rows with ratio <= 1 have rowsum >= bound > 0 (the others: 0)
+        g_bound = torch.where(ratio <= 1.0, gw / rowsum, 0.0)
         r = torch.where(rowsum >= ctx.eps, g_bound * ratio, 0.0)               # -d/d rowsum
         g_c = torch.zeros_like(c).index_add_(0, row_owner, g_bound.squeeze(1))
         g_c = torch.ops.aten.softplus_backward(g_c, c, 1.0, 20.0)
