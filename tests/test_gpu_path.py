@@ -610,3 +610,42 @@ def test_folded_fsq_keys_at_once_give_the_per_layer_gradients():
         assert torch.equal(a, b) and ga.keys() == gb.keys()
         for n in ga:
             torch.testing.assert_close(ga[n], gb[n], rtol=0, atol=1e-5 if bf16 else 0, msg=n)
+
+
+@pytest.mark.parametrize("name", ["trans_enc", "dip"])
+def test_the_schedules_own_training_mask_gives_the_checked_plan(name):
+    """Training with the diffusion wrapper: the mask the model's schedule just made is planned
+    without re-masking or a count check (``SparseState.schedule_mask``); the plan equals the checked
+    plan of the same mask passed as a caller's, and a caller's mask is still checked."""
+    from smdm_plugin.adapters.call import keyframe_plan
+    from smdm_plugin.adapters.diffusion import model_noise, training_keyframes
+    from smdm_plugin.adapters.state import get_state
+
+    model, _ = make(name, layers=2)
+    x, y = batch(name, B=4)
+    state = get_state(model)
+    frames = x.squeeze(2).permute(0, 2, 1)                       # [B, N, D]
+    B, N = frames.shape[:2]
+    lengths = y["lengths"] if name != "dip" else torch.full((B,), N)
+    mask, capacity = training_keyframes(state.schedule, frames, lengths, None, model_noise(model))
+    checked = keyframe_plan(state, frames, None, lengths, None, mask=mask, capacity=capacity)
+    state.schedule_mask = mask
+    try:
+        trusted = keyframe_plan(state, frames, None, lengths, None, mask=mask, capacity=capacity)
+        other = keyframe_plan(state, frames, None, lengths, None, mask=mask.clone(), capacity=capacity)
+    finally:
+        state.schedule_mask = None
+    for field in ("mask", "index", "valid", "count", "prev_slot", "next_slot", "weight", "rows"):
+        assert torch.equal(getattr(trusted, field), getattr(checked, field)), field
+        assert torch.equal(getattr(other, field), getattr(checked, field)), field
+    too_many = mask.clone()
+    too_many[:, : N // 2] = True
+    with pytest.raises((ValueError, RuntimeError), match="capacity"):   # a caller's mask: checked
+        keyframe_plan(state, frames, None, lengths, None, mask=too_many, capacity=2)
+    count = count_launches(lambda: keyframe_plan(state, frames, None, lengths, None, mask=mask, capacity=capacity))
+    state.schedule_mask = mask
+    try:
+        fewer = count_launches(lambda: keyframe_plan(state, frames, None, lengths, None, mask=mask, capacity=capacity))
+    finally:
+        state.schedule_mask = None
+    assert fewer.count < count.count
