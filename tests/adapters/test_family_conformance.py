@@ -1,8 +1,11 @@
 """One conformance suite run over every registered model family (PEFT's common-tester idea).
 
-Cases: MDM trans_enc, MDM trans_dec, DiP (TinyMDM with a dense prefix), priorMDM's DoubleTake (a
-TinyMDM subclass named like doubleTake_MDM) and MotionDiffuse (the stand-in of
-tests/motiondiffuse_standin.py). Each case must pass every test: the family detected;
+The cases come from the family registry (``smdm_plugin.adapters.families.families()``): each registered
+family is mapped to a case factory in tests/helpers/conformance.py (``register_cases``), and a registered
+family without one fails ``test_every_registered_family_has_a_conformance_case``. The built-in cases:
+MDM trans_enc, MDM trans_dec, DiP (TinyMDM with a dense prefix), priorMDM's DoubleTake (a TinyMDM
+subclass named like doubleTake_MDM) and MotionDiffuse (the stand-in of
+tests/helpers/motiondiffuse_standin.py). Each case must pass every test: the family detected;
 sparsify/unsparsify round trip with a bit-identical state dict; all keyframes equals dense;
 save/load through ``load_checkpoint``; every sparse call under ``torch.compile(fullgraph=True)``;
 no host sync on the static path; the lifecycle with the diffusion in any order; a failed
@@ -14,113 +17,41 @@ import warnings
 import pytest
 import torch
 
-from motiondiffuse_standin import StandInDiffusion, StandInMotionTransformer
-from smdm_plugin import (SimpleDiffusion, SparseConfig, TinyMDM, attach_diffusion, families, is_sparse,
-                         load_checkpoint, save_sparse_config, sparsify, unsparsify)
-from smdm_plugin.adapters.families import family_for
+from smdm_plugin import (SparseConfig, attach_diffusion, families, is_sparse, load_checkpoint, register_family,
+                         save_sparse_config, sparsify, unsparsify)
+from smdm_plugin.adapters.families import FAMILIES, family_for
+from smdm_plugin.adapters.mdm import MDMFamily
 from smdm_plugin.adapters.state import SparseState
 from smdm_plugin.core.checks import static_mode
-from test_gpu_path import Dispatched
+from smdm_plugin.core.launches import LaunchCounter as Dispatched
+
+from helpers.conformance import (MotionDiffuseCase, assert_every_family_has_cases, conformance_cases,
+                                 families_without_cases)
+
+CASES = conformance_cases()
 
 
-STEPS = torch.tensor([1, 30, 45])   # made once: a tensor from host data is a host-to-device copy
+def test_every_registered_family_has_a_conformance_case():
+    assert_every_family_has_cases()
+    assert {c.family for c in CASES.values()} == {f.name for f in families()}   # and each is run below
 
 
-class DoubleTakeTinyMDM(TinyMDM):
-    """priorMDM's doubleTake_MDM is an MDM subclass; the family is recognised by the class name."""
+def test_a_family_registered_without_a_case_is_named():
+    class ToyFamily(MDMFamily):
+        name = "toy-without-a-case"
+        priority = -100
 
+        def matches(self, model):
+            return type(model).__name__ == "ToyModel"
 
-class MDMCase:
-    """TinyMDM variants: ``forward(x [B, 263, 1, N], t, y)``; SimpleDiffusion's loss."""
-
-    def __init__(self, name, family, cls=TinyMDM, **kw):
-        self.name, self.family, self.cls, self.kw = name, family, cls, kw
-        self.N = 40 if kw.get("context_len") else 48
-
-    def build(self):
-        torch.manual_seed(0)
-        return self.cls(latent_dim=32, ff_size=64, num_layers=2, dropout=0.0, cond_mask_prob=0.0, **self.kw)
-
-    def diffusion(self):
-        return SimpleDiffusion(50)
-
-    def config(self, **kw):
-        return SparseConfig(**{"reduction": 0.8, "dynamic_update": True, **kw})
-
-    def inputs(self, seed=0):
-        g = torch.Generator().manual_seed(seed)
-        B, N = 3, self.N
-        lengths = torch.tensor([N, N - 7, N // 2]) if not self.kw.get("context_len") else torch.full((B,), N)
-        y = {"mask": (torch.arange(N) < lengths[:, None]).view(B, 1, 1, N), "lengths": lengths,
-             "text_embed": torch.randn(1, B, 512, generator=g)}
-        if self.kw.get("context_len"):
-            y["prefix"] = torch.randn(B, 263, 1, self.kw["context_len"], generator=g)
-        return torch.randn(B, 263, 1, N, generator=g), y
-
-    def valid(self, y):
-        return y["mask"].reshape(y["mask"].shape[0], -1)
-
-    def call(self, model, x, t, y):
-        return model(x, t, dict(y))
-
-    def out_frames(self, out):                       # [B, 263, 1, N] -> [B, N, 263]
-        return out.squeeze(2).transpose(1, 2)
-
-    def loss(self, diffusion, model, x, y, seed=3):
-        torch.manual_seed(seed)
-        t = STEPS
-        return diffusion.training_losses(model, x, t, {"y": dict(y)}, noise=torch.ones_like(x))["loss"].mean()
-
-
-class MotionDiffuseCase:
-    """The stand-in MotionTransformer: ``forward(x [B, T, D], t, length, text, xf_proj, xf_out)``."""
-
-    name, family = "motiondiffuse", "motiondiffuse"
-
-    def build(self):
-        torch.manual_seed(0)
-        return StandInMotionTransformer()
-
-    def diffusion(self):
-        return StandInDiffusion()
-
-    def config(self, **kw):
-        return SparseConfig(**{"reduction": 0.8, "dynamic_update": True, "feature": "raw", "fsq": False, **kw})
-
-    def inputs(self, seed=0):
-        g = torch.Generator().manual_seed(seed)
-        text = torch.randn(3, 8, 16, generator=g)             # precomputed text features (xf_out)
-        return torch.randn(3, 40, 12, generator=g), {"length": torch.tensor([40, 31, 17]), "xf_out": text}
-
-    def _kw(self, model, y):
-        xf_out = y["xf_out"]
-        return {"length": y["length"], "xf_out": xf_out, "xf_proj": model.text_proj(xf_out.mean(1))}
-
-    def valid(self, y):
-        return torch.arange(40)[None] < y["length"][:, None]
-
-    def call(self, model, x, t, y):
-        return model(x, t, **self._kw(model, y))
-
-    def out_frames(self, out):
-        return out
-
-    def loss(self, diffusion, model, x, y, seed=3):
-        torch.manual_seed(seed)
-        t = STEPS
-        inner = getattr(model, "_orig_mod", model)
-        terms = diffusion.training_losses(model, x, t, self._kw(inner, y), noise=torch.ones_like(x))
-        w = self.valid(y).to(x.dtype)[..., None]
-        return (((terms["pred"] - terms["target"]) ** 2) * w).sum() / w.sum()
-
-
-CASES = {c.name: c for c in (
-    MDMCase("mdm-trans_enc", "mdm", arch="trans_enc"),
-    MDMCase("mdm-trans_dec", "mdm", arch="trans_dec"),
-    MDMCase("dip", "mdm", arch="trans_dec", emb_trans_dec=True, context_len=20, pred_len=40),
-    MDMCase("doubletake", "doubletake", cls=DoubleTakeTinyMDM, arch="trans_enc"),
-    MotionDiffuseCase(),
-)}
+    register_family(ToyFamily())
+    try:
+        assert families_without_cases() == ["toy-without-a-case"]
+        with pytest.raises(AssertionError, match="without a conformance case: toy-without-a-case"):
+            assert_every_family_has_cases()
+    finally:
+        FAMILIES.unregister("toy-without-a-case")
+    assert families_without_cases() == []
 
 
 @pytest.fixture(params=list(CASES))

@@ -6,7 +6,7 @@ import argparse
 import pytest
 import torch
 
-from motiondiffuse_standin import StandInDiffusion, StandInMotionTransformer
+from helpers.motiondiffuse_standin import StandInDiffusion, StandInMotionTransformer
 from smdm_plugin import LipschitzMLP, SparseConfig, lipschitz_loss
 from smdm_plugin import KeyframeRequest, with_forced
 from smdm_plugin import sparsify as sparsify_motiondiffuse, unsparsify as unsparsify_motiondiffuse

@@ -13,8 +13,9 @@ from smdm_plugin import SimpleDiffusion, SparseConfig, TinyMDM, sparsify
 from smdm_plugin.adapters.text_cache import (CachedTextEncoder, TextEmbeddingCache, install_text_cache,
                                              module_fingerprint, remove_text_cache)
 
-sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
-from text_encoder_fixtures import make_tiny_encoder, one_thread  # noqa: E402,F401
+from helpers.text_encoder import make_tiny_encoder
+
+pytestmark = pytest.mark.usefixtures("one_thread")
 
 CAPTIONS = ["a person walks forward", "jumps", "a person sits down", "waves with hand", "jumps"]
 

@@ -19,8 +19,9 @@ from smdm_plugin.adapters.text_encoder import (EncodeText, HFTextEncoder, pool_h
 from smdm_plugin.integrations import mdm_text  # noqa: E402
 from smdm_plugin.integrations.mdm import sparsify_mdm, warn_if_upstream_steps  # noqa: E402
 
-sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
-from text_encoder_fixtures import dense_head, make_tiny_encoder, one_thread  # noqa: E402,F401
+from helpers.text_encoder import dense_head, make_tiny_encoder
+
+pytestmark = pytest.mark.usefixtures("one_thread")
 
 CAPTIONS = ["a person walks forward and then turns left", "jumps", "a person sits on the ground slowly",
             "waves with hand"]

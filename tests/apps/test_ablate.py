@@ -12,24 +12,12 @@ import smdm_plugin
 from smdm_plugin.apps import ablate
 from smdm_plugin.apps.ablate import grid as grids
 from smdm_plugin.apps.ablate import report
-from synthetic_data import write_humanml3d
 
-ROOT = Path(__file__).resolve().parents[1]
+from helpers.grids import GRID
+from helpers.paths import ROOT
+from helpers.synthetic_data import write_humanml3d
+
 QUICK = ROOT / "configs" / "ablations" / "quick.yaml"
-
-GRID = """name: t
-seed: 0
-steps: 2
-batch: 2
-max_frames: 64
-diffusion_steps: 5
-model: {latent_dim: 16, num_layers: 1, num_heads: 2, ff_size: 32}
-eval: {samples: 1, frames: 40}
-variants:
-  - {name: dense, dense: true}
-  - {name: sparse (VW)}
-  - {name: uniform, sparse: {selector: uniform}}
-"""
 
 
 def test_table1_config_lists_the_paper_ablations():

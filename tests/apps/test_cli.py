@@ -13,9 +13,9 @@ from pathlib import Path
 
 import pytest
 
-from synthetic_data import write_humanml3d
+from helpers.synthetic_data import write_humanml3d
 
-MOCAP = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "cmu-mocap"
+from helpers.paths import MOCAP
 TINY_GRID = """name: tiny
 steps: {steps}
 batch: 2

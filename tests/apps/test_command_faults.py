@@ -20,7 +20,7 @@ from smdm_plugin.apps import train as train_cli
 from smdm_plugin.apps.common import keyframe_study as ks
 from smdm_plugin.io.outdir import MANIFEST, lock_path, partial_path
 from smdm_plugin.training import trainer as T
-from synthetic_data import write_humanml3d
+from helpers.synthetic_data import write_humanml3d
 
 TINY = ["--latent-dim", "16", "--layers", "1", "--heads", "2", "--ff-size", "32", "--batch", "2",
         "--diffusion-steps", "10", "--no-progress", "--threads", "1", "--min-frames", "20"]

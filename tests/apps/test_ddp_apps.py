@@ -7,10 +7,10 @@ import json
 import numpy as np
 import torch
 
-from test_ablate import GRID
-from test_trainer_ddp import _torchrun  # the 2-process launcher of the `smdm train` DDP tests
+from helpers.commands import torchrun as _torchrun  # the 2-process launcher of the `smdm train` DDP tests
+from helpers.grids import GRID
 
-#: test_ablate's grid without its third variant
+#: the ablate tests' grid without its third variant
 TINY_GRID = GRID.replace("  - {name: uniform, sparse: {selector: uniform}}\n", "")
 
 

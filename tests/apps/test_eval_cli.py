@@ -16,7 +16,7 @@ from smdm_plugin.metrics.evaluator.score import score_motions
 
 from pathlib import Path
 
-LARGE = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "cmu-humanml3d-large"
+from helpers.paths import HML_LARGE as LARGE
 REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 
 

@@ -11,9 +11,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from synthetic_data import write_humanml3d
+from helpers.synthetic_data import write_humanml3d
 
-ROOT = Path(__file__).resolve().parent.parent
+from helpers.paths import ROOT
 
 
 # ----------------------------------------------------------------------------------------- threads

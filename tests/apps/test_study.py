@@ -20,7 +20,7 @@ from smdm_plugin.reference.diffusion import SimpleDiffusion
 from smdm_plugin.reference.text import (HashedBagOfWords, TextConfig, load_text_config, sample_with_text,
                                         words)
 
-LARGE = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "cmu-humanml3d-large"
+from helpers.paths import HML_LARGE as LARGE
 
 
 @pytest.fixture(scope="module")

@@ -25,9 +25,9 @@ from smdm_plugin.adapters.surgery import as_config
 from smdm_plugin.core.config import SparseConfig
 from smdm_plugin.core.values import ConfigTypeError
 from smdm_plugin.io.outdir import MANIFEST, OutputDir, OutputLock, OutputLockedError, OutputOverlapError, lock_path
-from synthetic_data import write_humanml3d
+from helpers.synthetic_data import write_humanml3d
 
-ROOT = Path(__file__).resolve().parents[1]
+from helpers.paths import ROOT
 TINY = ["--latent-dim", "16", "--layers", "1", "--heads", "2", "--ff-size", "32", "--batch", "2",
         "--diffusion-steps", "10", "--no-progress", "--threads", "1"]
 

@@ -9,7 +9,7 @@ import torch
 
 from smdm_plugin.core.features import extract_selection_features, from_mdm_layout, to_mdm_layout
 
-DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
+from helpers.paths import SHARED as DATA
 
 
 def test_humanml3d_layout_synthetic():

@@ -375,7 +375,7 @@ def test_launch_budget_of_motiondiffuse(precision):
     (training_losses + backward + AdamW(foreach=True).step()) and a sampling call (one pass: it
     samples without guidance), early and late step, within ``MOTIONDIFFUSE_BUDGET``, no host sync.
     Its compile and zero-sync checks run in tests/test_family_conformance.py with every family."""
-    from motiondiffuse_standin import StandInDiffusion, StandInMotionTransformer
+    from helpers.motiondiffuse_standin import StandInDiffusion, StandInMotionTransformer
 
     B, N = 8, 196
     bf16 = precision == "bf16"

@@ -18,6 +18,9 @@ from smdm_plugin.core.noise import NOISE_STEP, NOISE_TABLE, TABLE_SIZE, CounterN
 from smdm_plugin.core.schedule import MaskSchedule
 from smdm_plugin.core.selection import keyframe_count
 
+from helpers.noise import noise_cases
+from helpers.paths import TESTS
+
 B, N = 4, 60
 
 
@@ -176,19 +179,6 @@ def test_ranks_draw_other_masks_from_equal_buffers(monkeypatch):
 
 
 # ----------------------------------------------------------------------------- smdm::perturb_mask (issue 27)
-def _noise_cases(seed, B=24, N=50):
-    g = torch.Generator().manual_seed(seed)
-    lengths = torch.randint(4, N + 1, (B,), generator=g)
-    valid = torch.arange(N)[None] < lengths[:, None]
-    mask = (torch.rand(B, N, generator=g) < 0.3) & valid
-    mask[torch.arange(B), 0] = True
-    mask[torch.arange(B), lengths - 1] = True
-    protected = (torch.rand(B, N, generator=g) < 0.1) & mask
-    u = torch.rand(B, N + 1, generator=g)
-    u[:, 1:9] = u[:, 1:2]                                   # tied uniforms: the lower frame first
-    return mask, lengths, u, protected
-
-
 def _slow_perturb(mask, lengths, u, amount, protected):
     """The noise rule written out per sample with Python lists (the reference)."""
     out = mask.clone()
@@ -214,7 +204,7 @@ def test_perturb_op_equals_the_rule_written_out(seed):
     from smdm_plugin.core.kernels.perturb import perturb_mask_op
     from smdm_plugin.core.launches import count_launches
 
-    mask, lengths, u, protected = _noise_cases(seed)
+    mask, lengths, u, protected = noise_cases(seed)
     for amount in (0.1, 0.5, 1.0):
         for prot in (None, protected):
             assert torch.equal(perturb_mask_op(mask, lengths, u, amount, prot),
@@ -226,13 +216,13 @@ def test_perturb_triton_kernel_equals_the_composite_in_interpreter_mode(triton_i
     """The CUDA kernel's code, run by Triton's interpreter on the CPU, gives the composite's masks."""
     code = (
         "import torch, sys\n"
-        f"sys.path.insert(0, {os.path.dirname(__file__)!r})\n"
-        "from test_mask_noise import _noise_cases\n"
+        f"sys.path.insert(0, {str(TESTS)!r})\n"
+        "from helpers.noise import noise_cases\n"
         "from smdm_plugin.core.kernels.perturb import perturb_composite\n"
         "from smdm_plugin.core.kernels.perturb_triton import perturb_triton\n"
         "bad = 0\n"
         "for seed in (0, 1, 2):\n"
-        "    mask, lengths, u, protected = _noise_cases(seed)\n"
+        "    mask, lengths, u, protected = noise_cases(seed)\n"
         "    for amount in (0.1, 0.5, 1.0):\n"
         "        for prot in (None, protected):\n"
         "            bad += int(not torch.equal(perturb_triton(mask, lengths, u, amount, prot),\n"

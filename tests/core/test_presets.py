@@ -111,7 +111,7 @@ def test_presets_live_in_the_top_level_configs_folder_and_are_installed():
 
     from smdm_plugin.core.presets import preset_dirs
 
-    root = Path(__file__).resolve().parents[1]
+    from helpers.paths import ROOT as root
     assert Path(preset_dirs()[0]) == root / "configs"
     cfg = configparser.ConfigParser()
     cfg.read(root / "setup.cfg")

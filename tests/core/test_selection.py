@@ -12,7 +12,7 @@ from smdm_plugin.core.features import extract_selection_features
 from smdm_plugin.core.selection import (METHODS, keyframe_count, perturb_mask, select_keyframes,
                                    vw_reference)
 
-DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
+from helpers.paths import SHARED as DATA
 
 
 def _kept(mask_row: torch.Tensor) -> np.ndarray:

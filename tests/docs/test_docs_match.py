@@ -7,7 +7,7 @@ from pathlib import Path
 
 from smdm_plugin.apps.cli import COMMANDS
 
-ROOT = Path(__file__).resolve().parent.parent
+from helpers.paths import ROOT
 ARCH = (ROOT / "docs" / "architecture.md").read_text()
 
 

@@ -35,7 +35,7 @@ from typing import List, Optional, Tuple
 
 import pytest
 
-ROOT = Path(__file__).resolve().parent.parent
+from helpers.paths import ROOT
 README = ROOT / "README.md"
 
 #: extra flags per command (added when the command does not already give them)

@@ -1,6 +1,6 @@
-"""Run by ``torchrun`` in tests/test_trainer_ddp.py: ``smdm train``'s own entry point, instrumented.
+"""Run by ``torchrun`` in tests/training/test_trainer_ddp.py: ``smdm train``'s own entry point, instrumented.
 
-    torchrun --nproc_per_node 2 tests/_ddp_worker.py DUMP_DIR -- <smdm train arguments>
+    torchrun --nproc_per_node 2 tests/helpers/ddp_worker.py DUMP_DIR -- <smdm train arguments>
 
 Each rank writes to DUMP_DIR: ``rank<r>.pt`` (its model's parameters and buffers after training)
 and ``rank<r>_writes.json`` (every file the trainer module wrote). Nothing else is changed.

@@ -7,8 +7,7 @@ saved with ``save_pretrained``. ``st`` adds a sentence-transformers layout (``mo
 ``1_Pooling``, optionally a ``2_Dense`` head and ``Normalize``), as stella_en_1.5B_v5 has:
 ``dict(pooling="mean", dense=24, activation="Identity", normalize=False, prompt=None)``.
 
-``one_thread``: an autouse fixture for modules that import it (tiny models run faster on one
-thread than on two on a shared, busy CPU, and deterministically).
+The modules that use them run on one thread (tests/conftest.py's ``one_thread`` fixture).
 """
 from __future__ import annotations
 
@@ -16,20 +15,11 @@ import json
 import os
 from typing import Any, Dict, Optional
 
-import pytest
 import torch
 
 WORDS = ("a person walks forward and then turns left right slowly quickly jumps up down runs in a circle "
          "sits on the ground stands waves with hand kicks throws ball dances steps back bends over picks "
          "something").split()
-
-
-@pytest.fixture(autouse=True)
-def one_thread():
-    n = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(n)
 
 
 def _tokenizer(padding_side: str = "right"):

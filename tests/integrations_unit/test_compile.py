@@ -35,7 +35,7 @@ from smdm_plugin.training.data import MotionSet  # noqa: E402
 BACKEND = "aot_eager"
 TINY = {"latent_dim": 32, "num_layers": 2, "num_heads": 4, "ff_size": 64, "dropout": 0.0}
 N, D = 40, 12
-REPO = Path(__file__).resolve().parents[1]
+from helpers.paths import ROOT as REPO
 
 
 def graphs() -> int:

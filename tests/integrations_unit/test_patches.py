@@ -9,7 +9,9 @@ from pathlib import Path
 
 import pytest
 
-PATCHES = sorted((Path(__file__).resolve().parents[1] / "patches").glob("*.patch"))
+from helpers.paths import ROOT  # noqa: E402
+
+PATCHES = sorted((ROOT / "patches").glob("*.patch"))
 IMPORT = re.compile(r"^\s*from (smdm_plugin(?:\.\w+)*) import ([\w ,]+?)\s*(?:#.*)?$")
 
 

@@ -21,8 +21,7 @@ from smdm_plugin.integrations.mdm import add_sparse_options, sparsify_mdm
 from smdm_plugin.integrations.priormdm import doubletake_output_dir, sparsify_priormdm
 from smdm_plugin.reference.diffusion import SimpleDiffusion
 
-sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
-from motiondiffuse_standin import StandInDiffusion, StandInMotionTransformer  # noqa: E402
+from helpers.motiondiffuse_standin import StandInDiffusion, StandInMotionTransformer
 
 
 def _train_args(save_dir: str, *argv: str) -> argparse.Namespace:

@@ -12,7 +12,7 @@ import torch
 from smdm_plugin.io.bvh import (CMU_TO_METRES, HUMANML22_FROM_CMU, BVHError, BVHWarning, bvh_joint_positions,
                                 cmu_to_humanml22, load_cmu_clip, read_bvh)
 
-DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
+from helpers.paths import SHARED as DATA
 MOCAP, HML = DATA / "cmu-mocap", DATA / "cmu-humanml3d"
 
 SIMPLE = """HIERARCHY
@@ -319,7 +319,7 @@ def test_embedded_clips_are_the_bvh_clips_at_20_fps():
     clips = embedded_clips()
     assert len(clips) == 17 and all(j.shape[1:] == (22, 3) and j.dtype == np.float32 for _, j in clips)
     assert embedded_descriptions()["02_01"] == "walk"
-    mocap = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "cmu-mocap"
+    from helpers.paths import MOCAP as mocap
     if not mocap.exists():
         pytest.skip("../shared/data/cmu-mocap not available")
     for name, joints in clips[:3]:

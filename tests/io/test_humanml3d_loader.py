@@ -7,7 +7,7 @@ import pytest
 
 from smdm_plugin.io.humanml3d import load_humanml3d
 from smdm_plugin.training.data import MotionData, MotionSet
-from synthetic_data import write_humanml3d
+from helpers.synthetic_data import write_humanml3d
 
 
 @pytest.fixture()

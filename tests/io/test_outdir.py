@@ -247,7 +247,7 @@ def test_other_readers_of_the_data_folder_name_the_file(tmp_path):
     UnicodeDecodeError tracebacks."""
     from smdm_plugin.io.captions import read_captions
     from smdm_plugin.io.humanml3d import load_humanml3d
-    from synthetic_data import write_humanml3d
+    from helpers.synthetic_data import write_humanml3d
 
     root = write_humanml3d(tmp_path / "d")
     bad = root / "new_joints" / "train001.npy"

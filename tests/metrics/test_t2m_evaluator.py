@@ -228,7 +228,7 @@ def test_smdm_eval_reads_upstream_layout(tmp_path):
     from smdm_plugin.apps.cli import main as smdm
     from smdm_plugin.metrics.evaluator.data import load_split
 
-    large = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "cmu-humanml3d-large"
+    from helpers.paths import HML_LARGE as large
     if not (large / "texts").is_dir():
         pytest.skip("../shared/data/cmu-humanml3d-large not available")
     torch.manual_seed(0)

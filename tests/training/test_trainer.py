@@ -245,7 +245,7 @@ def test_cli_missing_data_exit_2(tmp_path, capsys):
 
 
 def test_smdm_dispatches_train():
-    repo = Path(__file__).resolve().parents[1]
+    from helpers.paths import ROOT as repo
     env = dict(os.environ, PYTHONPATH=str(repo) + os.pathsep + os.environ.get("PYTHONPATH", ""))
     proc = subprocess.run([sys.executable, "-m", "smdm_plugin", "--help"], capture_output=True, text=True,
                           env=env, cwd=str(repo), timeout=120)

@@ -22,8 +22,10 @@ pytest.importorskip("torch.distributed")
 if not torch.distributed.is_available() or not torch.distributed.is_gloo_available():
     pytest.skip("torch.distributed with gloo is not available", allow_module_level=True)
 
-REPO = Path(__file__).resolve().parents[1]
-WORKER = Path(__file__).resolve().parent / "_ddp_worker.py"
+from helpers.commands import torchrun as _torchrun
+from helpers.paths import ROOT as REPO, TESTS
+
+WORKER = TESTS / "helpers" / "ddp_worker.py"
 STEPS = 4
 TINY = ["--latent-dim", "64", "--layers", "2", "--heads", "4", "--ff-size", "128", "--dropout", "0",
         "--diffusion-steps", "20", "--lr", "1e-3", "--steps", str(STEPS), "--seed", "7", "--no-progress"]
@@ -35,14 +37,6 @@ def _env():
     env["PYTHONPATH"] = str(REPO) + (os.pathsep + env["PYTHONPATH"] if env.get("PYTHONPATH") else "")
     env["OMP_NUM_THREADS"] = "1"
     return env
-
-
-def _torchrun(*args: str, timeout: float = 300) -> subprocess.CompletedProcess:
-    cmd = [sys.executable, "-m", "torch.distributed.run", "--standalone", "--nproc_per_node", "2",
-           *args]
-    proc = subprocess.run(cmd, cwd=str(REPO), env=_env(), capture_output=True, text=True, timeout=timeout)
-    assert proc.returncode == 0, (proc.stdout + proc.stderr)[-4000:]
-    return proc
 
 
 @pytest.fixture(scope="module")
