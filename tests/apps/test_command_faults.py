@@ -1,4 +1,4 @@
-"""Reliability III, the commands: a full disk is one line naming the file (exit 1, nothing left that
+"""The commands under faults and unusable input: a full disk is one line naming the file (exit 1, nothing left that
 blocks the next run), `smdm train` writes each checkpoint in --out as it goes, `--resume` knows the
 data by content, and unusable inputs (empty .npy, clips shorter than a keyframe window, a tampered
 result.json) are one line with the documented exit status, never a traceback."""
@@ -20,17 +20,15 @@ from smdm_plugin.apps import train as train_cli
 from smdm_plugin.apps.common import keyframe_study as ks
 from smdm_plugin.io.outdir import MANIFEST, lock_path, partial_path
 from smdm_plugin.training import trainer as T
-from helpers.synthetic_data import write_humanml3d
 
-TINY = ["--latent-dim", "16", "--layers", "1", "--heads", "2", "--ff-size", "32", "--batch", "2",
-        "--diffusion-steps", "10", "--no-progress", "--threads", "1", "--min-frames", "20"]
-#: what torch.save raises when the disk fills under its zip writer (torch 2.x, seen on a full tmpfs)
-TORCH_FULL_DISK = "[enforce fail at inline_container.cc:672] . unexpected pos 19776 vs 19728"
+from helpers.commands import TINY_TRAIN, TORCH_FULL_DISK
+
+TINY = [*TINY_TRAIN, "--min-frames", "20"]
 
 
 @pytest.fixture
-def data(tmp_path) -> Path:
-    return write_humanml3d(tmp_path / "data")
+def data(synthetic_hml) -> Path:
+    return synthetic_hml
 
 
 @pytest.fixture

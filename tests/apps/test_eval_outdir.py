@@ -6,7 +6,6 @@ and the evaluator's `--resume` continuing an interrupted run's partial folder ex
 from __future__ import annotations
 
 import errno
-import hashlib
 import json
 import os
 import shutil
@@ -20,13 +19,10 @@ import torch
 from smdm_plugin.apps import cli
 from smdm_plugin.io.outdir import MANIFEST, OutputLock, lock_path, partial_path
 
+from helpers.commands import snapshot as _snapshot
+from helpers.synthetic_data import write_humanml3d
+
 TINY_EV = ["--hidden", "16", "--dim", "8", "--no-progress", "--threads", "1"]
-
-
-def _snapshot(folder: Path) -> dict:
-    """Every file under ``folder`` -> sha256 of its bytes."""
-    return {str(p.relative_to(folder)): hashlib.sha256(p.read_bytes()).hexdigest()
-            for p in sorted(folder.rglob("*")) if p.is_file()}
 
 
 def _train_ev(out: Path, *extra: str) -> int:
@@ -247,11 +243,6 @@ def test_an_empty_npy_among_the_motions_is_one_line(tmp_path, evaluator, motions
 # ------------------------------------------------------------------------------ resume by content
 def _captioned(root: Path) -> Path:
     """A HumanML3D-format folder with captions (texts/<id>.txt)."""
-    import sys
-
-    sys.path.insert(0, os.path.dirname(__file__))
-    from synthetic_data import write_humanml3d
-
     write_humanml3d(root)
     (root / "texts").mkdir()
     words = ["walks forward", "jumps up", "turns left", "waves a hand", "sits down", "kicks"]

@@ -1,63 +1,14 @@
-"""The newcomer's path (issue 22): thread defaults, commands that connect (clips -> inbetween ->
-render, train -> inbetween), one frame-index scale, outputs that say what they are, messages."""
+"""The first hour with the commands (docs/first_hour.md): commands that connect (clips -> inbetween ->
+render, train -> inbetween), one frame-index scale, outputs that say what they are. (Thread defaults:
+tests/apps/test_threads.py.)"""
 from __future__ import annotations
 
 import json
-import os
-import subprocess
-import sys
-from pathlib import Path
 
 import numpy as np
 import pytest
 
 from helpers.synthetic_data import write_humanml3d
-
-from helpers.paths import ROOT
-
-
-# ----------------------------------------------------------------------------------------- threads
-def test_default_threads_leaves_busy_cores_alone():
-    from smdm_plugin.apps.common.threads import default_threads
-
-    assert default_threads(cores=2, load=0.0, local_processes=1) == 2      # idle: every core
-    assert default_threads(cores=2, load=2.0, local_processes=1) == 1      # two busy neighbours: one
-    assert default_threads(cores=2, load=7.5, local_processes=1) == 1      # never below one
-    assert default_threads(cores=16, load=4.2, local_processes=1) == 12    # round(16 - 4.2)
-    assert default_threads(cores=16, load=0.0, local_processes=4) == 4     # torchrun: cores shared
-    # the slow obvious reference: count the cores one by one while load remains
-    for cores in range(1, 9):
-        for load in np.arange(0, 10, 0.25):
-            free = sum(1 for c in range(cores) if c + 0.5 <= cores - load)  # cores at least half idle
-            assert default_threads(cores, float(load), 1) == max(1, free), (cores, load)
-
-
-def test_choose_threads_order(monkeypatch):
-    from smdm_plugin.apps.common.threads import choose_threads
-
-    monkeypatch.setenv("OMP_NUM_THREADS", "3")
-    assert choose_threads(5) == (5, "--threads")
-    assert choose_threads(None) == (3, "OMP_NUM_THREADS")
-    monkeypatch.delenv("OMP_NUM_THREADS")
-    n, why = choose_threads(None)
-    assert n >= 1 and why.startswith("auto")
-
-
-def test_cli_sets_passive_wait_policy_before_torch_loads(tmp_path):
-    """In a fresh process, `smdm <cmd>` puts OMP_WAIT_POLICY=PASSIVE into the environment before
-    torch is imported (and keeps a value the user set)."""
-    code = ("import os, sys; from smdm_plugin.apps import cli; "
-            "cli.COMMANDS['probe'] = ('probe_mod', ''); "
-            "import types; m = types.ModuleType('probe_mod'); "
-            "m.main = lambda argv: print(os.environ.get('OMP_WAIT_POLICY'), 'torch' in sys.modules) or 0; "
-            "sys.modules['probe_mod'] = m; sys.exit(cli.main(['probe']))")
-    env = dict(os.environ, PYTHONPATH=str(ROOT))
-    env.pop("OMP_WAIT_POLICY", None)
-    out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, timeout=60)
-    assert out.stdout.split() == ["PASSIVE", "False"], out.stderr
-    env["OMP_WAIT_POLICY"] = "ACTIVE"
-    out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, timeout=60)
-    assert out.stdout.split()[0] == "ACTIVE"
 
 
 # ----------------------------------------------------------------------------------------- clips
@@ -183,21 +134,3 @@ def test_bench_quick_leaves_targets_out():
     assert "MISSED" in full and "| 0.10 |" in full
     assert "MISSED" not in quick and " met" not in quick and "| 0.10 |" not in quick
     assert "--quick:" in quick and "left out" in quick
-
-
-# ----------------------------------------------------------------------------------------- messages
-def test_sparse_config_unknown_keyword_names_the_closest_field():
-    from smdm_plugin import SparseConfig
-
-    with pytest.raises(TypeError, match="'redution'.*did you mean 'reduction'"):
-        SparseConfig(redution=0.8)
-    assert SparseConfig(reduction=0.5).reduction == 0.5
-
-
-def test_public_namespace_is_the_public_api():
-    import smdm_plugin
-
-    names = dir(smdm_plugin)
-    assert "SparseConfig" in names and "sparsify" in names
-    assert not {"Any", "Dict", "List", "importlib", "TYPE_CHECKING", "annotations"} & set(names)
-    assert set(names) == set(smdm_plugin.__all__)

@@ -1,10 +1,11 @@
-"""Reliability II: nothing lost under faults (locks, outputs apart from inputs, folders swapped in as
-one unit, OS errors as one line), no silent wrong result (loads and inputs validated), resumable
-training (kill -9, then --resume: bit-identical to an uninterrupted run)."""
+"""``smdm train``'s output folder and runs under faults: one writer per folder (a live lock names its
+owner, a stale one is reported, never taken over), ``--out`` apart from the data, ``--overwrite`` replacing
+only the command's own files, OS errors as one line, the folder swapped in as one unit; bad training data
+refused before step 0; resumable training (kill -9 or Ctrl-C, then ``--resume``: bit-identical to an
+uninterrupted run)."""
 from __future__ import annotations
 
 import errno
-import hashlib
 import json
 import os
 import signal
@@ -20,41 +21,20 @@ import torch
 from smdm_plugin.apps import cli
 from smdm_plugin.apps import train as train_cli
 from smdm_plugin.training import trainer as T
-from smdm_plugin.training.data import MotionData
-from smdm_plugin.adapters.surgery import as_config
-from smdm_plugin.core.config import SparseConfig
-from smdm_plugin.core.values import ConfigTypeError
 from smdm_plugin.io.outdir import MANIFEST, OutputDir, OutputLock, OutputLockedError, OutputOverlapError, lock_path
+
+from helpers.commands import TINY_TRAIN as TINY
+from helpers.commands import env as _env
+from helpers.commands import smdm as _smdm
+from helpers.commands import snapshot as _snapshot
+from helpers.commands import train as _train
 from helpers.synthetic_data import write_humanml3d
-
-from helpers.paths import ROOT
-TINY = ["--latent-dim", "16", "--layers", "1", "--heads", "2", "--ff-size", "32", "--batch", "2",
-        "--diffusion-steps", "10", "--no-progress", "--threads", "1"]
-
-
-def _env() -> dict:
-    return {**os.environ, "PYTHONPATH": str(ROOT) + os.pathsep + os.environ.get("PYTHONPATH", ""),
-            "OMP_NUM_THREADS": "1"}
-
-
-def _smdm(*args, **kw) -> subprocess.CompletedProcess:
-    return subprocess.run([sys.executable, "-m", "smdm_plugin", *map(str, args)], capture_output=True, text=True,
-                          env=_env(), timeout=300, **kw)
-
-
-def _snapshot(folder: Path) -> dict:
-    """Every file under ``folder`` -> sha256 of its bytes."""
-    return {str(p.relative_to(folder)): hashlib.sha256(p.read_bytes()).hexdigest()
-            for p in sorted(folder.rglob("*")) if p.is_file()}
-
-
-def _train(data: Path, out: Path, *extra) -> int:
-    return train_cli.main(["--data", str(data), "--out", str(out), "--min-frames", "20", *TINY, *extra])
 
 
 @pytest.fixture
-def data(tmp_path) -> Path:
-    return write_humanml3d(tmp_path / "data")
+def data(synthetic_hml) -> Path:
+    return synthetic_hml
+
 
 
 # ------------------------------------------------------------------------------ one writer per folder
@@ -218,80 +198,6 @@ def test_resume_after_kill_9_is_bit_identical(tmp_path, data, capsys):
     assert sorted(os.listdir(tmp_path)) == ["data", "ref", "run"]  # no partial folder, no lock left
 
 
-# ------------------------------------------------------------------------------ loads validate
-@pytest.fixture
-def model_dir(tmp_path, data) -> Path:
-    out = tmp_path / "m"
-    assert _train(data, out, "--sparse", "--steps", "1") == 0
-    return out
-
-
-@pytest.mark.parametrize("edit,match", [
-    (lambda d: (d / "model000000001.pt").write_bytes(b""), r"model000000001.pt: empty checkpoint file"),
-    (lambda d: (d / "model000000001.pt").write_bytes((d / "model000000001.pt").read_bytes()[:300]),
-     r"model000000001.pt: not a readable checkpoint \(truncated or corrupt"),
-    (lambda d: (d / "args.json").write_bytes(b'{"sparse": true, "sparse_reduction": "\xff"}'),
-     r"args.json: not UTF-8 text"),
-    (lambda d: (d / "sparse_config.json").write_bytes(b"\xff\xfe{}"), r"sparse_config.json: not UTF-8"),
-    (lambda d: (d / "sparse_config.json").write_text('{"reduction": 0.8}'),
-     r"sparse_config.json: missing field\(s\) enabled, selector"),
-    (lambda d: (d / "args.json").write_text('{"sparse": true, "sparse_reduction": 0.5}'),
-     r"args.json and .*sparse_config.json disagree: reduction: args.json 0.5, sparse_config.json 0.8"),
-    (lambda d: _edit_json(d / "train_config.json", diffusion_steps=0), r"train_config.json: diffusion_steps=0: expected an integer >= 1"),
-    (lambda d: _edit_json(d / "train_config.json", diffusion_steps=-5), r"diffusion_steps=-5"),
-    (lambda d: _edit_json(d / "train_config.json", steps="many"), r"train_config.json: steps='many'"),
-    (lambda d: np.save(d / "Std.npy", np.r_[np.nan, np.ones(262)].astype(np.float32)), r"Std.npy: std holds a non-finite"),
-    (lambda d: np.save(d / "Std.npy", np.ones(10, np.float32)), r"Std.npy: std must have shape \[263\], got \[10\]"),
-    (lambda d: np.save(d / "Std.npy", np.zeros(263, np.float32)), r"Std.npy: std must be > 0 everywhere"),
-    (lambda d: np.save(d / "Mean.npy", np.ones(263, np.complex64)), r"Mean.npy: mean must be real numbers"),
-    (lambda d: _edit_json(d / "backbone.json", njoints=0), r"backbone.json: njoints=0"),
-])
-def test_loads_validate_what_they_read(model_dir, edit, match):
-    edit(model_dir)
-    with pytest.raises(ValueError, match=match) as e:
-        T.load_trained(str(model_dir))
-    assert "\n" not in str(e.value)
-
-
-def test_nonfinite_weights_are_refused(model_dir):
-    sd = torch.load(model_dir / "model000000001.pt", weights_only=True)
-    k = next(k for k, v in sd.items() if v.is_floating_point())
-    sd[k] = sd[k].clone().fill_(float("nan"))
-    torch.save(sd, model_dir / "model000000001.pt")
-    with pytest.raises(ValueError, match=rf"tensor {k} holds non-finite values"):
-        T.load_trained(str(model_dir))
-
-
-def _edit_json(path: Path, **changes) -> None:
-    path.write_text(json.dumps({**json.loads(path.read_text()), **changes}))
-
-
-def test_bundle_motion_json_is_validated(tmp_path):
-    from smdm_plugin.training.bundle import load_bundle, save_bundle
-    from smdm_plugin.io.representation import Representation
-    from smdm_plugin.reference.backbone import TinyMDM
-    from smdm_plugin.reference.diffusion import SimpleDiffusion
-
-    rep = Representation("joints66")
-    kw = dict(njoints=66, nfeats=1, latent_dim=16, ff_size=32, num_layers=1, num_heads=2, cond_mode="no_cond")
-    d = save_bundle(str(tmp_path / "b"), TinyMDM(**kw), SimpleDiffusion(10), kw, rep, np.zeros(66), np.ones(66))
-    load_bundle(d)
-    for change, match in ((dict(fps=0), r"motion.json: fps=0: expected a finite number > 0"),
-                          (dict(diffusion_steps=0), r"diffusion_steps=0: expected an integer >= 1"),
-                          (dict(std=[1.0] * 65), r"std must have shape \[66\]"),
-                          (dict(mean=[float("nan")] + [0.0] * 65), r"mean holds a non-finite")):
-        text = (tmp_path / "b" / "motion.json").read_text()
-        _edit_json(tmp_path / "b" / "motion.json", **change)
-        with pytest.raises(ValueError, match=match):
-            load_bundle(d)
-        (tmp_path / "b" / "motion.json").write_text(text)
-    meta = json.loads((tmp_path / "b" / "motion.json").read_text())
-    del meta["fps"]
-    (tmp_path / "b" / "motion.json").write_text(json.dumps(meta))
-    with pytest.raises(ValueError, match=r"motion.json: missing field\(s\) fps"):
-        load_bundle(d)
-
-
 # ------------------------------------------------------------------------------ input data before step 0
 @pytest.mark.parametrize("edit,match", [
     (lambda d: np.save(d / "new_joint_vecs" / "train001.npy", np.full((52, 263), np.nan, np.float32)),
@@ -326,66 +232,6 @@ def test_clips_too_short_for_the_reduction(tmp_path, capsys):
     assert _train(data, tmp_path / "run", "--min-frames", "8", "--sparse", "--steps", "1") == 0
 
 
-# ------------------------------------------------------------------------------ numbers and configs
-def test_numpy_scalars_are_numbers_and_dicts_are_configs():
-    from smdm_plugin.core.selection import keyframe_count, select_keyframes  # noqa: F401
-
-    c = SparseConfig(reduction=np.float32(0.8), gamma=np.float64(0.1), fsq=np.bool_(False),
-                     diffusion_steps=np.int64(50), fsq_levels=np.array([8, 5]), mask_noise=np.array(0.1))
-    assert c == SparseConfig(reduction=0.8, gamma=0.1, fsq=False, diffusion_steps=50, fsq_levels=(8, 5), mask_noise=0.1)
-    assert type(c.reduction) is float and type(c.fsq) is bool and type(c.diffusion_steps) is int
-    with pytest.raises(ConfigTypeError, match="reduction"):
-        SparseConfig(reduction=np.complex64(0.5))
-    with pytest.raises(ConfigTypeError, match="diffusion_steps"):
-        SparseConfig(diffusion_steps=np.float32(50))
-    # the one conversion of what users pass as a config (sparsify's)
-    assert as_config({"reduction": 0.7}) == SparseConfig(reduction=0.7)
-    assert as_config(c) is c and as_config(None) == SparseConfig()
-    with pytest.raises(ValueError, match=r"unknown option 'redution'; did you mean 'reduction'"):
-        as_config({"redution": 0.7})
-    with pytest.raises(TypeError, match=r"sparsify: config must be a SparseConfig, a dict of its fields or None"):
-        as_config([("reduction", 0.7)])
-    from smdm_plugin.core.selection import _check_reduction
-    from smdm_plugin.metrics.quality import _fps
-
-    assert _check_reduction(np.float32(0.8), "f") == 0.8 and _fps("f", np.float32(20)) == 20.0
-
-
-def test_ablate_variant_resumes_with_the_trainers_mechanism(tmp_path):
-    """smdm ablate --resume continues an interrupted variant from its checkpoint (the trainer's
-    state, as smdm train --resume) instead of starting over, with the same result."""
-    from smdm_plugin.apps import ablate
-    from smdm_plugin.apps.ablate import grid
-
-    cfg = grid.load_config(str(ROOT / "configs" / "ablations" / "quick.yaml"))
-    cfg.update(steps=20, batch=2, model={**cfg["model"], "latent_dim": 16, "ff_size": 32, "num_layers": 1})
-    cfg["eval"] = {**cfg["eval"], "samples": 2, "frames": 40}
-    data = MotionData(str(write_humanml3d(tmp_path / "d", train=(60, 52, 48, 70), val=(44, 56))), 60, 40)
-    variant = next(v for v in cfg["variants"] if v["name"] == "sparse (VW)")
-    dev = torch.device("cpu")
-    straight = ablate.run_variant(cfg, variant, data, dev)
-    ckpt = tmp_path / "ckpt"
-    real_step, calls = T.Trainer.step, []
-
-    def interrupted(self):
-        if self.step_count == 13:  # after the checkpoint at step 12 (every 2 steps)
-            raise KeyboardInterrupt
-        calls.append(self.step_count)
-        return real_step(self)
-
-    T.Trainer.step = interrupted
-    try:
-        with pytest.raises(KeyboardInterrupt):
-            ablate.run_variant(cfg, variant, data, dev, checkpoint_dir=str(ckpt))
-    finally:
-        T.Trainer.step = real_step
-    assert torch.load(ckpt / T.TRAIN_STATE_FILENAME, weights_only=True)["step"] == 12
-    resumed = ablate.run_variant(cfg, variant, data, dev, checkpoint_dir=str(ckpt))
-    assert resumed["resumed_at"] == 12 and straight["resumed_at"] == 0
-    assert resumed["losses"] == straight["losses"] and resumed["val_loss"] == straight["val_loss"]
-    assert resumed["ees"] == straight["ees"]
-
-
 def test_resume_without_a_run_is_refused_and_leaves_nothing(tmp_path, data, capsys):
     assert _train(data, tmp_path / "o", "--steps", "1", "--resume") == 2
     assert "holds no run to continue" in capsys.readouterr().err
@@ -409,23 +255,3 @@ def test_ctrl_c_keeps_the_checkpoint_for_resume(tmp_path, data, monkeypatch, cap
     monkeypatch.setattr(T.Trainer, "step", real_step)
     assert _train(data, tmp_path / "o", "--steps", "9", "--save-every", "2", "--resume") == 0
     assert (tmp_path / "o" / "model000000009.pt").exists() and not (tmp_path / ".o.partial").exists()
-
-
-def test_options_files_must_agree_with_the_saved_config(model_dir, tmp_path):
-    import argparse
-
-    from smdm_plugin.integrations.motiondiffuse import config_from_opt
-
-    # diffusion_steps is set from the diffusion when the model is built: a CLI default there is fine
-    (model_dir / "args.json").write_text('{"sparse": true, "sparse_diffusion_steps": 50, "sparse_reduction": 0.8}')
-    T.load_trained(str(model_dir))
-    # MotionDiffuse: opt.txt's sparse_* options (strings, as get_opt reads them) vs sparse_config.json
-    (tmp_path / "model").mkdir()
-    SparseConfig(reduction=0.7).save(tmp_path / "model")
-    opt = argparse.Namespace(is_train=False, model_dir=str(tmp_path / "model"), sparse="True", sparse_reduction="0.7",
-                             sparse_diffusion_steps="50")
-    assert config_from_opt(opt).reduction == 0.7
-    opt.sparse_reduction = "0.5"
-    with pytest.raises(ValueError, match=r"opt.txt and .*sparse_config.json disagree: reduction: opt.txt 0.5, "
-                                         r"sparse_config.json 0.7"):
-        config_from_opt(opt)

@@ -245,3 +245,12 @@ def test_preset_errors():
         load_preset("smdm_humanl")
     with pytest.raises(FileNotFoundError, match="no such file: 'configs/x.yaml'"):
         load_preset("configs/x.yaml")
+
+
+# ----------------------------------------------------------------------------------------- messages
+def test_sparse_config_unknown_keyword_names_the_closest_field():
+    from smdm_plugin import SparseConfig
+
+    with pytest.raises(TypeError, match="'redution'.*did you mean 'reduction'"):
+        SparseConfig(redution=0.8)
+    assert SparseConfig(reduction=0.5).reduction == 0.5

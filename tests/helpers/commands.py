@@ -47,3 +47,10 @@ def snapshot(folder: Path) -> dict:
     """Every file under ``folder`` -> sha256 of its bytes."""
     return {str(p.relative_to(folder)): hashlib.sha256(p.read_bytes()).hexdigest()
             for p in sorted(folder.rglob("*")) if p.is_file()}
+
+
+def train(data: Path, out: Path, *extra) -> int:
+    """``smdm train`` in this process (its exit status) on ``data`` with the tiny model, into ``out``."""
+    from smdm_plugin.apps import train as train_cli
+
+    return train_cli.main(["--data", str(data), "--out", str(out), "--min-frames", "20", *TINY_TRAIN, *extra])

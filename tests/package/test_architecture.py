@@ -315,3 +315,12 @@ def test_io_knows_no_model_family():
     from smdm_plugin.io import checkpoint as io_checkpoint
 
     assert not hasattr(io_checkpoint, "load_checkpoint") and not hasattr(io_checkpoint, "register_model_preparer")
+
+
+def test_public_namespace_is_the_public_api():
+    import smdm_plugin
+
+    names = dir(smdm_plugin)
+    assert "SparseConfig" in names and "sparsify" in names
+    assert not {"Any", "Dict", "List", "importlib", "TYPE_CHECKING", "annotations"} & set(names)
+    assert set(names) == set(smdm_plugin.__all__)
