@@ -1,5 +1,5 @@
 """sparsify / unsparsify of MotionDiffuse (its family) on a small stand-in with MotionTransformer's
-attribute names and forward contract (tests/motiondiffuse_standin.py; CI has no MotionDiffuse
+attribute names and forward contract (tests/helpers/motiondiffuse_standin.py; CI has no MotionDiffuse
 checkout)."""
 import argparse
 

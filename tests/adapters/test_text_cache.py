@@ -1,8 +1,6 @@
 """Text-embedding cache (smdm_plugin.adapters.text_cache): LRU bound, exact results against the
 uncached encoder in every output convention, only new captions encoded, safety bypasses."""
 import copy
-import os
-import sys
 import warnings
 
 import pytest

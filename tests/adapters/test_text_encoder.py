@@ -1,5 +1,5 @@
 """sMDM-stella text-encoder swap (smdm_plugin.adapters.text_encoder) on tiny random transformers
-encoders built offline (tests/text_encoder_fixtures.py), TinyMDM and SimpleDiffusion."""
+encoders built offline (tests/helpers/text_encoder.py), TinyMDM and SimpleDiffusion."""
 import argparse
 import copy
 import json

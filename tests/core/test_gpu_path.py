@@ -369,12 +369,12 @@ MOTIONDIFFUSE_BUDGET = {("fp32", "train"): 1.15, ("bf16", "train"): 1.15,    # r
 
 @pytest.mark.parametrize("precision", ["fp32", "bf16"])
 def test_launch_budget_of_motiondiffuse(precision):
-    """MotionDiffuse (the stand-in of tests/motiondiffuse_standin.py at its depth: 8 blocks), B=8,
+    """MotionDiffuse (the stand-in of tests/helpers/motiondiffuse_standin.py at its depth: 8 blocks), B=8,
     196 frames, lengths 40..196, counted as CUDA launches them (core/launches.py): the sparse model
     (defaults; FSQ does not apply to its linear attention) against the dense one, a training step
     (training_losses + backward + AdamW(foreach=True).step()) and a sampling call (one pass: it
     samples without guidance), early and late step, within ``MOTIONDIFFUSE_BUDGET``, no host sync.
-    Its compile and zero-sync checks run in tests/test_family_conformance.py with every family."""
+    Its compile and zero-sync checks run in tests/adapters/test_family_conformance.py with every family."""
     from helpers.motiondiffuse_standin import StandInDiffusion, StandInMotionTransformer
 
     B, N = 8, 196

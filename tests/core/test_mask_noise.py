@@ -4,7 +4,6 @@ and for every sample; the same seed gives the same masks, and the step counter t
 weights (so a resumed run continues the same sequence)."""
 import copy
 import importlib.util
-import os
 import subprocess
 import sys
 

@@ -1,5 +1,5 @@
 """The docs match the code: docs/architecture.md names every command and every package folder, and
-no page points at files or people that are not there."""
+no page points at files (links, test files) or people that are not there."""
 from __future__ import annotations
 
 import re
@@ -8,6 +8,7 @@ from pathlib import Path
 from smdm_plugin.apps.cli import COMMANDS
 
 from helpers.paths import ROOT
+
 ARCH = (ROOT / "docs" / "architecture.md").read_text()
 
 
@@ -35,3 +36,13 @@ def test_doc_links_point_at_files_that_exist() -> None:
             if not (page.parent / target).exists():
                 bad.append(f"{page.relative_to(ROOT)} -> {target}")
     assert not bad, f"links to missing files: {bad}"
+
+
+def test_pages_name_test_files_that_exist() -> None:
+    """A test file a page names (``tests/<layer>/test_x.py``, with or without ``::test``) is there: the
+    pages follow the tests when they move."""
+    pages = [ROOT / "README.md", ROOT / "DEVELOPING.md", *sorted((ROOT / "docs").glob("*.md"))]
+    bad = [f"{page.relative_to(ROOT)} -> {path}" for page in pages
+           for path in sorted(set(re.findall(r"\btests/[\w/]+\.py\b", page.read_text())))
+           if not (ROOT / path).is_file()]
+    assert not bad, f"pages naming test files that are not there: {bad}"

@@ -9,7 +9,7 @@ Skipped, by these explicit rules (:data:`SKIP`), each with its reason:
 * ``smdm run`` — needs an upstream checkout (``--repo PATH``) and its weights/data;
 * a command naming an argument the user must replace (``...``, ``PATH``, ``dataset/HumanML3D``);
 * anything that is not ``smdm``/``python -c`` (``pip``, ``git``, ``cd``, ``torchrun``, ``python -m``
-  upstream scripts): installs, upstream code, or launchers tested elsewhere (tests/test_ddp_apps.py).
+  upstream scripts): installs, upstream code, or launchers tested elsewhere (tests/apps/test_ddp_apps.py).
 
 Small-size flags (:data:`SMALL`) are appended where a command has them, to keep the whole run
 within about a minute on 2 cores; they change sizes and speed, never which files are written or read:

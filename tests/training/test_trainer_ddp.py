@@ -13,7 +13,6 @@ import shutil
 import re
 import subprocess
 import sys
-from pathlib import Path
 
 import pytest
 import torch
