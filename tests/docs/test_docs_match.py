@@ -3,7 +3,6 @@ no page points at files (links, test files) or people that are not there."""
 from __future__ import annotations
 
 import re
-from pathlib import Path
 
 from smdm_plugin.apps.cli import COMMANDS
 
