@@ -1,21 +1,49 @@
-"""Shared fixtures: locate ../shared data (tests that need it skip when it is absent)."""
+"""Shared fixtures of every test folder (tests are organised by the package's layers: core/, io/,
+reference/, adapters/, integrations_unit/, metrics/, training/, apps/, plus package/, docs/, scripts/;
+upstream checkouts: integration/). Data in ../shared (tests that need it skip when it is absent).
+
+Shared builders that are not fixtures live in the ``helpers`` package (tests/helpers/); this file puts
+tests/ on ``sys.path`` so that every test module, in any folder, imports them as ``helpers.<module>``.
+Test modules never import each other.
+"""
 from __future__ import annotations
 
+import os
+import sys
 from pathlib import Path
 
 import numpy as np
 import pytest
 import torch
 
-SHARED = Path(__file__).resolve().parents[1].parent / "shared" / "data"
-HML = SHARED / "cmu-humanml3d"
-MOCAP = SHARED / "cmu-mocap"
+TESTS = os.path.dirname(os.path.abspath(__file__))
+if TESTS not in sys.path:
+    sys.path.insert(0, TESTS)
+
+from helpers.paths import HML, MOCAP, SHARED  # noqa: E402,F401
+from helpers.synthetic_data import write_humanml3d  # noqa: E402
 
 
 @pytest.fixture(autouse=True)
 def _seed():
     torch.manual_seed(0)
     np.random.seed(0)
+
+
+@pytest.fixture
+def one_thread():
+    """Torch on one thread for the test (tiny models run faster on one thread than on two on a shared,
+    busy CPU, and deterministically); modules opt in with ``pytestmark = pytest.mark.usefixtures("one_thread")``."""
+    n = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(n)
+
+
+@pytest.fixture
+def synthetic_hml(tmp_path) -> Path:
+    """A small synthetic HumanML3D-format folder (``tmp_path / "data"``, helpers.synthetic_data)."""
+    return write_humanml3d(tmp_path / "data")
 
 
 @pytest.fixture(scope="session")

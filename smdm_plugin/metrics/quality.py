@@ -3,7 +3,7 @@ unit speed, keyframe error.
 
 The sMDM paper evaluates its in-betweening model (sCondMDI) with the metrics of the keyframe
 in-betweening literature it builds on; these are those metrics, written so that they agree with
-the reference code to float tolerance (``tests/test_metrics.py`` checks them against it):
+the reference code to float tolerance (``tests/metrics/test_metrics.py`` checks them against it):
 
 * :func:`foot_skating_ratio` — GMD's ``calculate_skating_ratio`` (Karunratanakul et al. 2023,
   ``korrawe/guided-motion-diffusion``, ``data_loaders/humanml/utils/metrics.py``), which CondMDI

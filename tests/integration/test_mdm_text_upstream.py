@@ -2,7 +2,7 @@
 
 Skipped unless ``SMDM_MDM_ROOT`` points at an MDM checkout (see test_mdm_upstream.py; same harness:
 random-weight CLIP with a 1-layer text tower, DistilBERT stub, SMPL/GloVe stubs). The encoder is a
-tiny random BERT saved offline with ``save_pretrained`` (tests/text_encoder_fixtures.py).
+tiny random BERT saved offline with ``save_pretrained`` (tests/helpers/text_encoder.py).
 
 * ``--sparse_text_encoder DIR`` trains (MDM trans_enc through the patch, DiP through ``smdm run``):
   ``embed_text`` takes the encoder's width, the encoder's weights stay out of the checkpoint,
@@ -28,13 +28,13 @@ from test_mdm_upstream import generate, harness_code, load_sd, needs_mdm, train
 
 ROOT = os.environ.get("SMDM_MDM_ROOT")
 PATCH = os.path.join(PATCHES, "mdm.patch")
-sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))  # tests/
+sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))  # tests/: the helpers package
 
 
 @pytest.fixture(scope="module")
 def encoder_dir(tmp_path_factory):
     pytest.importorskip("transformers")
-    from text_encoder_fixtures import make_tiny_encoder
+    from helpers.text_encoder import make_tiny_encoder
 
     return make_tiny_encoder(str(tmp_path_factory.mktemp("text_encoder") / "tiny_bert"), hidden=32)
 
