@@ -1,4 +1,5 @@
 """FSQ quantiser and the FSQ-key ``nn.MultiheadAttention`` drop-in."""
+import copy
 import importlib.util
 import math
 import os
@@ -424,3 +425,26 @@ def test_fsq_code_triton_kernels_equal_the_composite_in_interpreter_mode(triton_
         "print('mismatches', bad)\n")
     out = triton_interpreter(code)
     assert "mismatches 0" in out, out
+
+def test_unquantize_attention_keys_is_the_inverse_of_quantize():
+    """``unquantize_attention_keys`` (public, the PEFT-style way back): every FSQ self-attention of a
+    transformer becomes ``nn.MultiheadAttention`` with its current q/k/v/out weights (trained ones
+    included), so the model equals the dense one it came from; cross-attention is untouched."""
+    from smdm_plugin import quantize_attention_keys, unquantize_attention_keys
+
+    torch.manual_seed(0)
+    layer = nn.TransformerDecoderLayer(32, 4, 64, dropout=0.0)
+    dense = nn.TransformerDecoder(layer, 2).eval()
+    model = copy.deepcopy(dense)
+    assert quantize_attention_keys(model, LEVELS) == 2
+    with torch.no_grad():                                    # a "trained" change of a kept weight
+        model.layers[0].self_attn.in_proj_weight.mul_(1.5)
+        dense.layers[0].self_attn.in_proj_weight.mul_(1.5)
+    cross = model.layers[1].multihead_attn
+    assert unquantize_attention_keys(model) == 2
+    assert all(type(m.self_attn) is nn.MultiheadAttention for m in model.layers)
+    assert model.layers[1].multihead_attn is cross
+    assert set(model.state_dict()) == set(dense.state_dict())
+    x, mem = torch.randn(5, 2, 32), torch.randn(7, 2, 32)
+    torch.testing.assert_close(model(x, mem), dense(x, mem))
+    assert unquantize_attention_keys(model) == 0             # nothing left to convert
