@@ -78,7 +78,7 @@ def cmd_train(a: argparse.Namespace) -> int:
     from smdm_plugin.training.data import MotionSet
     from smdm_plugin.training.trainer import TrainConfig, Trainer
     from smdm_plugin.core.config import SparseConfig
-    from smdm_plugin.io.bundle import save_bundle
+    from smdm_plugin.training.bundle import save_bundle
     from smdm_plugin.io.representation import Representation
 
     torch.set_num_threads(a.threads)
@@ -168,7 +168,7 @@ def score(rep, out: torch.Tensor, ref: torch.Tensor, given: torch.Tensor, length
 
 def cmd_eval(a: argparse.Namespace) -> int:
     from smdm_plugin.adapters.inbetween import keyframe_constraint, sample_inbetween
-    from smdm_plugin.io.bundle import load_bundle
+    from smdm_plugin.training.bundle import load_bundle
 
     torch.set_num_threads(a.threads)
     data = Path(a.data)

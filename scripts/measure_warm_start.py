@@ -121,8 +121,8 @@ def wrap_folder(dense: str, out: str, reduction: float) -> None:
     import torch
 
     from smdm_plugin.adapters.warm import wrap_dense
-    from smdm_plugin.core.config import load_preset
-    from smdm_plugin.io.checkpoint import save_sparse_config
+    from smdm_plugin.core.presets import load_preset
+    from smdm_plugin.adapters.checkpoint import save_sparse_config
     from smdm_plugin.training.trainer import load_trained
 
     shutil.rmtree(out, ignore_errors=True)

@@ -22,7 +22,7 @@ __version__ = "0.6.0"
 
 _EXPORTS: Dict[str, str] = {
     # core: the method
-    "SparseConfig": "core.config", "load_preset": "core.config", "sparse_config_of": "core.config",
+    "SparseConfig": "core.config", "load_preset": "core.presets", "sparse_config_of": "adapters.state",
     "select_keyframes": "core.selection", "register_selector": "core.selection", "perturb_mask": "core.selection",
     "vw_reference": "core.selection", "keyframe_count": "core.selection",
     "extract_selection_features": "core.features",
@@ -40,14 +40,14 @@ _EXPORTS: Dict[str, str] = {
     "sparsify": "adapters.surgery", "unsparsify": "adapters.surgery", "is_sparse": "adapters.surgery",
     "set_mean_std": "adapters.surgery", "detect_variant": "adapters.mdm",
     "wrap_dense": "adapters.warm", "warm_start": "adapters.warm", "is_dense_wrap": "adapters.warm",
-    "ModelFamily": "adapters.family", "register_family": "adapters.family", "families": "adapters.family",
-    "CallInputs": "adapters.family",
+    "ModelFamily": "adapters.family", "register_family": "adapters.families", "families": "adapters.families",
+    "CallInputs": "adapters.call",
     "KeyframeRequest": "adapters.request", "KEYFRAMES_KEY": "adapters.request", "with_forced": "adapters.request",
     "attach_diffusion": "adapters.diffusion", "detach_diffusion": "adapters.diffusion",
-    "keyframe_collate": "adapters.diffusion",
+    "keyframe_collate": "adapters.mdm",
     "swap_text_encoder": "adapters.text_encoder", "HFTextEncoder": "adapters.text_encoder",
     "install_text_cache": "adapters.text_cache", "TextEmbeddingCache": "adapters.text_cache",
-    "ConfigTypeError": "core.config",
+    "ConfigTypeError": "core.values",
     # integrations: graph capture (--sparse_compile / smdm train --compile)
     "compile_model": "integrations.compile", "CompileSetting": "integrations.compile",
     "sample_inbetween": "adapters.inbetween", "keyframe_constraint": "adapters.inbetween",
@@ -65,7 +65,7 @@ _EXPORTS: Dict[str, str] = {
     # io
     "read_bvh": "io.bvh", "bvh_joint_positions": "io.bvh", "load_cmu_clip": "io.bvh",
     "BVHError": "io.bvh", "BVHWarning": "io.bvh", "OutputExistsError": "io.files",
-    "save_sparse_config": "io.checkpoint", "load_checkpoint": "adapters.checkpoint",
+    "save_sparse_config": "adapters.checkpoint", "load_checkpoint": "adapters.checkpoint",
     "check_state_dict": "io.checkpoint", "find_sparse_config": "io.checkpoint",
     # reference model
     "TinyMDM": "reference.backbone", "MotionDiffuseDenoiser": "reference.motiondiffuse_denoiser",
@@ -92,16 +92,21 @@ def __dir__() -> List[str]:
 
 
 if TYPE_CHECKING:  # pragma: no cover - for type checkers and IDEs
-    from .adapters.diffusion import attach_diffusion, detach_diffusion, keyframe_collate
+    from .adapters.diffusion import attach_diffusion, detach_diffusion
     from .adapters.text_cache import TextEmbeddingCache, install_text_cache
     from .adapters.text_encoder import HFTextEncoder, swap_text_encoder
-    from .adapters.family import CallInputs, ModelFamily, families, register_family
+    from .adapters.call import CallInputs
+    from .adapters.families import families, register_family
+    from .adapters.family import ModelFamily
     from .adapters.request import KEYFRAMES_KEY, KeyframeRequest, with_forced
-    from .adapters.mdm import detect_variant
+    from .adapters.mdm import detect_variant, keyframe_collate
     from .adapters.surgery import is_sparse, set_mean_std, sparsify, unsparsify
     from .adapters.warm import is_dense_wrap, warm_start, wrap_dense
     from .core.attention_backends import available_backends, get_backend, register_backend
-    from .core.config import ConfigTypeError, SparseConfig, load_preset, sparse_config_of
+    from .core.config import SparseConfig
+    from .core.presets import load_preset
+    from .core.values import ConfigTypeError
+    from .adapters.state import sparse_config_of
     from .core.features import extract_selection_features
     from .core.fsq import FSQ, FSQMultiheadAttention, quantize_attention_keys, unquantize_attention_keys
     from .adapters.inbetween import forced_keyframes, keyframe_constraint, sample_inbetween
@@ -123,8 +128,8 @@ if TYPE_CHECKING:  # pragma: no cover - for type checkers and IDEs
     from .core.selection import keyframe_count, perturb_mask, select_keyframes, vw_reference
     from .io.bvh import BVHError, BVHWarning, bvh_joint_positions, load_cmu_clip, read_bvh
     from .io.files import OutputExistsError
-    from .adapters.checkpoint import load_checkpoint
-    from .io.checkpoint import check_state_dict, find_sparse_config, save_sparse_config
+    from .adapters.checkpoint import load_checkpoint, save_sparse_config
+    from .io.checkpoint import check_state_dict, find_sparse_config
     from .reference.backbone import TinyMDM
     from .reference.motiondiffuse_denoiser import MotionDiffuseDenoiser
     from .reference.diffusion import ClassifierFreeGuidance, SimpleDiffusion

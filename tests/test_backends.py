@@ -8,8 +8,11 @@ import torch.nn as nn
 
 from smdm_plugin import KeyframeTransformer, register_backend
 from smdm_plugin.core import attention_backends as ab
-from smdm_plugin.core.attention_backends import (Packing, available_backends, compact_backend, fill_frames,
-                                                 get_backend, lerp_rows, varlen_backend)
+from smdm_plugin.core import packed_attention
+from smdm_plugin.core.attention_backends import available_backends, compact_backend, get_backend, varlen_backend
+from smdm_plugin.core.fill import fill_frames
+from smdm_plugin.core.packing import Packing
+from smdm_plugin.core.rows import lerp_rows
 from smdm_plugin.core.plan import KeyframePlan
 
 CUDA = pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")
@@ -157,9 +160,9 @@ def test_varlen_falls_back_to_compact_for_hooks_and_custom_attention():
         ref = reference(enc, x, keep)
     assert calls == [4]  # hooks fire: ran through the modules (compact, capacity tokens)
     assert torch.allclose(out[keep.t()], ref[keep.t()], atol=1e-5)
-    assert ab.supports_packed(enc)  # the hook is gone: packed again
+    assert packed_attention.supports_packed(enc)  # the hook is gone: packed again
     h = enc.layers[1].self_attn.register_forward_hook(lambda m, a, o: None)
-    assert not ab.supports_packed(enc)  # varlen uses the attention's weights: its hooks would not fire
+    assert not packed_attention.supports_packed(enc)  # varlen uses the attention's weights: its hooks would not fire
     h.remove()
 
 
@@ -173,7 +176,7 @@ def test_varlen_packs_fsq_attention_and_matches_the_reference(kind):
     S, B, d = 16, 3, 32
     inner = (encoder if kind == "encoder" else decoder)().train()
     quantize_attention_keys(inner, (8, 5, 5, 5))
-    assert ab.supports_packed(inner)
+    assert packed_attention.supports_packed(inner)
     keep = keyframes(B, S, [16, 9, 5], 4)
     x = torch.randn(S, B, d, requires_grad=True)
     mem = torch.randn(1, B, d) if kind == "decoder" else None
@@ -262,7 +265,7 @@ def test_varlen_runs_pytorch_s_own_layers_batch_first_and_leaves_them_unchanged(
     if fsq:
         quantize_attention_keys(inner, (8, 5, 5, 5))
     inner.train()
-    assert ab.supports_packed(inner)
+    assert packed_attention.supports_packed(inner)
     before = [(dict(vars(layer)), layer.self_attn) for layer in inner.layers]
     keep = keyframes(B, S, [17, 11, 4], 5)
     mem = torch.randn(2, B, d) if kind == "decoder" else None
@@ -285,7 +288,7 @@ def test_varlen_falls_back_for_a_custom_layer_class():
             return super().forward(src, *args, **kwargs) * 2
 
     enc = nn.TransformerEncoder(MyLayer(32, 4, 64, 0.0), 2, enable_nested_tensor=False).eval()
-    assert not ab.supports_packed(enc) and ab.supports_packed(encoder())
+    assert not packed_attention.supports_packed(enc) and packed_attention.supports_packed(encoder())
     keep = keyframes(2, 12, [12, 7], 4)
     x = torch.randn(12, 2, 32)
     with torch.no_grad():

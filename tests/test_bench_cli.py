@@ -165,7 +165,7 @@ def test_bench_motiondiffuse_prints_dense_and_sparse_rows(tmp_path, capsys):
 
 
 def test_bench_models_come_from_the_family_registry():
-    from smdm_plugin.adapters.family import FAMILIES, family_for
+    from smdm_plugin.adapters.families import FAMILIES, family_for
     from smdm_plugin.adapters.surgery import is_sparse
 
     assert workloads.family_choices() == [n for n in FAMILIES.names() if n in ("mdm", "motiondiffuse")]

@@ -75,7 +75,7 @@ def test_presets():
     ("text_encoder", 5, "expected None or a non-empty string, got int"),
 ])
 def test_wrong_types_are_type_errors(field, value, needle):
-    from smdm_plugin.core.config import ConfigTypeError
+    from smdm_plugin.core.values import ConfigTypeError
 
     with pytest.raises(TypeError) as e:
         SparseConfig(**{field: value})

@@ -30,7 +30,7 @@ def test_demo_under_torchrun_trains_with_ddp_and_writes_one_output_set(tmp_path)
          "inbetween.md", "summary.json", "evaluator"])
     # rank 0 alone trained the FID evaluator (once) and scored the samples with it
     assert log.count("## Evaluator (FID)") == 1 and np.isfinite(s["training"]["quality"]["dense"]["fid"])
-    from smdm_plugin.io.bundle import load_bundle
+    from smdm_plugin.training.bundle import load_bundle
 
     assert load_bundle(str(out / "sparse")).sparse and not load_bundle(str(out / "dense")).sparse
 def test_ablate_under_torchrun_trains_with_ddp_and_only_rank_zero_reports(hml_dir, tmp_path):

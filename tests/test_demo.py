@@ -102,7 +102,7 @@ def test_quick_demo_skips_unusable_files_keeps_given_flags_and_leaves_models(bvh
 
     assert Image.open(out / "inbetween.gif").n_frames == 60  # 120 frames, every 2nd in --quick
     # the trained models are folders smdm inbetween reads
-    from smdm_plugin.io.bundle import load_bundle
+    from smdm_plugin.training.bundle import load_bundle
 
     assert load_bundle(str(out / "sparse")).sparse and not load_bundle(str(out / "dense")).sparse
     # a second run into the same folder is refused, nothing changes; --overwrite is accepted

@@ -116,7 +116,7 @@ def test_eval_with_a_model_and_resume(tmp_path):
     import torch
 
     from smdm_plugin.core.config import SparseConfig
-    from smdm_plugin.io.bundle import save_bundle
+    from smdm_plugin.training.bundle import save_bundle
     from smdm_plugin.io.representation import Representation
     from smdm_plugin.reference.backbone import TinyMDM
     from smdm_plugin.reference.diffusion import SimpleDiffusion

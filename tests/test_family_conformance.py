@@ -17,7 +17,7 @@ import torch
 from motiondiffuse_standin import StandInDiffusion, StandInMotionTransformer
 from smdm_plugin import (SimpleDiffusion, SparseConfig, TinyMDM, attach_diffusion, families, is_sparse,
                          load_checkpoint, save_sparse_config, sparsify, unsparsify)
-from smdm_plugin.adapters.family import family_for
+from smdm_plugin.adapters.families import family_for
 from smdm_plugin.adapters.state import SparseState
 from smdm_plugin.core.checks import static_mode
 from test_gpu_path import Dispatched

@@ -262,7 +262,7 @@ def test_joints66_round_trip_on_real_joints(hml_dir):
 
 
 def test_model_folder_round_trip_samples_the_same(tmp_path):
-    from smdm_plugin.io.bundle import load_bundle, save_bundle
+    from smdm_plugin.training.bundle import load_bundle, save_bundle
     from smdm_plugin.io.files import OutputExistsError
     from smdm_plugin.io.representation import Representation
 
@@ -336,7 +336,7 @@ def run(*args, cwd=None):
 
 @pytest.fixture(scope="module")
 def model_folders(tmp_path_factory):
-    from smdm_plugin.io.bundle import save_bundle
+    from smdm_plugin.training.bundle import save_bundle
     from smdm_plugin.io.representation import Representation
 
     root = tmp_path_factory.mktemp("models")

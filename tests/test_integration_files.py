@@ -15,7 +15,8 @@ import pytest
 import torch
 
 from smdm_plugin import SparseConfig, TinyMDM
-from smdm_plugin.core.config import CONFIG_FILENAME, disagreement
+from smdm_plugin.core.agreement import disagreement
+from smdm_plugin.core.config_files import CONFIG_FILENAME
 from smdm_plugin.integrations.mdm import add_sparse_options, sparsify_mdm
 from smdm_plugin.integrations.priormdm import doubletake_output_dir, sparsify_priormdm
 from smdm_plugin.reference.diffusion import SimpleDiffusion

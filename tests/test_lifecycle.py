@@ -9,7 +9,7 @@ import torch
 
 from smdm_plugin import SimpleDiffusion, SparseConfig, TinyMDM, is_sparse, sparsify, unsparsify
 from smdm_plugin import KEYFRAMES_KEY
-from smdm_plugin.adapters.diffusion import keyframe_collate
+from smdm_plugin.adapters.mdm import keyframe_collate
 from smdm_plugin.core.checks import static_mode
 
 
@@ -33,7 +33,7 @@ T = torch.tensor([3, 20, 40])
 def seen_masks(model):
     """Every keyframe mask the model's transformer gets (per call)."""
     seen = []
-    tr = model._smdm_state.transformer
+    tr = model._smdm_state.family_state.transformer
     orig = tr.set_plan
     tr.set_plan = lambda p: (p is not None and seen.append(p.mask.clone()), orig(p))
     return seen
@@ -94,7 +94,7 @@ def test_wrapped_models_and_ema_copies_find_their_own_state():
     diffusion = SimpleDiffusion(50)
     model = sparsify(tiny(), SparseConfig(mask_noise=0.0), diffusion=diffusion)
     ema = copy.deepcopy(model)
-    assert ema._smdm_state is not model._smdm_state and ema._smdm_state.transformer is ema.seqTransEncoder
+    assert ema._smdm_state is not model._smdm_state and ema._smdm_state.family_state.transformer is ema.seqTransEncoder
     wrapper = torch.nn.Sequential()
     wrapper.add_module("module", model)                           # a DDP-like wrapper
     x, y = batch()

@@ -65,7 +65,7 @@ def test_sparse_tokens_and_interpolation():
     forced[:, 7] = True
     with torch.no_grad():
         model(x, t, length=length, text=text, **with_forced({}, forced))
-    last = model._smdm_state.last_mask
+    last = model._smdm_state.family_state.last_mask
     assert bool(last[:, 7].all())
     assert not bool(last[2, 17:].any())  # nothing beyond the valid length (17)
     with torch.no_grad(), pytest.raises(TypeError, match=r"model_kwargs\['keyframe_forced'\] is not read since "
@@ -168,7 +168,7 @@ def test_training_losses_passes_keyframes_and_keeps_upstream_terms():
     terms = diff.training_losses(model, x, t, {"text": text, "length": length}, noise=noise)
     assert set(terms) == set(plain) | {"keyframe_mask"}
     keys = terms["keyframe_mask"]
-    assert torch.equal(keys, model._smdm_state.last_mask)  # the mask the model ran on
+    assert torch.equal(keys, model._smdm_state.family_state.last_mask)  # the mask the model ran on
     counts = keys.sum(1)
     want = torch.tensor([max(2, round(0.2 * int(L))) for L in length])
     assert torch.equal(counts, want)
@@ -201,7 +201,7 @@ def test_trainer_loss_adds_lipschitz_and_keyframe_only_ablation(tmp_path):
     with torch.no_grad():
         tr.forward(x, t, length, text)
         got = trainer_loss(tr, upstream_backward_g(tr.fake_noise, tr.real_noise, tr.src_mask))
-    keys = tr.encoder._smdm_state.last_mask
+    keys = tr.encoder._smdm_state.family_state.last_mask
     errs = [((tr.fake_noise[b, i] - tr.real_noise[b, i]) ** 2).mean() for b in range(3) for i in range(40)
             if keys[b, i] and i < int(length[b])]
     assert torch.allclose(got, torch.stack(errs).mean(), atol=1e-6)

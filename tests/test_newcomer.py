@@ -108,7 +108,7 @@ def test_a_train_folder_is_a_model_inbetween_reads(tmp_path):
     from smdm_plugin.apps import inbetween
     from smdm_plugin.apps import train as trainer
     from smdm_plugin.training.trainer import load_trained
-    from smdm_plugin.io.bundle import load_bundle
+    from smdm_plugin.training.bundle import load_bundle
 
     data = write_humanml3d(tmp_path / "hml")
     out = tmp_path / "run"

@@ -9,7 +9,7 @@ import pytest
 import yaml
 
 from smdm_plugin import SparseConfig, load_preset
-from smdm_plugin.core.config import preset_dirs
+from smdm_plugin.core.presets import preset_dirs
 
 CONFIGS = Path(preset_dirs()[0])
 PRESETS = sorted(p.stem for p in CONFIGS.glob("*.yaml"))
@@ -109,7 +109,7 @@ def test_presets_live_in_the_top_level_configs_folder_and_are_installed():
     import configparser
     from pathlib import Path
 
-    from smdm_plugin.core.config import preset_dirs
+    from smdm_plugin.core.presets import preset_dirs
 
     root = Path(__file__).resolve().parents[1]
     assert Path(preset_dirs()[0]) == root / "configs"

@@ -39,7 +39,7 @@ def batch(model, B=3, N=None, lengths=None, seed=0):
 def record_keyframes(model):
     """The keyframe mask handed to the transformer at every call (None after each call)."""
     seen = []
-    tr = model._smdm_state.transformer
+    tr = model._smdm_state.family_state.transformer
     orig = tr.set_plan
     tr.set_plan = lambda p: (seen.append(None if p is None else p.mask.clone()), orig(p))
     return seen
@@ -91,7 +91,7 @@ def test_all_keyframes_equals_dense(name, fsq):
 @pytest.mark.parametrize("name", VARIANTS)
 def test_transformer_sees_only_keyframes(name):
     model = sparsify(tiny(**VARIANTS[name]), SparseConfig(reduction=0.8, lipschitz=False)).eval()
-    tr = model._smdm_state.transformer
+    tr = model._smdm_state.family_state.transformer
     tokens = []
     tr.layers[0].register_forward_pre_hook(lambda m, a, kw=None: tokens.append(a[0].shape[0]))
     seen = record_keyframes(model)

@@ -6,7 +6,8 @@ import pytest
 import torch
 
 from smdm_plugin import SparseConfig, TinyMDM, is_sparse, register_family, set_mean_std, sparsify, unsparsify
-from smdm_plugin.adapters.family import ModelFamily, family_for, get_family
+from smdm_plugin.adapters.families import family_for, get_family
+from smdm_plugin.adapters.family import ModelFamily
 
 
 def tiny():
@@ -97,7 +98,7 @@ def test_a_new_family_is_one_subclass_and_a_registration():
         assert RenamedFamily.installed == 1 and model._smdm_state.family.name == "renamed-for-test"
         unsparsify(model)
     finally:
-        from smdm_plugin.adapters.family import FAMILIES
+        from smdm_plugin.adapters.families import FAMILIES
 
         FAMILIES.unregister("renamed-for-test")
     with pytest.raises(TypeError, match="must be a ModelFamily"):

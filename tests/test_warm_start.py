@@ -7,7 +7,8 @@ from smdm_plugin import SparseConfig, TinyMDM, sparsify
 from smdm_plugin.adapters.surgery import unsparsify
 from smdm_plugin.adapters.warm import (adds_layers, diffusion_probe, fit_mlp_to_linear, is_dense_wrap, warm_start,
                                        wrap_dense)
-from smdm_plugin.core.config import MARKER, load_preset
+from smdm_plugin.core.config import MARKER
+from smdm_plugin.core.presets import load_preset
 from smdm_plugin.core.noise import NOISE_STEP
 from smdm_plugin.core.lipschitz import LipschitzMLP
 from smdm_plugin.reference.diffusion import SimpleDiffusion

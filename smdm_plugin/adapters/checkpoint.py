@@ -1,15 +1,28 @@
-"""``load_checkpoint`` for every model family: io reads and validates the files and calls back here
-to make the model what the saved config describes (io knows no model family)."""
+"""The one ``load_checkpoint`` (every model family) and ``save_sparse_config``: io reads and checks
+the files (:mod:`smdm_plugin.io.checkpoint`, which knows no model family); here a model becomes
+what the saved config describes."""
 from __future__ import annotations
 
-from typing import Any, Iterable, Optional, Tuple
+from typing import Any, Iterable, Optional, Tuple, Union
 
 import torch.nn as nn
 
 from ..core.config import SparseConfig
 from ..io import checkpoint as _io
+from .state import sparse_config_of
 from .surgery import is_sparse, sparsify
 from .text_encoder import swap_text_encoder, swapped_text_encoder
+
+
+def save_sparse_config(model_or_config: Union[nn.Module, SparseConfig], directory: str,
+                       overwrite: bool = False) -> str:
+    """Write the config of a sparse model (or ``config``) as ``sparse_config.json`` into
+    ``directory``; returns its path. Rules of :func:`smdm_plugin.io.checkpoint.write_sparse_config`
+    (the same config again is fine, another one needs ``overwrite``)."""
+    config = model_or_config if isinstance(model_or_config, SparseConfig) else sparse_config_of(model_or_config)
+    if config is None:
+        raise ValueError("save_sparse_config: the model is not sparse; sparsify it first")
+    return _io.write_sparse_config(config, directory, overwrite=overwrite)
 
 
 def prepare_model(model: nn.Module, config: SparseConfig, **sparsify_kwargs: Any) -> nn.Module:
@@ -22,14 +35,30 @@ def prepare_model(model: nn.Module, config: SparseConfig, **sparsify_kwargs: Any
     return model
 
 
-_io.register_model_preparer(prepare_model)
-
-
 def load_checkpoint(path: str, model: Optional[nn.Module] = None, map_location: Any = "cpu",
                     strict: bool = True, allow_differences: Iterable[str] = (),
                     **sparsify_kwargs: Any) -> Tuple[nn.Module, Optional[SparseConfig]]:
     """Load ``path`` (a ``.pt`` state dict) re-creating sparse mode from the saved config, for any
-    registered model family. Arguments as :func:`smdm_plugin.io.checkpoint.load_checkpoint`;
-    ``sparsify_kwargs`` (``mean``, ``std``, ``diffusion``) go to :func:`sparsify`."""
-    return _io.load_checkpoint(path, model, map_location=map_location, strict=strict,
-                               allow_differences=allow_differences, prepare=prepare_model, **sparsify_kwargs)
+    registered model family.
+
+    Args:
+        path: checkpoint file; ``sparse_config.json`` or ``args.json`` beside it says whether it is sparse.
+        model: the freshly built dense model to load into (sparsified here with the saved config),
+            or a model already sparse, whose config must then equal the saved one (a ``ValueError``
+            names the fields that differ). None: build the in-package ``TinyMDM`` from
+            ``backbone.json`` beside the checkpoint.
+        allow_differences: config fields an already-sparse ``model`` may set differently from the
+            saved config on purpose (e.g. ``("gamma",)`` to sample with another schedule).
+        sparsify_kwargs: passed to :func:`sparsify` (``mean``, ``std``, ``diffusion``).
+    Returns:
+        ``(model, config)``; config is None for a dense checkpoint.
+    """
+    state, config, source = _io.read_checkpoint(path, map_location)
+    if model is None:
+        model = _io.build_backbone(path)
+    if config is not None and config.enabled and _io.model_is_sparse(model):
+        _io.check_config_matches(sparse_config_of(model), config, source or path, allow_differences)
+    if config is not None and (config.text_encoder or (config.enabled and not _io.model_is_sparse(model))):
+        model = prepare_model(model, config, **sparsify_kwargs)
+    _io.load_weights(model, state, path, strict)
+    return model, config

@@ -4,7 +4,8 @@ in-package :class:`~smdm_plugin.reference.diffusion.SimpleDiffusion`) for sparse
 * the keyframe mask is selected from the clean motion ``x_start`` (+ mask noise) and handed to
   the model, with its static capacity, as a
   :class:`~smdm_plugin.adapters.request.KeyframeRequest` by the model family's ``with_keyframes``
-  (unless the batch already carries one, chosen while loading: :func:`keyframe_collate`);
+  (unless the batch already carries one, chosen while loading: MDM's
+  :class:`~smdm_plugin.adapters.mdm.keyframe_collate`);
 * the loss stays on the dense, interpolated frames with the upstream valid-frame mask — or on
   keyframes only when ``config.interpolate`` is False (ablation);
 * ``config.lipschitz_lambda * L_lip`` is added to ``terms['loss']``.
@@ -23,14 +24,11 @@ import weakref
 from dataclasses import dataclass, field
 from typing import Any, List, Optional, Tuple
 
-import torch
 import torch.nn as nn
 
-from ..core.config import SparseConfig
-from ..core.checks import as_mask
 from ..core.noise import NOISE_STEP, NOISE_TABLE, CounterNoise
-from .request import KEYFRAMES_KEY, request_of, with_request
-from .state import find_sparse_model, frames_layout, get_state, lengths_from_y, protected_count
+from .call import protected_count
+from .state import find_sparse_model, get_state
 
 
 def diffusion_steps(diffusion: Any) -> int:
@@ -71,13 +69,11 @@ def _hook(diffusion: Any) -> Optional[DiffusionHook]:
     return diffusion.__dict__.get(HOOK_ATTR)
 
 
-def attach_diffusion(diffusion: Any, config: Optional[SparseConfig] = None,
-                     model: Optional[nn.Module] = None) -> Any:
-    """Wrap ``diffusion.training_losses`` in place (once) and return ``diffusion``.
+def attach_diffusion(diffusion: Any, model: Optional[nn.Module] = None) -> Any:
+    """Wrap ``diffusion.training_losses`` in place (once) and return ``diffusion``; each call uses
+    the config of the sparse model it trains.
 
     Args:
-        config: unused (kept for compatibility): each call uses the config of the sparse model it
-            trains.
         model: the sparse model trained with this diffusion; needed only when the callable handed
             to ``training_losses`` is not an ``nn.Module`` containing it, and remembered so that
             ``unsparsify`` can restore the diffusion.
@@ -108,7 +104,7 @@ def attach_diffusion(diffusion: Any, config: Optional[SparseConfig] = None,
         family = state.family
         call = family.training_inputs(state, x_start, model_kwargs or {})
         mask, capacity = call.mask, call.capacity
-        if mask is None:                         # else: chosen in data loading (keyframe_collate)
+        if mask is None:                         # else: chosen in data loading (mdm.keyframe_collate)
             mask, capacity = training_keyframes(state.schedule, call.frames, call.lengths, call.forced,
                                                 model_noise(sparse))
         model_kwargs = family.with_keyframes(state, model_kwargs or {}, mask, capacity)
@@ -143,39 +139,6 @@ def release_diffusions(model: nn.Module) -> None:
         if not hook.live(but=model):
             detach_diffusion(diffusion)
     state.diffusions.clear()
-
-
-class keyframe_collate:
-    """Wrap an MDM-style ``collate_fn`` (returns ``(motion [B, J, F, N], {'y': {...}})``) so that the
-    training keyframes are chosen while loading, on the CPU, in the loader's worker processes:
-    ``y[KEYFRAMES_KEY]`` gets their ``mask`` and ``capacity`` (a
-    :class:`~smdm_plugin.adapters.request.KeyframeRequest`), and the diffusion wrapper uses them
-    instead of selecting on the GPU. The mask depends only on x0, so the result is the same
-    (mask noise is drawn in the worker). ``schedule``: the sparse model's
-    ``MaskSchedule`` (``model._smdm_state.schedule``); it must be picklable for worker processes.
-
-    Mask noise comes from the schedule's noise table (:mod:`~smdm_plugin.core.noise`) at a step
-    counted per batch and, in a worker process, offset by the worker's seed (new every epoch);
-    torch's global stream is not drawn from (with ``num_workers=0`` it is the training process's)."""
-
-    def __init__(self, collate_fn, schedule) -> None:
-        self.collate_fn, self.schedule = collate_fn, schedule
-        self.batches = 0
-
-    def __call__(self, batch):
-        motion, cond = self.collate_fn(batch)
-        y = cond["y"]
-        frames = frames_layout(motion)
-        B, N = frames.shape[:2]
-        lengths = lengths_from_y(y, B, N, motion.device)
-        forced = as_mask(request_of(y).forced, B, N, motion.device, f"y[{KEYFRAMES_KEY!r}].forced")
-        worker = torch.utils.data.get_worker_info()
-        offset = (worker.seed % (1 << 32)) * 65537 if worker is not None else 0
-        step = torch.tensor(self.batches + offset, dtype=torch.long, device=motion.device)
-        self.batches += 1
-        mask, capacity = training_keyframes(self.schedule, frames, lengths, forced, self.schedule.noise(step))
-        cond["y"] = with_request(y, mask=mask, capacity=capacity)
-        return motion, cond
 
 
 def training_keyframes(schedule: Any, frames: Any, lengths: Any, forced: Any,

@@ -36,8 +36,7 @@ import torch
 from torch import nn
 from torch.utils.hooks import RemovableHandle
 
-from .family import register_family
-from .mdm import MDMFamily
+from .mdm import MDMFamily, is_doubletake_model
 from .request import request_of, with_forced
 from .state import SparseState
 
@@ -250,7 +249,7 @@ class DoubleTakeFamily(MDMFamily):
     priority = 10   # asked before the plain MDM family
 
     def matches(self, model: nn.Module) -> bool:
-        return super().matches(model) and "doubletake" in type(model).__name__.lower()
+        return super().matches(model) and is_doubletake_model(model)
 
     def mismatch(self, model: nn.Module) -> str:
         return super().mismatch(model) if not super().matches(model) else "class name has no 'doubletake'"
@@ -261,5 +260,3 @@ class DoubleTakeFamily(MDMFamily):
         if handle is not None:            # attached here: unsparsify removes it again
             state.handles.append(handle)
 
-
-register_family(DoubleTakeFamily())

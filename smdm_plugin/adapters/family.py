@@ -22,65 +22,34 @@ its family. A family says:
   where x0's lengths and forced frames are, how the chosen keyframes reach the model, what is
   added to the returned terms.
 
-A new family is one module defining a subclass and calling ``register_family(MyFamily())``;
-``docs/architecture.md`` shows an example.
+A new family is one module defining a subclass and calling ``register_family(MyFamily())``
+(:mod:`smdm_plugin.adapters.families`, the registry); ``docs/architecture.md`` shows an example.
 """
 from __future__ import annotations
 
 from abc import ABC, abstractmethod
 from dataclasses import dataclass
-from typing import Any, ClassVar, Dict, List, Optional, Sequence, Tuple
+from typing import TYPE_CHECKING, Any, ClassVar, Dict, Optional, Sequence, Tuple
 
 import torch
 import torch.nn as nn
 
-from ..core.checks import as_mask
 from ..core.config import SparseConfig
-from ..core.plan import KeyframePlan
-from ..core.registry import Registry
-from .request import KEYFRAMES_KEY, KeyframeRequest
-from .state import SparseState, Variant, keyframe_plan
+from .call import CallInputs
+
+if TYPE_CHECKING:   # the state holds its family
+    from .state import SparseState
 
 
-@dataclass
-class CallInputs:
-    """One model call as the family reads it (batch-major).
+@dataclass(frozen=True)
+class Variant:
+    """What a family's :meth:`~smdm_plugin.adapters.family.ModelFamily.variant` found."""
 
-    Attributes:
-        frames: ``[B, N, D]`` the motion of the call (x_t while sampling, x_t in training).
-        timesteps: ``[B]`` diffusion steps (or None).
-        lengths: ``[B]`` long, valid frames (validated, ``2 <= L <= N``).
-        forced: bool ``[B, N]`` frames that must be keyframes (``KeyframeRequest.forced`` on the
-            call's device, shape checked), or None.
-        mask: bool ``[B, N]`` keyframes chosen by the caller (training: ``KeyframeRequest.mask``),
-            or None (sampling).
-        capacity: the slot count chosen with ``mask`` (a Python int), or None.
-        mask_name: how the family's calls pass ``mask`` (for error messages).
-    """
-
-    frames: torch.Tensor
-    timesteps: Any
-    lengths: torch.Tensor
-    forced: Optional[torch.Tensor] = None
-    mask: Optional[torch.Tensor] = None
-    capacity: Optional[int] = None
-    mask_name: str = "KeyframeRequest.mask"
-
-    @classmethod
-    def of(cls, frames: torch.Tensor, timesteps: Any, lengths: torch.Tensor, request: KeyframeRequest,
-           where: str) -> "CallInputs":
-        """The inputs of a call whose :class:`~smdm_plugin.adapters.request.KeyframeRequest` came in
-        ``where`` (``y``, ``model_kwargs``: error messages); its forced frames checked ``[B, N]``
-        and moved to ``frames``' device."""
-        B, N = frames.shape[:2]
-        name = f"{where}[{KEYFRAMES_KEY!r}]"
-        return cls(frames, timesteps, lengths, as_mask(request.forced, B, N, frames.device, f"{name}.forced"),
-                   request.mask, request.capacity, f"{name}.mask")
-
-    def plan(self, state: SparseState) -> KeyframePlan:
-        """The call's :class:`~smdm_plugin.core.plan.KeyframePlan` (see :func:`keyframe_plan`)."""
-        return keyframe_plan(state, self.frames, self.timesteps, self.lengths, self.forced, self.mask,
-                             self.capacity, self.mask_name)
+    arch: str               # trans_enc | trans_dec | motiondiffuse
+    transformer: str        # attribute of the keyframe-only blocks (seqTransEncoder | seqTransDecoder |
+                            # temporal_decoder_blocks)
+    prefix_len: int         # DiP context frames kept dense (0 otherwise)
+    name: str               # mdm-trans_enc, mdm-trans_dec(-emb), dip, doubletake, motiondiffuse
 
 
 class ModelFamily(ABC):
@@ -126,73 +95,40 @@ class ModelFamily(ABC):
         return int(model.latent_dim)
 
     @abstractmethod
-    def install(self, model: nn.Module, state: SparseState) -> None:
+    def install(self, model: nn.Module, state: "SparseState") -> None:
         """Make the blocks keyframe-only and hook the calls. Record every replaced attribute in
         ``state.originals`` *before* replacing it and every hook in ``state.handles``, so that a
-        failure part-way (and ``unsparsify``) can undo it exactly."""
+        failure part-way (and ``unsparsify``) can undo it exactly. What the family keeps per model
+        goes in its own :class:`~smdm_plugin.adapters.state.FamilyState`, ``state.family_state``."""
 
-    def uninstall(self, model: nn.Module, state: SparseState) -> None:
+    def uninstall(self, model: nn.Module, state: "SparseState") -> None:
         """Before ``unsparsify`` restores ``state.originals``: carry weights trained in sparse mode
         that have a dense equivalent into what will be restored (default nothing). Not called when a
         failed ``sparsify`` is rolled back."""
 
     # ------------------------------------------------------------------ one model call
     @abstractmethod
-    def read_call(self, state: SparseState, args: tuple, kwargs: Dict[str, Any]) -> CallInputs:
+    def read_call(self, state: "SparseState", args: tuple, kwargs: Dict[str, Any]) -> CallInputs:
         """The frames, timesteps, lengths, forced frames and given keyframes of one call: the one
         place a family reads the call's :class:`~smdm_plugin.adapters.request.KeyframeRequest`
         (with :func:`~smdm_plugin.adapters.request.request_of`)."""
 
     # ------------------------------------------------------------------ the diffusion's loss
     @abstractmethod
-    def training_inputs(self, state: SparseState, x_start: torch.Tensor, model_kwargs: Dict[str, Any]
+    def training_inputs(self, state: "SparseState", x_start: torch.Tensor, model_kwargs: Dict[str, Any]
                         ) -> CallInputs:
         """The :class:`CallInputs` of a ``training_losses(model, x_start, t, model_kwargs)`` call
         (frames from ``x_start``, no timesteps): :meth:`read_call` on the arguments the model will
         get, so the request is read in one place."""
 
     @abstractmethod
-    def with_keyframes(self, state: SparseState, model_kwargs: Dict[str, Any], mask: torch.Tensor,
+    def with_keyframes(self, state: "SparseState", model_kwargs: Dict[str, Any], mask: torch.Tensor,
                        capacity: Optional[int]) -> Dict[str, Any]:
         """A copy of ``model_kwargs`` that hands the training keyframes to the model: the one place
         a family builds the call's :class:`~smdm_plugin.adapters.request.KeyframeRequest` (with
         :func:`~smdm_plugin.adapters.request.with_request`)."""
 
-    def finish_losses(self, state: SparseState, model: nn.Module, terms: Dict[str, Any],
+    def finish_losses(self, state: "SparseState", model: nn.Module, terms: Dict[str, Any],
                       mask: torch.Tensor) -> Dict[str, Any]:
         """What sparse mode adds to the diffusion's returned ``terms`` (default: nothing)."""
         return terms
-
-
-#: the model families by name; the built-in ones register themselves when their module is imported
-FAMILIES: Registry[ModelFamily] = Registry("model family", builtins="smdm_plugin.adapters._builtin_families")
-
-
-def register_family(family: ModelFamily, *, replace: bool = False) -> ModelFamily:
-    """Register ``family`` under ``family.name`` (a name taken is a ``ValueError`` unless
-    ``replace``). Returns it."""
-    if not isinstance(family, ModelFamily):
-        raise TypeError(f"register_family: family must be a ModelFamily instance, got {type(family).__name__}")
-    return FAMILIES.register(family.name, family, replace=replace)
-
-
-def families() -> List[ModelFamily]:
-    """The registered families, in the order they are asked (priority, then registration)."""
-    return sorted(FAMILIES.entries(), key=lambda f: -f.priority)
-
-
-def get_family(name: str) -> ModelFamily:
-    return FAMILIES.get(name)
-
-
-def family_for(model: nn.Module, fn: str = "sparsify") -> ModelFamily:
-    """The first registered family that matches ``model``; a ``TypeError`` says why none does."""
-    if not isinstance(model, nn.Module):
-        raise TypeError(f"{fn}: model must be a torch.nn.Module, got {type(model).__name__}")
-    fams = families()
-    for fam in fams:
-        if fam.matches(model):
-            return fam
-    why = "; ".join(f"{f.name}: {f.mismatch(model)}" for f in fams)
-    raise TypeError(f"{fn}: {type(model).__name__} belongs to no registered model family ({why}). "
-                    "Register one with smdm_plugin.register_family")

@@ -22,13 +22,15 @@ fullgraph=True)`` and CUDA graphs work on the sparse model as on the dense one.
 from __future__ import annotations
 
 import functools
-from typing import Any, Dict, List, Optional
+import warnings
+from dataclasses import dataclass
+from typing import Any, Callable, Dict, List, Optional, Tuple
 
 import torch
 import torch.nn as nn
 
-from ..core.attention_backends import gather_rows, scatter_rows
-from ..core.checks import compiling, host_checkable
+from ..core.rows import gather_rows, scatter_rows
+from ..core.checks import as_lengths, as_mask, compiling, host_checkable, require
 from ..core.config import SparseConfig
 from ..core.fsq import FSQMultiheadAttention, quantize_attention_keys
 from ..core.interpolation import catmull_rom_refill
@@ -36,9 +38,77 @@ from ..core.keyframe_transformer import KeyframeTransformer
 from ..core.lipschitz import lipschitz_pass
 from ..core.losses import add_lipschitz_term
 from ..core.plan import KeyframePlan
-from .family import CallInputs, ModelFamily, register_family
-from .request import request_of, with_request
-from .state import MISSING, STATE_ATTR, SparseState, Variant, frames_layout, lengths_from_y
+from .call import CallInputs, reuse_for
+from .diffusion import training_keyframes
+from .family import ModelFamily, Variant
+from .request import KEYFRAMES_KEY, request_of, with_request
+from .state import STATE_ATTR, FamilyState, SparseState
+
+
+@dataclass
+class MDMState(FamilyState):
+    """What the MDM family keeps on a sparse model (``state.family_state``): ``transformer``, the
+    :class:`~smdm_plugin.core.keyframe_transformer.KeyframeTransformer` that replaced the dense
+    one; per call ``embed_rows`` (the frame-major rows the input embedding ran on, written and
+    cleared by the embedding hooks) and ``lipschitz_pass`` (the Lipschitz weights of the running
+    call, entered by the forward pre-hook, left by the forward hook)."""
+
+    transformer: KeyframeTransformer
+    embed_rows: Optional[Tuple[torch.Tensor, int, int]] = None
+    lipschitz_pass: Optional[lipschitz_pass] = None
+
+
+def mdm_state(state: SparseState) -> MDMState:
+    """``state.family_state`` of a model the MDM family (or a subclass) converted."""
+    family_state = state.family_state
+    if not isinstance(family_state, MDMState):
+        raise TypeError(f"{state.family.name}: the model's family state is {type(family_state).__name__}, "
+                        "not MDMState")
+    return family_state
+
+
+def is_doubletake_model(model: nn.Module) -> bool:
+    """Whether ``model``'s class is priorMDM's DoubleTake (``doubleTake_MDM``: by its name)."""
+    return "doubletake" in type(model).__name__.lower()
+
+
+# ----------------------------------------------------------------------------- MDM's calls
+def frames_layout(x: torch.Tensor) -> torch.Tensor:
+    """MDM's ``[B, J, F, N]`` motion as ``[B, N, J*F]``; ``[B, N, D]`` passes through."""
+    if x.dim() == 4:
+        B, J, F_, N = x.shape
+        return x.permute(0, 3, 1, 2).reshape(B, N, J * F_)
+    return x
+
+
+def lengths_from_y(y: Dict[str, Any], B: int, N: int, device: torch.device) -> torch.Tensor:
+    """Valid frames per sample ``[B]`` long from MDM's ``y``: ``y['mask'] [B, 1, 1, N]`` when it
+    covers the frames (at least 2 valid frames each), else ``y['lengths']`` (integers in
+    ``[2, N]``), else all ``N``. Bad values are a ``ValueError`` (checked on the host when the data
+    is on the CPU, with ``torch._assert_async`` on accelerators: no sync).
+
+    One exception, decided from shapes alone: when ``y['mask']`` does not cover the ``N`` frames
+    (``[B, 1, 1, M]``, ``M != N``), the conditions describe another length than the window being
+    sampled: MDM's ``sample.generate`` with dataset prompts passes a one-frame placeholder mask and
+    ``lengths`` 120 whatever ``--motion_length`` is. Then ``y['lengths']`` (still >= 2) are cut to
+    ``N``, as the dense model treats every frame of the window as valid, with a warning."""
+    mask = y.get("mask")
+    if isinstance(mask, torch.Tensor) and mask.shape[-1] == N and mask.numel() == B * N:
+        def from_mask() -> torch.Tensor:
+            m = mask.reshape(B, N).to(device=device)
+            lengths = m.sum(1) if m.dtype == torch.bool else m.to(torch.long).sum(1)   # a bool sum is long
+            require(lengths >= 2, f"y['mask'] must mark at least 2 valid frames of the N={N} in every sample")
+            return lengths
+        return reuse_for(mask, ("mask", B, N, device), from_mask)
+    if isinstance(mask, torch.Tensor) and mask.dim() and mask.shape[-1] != N and y.get("lengths") is not None:
+        if not compiling():
+            warnings.warn(f"y['mask'] covers {mask.shape[-1]} frames but the motion has N={N}: y['lengths'] "
+                          f"are cut to N (MDM's sample.generate does this with dataset prompts)", stacklevel=3)
+        return as_lengths(y["lengths"], B, N, device, "y['lengths']", clip=True)
+    if y.get("lengths") is not None:
+        return as_lengths(y["lengths"], B, N, device, "y['lengths']")
+    return torch.full((B,), N, dtype=torch.long, device=device)
+
 
 
 
@@ -72,7 +142,7 @@ def detect_variant(model: nn.Module) -> Variant:
     prefix = int(getattr(model, "context_len", 0) or 0) if getattr(model, "is_prefix_comp", False) else 0
     if prefix:
         name = "dip"
-    elif "doubletake" in type(model).__name__.lower():
+    elif is_doubletake_model(model):
         name = "doubletake"
     else:
         name = f"mdm-{arch}" + ("-emb" if getattr(model, "emb_trans_dec", False) and arch == "trans_dec" else "")
@@ -93,24 +163,26 @@ def call_plan(state: SparseState, x: torch.Tensor, timesteps: Any, y: Dict[str, 
 
 def _pre_hook(model: nn.Module, args: tuple, kwargs: dict):
     state: SparseState = getattr(model, STATE_ATTR)
+    own = mdm_state(state)
     x, timesteps, y = _call_args(args, kwargs)
     state.plan = call_plan(state, x, timesteps, y)
-    state.transformer.set_plan(state.plan)
+    own.transformer.set_plan(state.plan)
     if not compiling():                                    # training: all Lipschitz weights at once
-        if state.lipschitz_pass is not None:               # (left by a call that raised)
-            state.lipschitz_pass.__exit__(None, None, None)
-        state.lipschitz_pass = lipschitz_pass(model).__enter__()
+        if own.lipschitz_pass is not None:                 # (left by a call that raised)
+            own.lipschitz_pass.__exit__(None, None, None)
+        own.lipschitz_pass = lipschitz_pass(model).__enter__()
     return None
 
 
 def _post_hook(model: nn.Module, args: tuple, kwargs: dict, output: Any) -> Any:
     state: SparseState = getattr(model, STATE_ATTR)
+    own = mdm_state(state)
     plan = state.plan
-    state.transformer.set_plan(None)
+    own.transformer.set_plan(None)
     state.plan = None
-    if state.lipschitz_pass is not None:
-        state.lipschitz_pass.__exit__(None, None, None)
-        state.lipschitz_pass = None
+    if own.lipschitz_pass is not None:
+        own.lipschitz_pass.__exit__(None, None, None)
+        own.lipschitz_pass = None
     if plan is None or plan.cubic is None or not isinstance(output, torch.Tensor) or output.dim() != 4:
         return None
     return cubic_output(output, plan)
@@ -140,27 +212,28 @@ def cubic_output(output: torch.Tensor, plan: KeyframePlan) -> torch.Tensor:
 # carries no attribute of ours, and ``copy.deepcopy`` (EMA) copies the partial with the model, so
 # each copy's hooks hold that copy's own state.
 def _rows_pre_hook(state: SparseState, module: nn.Module, args: tuple):
-    plan = state.plan
+    plan, own = state.plan, mdm_state(state)
     x = args[0] if args else None
     if (plan is None or not isinstance(x, torch.Tensor) or x.dim() != 3 or len(args) != 1
             or x.shape[0] != plan.frames or x.shape[1] != plan.batch):
-        state.embed_rows = None
+        own.embed_rows = None
         return None
     N, B, F_ = x.shape
     if not host_checkable(plan.mask):   # static path (accelerators): every row, no gather / scatter
-        state.embed_rows = None         # (6 launches a training step, 3 a pass, for a few rows' FLOPs)
+        own.embed_rows = None           # (6 launches a training step, 3 a pass, for a few rows' FLOPs)
         return None
     rows = plan.mask.t().reshape(-1).nonzero(as_tuple=True)[0]   # exact keyframe rows (data-dependent size)
-    state.embed_rows = (rows, N, B)
+    own.embed_rows = (rows, N, B)
     return (gather_rows(x.reshape(N * B, F_), rows),)
 
 
 def _rows_post_hook(state: SparseState, module: nn.Module, args: tuple, output: torch.Tensor):
-    rows = state.embed_rows
+    own = mdm_state(state)
+    rows = own.embed_rows
     if rows is None:
         return None
     idx, N, B = rows
-    state.embed_rows = None
+    own.embed_rows = None
     return scatter_rows(output, idx, N * B).view(N, B, output.shape[-1])
 
 
@@ -201,7 +274,7 @@ class MDMFamily(ModelFamily):
         wrapper = KeyframeTransformer(inner, interpolate=True, backend=config.attention_backend)
         state.originals[(model, attr)] = inner
         setattr(model, attr, wrapper)
-        state.transformer = wrapper
+        state.family_state = MDMState(transformer=wrapper)
         state.handles += [model.register_forward_pre_hook(_pre_hook, with_kwargs=True),
                           model.register_forward_hook(_post_hook, with_kwargs=True)]
         embed = getattr(model.input_process, "poseEmbedding", None)
@@ -212,7 +285,7 @@ class MDMFamily(ModelFamily):
             for m in inner.modules():
                 if isinstance(getattr(m, "self_attn", None), nn.MultiheadAttention):
                     state.originals[(m, "self_attn")] = m.self_attn
-            state.fsq_layers = quantize_attention_keys(inner, config.fsq_levels)
+            quantize_attention_keys(inner, config.fsq_levels)
             if isinstance(inner, nn.TransformerEncoder):   # FSQ layers: no nested-tensor fast path
                 state.originals[(inner, "use_nested_tensor")] = inner.use_nested_tensor
                 inner.use_nested_tensor = False
@@ -248,4 +321,35 @@ class MDMFamily(ModelFamily):
         return add_lipschitz_term(terms, model, state.config, mask.shape[0])
 
 
-register_family(MDMFamily())
+
+class keyframe_collate:
+    """Wrap an MDM-style ``collate_fn`` (returns ``(motion [B, J, F, N], {'y': {...}})``) so that the
+    training keyframes are chosen while loading, on the CPU, in the loader's worker processes:
+    ``y[KEYFRAMES_KEY]`` gets their ``mask`` and ``capacity`` (a
+    :class:`~smdm_plugin.adapters.request.KeyframeRequest`), and the diffusion wrapper uses them
+    instead of selecting on the GPU. The mask depends only on x0, so the result is the same
+    (mask noise is drawn in the worker). ``schedule``: the sparse model's
+    ``MaskSchedule`` (``model._smdm_state.schedule``); it must be picklable for worker processes.
+
+    Mask noise comes from the schedule's noise table (:mod:`~smdm_plugin.core.noise`) at a step
+    counted per batch and, in a worker process, offset by the worker's seed (new every epoch);
+    torch's global stream is not drawn from (with ``num_workers=0`` it is the training process's)."""
+
+    def __init__(self, collate_fn: Callable[[Any], Tuple[torch.Tensor, Dict[str, Any]]], schedule: Any) -> None:
+        self.collate_fn, self.schedule = collate_fn, schedule
+        self.batches = 0
+
+    def __call__(self, batch: Any) -> Tuple[torch.Tensor, Dict[str, Any]]:
+        motion, cond = self.collate_fn(batch)
+        y = cond["y"]
+        frames = frames_layout(motion)
+        B, N = frames.shape[:2]
+        lengths = lengths_from_y(y, B, N, motion.device)
+        forced = as_mask(request_of(y).forced, B, N, motion.device, f"y[{KEYFRAMES_KEY!r}].forced")
+        worker = torch.utils.data.get_worker_info()
+        offset = (worker.seed % (1 << 32)) * 65537 if worker is not None else 0
+        step = torch.tensor(self.batches + offset, dtype=torch.long, device=motion.device)
+        self.batches += 1
+        mask, capacity = training_keyframes(self.schedule, frames, lengths, forced, self.schedule.noise(step))
+        cond["y"] = with_request(y, mask=mask, capacity=capacity)
+        return motion, cond

@@ -38,22 +38,45 @@ from __future__ import annotations
 
 import types
 import warnings
-from typing import Any, Dict, Optional, Tuple
+from dataclasses import dataclass
+from typing import Any, Callable, Dict, Optional, Tuple
 
 import numpy as np
 import torch
 import torch.nn as nn
 
-from ..core.attention_backends import fill_frames, gather_rows
+from ..core.fill import fill_frames
+from ..core.rows import gather_rows
 from ..core.checks import as_lengths
 from ..core.config import SparseConfig
 from ..core.embedding import timestep_embedding
 from ..core.interpolation import catmull_rom_refill
 from ..core import consts
 from ..core.lipschitz import lipschitz_loss, lipschitz_pass
-from .family import CallInputs, ModelFamily, register_family
+from .call import CallInputs, reuse_for
+from .family import ModelFamily, Variant
 from .request import KEYFRAMES_KEY, OLD_KEYS, request_of, with_request
-from .state import MISSING, SparseState, Variant, find_sparse_model, get_state, reuse_for
+from .state import MISSING, FamilyState, SparseState, find_sparse_model, get_state
+
+
+@dataclass
+class MotionDiffuseState(FamilyState):
+    """What the MotionDiffuse family keeps on a sparse model (``state.family_state``):
+    ``timestep_embedding`` (the sinusoidal diffusion-step embedding of the model's module, fixed at
+    ``sparsify``) and ``last_mask`` (bool ``[B, T]``, the keyframes of the latest call, read by
+    :func:`trainer_loss` after the call)."""
+
+    timestep_embedding: Callable[[torch.Tensor, int], torch.Tensor]
+    last_mask: Optional[torch.Tensor] = None
+
+
+def motiondiffuse_state(state: SparseState) -> MotionDiffuseState:
+    """``state.family_state`` of a model the MotionDiffuse family converted."""
+    family_state = state.family_state
+    if not isinstance(family_state, MotionDiffuseState):
+        raise TypeError(f"{state.family.name}: the model's family state is {type(family_state).__name__}, "
+                        "not MotionDiffuseState")
+    return family_state
 
 _REQUIRED = ("joint_embed", "out", "temporal_decoder_blocks", "sequence_embedding", "time_embed",
              "encode_text", "latent_dim", "input_feats")
@@ -68,7 +91,7 @@ def _timestep_embedding_fn(model: nn.Module):
 def _lengths(length: Any, B: int, T: int, device: torch.device) -> torch.Tensor:
     """``length`` (MotionDiffuse's ``[B]`` list / tensor, or None = all ``T``) as long ``[B]``,
     validated (``2 <= L <= T``)."""
-    if isinstance(length, torch.Tensor):            # read and checked once per tensor (state.reuse_for)
+    if isinstance(length, torch.Tensor):            # read and checked once per tensor (call.reuse_for)
         return reuse_for(length, ("length", B, T, device), lambda: as_lengths(length, B, T, device, "MotionDiffuse length"))
     return as_lengths(length, B, T, device, "MotionDiffuse length")
 
@@ -84,7 +107,7 @@ def _sparse_forward(self, x, timesteps, length=None, text=None, xf_proj=None, xf
         text = text[index * B: index * B + B]
     if xf_proj is None or xf_out is None:
         xf_proj, xf_out = self.encode_text(text, x.device)
-    emb = self.time_embed(state.extra(timesteps, self.latent_dim)) + xf_proj
+    emb = self.time_embed(motiondiffuse_state(state).timestep_embedding(timesteps, self.latent_dim)) + xf_proj
 
     with lipschitz_pass(self):                             # training: all Lipschitz weights at once
         return _sparse_body(self, state, x, emb, xf_out, timesteps, length, request)
@@ -96,7 +119,7 @@ def _sparse_body(self, state: SparseState, x, emb, xf_out, timesteps, length, re
     h = h + self.sequence_embedding.unsqueeze(0)[:, :T, :]
 
     plan = state.family.read_call(state, (x, timesteps, length), request).plan(state)
-    state.last_mask = plan.mask
+    motiondiffuse_state(state).last_mask = plan.mask
     D = h.shape[-1]
     K = plan.capacity
     base = consts.arange(B, x.device)
@@ -145,7 +168,7 @@ class MotionDiffuseFamily(ModelFamily):
         return [(model, "joint_embed"), (model, "out")]
 
     def install(self, model: nn.Module, state: SparseState) -> None:
-        state.extra = _timestep_embedding_fn(model)   # the sinusoidal embedding
+        state.family_state = MotionDiffuseState(timestep_embedding=_timestep_embedding_fn(model))
         state.originals[(model, "forward")] = model.__dict__.get("forward", MISSING)
         model.forward = types.MethodType(_sparse_forward, model)
 
@@ -172,8 +195,6 @@ class MotionDiffuseFamily(ModelFamily):
         return terms
 
 
-register_family(MotionDiffuseFamily())
-
 
 # --------------------------------------------------------------------------- loss
 def trainer_loss(trainer: Any, upstream_loss: torch.Tensor) -> torch.Tensor:
@@ -194,7 +215,7 @@ def trainer_loss(trainer: Any, upstream_loss: torch.Tensor) -> torch.Tensor:
     if not config.interpolate:
         src = trainer.src_mask
         frame_mask = src.reshape(src.shape[0], -1).bool()
-        last = state.last_mask
+        last = motiondiffuse_state(state).last_mask
         if last is None or last.shape != frame_mask.shape:
             raise RuntimeError("trainer_loss: no keyframe mask of shape [B, T] from the latest forward "
                                "(call the sparse model through training_losses first)")

@@ -23,7 +23,8 @@ from ..core.lipschitz import LipschitzMLP
 from ..core.noise import NOISE_STEP, NOISE_TABLE
 from ..core.schedule import MaskSchedule
 from .diffusion import attach_diffusion, diffusion_steps, release_diffusions
-from .family import ModelFamily, family_for, get_family
+from .families import family_for, get_family
+from .family import ModelFamily
 from .state import STATE_ATTR, SparseState, get_state, restore_originals
 
 ConfigLike = Union[SparseConfig, Mapping[str, Any], None]
@@ -134,7 +135,7 @@ def sparsify(model: nn.Module, config: ConfigLike = None, *, diffusion: Any = No
     config = fam.prepare_config(model, config, variant)
     schedule = MaskSchedule(config, mean, std)
     lipschitz = _lipschitz_layers(fam, model, config) if config.lipschitz else {}
-    state = SparseState(config=config, variant=variant, transformer=None, schedule=schedule, family=fam)
+    state = SparseState(config=config, variant=variant, schedule=schedule, family=fam)
     try:                                               # swap: every change recorded before it is made
         for (owner, name), mlp in lipschitz.items():
             state.originals[(owner, name)] = getattr(owner, name)

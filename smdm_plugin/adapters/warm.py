@@ -22,10 +22,11 @@ import torch
 import torch.nn as nn
 from torch.nn.utils import parametrize
 
-from ..core.config import MARKER, SparseConfig, load_preset
+from ..core.config import MARKER, SparseConfig
+from ..core.presets import load_preset
 from ..core.fsq import FSQMultiheadAttention
 from ..core.lipschitz import LipschitzMLP, LipschitzWeight
-from .family import family_for, get_family
+from .families import family_for, get_family
 from .state import get_state
 
 __all__ = ["ZERO_SHOT_PRESET", "adds_layers", "wrap_dense", "is_dense_wrap", "file_digest", "FitError",

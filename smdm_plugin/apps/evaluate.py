@@ -106,7 +106,7 @@ class Generator:
         self.text = None      # the hashed bag-of-words conditioning of smdm train --text (text_encoder.json)
         self.swapped = None   # or the id of a swapped-in transformers encoder (the model reads y["text"])
         if os.path.isfile(os.path.join(folder, "motion.json")):
-            from ..io.bundle import load_bundle
+            from ..training.bundle import load_bundle
 
             b = load_bundle(folder, device=device)
             self.model, self.diffusion, self.mean, self.std = b.model, b.diffusion, b.mean, b.std

@@ -73,7 +73,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: Optional[List[str]] = None) -> int:
-    from ..io.bundle import load_bundle
+    from ..training.bundle import load_bundle
     from ..io.files import OutputExistsError
     from ..io.outdir import OutputDir, check_no_overlap
     from .common.args import resolve_device

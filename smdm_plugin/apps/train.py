@@ -11,7 +11,8 @@ from typing import Any, Dict, List, Optional, Sequence, Tuple
 import numpy as np
 import torch
 
-from ..core.config import CONFIG_FILENAME, SparseConfig
+from ..core.config import SparseConfig
+from ..core.config_files import CONFIG_FILENAME
 from ..integrations.compile import COMPILE_MODES
 from ..integrations.distributed import init_distributed
 from ..io.checkpoint import BACKBONE_FILENAME

@@ -7,56 +7,48 @@ sparse model without extra flags.
 Every field is type-checked (a bool is a ``bool``, not ``"no"``; an int is an ``int``, not ``8.7``
 or ``True``; floats are finite) and range-checked, in Python, in files and on the command line
 (``--sparse_<field>``, range-checked by argparse). Unknown keys are errors that suggest the
-closest valid name; file errors name the file.
+closest valid name; file errors name the file. The jobs around the dataclass live beside it:
+argparse types (:mod:`.argtypes`), reading and writing the files (:mod:`.config_files`), the
+packaged presets (:mod:`.presets`), a run's options agreeing with the saved config
+(:mod:`.agreement`); the config of a sparse model is :func:`smdm_plugin.adapters.state.sparse_config_of`.
 """
 from __future__ import annotations
 
 import argparse
 import dataclasses
-import difflib
-import functools
-import importlib
-import json
 import math
-import os
 from dataclasses import dataclass
-from typing import Any, Callable, Dict, Iterable, List, Mapping, Optional, Sequence, Tuple, Union
+from typing import Any, Callable, Dict, Iterable, Mapping, Optional, Sequence, Tuple
 
 import numpy as np
 
-from .atomic import atomic_write_text
-from .scalars import as_float, is_bool, is_int, scalar
+from .argtypes import float_range, int_range, non_empty, optional, str2bool
+from .config_files import PathLike, config_path, dump, read_mapping
 from .registry import Choices
+from .scalars import as_float, is_bool, is_int, scalar
+from .values import ConfigTypeError, Range, closest
 
 CONFIG_VERSION = 1
-CONFIG_FILENAME = "sparse_config.json"
 #: name of the persistent buffer that marks a state dict as sparse (its value: the config version)
 MARKER = "smdm_sparse_version"
-#: the attribute a sparsified model carries its one state object under (``adapters.state.SparseState``)
-STATE_ATTR = "_smdm_state"
-
-
-def sparse_config_of(model: Any) -> Optional["SparseConfig"]:
-    """The :class:`SparseConfig` of a sparsified ``model`` (an ``nn.Module``; or of its first
-    sparsified submodule: DDP, EMA wrappers), else None. The one place a model's config lives is its
-    state (``model._smdm_state.config``)."""
-    for m in model.modules():
-        config = getattr(getattr(m, STATE_ATTR, None), "config", None)
-        if isinstance(config, SparseConfig):
-            return config
-    return None
-
 FEATURES = ("auto", "humanml3d", "kit", "raw")
 
 
-def _registered(module: str, registry: str, *extra: str) -> Choices:
-    """Live choices of a core registry (``selection.SELECTORS``, ``attention_backends.BACKENDS``;
-    its module imported on first read): an entry registered later is a valid value at once."""
-    return Choices(lambda: getattr(importlib.import_module(module), registry).names(), extra)
+def _selector_names() -> Tuple[str, ...]:
+    from .selection import SELECTORS   # (torch) loaded when the choices are first read
+
+    return SELECTORS.names()
 
 
-SELECTORS = _registered("smdm_plugin.core.selection", "SELECTORS")
-BACKENDS = _registered("smdm_plugin.core.attention_backends", "BACKENDS", "auto")
+def _backend_names() -> Tuple[str, ...]:
+    from .attention_backends import BACKENDS   # (torch) loaded when the choices are first read
+
+    return BACKENDS.names()
+
+
+#: live choices of the core registries: an entry registered later is a valid value at once
+SELECTORS = Choices(_selector_names)
+BACKENDS = Choices(_backend_names, ("auto",))
 INTERPOLATIONS = ("linear", "cubic")
 #: ``SparseConfig.sample_interpolation``: ``auto`` resolves by the feature kind (:meth:`SparseConfig.sample_fill`)
 SAMPLE_FILLS = ("auto",) + INTERPOLATIONS
@@ -68,102 +60,6 @@ FEATURE_KINDS_BY_DIM = {263: "humanml3d", 251: "kit"}
 #: positions are 2-3x as jerky as real motion with the linear fill and as smooth as it with the C¹ fill
 AUTO_SAMPLE_FILL = {"humanml3d": "linear", "kit": "linear", "raw": "cubic"}
 
-PathLike = Union[str, "os.PathLike[str]"]
-
-
-class ConfigTypeError(TypeError, ValueError):
-    """A config value of the wrong type (e.g. ``lipschitz="no"``). A ``TypeError`` that callers
-    catching ``ValueError`` for bad configs also catch."""
-
-
-# ----------------------------------------------------------------------------------- ranges
-@dataclass(frozen=True)
-class Range:
-    """A numeric interval: ``[lo, hi]``, open at an end when ``lo_open`` / ``hi_open``; a bound of
-    None is unbounded."""
-
-    lo: Optional[float] = None
-    hi: Optional[float] = None
-    lo_open: bool = False
-    hi_open: bool = False
-
-    def __contains__(self, v: float) -> bool:
-        if self.lo is not None and (v <= self.lo if self.lo_open else v < self.lo):
-            return False
-        return not (self.hi is not None and (v >= self.hi if self.hi_open else v > self.hi))
-
-    def describe(self, integer: bool) -> str:
-        """``"an integer >= 1"``, ``"a number in [0, 1)"``..."""
-        name = "an integer" if integer else "a number"
-        lo, hi = (None if b is None else format(b, "g") for b in (self.lo, self.hi))
-        if lo is not None and self.lo == self.hi and not (self.lo_open or self.hi_open):
-            return f"{name} equal to {lo}"
-        if lo is not None and hi is not None:
-            return f"{name} in {'(' if self.lo_open else '['}{lo}, {hi}{')' if self.hi_open else ']'}"
-        if lo is not None:
-            return f"{name} {'>' if self.lo_open else '>='} {lo}"
-        if hi is not None:
-            return f"{name} {'<' if self.hi_open else '<='} {hi}"
-        return name
-
-
-def int_range(lo: Optional[int] = None, hi: Optional[int] = None) -> Callable[[str], int]:
-    """argparse ``type``: an int in ``[lo, hi]`` (either bound may be None); a bad value is an
-    argparse error naming the option (exit status 2)."""
-    rng = Range(lo, hi)
-
-    def parse(text: str) -> int:
-        try:
-            v = int(text)
-        except (TypeError, ValueError):
-            raise argparse.ArgumentTypeError(f"expected an integer, got {text!r}") from None
-        if v not in rng:
-            raise argparse.ArgumentTypeError(f"must be {rng.describe(True)}, got {v}")
-        return v
-
-    parse.__name__ = "int"
-    return parse
-
-
-def float_range(lo: Optional[float] = None, hi: Optional[float] = None, *, lo_open: bool = False,
-                hi_open: bool = False) -> Callable[[str], float]:
-    """argparse ``type``: a finite float in ``[lo, hi]`` (``(lo`` / ``hi)`` when open)."""
-    rng = Range(lo, hi, lo_open, hi_open)
-
-    def parse(text: str) -> float:
-        try:
-            v = float(text)
-        except (TypeError, ValueError):
-            raise argparse.ArgumentTypeError(f"expected a number, got {text!r}") from None
-        if not math.isfinite(v) or v not in rng:
-            raise argparse.ArgumentTypeError(f"must be a finite {rng.describe(False)[2:]}, got {text}")
-        return v
-
-    parse.__name__ = "float"
-    return parse
-
-
-def str2bool(text: Union[str, bool]) -> bool:
-    """argparse ``type``: true/false, yes/no, on/off, 1/0 (any case)."""
-    if isinstance(text, bool):
-        return text
-    s = str(text).strip().lower()
-    if s in ("1", "true", "yes", "y", "on"):
-        return True
-    if s in ("0", "false", "no", "n", "off"):
-        return False
-    raise argparse.ArgumentTypeError(f"expected a boolean (true/false), got {text!r}")
-
-
-def closest(word: str, candidates: Iterable[str]) -> str:
-    """``"; did you mean 'x'?"`` for the closest candidate to ``word``, or ``""``."""
-    cands = list(candidates)
-    lower = {c.lower(): c for c in cands}
-    hit = difflib.get_close_matches(str(word).lower(), list(lower), n=1, cutoff=0.6)
-    return f"; did you mean {lower[hit[0]]!r}?" if hit else ""
-
-
-# ----------------------------------------------------------------------------------- fields
 @dataclass(frozen=True)
 class FieldSpec:
     """What a ``SparseConfig`` field accepts: ``kind`` (bool, int, float, str, or ``tuple`` of
@@ -191,6 +87,20 @@ class FieldSpec:
             what = what if self.kind is int else "a finite float" + what[len("a number"):]
         what = f"None or {what}" if self.optional else what
         return f"{what} ({self.note})" if self.note else what
+
+    def argparse_type(self) -> Callable[[str], Any]:
+        """The argparse ``type`` of the field's ``--sparse_<field>`` option (range-checked;
+        ``none`` / ``auto`` give None to an optional field)."""
+        if self.kind is bool:
+            parse: Callable[[str], Any] = str2bool
+        elif self.kind in (int, tuple):
+            parse = int_range(*(None if b is None else int(b) for b in (self.range.lo, self.range.hi)))
+        elif self.kind is float:
+            r = self.range
+            parse = float_range(r.lo, r.hi, lo_open=r.lo_open, hi_open=r.hi_open)
+        else:
+            parse = non_empty
+        return optional(parse) if self.optional else parse
 
 
 def _field(default: Any, kind: type, help: str, **spec: Any) -> Any:
@@ -262,6 +172,16 @@ class SparseConfig:
         "model's CLIP/DistilBERT (None: the model's own)", optional=True)
     version: int = _field(CONFIG_VERSION, int, "config format version", range=Range(1, CONFIG_VERSION),
                           note="a larger one was written by a newer smdm-plugin")
+
+    def __new__(cls, *args: Any, **kwargs: Any) -> "SparseConfig":
+        """An unknown keyword is a TypeError naming the closest field (``SparseConfig(redution=0.8)``
+        -> "... did you mean 'reduction'?"), as :meth:`from_dict` does; checked before the
+        dataclass's ``__init__`` sees it."""
+        names = [f.name for f in dataclasses.fields(cls)]
+        for k in kwargs:
+            if k not in names:
+                raise TypeError(f"SparseConfig: unknown option {k!r}{closest(k, names)} (known: {', '.join(names)})")
+        return super().__new__(cls)
 
     def __post_init__(self) -> None:
         self.validate()
@@ -349,27 +269,19 @@ class SparseConfig:
 
     def to_json(self, path: Optional[PathLike] = None) -> str:
         """The config as JSON text; also written to ``path`` (atomically, replacing it) if given."""
-        text = json.dumps(self.to_dict(), indent=2, sort_keys=True)
-        if path is not None:
-            atomic_write_text(path, text + "\n")
-        return text
+        return dump(self.to_dict(), "json", path)
 
     def to_yaml(self, path: Optional[PathLike] = None) -> str:
         """The config as YAML text; also written to ``path`` (atomically, replacing it) if given."""
-        import yaml
-
-        text = yaml.safe_dump(self.to_dict(), sort_keys=True)
-        if path is not None:
-            atomic_write_text(path, text)
-        return text
+        return dump(self.to_dict(), "yaml", path)
 
     @classmethod
-    def from_json(cls, text_or_path: Union[str, "os.PathLike[str]"]) -> "SparseConfig":
+    def from_json(cls, text_or_path: PathLike) -> "SparseConfig":
         """From JSON text or a ``.json`` file (see :meth:`load` for the ``sparse`` section)."""
         return cls._from_source(text_or_path, "json")
 
     @classmethod
-    def from_yaml(cls, text_or_path: Union[str, "os.PathLike[str]"]) -> "SparseConfig":
+    def from_yaml(cls, text_or_path: PathLike) -> "SparseConfig":
         """From YAML text or a ``.yaml`` file (see :meth:`load` for the ``sparse`` section)."""
         return cls._from_source(text_or_path, "yaml")
 
@@ -382,28 +294,18 @@ class SparseConfig:
         otherwise the whole mapping is the config. A missing file is a ``FileNotFoundError``
         naming it; bad contents a ``ValueError`` naming the file.
         """
-        path = os.fspath(path)
-        if os.path.isdir(path):
-            path = os.path.join(path, CONFIG_FILENAME)
+        path = config_path(path)
         return cls._from_source(path, "json" if path.endswith(".json") else "yaml", is_path=True)
 
     @classmethod
-    def _from_source(cls, src: Union[str, "os.PathLike[str]"], fmt: str, is_path: bool = False) -> "SparseConfig":
-        where: Optional[str] = None
-        if is_path or not isinstance(src, str) or _looks_like_path(src, fmt):
-            where = os.fspath(src)
-            text = _read_text(where)
-        else:
-            text = src
-        return cls.from_dict(config_section(_parse(text, fmt, where), where), where)
+    def _from_source(cls, src: PathLike, fmt: str, is_path: bool = False) -> "SparseConfig":
+        return cls.from_dict(*read_mapping(src, fmt, is_path))
 
     def save(self, directory_or_path: PathLike) -> str:
         """Write ``sparse_config.json`` into a directory, or to the given file path, atomically
         (replacing an existing file; :func:`smdm_plugin.save_sparse_config` refuses to). Returns
         the path."""
-        path = os.fspath(directory_or_path)
-        if os.path.isdir(path):
-            path = os.path.join(path, CONFIG_FILENAME)
+        path = config_path(directory_or_path)
         if path.endswith((".yaml", ".yml")):
             self.to_yaml(path)
         else:
@@ -426,7 +328,7 @@ class SparseConfig:
                 continue
             spec = spec_of(f)
             default = list(f.default) if isinstance(f.default, tuple) else f.default
-            kw: Dict[str, Any] = {"default": default, "type": _argparse_type(spec),
+            kw: Dict[str, Any] = {"default": default, "type": spec.argparse_type(),
                                   "help": f"sparse: {spec.help} (default {default})"}
             if spec.choices:
                 kw["choices"] = spec.choices
@@ -460,23 +362,6 @@ class SparseConfig:
             if k != "enabled":
                 out[f"sparse_{k}"] = v
         return out
-
-
-def _init_naming_unknown(init: Callable[..., None]) -> Callable[..., None]:
-    """Wrap the dataclass ``__init__``: an unknown keyword is a TypeError naming the closest field
-    (``SparseConfig(redution=0.8)`` -> "... did you mean 'reduction'?"), as :meth:`SparseConfig.from_dict` does."""
-    @functools.wraps(init)
-    def __init__(self: "SparseConfig", *args: Any, **kwargs: Any) -> None:
-        names = [f.name for f in dataclasses.fields(type(self))]
-        for k in kwargs:
-            if k not in names:
-                raise TypeError(f"SparseConfig: unknown option {k!r}{closest(k, names)} (known: {', '.join(names)})")
-        init(self, *args, **kwargs)
-
-    return __init__
-
-
-SparseConfig.__init__ = _init_naming_unknown(SparseConfig.__init__)  # type: ignore[method-assign]
 
 
 # ----------------------------------------------------------------------------------- helpers
@@ -533,159 +418,8 @@ def _is_int(v: Any) -> bool:
     return is_int(v)
 
 
-def _argparse_type(spec: FieldSpec) -> Callable[[str], Any]:
-    if spec.kind is bool:
-        parse: Callable[[str], Any] = str2bool
-    elif spec.kind in (int, tuple):
-        parse = int_range(*(None if b is None else int(b) for b in (spec.range.lo, spec.range.hi)))
-    elif spec.kind is float:
-        r = spec.range
-        parse = float_range(r.lo, r.hi, lo_open=r.lo_open, hi_open=r.hi_open)
-    else:
-        def parse(text: str) -> str:
-            if not text.strip():
-                raise argparse.ArgumentTypeError("expected a non-empty string")
-            return text
-    if not spec.optional:
-        return parse
-    inner = parse
-
-    def optional(text: str) -> Any:
-        return None if text.strip().lower() in ("none", "auto") else inner(text)
-
-    optional.__name__ = getattr(inner, "__name__", "value")
-    return optional
-
-
 def _located(e: Exception, source: Optional[str]) -> Exception:
     """``e`` with ``source: `` in front of its message (same class)."""
     return type(e)(f"{source}: {e}") if source else e
 
 
-def _looks_like_path(s: str, fmt: str) -> bool:
-    if "\n" in s:
-        return False
-    if os.path.exists(s) or s.strip().endswith((".json", ".yaml", ".yml")):
-        return True
-    return fmt == "json" and not s.lstrip().startswith("{")
-
-
-def _read_text(path: str) -> str:
-    if not os.path.exists(path):
-        raise FileNotFoundError(f"SparseConfig: no such config file: {path!r}")
-    if os.path.isdir(path):
-        raise IsADirectoryError(f"SparseConfig: {path!r} is a folder without {CONFIG_FILENAME}")
-    with open(path, "rb") as f:
-        raw = f.read()
-    try:
-        return raw.decode("utf-8-sig")
-    except UnicodeDecodeError as e:
-        raise ValueError(f"{path}: not UTF-8 text (byte {e.start}: {e.reason})") from None
-
-
-def _parse(text: str, fmt: str, where: Optional[str]) -> Any:
-    label = where or f"SparseConfig.from_{fmt}"
-    if fmt == "json":
-        try:
-            return json.loads(text)
-        except json.JSONDecodeError as e:
-            raise ValueError(f"{label}: not valid JSON: {e}") from None
-    import yaml
-
-    try:
-        return yaml.safe_load(text)
-    except yaml.YAMLError as e:
-        raise ValueError(f"{label}: not valid YAML: {' '.join(str(e).split())}") from None
-
-
-def config_section(data: Any, where: Optional[str] = None) -> Dict[str, Any]:
-    """The config mapping of a parsed file: its top-level ``sparse:`` section when there is one
-    (other top-level sections are then allowed), else the whole mapping (empty file: {})."""
-    label = where or "SparseConfig"
-    if data is None:
-        return {}
-    if not isinstance(data, Mapping):
-        raise ConfigTypeError(f"{label}: expected a mapping of SparseConfig options, got {type(data).__name__}")
-    if "sparse" in data:
-        section = data["sparse"]
-        if section is None:
-            return {}
-        if not isinstance(section, Mapping):
-            raise ConfigTypeError(f"{label}: the 'sparse' section must be a mapping of SparseConfig "
-                                  f"options, got {type(section).__name__}")
-        return dict(section)
-    return dict(data)
-
-
-#: fields an adapter sets from the model when it attaches (a run's command-line value may differ)
-SET_WHEN_ATTACHED = ("diffusion_steps", "prefix_frames", "version")
-
-
-def disagreement(saved: "SparseConfig", options: Mapping[str, Any], config_file: str, options_file: str,
-                 ignore: Iterable[str] = SET_WHEN_ATTACHED) -> Optional[str]:
-    """None when a run's ``sparse_*`` options (``args.json``, ``opt.txt``: ``options``, with
-    ``sparse`` true) agree with its ``sparse_config.json`` (``saved``) on every field they give
-    (``ignore`` aside), else a one-line message naming both files and each differing field."""
-    try:
-        given = SparseConfig.from_args(options)
-    except ValueError as e:
-        return f"{options_file}: {e}"
-    keys = {f.name for f in dataclasses.fields(SparseConfig) if f"sparse_{f.name}" in options} - set(ignore)
-    diff = {k: v for k, v in saved.differences(given, ignore=tuple(ignore)).items() if k in keys}
-    if not diff:
-        return None
-    return f"{options_file} and {config_file} disagree: " + "; ".join(
-        f"{k}: {os.path.basename(options_file)} {b!r}, {os.path.basename(config_file)} {a!r}" for k, (a, b) in diff.items())
-
-
-def as_config(config: Any, what: str = "config") -> "SparseConfig":
-    """``config`` as a validated :class:`SparseConfig`: a ``SparseConfig`` (validated again: its
-    fields may have been assigned since), or a mapping of field names (converted, e.g. a parsed
-    YAML/JSON ``dict``). Anything else is a :class:`ConfigTypeError` naming ``what``."""
-    if isinstance(config, SparseConfig):
-        return config.validate()
-    if isinstance(config, Mapping):
-        try:
-            return SparseConfig.from_dict(config)
-        except ConfigTypeError as e:
-            raise ConfigTypeError(f"{what}: {e}") from None
-        except ValueError as e:
-            raise ValueError(f"{what}: {e}") from None
-    raise ConfigTypeError(f"{what} must be a SparseConfig or a mapping of its options, got {type(config).__name__}")
-
-
-def preset_dirs() -> List[str]:
-    """Where presets are looked up: the project's top-level ``configs/`` (a source checkout, ``pip
-    install -e .``), else where a regular install puts it (``<prefix>/share/smdm_plugin/configs``)."""
-    import sys
-
-    package = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
-    candidates = [os.path.join(os.path.dirname(package), "configs"),
-                  os.path.join(sys.prefix, "share", "smdm_plugin", "configs")]
-    return [d for d in candidates if os.path.isdir(d)][:1] or candidates[:1]
-
-
-def preset_names() -> List[str]:
-    """The packaged presets (``smdm_humanml``, ``sdip``, ``smotiondiffuse``...)."""
-    return sorted(f.rsplit(".", 1)[0] for d in preset_dirs() if os.path.isdir(d) for f in os.listdir(d)
-                  if f.endswith((".yaml", ".yml")))
-
-
-def load_preset(name: str) -> SparseConfig:
-    """A packaged preset by name or any YAML/JSON path.
-
-    Packaged (top-level ``configs/``): ``smdm_paper`` (App. B.1: trans_dec-ready, 50 steps, FSQ
-    keys, lambda 0, no dynamic update), ``sdip_paper`` (App. B.2: 10 steps, 20 past + 40 future
-    frames), ``smdm_humanml`` and ``sdip`` (earlier measured variants, kept by name),
-    ``smotiondiffuse``; ``preset_names()`` lists them all."""
-    if os.path.exists(name):
-        return SparseConfig.load(name)
-    fname = name if name.endswith((".yaml", ".yml")) else f"{name}.yaml"
-    for d in preset_dirs():
-        if os.path.isfile(os.path.join(d, fname)):
-            return SparseConfig.load(os.path.join(d, fname))
-    if os.sep in name or name.endswith((".yaml", ".yml", ".json")):
-        raise FileNotFoundError(f"load_preset: no such file: {name!r}")
-    names = preset_names()
-    raise ValueError(f"load_preset: unknown preset {name!r}{closest(name, names)} (packaged: "
-                     f"{', '.join(names)}; or pass a YAML/JSON path)")

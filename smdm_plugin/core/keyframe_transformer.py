@@ -14,7 +14,8 @@ from typing import Optional
 import torch
 import torch.nn as nn
 
-from .attention_backends import fill_frames, get_backend
+from .attention_backends import get_backend
+from .fill import fill_frames
 from .checks import host_checkable
 from .fsq import FSQMultiheadAttention, fold_keys
 from .plan import KeyframePlan

@@ -1,32 +1,24 @@
 """One small registry type for every extension point (selectors, attention backends, model families).
 
 A :class:`Registry` maps names to entries. The built-in entries are registered by the module that
-defines them, imported on the first read (``builtins``), so that reading a registry never depends on
-what happened to be imported before. :meth:`Registry.choices` is a live view of the names for
+defines the registry (or one that imports every built-in), so that reading a registry never depends
+on what happened to be imported before. :meth:`Registry.choices` is a live view of the names for
 validation (``SparseConfig`` checks ``selector`` / ``attention_backend`` against it, argparse uses it
 as ``choices``): a newly registered entry is a valid value at once.
 """
 from __future__ import annotations
 
-import importlib
-from typing import Callable, Dict, Generic, Iterator, List, Optional, Tuple, TypeVar
+from typing import Callable, Dict, Generic, Iterator, List, Tuple, TypeVar
 
 T = TypeVar("T")
 
 
 class Registry(Generic[T]):
-    """Entries of one kind (``what``, for messages) by name; ``builtins``: the module (dotted path)
-    that registers the built-in entries, imported on first read."""
+    """Entries of one kind (``what``, for messages) by name."""
 
-    def __init__(self, what: str, builtins: Optional[str] = None) -> None:
+    def __init__(self, what: str) -> None:
         self.what = what
         self._items: Dict[str, T] = {}
-        self._builtins = builtins
-
-    def _load(self) -> None:
-        if self._builtins is not None:
-            module, self._builtins = self._builtins, None
-            importlib.import_module(module)
 
     def register(self, name: str, entry: T, *, replace: bool = False) -> T:
         """Add ``entry`` under ``name`` (a taken name is a ``ValueError`` unless ``replace``)."""
@@ -42,21 +34,17 @@ class Registry(Generic[T]):
 
     def get(self, name: str) -> T:
         """The entry named ``name``; an unknown name is a ``ValueError`` listing the registered ones."""
-        self._load()
         if name not in self._items:
             raise ValueError(f"unknown {self.what} {name!r}; registered: {', '.join(self._items)}")
         return self._items[name]
 
     def names(self) -> Tuple[str, ...]:
-        self._load()
         return tuple(self._items)
 
     def entries(self) -> List[T]:
-        self._load()
         return list(self._items.values())
 
     def __contains__(self, name: object) -> bool:
-        self._load()
         return name in self._items
 
     def choices(self, *extra: str) -> "Choices":

@@ -98,8 +98,8 @@ def record_run_config(model: Any, weights_dir: str, args: Any, options_file: Opt
     """After sparsify: ``sparse_config.json`` in ``weights_dir``, the resolved ``sparse*`` options
     in ``args`` and in ``options_file`` (``args.json`` or ``opt.txt``; skipped when None/absent).
     Returns the config that ran."""
-    from ..core.config import sparse_config_of
-    from ..io.checkpoint import save_sparse_config
+    from ..adapters.state import sparse_config_of
+    from ..adapters.checkpoint import save_sparse_config
 
     config = sparse_config_of(model)
     if config is None:

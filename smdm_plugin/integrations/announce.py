@@ -7,7 +7,7 @@ import sys
 import weakref
 from typing import Any
 
-from ..core.config import sparse_config_of
+from ..adapters.state import sparse_config_of
 
 _ANNOUNCED: "weakref.WeakSet[Any]" = weakref.WeakSet()  # models already announced (nothing put on them)
 

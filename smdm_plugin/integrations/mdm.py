@@ -25,7 +25,8 @@ import os
 import warnings
 from typing import Any, Optional, Tuple
 
-from ..core.config import CONFIG_FILENAME, SparseConfig
+from ..core.config import SparseConfig
+from ..core.config_files import CONFIG_FILENAME
 from ._hooks import wrap_once
 from .registry import Integration, register_integration
 

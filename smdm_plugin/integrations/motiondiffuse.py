@@ -27,7 +27,8 @@ from typing import Any, Optional
 
 import numpy as np
 
-from ..core.config import CONFIG_FILENAME, SparseConfig
+from ..core.config import SparseConfig
+from ..core.config_files import CONFIG_FILENAME
 
 
 from ._hooks import wrap_once
@@ -63,7 +64,7 @@ def config_from_opt(opt: Any) -> SparseConfig:
         if os.path.exists(path) and not getattr(opt, "_smdm_cli_override", False):
             saved = SparseConfig.load(path)
             if _coerce(getattr(opt, "sparse", False), False):  # opt.txt describes the same model: it must agree
-                from ..core.config import SET_WHEN_ATTACHED, disagreement
+                from ..core.agreement import SET_WHEN_ATTACHED, disagreement
 
                 opt_file = os.path.join(os.path.dirname(os.path.normpath(model_dir)), "opt.txt")
                 why = disagreement(saved, _options(opt), path, opt_file, ignore=(*SET_WHEN_ATTACHED, "fsq"))

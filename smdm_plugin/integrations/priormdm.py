@@ -20,7 +20,9 @@ import os
 import warnings
 from typing import Any, Optional
 
-from ..core.config import CONFIG_FILENAME, SparseConfig
+from ..adapters.mdm import is_doubletake_model
+from ..core.config import SparseConfig
+from ..core.config_files import CONFIG_FILENAME
 
 
 from ._hooks import wrap_once
@@ -68,7 +70,7 @@ def sparsify_priormdm(model: Any, args: Any, data: Any = None, diffusion: Any = 
                       "on normalised features")
     with upstream_rng_untouched():  # a sparse DoubleTake draws the same prompts / noise as a dense one
         apply_start(model, args, start, diffusion, mean, std, data)   # sparsify, or wrap / warm start
-    doubletake = "doubletake" in type(model).__name__.lower()
+    doubletake = is_doubletake_model(model)
     from .announce import announce_sparse_mode
 
     announce_sparse_mode(model, "priorMDM DoubleTake" if doubletake else "priorMDM")
@@ -128,12 +130,12 @@ def record_doubletake_output(model: Any, args: Any) -> None:
     import atexit
     import time
 
-    from ..core.config import sparse_config_of
+    from ..adapters.state import sparse_config_of
 
     config, since, out = sparse_config_of(model), time.time() - 1.0, doubletake_output_dir(args)
 
     def write() -> None:
-        from ..io.checkpoint import save_sparse_config
+        from ..adapters.checkpoint import save_sparse_config
 
         results = os.path.join(out, "results.npy") if out else ""
         if config is None or not os.path.isfile(results) or os.path.getmtime(results) < since:

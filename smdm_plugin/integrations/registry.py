@@ -38,7 +38,8 @@ class Integration:
         return self.install_hooks.__module__
 
 
-INTEGRATIONS: Registry[Integration] = Registry("integration", builtins="smdm_plugin.integrations.builtin")
+#: the integrations by name (the built-in ones register on import of :mod:`.builtin`)
+INTEGRATIONS: Registry[Integration] = Registry("integration")
 
 
 def register_integration(integration: Integration, *, replace: bool = False) -> Integration:

@@ -24,7 +24,8 @@ import sys
 from dataclasses import dataclass
 from typing import Any, NoReturn, Optional
 
-from ..core.config import SparseConfig, load_preset
+from ..core.config import SparseConfig
+from ..core.presets import load_preset
 
 PRESET_OPTION, INIT_OPTION = "--sparse_preset", "--sparse_init_from"
 

@@ -1,58 +1,34 @@
-"""Checkpoints: the sparse config lives beside the weights (``sparse_config.json``, and the
-``sparse_*`` keys of MDM's ``args.json``); loading re-creates the sparse model, and loading a
-sparse state dict into a dense model (or the reverse) is a clear error."""
+"""Checkpoint files: the sparse config lives beside the weights (``sparse_config.json``, and the
+``sparse_*`` keys of MDM's ``args.json``); the weights are read and checked, and loading a sparse
+state dict into a dense model (or the reverse) is a clear error. io knows no model family: making a
+model what a saved config describes, and the one ``load_checkpoint``, are
+:mod:`smdm_plugin.adapters.checkpoint`'s."""
 from __future__ import annotations
 
 import json
 import os
-from typing import Any, Callable, Dict, Iterable, Mapping, Optional, Tuple, Union
+from typing import Any, Dict, Iterable, Mapping, Optional, Tuple
 
 import torch
 import torch.nn as nn
 
-from ..core.config import CONFIG_FILENAME, MARKER, SparseConfig, disagreement, sparse_config_of
+from ..core.agreement import disagreement
+from ..core.config import MARKER, SparseConfig
+from ..core.config_files import CONFIG_FILENAME
 from .files import OutputExistsError
 from .validate import read_json_object, require_fields
 
 BACKBONE_FILENAME = "backbone.json"
 
-# How a freshly built model becomes what a saved config describes (text encoder, sparse mode). io
-# knows no model family: the adapters layer registers its family dispatch here when it is imported
-# (``smdm_plugin.adapters``), or a caller passes ``prepare=`` to :func:`load_checkpoint`.
-_PREPARE: Optional[Callable[..., nn.Module]] = None
-
-
-def register_model_preparer(fn: Callable[..., nn.Module]) -> None:
-    """Set the default ``prepare(model, config, **sparsify_kwargs) -> model`` of :func:`load_checkpoint`."""
-    global _PREPARE
-    _PREPARE = fn
-
-
-def default_preparer() -> Optional[Callable[..., nn.Module]]:
-    """The registered preparer; when none is yet, the package's own (the adapters' family dispatch,
-    which registers itself on import) is loaded by name, as a plugin would be: io still imports no
-    family code statically, and a model folder loads the same whether or not the caller imported
-    the adapters first."""
-    if _PREPARE is None:
-        import importlib
-
-        importlib.import_module("smdm_plugin.adapters")
-    return _PREPARE
-
-
 def _dir_of(path: str) -> str:
     return path if os.path.isdir(path) else os.path.dirname(os.path.abspath(path))
 
 
-def save_sparse_config(model_or_config: Union[nn.Module, SparseConfig], directory: str,
-                       overwrite: bool = False) -> str:
+def write_sparse_config(config: SparseConfig, directory: str, overwrite: bool = False) -> str:
     """Write ``sparse_config.json`` into ``directory`` (created if needed), atomically; returns its
     path. An existing file holding the same config is left as it is (saving twice, or from every
     rank of a distributed run, is fine); one holding another config (or unreadable) is an
     :class:`~smdm_plugin.io.files.OutputExistsError` (a ``FileExistsError``) unless ``overwrite``."""
-    config = model_or_config if isinstance(model_or_config, SparseConfig) else sparse_config_of(model_or_config)
-    if config is None:
-        raise ValueError("save_sparse_config: the model is not sparse; sparsify it first")
     os.makedirs(directory, exist_ok=True)
     path = os.path.join(directory, CONFIG_FILENAME)
     if os.path.isdir(path):
@@ -79,10 +55,10 @@ def _how_it_differs(path: str, config: SparseConfig) -> Optional[str]:
 def find_sparse_config(checkpoint_path: str) -> Optional[SparseConfig]:
     """The config saved beside a checkpoint: ``sparse_config.json``, else ``args.json``'s
     ``sparse``/``sparse_*`` keys (MDM), else None."""
-    return _find_config(checkpoint_path)[0]
+    return find_config(checkpoint_path)[0]
 
 
-def _find_config(checkpoint_path: str) -> Tuple[Optional[SparseConfig], Optional[str]]:
+def find_config(checkpoint_path: str) -> Tuple[Optional[SparseConfig], Optional[str]]:
     """``(config, the file it came from)`` or ``(None, None)``; errors name the file."""
     import dataclasses
 
@@ -180,17 +156,17 @@ def unwrap_state_dict(obj: Any) -> Dict[str, torch.Tensor]:
     return dict(obj)
 
 
-def check_config_matches(model: nn.Module, saved: SparseConfig, source: str,
+def check_config_matches(current: Optional[SparseConfig], saved: SparseConfig, source: str,
                          allow_differences: Iterable[str] = ()) -> None:
-    """Raise ``ValueError`` naming every field where an already-sparse ``model``'s config differs
-    from the ``saved`` one (``version`` and the fields in ``allow_differences`` aside)."""
+    """Raise ``ValueError`` naming every field where an already-sparse model's config (``current``;
+    None: the model is dense, nothing to compare) differs from the ``saved`` one (``version`` and
+    the fields in ``allow_differences`` aside)."""
     allowed = tuple(allow_differences)
     fields = saved.to_dict()
     unknown = [k for k in allowed if k not in fields]
     if unknown:
         raise ValueError(f"load_checkpoint: allow_differences names unknown SparseConfig field(s) {unknown}; "
                          f"known: {', '.join(fields)}")
-    current = sparse_config_of(model)
     if current is None:
         return
     diff = saved.differences(current, ignore=("version", *allowed))
@@ -203,60 +179,42 @@ def check_config_matches(model: nn.Module, saved: SparseConfig, source: str,
             "fields you changed on purpose in allow_differences=(...)")
 
 
-def load_checkpoint(path: str, model: Optional[nn.Module] = None, map_location: Any = "cpu",
-                    strict: bool = True, allow_differences: Iterable[str] = (),
-                    prepare: Optional[Callable[..., nn.Module]] = None,
-                    **sparsify_kwargs: Any) -> Tuple[nn.Module, Optional[SparseConfig]]:
-    """Load ``path`` (a ``.pt`` state dict) re-creating sparse mode from the saved config.
-
-    Args:
-        path: checkpoint file; ``sparse_config.json`` or ``args.json`` beside it says whether it is sparse.
-        model: the freshly built dense model to load into (sparsified here with the saved config),
-            or a model already sparse, whose config must then equal the saved one (a ``ValueError``
-            names the fields that differ). None: build the in-package ``TinyMDM`` from
-            ``backbone.json`` beside the checkpoint.
-        allow_differences: config fields an already-sparse ``model`` may set differently from the
-            saved config on purpose (e.g. ``("gamma",)`` to sample with another schedule).
-        prepare: ``prepare(model, config, **sparsify_kwargs)`` makes a dense model what the saved
-            config describes (text encoder, sparse mode); None: the one the adapters layer registered
-            (:func:`register_model_preparer`; io knows no model family).
-        sparsify_kwargs: passed to ``prepare`` (``mean``, ``std``, ``diffusion``).
-    Returns:
-        ``(model, config)``; config is None for a dense checkpoint.
-    """
-
+def read_checkpoint(path: str, map_location: Any = "cpu"
+                    ) -> Tuple[Dict[str, torch.Tensor], Optional[SparseConfig], Optional[str]]:
+    """``(state dict, saved config or None, the file the config came from)`` of the ``.pt`` file
+    ``path``; a sparse state dict without a config beside it is an error."""
     if not os.path.isfile(path):
         raise FileNotFoundError(f"load_checkpoint: no such checkpoint file: {path!r}")
     state = unwrap_state_dict(read_state_dict(path, map_location=map_location))
-    config, config_source = _find_config(path)
+    config, source = find_config(path)
     if state_dict_is_sparse(state) and config is None:
         raise RuntimeError(f"load_checkpoint: {path} holds a sparse model but has no sparse config beside it "
                            f"(expected {CONFIG_FILENAME} or args.json with sparse=true in "
                            f"{_dir_of(path)})")
-    if model is None:
-        bpath = os.path.join(_dir_of(path), BACKBONE_FILENAME)
-        if not os.path.exists(bpath):
-            raise FileNotFoundError(f"load_checkpoint: no model given and no {BACKBONE_FILENAME} beside "
-                                    f"{path} to build the in-package TinyMDM")
-        from ..reference.backbone import TinyMDM
+    return state, config, source
 
-        backbone = read_json_object(bpath)
-        try:
-            model = TinyMDM(**backbone)
-        except (ValueError, TypeError) as e:
-            raise ValueError(f"load_checkpoint: {bpath}: cannot build TinyMDM from it: {e}") from None
-    if config is not None and config.enabled and model_is_sparse(model):
-        check_config_matches(model, config, config_source or path, allow_differences)
-    if config is not None and (config.text_encoder or (config.enabled and not model_is_sparse(model))):
-        prepare = prepare if prepare is not None else default_preparer()
-        if prepare is None:
-            raise RuntimeError(f"load_checkpoint: {path} needs the model converted to its saved config; "
-                               "use smdm_plugin.load_checkpoint (it knows the model families)")
-        model = prepare(model, config, **sparsify_kwargs)
+
+def build_backbone(path: str) -> nn.Module:
+    """The in-package ``TinyMDM`` built from ``backbone.json`` beside the checkpoint ``path``."""
+    bpath = os.path.join(_dir_of(path), BACKBONE_FILENAME)
+    if not os.path.exists(bpath):
+        raise FileNotFoundError(f"load_checkpoint: no model given and no {BACKBONE_FILENAME} beside "
+                                f"{path} to build the in-package TinyMDM")
+    from ..reference.backbone import TinyMDM
+
+    backbone = read_json_object(bpath)
+    try:
+        return TinyMDM(**backbone)
+    except (ValueError, TypeError) as e:
+        raise ValueError(f"load_checkpoint: {bpath}: cannot build TinyMDM from it: {e}") from None
+
+
+def load_weights(model: nn.Module, state: Mapping[str, Any], path: str, strict: bool = True) -> None:
+    """Load ``state`` (read from ``path``) into ``model``, which must be sparse exactly when the
+    state is; with ``strict``, a missing or unexpected key (CLIP's frozen weights aside) is an error."""
     check_state_dict(model, state, path)
     missing, unexpected = model.load_state_dict(state, strict=False)
     missing = [k for k in missing if not k.startswith("clip_model.")]
     if strict and (missing or unexpected):
         raise RuntimeError(f"load_checkpoint: {path} does not match the model: missing {missing[:5]}, "
                            f"unexpected {unexpected[:5]}")
-    return model, config

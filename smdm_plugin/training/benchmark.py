@@ -20,7 +20,7 @@ from typing import Any, Callable, ContextManager, Dict, List, Optional, Sequence
 
 import torch
 
-from ..core.config import sparse_config_of
+from ..adapters.state import sparse_config_of
 from ..integrations.distributed import resolve_device
 from .timing import PeakMemory, device_name, launches, load_averages, pin_malloc, sync, time_it
 from .workloads import WORKLOADS, Workload, WorkloadBatch, build
@@ -130,7 +130,7 @@ def overhead_fns(work: Workload, model: torch.nn.Module, batch: WorkloadBatch, d
     shapes: ``(select, interp)`` callables."""
     from ..adapters.diffusion import model_noise
     from ..adapters.state import get_state
-    from ..core.attention_backends import fill_frames
+    from ..core.fill import fill_frames
 
     state = get_state(model)
     frames = batch.frames

@@ -30,7 +30,9 @@ import numpy as np
 import torch
 import torch.nn as nn
 
-from ..core.config import CONFIG_FILENAME, SparseConfig, sparse_config_of
+from ..adapters.state import sparse_config_of
+from ..core.config import SparseConfig
+from ..core.config_files import CONFIG_FILENAME
 from ..integrations.compile import check_compile_mode, compile_model
 from ..integrations.distributed import DistContext, constant_buffers_kwargs, init_distributed
 from ..io.checkpoint import BACKBONE_FILENAME
@@ -443,8 +445,8 @@ class Trainer:
                            "global_batch": self.global_batch, "step": self.step_count,
                            **({"init_from": self.init_origin} if self.init_origin else {}), **(extra or {})})
         rep = MOTION_REPRESENTATIONS.get(self.data.feature_dim)
-        if rep is not None:  # motion.json: the folder is also a model smdm inbetween reads (io.bundle)
-            from ..io.bundle import write_motion_meta
+        if rep is not None:  # motion.json: the folder is also a model smdm inbetween reads (training.bundle)
+            from .bundle import write_motion_meta
             from ..io.representation import Representation
 
             write_motion_meta(folder, Representation(rep), self.data.mean, self.data.std, 20.0,

@@ -1,5 +1,5 @@
 """The benchmark workloads: how ``smdm bench`` builds, feeds and calls the in-package model of each
-registered model family (:data:`~smdm_plugin.adapters.family.FAMILIES`).
+registered model family (:data:`~smdm_plugin.adapters.families.FAMILIES`).
 
 One :class:`Workload` per family, registered in :data:`WORKLOADS` under the family's name (the
 extension point: ``WORKLOADS.register("mymodel", MyWorkload())`` and ``smdm bench --family mymodel``
@@ -135,7 +135,7 @@ class MDMWorkload(Workload):
         return "in-package TinyMDM"
 
     def batch(self, batch: int, frames: int, device: torch.device, quick: bool) -> WorkloadBatch:
-        from ..adapters.state import frames_layout
+        from ..adapters.mdm import frames_layout
 
         g = torch.Generator().manual_seed(0)
         lengths = valid_lengths(batch, frames, 40, g)
@@ -236,7 +236,7 @@ for _w in (MDMWorkload(), MotionDiffuseWorkload()):
 
 def family_choices() -> List[str]:
     """The registered model families the benchmark can time (those with a :class:`Workload`)."""
-    from ..adapters.family import FAMILIES
+    from ..adapters.families import FAMILIES
 
     return [n for n in FAMILIES.names() if n in WORKLOADS]
 

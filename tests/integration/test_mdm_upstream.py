@@ -177,7 +177,7 @@ def test_sparse_trains_and_samples(arch, launcher, pristine, patched, tmp_path):
     assert args["sparse_prefix_frames"] == cfg["prefix_frames"], (args, cfg)
     assert args["sparse_diffusion_steps"] == cfg["diffusion_steps"] == args["diffusion_steps"], (args, cfg)
     from smdm_plugin import SparseConfig
-    from smdm_plugin.core.config import disagreement
+    from smdm_plugin.core.agreement import disagreement
 
     assert disagreement(SparseConfig.from_dict(cfg), args, "sparse_config.json", "args.json",
                         ignore=("version",)) is None

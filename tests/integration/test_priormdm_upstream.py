@@ -200,7 +200,7 @@ def check_files_agree(save: str, out_dir: str) -> None:
     (every field, the ones set when the model was built included), and DoubleTake wrote the
     model's config beside its ``results.npy``."""
     from smdm_plugin import SparseConfig
-    from smdm_plugin.core.config import disagreement
+    from smdm_plugin.core.agreement import disagreement
 
     saved = SparseConfig.load(os.path.join(save, "sparse_config.json"))
     args_file = os.path.join(save, "args.json")

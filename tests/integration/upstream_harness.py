@@ -235,7 +235,7 @@ def install_recorder(path: str) -> None:
             model._smdm_recorded = True
 
             def pre_hook(module, args):
-                mask = getattr(getattr(model, "_smdm_state", None), "last_mask", None)
+                mask = getattr(getattr(getattr(model, "_smdm_state", None), "family_state", None), "last_mask", None)
                 records.append({"kind": "blocks", "tokens": int(args[0].shape[1]),
                                 "mask": None if mask is None else mask.detach().cpu().numpy().copy(),
                                 "lengths": None, "forced": None})

@@ -72,13 +72,12 @@ from ..common.args import add_common_flags, add_overwrite, existing_path, int_ra
 from ..common.provenance import make_provenance
 from .grid import SHARED_SETTINGS, load_config, select_variants, slug, sparse_config
 from .report import write_report
-from .results import (FAILED_FILE, RESULT_FILE, Action, CacheState, Cached, Planned, Record, Status,  # noqa: F401
+from .results import (MANIFEST, check_out_dir, FAILED_FILE, RESULT_FILE, Action, CacheState, Cached, Planned, Record, Status,  # noqa: F401
                       failure_record, is_ok, read_cached, row_from_cache)                                # (re-exported)
 
 if TYPE_CHECKING:
     from ...training.data import MotionData
 
-MANIFEST = "ablate.json"
 class StaleResultsError(OutputExistsError):
     """``--resume`` met results from another run (other settings, data, version, steps, seed or
     device) that it would have to replace."""
@@ -172,22 +171,6 @@ def variant_provenance(cfg: Dict[str, Any], variant: Dict[str, Any], data: Motio
                        device: torch.device) -> Dict[str, Any]:
     return make_provenance(variant_settings(cfg, variant), data.fingerprint, cfg["steps"], cfg["seed"], device.type,
                            data_root=os.path.abspath(str(data.root)), data_files=len(data.files))
-
-
-def check_out_dir(out: str, resume: bool = False, overwrite: bool = False) -> None:
-    """Refuse (:class:`OutputExistsError`) a non-empty ``out`` unless ``resume`` (and it holds
-    ablation results) or ``overwrite``."""
-    if os.path.lexists(out) and not os.path.isdir(out):
-        raise OutputExistsError(f"--out {out!r} exists and is not a folder")
-    if overwrite or not os.path.isdir(out) or not os.listdir(out):
-        return
-    if not any(os.path.exists(os.path.join(out, f)) for f in (MANIFEST, "config.yaml")):
-        raise OutputExistsError(f"--out {out!r} is a non-empty folder without smdm ablate results; pick another "
-                                "--out, or pass --overwrite to write into it")
-    if not resume:
-        raise OutputExistsError(f"--out {out!r} already holds ablation results; pass --resume to reuse the "
-                                "current ones and run the rest, or --overwrite to run the selected variants "
-                                "again (or pick another --out)")
 
 
 def _remove(path: str) -> None:

@@ -10,7 +10,8 @@ import os
 import re
 from typing import Any, Dict, List, Optional, Sequence, Set
 
-from ...core.config import ConfigTypeError, Range, closest, preset_dirs
+from ...core.presets import preset_dirs
+from ...core.values import ConfigTypeError, Range, closest
 
 DEFAULT_DATA = os.path.join("..", "shared", "data", "cmu-humanml3d")  # the scripts/ default (this project's data)
 DEFAULTS: Dict[str, Any] = {

@@ -16,6 +16,7 @@ from dataclasses import dataclass
 from enum import Enum
 from typing import Any, Dict, Optional
 
+from ...io.files import OutputExistsError
 from ..common.provenance import differences
 from .report import check_record
 
@@ -23,6 +24,8 @@ from .report import check_record
 Record = Dict[str, Any]
 
 RESULT_FILE, FAILED_FILE = "result.json", "failed.json"
+#: the manifest of an ablate / study results folder
+MANIFEST = "ablate.json"
 
 
 class _Text(str, Enum):
@@ -150,3 +153,19 @@ def row_from_cache(name: str, cached: Cached) -> Record:
     if cached.state in (CacheState.STALE, CacheState.CORRUPT):
         return {"name": name, "status": Status(cached.state.value), "reason": cached.reason}
     return {"name": name, "status": Status.NOT_RUN}
+
+
+def check_out_dir(out: str, resume: bool = False, overwrite: bool = False) -> None:
+    """Refuse (:class:`OutputExistsError`) a non-empty ``out`` unless ``resume`` (and it holds
+    ablation results) or ``overwrite``."""
+    if os.path.lexists(out) and not os.path.isdir(out):
+        raise OutputExistsError(f"--out {out!r} exists and is not a folder")
+    if overwrite or not os.path.isdir(out) or not os.listdir(out):
+        return
+    if not any(os.path.exists(os.path.join(out, f)) for f in (MANIFEST, "config.yaml")):
+        raise OutputExistsError(f"--out {out!r} is a non-empty folder without smdm ablate results; pick another "
+                                "--out, or pass --overwrite to write into it")
+    if not resume:
+        raise OutputExistsError(f"--out {out!r} already holds ablation results; pass --resume to reuse the "
+                                "current ones and run the rest, or --overwrite to run the selected variants "
+                                "again (or pick another --out)")

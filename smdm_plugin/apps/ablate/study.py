@@ -43,11 +43,10 @@ from typing import Any, Callable, Dict, List, Optional, Sequence, Tuple
 import numpy as np
 import torch
 
-from ...core.config import closest
+from ...core.values import closest
 from ...io.files import OutputExistsError, atomic_open, atomic_write_json, atomic_write_text
 from ..common.args import add_common_flags, add_overwrite, existing_path, note_printer, progress_of, resolve_device
-from . import check_out_dir
-from .results import (FAILED_FILE, RESULT_FILE, CacheState, Cached, Record, Status, failure_record, is_ok, read_cached,
+from .results import (MANIFEST, check_out_dir, FAILED_FILE, RESULT_FILE, CacheState, Cached, Record, Status, failure_record, is_ok, read_cached,
                       status_of)
 from .grid import (AblateConfigError, _check, _check_keys, config_path, over_defaults, select_variants, slug,
                    sparse_config)
@@ -72,7 +71,6 @@ RUN_SETTINGS = ("batch", "max_frames", "min_frames", "diffusion_steps", "lr", "m
                 "clock", "eval")
 METRICS = ("fid", "r_precision_top1", "r_precision_top2", "r_precision_top3", "matching_score", "diversity",
            "jitter", "speed", "jitter_per_speed", "foot_skating")
-MANIFEST = "ablate.json"
 
 
 # ----------------------------------------------------------------------------------------- config
@@ -152,7 +150,7 @@ def resolve_study(cfg: Dict[str, Any]) -> Dict[str, Any]:
 
 
 def _range(lo: float):
-    from ...core.config import Range
+    from ...core.values import Range
 
     return Range(lo)
 

@@ -12,7 +12,7 @@ if TYPE_CHECKING:
     import torch
 
 # the range-checked types live in core (the --sparse_* options use them too); re-exported here
-from ...core.config import float_range, int_range, str2bool
+from ...core.argtypes import float_range, int_range, str2bool
 
 __all__ = ["int_range", "float_range", "str2bool", "existing_path", "device_type", "resolve_device",
            "add_overwrite", "add_common_flags", "progress_of", "note_printer", "COMMON_FLAGS"]

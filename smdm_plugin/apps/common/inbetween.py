@@ -119,7 +119,7 @@ def model_inputs(bundle: Any, source: LoadedMotion, kf: Keyframes) -> tuple:
 def run_inbetween(bundle: Any, source: LoadedMotion, kf: Keyframes, samples: int = 1, seed: int = 0,
                   imputation: str = "x0", policy: str = "ends", device: Any = "cpu",
                   progress: bool = False) -> Result:
-    """Sample ``samples`` in-betweens from ``bundle`` (:class:`~smdm_plugin.io.bundle.ModelBundle`)."""
+    """Sample ``samples`` in-betweens from ``bundle`` (:class:`~smdm_plugin.training.bundle.ModelBundle`)."""
     from ...adapters.inbetween import keyframe_constraint, sample_inbetween
 
     feats, target, offset = model_inputs(bundle, source, kf)

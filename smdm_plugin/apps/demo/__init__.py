@@ -645,7 +645,7 @@ def evaluator_scores(generated: Dict[str, GeneratedSet], reference: np.ndarray,
 
 def sparse_sampling(model: Any) -> str:
     """The sparse sampling settings of ``model`` in words (interpolation, dynamic update)."""
-    from ...core.config import sparse_config_of
+    from ...adapters.state import sparse_config_of
 
     c = sparse_config_of(model)
     if c is None:
@@ -699,7 +699,7 @@ def save_models(trainers: Dict[str, Any], out: str, frames: int, mean: np.ndarra
     """Write ``out/dense`` and ``out/sparse`` (model folders ``smdm inbetween`` reads) and, for a
     model that trained on after the equal-steps point, ``out/<name>_equal_steps`` (its weights at
     that step, from ``equal_steps``); load them back."""
-    from ...io.bundle import load_bundle, save_bundle
+    from ...training.bundle import load_bundle, save_bundle
     from ...io.representation import Representation
 
     bundles = {}

@@ -19,12 +19,15 @@ import numpy as np
 import torch
 import torch.nn as nn
 
-from ..core.config import CONFIG_FILENAME, SparseConfig, sparse_config_of
+from ..adapters.checkpoint import load_checkpoint, save_sparse_config
+from ..adapters.state import sparse_config_of
+from ..core.config import SparseConfig
+from ..core.config_files import CONFIG_FILENAME
+from ..io.checkpoint import BACKBONE_FILENAME
+from ..io.files import atomic_open, atomic_write_json
+from ..io.representation import Representation
+from ..io.validate import check_stats, float_field, int_field, read_json_object, require_fields
 from ..reference.diffusion import SimpleDiffusion
-from .checkpoint import BACKBONE_FILENAME, load_checkpoint, save_sparse_config
-from .files import atomic_open, atomic_write_json
-from .validate import check_stats, float_field, int_field, read_json_object, require_fields
-from .representation import Representation
 
 WEIGHTS_FILENAME = "model.pt"
 MOTION_FILENAME = "motion.json"
@@ -71,7 +74,7 @@ def save_bundle(directory: str, model: nn.Module, diffusion: SimpleDiffusion, ba
     if mean.shape != (representation.dim,) or std.shape != (representation.dim,):
         raise ValueError(f"save_bundle: mean and std must be [{representation.dim}] for {representation.name}, "
                          f"got {mean.shape}, {std.shape}")
-    from .outdir import OutputDir
+    from ..io.outdir import OutputDir
 
     # written complete in a partial folder and swapped in: a reader sees the old model or the new one
     with OutputDir(directory, overwrite=overwrite, command="save_bundle", what="model folder",

@@ -1,0 +1,145 @@
+"""One model call as a family reads it (:class:`CallInputs`) and the keyframe plan built from it
+(:func:`keyframe_plan`), for every family."""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import TYPE_CHECKING, Any, Callable, List, Optional
+
+import torch
+
+from ..core import consts
+from ..core.attention import compute_dtype
+from ..core.checks import as_mask, compiling, host_checkable
+from ..core.plan import KeyframePlan
+from .request import KEYFRAMES_KEY, KeyframeRequest
+
+if TYPE_CHECKING:   # the state holds the family, whose read_call returns CallInputs
+    from .state import SparseState
+
+
+@dataclass
+class CallInputs:
+    """One model call as the family reads it (batch-major).
+
+    Attributes:
+        frames: ``[B, N, D]`` the motion of the call (x_t while sampling, x_t in training).
+        timesteps: ``[B]`` diffusion steps (or None).
+        lengths: ``[B]`` long, valid frames (validated, ``2 <= L <= N``).
+        forced: bool ``[B, N]`` frames that must be keyframes (``KeyframeRequest.forced`` on the
+            call's device, shape checked), or None.
+        mask: bool ``[B, N]`` keyframes chosen by the caller (training: ``KeyframeRequest.mask``),
+            or None (sampling).
+        capacity: the slot count chosen with ``mask`` (a Python int), or None.
+        mask_name: how the family's calls pass ``mask`` (for error messages).
+    """
+
+    frames: torch.Tensor
+    timesteps: Any
+    lengths: torch.Tensor
+    forced: Optional[torch.Tensor] = None
+    mask: Optional[torch.Tensor] = None
+    capacity: Optional[int] = None
+    mask_name: str = "KeyframeRequest.mask"
+
+    @classmethod
+    def of(cls, frames: torch.Tensor, timesteps: Any, lengths: torch.Tensor, request: KeyframeRequest,
+           where: str) -> "CallInputs":
+        """The inputs of a call whose :class:`~smdm_plugin.adapters.request.KeyframeRequest` came in
+        ``where`` (``y``, ``model_kwargs``: error messages); its forced frames checked ``[B, N]``
+        and moved to ``frames``' device."""
+        B, N = frames.shape[:2]
+        name = f"{where}[{KEYFRAMES_KEY!r}]"
+        return cls(frames, timesteps, lengths, as_mask(request.forced, B, N, frames.device, f"{name}.forced"),
+                   request.mask, request.capacity, f"{name}.mask")
+
+    def plan(self, state: "SparseState") -> KeyframePlan:
+        """The call's :class:`~smdm_plugin.core.plan.KeyframePlan` (see :func:`keyframe_plan`)."""
+        return keyframe_plan(state, self.frames, self.timesteps, self.lengths, self.forced, self.mask,
+                             self.capacity, self.mask_name)
+
+
+_REUSED: List[tuple] = []          # (source tensor, its version, key, result): the last few
+
+
+def reuse_for(source: torch.Tensor, key: tuple, compute: Callable[[], torch.Tensor]) -> torch.Tensor:
+    """``compute()``, or its result for the same ``source`` tensor (the same object, unchanged
+    since: same version) and ``key`` from one of the last few calls: the lengths of a sampling loop's
+    ``y['mask']`` are read and validated once, not at every step and guidance pass (and once per
+    training step: the diffusion wrapper's x0 call and the model call share them). Not while
+    tracing (the traced graph computes them)."""
+    if compiling():
+        return compute()
+    for src, version, k, out in _REUSED:
+        if src is source and version == source._version and k == key:
+            return out
+    out = compute()
+    _REUSED.insert(0, (source, source._version, key, out))
+    del _REUSED[4:]
+    return out
+
+
+def keyframe_plan(state: "SparseState", frames: torch.Tensor, timesteps: Any, lengths: torch.Tensor,
+                  forced: Optional[torch.Tensor], mask: Any = None, capacity: Any = None,
+                  mask_name: str = "KeyframeRequest.mask") -> KeyframePlan:
+    """The keyframe plan of one model call, for every family.
+
+    Args:
+        frames: the call's motion ``[B, N, D]`` (x_t while sampling).
+        timesteps: ``[B]`` (or a scalar) diffusion step; None = 0.
+        lengths: ``[B]`` long, validated (``2 <= L <= N``).
+        forced: bool ``[B, N]`` frames that must be keyframes, or None.
+        mask: bool ``[B, N]`` keyframes chosen by the caller (training: the diffusion wrapper from
+            x0), else None: the sampling schedule on ``(frames, timesteps)``.
+        capacity: the slot count that goes with a given ``mask`` (a Python int); None: the largest
+            row of ``mask`` when it can be read without a sync, else ``N``.
+        mask_name: how the caller passed ``mask`` (error messages).
+    """
+    B, N = frames.shape[:2]
+    device = frames.device
+    taps = None                                            # C¹ fill taps looked up (sampling, uniform mask)
+    if mask is not None:                                   # training (or a caller's own mask)
+        valid = consts.arange(N, device)[None] < lengths[:, None]
+        # a mask chosen while loading (keyframe_collate) is still on the CPU: upstream loops move
+        # y's tensors, not the KeyframeRequest; copy it without waiting for the device
+        mask = torch.as_tensor(mask).to(device, non_blocking=True)
+        if tuple(mask.shape) != (B, N):
+            raise ValueError(f"{mask_name} must be bool [B, N]=[{B}, {N}], got {tuple(mask.shape)}")
+        mask = mask.to(torch.bool) & valid
+        if forced is not None:
+            mask = mask | (forced & valid)
+        if capacity is None:                               # a mask from elsewhere: size it safely
+            capacity = int(mask.sum(1).max()) if host_checkable(mask) and B else N
+        check, cubic = True, None
+    else:                                                  # sampling: the schedule on x_t
+        t = timesteps if timesteps is not None else torch.zeros(B, dtype=torch.long, device=device)
+        if forced is None and state.schedule.late_steps == 0:   # the uniform mask: a table lookup
+            cubic = state.schedule.cubic_samples(t, B, device, frames.shape[-1])
+            if cubic is not None and not state.variant.prefix_len:
+                f_tab, w_tab = state.schedule.cubic_taps(N, device)
+                taps = (f_tab[lengths], w_tab[lengths])
+            return state.schedule.uniform_plan(lengths, N, state.variant.prefix_len, cubic, taps,
+                                               compute_dtype(frames))   # the key bias in the attention's dtype
+        mask = state.schedule.sampling_mask(frames, t, lengths, forced, checked=True)
+        capacity = state.schedule.capacity(N, training=False, forced=protected_count(forced, lengths))
+        check = False                                      # 2..capacity keyframes by construction
+        cubic = state.schedule.cubic_samples(t, B, device, frames.shape[-1])   # C¹ fill: [B] bool
+        if cubic is not None and forced is None and state.schedule.late_steps == 0 and not state.variant.prefix_len:
+            f_tab, w_tab = state.schedule.cubic_taps(N, device)            # the uniform mask: look up
+            taps = (f_tab[lengths], w_tab[lengths])
+    capacity = max(1, min(int(capacity), N))
+    prefix = state.variant.prefix_len
+    if prefix:
+        mask = torch.cat([mask.new_ones(B, prefix), mask], dim=1)
+        capacity += prefix
+    return KeyframePlan.build(mask, capacity, check=check, cubic=cubic, taps=taps)
+
+
+def protected_count(forced: Optional[torch.Tensor], lengths: torch.Tensor) -> int:
+    """The most protected frames (both ends + forced) of any sample: a host read of ``forced``
+    (free on the CPU; one device sync on an accelerator — DoubleTake and in-betweening only)."""
+    if forced is None:
+        return 0
+    idx = torch.arange(forced.shape[1], device=forced.device)
+    ends = (idx[None] == 0) | (idx[None] == (lengths - 1)[:, None])
+    valid = idx[None] < lengths[:, None]
+    return int(((forced | ends) & valid).sum(1).max()) if forced.shape[0] else 0
