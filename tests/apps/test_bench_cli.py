@@ -9,6 +9,7 @@ import pytest
 import torch
 
 from smdm_plugin.apps import bench, cli
+from smdm_plugin.training import benchmark, timing, workloads
 
 
 def smdm(*args, timeout=600):
@@ -36,7 +37,7 @@ def test_bench_quick_writes_json_and_table(tmp_path, capsys):
 
 
 def test_bench_bf16_and_compiled_modes_run():
-    r = bench.run_bench(["trans_enc"], [0.8], batch=2, frames=24, repeats=1, warmup=1, device="cpu", quick=True,
+    r = benchmark.run_bench(["trans_enc"], [0.8], batch=2, frames=24, repeats=1, warmup=1, device="cpu", quick=True,
                         steps=4, modes=["train", "sample"], amp="bf16", compile_mode="default")
     assert {x["variant"] for x in r["rows"]} == {"dense", "sparse 80%"} and r["sparse_backend"] == "compact"
     assert "torch.compile default" in bench.markdown(r) and "bf16" in bench.markdown(r)
@@ -61,11 +62,11 @@ def test_bench_several_compile_modes_one_table(capsys):
 def test_launch_count_of_an_eager_cell_is_the_counters():
     from smdm_plugin.core.launches import count_launches
 
-    model, diffusion = bench.build("trans_enc", 0.8, torch.device("cpu"), True, 4)
-    data = bench.WORKLOADS.get("mdm").batch(2, 24, torch.device("cpu"), True)
-    fn = bench._sample_step_fn(bench.WORKLOADS.get("mdm"), model, diffusion, data, torch.device("cpu"), "fp32", "none")
+    model, diffusion = workloads.build("trans_enc", 0.8, torch.device("cpu"), True, 4)
+    data = workloads.WORKLOADS.get("mdm").batch(2, 24, torch.device("cpu"), True)
+    fn = benchmark.step_fn("sample", workloads.WORKLOADS.get("mdm"), model, diffusion, data, torch.device("cpu"))
     fn()
-    assert bench.launches(fn, torch.device("cpu"), False) == count_launches(fn, warmup=0).count > 0
+    assert timing.launches(fn, torch.device("cpu"), False) == count_launches(fn, warmup=0).count > 0
 
 
 def test_bench_rejects_unknown_compile_modes():
@@ -81,8 +82,8 @@ def test_fsq_choice_decides_which_side_gets_fsq_keys(fsq, dense_fsq, sparse_fsq)
     def has_fsq(model):
         return any(isinstance(m, FSQMultiheadAttention) for m in model.modules())
 
-    dense, _ = bench.build("trans_enc", None, torch.device("cpu"), True, 4, fsq=fsq)
-    sparse, _ = bench.build("trans_enc", 0.8, torch.device("cpu"), True, 4, fsq=fsq)
+    dense, _ = workloads.build("trans_enc", None, torch.device("cpu"), True, 4, fsq=fsq)
+    sparse, _ = workloads.build("trans_enc", 0.8, torch.device("cpu"), True, 4, fsq=fsq)
     assert (has_fsq(dense), has_fsq(sparse)) == (dense_fsq, sparse_fsq)
     assert sparse._smdm_state.config.fsq is sparse_fsq
 
@@ -167,11 +168,11 @@ def test_bench_models_come_from_the_family_registry():
     from smdm_plugin.adapters.families import FAMILIES, family_for
     from smdm_plugin.adapters.surgery import is_sparse
 
-    assert bench.family_choices() == [n for n in FAMILIES.names() if n in ("mdm", "motiondiffuse")]
-    for family in bench.family_choices():
-        arch = bench.WORKLOADS.get(family).archs[0]
-        dense, _ = bench.build(arch, None, torch.device("cpu"), True, 4, family=family, frames=40)
-        sparse, _ = bench.build(arch, 0.8, torch.device("cpu"), True, 4, family=family, frames=40)
+    assert workloads.family_choices() == [n for n in FAMILIES.names() if n in ("mdm", "motiondiffuse")]
+    for family in workloads.family_choices():
+        arch = workloads.WORKLOADS.get(family).archs[0]
+        dense, _ = workloads.build(arch, None, torch.device("cpu"), True, 4, family=family, frames=40)
+        sparse, _ = workloads.build(arch, 0.8, torch.device("cpu"), True, 4, family=family, frames=40)
         assert family_for(dense).name == family and not is_sparse(dense)
         assert is_sparse(sparse) and sparse._smdm_state.family.name == family
 
@@ -183,9 +184,9 @@ def test_bench_motiondiffuse_takes_the_upstream_class_from_root(tmp_path):
     (models / "transformer.py").write_text(
         "from smdm_plugin.reference.motiondiffuse_denoiser import MotionDiffuseDenoiser as _Base\n\n\n"
         "class MotionTransformer(_Base):\n    pass\n")
-    cls = bench.upstream_motion_transformer(str(tmp_path / "md"))
+    cls = workloads.upstream_motion_transformer(str(tmp_path / "md"))
     assert cls.__module__ == "models.transformer"
-    model, _ = bench.build("motiondiffuse", 0.8, torch.device("cpu"), True, 4, family="motiondiffuse", frames=40,
+    model, _ = workloads.build("motiondiffuse", 0.8, torch.device("cpu"), True, 4, family="motiondiffuse", frames=40,
                            root=str(tmp_path / "md"))
     assert type(model) is cls and model._smdm_state.family.name == "motiondiffuse"
 

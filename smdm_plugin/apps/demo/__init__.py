@@ -54,8 +54,8 @@ import argparse
 import os
 import sys
 import time
-from dataclasses import dataclass
-from typing import Any, Dict, List, Optional, Tuple
+from dataclasses import dataclass, field
+from typing import TYPE_CHECKING, Any, Callable, Dict, List, Optional, Tuple
 
 import numpy as np
 import torch
@@ -64,6 +64,11 @@ from ...io.files import atomic_open, atomic_write_json, atomic_write_text
 from ..common.args import add_common_flags, add_overwrite, float_range, int_range, note_printer, progress_of
 from ..common.keyframe_study import (FRAME_INDEX_SCALE, keyframe_markdown, keyframe_study, motion_source,
                                      plot_keyframes, require_windows, windows)
+
+if TYPE_CHECKING:
+    from ...integrations.distributed import DistContext
+    from ...training.data import MotionSet
+    from ...training.trainer import Trainer
 
 NO_BVH = """smdm demo: no BVH motion capture found.
   Pass one or more files or folders:  smdm demo --bvh path/to/clips/
@@ -234,187 +239,320 @@ def apply_quick(args: argparse.Namespace) -> List[str]:
     return applied
 
 
-def main_demo(args: argparse.Namespace) -> int:
-    """Run the demo (options checked by :func:`main`); returns the exit status. Under torchrun every
-    rank reads the motion and trains; rank 0 alone writes files and prints the tables."""
+class DemoError(Exception):
+    """A reason the demo cannot go on: printed as is to stderr, exit status 2."""
+
+
+@dataclass
+class DemoRun:
+    """One run of the demo: its checked options (``args``), this process's place under torchrun
+    (``ctx``), how it prints (``say``: rank 0's notes, nothing elsewhere) and whether it shows
+    progress bars."""
+
+    args: argparse.Namespace
+    ctx: "DistContext"
+    say: Callable[..., None]
+    progress: bool
+
+    @property
+    def main_rank(self) -> bool:
+        return bool(self.ctx.is_main)
+
+    @property
+    def device(self) -> torch.device:
+        return self.ctx.device
+
+    def path(self, name: str) -> str:
+        """``name`` in the output folder."""
+        return os.path.join(self.args.out, name)
+
+
+@dataclass
+class DemoMotion:
+    """The motion the demo runs on: where it came from (``source``, the BVH ``files``, the ``skipped``
+    ones with their reasons) and the ``clips`` (name, joints ``[T, 22, 3]``); with three clips or
+    more the last is ``held`` out of training (None: every clip trains)."""
+
+    source: str
+    files: List[str]
+    skipped: List[Tuple[str, str]]
+    clips: List[Tuple[str, np.ndarray]]
+    held: Optional[Tuple[str, np.ndarray]] = None
+
+    @property
+    def train_clips(self) -> List[Tuple[str, np.ndarray]]:
+        return [c for c in self.clips if c is not self.held]
+
+
+@dataclass
+class EvaluatorChoice:
+    """The motion evaluator behind FID / diversity (None: none), what it reports about itself
+    (``info``) and how the report names it (``source``)."""
+
+    evaluator: Optional[Any] = None
+    info: Dict[str, Any] = field(default_factory=dict)
+    source: Optional[str] = None
+
+
+@dataclass
+class DemoTraining:
+    """Dense and sparse trained in the race: the ``trainers``, the race's record ``train`` (what
+    summary.json keeps), the equal-steps weights (``equal_step_states``), the training data and its
+    normalisation, and the diffusion steps."""
+
+    trainers: Dict[str, "Trainer"]
+    train: Dict[str, Any]
+    equal_step_states: Dict[str, Dict[str, torch.Tensor]]
+    data: "MotionSet"
+    mean: np.ndarray
+    std: np.ndarray
+    diffusion_steps: int
+
+
+def load_motion(run: DemoRun) -> DemoMotion:
+    """The clips (``--bvh``, ``$SMDM_MOCAP`` or the embedded ones), reported; the held-out clip."""
+    args, say = run.args, run.say
+    skipped: List[Tuple[str, str]] = []
+    try:
+        source, files, clips = motion_source(args.bvh, args.max_clips, log=say, skipped=skipped,
+                                             min_frames=args.frames)
+    except ValueError as e:
+        raise DemoError(f"smdm demo: {e}\n" + NO_BVH) from None
+    say(f"smdm demo: motion from {source}" + (f": {len(files)} BVH file(s)" if files else ""))
+    if skipped:
+        say(f"  skipped {len(skipped)} of {len(files)} file(s) (reasons above)")
+    if not clips:
+        raise DemoError("smdm demo: none of the BVH files is a CMU skeleton this demo can map to 22 joints.\n"
+                        + NO_BVH)
+    say(f"  {len(clips)} clip(s): " + ", ".join(f"{n} ({len(j)} frames)" for n, j in clips))
+    held = clips[-1] if len(clips) >= 3 and len(clips[-1][1]) >= args.frames else None
+    return DemoMotion(source, files, skipped, clips, held)
+
+
+def run_keyframe_study(run: DemoRun, motion: DemoMotion) -> Dict[str, Any]:
+    """Step 1: every selector at every reduction on windows of the clips; rank 0 writes
+    ``keyframes.md`` / ``.csv`` / ``.png`` and returns the study (``{}`` on the other ranks)."""
+    args = run.args
+    wins = windows(motion.clips, 196, max_windows=2 if args.quick else None)
+    try:
+        require_windows(wins, motion.clips)
+    except ValueError as e:
+        raise DemoError(f"smdm demo: error: {e}") from None
+    if not run.main_rank:
+        return {}
+    study = keyframe_study(wins, args.reductions, seed=args.seed, frame_index_scale=args.frame_index_scale)
+    table = keyframe_markdown(study)
+    print("\n## Keyframes vs. reconstruction error\n\n" + table)
+    atomic_write_text(run.path("keyframes.md"), table + "\n")
+    atomic_write_text(run.path("keyframes.csv"), "method," + ",".join(
+        str(r) for r in study["reductions"]) + "\n" + "".join(m + "," + ",".join(
+            f"{study['mpjpe_mm'][m][r]:.3f}" for r in study["reductions"]) + "\n" for m in study["methods"]))
+    name, start, win = wins[0]
+    red_plot = 0.8 if 0.8 in args.reductions else args.reductions[0]
+    plot_keyframes(win, f"{name} frames {start}-{start + len(win) - 1}", red_plot, run.path("keyframes.png"),
+                   frame_index_scale=args.frame_index_scale)
+    return study
+
+
+def prepare_evaluator(run: DemoRun, train_clips: List[Tuple[str, np.ndarray]]) -> EvaluatorChoice:
+    """The evaluator for FID (rank 0): ``--evaluator``, else one trained now on the training clips
+    and saved as ``OUT/evaluator``; none with ``--no-evaluator``."""
+    args, say = run.args, run.say
+    if not run.main_rank or args.no_evaluator:
+        return EvaluatorChoice()
+    from .evaluator import load_demo_evaluator, train_demo_evaluator
+
+    if args.evaluator:
+        from ...metrics.evaluator.model import evaluator_info
+
+        choice = EvaluatorChoice(load_demo_evaluator(args.evaluator, run.device), evaluator_info(args.evaluator),
+                                 f"the evaluator {args.evaluator}")
+        say(f"\nevaluator: {args.evaluator}")
+        return choice
+    say(f"\n## Evaluator (FID): training a small one on the {len(train_clips)} training clip(s)")
+    try:
+        evaluator, info = train_demo_evaluator(train_clips, run.path("evaluator"), args.seed, quick=args.quick,
+                                               device=run.device, progress=run.progress)
+    except ValueError as e:
+        raise DemoError(str(e)) from None
+    held_acc = info["metrics"].get("val")
+    say(f"evaluator: {info['epochs']} epochs, {info['n_train']} windows, {info['seconds']:.1f} s"
+        + (f"; held-out caption retrieval top-1 {held_acc['top1']:.2f} among {held_acc['pool_size']} "
+           f"captions (chance {held_acc['chance_top1']:.2f}, {held_acc['n_motions']} windows)" if held_acc
+           else "; no held-out windows"))
+    return EvaluatorChoice(evaluator, info, f"the demo's own evaluator (OUT/evaluator: {info['epochs']} epochs on "
+                           f"{info['n_train']} windows of {info['window']} frames, {info['captions']} captions)")
+
+
+def train_dense_and_sparse(run: DemoRun, motion: DemoMotion, crops: List[np.ndarray]) -> DemoTraining:
+    """Step 2: dense and sparse TinyMDM from the same weights on the same crops, raced to equal
+    steps and equal time (:func:`~smdm_plugin.training.trainer.race_fair`)."""
     from ...core.config import SparseConfig
-    from ...integrations.distributed import init_distributed, shutdown_distributed
     from ...training.data import MotionSet, feature_stats
     from ...training.trainer import TrainConfig, Trainer, race_fair
 
-    t_start = time.perf_counter()
+    args, ctx = run.args, run.ctx
+    feats = [motion_features(c) for c in crops]
+    mean, std = feature_stats(feats)
+    data = MotionSet.from_motions(feats, mean, std, max_frames=args.frames)
+    model = {"latent_dim": args.latent, "ff_size": 2 * args.latent, "num_layers": args.layers, "num_heads": 4,
+             "dropout": 0.1}
+    diffusion_steps = 20 if args.quick else 50   # the paper's T (App. B.1)
+    sparse = SparseConfig(reduction=args.train_reduction, feature="raw", frame_index_scale=args.frame_index_scale)
+    trainers = {n: Trainer(TrainConfig(steps=0, batch=args.batch, lr=2e-4, diffusion_steps=diffusion_steps,
+                                       seed=args.seed, model=model, sparse=sc), data, dist=ctx)
+                for n, sc in (("dense", None), ("sparse", sparse))}
+    seconds = 60.0 * args.minutes
+    run.say(f"\n## Training dense vs. sparse ({int(round(args.train_reduction * 100))}% dropped) for "
+            f"{seconds:.0f} s in total on {run.device}: {len(data)} crops of {args.frames} frames from "
+            f"{len(motion.train_clips)} clip(s), 66-D joint features, batch {_procs(ctx)}{args.batch}")
+    train = race_fair(trainers, seconds, max_steps=3 if args.quick else None, progress=run.progress,
+                      desc="training dense + sparse")
+    snapshots = train.pop("equal_steps")
+    train["equal_steps"] = {k: v for k, v in snapshots.items() if k != "states"}
+    train.update(spec={"reduction": args.train_reduction, **model, "diffusion_steps": diffusion_steps},
+                 batch=args.batch, world_size=ctx.world_size, global_batch=trainers["dense"].global_batch,
+                 seed=args.seed)
+    return DemoTraining(trainers, train, snapshots["states"], data, mean, std, diffusion_steps)
+
+
+def _procs(ctx: "DistContext") -> str:
+    """``"N processes x "`` under torchrun, else nothing (the batch's prefix)."""
+    return f"{ctx.world_size} processes x " if ctx.world_size > 1 else ""
+
+
+def score_models(run: DemoRun, motion: DemoMotion, trained: DemoTraining, bundles: Dict[str, Any],
+                 ev: EvaluatorChoice, crops: List[np.ndarray]) -> Tuple[Dict[str, Dict[str, float]], str]:
+    """:data:`SCORED_SAMPLES` samples of each model scored against the real motion (the held-out
+    clip, else the training clips), FID and diversity when there is an evaluator (recorded in
+    ``trained.train["evaluator"]``): ``(quality, the evaluator's note)``."""
+    args = run.args
+    reference = np.stack(training_crops([motion.held] if motion.held else motion.train_clips, args.frames,
+                                        stride=args.frames))
+    generated = generate_samples(bundles, args.frames, SCORED_SAMPLES, args.seed, run.device)
+    quality = generation_quality(generated, reference)
+    if ev.evaluator is None:
+        return quality, ""
+    if len(crops) < 2:
+        run.say("no FID: fewer than 2 real training crops to compare with")
+        return quality, ""
+    from .evaluator import evaluator_note
+
+    pool = np.stack(crops)   # the real crops the models trained on: FID's reference
+    real = {"motion capture": real_set(reference)} if len(reference) >= 2 else {}
+    floor_set = {}
+    if len(pool) > SCORED_SAMPLES:  # FID of as many real crops as samples: the floor at this size
+        pick = np.sort(np.random.default_rng(args.seed).choice(len(pool), SCORED_SAMPLES, replace=False))
+        floor_set = {"floor": real_set(pool[pick])}
+    scores = evaluator_scores({**generated, **real, **floor_set}, pool, ev.evaluator)
+    floor = scores.pop("floor")["fid"] if floor_set else None
+    for k, v in scores.items():
+        quality[k].update(v)
+    pool_clips = [n for n, j in motion.train_clips if len(j) >= args.frames]   # the clips training_crops used
+    trained.train["evaluator"] = {"source": args.evaluator or "OUT/evaluator", "fid_pool": len(pool),
+                                  "fid_floor": floor, "info": {k: v for k, v in ev.info.items() if k != "history"}}
+    return quality, evaluator_note(ev.info, ev.source, len(pool), pool_clips, SCORED_SAMPLES, floor)
+
+
+def training_report(run: DemoRun, motion: DemoMotion, trained: DemoTraining,
+                    quality: Dict[str, Dict[str, float]], ev_note: str, limits: str) -> str:
+    """The training table with the speed ratio, the scoring and the limits; printed and written to
+    ``training.md``."""
+    args, train = run.args, trained.train
+    table = training_markdown(train, quality, ("held-out clip" if motion.held else "training clips"))
+    table += (f"\n\nsparse / dense training speed: **{train['speed_ratio']:.2f}×** (TinyMDM latent "
+              f"{args.latent}, {args.layers} layers, batch {_procs(run.ctx)}{args.batch}, {args.frames} frames). "
+              f"Quality: {SCORED_SAMPLES} unconditional samples per model ({trained.diffusion_steps} diffusion "
+              f"steps, sparse sampling: {sparse_sampling(trained.trainers['sparse'].model)}); j/s = jitter / speed "
+              f"(1/s²), the jerk relative to how fast the motion moves.")
+    if ev_note:
+        table += "\n\n" + ev_note
+    table += "\n\n" + limits
+    print(table)
+    atomic_write_text(run.path("training.md"), table + "\n")
+    return table
+
+
+def inbetween_step(run: DemoRun, motion: DemoMotion, bundles: Dict[str, Any], limits: str) -> None:
+    """Step 3: both models in-between a window of the held-out clip (else the first clip);
+    ``inbetween.md`` (with the limits) and ``inbetween.gif``."""
+    args = run.args
+    clip = motion.held or motion.clips[0]
+    note = " (held out from training)" if motion.held else " (a training clip: too few clips to hold one out)"
+    print(f"\n## In-betweening {clip[0]}{note}")
+    table = inbetween_demo({k: bundles[k] for k in ("dense", "sparse")}, clip, args.frames, args.every, args.out,
+                           args.seed, run.device, gif=not args.no_gif, progress=run.progress,
+                           stride=2 if args.quick else 1, note=note)
+    table += "\n\n" + limits
+    atomic_write_text(run.path("inbetween.md"), table + "\n")
+    print(table)
+
+
+def write_summary(run: DemoRun, motion: DemoMotion, study: Dict[str, Any], train: Dict[str, Any],
+                  seconds: float) -> None:
+    """``summary.json``: the motion used, the keyframe study, the training record, the options."""
+    args = run.args
+    summary = {"source": motion.source, "files": motion.files, "skipped": [list(x) for x in motion.skipped],
+               "clips": [[n, len(j)] for n, j in motion.clips], "keyframes": study, "training": train,
+               "seconds": seconds, "options": {**{k: v for k, v in vars(args).items() if k != "folder"},
+                                               "out": getattr(args, "folder", args.out)}}
+    summary["keyframes"]["mpjpe_mm"] = {m: {str(r): v for r, v in d.items()} for m, d in study["mpjpe_mm"].items()}
+    atomic_write_json(run.path("summary.json"), summary, indent=1)
+
+
+def main_demo(args: argparse.Namespace) -> int:
+    """Run the demo (options checked by :func:`main`); returns the exit status. Under torchrun every
+    rank reads the motion and trains; rank 0 alone writes files and prints the tables."""
+    from ...integrations.distributed import init_distributed, shutdown_distributed
     from ..common.threads import apply_threads
+
+    t_start = time.perf_counter()
     apply_threads(args.threads)
     try:
         ctx = init_distributed(args.device)
     except ValueError as e:
         print(f"smdm demo: {e}", file=sys.stderr)
         return 2
-    main_rank = ctx.is_main
-    say = note_printer(args) if main_rank else (lambda *a, **k: None)
-    progress = progress_of(args) and not args.quick
+    run = DemoRun(args, ctx, note_printer(args) if ctx.is_main else (lambda *a, **k: None),
+                  progress_of(args) and not args.quick)
     try:
-        quick = apply_quick(args)
-        if quick:
-            say("smdm demo --quick: " + ", ".join(quick) + ", 3 training steps each, 20 diffusion steps")
-        skipped: List[Tuple[str, str]] = []
-        try:
-            source, files, clips = motion_source(args.bvh, args.max_clips, log=say, skipped=skipped,
-                                                 min_frames=args.frames)
-        except ValueError as e:
-            print(f"smdm demo: {e}\n" + NO_BVH, file=sys.stderr)
-            return 2
-        say(f"smdm demo: motion from {source}" + (f": {len(files)} BVH file(s)" if files else ""))
-        if skipped:
-            say(f"  skipped {len(skipped)} of {len(files)} file(s) (reasons above)")
-        if not clips:
-            print("smdm demo: none of the BVH files is a CMU skeleton this demo can map to 22 joints.\n" + NO_BVH,
-                  file=sys.stderr)
-            return 2
-        say(f"  {len(clips)} clip(s): " + ", ".join(f"{n} ({len(j)} frames)" for n, j in clips))
-        if main_rank:
-            os.makedirs(args.out, exist_ok=True)
-
-        # 1. keyframes (rank 0)
-        wins = windows(clips, 196, max_windows=2 if args.quick else None)
-        try:
-            require_windows(wins, clips)
-        except ValueError as e:
-            print(f"smdm demo: error: {e}", file=sys.stderr)
-            return 2
-        study: Dict[str, Any] = {}
-        if main_rank:
-            study = keyframe_study(wins, args.reductions, seed=args.seed, frame_index_scale=args.frame_index_scale)
-            table = keyframe_markdown(study)
-            print("\n## Keyframes vs. reconstruction error\n\n" + table)
-            atomic_write_text(os.path.join(args.out, "keyframes.md"), table + "\n")
-            atomic_write_text(os.path.join(args.out, "keyframes.csv"), "method," + ",".join(
-                str(r) for r in study["reductions"]) + "\n" + "".join(m + "," + ",".join(
-                    f"{study['mpjpe_mm'][m][r]:.3f}" for r in study["reductions"]) + "\n" for m in study["methods"]))
-            name, start, win = wins[0]
-            red_plot = 0.8 if 0.8 in args.reductions else args.reductions[0]
-            plot_keyframes(win, f"{name} frames {start}-{start + len(win) - 1}", red_plot,
-                           os.path.join(args.out, "keyframes.png"), frame_index_scale=args.frame_index_scale)
-
-        # 2. training (the last clip is held out for in-betweening when there are three or more)
-        dev = ctx.device
-        held = clips[-1] if len(clips) >= 3 and len(clips[-1][1]) >= args.frames else None
-        train_clips = [c for c in clips if c is not held]
-        try:
-            crops = training_crops(train_clips, args.frames, stride=max(1, args.frames // 8))
-        except ValueError as e:
-            print(e, file=sys.stderr)
-            return 2
-        evaluator, ev_info, ev_source = None, {}, None
-        if main_rank and not args.no_evaluator:
-            from .evaluator import load_demo_evaluator, train_demo_evaluator
-
-            if args.evaluator:
-                from ...metrics.evaluator.model import evaluator_info
-
-                evaluator, ev_info = load_demo_evaluator(args.evaluator, dev), evaluator_info(args.evaluator)
-                ev_source = f"the evaluator {args.evaluator}"
-                say(f"\nevaluator: {args.evaluator}")
-            else:
-                say(f"\n## Evaluator (FID): training a small one on the {len(train_clips)} training clip(s)")
-                try:
-                    evaluator, ev_info = train_demo_evaluator(train_clips, os.path.join(args.out, "evaluator"),
-                                                              args.seed, quick=args.quick, device=dev,
-                                                              progress=progress)
-                except ValueError as e:
-                    print(e, file=sys.stderr)
-                    return 2
-                ev_source = (f"the demo's own evaluator (OUT/evaluator: {ev_info['epochs']} epochs on "
-                             f"{ev_info['n_train']} windows of {ev_info['window']} frames, {ev_info['captions']} captions)")
-                held_acc = ev_info["metrics"].get("val")
-                say(f"evaluator: {ev_info['epochs']} epochs, {ev_info['n_train']} windows, {ev_info['seconds']:.1f} s"
-                    + (f"; held-out caption retrieval top-1 {held_acc['top1']:.2f} among {held_acc['pool_size']} "
-                       f"captions (chance {held_acc['chance_top1']:.2f}, {held_acc['n_motions']} windows)" if held_acc else "; no held-out windows"))
-        feats = [motion_features(c) for c in crops]
-        mean, std = feature_stats(feats)
-        data = MotionSet.from_motions(feats, mean, std, max_frames=args.frames)
-        model = {"latent_dim": args.latent, "ff_size": 2 * args.latent, "num_layers": args.layers, "num_heads": 4,
-                 "dropout": 0.1}
-        diffusion_steps = 20 if args.quick else 50   # the paper's T (App. B.1)
-        trainers = {
-            n: Trainer(TrainConfig(steps=0, batch=args.batch, lr=2e-4, diffusion_steps=diffusion_steps, seed=args.seed,
-                                   model=model, sparse=sc), data, dist=ctx)
-            for n, sc in (("dense", None), ("sparse", SparseConfig(reduction=args.train_reduction, feature="raw",
-                                                 frame_index_scale=args.frame_index_scale)))}
-        seconds = 60.0 * args.minutes
-        procs = f"{ctx.world_size} processes x " if ctx.world_size > 1 else ""
-        say(f"\n## Training dense vs. sparse ({int(round(args.train_reduction * 100))}% dropped) for "
-            f"{seconds:.0f} s in total on {dev}: {len(data)} crops of {args.frames} frames from {len(train_clips)} "
-            f"clip(s), 66-D joint features, batch {procs}{args.batch}")
-        train = race_fair(trainers, seconds, max_steps=3 if args.quick else None, progress=progress,
-                          desc="training dense + sparse")
-        snapshots = train.pop("equal_steps")
-        train["equal_steps"] = {k: v for k, v in snapshots.items() if k != "states"}
-        train.update(spec={"reduction": args.train_reduction, **model, "diffusion_steps": diffusion_steps},
-                     batch=args.batch, world_size=ctx.world_size, global_batch=trainers["dense"].global_batch,
-                     seed=args.seed)
-        if not main_rank:
-            return 0
-        plot_losses(train, os.path.join(args.out, "loss.png"))
-        bundles = save_models(trainers, args.out, args.frames, mean, std, train, [c[0] for c in train_clips], dev,
-                              snapshots["states"])
-        ref_clips = [held] if held else train_clips
-        reference = np.stack(training_crops(ref_clips, args.frames, stride=args.frames))
-        generated = generate_samples(bundles, args.frames, SCORED_SAMPLES, args.seed, dev)
-        quality = generation_quality(generated, reference)
-        ev_note = ""
-        if evaluator is not None and len(crops) < 2:
-            say("no FID: fewer than 2 real training crops to compare with")
-        elif evaluator is not None:
-            from .evaluator import evaluator_note
-
-            pool = np.stack(crops)   # the real crops the models trained on: FID's reference
-            real = {"motion capture": real_set(reference)} if len(reference) >= 2 else {}
-            floor_set = {}
-            if len(pool) > SCORED_SAMPLES:  # FID of as many real crops as samples: the floor at this size
-                pick = np.sort(np.random.default_rng(args.seed).choice(len(pool), SCORED_SAMPLES, replace=False))
-                floor_set = {"floor": real_set(pool[pick])}
-            scores = evaluator_scores({**generated, **real, **floor_set}, pool, evaluator)
-            floor = scores.pop("floor")["fid"] if floor_set else None
-            for k, v in scores.items():
-                quality[k].update(v)
-            pool_clips = [n for n, j in train_clips if len(j) >= args.frames]   # the clips training_crops used
-            ev_note = evaluator_note(ev_info, ev_source, len(pool), pool_clips, SCORED_SAMPLES, floor)
-            train["evaluator"] = {"source": args.evaluator or "OUT/evaluator", "fid_pool": len(pool),
-                                  "fid_floor": floor, "info": {k: v for k, v in ev_info.items() if k != "history"}}
-        train["quality"] = quality
-        ttable = training_markdown(train, quality, ("held-out clip" if held else "training clips"))
-        ttable += (f"\n\nsparse / dense training speed: **{train['speed_ratio']:.2f}×** (TinyMDM latent "
-                   f"{args.latent}, {args.layers} layers, batch {procs}{args.batch}, {args.frames} frames). "
-                   f"Quality: {SCORED_SAMPLES} unconditional samples per model ({diffusion_steps} diffusion "
-                   f"steps, sparse sampling: {sparse_sampling(trainers['sparse'].model)}); j/s = jitter / speed "
-                   f"(1/s²), the jerk relative to how fast the motion moves.")
-        if ev_note:
-            ttable += "\n\n" + ev_note
-        limits = limits_note(args, train, len(data))
-        ttable += "\n\n" + limits
-        print(ttable)
-        atomic_write_text(os.path.join(args.out, "training.md"), ttable + "\n")
-
-        # 3. in-betweening
-        clip = held or clips[0]
-        note = " (held out from training)" if held else " (a training clip: too few clips to hold one out)"
-        print(f"\n## In-betweening {clip[0]}{note}")
-        itable = inbetween_demo({k: bundles[k] for k in ("dense", "sparse")}, clip, args.frames, args.every, args.out, args.seed, dev,
-                                gif=not args.no_gif, progress=progress, stride=2 if args.quick else 1, note=note)
-        itable += "\n\n" + limits
-        atomic_write_text(os.path.join(args.out, "inbetween.md"), itable + "\n")
-        print(itable)
-        summary = {"source": source, "files": files, "skipped": [list(x) for x in skipped],
-                   "clips": [[n, len(j)] for n, j in clips], "keyframes": study, "training": train,
-                   "seconds": time.perf_counter() - t_start, "options": {**{k: v for k, v in vars(args).items() if k != "folder"},
-                                                               "out": getattr(args, "folder", args.out)}}
-        summary["keyframes"]["mpjpe_mm"] = {m: {str(r): v for r, v in d.items()} for m, d in study["mpjpe_mm"].items()}
-        atomic_write_json(os.path.join(args.out, "summary.json"), summary, indent=1)
-        say(f"\noutputs: {os.path.abspath(getattr(args, 'folder', args.out))}")
-        return 0
+        return _demo_steps(run, t_start)
+    except DemoError as e:
+        print(e, file=sys.stderr)
+        return 2
     finally:
         shutdown_distributed(ctx)
+
+
+def _demo_steps(run: DemoRun, t_start: float) -> int:
+    """The demo's steps in order (see the module's docstring)."""
+    args = run.args
+    quick = apply_quick(args)
+    if quick:
+        run.say("smdm demo --quick: " + ", ".join(quick) + ", 3 training steps each, 20 diffusion steps")
+    motion = load_motion(run)
+    if run.main_rank:
+        os.makedirs(args.out, exist_ok=True)
+    study = run_keyframe_study(run, motion)
+    try:
+        crops = training_crops(motion.train_clips, args.frames, stride=max(1, args.frames // 8))
+    except ValueError as e:
+        raise DemoError(str(e)) from None
+    ev = prepare_evaluator(run, motion.train_clips)
+    trained = train_dense_and_sparse(run, motion, crops)
+    if not run.main_rank:
+        return 0
+    plot_losses(trained.train, run.path("loss.png"))
+    bundles = save_models(trained.trainers, args.out, args.frames, trained.mean, trained.std, trained.train,
+                          [c[0] for c in motion.train_clips], run.device, trained.equal_step_states)
+    quality, ev_note = score_models(run, motion, trained, bundles, ev, crops)
+    trained.train["quality"] = quality
+    limits = limits_note(args, trained.train, len(trained.data))
+    training_report(run, motion, trained, quality, ev_note, limits)
+    inbetween_step(run, motion, bundles, limits)
+    write_summary(run, motion, study, trained.train, time.perf_counter() - t_start)
+    run.say(f"\noutputs: {os.path.abspath(getattr(args, 'folder', args.out))}")
+    return 0
 
 
 #: unconditional samples scored per model (jitter, speed, foot skating; FID once an evaluator is given)
