@@ -42,7 +42,7 @@ from .call import CallInputs, reuse_for
 from .diffusion import training_keyframes
 from .family import ModelFamily, Variant
 from .request import KEYFRAMES_KEY, request_of, with_request
-from .state import STATE_ATTR, FamilyState, SparseState
+from .state import STATE_ATTR, FamilyState, SparseState, family_state_of
 
 
 @dataclass
@@ -60,11 +60,7 @@ class MDMState(FamilyState):
 
 def mdm_state(state: SparseState) -> MDMState:
     """``state.family_state`` of a model the MDM family (or a subclass) converted."""
-    family_state = state.family_state
-    if not isinstance(family_state, MDMState):
-        raise TypeError(f"{state.family.name}: the model's family state is {type(family_state).__name__}, "
-                        "not MDMState")
-    return family_state
+    return family_state_of(state, MDMState)
 
 
 def is_doubletake_model(model: nn.Module) -> bool:

@@ -56,7 +56,7 @@ from ..core.lipschitz import lipschitz_loss, lipschitz_pass
 from .call import CallInputs, reuse_for
 from .family import ModelFamily, Variant
 from .request import KEYFRAMES_KEY, OLD_KEYS, request_of, with_request
-from .state import MISSING, FamilyState, SparseState, find_sparse_model, get_state
+from .state import MISSING, FamilyState, SparseState, family_state_of, find_sparse_model, get_state
 
 
 @dataclass
@@ -72,11 +72,7 @@ class MotionDiffuseState(FamilyState):
 
 def motiondiffuse_state(state: SparseState) -> MotionDiffuseState:
     """``state.family_state`` of a model the MotionDiffuse family converted."""
-    family_state = state.family_state
-    if not isinstance(family_state, MotionDiffuseState):
-        raise TypeError(f"{state.family.name}: the model's family state is {type(family_state).__name__}, "
-                        "not MotionDiffuseState")
-    return family_state
+    return family_state_of(state, MotionDiffuseState)
 
 _REQUIRED = ("joint_embed", "out", "temporal_decoder_blocks", "sequence_embedding", "time_embed",
              "encode_text", "latent_dim", "input_feats")

@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import weakref
 from dataclasses import dataclass, field
-from typing import Any, Dict, List, Optional, Tuple
+from typing import Any, Dict, List, Optional, Tuple, Type, TypeVar
 
 import torch
 import torch.nn as nn
@@ -25,6 +25,19 @@ STATE_ATTR = "_smdm_state"
 class FamilyState:
     """What one family keeps on a sparse model besides :class:`SparseState` (a dataclass
     subclass, defined by the family and set by its ``install``; the base: nothing)."""
+
+
+S = TypeVar("S", bound=FamilyState)
+
+
+def family_state_of(state: "SparseState", kind: Type[S]) -> S:
+    """``state.family_state``, checked to be a ``kind`` (the family that converted the model wrote
+    it); a ``TypeError`` naming both otherwise."""
+    family_state = state.family_state
+    if not isinstance(family_state, kind):
+        raise TypeError(f"{state.family.name}: the model's family state is {type(family_state).__name__}, "
+                        f"not {kind.__name__}")
+    return family_state
 
 
 @dataclass

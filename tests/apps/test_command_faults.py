@@ -21,6 +21,7 @@ from smdm_plugin.apps.common import keyframe_study as ks
 from smdm_plugin.io.outdir import MANIFEST, lock_path, partial_path
 from smdm_plugin.training import trainer as T
 
+from helpers.grids import GRID_HEAD
 from helpers.commands import TINY_TRAIN, TORCH_FULL_DISK
 
 TINY = [*TINY_TRAIN, "--min-frames", "20"]
@@ -176,17 +177,7 @@ def test_clips_shorter_than_a_keyframe_window_are_one_line(tmp_path, short_clips
     assert os.listdir(tmp_path) == []
 
 
-GRID = """name: t
-seed: 0
-steps: 2
-batch: 2
-max_frames: 64
-diffusion_steps: 5
-model: {latent_dim: 16, num_layers: 1, num_heads: 2, ff_size: 32}
-eval: {samples: 1, frames: 40}
-variants:
-  - {name: dense, dense: true}
-"""
+GRID = GRID_HEAD + "  - {name: dense, dense: true}\n"
 
 
 def test_a_tampered_result_json_is_reported_not_a_crash(tmp_path, data, monkeypatch, capsys):
