@@ -19,8 +19,8 @@ from typing import Optional, Tuple, Union
 
 import torch
 
-from . import consts
 from .checks import require
+from .kernels.plan_op import keyframe_plan
 
 
 @dataclass(frozen=True)
@@ -45,8 +45,8 @@ class KeyframePlan:
             looked up in a table (the sampling schedule's uniform masks), else None (computed from
             the plan's slots by :func:`~smdm_plugin.core.interpolation.catmull_rom_taps`).
         key_bias: ``[B, 1 + K]`` float32 or None: the additive key padding mask of one lead token
-            and the slots (0 kept, -inf empty slots; column 0 is a lead token's 0), looked up with
-            the plan (:meth:`PlanTables.lookup`); ``key_bias[:, 1 - lead:]`` serves ``lead <= 1``.
+            and the slots (0 kept, -inf empty slots; column 0 is a lead token's 0), made with the plan
+            (:meth:`build`, :meth:`PlanTables.lookup`); ``key_bias[:, 1 - lead:]`` serves ``lead <= 1``.
         slots: ``[B, 2N]`` long or None: ``prev_slot | next_slot`` side by side (those two are its
             views), so the fill gathers both ends at once.
     """
@@ -103,28 +103,15 @@ class KeyframePlan:
         K = N if capacity is None else int(capacity)
         if not 1 <= K <= N:
             raise ValueError(f"KeyframePlan: capacity must be in [1, N={N}], got {capacity}")
-        idx = consts.arange(N, mask.device)
-        seen = torch.cumsum(mask, 1)                                   # keyframes at or before n
-        count = seen[:, -1]
+        index, valid, count, slots, weight, rows, key_bias = keyframe_plan(mask, K)
         if check:
             require((count >= 1) & (count <= K),
                     f"KeyframePlan: every sample needs 1..{K} keyframes (capacity {K}); a keyframe mask "
                     "has more than the capacity or none")
-        # keyframes first (frame order), then the other frames (frame order): one stable sort
-        index = torch.sort(mask, dim=1, descending=True, stable=True).indices[:, :K]
-        valid = idx[:K] < count[:, None]
-        before = seen - 1
-        slots = torch.cat([before.clamp_min(0),
-                           torch.minimum(torch.where(mask, before, seen), before[:, -1:].clamp_min(0))], 1)
-        prev_slot, next_slot = slots[:, :N], slots[:, N:]              # next <= count - 1
-        ends = index.gather(1, slots)                                 # frames of both ends at once
-        prev_f, next_f = ends[:, :N], ends[:, N:]
-        # a true division of ints: float32 (exact frame differences, one rounding)
-        weight = torch.div(idx[None] - prev_f, (next_f - prev_f).clamp_min(1)).to(torch.float32).clamp(0.0, 1.0)
-        rows = torch.add(consts.arange(B, mask.device)[:, None], index, alpha=B).t().contiguous()
         if cubic is not None and cubic is not True:
             cubic = torch.as_tensor(cubic, device=mask.device).to(torch.bool).reshape(-1).expand(B)
-        return cls(mask, index, valid, count, prev_slot, next_slot, weight, rows, cubic, taps, slots=slots)
+        return cls(mask, index, valid, count, slots[:, :N], slots[:, N:], weight, rows, cubic, taps, key_bias,
+                   slots)
 
 
 def _packed(t: torch.Tensor) -> torch.Tensor:
@@ -161,8 +148,7 @@ class PlanTables:
         """Tables of bool ``masks [N+1, N]`` (row ``L``: the mask of length ``L``; every row needs
         1..capacity keyframes) with ``capacity`` slots; on the masks' device."""
         p = KeyframePlan.build(masks, capacity, check=False)
-        bias = torch.zeros(p.valid.shape[0], 1 + p.capacity, device=masks.device).masked_fill_(
-            torch.cat([p.valid.new_ones(p.valid.shape[0], 1), p.valid], 1).logical_not(), float("-inf"))
+        bias = p.key_bias
         parts = [torch.cat([p.index, p.count[:, None], p.slots], 1), _packed(p.weight), _packed(bias),
                  _packed(bias.to(torch.bfloat16)), _packed(torch.cat([p.mask, p.valid], 1))]
         return cls(torch.cat(parts, 1), p.index.t().contiguous(), p.frames, p.capacity)

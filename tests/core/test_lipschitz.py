@@ -243,3 +243,53 @@ def test_normalised_weight_is_reused_without_autograd_and_never_stale():
         assert torch.allclose(w2, expect)
         lin.parametrizations.weight.original.mul_(0.5)           # any in-place change invalidates
         assert not torch.equal(lin.weight, w2)
+
+
+@pytest.mark.parametrize("shift", [-0.7, 0.0, 25.0])
+def test_lipschitz_weight_op_equals_the_parametrization(shift):
+    """``smdm::lipschitz_weight`` (one op each way, its backward written out): the parametrization's
+    normalised weight bit for bit, and the gradients of W and c of autograd through the
+    parametrization, with clipped, unclipped and zero rows and ``c`` past softplus's threshold."""
+    from smdm_plugin.core.kernels.lipschitz_op import lipschitz_weight
+
+    torch.manual_seed(0)
+    lin = lipschitz_linear(11, 9).double()
+    p = lin.parametrizations.weight[0]
+    W = lin.parametrizations.weight.original
+    with torch.no_grad():
+        p.c.add_(shift)                                           # -0.7: some rows clipped
+        W[2].zero_()
+    g = torch.randn(9, 11, dtype=torch.float64)
+    ref = p(W)
+    (ref * g).sum().backward()
+    ref_grads = (W.grad.clone(), p.c.grad.clone())
+    W.grad, p.c.grad = None, None
+    out = lipschitz_weight(W, p.c)
+    assert torch.equal(out, ref)
+    (out * g).sum().backward()
+    torch.testing.assert_close(W.grad, ref_grads[0], rtol=1e-12, atol=1e-14)
+    torch.testing.assert_close(p.c.grad, ref_grads[1], rtol=1e-10, atol=1e-14)
+
+
+def test_lipschitz_triton_kernels_equal_the_composite_in_interpreter_mode(triton_interpreter):
+    """The CUDA kernels of ``smdm::lipschitz_weight`` and its backward, run by Triton's interpreter on
+    the CPU: the composite's values (rows wider than one block, strided weights, a zero row, ``c``
+    below, around and past softplus's threshold)."""
+    code = (
+        "import torch\n"
+        "from smdm_plugin.core.kernels.lipschitz_op import lipschitz_weight_composite, lipschitz_weight_grad_composite\n"
+        "from smdm_plugin.core.kernels.lipschitz_triton import lipschitz_weight_triton, lipschitz_weight_backward_triton\n"
+        "torch.manual_seed(0)\n"
+        "bad = 0\n"
+        "for R, n in ((5, 7), (9, 1500), (3, 64)):\n"
+        "    for c in (-30.0, -3.0, 0.5, 2.0, 25.0):\n"
+        "        W = torch.randn(R, 2 * n)[:, ::2]\n"
+        "        W[0] = 0.0\n"
+        "        c = torch.tensor(c)\n"
+        "        g = torch.randn(R, n)\n"
+        "        bad += int(not torch.allclose(lipschitz_weight_triton(W, c), lipschitz_weight_composite(W, c), rtol=1e-5, atol=1e-6))\n"
+        "        for a, b in zip(lipschitz_weight_backward_triton(g, W, c), lipschitz_weight_grad_composite(g, W, c)):\n"
+        "            bad += int(not torch.allclose(a, b, rtol=1e-4, atol=1e-6))\n"
+        "print('mismatches', bad)\n")
+    out = triton_interpreter(code)
+    assert "mismatches 0" in out, out

@@ -45,3 +45,40 @@ def test_plan_rejects_masks_over_capacity_or_empty_rows():
         KeyframePlan.build(mask, 3)
     with pytest.raises(ValueError, match=r"capacity must be in \[1, N=10\]"):
         KeyframePlan.build(mask, 11)
+
+
+@pytest.mark.parametrize("seed", range(6))
+def test_built_plan_carries_its_key_bias(seed):
+    """``KeyframePlan.build`` makes the additive key padding mask with the plan: 0 for a lead token,
+    then 0 for each slot holding a keyframe and -inf for the others."""
+    mask = random_masks(seed)
+    K = mask.shape[1]
+    plan = KeyframePlan.build(mask, K)
+    assert plan.key_bias.dtype == torch.float32 and plan.key_bias.shape == (mask.shape[0], 1 + K)
+    assert (plan.key_bias[:, 0] == 0).all()
+    for b in range(mask.shape[0]):
+        c = int(mask[b].sum())
+        assert (plan.key_bias[b, 1:1 + c] == 0).all() and torch.isneginf(plan.key_bias[b, 1 + c:]).all()
+
+
+def test_plan_triton_kernel_equals_the_composite_in_interpreter_mode(triton_interpreter):
+    """The CUDA kernel of ``smdm::keyframe_plan``, run by Triton's interpreter on the CPU: every output
+    equals the composite's, for frame counts that are not powers of two, capacities below and at
+    ``N``, a single keyframe and dense masks."""
+    code = (
+        "import torch\n"
+        "from smdm_plugin.core.kernels.plan_op import keyframe_plan_composite\n"
+        "from smdm_plugin.core.kernels.plan_triton import keyframe_plan_triton\n"
+        "torch.manual_seed(0)\n"
+        "bad = 0\n"
+        "for B, N, K, p in ((4, 30, 12, 0.3), (3, 196, 60, 0.2), (2, 7, 7, 0.9), (3, 50, 50, 0.05), (2, 17, 5, 0.0)):\n"
+        "    m = torch.rand(B, N) < p\n"
+        "    m[-1] = False\n"
+        "    m[-1, N // 2] = True\n"
+        "    m = m & (m.cumsum(1) <= K)\n"
+        "    m[:, 0] |= ~m.any(1)\n"
+        "    for x, y in zip(keyframe_plan_triton(m, K), keyframe_plan_composite(m, K)):\n"
+        "        bad += int(not (x.dtype == y.dtype and torch.equal(x, y)))\n"
+        "print('mismatches', bad)\n")
+    out = triton_interpreter(code)
+    assert "mismatches 0" in out, out

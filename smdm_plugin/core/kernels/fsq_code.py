@@ -11,13 +11,13 @@ fuses it). All give the composite's values (float32 maths, round half to even).
 """
 from __future__ import annotations
 
-import warnings
-from typing import Optional, Tuple
+from typing import Tuple
 
 import torch
 
+from .dispatch import TritonKernel, register_op
+
 Tensor = torch.Tensor
-_TRITON_BROKEN: Optional[str] = None
 
 __all__ = ["fsq_code", "fsq_code_composite", "fsq_code_grad_composite"]
 
@@ -33,40 +33,6 @@ def fsq_code_grad_composite(grad: Tensor, z: Tensor, half_l: Tensor) -> Tensor:
     return torch.ops.aten.tanh_backward(grad.float() * half_l, torch.tanh(z.float())).to(grad.dtype)
 
 
-def _triton(name: str):
-    """The Triton kernel ``name`` of :mod:`.fsq_triton`, or None (no triton, or it failed before)."""
-    global _TRITON_BROKEN
-    if _TRITON_BROKEN is not None:
-        return None
-    try:
-        from . import fsq_triton
-    except ImportError as e:  # no triton: the composite, quietly
-        _TRITON_BROKEN = f"triton is not importable ({e})"
-        return None
-    return getattr(fsq_triton, name)
-
-
-def _on_cuda(name: str, composite, *args: Tensor) -> Tensor:
-    global _TRITON_BROKEN
-    kernel = _triton(name)
-    if kernel is not None:
-        try:
-            return kernel(*args)
-        except Exception as e:  # a kernel that cannot be built here must not stop training
-            _TRITON_BROKEN = f"{type(e).__name__}: {e}"
-            warnings.warn(f"smdm: the Triton FSQ code kernel failed on this GPU ({_TRITON_BROKEN}); using "
-                          "the composite (more kernels)", RuntimeWarning, stacklevel=2)
-    return composite(*args)
-
-
-def _register(name: str, composite, triton_name: str, fake):
-    """``smdm::<name>``: ``composite`` on every device, the Triton kernel ``triton_name`` on CUDA."""
-    op = torch.library.custom_op(f"smdm::{name}", mutates_args=())(composite)
-    op.register_kernel("cuda")(lambda *args: _on_cuda(triton_name, composite, *args))
-    op.register_fake(fake)
-    return op
-
-
 if hasattr(torch.library, "custom_op"):
     def _code_fake(z: Tensor, neg_offset: Tensor, half_l: Tensor) -> Tensor:
         return torch.empty_like(z, memory_format=torch.contiguous_format)
@@ -74,8 +40,10 @@ if hasattr(torch.library, "custom_op"):
     def _grad_fake(grad: Tensor, z: Tensor, half_l: Tensor) -> Tensor:
         return torch.empty_like(z, dtype=grad.dtype, memory_format=torch.contiguous_format)
 
-    _code_op = _register("fsq_code", fsq_code_composite, "fsq_code_triton", _code_fake)
-    _grad_op = _register("fsq_code_backward", fsq_code_grad_composite, "fsq_code_backward_triton", _grad_fake)
+    _code_op = register_op("fsq_code", fsq_code_composite, TritonKernel("fsq_triton", "fsq_code_triton", "FSQ code"),
+                           _code_fake)
+    _grad_op = register_op("fsq_code_backward", fsq_code_grad_composite,
+                           TritonKernel("fsq_triton", "fsq_code_backward_triton", "FSQ code gradient"), _grad_fake)
 
     def _setup(ctx, inputs: Tuple[Tensor, Tensor, Tensor], output: Tensor) -> None:
         z, _, half_l = inputs

@@ -11,15 +11,14 @@ values every kernel gives.
 """
 from __future__ import annotations
 
-import warnings
 from typing import Optional
 
 import torch
 
 from .. import consts
+from .dispatch import TritonKernel
 
 Tensor = torch.Tensor
-_TRITON_BROKEN: Optional[str] = None
 
 __all__ = ["perturb_mask_op", "perturb_composite", "rank_select"]
 
@@ -58,21 +57,11 @@ def perturb_composite(mask: Tensor, lengths: Tensor, u: Tensor, amount: float,
     return m ^ rank_select(cand, count, u[:, 1:])
 
 
+_KERNEL = TritonKernel("perturb_triton", "perturb_triton", "mask-noise")
+
+
 def _cuda(mask: Tensor, lengths: Tensor, u: Tensor, amount: float, protected: Optional[Tensor]) -> Tensor:
-    global _TRITON_BROKEN
-    if _TRITON_BROKEN is None:
-        try:
-            from .perturb_triton import perturb_triton
-        except ImportError as e:  # no triton: the composite, quietly
-            _TRITON_BROKEN = f"triton is not importable ({e})"
-        else:
-            try:
-                return perturb_triton(mask, lengths, u, amount, protected)
-            except Exception as e:  # a kernel that cannot be built here must not stop training
-                _TRITON_BROKEN = f"{type(e).__name__}: {e}"
-                warnings.warn(f"smdm: the Triton mask-noise kernel failed on this GPU ({_TRITON_BROKEN}); "
-                              "using the composite (more kernels)", RuntimeWarning, stacklevel=2)
-    return perturb_composite(mask, lengths, u, amount, protected)
+    return _KERNEL(perturb_composite, mask, lengths, u, amount, protected)
 
 
 if hasattr(torch.library, "custom_op"):

@@ -1,6 +1,6 @@
 """The Triton kernel of ``smdm::perturb_mask`` (the ``cuda`` kernel; see :mod:`.perturb`). One
 program per sample; a candidate's rank is the number of candidates with a smaller uniform (ties: the
-lower frame), counted over a ``[BLOCK_N, BLOCK_N]`` comparison, so no sort is needed; the same
+lower frame), counted over ``[BLOCK_N, BLOCK_J]`` comparisons (column blocks), so no sort is needed; the same
 float32 arithmetic as the composite. Only core ``tl`` ops: Triton's interpreter runs it on the CPU
 (the tests). Importing this module needs ``triton``."""
 from __future__ import annotations
@@ -14,7 +14,7 @@ import triton.language as tl
 
 @triton.jit
 def _perturb_kernel(MASK, LEN, U, PROT, OUT, N, amount,
-                    HAS_PROT: tl.constexpr, BLOCK_N: tl.constexpr):
+                    HAS_PROT: tl.constexpr, BLOCK_N: tl.constexpr, BLOCK_J: tl.constexpr):
     b = tl.program_id(0).to(tl.int64)
     i = tl.arange(0, BLOCK_N)
     inb = i < N
@@ -34,22 +34,35 @@ def _perturb_kernel(MASK, LEN, U, PROT, OUT, N, amount,
     cand = tl.where(add, valid & (m == 0), droppable) & inb
     count = tl.where(add, c, tl.minimum(-c, k - 2.0))
     key = tl.where(cand, tl.load(U + b * (N + 1) + 1 + i, mask=inb, other=2.0), 2.0)
-    # rank_i = #{j candidate: key_j < key_i or (key_j == key_i and j < i)}
-    kj = key[None, :]
-    ki = key[:, None]
-    before = (kj < ki) | ((kj == ki) & (i[None, :] < i[:, None]))
-    rank = tl.sum((before & cand[None, :]).to(tl.float32), 1)
+    # rank = candidates with a smaller key (ties: the lower frame), over column blocks of BLOCK_J
+    # frames ([BLOCK_N, BLOCK_J] comparisons at a time: registers, no spills)
+    rank = tl.zeros([BLOCK_N], dtype=tl.float32)
+    for j0 in range(0, N, BLOCK_J):
+        j = j0 + tl.arange(0, BLOCK_J)
+        inj = j < N
+        mj = tl.load(MASK + b * N + j, mask=inj, other=0) != 0
+        dj = mj & (j >= 1) & (j + 1 < L)
+        if HAS_PROT:
+            dj = dj & (tl.load(PROT + b * N + j, mask=inj, other=0) == 0)
+        cj = tl.where(add, (j < L) & (mj == 0), dj) & inj
+        kj = tl.where(cj, tl.load(U + b * (N + 1) + 1 + j, mask=inj, other=2.0), 2.0)[None, :]
+        ki = key[:, None]
+        before = (kj < ki) | ((kj == ki) & (j[None, :] < i[:, None]))
+        rank += tl.sum((before & cj[None, :]).to(tl.float32), 1)
     take = cand & (rank < count)
-    tl.store(OUT + b * N + i, (m ^ take).to(tl.int8), mask=inb)
+    tl.store(OUT + b * N + i, m ^ take, mask=inb)
 
 
 def perturb_triton(mask: torch.Tensor, lengths: torch.Tensor, u: torch.Tensor, amount: float,
                    protected: Optional[torch.Tensor]) -> torch.Tensor:
+    # bool tensors are read and written as they are (no cast kernels: the op is one launch); the
+    # inputs are contiguous as the selection makes them (a copy only if a caller's are not)
     B, N = mask.shape
-    out = torch.empty((B, N), dtype=torch.int8, device=mask.device)
+    out = torch.empty((B, N), dtype=torch.bool, device=mask.device)
     if B and N:
-        m8 = mask.to(torch.int8).contiguous()
-        p8 = protected.to(torch.int8).contiguous() if protected is not None else m8
-        _perturb_kernel[(B,)](m8, lengths.contiguous(), u.float().contiguous(), p8, out, N, float(amount),
-                              HAS_PROT=protected is not None, BLOCK_N=triton.next_power_of_2(N))
-    return out.view(torch.bool)
+        block = triton.next_power_of_2(N)
+        m = mask.contiguous()
+        p = protected.contiguous() if protected is not None else m
+        _perturb_kernel[(B,)](m, lengths.contiguous(), u.float().contiguous(), p, out, N, float(amount),
+                              HAS_PROT=protected is not None, BLOCK_N=block, BLOCK_J=max(1, min(block, 4096 // block)))
+    return out

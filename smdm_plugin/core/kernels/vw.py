@@ -17,16 +17,15 @@ dispatch runs as a plain function (no ``torch.compile`` support).
 """
 from __future__ import annotations
 
-import warnings
 from typing import Optional
 
 import torch
 
+from .dispatch import TritonKernel
 from .vw_numpy import vw_numpy
 from .vw_torch import vw_torch
 
 Tensor = torch.Tensor
-_TRITON_BROKEN: Optional[str] = None
 
 
 def _cpu(features: Tensor, lengths: Tensor, counts: Tensor, forced: Optional[Tensor],
@@ -41,22 +40,12 @@ def _cpu(features: Tensor, lengths: Tensor, counts: Tensor, forced: Optional[Ten
     return torch.from_numpy(mask).to(features.device)
 
 
+_KERNEL = TritonKernel("vw_triton", "vw_triton", "VW", "the portable implementation (slower)")
+
+
 def _cuda(features: Tensor, lengths: Tensor, counts: Tensor, forced: Optional[Tensor],
           active: Optional[Tensor]) -> Tensor:
-    global _TRITON_BROKEN
-    if _TRITON_BROKEN is None:
-        try:
-            from .vw_triton import vw_triton
-        except ImportError as e:  # no triton (e.g. Windows): the portable loop, quietly
-            _TRITON_BROKEN = f"triton is not importable ({e})"
-        else:
-            try:
-                return vw_triton(features.detach(), lengths, counts, forced, active)
-            except Exception as e:  # a kernel that cannot be built here must not stop training
-                _TRITON_BROKEN = f"{type(e).__name__}: {e}"
-                warnings.warn(f"smdm: the Triton VW kernel failed on this GPU ({_TRITON_BROKEN}); using the "
-                              "portable implementation (slower)", RuntimeWarning, stacklevel=2)
-    return vw_torch(features.detach(), lengths, counts, forced, active)
+    return _KERNEL(vw_torch, features.detach(), lengths, counts, forced, active)
 
 
 def _mps(features: Tensor, lengths: Tensor, counts: Tensor, forced: Optional[Tensor],
