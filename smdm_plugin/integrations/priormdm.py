@@ -20,11 +20,8 @@ import os
 import warnings
 from typing import Any, Optional
 
-from ..adapters.mdm import is_doubletake_model
 from ..core.config import SparseConfig
 from ..core.config_files import CONFIG_FILENAME
-
-
 from ._hooks import wrap_once
 from .mdm import (_is_training, add_sparse_options, apply_compile, dataset_mean_std,  # noqa: F401  (the one
                   patch_base_options, patch_model_options)                           # --sparse* adder; patches import it here)
@@ -70,6 +67,8 @@ def sparsify_priormdm(model: Any, args: Any, data: Any = None, diffusion: Any = 
                       "on normalised features")
     with upstream_rng_untouched():  # a sparse DoubleTake draws the same prompts / noise as a dense one
         apply_start(model, args, start, diffusion, mean, std, data)   # sparsify, or wrap / warm start
+    from ..adapters.mdm import is_doubletake_model   # here: `smdm run` imports this module without torch
+
     doubletake = is_doubletake_model(model)
     from .announce import announce_sparse_mode
 

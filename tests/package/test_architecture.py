@@ -324,3 +324,14 @@ def test_public_namespace_is_the_public_api():
     assert "SparseConfig" in names and "sparsify" in names
     assert not {"Any", "Dict", "List", "importlib", "TYPE_CHECKING", "annotations"} & set(names)
     assert set(names) == set(smdm_plugin.__all__)
+
+
+@pytest.mark.parametrize("entry", ["smdm_plugin.integrations.launcher", "smdm_plugin.apps.cli"])
+def test_smdm_run_starts_without_torch(entry):
+    """`smdm run`'s own process only writes a sitecustomize and starts the command (whose Python
+    imports torch itself): importing its entry points must not import torch (0.6 did, through the
+    priorMDM integration: ~1.4-1.9 s more start-up per `smdm run` command, the extra wall time of a
+    sparse DiP `sample.generate` at the harness's size)."""
+    code = f"import sys, {entry}\nprint(sorted(m for m in ('torch', 'numpy.linalg') if m in sys.modules))"
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
+    assert "torch" not in out.strip().splitlines()[-1], out
