@@ -23,7 +23,7 @@ from torch import Tensor, nn
 from torch.nn.utils import parametrize
 
 from .checks import compiling as _compiling, module_device
-from .kernels.lipschitz_op import OP as _LIPSCHITZ_OP, lipschitz_weight
+from .kernels.lipschitz_op import OP as _LIPSCHITZ_OP, lipschitz_weight, row_abs_sum as _row_abs_sum
 
 lipschitz_weight_op = lipschitz_weight if _LIPSCHITZ_OP is not None else None
 
@@ -42,12 +42,6 @@ def _inverse_softplus(y: Tensor) -> Tensor:
     """``x`` with ``softplus(x) = y`` for ``y > 0`` (stable: ``y + log(1 - exp(-y))``)."""
     y = y.clamp_min(torch.finfo(y.dtype).tiny ** 0.5)
     return y + torch.log(-torch.expm1(-y))
-
-
-def _row_abs_sum(weight: Tensor) -> Tensor:
-    """``[out, in] -> [out, 1]``: absolute row sums (each row's contribution to the ∞-norm), as
-    one reduction (the 1-norm of each row)."""
-    return torch.linalg.vector_norm(weight, 1, dim=1, keepdim=True)
 
 
 class LipschitzWeight(nn.Module):
@@ -136,8 +130,9 @@ def normalised_weights(linears: List[nn.Linear], row_owner: Optional[Tensor] = N
     """The normalised weights of Lipschitz-parametrized ``linears`` (one
     :class:`LipschitzWeight` each, the same dtype), or None when they are not all such layers: in
     eager mode one ``smdm::lipschitz_weight`` each (1 kernel forward, 2 backward); while tracing
-    (and on torch < 2.4) all in one pass (:class:`_NormalisedWeights`: ``2G + 5`` ops forward). ``row_owner``: :func:`row_owner` of the layers (a
-    per-device constant the caller keeps), else made here."""
+    (and on torch < 2.4) all in one pass (:class:`_NormalisedWeights`: ``2G + 5`` ops forward).
+    ``row_owner``: :func:`row_owner` of the layers (a per-device constant the caller keeps), else
+    made here."""
     params = []
     for m in linears:
         if not parametrize.is_parametrized(m, "weight") or len(m.parametrizations.weight) != 1:
@@ -302,9 +297,9 @@ class lipschitz_pass:
     """For one model call with autograd: the normalised weights of every (unbaked)
     :class:`LipschitzMLP` of ``module`` made at once by :func:`normalised_weights` (on torch < 2.4
     one :class:`_NormalisedWeights` whose fixed kernels a model's input and output MLPs share; with
-    ``smdm::lipschitz_weight`` the same kernels as per MLP; the same values either way). Enter before the call, exit after
-    it (the adapters' forward hooks); without autograd, while tracing, or with fewer than two such
-    MLPs (or mixed dtypes), it does nothing."""
+    ``smdm::lipschitz_weight`` the same kernels as per MLP; the same values either way). Enter
+    before the call, exit after it (the adapters' forward hooks); without autograd, while tracing,
+    or with fewer than two such MLPs (or mixed dtypes), it does nothing."""
 
     def __init__(self, module: nn.Module) -> None:
         self.mlps: List[LipschitzMLP] = []

@@ -24,22 +24,23 @@ Tensor = torch.Tensor
 __all__ = ["lipschitz_weight", "lipschitz_weight_composite", "lipschitz_weight_grad_composite", "OP"]
 
 
-def _row_abs_sum(weight: Tensor) -> Tensor:
-    """``[out, in] -> [out, 1]``: absolute row sums, as one reduction."""
+def row_abs_sum(weight: Tensor) -> Tensor:
+    """``[out, in] -> [out, 1]``: absolute row sums (each row's contribution to the ∞-norm), as
+    one reduction (the 1-norm of each row)."""
     return torch.linalg.vector_norm(weight, 1, dim=1, keepdim=True)
 
 
 def lipschitz_weight_composite(weight: Tensor, c: Tensor) -> Tensor:
     """``W · min(1, softplus(c) / rowsum|W|)`` (``weight [out, in]``, ``c`` 0-d), no gradient. A
     zero row keeps its scale 1 (the ratio is inf)."""
-    return weight * (F.softplus(c) / _row_abs_sum(weight)).clamp(max=1.0)
+    return weight * (F.softplus(c) / row_abs_sum(weight)).clamp(max=1.0)
 
 
 def lipschitz_weight_grad_composite(grad: Tensor, weight: Tensor, c: Tensor) -> Tuple[Tensor, Tensor]:
     """``(dW [out, in], dc per row [out])`` of :func:`lipschitz_weight_composite` for ``grad [out,
     in]``: ``dc = dc_rows.sum()``."""
     eps = torch.finfo(weight.dtype).eps
-    rowsum = _row_abs_sum(weight)
+    rowsum = row_abs_sum(weight)
     ratio = F.softplus(c) / rowsum
     gw = (grad * weight).sum(1, keepdim=True)                              # Σ_j g·W per row
     g_bound = torch.where(ratio <= 1.0, gw / rowsum, 0.0)                  # d/d softplus(c), per row
