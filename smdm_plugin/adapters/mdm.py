@@ -166,7 +166,7 @@ def _pre_hook(model: nn.Module, args: tuple, kwargs: dict):
     if not compiling():                                    # training: all Lipschitz weights at once
         if own.lipschitz_pass is not None:                 # (left by a call that raised)
             own.lipschitz_pass.__exit__(None, None, None)
-        own.lipschitz_pass = lipschitz_pass(model).__enter__()
+        own.lipschitz_pass = lipschitz_pass(state.lipschitz_mlps).__enter__()
     return None
 
 
@@ -314,7 +314,7 @@ class MDMFamily(ModelFamily):
 
     def finish_losses(self, state: SparseState, model: nn.Module, terms: Dict[str, Any],
                       mask: torch.Tensor) -> Dict[str, Any]:
-        return add_lipschitz_term(terms, model, state.config, mask.shape[0])
+        return add_lipschitz_term(terms, state.lipschitz_mlps, state.config, mask.shape[0])
 
 
 

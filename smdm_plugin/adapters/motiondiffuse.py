@@ -105,7 +105,7 @@ def _sparse_forward(self, x, timesteps, length=None, text=None, xf_proj=None, xf
         xf_proj, xf_out = self.encode_text(text, x.device)
     emb = self.time_embed(motiondiffuse_state(state).timestep_embedding(timesteps, self.latent_dim)) + xf_proj
 
-    with lipschitz_pass(self):                             # training: all Lipschitz weights at once
+    with lipschitz_pass(state.lipschitz_mlps):             # training: all Lipschitz weights at once
         return _sparse_body(self, state, x, emb, xf_out, timesteps, length, request)
 
 
@@ -220,7 +220,7 @@ def trainer_loss(trainer: Any, upstream_loss: torch.Tensor) -> torch.Tensor:
         w = frame_mask.to(err.dtype)
         loss = (err * w).sum() / w.sum().clamp_min(1.0)
     if config.lipschitz and config.lipschitz_lambda > 0:
-        loss = loss + config.lipschitz_lambda * lipschitz_loss(sparse)
+        loss = loss + config.lipschitz_lambda * lipschitz_loss(state.lipschitz_mlps)
     return loss
 
 

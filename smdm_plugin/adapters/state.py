@@ -49,7 +49,8 @@ class SparseState:
     (the family's own :class:`FamilyState`, set by its ``install``), ``originals`` (what was replaced,
     ``(owner, attribute) -> old value`` — :data:`MISSING` when the attribute did not exist on the
     instance — for ``unsparsify``), ``handles`` (hooks to remove), ``diffusions`` (weak references
-    to the diffusions whose loss was wrapped for this model). Per call: ``plan``, the
+    to the diffusions whose loss was wrapped for this model), ``lipschitz_mlps`` (the Lipschitz MLPs
+    the conversion installed: a call reads them without walking the model). Per call: ``plan``, the
     :class:`~smdm_plugin.core.plan.KeyframePlan` of the running call (over the model's frames, DiP
     prefix included), for families whose hooks share it (MDM: written by the model's forward
     pre-hook, read by the embedding hooks, cleared by the forward hook); ``schedule_mask``, the
@@ -65,6 +66,7 @@ class SparseState:
     originals: Dict[Tuple[Any, str], Any] = field(default_factory=dict)
     handles: List[Any] = field(default_factory=list)
     diffusions: List["weakref.ref"] = field(default_factory=list)
+    lipschitz_mlps: List[nn.Module] = field(default_factory=list)
     plan: Optional[KeyframePlan] = None
     schedule_mask: Optional[torch.Tensor] = None
 

@@ -135,7 +135,8 @@ def sparsify(model: nn.Module, config: ConfigLike = None, *, diffusion: Any = No
     config = fam.prepare_config(model, config, variant)
     schedule = MaskSchedule(config, mean, std)
     lipschitz = _lipschitz_layers(fam, model, config) if config.lipschitz else {}
-    state = SparseState(config=config, variant=variant, schedule=schedule, family=fam)
+    state = SparseState(config=config, variant=variant, schedule=schedule, family=fam,
+                        lipschitz_mlps=list(lipschitz.values()))
     try:                                               # swap: every change recorded before it is made
         for (owner, name), mlp in lipschitz.items():
             state.originals[(owner, name)] = getattr(owner, name)

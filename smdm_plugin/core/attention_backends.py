@@ -38,8 +38,10 @@ from typing import Callable, Optional, Tuple
 import torch
 import torch.nn as nn
 
-from .attention import compute_dtype
+from .attention import compute_dtype, float_mask
 from .checks import static_shapes
+from .fsq import FSQMultiheadAttention, fold_keys
+from .layers import aligned_key_bias, stock_stack
 from .packed_attention import supports_packed, varlen_packed
 from .plan import KeyframePlan
 from .registry import Registry
@@ -108,10 +110,12 @@ def _call_inner(inner: nn.Module, x: torch.Tensor, pad: Optional[torch.Tensor], 
     if bf:
         x = x.transpose(0, 1)
         memory = memory.transpose(0, 1) if memory is not None else None
-    if memory is None:
-        out = inner(x, src_key_padding_mask=pad)
-    else:
-        out = inner(x, memory, tgt_key_padding_mask=pad, memory_key_padding_mask=memory_key_padding_mask)
+    attns = [layer.self_attn for layer in inner.layers if isinstance(layer.self_attn, FSQMultiheadAttention)]
+    with fold_keys(attns, x):                  # training: all layers' FSQ folds at once
+        if memory is None:
+            out = inner(x, src_key_padding_mask=pad)
+        else:
+            out = inner(x, memory, tgt_key_padding_mask=pad, memory_key_padding_mask=memory_key_padding_mask)
     return out.transpose(0, 1) if bf else out
 
 
@@ -171,7 +175,16 @@ def compact_backend(inner: nn.Module, x: torch.Tensor, plan: KeyframePlan, lead:
     else:                                  # one gather (with autograd: one scatter back, not two + a sum)
         xc = gather_rows(x.reshape(S * B, d), _slot_rows(plan, lead).reshape(-1)).view(R, B, d)
     # the key bias in the dtype the attention runs in (autocast's): cast once, not in every layer
-    out = _call_inner(inner, xc, _key_bias(plan, lead, lead_padding, compute_dtype(x)), memory, memory_key_padding_mask)
+    dtype = compute_dtype(x)
+    bias = _key_bias(plan, lead, lead_padding, dtype)
+    stack = stock_stack(inner)
+    if stack is None:                      # custom layers or hooks: the modules, as they are
+        out = _call_inner(inner, xc, bias, memory, memory_key_padding_mask)
+    else:                                  # stock layers as functions (core/layers.py)
+        memory_bias = None
+        if memory_key_padding_mask is not None:
+            memory_bias = aligned_key_bias(float_mask(memory_key_padding_mask, dtype))
+        out = stack.run(xc, aligned_key_bias(bias), memory, memory_bias)
     return out.reshape(R * B, d), arange_rows(R, B, x.device)
 
 

@@ -17,7 +17,6 @@ import torch.nn as nn
 from .attention_backends import get_backend
 from .fill import fill_frames
 from .checks import host_checkable
-from .fsq import FSQMultiheadAttention, fold_keys
 from .plan import KeyframePlan
 
 
@@ -119,8 +118,6 @@ class KeyframeTransformer(nn.Module):
             if host_checkable(lead_padding) and not bool(lead_padding.any()):
                 lead_padding = None
         fn = get_backend(self.backend, x.device, self.training, self.inner)
-        attns = [layer.self_attn for layer in self.inner.layers if isinstance(layer.self_attn, FSQMultiheadAttention)]
-        with fold_keys(attns, x):                                  # training: all layers' FSQ folds at once
-            h, rows = fn(self.inner, x, plan, lead, memory, memory_key_padding_mask, lead_padding)
+        h, rows = fn(self.inner, x, plan, lead, memory, memory_key_padding_mask, lead_padding)
         out = fill_frames(h, rows, plan, lead, self.interpolate)
         return out.transpose(0, 1) if self.batch_first else out

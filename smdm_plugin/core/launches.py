@@ -70,6 +70,8 @@ from torch.utils._python_dispatch import TorchDispatchMode
 from torch.utils._pytree import tree_leaves
 from torch.utils.weak import WeakTensorKeyDictionary
 
+from .kernels.dispatch import OBSERVERS
+
 __all__ = ["LaunchCounter", "LaunchCount", "count_launches", "SYNC_OPS", "AUTOCAST_DIFFERENCES"]
 
 _aten = torch.ops.aten
@@ -259,16 +261,26 @@ class LaunchCounter(TorchDispatchMode):
         if not _ACTIVE:
             _install()
         _ACTIVE.append(self)
+        OBSERVERS.append(self._fused)
         return super().__enter__()
 
     def __exit__(self, *exc):
         try:
             return super().__exit__(*exc)
         finally:
+            OBSERVERS.remove(self._fused)
             _ACTIVE.remove(self)
             if not _ACTIVE:
                 _uninstall()
             self._hook.remove()
+
+    def _fused(self, name: str, kernel: Callable, args: list):
+        """A fused op of the package (:class:`~smdm_plugin.core.kernels.dispatch.FusedOp`) that
+        CUDA runs as one kernel: counted as one (its CPU composite silent)."""
+        if self._quiet:
+            return kernel(*args)
+        with torch.no_grad():
+            return self._one_kernel(name, kernel, args)
 
     def _optimizer_steps_on_host(self, optimizer, args, kwargs):
         """torch keeps a non-capturable, non-fused optimizer's ``step`` tensors on the CPU."""

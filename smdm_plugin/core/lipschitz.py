@@ -15,7 +15,8 @@ weights into plain ``nn.Linear`` weights for inference.
 from __future__ import annotations
 
 import math
-from typing import List, Optional, Tuple
+from contextlib import nullcontext as _nullcontext
+from typing import List, Optional, Sequence, Tuple, Union
 
 import torch
 import torch.nn.functional as F
@@ -23,9 +24,13 @@ from torch import Tensor, nn
 from torch.nn.utils import parametrize
 
 from .checks import compiling as _compiling, module_device
-from .kernels.lipschitz_op import OP as _LIPSCHITZ_OP, lipschitz_weight, row_abs_sum as _row_abs_sum
+from .kernels.lipschitz_op import lipschitz_weight, row_abs_sum as _row_abs_sum
 
-lipschitz_weight_op = lipschitz_weight if _LIPSCHITZ_OP is not None else None
+#: the per-weight op of eager mode (None: every layer's weights in one pass, as under tracing)
+lipschitz_weight_op = lipschitz_weight
+
+#: Lipschitz MLPs as callers hand them over: a module to walk, or the MLPs themselves
+MLPs = Union[nn.Module, Sequence["LipschitzMLP"]]
 
 __all__ = [
     "LipschitzWeight",
@@ -249,8 +254,10 @@ class LipschitzMLP(nn.Module):
 
     @property
     def baked(self) -> bool:
-        """True once :func:`bake_lipschitz` removed the parametrizations."""
-        return not _lipschitz_layers(self)
+        """True once :func:`bake_lipschitz` removed the parametrizations (it removes all of them)."""
+        first = self.net[0]
+        return not (parametrize.is_parametrized(first, "weight")
+                    and isinstance(first.parametrizations.weight[0], LipschitzWeight))
 
     def lipschitz_product(self) -> Tensor:
         """``∏ softplus(c_i)`` over the linear layers (scalar, differentiable)."""
@@ -274,19 +281,52 @@ class LipschitzMLP(nn.Module):
 
     def forward(self, x: Tensor) -> Tensor:
         """With autograd, every layer's normalised weight in one pass (:func:`normalised_weights`:
-        the same values, fewer kernels); without, each parametrization's cached weight."""
-        linears = [m for m in self.net if isinstance(m, nn.Linear)]
-        weights = None
+        the same values, fewer kernels); without, the normalised weights kept while their inputs
+        are the same tensors at the same versions (:meth:`_sampling_weights`)."""
         if torch.is_grad_enabled():
             weights = self.__dict__.get("_call_weights")            # lipschitz_pass: the model's at once
-            if weights is None and len(linears) > 1:
-                weights = normalised_weights(linears, self._buffers.get("row_owner"))
+            if weights is None:
+                linears = [m for m in self.net if isinstance(m, nn.Linear)]
+                if len(linears) > 1:
+                    weights = normalised_weights(linears, self._buffers.get("row_owner"))
+        else:
+            weights = self._sampling_weights(x)
         if weights is None:
             return self.net(x)
         it = iter(weights)
         for m in self.net:
-            x = F.linear(x, next(it), m.bias) if isinstance(m, nn.Linear) else m(x)
+            if type(m) is SineActivation and not (m._forward_hooks or m._forward_pre_hooks):
+                x = m.forward(x)                                     # (no module call: no hooks to run)
+            else:
+                x = F.linear(x, next(it), m.bias) if isinstance(m, nn.Linear) else m(x)
         return x
+
+    def _sampling_weights(self, x: Tensor) -> Optional[List[Tensor]]:
+        """Without autograd: every linear layer's normalised weight in the dtype it is used in
+        (autocast's, else its own), made once and kept while every weight and ``c`` is the same
+        tensor at the same version (a sampling loop normalises once); None while tracing or once
+        baked (the plain layers run)."""
+        if _compiling():
+            return None
+        linears = [m for m in self.net if isinstance(m, nn.Linear)]
+        pairs = []
+        for m in linears:
+            plist = m._modules.get("parametrizations")
+            if plist is None:
+                return None
+            weight = plist._modules["weight"]
+            pairs.append((weight._parameters["original"], weight._modules["0"]._parameters["c"]))
+        tensors = [t for pair in pairs for t in pair]
+        device = tensors[0].device.type
+        dtype = torch.get_autocast_dtype(device) if torch.is_autocast_enabled(device) else tensors[0].dtype
+        key = (dtype, tuple(map(Tensor.data_ptr, tensors)), tuple(t._version for t in tensors))
+        cache = self.__dict__.get("_sampling_cache")
+        if cache is not None and cache[0] == key:
+            return cache[1]
+        with torch.autocast(device, enabled=False) if device in ("cpu", "cuda") else _nullcontext():
+            weights = [lipschitz_weight(w, c).to(dtype) for w, c in pairs]
+        self.__dict__["_sampling_cache"] = (key, weights)
+        return weights
 
     def extra_repr(self) -> str:
         return (f"in_features={self.in_features}, out_features={self.out_features}, "
@@ -295,17 +335,18 @@ class LipschitzMLP(nn.Module):
 
 class lipschitz_pass:
     """For one model call with autograd: the normalised weights of every (unbaked)
-    :class:`LipschitzMLP` of ``module`` made at once by :func:`normalised_weights` (on torch < 2.4
+    :class:`LipschitzMLP` of ``mlps`` (a module, or its MLPs as a sparse model's state lists them:
+    no walk over the modules per call) made at once by :func:`normalised_weights` (on torch < 2.4
     one :class:`_NormalisedWeights` whose fixed kernels a model's input and output MLPs share; with
     ``smdm::lipschitz_weight`` the same kernels as per MLP; the same values either way). Enter
     before the call, exit after it (the adapters' forward hooks); without autograd, while tracing,
     or with fewer than two such MLPs (or mixed dtypes), it does nothing."""
 
-    def __init__(self, module: nn.Module) -> None:
+    def __init__(self, mlps: MLPs) -> None:
         self.mlps: List[LipschitzMLP] = []
         if not torch.is_grad_enabled() or _compiling():
             return
-        mlps = [m for m in module.modules() if isinstance(m, LipschitzMLP) and not m.baked]
+        mlps = lipschitz_mlps(mlps)
         if len(mlps) >= 2:
             self.mlps = mlps
 
@@ -339,17 +380,26 @@ class lipschitz_pass:
 _pass_owners: dict = {}
 
 
-def lipschitz_loss(module: nn.Module) -> Tensor:
-    """``Σ_MLPs ∏_i softplus(c_i)`` over every (unbaked) :class:`LipschitzMLP` in ``module``.
+def lipschitz_mlps(mlps: MLPs) -> List[LipschitzMLP]:
+    """The unbaked :class:`LipschitzMLP` of ``mlps``: a module (its submodules, walked), or a
+    sequence of MLPs (as a sparse model's state lists them: no walk)."""
+    if isinstance(mlps, nn.Module):
+        mlps = [m for m in mlps.modules() if isinstance(m, LipschitzMLP)]
+    return [m for m in mlps if not m.baked]
+
+
+def lipschitz_loss(mlps: MLPs) -> Tensor:
+    """``Σ_MLPs ∏_i softplus(c_i)`` over every (unbaked) :class:`LipschitzMLP` of ``mlps`` (a
+    module, or a sequence of MLPs: :func:`lipschitz_mlps`).
 
     A 0-d tensor; ``0.`` on the module's device when there is none. Multiply by
     ``SparseConfig.lipschitz_lambda``.
     """
-    groups = [[p.c for p in _lipschitz_layers(m)] for m in module.modules()
-              if isinstance(m, LipschitzMLP) and not m.baked]
+    groups = [[p.c for p in _lipschitz_layers(m)] for m in lipschitz_mlps(mlps)]
     groups = [g for g in groups if g]
     if not groups:
-        return torch.zeros((), device=module_device(module))
+        device = module_device(mlps) if isinstance(mlps, nn.Module) else torch.device("cpu")
+        return torch.zeros((), device=device)
     # one softplus over every c; per-MLP products by log-sum (softplus(c) > 0); a few ops, whatever
     # the number of layers
     log_b = torch.log(F.softplus(torch.stack([c.reshape(()) for g in groups for c in g])))

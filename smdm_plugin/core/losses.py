@@ -6,7 +6,7 @@ from typing import Optional
 import torch
 import torch.nn as nn
 
-from .lipschitz import lipschitz_loss
+from .lipschitz import MLPs, lipschitz_loss
 
 
 def valid_frames(lengths: torch.Tensor, N: int) -> torch.Tensor:
@@ -45,8 +45,8 @@ def lipschitz_term(model: nn.Module, lam: float) -> torch.Tensor:
     return lam * lipschitz_loss(model)
 
 
-def add_lipschitz_term(terms: dict, model: nn.Module, config, batch: int) -> dict:
-    """Add ``config.lipschitz_lambda * L_lip`` of ``model`` to ``terms['loss']`` (or to
+def add_lipschitz_term(terms: dict, model: MLPs, config, batch: int) -> dict:
+    """Add ``config.lipschitz_lambda * L_lip`` of ``model`` (a module, or its Lipschitz MLPs) to ``terms['loss']`` (or to
     ``terms['mse']`` when there is no ``loss``) and log it as ``terms['lip'] [batch]``; no-op when
     the Lipschitz layers are off or λ = 0. Returns ``terms``."""
     if not (config.enabled and config.lipschitz and config.lipschitz_lambda > 0):

@@ -259,23 +259,23 @@ def mdm_size_counts(name, sparse, precision, **cfg):
     return {k: c.count for k, c in counts.items()}
 
 
-#: sparse / dense launches. Issue 27's target is 1.15 for every cell (and DiP sampling at most
-#: dense's, 1.0); where the lean path does not reach it yet, the bound asserted is the one reached
-#: (rounded up) and the comment names the gap. Counts and the analysis: docs/gpu.md.
+#: sparse / dense launches, counted as CUDA launches them (fused ops one each). Since 0.8 the budget
+#: that governs eager speed is host time (tests/training/test_host_time.py, docs/gpu.md): the
+#: launch count only guards against a regression of its own. 0.8 gives SDPA its inputs in the layout
+#: every kernel accepts (three copies per attention on accelerators: the price of no cuDNN crash).
 LAUNCH_BUDGET = {
-    # issue 27's target: 1.15 everywhere, DiP sampling at most dense's (counts of 0.7, B = 8)
-    ("trans_enc", "fp32", "train"): 1.15,   # reached: 486 vs 430 (1.13)
-    ("trans_enc", "bf16", "train"): 1.15,   # reached: 692 vs 641
-    ("trans_enc", "fp32", "sample"): 1.15,  # reached: 252 vs 232
-    ("trans_enc", "bf16", "sample"): 1.15,  # reached: 350 vs 362
-    ("trans_dec", "fp32", "train"): 1.15,   # reached: 715 vs 680
-    ("trans_dec", "bf16", "train"): 1.15,   # reached: 1041 vs 1011
-    ("trans_dec", "fp32", "sample"): 1.15,  # reached: 350 vs 366
-    ("trans_dec", "bf16", "sample"): 1.15,  # reached: 544 vs 592
-    ("dip", "fp32", "train"): 1.15,         # reached: 732 vs 688
-    ("dip", "bf16", "train"): 1.15,         # reached: 1058 vs 1019
-    ("dip", "fp32", "sample"): 1.0,         # reached (at most dense's): 370 vs 378
-    ("dip", "bf16", "sample"): 1.0,         # reached: 564 vs 604
+    ("trans_enc", "fp32", "train"): 1.2,    # 511 vs 430 (0.7: 486)
+    ("trans_enc", "bf16", "train"): 1.15,
+    ("trans_enc", "fp32", "sample"): 1.15,
+    ("trans_enc", "bf16", "sample"): 1.15,
+    ("trans_dec", "fp32", "train"): 1.15,
+    ("trans_dec", "bf16", "train"): 1.15,
+    ("trans_dec", "fp32", "sample"): 1.15,
+    ("trans_dec", "bf16", "sample"): 1.15,
+    ("dip", "fp32", "train"): 1.15,
+    ("dip", "bf16", "train"): 1.15,
+    ("dip", "fp32", "sample"): 1.05,        # 390 vs 378 (0.7: 370)
+    ("dip", "bf16", "sample"): 1.05,
 }
 
 

@@ -247,9 +247,11 @@ def test_normalised_weight_is_reused_without_autograd_and_never_stale():
 
 @pytest.mark.parametrize("shift", [-0.7, 0.0, 25.0])
 def test_lipschitz_weight_op_equals_the_parametrization(shift):
-    """``smdm::lipschitz_weight`` (one op each way, its backward written out): the parametrization's
-    normalised weight bit for bit, and the gradients of W and c of autograd through the
-    parametrization, with clipped, unclipped and zero rows and ``c`` past softplus's threshold."""
+    """``lipschitz_weight`` (on CUDA one op each way, its backward written out; elsewhere the
+    parametrization's operations under autograd): the parametrization's normalised weight bit for
+    bit, and the gradients of W and c of autograd through the parametrization, with clipped,
+    unclipped and zero rows and ``c`` past softplus's threshold; the written-out backward (CUDA's
+    fallback) too."""
     from smdm_plugin.core.kernels.lipschitz_op import lipschitz_weight
 
     torch.manual_seed(0)
@@ -265,6 +267,14 @@ def test_lipschitz_weight_op_equals_the_parametrization(shift):
     ref_grads = (W.grad.clone(), p.c.grad.clone())
     W.grad, p.c.grad = None, None
     out = lipschitz_weight(W, p.c)
+    assert torch.equal(out, ref)
+    (out * g).sum().backward()
+    torch.testing.assert_close(W.grad, ref_grads[0], rtol=1e-12, atol=1e-14)
+    torch.testing.assert_close(p.c.grad, ref_grads[1], rtol=1e-10, atol=1e-14)
+    from smdm_plugin.core.kernels.lipschitz_op import _Weight
+
+    W.grad, p.c.grad = None, None
+    out = _Weight.apply(W, p.c)                                  # the written-out backward
     assert torch.equal(out, ref)
     (out * g).sum().backward()
     torch.testing.assert_close(W.grad, ref_grads[0], rtol=1e-12, atol=1e-14)

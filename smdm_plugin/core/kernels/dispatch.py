@@ -1,15 +1,29 @@
-"""The one way the fused operators of :mod:`smdm_plugin.core.kernels` run their CUDA kernels: a
-Triton kernel when ``triton`` imports and the kernel builds on this GPU, else a fallback (the op's
-composite of torch ops, or a portable implementation), chosen once per kernel: no triton falls back
-quietly, a kernel that fails on this GPU warns once and falls back from then on (a kernel that
-cannot be built must not stop training)."""
+"""How the fused operators of :mod:`smdm_plugin.core.kernels` run: :class:`FusedOp`.
+
+In eager mode an op is a plain function call that picks its kernel by device (a Triton kernel on
+CUDA, a CPU kernel where one is written, else the composite of torch ops): no ``torch.library``
+dispatch on the hot path (a custom op costs 100-260 µs of host time per call, more than the kernels
+it saves at MDM's size). Under ``torch.compile`` the composite is traced (inductor fuses it), or,
+for an op whose kernel cannot be traced (``opaque``: VW's loop), a ``torch.library.custom_op`` that
+the graph holds as one node.
+
+A Triton kernel (:class:`TritonKernel`) is used when ``triton`` imports and the kernel builds on this
+GPU, else the op's fallback: no triton falls back quietly, a kernel that fails on this GPU warns once
+and falls back from then on (a kernel that cannot be built must not stop training).
+"""
 from __future__ import annotations
 
 import importlib
 import warnings
-from typing import Any, Callable, Optional
+from typing import Any, Callable, Dict, List, Optional
 
-__all__ = ["TritonKernel", "register_op"]
+from ..checks import compiling
+
+__all__ = ["TritonKernel", "FusedOp", "OBSERVERS"]
+
+#: who watches fused ops (innermost last): ``observer(name, kernel, args)`` runs ``kernel(*args)``
+#: and returns its result (:class:`~smdm_plugin.core.launches.LaunchCounter` counts one launch)
+OBSERVERS: List[Callable[[str, Callable[..., Any], list], Any]] = []
 
 
 class TritonKernel:
@@ -20,29 +34,72 @@ class TritonKernel:
     def __init__(self, module: str, name: str, what: str, slower: str = "the composite (more kernels)") -> None:
         self.module, self.name, self.what, self.slower = module, name, what, slower
         self.broken: Optional[str] = None          # why the kernel is not used (None: not known yet)
+        self._fn: Optional[Callable[..., Any]] = None
 
     def __call__(self, fallback: Callable[..., Any], *args: Any) -> Any:
-        if self.broken is None:
+        fn = self._fn
+        if fn is None and self.broken is None:
             try:
-                fn = getattr(importlib.import_module(f"{__package__}.{self.module}"), self.name)
+                fn = self._fn = getattr(importlib.import_module(f"{__package__}.{self.module}"), self.name)
             except ImportError as e:  # no triton (e.g. Windows): the fallback, quietly
                 self.broken = f"triton is not importable ({e})"
-            else:
-                try:
-                    return fn(*args)
-                except Exception as e:  # a kernel that cannot be built here must not stop training
-                    self.broken = f"{type(e).__name__}: {e}"
-                    warnings.warn(f"smdm: the Triton {self.what} kernel failed on this GPU ({self.broken}); "
-                                  f"using {self.slower}", RuntimeWarning, stacklevel=2)
+        if fn is not None:
+            try:
+                return fn(*args)
+            except Exception as e:  # a kernel that cannot be built here must not stop training
+                self._fn, self.broken = None, f"{type(e).__name__}: {e}"
+                warnings.warn(f"smdm: the Triton {self.what} kernel failed on this GPU ({self.broken}); "
+                              f"using {self.slower}", RuntimeWarning, stacklevel=2)
         return fallback(*args)
 
 
-def register_op(name: str, composite: Callable[..., Any], kernel: TritonKernel, fake: Callable[..., Any]):
-    """``smdm::<name>`` (a ``torch.library.custom_op``, torch >= 2.4): ``composite`` on every device,
-    ``kernel`` (falling back to ``composite``) on CUDA, ``fake`` for tracing."""
-    import torch
+class FusedOp:
+    """One fused operation ``op(*args)`` (first argument a tensor).
 
-    op = torch.library.custom_op(f"smdm::{name}", mutates_args=())(composite)
-    op.register_kernel("cuda")(lambda *args: kernel(composite, *args))
-    op.register_fake(fake)
-    return op
+    Args:
+        name: the op's name (``smdm::<name>`` when it is registered as an opaque custom op).
+        composite: the op in torch ops: its reference values, traced under ``torch.compile``, and
+            run in eager mode where no kernel is given for the device.
+        cuda: the CUDA kernel (a :class:`TritonKernel`, falling back to ``fallback`` or the composite).
+        kernels: other eager kernels by device type (e.g. ``{"cpu": numpy_kernel}``).
+        fallback: what a CUDA kernel that cannot run falls back to (default: the composite).
+        fake: output shapes for tracing; given with ``opaque=True``.
+        opaque: under ``torch.compile`` call a registered ``torch.library.custom_op`` (one graph
+            node running the eager kernels) instead of tracing the composite.
+    """
+
+    def __init__(self, name: str, composite: Callable[..., Any], cuda: Optional[TritonKernel] = None,
+                 kernels: Optional[Dict[str, Callable[..., Any]]] = None, fallback: Optional[Callable[..., Any]] = None,
+                 fake: Optional[Callable[..., Any]] = None, opaque: bool = False) -> None:
+        self.name, self.composite = name, composite
+        self.kernels: Dict[str, Callable[..., Any]] = dict(kernels or {})
+        if cuda is not None:
+            fb = fallback or composite
+            self.kernels["cuda"] = lambda *args: cuda(fb, *args)
+        self.traced: Callable[..., Any] = composite
+        if opaque:
+            self.traced = self._register(fake)
+
+    def eager(self, *args: Any) -> Any:
+        """The op outside tracing: the kernel of the first argument's device, else the composite."""
+        kernel = self.kernels.get(args[0].device.type, self.composite)
+        if OBSERVERS and "cuda" in self.kernels:      # a launch counter: CUDA runs it as one kernel
+            return OBSERVERS[-1](f"smdm.{self.name}", kernel, list(args))
+        return kernel(*args)
+
+    def __call__(self, *args: Any) -> Any:
+        return self.traced(*args) if compiling() else self.eager(*args)
+
+    def _register(self, fake: Optional[Callable[..., Any]]) -> Callable[..., Any]:
+        """``smdm::<name>`` as a ``torch.library.custom_op`` running :meth:`eager` (torch >= 2.4;
+        older: the eager function, which ``torch.compile`` cannot trace)."""
+        import torch
+
+        if not hasattr(torch.library, "custom_op"):  # pragma: no cover - torch < 2.4
+            return self.eager
+        op = torch.library.custom_op(f"smdm::{self.name}", mutates_args=())(self.composite)
+        for device, kernel in self.kernels.items():
+            op.register_kernel(device)(kernel)
+        if fake is not None:
+            op.register_fake(fake)
+        return op

@@ -1,8 +1,8 @@
-"""``smdm::lipschitz_weight``: one Lipschitz-normalised weight as one registered operator.
+"""One Lipschitz-normalised weight as one fused op each way (:class:`~.dispatch.FusedOp`).
 
 ``lipschitz_weight(W, c) = W · min(1, softplus(c) / rowsum|W|)`` (``W [out, in]``, ``c`` a 0-d
 tensor, rowsum per output row), the value of :class:`~smdm_plugin.core.lipschitz.LipschitzWeight`
-bit for bit (the composite is its operations). Its gradient (``smdm::lipschitz_weight_backward``) is
+bit for bit (the composite is its operations). Its gradient is
 written out: ``dW = g·scale - sign(W)·r`` with ``r = [ratio <= 1][rowsum >= eps]·ratio/rowsum·Σ_j
 g·W``, and per row ``softplus'(c)·[ratio <= 1]/rowsum·Σ_j g·W``, whose sum is ``dc``. Eager mode
 launches one kernel forward and two backward (the kernel and the sum over rows): on CUDA Triton
@@ -17,11 +17,12 @@ from typing import Tuple
 import torch
 import torch.nn.functional as F
 
-from .dispatch import TritonKernel, register_op
+from ..checks import static_shapes
+from .dispatch import FusedOp, TritonKernel
 
 Tensor = torch.Tensor
 
-__all__ = ["lipschitz_weight", "lipschitz_weight_composite", "lipschitz_weight_grad_composite", "OP"]
+__all__ = ["lipschitz_weight", "lipschitz_weight_composite", "lipschitz_weight_grad_composite", "WEIGHT", "GRAD"]
 
 
 def row_abs_sum(weight: Tensor) -> Tensor:
@@ -50,39 +51,36 @@ def lipschitz_weight_grad_composite(grad: Tensor, weight: Tensor, c: Tensor) -> 
     return grad_w, rows
 
 
-if hasattr(torch.library, "custom_op"):
-    def _weight_fake(weight: Tensor, c: Tensor) -> Tensor:
-        return torch.empty_like(weight, memory_format=torch.contiguous_format)
+WEIGHT = FusedOp("lipschitz_weight", lipschitz_weight_composite,
+                 cuda=TritonKernel("lipschitz_triton", "lipschitz_weight_triton", "Lipschitz weight"))
+GRAD = FusedOp("lipschitz_weight_backward", lipschitz_weight_grad_composite,
+               cuda=TritonKernel("lipschitz_triton", "lipschitz_weight_backward_triton", "Lipschitz weight gradient"))
 
-    def _grad_fake(grad: Tensor, weight: Tensor, c: Tensor) -> Tuple[Tensor, Tensor]:
-        return (torch.empty_like(weight, memory_format=torch.contiguous_format),
-                torch.empty(weight.shape[0], dtype=c.dtype, device=weight.device))
 
-    _weight_op = register_op("lipschitz_weight", lipschitz_weight_composite,
-                             TritonKernel("lipschitz_triton", "lipschitz_weight_triton", "Lipschitz weight"),
-                             _weight_fake)
-    _grad_op = register_op("lipschitz_weight_backward", lipschitz_weight_grad_composite,
-                           TritonKernel("lipschitz_triton", "lipschitz_weight_backward_triton",
-                                        "Lipschitz weight gradient"), _grad_fake)
+class _Weight(torch.autograd.Function):
+    """The normalised weight with its written-out gradient: one op forward, two backward."""
 
-    def _setup(ctx, inputs: Tuple[Tensor, Tensor], output: Tensor) -> None:
-        ctx.save_for_backward(*inputs)
+    @staticmethod
+    def forward(ctx, weight: Tensor, c: Tensor) -> Tensor:
+        ctx.save_for_backward(weight, c)
+        return WEIGHT(weight, c)
 
-    def _backward(ctx, grad: Tensor):
+    @staticmethod
+    def backward(ctx, grad: Tensor):
         weight, c = ctx.saved_tensors
-        grad_w, rows = _grad_op(grad, weight, c)
+        grad_w, rows = GRAD(grad, weight, c)
         return grad_w, rows.sum().reshape(c.shape)
-
-    _weight_op.register_autograd(_backward, setup_context=_setup)
-    OP = torch.ops.smdm.lipschitz_weight.default
-else:  # pragma: no cover - torch < 2.4
-    OP = None
 
 
 def lipschitz_weight(weight: Tensor, c: Tensor) -> Tensor:
     """The normalised weight ``[out, in]`` of ``weight [out, in]`` and the 0-d bound parameter ``c``,
-    differentiable in both; one kernel forward, two backward (eager, torch >= 2.4). Callers use it
-    in eager mode (under ``torch.compile`` the parametrization's composite is traced instead)."""
-    if OP is None:
-        raise RuntimeError("smdm::lipschitz_weight needs torch >= 2.4 (torch.library.custom_op)")
-    return _weight_op(weight, c)
+    differentiable in both: on CUDA one kernel forward and two backward (:class:`_Weight`);
+    elsewhere the composite under autograd (five ops, no Python in the backward: less host time
+    than a Python function's backward)."""
+    if torch.is_grad_enabled() and (weight.requires_grad or c.requires_grad):
+        if weight.device.type == "cuda" or static_shapes():       # (static_mode: the CPU stands for CUDA)
+            return _Weight.apply(weight, c)
+        # the parametrization's own operations (rows summing to < eps clamped: finite gradients)
+        rowsum = row_abs_sum(weight).clamp_min(torch.finfo(weight.dtype).eps)
+        return weight * torch.clamp(F.softplus(c) / rowsum, max=1.0)
+    return WEIGHT(weight, c)

@@ -16,7 +16,7 @@ from typing import Optional
 import torch
 
 from .. import consts
-from .dispatch import TritonKernel
+from .dispatch import FusedOp, TritonKernel
 
 Tensor = torch.Tensor
 
@@ -57,28 +57,20 @@ def perturb_composite(mask: Tensor, lengths: Tensor, u: Tensor, amount: float,
     return m ^ rank_select(cand, count, u[:, 1:])
 
 
-_KERNEL = TritonKernel("perturb_triton", "perturb_triton", "mask-noise")
+def _composite(mask: Tensor, lengths: Tensor, u: Tensor, amount: float, protected: Optional[Tensor]) -> Tensor:
+    return perturb_composite(mask, lengths, u, amount, protected)
 
 
-def _cuda(mask: Tensor, lengths: Tensor, u: Tensor, amount: float, protected: Optional[Tensor]) -> Tensor:
-    return _KERNEL(perturb_composite, mask, lengths, u, amount, protected)
+def _fake(mask: Tensor, lengths: Tensor, u: Tensor, amount: float, protected: Optional[Tensor]) -> Tensor:
+    return torch.empty(mask.shape, dtype=torch.bool, device=mask.device)
 
 
-if hasattr(torch.library, "custom_op"):
-    @torch.library.custom_op("smdm::perturb_mask", mutates_args=())
-    def _op(mask: Tensor, lengths: Tensor, u: Tensor, amount: float, protected: Optional[Tensor]) -> Tensor:
-        return perturb_composite(mask, lengths, u, amount, protected)
-
-    _op.register_kernel("cuda")(_cuda)
-
-    @_op.register_fake
-    def _fake(mask: Tensor, lengths: Tensor, u: Tensor, amount: float, protected: Optional[Tensor]) -> Tensor:
-        return torch.empty(mask.shape, dtype=torch.bool, device=mask.device)
-else:  # pragma: no cover - torch < 2.4
-    _op = perturb_composite
+#: the op: a Triton kernel on CUDA, the composite elsewhere; one opaque node under ``torch.compile``
+OP = FusedOp("perturb_mask", _composite, cuda=TritonKernel("perturb_triton", "perturb_triton", "mask-noise"),
+             fake=_fake, opaque=True)
 
 
 def perturb_mask_op(mask: Tensor, lengths: Tensor, u: Tensor, amount: float,
                     protected: Optional[Tensor] = None) -> Tensor:
     """:func:`perturb_composite` as one op (no validation: callers validate once)."""
-    return _op(mask.to(torch.bool), lengths, u, float(amount), protected)
+    return OP(mask.to(torch.bool), lengths, u, float(amount), protected)

@@ -1,6 +1,5 @@
-"""``smdm::keyframe_plan``: the tensors of a :class:`~smdm_plugin.core.plan.KeyframePlan` as one
-registered operator (a training call builds its plan from a fresh keyframe mask: ~20 small kernels
-as torch ops, one here).
+"""The tensors of a :class:`~smdm_plugin.core.plan.KeyframePlan` as one fused op (a training call
+builds its plan from a fresh keyframe mask: ~20 small kernels as torch ops, one Triton kernel on CUDA).
 
 For ``mask [B, N]`` bool and ``K`` slots: ``index [B, K]`` long (keyframes first, then the other
 frames, each in frame order), ``valid [B, K]`` bool, ``count [B]`` long, ``slots [B, 2N]`` long
@@ -18,7 +17,7 @@ from typing import Tuple
 import torch
 
 from .. import consts
-from .dispatch import TritonKernel, register_op
+from .dispatch import FusedOp, TritonKernel
 
 Tensor = torch.Tensor
 Plan = Tuple[Tensor, Tensor, Tensor, Tensor, Tensor, Tensor, Tensor]
@@ -51,26 +50,12 @@ def keyframe_plan_composite(mask: Tensor, capacity: int) -> Plan:
     return index, valid, count, slots, weight, rows, key_bias
 
 
-if hasattr(torch.library, "custom_op"):
-    def _fake(mask: Tensor, capacity: int) -> Plan:
-        B, N = mask.shape
-        K, dev = int(capacity), mask.device
-        long = dict(dtype=torch.long, device=dev)
-        return (torch.empty(B, K, **long), torch.empty(B, K, dtype=torch.bool, device=dev), torch.empty(B, **long),
-                torch.empty(B, 2 * N, **long), torch.empty(B, N, dtype=torch.float32, device=dev),
-                torch.empty(K, B, **long), torch.empty(B, 1 + K, dtype=torch.float32, device=dev))
-
-    _op = register_op("keyframe_plan", keyframe_plan_composite,
-                      TritonKernel("plan_triton", "keyframe_plan_triton", "keyframe plan"), _fake)
-else:  # pragma: no cover - torch < 2.4
-    _op = None
+#: the op: a Triton kernel on CUDA (one program per sample), the composite elsewhere and under compile
+OP = FusedOp("keyframe_plan", keyframe_plan_composite,
+             cuda=TritonKernel("plan_triton", "keyframe_plan_triton", "keyframe plan"))
 
 
 def keyframe_plan(mask: Tensor, capacity: int) -> Plan:
-    """:func:`keyframe_plan_composite` of bool ``mask [B, N]``: one op in eager mode (torch >= 2.4),
-    the composite under ``torch.compile``."""
-    from ..checks import compiling
-
-    if _op is None or compiling():
-        return keyframe_plan_composite(mask, capacity)
-    return _op(mask, int(capacity))
+    """:func:`keyframe_plan_composite` of bool ``mask [B, N]``: one kernel on CUDA in eager mode,
+    the composite elsewhere and under ``torch.compile``."""
+    return OP(mask, int(capacity))

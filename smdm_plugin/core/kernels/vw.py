@@ -1,7 +1,8 @@
 """``smdm::vw_keyframes``: Visvalingam–Whyatt keyframe selection as one registered operator.
 
-``torch.compile`` sees one op (a ``torch.library.custom_op`` with a fake implementation for its
-output shape), eager mode launches one kernel per call, and the implementation is chosen by device:
+Eager mode calls one kernel per call, chosen by device (a :class:`~.dispatch.FusedOp`: no
+``torch.library`` dispatch on the hot path); ``torch.compile`` sees one opaque op (a
+``torch.library.custom_op`` with a fake implementation for its output shape):
 
 * ``cuda`` — a Triton kernel, one program per motion (:mod:`.vw_triton`), when ``triton`` imports;
   otherwise (or if that kernel cannot be built on this GPU, with one warning) the portable loop;
@@ -12,8 +13,7 @@ output shape), eager mode launches one kernel per call, and the implementation i
 All give the frames of :func:`smdm_plugin.core.selection.vw_reference` (the heap algorithm):
 key ``(2·area)² = max(0, |a|²|b|² - (a·b)²)`` in float64, the smallest key removed first (ties: the
 lowest frame), until ``max(count, protected frames)`` frames remain, where protected = the first
-and last valid frame and the ``forced`` frames. On torch < 2.4 (no ``custom_op``) the same
-dispatch runs as a plain function (no ``torch.compile`` support).
+and last valid frame and the ``forced`` frames.
 """
 from __future__ import annotations
 
@@ -21,7 +21,7 @@ from typing import Optional
 
 import torch
 
-from .dispatch import TritonKernel
+from .dispatch import FusedOp, TritonKernel
 from .vw_numpy import vw_numpy
 from .vw_torch import vw_torch
 
@@ -43,38 +43,24 @@ def _cpu(features: Tensor, lengths: Tensor, counts: Tensor, forced: Optional[Ten
 _KERNEL = TritonKernel("vw_triton", "vw_triton", "VW", "the portable implementation (slower)")
 
 
-def _cuda(features: Tensor, lengths: Tensor, counts: Tensor, forced: Optional[Tensor],
-          active: Optional[Tensor]) -> Tensor:
-    return _KERNEL(vw_torch, features.detach(), lengths, counts, forced, active)
-
-
 def _mps(features: Tensor, lengths: Tensor, counts: Tensor, forced: Optional[Tensor],
          active: Optional[Tensor]) -> Tensor:
     return _cpu(features, lengths, counts, forced, active)
 
 
-if hasattr(torch.library, "custom_op"):
-    @torch.library.custom_op("smdm::vw_keyframes", mutates_args=())
-    def _vw_op(features: Tensor, lengths: Tensor, counts: Tensor, forced: Optional[Tensor],
+def _composite(features: Tensor, lengths: Tensor, counts: Tensor, forced: Optional[Tensor],
                active: Optional[Tensor]) -> Tensor:
-        return vw_torch(features.detach(), lengths, counts, forced, active)
+    return vw_torch(features.detach(), lengths, counts, forced, active)
 
-    _vw_op.register_kernel("cpu")(_cpu)
-    _vw_op.register_kernel("cuda")(_cuda)
-    _vw_op.register_kernel("mps")(_mps)
 
-    @_vw_op.register_fake
-    def _vw_fake(features: Tensor, lengths: Tensor, counts: Tensor, forced: Optional[Tensor],
-                 active: Optional[Tensor]) -> Tensor:
-        return features.new_empty(features.shape[:2], dtype=torch.bool)
+def _fake(features: Tensor, lengths: Tensor, counts: Tensor, forced: Optional[Tensor],
+          active: Optional[Tensor]) -> Tensor:
+    return features.new_empty(features.shape[:2], dtype=torch.bool)
 
-    OP = torch.ops.smdm.vw_keyframes.default
-else:  # pragma: no cover - torch < 2.4
-    def _vw_op(features, lengths, counts, forced, active):
-        kernel = {"cpu": _cpu, "cuda": _cuda, "mps": _mps}.get(features.device.type, vw_torch)
-        return kernel(features, lengths, counts, forced, active)
 
-    OP = _vw_op
+#: the op: numpy on the CPU, Triton on CUDA, the CPU kernel on a copy on MPS, the portable loop
+#: elsewhere; one opaque node (``smdm::vw_keyframes``) under ``torch.compile``
+OP = FusedOp("vw_keyframes", _composite, cuda=_KERNEL, kernels={"cpu": _cpu, "mps": _mps}, fake=_fake, opaque=True)
 
 
 def vw_keyframes(features: Tensor, lengths: Tensor, counts: Tensor, forced: Optional[Tensor] = None,
@@ -88,4 +74,4 @@ def vw_keyframes(features: Tensor, lengths: Tensor, counts: Tensor, forced: Opti
         forced: ``[B, N]`` bool, frames that are always kept (they count towards ``counts``).
         active: ``[B]`` bool; inactive samples cost nothing and get an all-False row.
     """
-    return _vw_op(features.detach(), lengths, counts, forced, active)
+    return OP(features.detach(), lengths, counts, forced, active)

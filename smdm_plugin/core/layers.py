@@ -1,0 +1,320 @@
+"""PyTorch's stock transformer layers run as functions on the kept tokens (the compact backend).
+
+``nn.TransformerEncoderLayer`` / ``nn.TransformerDecoderLayer`` (exactly those classes) whose
+self-attention is ``nn.MultiheadAttention`` or :class:`~smdm_plugin.core.fsq.FSQMultiheadAttention`
+and whose cross-attention is ``nn.MultiheadAttention`` run here with the same ``F.*`` operations as
+their modules (so the same values, autocast included), without the modules' per-call Python (fast-path
+and nested-tensor checks, mask canonicalisation, ``multi_head_attention_forward``'s argument checks):
+at MDM's size a step costs host time, not FLOPs. Anything else (custom layer classes, hooks on any
+module of the stack, ``kdim``/``vdim``, ``add_bias_kv``) runs through the modules as before
+(:func:`stock_stack` returns None).
+
+On accelerators (and on the static path that stands for them on the CPU) attention inputs reach
+``F.scaled_dot_product_attention`` in the layout every SDPA kernel accepts (:func:`sdpa_layout_problems`
+lists what is off): ``q, k, v`` views ``[B, H, S, e]`` of contiguous ``[B, S, H·e]`` tensors, head
+sizes multiples of 8, an additive key mask ``[B, 1, 1, S]`` whose rows start every 16 elements.
+"""
+from __future__ import annotations
+
+import math
+import operator
+from typing import List, Optional, Sequence, Tuple
+
+import torch
+import torch.nn as nn
+import torch.nn.functional as F
+from torch import Tensor
+
+from . import consts
+from .attention import attend_single_key, compute_dtype
+from .checks import compiling, static_shapes
+from .fsq import FSQMultiheadAttention, folded_projections
+from .kernels.fsq_code import fsq_code
+
+__all__ = ["StockStack", "stock_stack", "aligned_key_bias", "sdpa_layout_problems", "MASK_ALIGN"]
+
+#: elements a key mask's rows are aligned to (the memory-efficient kernel's alignment: no padded copy)
+MASK_ALIGN = 16
+_ENC, _DEC = nn.TransformerEncoderLayer, nn.TransformerDecoderLayer
+_HOOK_DICTS = ("_forward_hooks", "_forward_pre_hooks", "_backward_hooks", "_backward_pre_hooks")
+
+
+def aligned_key_bias(bias: Tensor) -> Tensor:
+    """``[B, S]`` additive key mask as ``[B, 1, 1, S]`` whose rows start every multiple of
+    :data:`MASK_ALIGN` elements (a copy into a padded buffer when they do not already): the stride
+    every SDPA kernel reads without a padded copy of its own (cuDNN reads it as given)."""
+    B, S = bias.shape
+    if bias.stride(-1) == 1 and bias.stride(0) % MASK_ALIGN == 0 and bias.storage_offset() % MASK_ALIGN == 0:
+        return bias.view(B, 1, 1, S) if bias.is_contiguous() else bias[:, None, None, :]
+    width = -(-S // MASK_ALIGN) * MASK_ALIGN
+    out = bias.new_empty(B, width)[:, :S]
+    out.copy_(bias)
+    return out[:, None, None, :]
+
+
+def sdpa_layout_problems(q: Tensor, k: Tensor, v: Tensor, mask: Optional[Tensor]) -> List[str]:
+    """What keeps ``F.scaled_dot_product_attention(q, k, v, attn_mask=mask)`` from the layout every
+    SDPA kernel (flash, memory-efficient, cuDNN, math) accepts: ``q, k, v [B, H, S, e]`` views of
+    contiguous ``[B, S, H·e]`` tensors (cuDNN's unpacked layout), head sizes multiples of 8, an
+    additive mask broadcast from ``[B, 1, 1, S]`` rows of unit stride starting every
+    :data:`MASK_ALIGN` elements. Empty when it is met (a check for tests)."""
+    out = []
+    for name, t in (("q", q), ("k", k), ("v", v)):
+        B, H, S, e = t.shape
+        if t.stride() != (S * H * e, e, H * e, 1):
+            out.append(f"{name} {tuple(t.shape)} strides {t.stride()} is not a view of a contiguous [B, S, H·e]")
+        if t.shape[-1] % 8:
+            out.append(f"{name}'s head size {t.shape[-1]} is not a multiple of 8")
+    if mask is not None:
+        if mask.stride(-1) != 1 or any(s % MASK_ALIGN for s in mask.stride()[:-1]) \
+                or mask.storage_offset() % MASK_ALIGN:
+            out.append(f"mask {tuple(mask.shape)} strides {mask.stride()} offset {mask.storage_offset()} "
+                       f"is not aligned to {MASK_ALIGN} elements")
+    return out
+
+
+def _heads(t: Tensor, H: int, copy: bool) -> Tensor:
+    """``[S, B, H·e]`` (any strides) -> ``[B, H, S, e]``: with ``copy`` (accelerators), in the layout
+    every SDPA kernel accepts (``[B, S, H·e]`` contiguous, a view of it); else a view (the CPU's
+    kernels take any strides)."""
+    if copy:
+        return t.transpose(0, 1).contiguous().unflatten(-1, (H, -1)).transpose(1, 2)
+    return t.unflatten(-1, (H, -1)).permute(1, 2, 0, 3)
+
+
+def _merge(o: Tensor) -> Tensor:
+    """``[B, H, S, e]`` -> ``[S·B, H·e]`` (one copy, as ``nn.MultiheadAttention``)."""
+    B, H, S, e = o.shape
+    return o.permute(2, 0, 1, 3).reshape(S * B, H * e)
+
+
+def _linear(m: nn.Module) -> Tuple[Tensor, Optional[Tensor]]:
+    p = m._parameters
+    return p["weight"], p["bias"]
+
+
+class _Attention:
+    """One attention module, called as a function (its tensors read from the module at each call:
+    a move or a reload is seen)."""
+
+    def __init__(self, m: nn.Module) -> None:
+        self.module, self.out = m, m.out_proj
+        self.heads = m.num_heads
+        self.folded = isinstance(m, FSQMultiheadAttention) and m.quantize
+        if self.folded:
+            self.code_dim, self.scale = m.code_dim, 1.0 / math.sqrt(m.head_dim)
+
+    def self_attention(self, x: Tensor, bias: Optional[Tensor], p: float,
+                       proj: Optional[Tuple[Tensor, Tensor]], copy: bool) -> Tensor:
+        """Self-attention of ``x [S, B, E]`` (key mask ``bias [B, 1, 1, S]`` or None, attention
+        dropout ``p``; ``proj``: the folded in-projection of an FSQ layer): ``[S, B, E]``."""
+        S, B, E = x.shape
+        H, m = self.heads, self.module
+        if self.folded:                                        # FSQ keys, folded (core/fsq.py)
+            P = self.code_dim
+            qc, z, v = F.linear(x, proj[0], proj[1]).split([H * P, H * P, E], dim=-1)
+            buffers = m._buffers
+            codes = fsq_code(z, buffers["_code_neg_offset"], buffers["_code_half_l"])
+            q, k, v = _heads(qc, H, copy), _heads(codes, H, copy), _heads(v, H, copy)
+            scale = self.scale
+        else:
+            params = m._parameters
+            qkv = F.linear(x, params["in_proj_weight"], params["in_proj_bias"]).chunk(3, dim=-1)
+            q, k, v = (_heads(t, H, copy) for t in qkv)
+            scale = None
+        o = F.scaled_dot_product_attention(q, k, v, attn_mask=bias, dropout_p=p, scale=scale)
+        return F.linear(_merge(o), *_linear(self.out)).view(S, B, E)
+
+    def cross_attention(self, x: Tensor, memory: Tensor, bias: Optional[Tensor], p: float,
+                        sample: Optional[Tensor], copy: bool) -> Tensor:
+        """Attention of ``x [S, B, E]`` to ``memory [M, B, E]`` (key mask ``bias [B, 1, 1, M]`` or
+        None): ``[S, B, E]``. One key per sample (MDM trans_dec's condition token) needs no softmax
+        (:func:`~smdm_plugin.core.attention.attend_single_key`; ``sample [S·B]``)."""
+        S, B, E = x.shape
+        params = self.module._parameters
+        W, b = params["in_proj_weight"], params["in_proj_bias"]
+        if sample is not None:
+            o = attend_single_key(self.module, memory[0], sample)
+        else:
+            H = self.heads
+            q = _heads(F.linear(x, W[:E], None if b is None else b[:E]), H, copy)
+            kv = F.linear(memory, W[E:], None if b is None else b[E:]).chunk(2, dim=-1)
+            k, v = (_heads(t, H, copy) for t in kv)
+            o = _merge(F.scaled_dot_product_attention(q, k, v, attn_mask=bias, dropout_p=p))
+        return F.linear(o, *_linear(self.out)).view(S, B, E)
+
+
+def _layer_norm(x: Tensor, m: nn.LayerNorm) -> Tensor:
+    p = m._parameters
+    return F.layer_norm(x, m.normalized_shape, p["weight"], p["bias"], m.eps)
+
+
+class _Layer:
+    """One stock layer, called as a function."""
+
+    def __init__(self, layer: nn.Module) -> None:
+        self.module = layer
+        self.decoder = type(layer) is _DEC
+        self.self_attn = _Attention(layer.self_attn)
+        self.cross = _Attention(layer.multihead_attn) if self.decoder else None
+        names = ("norm1", "norm2", "norm3") if self.decoder else ("norm1", "norm2")
+        self.norms = [getattr(layer, n) for n in names]
+        self.l1, self.l2 = layer.linear1, layer.linear2
+        self.drops = [getattr(layer, n) for n in ("dropout", "dropout1", "dropout2", "dropout3") if hasattr(layer, n)]
+
+    def _ff(self, x: Tensor, training: bool) -> Tensor:
+        h = self.module.activation(F.linear(x, *_linear(self.l1)))
+        return F.linear(F.dropout(h, self.drops[0].p, training), *_linear(self.l2))
+
+    def forward(self, x: Tensor, bias: Optional[Tensor], proj: Optional[Tuple[Tensor, Tensor]], training: bool,
+                copy: bool, memory: Optional[Tensor] = None, memory_bias: Optional[Tensor] = None,
+                sample: Optional[Tensor] = None) -> Tensor:
+        """The layer's ``forward`` (encoder or decoder, either ``norm_first``) on ``x [S, B, d]``."""
+        d = self.drops
+        sa_p = self.self_attn.module.dropout if training else 0.0
+        blocks = [lambda h: F.dropout(self.self_attn.self_attention(h, bias, sa_p, proj, copy), d[1].p, training)]
+        if self.decoder:
+            ca_p = self.cross.module.dropout if training else 0.0
+            blocks.append(lambda h: F.dropout(self.cross.cross_attention(h, memory, memory_bias, ca_p, sample, copy),
+                                              d[2].p, training))
+        blocks.append(lambda h: F.dropout(self._ff(h, training), d[-1].p, training))
+        if self.module.norm_first:
+            for block, norm in zip(blocks, self.norms):
+                x = x + block(_layer_norm(x, norm))
+            return x
+        for block, norm in zip(blocks, self.norms):
+            x = _layer_norm(x + block(x), norm)
+        return x
+
+
+def _is_stock_mha(m: nn.Module) -> bool:
+    return type(m) is nn.MultiheadAttention and m._qkv_same_embed_dim and m.bias_k is None \
+        and not m.add_zero_attn and m.embed_dim % m.num_heads == 0
+
+
+def _is_stock_attention(m: nn.Module) -> bool:
+    return _is_stock_mha(m) or type(m) is FSQMultiheadAttention
+
+
+def _stock_layer(layer: nn.Module) -> bool:
+    kind = type(layer)
+    if kind is _ENC:
+        ok = _is_stock_attention(layer.self_attn)
+    elif kind is _DEC:
+        ok = _is_stock_attention(layer.self_attn) and _is_stock_mha(layer.multihead_attn)
+    else:
+        return False
+    return ok and all(type(m) in (nn.Linear, nn.LayerNorm, nn.Dropout) for name, m in layer.named_children()
+                      if name.startswith(("linear", "norm", "dropout")))
+
+
+class StockStack:
+    """The layers of a wrapped ``nn.TransformerEncoder`` / ``Decoder`` that run as functions
+    (:func:`stock_stack`); :meth:`run` is the stack's forward on sequence-first tokens."""
+
+    def __init__(self, inner: nn.Module) -> None:
+        self.inner = inner
+        self.version = _STRUCTURE[0]
+        self.decoder = isinstance(inner, nn.TransformerDecoder)
+        self.norm: Optional[nn.Module] = inner.norm
+        self.layers = [_Layer(layer) for layer in inner.layers]
+        self._folded = [a.self_attn.module for a in self.layers if a.self_attn.folded]
+        modules = list(inner.modules())
+        # hooks would not run on the functional path; FSQ attention's own no-op pre-hook is known
+        fsq = {id(m) for m in self._folded}
+        self._hooks = [getattr(m, n) for m in modules for n in _HOOK_DICTS
+                       if not (n == "_forward_pre_hooks" and id(m) in fsq)]
+        self._fsq_pre = [m._forward_pre_hooks for m in self._folded]
+        self._fold_cache: Optional[tuple] = None
+
+    def current(self) -> bool:
+        """No module, parameter or buffer was registered anywhere since the stack was built (a
+        replaced layer or submodule is a registration)."""
+        return _WATCHED and self.version == _STRUCTURE[0]
+
+    def usable(self) -> bool:
+        """No hook on any module of the stack (it would not run here), no global module hooks."""
+        return not (any(self._hooks) or (self._fsq_pre and max(map(len, self._fsq_pre)) > 1)
+                    or _global_hooks())
+
+    def _projections(self, dtype: torch.dtype) -> List[Optional[Tuple[Tensor, Tensor]]]:
+        """Per layer, the folded in-projection of its FSQ self-attention in ``dtype`` (None for the
+        others): every layer's at once (:func:`~smdm_plugin.core.fsq.folded_projections`); without
+        autograd, outside tracing, kept while the parameters are the same tensors at the same
+        versions (a sampling loop folds once)."""
+        if not self._folded:
+            return [None] * len(self.layers)
+        key = None
+        if not torch.is_grad_enabled() and not compiling():
+            t = [t for m in self._folded for t in _fold_tensors(m) if t is not None]
+            key = (dtype, tuple(map(_VERSION, t)), tuple(map(Tensor.data_ptr, t)))
+            if self._fold_cache is not None and self._fold_cache[0] == key:
+                return self._fold_cache[1]
+        folds = iter(folded_projections(self._folded, dtype))
+        out = [next(folds) if a.self_attn.folded else None for a in self.layers]
+        if key is not None:
+            self._fold_cache = (key, out)
+        return out
+
+    def run(self, x: Tensor, bias: Optional[Tensor], memory: Optional[Tensor] = None,
+            memory_bias: Optional[Tensor] = None) -> Tensor:
+        """``x [S, B, d]`` sequence-first through every layer (and the stack's norm); ``bias [B, 1,
+        1, S]`` additive key mask or None; decoders: ``memory [M, B, d]``, ``memory_bias [B, 1, 1,
+        M]`` or None."""
+        training = self.layers[0].module.training     # (the wrapper keeps the stack unregistered)
+        projections = self._projections(compute_dtype(x))
+        sample = None
+        if self.decoder and memory.shape[0] == 1 and memory_bias is None:   # one key per sample
+            S, B, _ = x.shape
+            sample = consts.arange(B, x.device).repeat(S)                # [S·B]: each row's sample
+        copy = x.device.type != "cpu" or static_shapes()       # the accelerators' SDPA layout
+        for layer, proj in zip(self.layers, projections):
+            x = layer.forward(x, bias, proj, training, copy, memory, memory_bias, sample)
+        return x if self.norm is None else self.norm(x)
+
+
+_VERSION = operator.attrgetter("_version")
+#: bumped whenever any module registers a submodule, parameter or buffer (torch's global
+#: registration hooks): a built :class:`StockStack` is rebuilt after one
+_STRUCTURE = [0]
+
+
+def _registered(*args) -> None:
+    _STRUCTURE[0] += 1
+
+
+_HOOKS = ("register_module_module_registration_hook", "register_module_parameter_registration_hook",
+          "register_module_buffer_registration_hook")
+_WATCHED = all(hasattr(nn.modules.module, h) for h in _HOOKS)   # torch >= 2.1 (else: rebuilt per call)
+if _WATCHED:
+    for _hook in _HOOKS:
+        getattr(nn.modules.module, _hook)(_registered)
+
+
+def _fold_tensors(m: FSQMultiheadAttention) -> Tuple[Tensor, ...]:
+    """What an FSQ layer's folded in-projection is made of (read without module attribute lookups)."""
+    mods, p = m._modules, m._parameters
+    down, up, fsq = mods["key_down"]._parameters, mods["key_up"]._parameters, mods["fsq"]._buffers
+    return (p["in_proj_weight"], p["in_proj_bias"], down["weight"], down["bias"], up["weight"],
+            fsq["_shift"], fsq["_half_width"])
+
+
+def _global_hooks() -> bool:
+    from torch.nn.modules import module as m
+
+    return bool(m._global_forward_hooks or m._global_forward_pre_hooks or m._global_backward_hooks
+                or getattr(m, "_global_backward_pre_hooks", None))
+
+
+def stock_stack(inner: nn.Module) -> Optional[StockStack]:
+    """The :class:`StockStack` of ``inner`` when every layer is a stock layer and nothing hooks
+    into its modules, else None (run the modules). Built once per stack (its modules' identities
+    checked at each call, so a replaced submodule is seen)."""
+    stack = inner.__dict__.get("_smdm_stock")
+    if stack is not None and stack.current():
+        return stack if stack.usable() else None
+    if not all(_stock_layer(layer) for layer in inner.layers):
+        return None
+    stack = StockStack(inner)
+    inner.__dict__["_smdm_stock"] = stack
+    return stack if stack.usable() else None

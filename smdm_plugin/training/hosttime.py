@@ -1,0 +1,218 @@
+"""Host time per call, measured on the CPU: what decides eager speed on a GPU at MDM's size.
+
+At MDM's size a GPU finishes a step's kernels faster than the host can issue them (bf16 on an
+H200: 6.8 ms of kernels for a sparse training step that took 29 ms), so the eager time of a step is
+its *host* time: Python, PyTorch's dispatcher, autograd, the optimizer's loop and one launch per
+kernel. :func:`host_times` measures that on a CPU with the kernels made as good as free:
+
+* the model at MDM's depth and heads on tiny tensors (:data:`HOST_SIZE`: latent 16, batch 2,
+  24 frames), so that PyTorch's CPU kernels cost what a launch costs;
+* the static path (:func:`~smdm_plugin.core.checks.static_mode`: the code GPUs run);
+* the kernels whose CPU version is expensive although CUDA runs one kernel — the package's fused
+  ops (:class:`~smdm_plugin.core.kernels.dispatch.FusedOp`: Triton on CUDA, a composite or numpy
+  on the CPU), ``F.scaled_dot_product_attention`` (flash / memory-efficient on CUDA, a math
+  decomposition on the CPU for unequal head sizes) and the optimizer's ``torch._foreach_*`` ops
+  (one multi-tensor kernel on CUDA, a loop over the tensors on the CPU) — timed apart and charged
+  as one launch each, the cost of one small op (:func:`launch_charge`);
+* thread CPU time (not wall time: other processes do not count), dense and sparse interleaved,
+  the 20th percentile of the repeats (the undisturbed runs).
+
+docs/gpu.md shows it next to the GPU's eager ratios of 0.7.0.
+"""
+from __future__ import annotations
+
+import time
+from contextlib import contextmanager
+from dataclasses import dataclass
+from typing import Callable, Dict, Iterator, List
+
+import torch
+import torch.nn.functional as F
+
+from ..core.kernels.dispatch import OBSERVERS
+
+__all__ = ["HOST_SIZE", "HostTime", "host_times", "launch_charge", "charging_kernels"]
+
+#: the model size of the measurement: MDM's depth and heads, tiny tensors
+HOST_SIZE = dict(latent_dim=16, ff_size=32, num_layers=8, num_heads=4, batch=2, frames=24)
+
+
+@dataclass(frozen=True)
+class HostTime:
+    """Host milliseconds per call of each measured callable (``ms``), and what one charged launch
+    counts (``charge_us``)."""
+
+    ms: Dict[str, float]
+    charge_us: float
+
+    def ratio(self, a: str, b: str) -> float:
+        """``ms[a] / ms[b]``."""
+        return self.ms[a] / self.ms[b]
+
+
+def launch_charge(repeats: int = 2000) -> float:
+    """Seconds of host time of one small op (a launch's worth): the 10th percentile of an add of
+    two one-element tensors."""
+    a, b = torch.ones(1), torch.ones(1)
+    for _ in range(200):
+        a + b
+    ts = []
+    for _ in range(repeats):
+        t0 = time.thread_time()
+        a + b
+        ts.append(time.thread_time() - t0)
+    ts.sort()
+    return ts[len(ts) // 10]
+
+
+class _Charges:
+    """Thread time spent in charged kernels and how many ran, since the last :meth:`reset`."""
+
+    def __init__(self) -> None:
+        self.seconds, self.count = 0.0, 0
+
+    def reset(self) -> None:
+        self.seconds, self.count = 0.0, 0
+
+    def run(self, fn: Callable, *args, **kwargs):
+        t0 = time.thread_time()
+        try:
+            return fn(*args, **kwargs)
+        finally:
+            self.seconds += time.thread_time() - t0
+            self.count += 1
+
+
+def _timed(charges: "_Charges", fn: Callable) -> Callable:
+    def timed(*args, **kwargs):
+        return charges.run(fn, *args, **kwargs)
+    return timed
+
+
+@contextmanager
+def charging_kernels() -> Iterator[_Charges]:
+    """Within the block, the package's fused ops, ``F.scaled_dot_product_attention`` and
+    ``torch._foreach_*`` are timed apart (:class:`_Charges`), so that a measurement can charge each
+    as one launch. (They are looked up at call time by ``nn.MultiheadAttention``, this package and
+    ``torch.optim``.)"""
+    charges = _Charges()
+    patched = [(F, "scaled_dot_product_attention")] + [(torch, n) for n in dir(torch) if n.startswith("_foreach_")]
+    originals = [(owner, name, getattr(owner, name)) for owner, name in patched]
+
+    def observer(name: str, kernel: Callable, args: list):
+        return charges.run(kernel, *args)
+
+    OBSERVERS.append(observer)
+    for owner, name, fn in originals:
+        setattr(owner, name, _timed(charges, fn))
+    try:
+        yield charges
+    finally:
+        for owner, name, fn in originals:
+            setattr(owner, name, fn)
+        OBSERVERS.remove(observer)
+
+
+def host_times(fns: Dict[str, Callable[[], object]], repeats: int = 100, warmup: int = 3,
+               quantile: float = 0.2) -> HostTime:
+    """Host milliseconds per call of each callable in ``fns`` (run interleaved, ``repeats`` times
+    after ``warmup`` calls each): thread CPU time, with fused ops and SDPA charged one launch each
+    (module docstring); the ``quantile`` of the repeats. Run on the CPU, one thread."""
+    if repeats < 1:
+        raise ValueError(f"host_times: repeats must be >= 1, got {repeats}")
+    charge = launch_charge()
+    times: Dict[str, List[float]] = {name: [] for name in fns}
+    with charging_kernels() as charges:
+        for fn in fns.values():
+            for _ in range(warmup):
+                fn()
+        for _ in range(repeats):
+            for name, fn in fns.items():
+                charges.reset()
+                t0 = time.thread_time()
+                fn()
+                t = time.thread_time() - t0
+                times[name].append(t - charges.seconds + charges.count * charge)
+    ms = {}
+    for name, ts in times.items():
+        ts.sort()
+        ms[name] = ts[min(len(ts) - 1, int(len(ts) * quantile))] * 1e3
+    return HostTime(ms, charge * 1e6)
+
+
+#: the model variants :func:`host_cells` builds: MDM's three and MotionDiffuse's denoiser
+HOST_VARIANTS = ("trans_enc", "trans_dec", "dip", "motiondiffuse")
+_MDM = {"trans_enc": dict(arch="trans_enc"), "trans_dec": dict(arch="trans_dec"),
+        "dip": dict(arch="trans_dec", emb_trans_dec=True, context_len=20, pred_len=20)}
+
+
+def host_cells(variant: str, sparse: bool, precision: str) -> Dict[str, Callable[[], object]]:
+    """The two calls whose host time counts, for ``variant`` (:data:`HOST_VARIANTS`) at
+    :data:`HOST_SIZE`, dense (the upstream model, no FSQ) or sparse (the paper's recipe,
+    ``SparseConfig()``; MotionDiffuse: no FSQ, its attention is linear), ``precision`` ``fp32`` or
+    ``bf16`` (CPU autocast): ``train`` (``training_losses`` + backward + ``AdamW(foreach=True)``)
+    and ``sample`` (one sampling call: both classifier-free-guidance passes for MDM's models, one
+    pass for MotionDiffuse). Run them under :func:`~smdm_plugin.core.checks.static_mode`."""
+    from ..adapters.surgery import sparsify
+    from ..core.config import SparseConfig
+    from ..reference.diffusion import ClassifierFreeGuidance, SimpleDiffusion
+
+    if variant not in HOST_VARIANTS:
+        raise ValueError(f"host_cells: variant must be one of {HOST_VARIANTS}, got {variant!r}")
+    if precision not in ("fp32", "bf16"):
+        raise ValueError(f"host_cells: precision must be fp32 or bf16, got {precision!r}")
+    s = HOST_SIZE
+    B, N = s["batch"], s["frames"]
+    g = torch.Generator().manual_seed(0)
+    lengths = torch.linspace(N // 2, N, B).round().long()
+    torch.manual_seed(0)
+    if variant == "motiondiffuse":
+        from ..reference.motiondiffuse_denoiser import MotionDiffuseDenoiser
+
+        model = MotionDiffuseDenoiser(input_feats=263, num_frames=N, latent_dim=s["latent_dim"], ff_size=s["ff_size"],
+                                      num_layers=s["num_layers"], num_heads=s["num_heads"], text_latent_dim=8)
+        x = torch.randn(B, N, 263, generator=g)
+        kw = {"length": lengths, "xf_proj": torch.randn(B, 4 * s["latent_dim"], generator=g),
+              "xf_out": torch.randn(B, 4, 8, generator=g)}
+        config = SparseConfig(fsq=False)
+    else:
+        from ..reference.backbone import TinyMDM
+
+        spec = _MDM[variant]
+        model = TinyMDM(latent_dim=s["latent_dim"], ff_size=s["ff_size"], num_layers=s["num_layers"],
+                        num_heads=s["num_heads"], dropout=0.1, cond_mask_prob=0.1, **spec)
+        if variant == "dip":
+            lengths = torch.full((B,), N)
+        x = torch.randn(B, 263, 1, N, generator=g)
+        y = {"mask": (torch.arange(N) < lengths[:, None]).view(B, 1, 1, N), "lengths": lengths,
+             "text_embed": torch.randn(1, B, 512, generator=g)}
+        if variant == "dip":
+            y["prefix"] = torch.randn(B, 263, 1, spec["context_len"], generator=g)
+        config = SparseConfig()
+    diffusion = SimpleDiffusion(50)
+    if sparse:
+        sparsify(model, config, diffusion=diffusion)
+    opt = torch.optim.AdamW(model.parameters(), lr=1e-4, foreach=True)
+    t = torch.arange(B) * 6
+    bf16 = precision == "bf16"
+    md = variant == "motiondiffuse"
+    guided = model if md else ClassifierFreeGuidance(model)
+
+    def train() -> None:
+        model.train()
+        opt.zero_grad(set_to_none=True)
+        with torch.autocast("cpu", torch.bfloat16, enabled=bf16):
+            terms = diffusion.training_losses(model, x, t, dict(kw) if md else {"y": dict(y)})
+            loss = terms["loss"].mean()
+        loss.backward()
+        opt.step()
+
+    def sample() -> None:
+        model.eval()
+        with torch.no_grad(), torch.autocast("cpu", torch.bfloat16, enabled=bf16):
+            if md:
+                guided(x, torch.full((B,), 40), **kw)
+            else:
+                guided(x, torch.full((B,), 40), dict(y))
+
+    return {"train": train, "sample": sample}
