@@ -12,13 +12,14 @@
 Subcommand modules are imported lazily, so ``smdm --help`` is fast and ``smdm run`` does not
 import the benchmark code. Every command: bad arguments are one argparse line (exit status 2),
 outputs are never overwritten without ``--overwrite``, Ctrl-C ends with exit status 130 and no
-traceback, an ``OSError`` (a full disk, a read-only or forbidden path) is one line naming the path
+traceback (SIGTERM 143, SIGHUP 129: the same unwinding, ``common/signals.py``), an ``OSError`` (a full disk, a read-only or forbidden path) is one line naming the path
 and the reason, exit status 1.
 """
 from __future__ import annotations
 
 import importlib
 import os
+import signal
 import sys
 from typing import Callable, Dict, List, Optional, Tuple
 
@@ -58,6 +59,7 @@ def entry_point(command: str) -> Callable[[List[str]], Optional[int]]:
 
 
 def main(argv: Optional[List[str]] = None) -> int:
+    argv_given = argv is not None
     argv = list(sys.argv[1:] if argv is None else argv)
     if not argv:
         print(_usage(), file=sys.stderr)
@@ -77,13 +79,24 @@ def main(argv: Optional[List[str]] = None) -> int:
         print(f"smdm: error: unknown command {cmd!r}{closest(cmd, COMMANDS)} (commands: {', '.join(COMMANDS)}; "
               "'smdm --help' for more)", file=sys.stderr)
         return 2
+    from .common import signals
     from .common.threads import prepare_process
 
     prepare_process()  # OMP_WAIT_POLICY=PASSIVE before torch loads OpenMP (docs/threads.md)
+    if cmd == "run":  # the launcher forwards Ctrl-C to the upstream command and waits for it
+        return _run_command(cmd, rest)
+    with signals.stop_on_signals(bound_exit=not argv_given):  # SIGTERM / SIGHUP end a command as Ctrl-C
+        status = _run_command(cmd, rest)
+    return signals.exit_status(status)
+
+
+def _run_command(cmd: str, rest: List[str]) -> int:
+    """Run ``smdm <cmd> <rest>``: its exit status, the top-level failures as one line each."""
     try:
         return int(entry_point(cmd)(rest) or 0)
-    except KeyboardInterrupt:
-        print(f"\nsmdm {cmd}: interrupted", file=sys.stderr)
+    except KeyboardInterrupt as e:  # Ctrl-C, or SIGTERM / SIGHUP (signals.Stopped)
+        by = getattr(e, "signum", signal.SIGINT)
+        print(f"\nsmdm {cmd}: " + ("interrupted" if by == signal.SIGINT else f"stopped by {e}"), file=sys.stderr)
         return 130
     except FileExistsError as e:  # OutputExistsError a command did not report itself
         print(f"smdm {cmd}: error: {e}", file=sys.stderr)

@@ -23,7 +23,8 @@ from ..reference.text import TextConfig
 from ..training.data import MotionSet, check_clip_lengths
 from ..training.trainer import (DEFAULT_MODEL, TRAIN_CONFIG_FILENAME, TRAIN_STATE_FILENAME, TrainConfig, Trainer,
                                 TrainResult, resume)
-from .common.args import add_common_flags, add_overwrite, float_range, int_range, note_printer, progress_of
+from .common.args import (add_common_flags, add_overwrite, compile_backend, float_range, int_range, note_printer,
+                          progress_of)
 from .common.threads import apply_threads
 
 
@@ -74,7 +75,8 @@ def build_parser() -> argparse.ArgumentParser:
                    help="torch.compile the model once before the loop, dense or sparse: none (default), default "
                         "(also the bare --compile) or reduce-overhead (CUDA graphs; CUDA only, else default with a "
                         "warning); docs/compile.md")
-    t.add_argument("--compile-backend", default="inductor", help="torch.compile backend (default: inductor)")
+    t.add_argument("--compile-backend", type=compile_backend, default="inductor",
+                   help="torch.compile backend (default: inductor)")
     m = p.add_argument_group("model (TinyMDM)")
     m.add_argument("--arch", choices=("trans_enc", "trans_dec"), default=DEFAULT_MODEL["arch"],
                    help=f"MDM architecture (default {DEFAULT_MODEL['arch']})")
@@ -144,8 +146,12 @@ def _parse(argv: Optional[List[str]]) -> Tuple[Any, TrainConfig]:
 OUTPUT_FILES = (BACKBONE_FILENAME, CONFIG_FILENAME, TRAIN_CONFIG_FILENAME, TRAIN_STATE_FILENAME, "Mean.npy",
                 "Std.npy", "losses.csv", "loss.png", "result.json", "motion.json",
                 "text_encoder.json", "data_files.json")
+#: a checkpoint's weights, ``model<step>.pt``
+CHECKPOINT_PATTERN = "model[0-9][0-9][0-9][0-9][0-9][0-9][0-9][0-9][0-9].pt"
 #: the names ``smdm train`` writes (an ``--overwrite`` refuses such a file it did not write itself)
-OUTPUT_PATTERNS = OUTPUT_FILES + ("model[0-9][0-9][0-9][0-9][0-9][0-9][0-9][0-9][0-9].pt",)
+OUTPUT_PATTERNS = OUTPUT_FILES + (CHECKPOINT_PATTERN,)
+#: what makes ``--out`` a run to protect: a checkpoint (a run that failed before one is started over)
+PROTECTED = (CHECKPOINT_PATTERN, TRAIN_STATE_FILENAME)
 
 
 def write_logs(folder: str, losses: Sequence[float], result: Optional[TrainResult] = None,
@@ -188,6 +194,8 @@ def main(argv: Optional[List[str]] = None) -> int:
     from ..integrations.distributed import shutdown_distributed
     from ..io.files import OutputExistsError
     from ..io.outdir import OutputDir
+    from ..training.memory import check_batch_fits
+    from .common.signals import check as stop_check
 
     a, cfg = _parse(argv)
     say = note_printer(a)
@@ -202,11 +210,19 @@ def main(argv: Optional[List[str]] = None) -> int:
         print(f"smdm train: {e}", file=sys.stderr)
         return 2
     try:
+        try:  # a batch that cannot fit is refused before anything is written
+            check_batch_fits(cfg.batch, data.max_frames, data.feature_dim, cfg.model, cfg.sparse, ctx.device,
+                             int(os.environ.get("LOCAL_WORLD_SIZE", "1")) if ctx.device.type == "cpu" else 1)
+        except ValueError as e:
+            if ctx.is_main:
+                print(f"smdm train: error: {e}", file=sys.stderr)
+            return 2
         with ExitStack() as stack:
             message, od = "", None
             if ctx.is_main:
-                od = OutputDir(a.out, overwrite=a.overwrite, inputs={"--data": a.data}, command="smdm train",
-                               owns=OUTPUT_PATTERNS, resumable=True, resume=a.resume)
+                od = OutputDir(a.out, overwrite=a.overwrite, inputs={"--data": a.data, "--init-from": a.init_from},
+                               command="smdm train", owns=OUTPUT_PATTERNS, resumable=True, resume=a.resume,
+                               protects=PROTECTED)
                 try:
                     stack.enter_context(od)
                     if a.resume and od.resumed_from is None:
@@ -261,6 +277,7 @@ def main(argv: Optional[List[str]] = None) -> int:
                 write_data_digests(folder, digests)
 
             def every(tr: Trainer, loss: float) -> None:
+                stop_check()  # a Ctrl-C / SIGTERM the compiler swallowed stops here
                 if a.save_every and tr.step_count % a.save_every == 0 and tr.step_count < cfg.steps:
                     tr.save(folder, extra)
                     if ctx.is_main:

@@ -26,21 +26,32 @@ def preset_names() -> List[str]:
                   if f.endswith((".yaml", ".yml")))
 
 
-def load_preset(name: str) -> SparseConfig:
-    """A packaged preset by name or any YAML/JSON path.
+def is_path(name: str) -> bool:
+    """Whether a preset argument names a file rather than a packaged preset: it holds a path separator
+    or ends in ``.json`` / ``.yaml`` / ``.yml``. A bare name is never looked up in the current folder."""
+    seps = [os.sep] + ([os.altsep] if os.altsep else [])
+    return any(sep in name for sep in seps) or name.endswith((".json", ".yaml", ".yml"))
+
+
+def load_preset(name: "str | os.PathLike[str]") -> SparseConfig:
+    """A packaged preset by bare name, or a YAML/JSON file by path (:func:`is_path`: a separator or
+    a ``.json`` / ``.yaml`` ending; ``./zero_shot`` is the folder or file ``zero_shot`` here).
 
     Packaged (top-level ``configs/``): ``smdm_paper`` (App. B.1: trans_dec-ready, 50 steps, FSQ
     keys, lambda 0, no dynamic update), ``sdip_paper`` (App. B.2: 10 steps, 20 past + 40 future
     frames), ``smdm_humanml`` and ``sdip`` (earlier measured variants, kept by name),
-    ``smotiondiffuse``; ``preset_names()`` lists them all."""
-    if os.path.exists(name):
-        return SparseConfig.load(name)
-    fname = name if name.endswith((".yaml", ".yml")) else f"{name}.yaml"
+    ``smotiondiffuse``, ``zero_shot``; ``preset_names()`` lists them all. A ``PathLike`` is a path."""
+    if isinstance(name, os.PathLike) or (isinstance(name, str) and is_path(name)):
+        path = os.fspath(name)
+        if not os.path.exists(path):
+            raise FileNotFoundError(f"load_preset: no such file: {path!r}")
+        return SparseConfig.load(path)
+    if not isinstance(name, str) or not name:
+        raise TypeError(f"load_preset: expected a preset name or a path, got {name!r}")
     for d in preset_dirs():
-        if os.path.isfile(os.path.join(d, fname)):
-            return SparseConfig.load(os.path.join(d, fname))
-    if os.sep in name or name.endswith((".yaml", ".yml", ".json")):
-        raise FileNotFoundError(f"load_preset: no such file: {name!r}")
+        if os.path.isfile(os.path.join(d, f"{name}.yaml")):
+            return SparseConfig.load(os.path.join(d, f"{name}.yaml"))
     names = preset_names()
+    here = f"; for the file or folder {name!r} here, pass ./{name}" if os.path.exists(name) else ""
     raise ValueError(f"load_preset: unknown preset {name!r}{closest(name, names)} (packaged: "
-                     f"{', '.join(names)}; or pass a YAML/JSON path)")
+                     f"{', '.join(names)}; or pass a YAML/JSON path){here}")

@@ -14,6 +14,9 @@ from typing import List, Optional, Sequence, Tuple, Union
 
 import numpy as np
 
+# the largest |value| an OFFSET or motion channel may hold (cm or degrees): every motion reader's bound
+from .validate import MAX_ABS_VALUE
+
 CMU_TO_METRES = 0.056444  # (1 / 0.45) * 2.54 / 100, CMU's FAQ
 
 # HumanML3D 22-joint order; a tuple of CMU names is a synthesised midpoint
@@ -52,8 +55,6 @@ class BVH:
 _VALID_CHANNELS = {"Xposition", "Yposition", "Zposition", "Xrotation", "Yrotation", "Zrotation"}
 
 
-#: the largest |value| an OFFSET or motion channel may hold (cm or degrees; real data is far below)
-MAX_ABS_VALUE = 1e7
 #: Frame Time limits in seconds: 100 kHz to one frame a minute (the frame rate stays a normal float)
 MIN_FRAME_TIME, MAX_FRAME_TIME = 1e-5, 60.0
 

@@ -16,9 +16,13 @@ from ..core.agreement import disagreement
 from ..core.config import MARKER, SparseConfig
 from ..core.config_files import CONFIG_FILENAME
 from .files import OutputExistsError
-from .validate import read_json_object, require_fields
+from .validate import int_field, read_json_object, require_fields
 
 BACKBONE_FILENAME = "backbone.json"
+#: ``smdm train``'s settings of the run (``training.trainer``), beside its weights
+TRAIN_CONFIG_FILENAME = "train_config.json"
+#: what sampling a bundle needs besides the weights (``training.bundle``)
+MOTION_FILENAME = "motion.json"
 
 def _dir_of(path: str) -> str:
     return path if os.path.isdir(path) else os.path.dirname(os.path.abspath(path))
@@ -82,7 +86,88 @@ def find_config(checkpoint_path: str) -> Tuple[Optional[SparseConfig], Optional[
             why = disagreement(config, a, p, args)  # the two files describe the same model: they must agree
             if why:
                 raise ValueError(why)
-    return (config, p) if config is not None else (None, None)
+    config_file = p if config is not None else None
+    check_run_files(d, config, config_file)
+    return (config, config_file) if config is not None else (None, None)
+
+
+def _disagree(a_file: str, b_file: str, diff: Mapping[str, Tuple[Any, Any]]) -> ValueError:
+    """The error of two files of one run holding different values: ``{field: (a's, b's)}``."""
+    a, b = os.path.basename(a_file), os.path.basename(b_file)
+    return ValueError(f"{a_file} and {b_file} disagree: " + "; ".join(f"{k}: {a} {va!r}, {b} {vb!r}"
+                                                                      for k, (va, vb) in diff.items()))
+
+
+def _common(a: Mapping[str, Any], b: Mapping[str, Any], a_file: str, b_file: str) -> None:
+    """Every field both ``a`` (read from ``a_file``) and ``b`` hold must be equal."""
+    diff = {k: (a[k], b[k]) for k in a if k in b and a[k] != b[k]}
+    if diff:
+        raise _disagree(a_file, b_file, diff)
+
+
+def check_run_files(directory: str, config: Optional[SparseConfig], config_file: Optional[str]) -> None:
+    """``ValueError`` naming both files and the fields when the files a run wrote beside its weights
+    disagree (they describe one model; a disagreement is an edit or a mix of two runs, never used
+    silently): ``train_config.json``'s ``sparse`` section and the sparse config (``config``, read
+    from ``config_file``; but the fields set when the model is built, ``core.agreement.SET_WHEN_ATTACHED``),
+    its ``model`` and ``backbone.json``, its ``text`` and ``text_encoder.json``, and
+    ``diffusion_steps`` wherever it is held (``train_config.json``, ``motion.json``, an enabled
+    sparse config). A text-conditioned ``backbone.json`` (``cond_mode: text``) needs its
+    ``text_encoder.json`` unless the config swaps a text encoder in."""
+    from ..reference.text import TEXT_CONFIG_FILENAME  # here: importing io loads no reference module
+
+    join = lambda name: os.path.join(directory, name)  # noqa: E731
+    bpath, tpath, text_path, mpath = (join(n) for n in (BACKBONE_FILENAME, TRAIN_CONFIG_FILENAME,
+                                                         TEXT_CONFIG_FILENAME, MOTION_FILENAME))
+    backbone = read_json_object(bpath) if os.path.exists(bpath) else None
+    has_text = os.path.exists(text_path)
+    if backbone is not None and backbone.get("cond_mode") == "text" and not has_text and not (
+            config is not None and config.text_encoder):
+        raise ValueError(f"{text_path}: missing, but {bpath} says cond_mode 'text' (a text-conditioned model; "
+                         "smdm train --text writes it beside the weights); restore it from the run")
+    steps: Dict[str, int] = {}
+    if config is not None and config.enabled and config_file is not None:
+        steps[config_file] = int(config.diffusion_steps)
+    if os.path.exists(mpath):
+        steps[mpath] = int_field(read_json_object(mpath), "diffusion_steps", mpath)
+    if os.path.exists(tpath):
+        train = read_json_object(tpath)
+        if "diffusion_steps" in train:
+            steps[tpath] = int_field(train, "diffusion_steps", tpath)
+        _train_config_agrees(train, tpath, config, config_file)
+        if backbone is not None and isinstance(train.get("model"), dict):
+            _common(train["model"], backbone, tpath, bpath)
+        text = train.get("text")
+        if text is not None and not has_text:
+            raise ValueError(f"{text_path}: missing, but {tpath} says the run was text-conditioned (text: {text!r})")
+        if isinstance(text, dict):
+            _common(text, read_json_object(text_path), tpath, text_path)
+        elif text is None and has_text and "text" in train:
+            raise ValueError(f"{tpath} and {text_path} disagree: text: {TRAIN_CONFIG_FILENAME} null (unconditional), "
+                             f"{os.path.basename(text_path)} is there")
+    files = list(steps)
+    for other in files[1:]:
+        if steps[other] != steps[files[0]]:
+            raise _disagree(files[0], other, {"diffusion_steps": (steps[files[0]], steps[other])})
+
+
+def _train_config_agrees(train: Mapping[str, Any], tpath: str, config: Optional[SparseConfig],
+                         config_file: Optional[str]) -> None:
+    """``train_config.json``'s ``sparse`` section (None: a dense run) against the sparse config."""
+    if "sparse" not in train:
+        return
+    section = train["sparse"]
+    if section is not None and not isinstance(section, Mapping):
+        raise ValueError(f"{tpath}: sparse={section!r}: expected an object or null")
+    dense = section is None or not section.get("enabled", True)
+    if dense or config is None or config_file is None:
+        if dense != (config is None or not config.enabled):
+            there = f"{config_file} holds a sparse config" if config is not None else f"no {CONFIG_FILENAME} is beside it"
+            raise ValueError(f"{tpath} says the run was {'dense' if dense else 'sparse'}, but {there}")
+        return
+    why = disagreement(config, {"sparse": True, **{f"sparse_{k}": v for k, v in section.items()}}, config_file, tpath)
+    if why:
+        raise ValueError(why)
 
 
 def read_state_dict(path: str, map_location: Any = "cpu", what: str = "checkpoint") -> Dict[str, Any]:

@@ -119,7 +119,7 @@ def load_humanml3d(root: str, split: str = "train", max_frames: Optional[int] = 
     ``new_joint_vecs/<id>.npy`` is absent or shorter than ``min_frames`` are skipped, longer motions
     cut to their first ``max_frames`` frames (None: kept whole). Errors name the file:
     ``FileNotFoundError`` (not such a folder), ``ValueError`` (a bad file, no motion left)."""
-    from .validate import check_array, check_stats, load_npy
+    from .validate import check_array, check_magnitude, check_stats, load_npy
 
     base = Path(root)
     missing = [n for n in ("Mean.npy", "Std.npy", "new_joint_vecs", f"{split}.txt") if not (base / n).exists()]
@@ -158,7 +158,8 @@ def load_humanml3d(root: str, split: str = "train", max_frames: Optional[int] = 
             continue
         files.append(str(path))
         # checked before the first step: a bad file is one line naming it, not a nan loss later
-        motion = check_array(npy(path, "motion features [T, D]"), f"data: {path}", "motion", (-1, D))
+        motion = check_magnitude(check_array(npy(path, "motion features [T, D]"), f"data: {path}", "motion", (-1, D)),
+                                 f"data: {path}", "motion features")
         if len(motion) < min_frames:
             continue
         out.ids.append(name)
@@ -167,7 +168,8 @@ def load_humanml3d(root: str, split: str = "train", max_frames: Optional[int] = 
             jpath = base / "new_joints" / f"{name}.npy"
             if jpath.exists():
                 files.append(str(jpath))
-            out.joints.append(check_array(npy(jpath, "joint positions [T, J, 3]"), f"data: {jpath}", "joints")[cut]
+            out.joints.append(check_magnitude(check_array(npy(jpath, "joint positions [T, J, 3]"), f"data: {jpath}",
+                                                          "joints"), f"data: {jpath}", "joint positions")[cut]
                               .astype(np.float32) if jpath.exists() else None)
         if captions:
             tpath = base / "texts" / f"{name}.txt"

@@ -11,8 +11,9 @@ What it guarantees:
 * **One writer per folder**: a lock file ``.<name>.lock`` beside ``out`` (it holds the owner's pid,
   host and command; it appears whole or not at all: written to a temporary file, then hard-linked,
   which fails when the lock exists, as ``O_EXCL`` does). A second writer gets :class:`OutputLockedError`
-  naming the folder and the owner. A lock left by a process that no longer runs (same host) is
-  reported as stale, never taken over: the user removes it.
+  naming the folder, the owner and the lock file. A lock whose owner is gone (same host, and its pid
+  no longer runs or now belongs to a process started at another time: the lock records the owner's
+  start time) is stale: it is named, and taken over by the next run allowed to write the folder.
 * **Replaced as one unit**: the content is written in ``.<name>.partial`` beside ``out`` and
   swapped in by rename when the block ends without an error (on Linux one atomic
   ``renameat2(RENAME_EXCHANGE)``; elsewhere two renames). A reader sees the old folder or the
@@ -103,15 +104,46 @@ def describe_os_error(e: OSError) -> str:
 
 
 def _pid_alive(pid: int) -> bool:
+    """Whether process ``pid`` (> 0) exists; True when that cannot be told (another user's process)."""
     try:
         os.kill(pid, 0)
     except ProcessLookupError:
         return False
-    except PermissionError:
-        return True
-    except OSError:
+    except (OSError, OverflowError):  # PermissionError: another user's; a pid no system has: not judged
         return True
     return True
+
+
+def process_start(pid: int) -> Optional[str]:
+    """When process ``pid`` started, as a token that differs for a reused pid: Linux
+    ``/proc/<pid>/stat``'s starttime (clock ticks since boot) with the boot id; None where unknown
+    (no ``/proc``: liveness alone decides, which never mistakes a live owner for a dead one)."""
+    try:
+        with open(f"/proc/{pid}/stat", "rb") as f:
+            stat = f.read()
+        start = int(stat[stat.rindex(b")") + 2:].split()[19])  # field 22; fields after comm start at 3
+    except (OSError, ValueError, IndexError):
+        return None
+    try:
+        with open("/proc/sys/kernel/random/boot_id", encoding="ascii") as f:
+            boot = f.read().strip()
+    except OSError:
+        boot = ""
+    return f"{boot}:{start}"
+
+
+def owner_gone(owner: Mapping[str, Any]) -> Optional[str]:
+    """Why the run that wrote lock content ``owner`` (pid, host, start) is certainly gone, or None
+    when it may still run (another host, or its pid alive with the same or an unknown start)."""
+    pid, host = int(owner["pid"]), str(owner["host"])
+    if host != socket.gethostname() or pid <= 0:  # pid 0 / -n: a process group, not an owner
+        return None
+    if not _pid_alive(pid):
+        return "no longer running"
+    saved, now = owner.get("start"), process_start(pid)
+    if saved is not None and now is not None and str(saved) != now:
+        return "no longer running; its pid now belongs to another process"
+    return None
 
 
 def _own_entries(folder: str) -> Optional[List[str]]:
@@ -214,14 +246,16 @@ def _create_with_content(path: str, data: bytes, exists: Callable[[], BaseExcept
 
 
 class OutputLock:
-    """The lock of output folder ``out`` for one run (``.<name>.lock`` beside it, ``O_EXCL``, with
-    pid, host and command); a context manager. A held lock is :class:`OutputLockedError` naming
-    the owner; a stale one (its process gone, same host) is reported, never taken over."""
+    """The lock of output folder ``out`` for one run (``.<name>.lock`` beside it, created atomically,
+    with pid, host, start time and command); a context manager. A held lock is
+    :class:`OutputLockedError` naming the owner and the lock file; a stale one (:func:`owner_gone`)
+    is taken over, and the takeover is said on stderr (``took_over``: that line, else None)."""
 
     def __init__(self, out: PathLike, command: str = "smdm", what: str = "--out") -> None:
         self.out = os.path.abspath(os.fspath(out))
         self.path, self.command, self.what = lock_path(self.out), command, what
         self.held = False
+        self.took_over: Optional[str] = None
 
     def _shown(self) -> str:
         rel = os.path.relpath(self.out)
@@ -231,27 +265,58 @@ class OutputLock:
         if self.held:
             return self
         os.makedirs(os.path.dirname(self.path), exist_ok=True)
-        info = {"pid": os.getpid(), "host": socket.gethostname(), "command": self.command,
-                "started": time.strftime("%Y-%m-%dT%H:%M:%S%z")}
-        _create_with_content(self.path, json.dumps(info).encode(), lambda: OutputLockedError(self.message()))
+        info = {"pid": os.getpid(), "host": socket.gethostname(), "start": process_start(os.getpid()),
+                "command": self.command, "started": time.strftime("%Y-%m-%dT%H:%M:%S%z")}
+        data = json.dumps(info).encode()
+        try:
+            _create_with_content(self.path, data, _LockExists)
+        except _LockExists:
+            stale = self.stale()
+            if stale is None or not _remove_if_unchanged(self.path, stale[0]):
+                raise OutputLockedError(self.message()) from None
+            _create_with_content(self.path, data, lambda: OutputLockedError(self.message()))
+            self.took_over = f"{self.command}: took over the {stale[1]}"
+            print(self.took_over, file=sys.stderr)
         self.held = True
+        _HELD.add(self)
         return self
 
+    def _owner(self) -> "tuple[bytes, Optional[dict]]":
+        """The lock file's bytes and its content (None when unreadable); ``FileNotFoundError`` when absent."""
+        with open(self.path, "rb") as f:
+            raw = f.read()
+        try:
+            owner = json.loads(raw.decode("utf-8"))
+            int(owner["pid"]), str(owner["host"])
+            return raw, owner
+        except (ValueError, KeyError, TypeError):
+            return raw, None
+
+    def stale(self) -> "Optional[tuple[bytes, str]]":
+        """``(the lock's bytes, a description naming it and its owner)`` when a lock is there and its
+        owner is gone (:func:`owner_gone`); else None."""
+        try:
+            raw, owner = self._owner()
+        except OSError:
+            return None
+        why = owner_gone(owner) if owner is not None else None
+        if why is None:
+            return None
+        return raw, f"stale lock {self.path} left by {owner.get('command', '?')} (pid {owner['pid']}, {why})"
+
     def message(self) -> str:
-        """Why the folder cannot be locked: who holds it, or that the lock is stale."""
+        """Why the folder cannot be locked: who holds it, naming the lock file."""
         shown = self._shown()
         try:
-            with open(self.path, encoding="utf-8") as f:
-                owner = json.load(f)
-            pid, host, cmd = int(owner["pid"]), str(owner["host"]), str(owner.get("command", "?"))
-        except (OSError, ValueError, KeyError, TypeError):
+            _, owner = self._owner()
+        except OSError:
+            owner = None
+        if owner is None:
             return (f"{self.what} {shown!r} is locked by {self.path} (unreadable: another run may be starting, or "
                     "an older version failed to write it); if none is starting, remove that file and run again")
-        if host == socket.gethostname() and not _pid_alive(pid):
-            return (f"{self.what} {shown!r}: stale lock {self.path} left by {cmd} (pid {pid}, no longer running); "
-                    "if no other run writes there, remove that file and run again")
-        return (f"{self.what} {shown!r} is being written by {cmd} (pid {pid} on {host}); wait for it or pick "
-                f"another {self.what}")
+        pid, host, cmd = int(owner["pid"]), str(owner["host"]), str(owner.get("command", "?"))
+        return (f"{self.what} {shown!r} is being written by {cmd} (pid {pid} on {host}; lock {self.path}); wait for "
+                f"it or pick another {self.what}")
 
     def release(self) -> None:
         if self.held:
@@ -260,12 +325,54 @@ class OutputLock:
             except OSError:
                 pass
             self.held = False
+            _HELD.discard(self)
 
     def __enter__(self) -> "OutputLock":
         return self.acquire()
 
     def __exit__(self, *exc: Any) -> None:
         self.release()
+
+
+class _LockExists(Exception):
+    """The lock file is there (whose it is is decided afterwards)."""
+
+
+#: the locks this process holds (released by :func:`release_held_locks` on a forced exit)
+_HELD: "set[OutputLock]" = set()
+
+
+def release_held_locks() -> None:
+    """Release every lock this process holds (before a forced exit that skips the ``with`` blocks)."""
+    for lock in list(_HELD):
+        lock.release()
+
+
+def _remove_if_unchanged(path: str, content: bytes) -> bool:
+    """Remove the lock ``path`` if it still holds ``content`` (the stale lock that was judged), so that
+    of two runs taking over the same stale lock only one removes it: the lock is renamed aside (one
+    rename wins), checked, and put back when it turns out to be another run's new lock."""
+    aside = f"{path}.{os.getpid()}.{secrets.token_hex(4)}.stale"
+    try:
+        os.rename(path, aside)
+    except FileNotFoundError:
+        return True  # removed meanwhile: try to create it
+    try:
+        with open(aside, "rb") as f:
+            same = f.read() == content
+        if not same:  # another run's new lock: back where it was
+            try:
+                os.link(aside, path)
+            except FileExistsError:
+                pass
+            except OSError:  # no hard links here
+                os.rename(aside, path)
+        return same
+    finally:
+        try:
+            os.unlink(aside)
+        except OSError:
+            pass
 
 
 class OutputDir:
@@ -296,8 +403,10 @@ class OutputDir:
 
     def __init__(self, out: PathLike, overwrite: bool = False, inputs: Optional[Mapping[str, Optional[PathLike]]] = None,
                  command: str = "smdm", owns: Sequence[str] = ("*",), resumable: bool = False, resume: bool = False,
-                 what: str = "--out", live: Optional[bool] = None) -> None:
+                 what: str = "--out", live: Optional[bool] = None, protects: Optional[Sequence[str]] = None) -> None:
         self.out = os.path.abspath(os.fspath(out))
+        self.protects = None if protects is None else tuple(protects)
+        self._start_over = False
         self.overwrite, self.inputs, self.command = overwrite, dict(inputs or {}), command
         self.owns, self.resumable, self.resume, self.what = tuple(owns), resumable, resume, what
         self.live = resumable if live is None else bool(live)
@@ -310,27 +419,41 @@ class OutputDir:
 
     # ------------------------------------------------------------------ checks (nothing written)
     def check(self) -> None:
-        """Every refusal that needs no writing: overlap, a file where the folder belongs, a
-        non-empty folder without ``overwrite``/``resume``, foreign files the command would replace."""
+        """Every refusal that needs no writing: overlap, a live lock, a file where the folder belongs,
+        a non-empty folder without ``overwrite``/``resume`` (unless it holds only the command's own
+        files and nothing ``protects`` names), foreign files the command would replace."""
         shown = self._shown()
         check_no_overlap(self.out, self.inputs, self.what)
+        stale = self.lock.stale()
+        if stale is None and os.path.lexists(self.lock.path) and not self.lock.held:
+            raise OutputLockedError(self.lock.message())
         if os.path.lexists(self.out) and not os.path.isdir(self.out):
             raise OutputExistsError(f"{self.what} {shown!r} exists and is not a folder")
         existing = _listing(self.out) if os.path.isdir(self.out) else []
+        own = (_own_entries(self.out) or []) if existing else []
         if existing and not (self.overwrite or self.resume):
-            if self.resumable and _own_entries(self.out):
+            if self.resumable and own and set(existing) <= set(own) and not self._protected(own):
+                self._start_over = True  # a run that failed before its first checkpoint: nothing to keep
+            elif self.resumable and own:
+                lock = f"; either takes over the {stale[1]}" if stale else ""
                 raise OutputExistsError(f"{self.what} {shown!r} holds a run of {self.command} (interrupted or "
-                                        "finished); pass --resume to continue it, --overwrite to start over")
-            raise OutputExistsError(f"{self.what} {shown!r} exists and is not empty; pass --overwrite "
-                                    "(overwrite=True) to write into it")
+                                        f"finished); pass --resume to continue it, --overwrite to start over{lock}")
+            else:
+                raise OutputExistsError(f"{self.what} {shown!r} exists and is not empty; pass --overwrite "
+                                        "(overwrite=True) to write into it")
         if existing:
-            own = set(_own_entries(self.out) or ())
-            clash = sorted(n for n in existing if n not in own and n != MANIFEST
+            clash = sorted(n for n in set(existing) - set(own) if n != MANIFEST
                            and any(fnmatch.fnmatchcase(n, p) for p in self.owns))
             if clash and self.owns != ("*",):
                 raise OutputExistsError(
                     f"{self.what} {shown!r} holds {', '.join(clash[:5])}, which this command writes but did not "
                     f"write there (no {MANIFEST} lists it); move it away or pick another {self.what}")
+
+    def _protected(self, own: Sequence[str]) -> bool:
+        """Whether the own entries ``own`` hold one that makes the folder a run to protect."""
+        if self.protects is None:
+            return True
+        return any(fnmatch.fnmatchcase(n, p) for n in own for p in self.protects)
 
     def _shown(self) -> str:
         return self.lock._shown()
@@ -396,7 +519,7 @@ class OutputDir:
                     + "--overwrite to start over, or remove it")
         existed = os.path.isdir(self.out)
         own = (_listing(self.out) if migrated else (_own_entries(self.out) or [])) if existed else []
-        if existed and self.overwrite and not self.resume:
+        if existed and (self.overwrite or self._start_over) and not self.resume:
             for name in own:  # the new run replaces the old one as it goes
                 p = os.path.join(self.out, name)
                 if os.path.isdir(p) and not os.path.islink(p):

@@ -18,10 +18,13 @@ import numpy as np
 from ..core.scalars import as_float, is_int
 
 __all__ = ["read_json_object", "require_fields", "int_field", "float_field", "check_stats", "check_array",
-           "load_npy", "load_feature_motion"]
+           "check_magnitude", "load_npy", "load_feature_motion", "MAX_ABS_VALUE"]
 
 #: the largest float32: what is read is computed in float32
 F32_MAX = float(np.finfo(np.float32).max)
+#: no value of a motion goes beyond this (metres, radians, velocities, a BVH's own units): past it the
+#: file is no motion, and every metric of it would overflow (the BVH reader's bound too)
+MAX_ABS_VALUE = 1e7
 
 
 def read_json_object(path: str) -> Dict[str, Any]:
@@ -92,6 +95,19 @@ def check_array(a: Any, where: str, what: str = "values", shape: Optional[tuple]
     return arr
 
 
+def check_magnitude(arr: np.ndarray, where: str, what: str = "motion values") -> np.ndarray:
+    """``arr`` (real, finite) when every value is within ±:data:`MAX_ABS_VALUE`; else a ``ValueError``
+    naming ``where``, ``what`` (plural: ``"joint positions"``), the largest value and its index."""
+    if arr.size:
+        i = int(np.argmax(np.abs(arr)))
+        big = float(np.abs(arr.reshape(-1)[i]))
+        if big > MAX_ABS_VALUE:
+            at = [int(k) for k in np.unravel_index(i, arr.shape)]
+            raise ValueError(f"{where}: {what} reach {big:.3g} at index {at} (beyond ±{MAX_ABS_VALUE:g}); expected "
+                             "a motion in metres, radians or a BVH's own units")
+    return arr
+
+
 def check_stats(mean: Any, std: Any, dim: int, where: str) -> "tuple[np.ndarray, np.ndarray]":
     """Feature ``mean``/``std`` ``[dim]``: real, finite, std > 0; returned as float32."""
     m = check_array(mean, where, "mean", (dim,)).astype(np.float32)
@@ -118,9 +134,10 @@ def load_npy(path: str, what: str = "array") -> np.ndarray:
 def load_feature_motion(path: str, dim: int, min_len: int = 4, what: str = "motion features") -> np.ndarray:
     """A ``.npy`` of raw per-frame features ``[L >= min_len, dim]`` (``smdm eval --motions``) as
     float32, with one-line errors naming the file: empty / truncated / not a ``.npy``, another
-    shape, not real floats (complex, integers), NaN / inf, values beyond float32's range."""
+    shape, not real floats (complex, integers), NaN / inf, values beyond float32's range or
+    :data:`MAX_ABS_VALUE`."""
     m = load_npy(path, what)
     if m.dtype.kind != "f" or m.ndim != 2 or m.shape[1] != dim or len(m) < min_len:
         raise ValueError(f"{path}: expected raw features [L >= {min_len}, {dim}] of real floats, got "
                          f"{list(m.shape)} {m.dtype}")
-    return check_array(m, path, what).astype(np.float32)
+    return check_magnitude(check_array(m, path, what), path, what).astype(np.float32)

@@ -35,7 +35,7 @@ from ..core.config import SparseConfig
 from ..core.config_files import CONFIG_FILENAME
 from ..integrations.compile import check_compile_mode, compile_model
 from ..integrations.distributed import DistContext, constant_buffers_kwargs, init_distributed
-from ..io.checkpoint import BACKBONE_FILENAME
+from ..io.checkpoint import BACKBONE_FILENAME, TRAIN_CONFIG_FILENAME
 from ..io.files import atomic_open, atomic_write_json, atomic_write_text
 from ..reference.text import TextConfig, save_text_config
 from .data import MotionSet
@@ -43,7 +43,6 @@ from .data import MotionSet
 #: TinyMDM size of ``smdm train`` / ``smdm ablate`` (MDM's HumanML3D size is 512-D, 8 layers, ff 1024)
 DEFAULT_MODEL: Dict[str, Any] = {"latent_dim": 128, "num_layers": 4, "num_heads": 4, "ff_size": 256,
                                  "arch": "trans_enc", "dropout": 0.1}
-TRAIN_CONFIG_FILENAME = "train_config.json"
 #: optimiser, random streams and step of the last checkpoint (``smdm train --resume``)
 TRAIN_STATE_FILENAME = "train_state.pt"
 TRAIN_STATE_VERSION = 1
@@ -576,21 +575,17 @@ def load_trained(folder: str, step: Optional[int] = None, map_location: Any = "c
     backbone = read_json_object(bpath)
     D = int_field(backbone, "njoints", bpath) * int_field(backbone, "nfeats", bpath)
     cpath = os.path.join(folder, TRAIN_CONFIG_FILENAME)
-    T: Optional[int] = None
     if os.path.exists(cpath):
         saved = read_json_object(cpath)
         require_fields(saved, ("steps", "diffusion_steps", "seed", "model", "sparse"), cpath)
         int_field(saved, "steps", cpath, lo=0)
-        T = int_field(saved, "diffusion_steps", cpath, lo=1)
+        int_field(saved, "diffusion_steps", cpath, lo=1)
     mean = load_npy(os.path.join(folder, "Mean.npy"), "feature mean")
     std = load_npy(os.path.join(folder, "Std.npy"), "feature std")
     mean, _ = check_stats(mean, np.ones(D), D, os.path.join(folder, "Mean.npy"))
     _, std = check_stats(mean, std, D, os.path.join(folder, "Std.npy"))
-    model, config = load_checkpoint(os.path.join(folder, names[-1]), map_location=map_location, mean=mean, std=std)
-    if config is not None and T is not None and int(config.diffusion_steps) != T:
-        raise ValueError(f"{cpath}: diffusion_steps={T} disagrees with {CONFIG_FILENAME}'s diffusion_steps="
-                         f"{config.diffusion_steps}")
-    return model, config
+    # the files of the run agreeing with each other: io.checkpoint.check_run_files, as every load does
+    return load_checkpoint(os.path.join(folder, names[-1]), map_location=map_location, mean=mean, std=std)
 
 
 def resume(trainer: "Trainer", folder: str) -> str:

@@ -107,6 +107,18 @@ def test_ablate_refuses_existing_results_and_leaves_them_untouched(tmp_path, dat
     assert (tmp_path / "file").read_text() == "precious"
 
 
+def test_ablate_grid_file_is_an_input_apart_from_the_output(tmp_path, data):
+    """Every path a command reads counts in the overlap check (0.7.0 ran with the grid inside --out)."""
+    out = tmp_path / "runs"
+    out.mkdir()
+    (out / "grid.yaml").write_text(TINY_GRID.format(steps=1))
+    before = snapshot(out)
+    for extra in ([], ["--overwrite"]):
+        user_error(smdm("ablate", "--config", out / "grid.yaml", "--data", data, "--out", out, "--threads", "1",
+                        *extra), "contains the input --config")
+    assert snapshot(out) == before
+
+
 def test_ablate_ctrl_c_halfway_then_resume(tmp_path, data):
     """SIGINT while the second variant trains: exit 130, one line, the first result whole; the
     rerun refuses without --resume, and with it runs only what is missing; an invalid variant

@@ -1,8 +1,10 @@
 """``smdm train``'s output folder and runs under faults: one writer per folder (a live lock names its
-owner, a stale one is reported, never taken over), ``--out`` apart from the data, ``--overwrite`` replacing
-only the command's own files, OS errors as one line, the folder swapped in as one unit; bad training data
-refused before step 0; resumable training (kill -9 or Ctrl-C, then ``--resume``: bit-identical to an
-uninterrupted run)."""
+owner, a stale one is named and taken over), ``--out`` apart from every input (``--data``, ``--init-from``),
+``--overwrite`` replacing only the command's own files, OS errors as one line, the folder swapped in as one
+unit; bad training data and bad option values refused before step 0, before anything is written; a folder
+without a checkpoint is not a run to protect; resumable training (kill -9 or Ctrl-C, then ``--resume``:
+bit-identical to an uninterrupted run). SIGTERM / SIGHUP / Ctrl-C during compilation:
+tests/apps/test_stop_signals.py."""
 from __future__ import annotations
 
 import errno
@@ -51,16 +53,15 @@ def test_second_writer_is_refused_naming_folder_and_owner(tmp_path, data):
     assert _snapshot(out) == before and not os.path.exists(lock_path(out))
 
 
-def test_stale_lock_is_reported_never_taken_over(tmp_path, data):
+def test_a_stale_lock_is_named_and_taken_over(tmp_path, data, capsys):
     out = tmp_path / "run"
     dead = subprocess.Popen([sys.executable, "-c", "pass"])
     dead.wait()
     Path(lock_path(out)).write_text(json.dumps({"pid": dead.pid, "host": os.uname().nodename, "command": "smdm demo"}))
-    assert _train(data, out, "--steps", "1") == 2
-    assert not out.exists() and os.path.exists(lock_path(out))  # still there: the user decides
-    with pytest.raises(OutputLockedError, match=rf"stale lock .* left by smdm demo \(pid {dead.pid}, no longer running\)"
-                                                r"; if no other run writes there, remove that file"):
-        OutputDir(out).open()
+    assert _train(data, out, "--steps", "1") == 0  # no manual rm
+    err = capsys.readouterr().err
+    assert f"took over the stale lock {lock_path(out)} left by smdm demo (pid {dead.pid}, no longer running)" in err
+    assert not os.path.exists(lock_path(out)) and T.load_trained(str(out))[0] is not None
 
 
 # ------------------------------------------------------------------------------ outputs apart from inputs
@@ -92,6 +93,20 @@ def test_overwrite_replaces_only_the_commands_own_files(tmp_path, data, capsys):
     assert _train(data, out, "--overwrite", "--steps", "1") == 2
     assert "which this command writes but did not write there" in capsys.readouterr().err
     assert _snapshot(out) == before
+
+
+@pytest.mark.parametrize("form", ["folder", "file"])
+def test_init_from_is_an_input_never_deleted(tmp_path, data, capsys, form):
+    """0.7.0: `--out X --init-from X --overwrite` deleted X's files, then found no model*.pt in X."""
+    dense = tmp_path / "dense"
+    assert _train(data, dense, "--steps", "2") == 0
+    before = _snapshot(dense)
+    init = dense if form == "folder" else dense / "model000000002.pt"
+    for extra in ([], ["--overwrite"]):
+        assert _train(data, dense, "--sparse", "--init-from", str(init), "--steps", "1", *extra) == 2
+        err = capsys.readouterr().err
+        assert "the input --init-from" in err and "pick an output folder apart from the inputs" in err, err
+    assert _snapshot(dense) == before and not os.path.exists(lock_path(dense))
 
 
 # ------------------------------------------------------------------------------ one unit; OS errors
@@ -176,14 +191,15 @@ def test_resume_after_kill_9_is_bit_identical(tmp_path, data, capsys):
     assert 20 <= killed_at < steps
     T.load_trained(str(run), step=killed_at)  # the killed run's checkpoint: visible and loadable
     capsys.readouterr()
-    # the killed run's lock is reported as stale, never taken over: the user removes it
-    assert train("--out", run, "--steps", steps, "--resume") == 2
-    assert f"stale lock {lock_path(run)} left by smdm train (pid {child.pid}" in capsys.readouterr().err
-    os.unlink(lock_path(run))
-    assert train("--out", run, "--steps", steps) == 2  # without --resume: refused, nothing lost
-    assert "pass --resume to continue it" in capsys.readouterr().err and state.exists()
+    # without --resume: refused, nothing lost, and the message names the killed run's lock
+    assert train("--out", run, "--steps", steps) == 2
+    err = capsys.readouterr().err
+    assert "pass --resume to continue it" in err and state.exists()
+    assert f"takes over the stale lock {lock_path(run)} left by smdm train (pid {child.pid}, no longer running" in err
+    # --resume takes the stale lock over: no manual rm
     assert train("--out", run, "--steps", steps, "--resume") == 0
-    assert f"resumed at step {killed_at}" in capsys.readouterr().out
+    out = capsys.readouterr()
+    assert f"resumed at step {killed_at}" in out.out and f"took over the stale lock {lock_path(run)}" in out.err
     a = torch.load(ref / f"model{steps:09d}.pt", weights_only=True)
     b = torch.load(run / f"model{steps:09d}.pt", weights_only=True)
     assert a.keys() == b.keys() and all(torch.equal(a[k], b[k]) for k in a)
@@ -255,3 +271,66 @@ def test_ctrl_c_keeps_the_checkpoint_for_resume(tmp_path, data, monkeypatch, cap
     monkeypatch.setattr(T.Trainer, "step", real_step)
     assert _train(data, tmp_path / "o", "--steps", "9", "--save-every", "2", "--resume") == 0
     assert (tmp_path / "o" / "model000000009.pt").exists() and not (tmp_path / ".o.partial").exists()
+
+
+# ------------------------------------------------------------------------------ bad options; failed starts
+@pytest.mark.parametrize("value,needle", [("nope", "unknown torch.compile backend 'nope'"),
+                                          ("indcutor", "did you mean 'inductor'?")])
+def test_an_unknown_compile_backend_is_refused_before_anything_is_written(tmp_path, data, capsys, value, needle):
+    """0.7.0: an InvalidBackend traceback at step 0, leaving files that refused the corrected command."""
+    with pytest.raises(SystemExit) as e:
+        _train(data, tmp_path / "run", "--compile", "--compile-backend", value, "--steps", "1")
+    err = capsys.readouterr().err.strip().splitlines()[-1]
+    assert e.value.code == 2 and err.startswith("smdm train: error: argument --compile-backend: ") and needle in err
+    assert sorted(os.listdir(tmp_path)) == ["data"]
+
+
+def test_a_run_that_failed_before_its_first_checkpoint_does_not_block_the_next(tmp_path, data, monkeypatch, capsys):
+    out = tmp_path / "run"
+
+    def fails(self):
+        raise RuntimeError("the compiler failed at step 0")
+
+    monkeypatch.setattr(T.Trainer, "step", fails)
+    with pytest.raises(RuntimeError, match="at step 0"):
+        _train(data, out, "--steps", "3", "--save-every", "1")
+    assert MANIFEST in os.listdir(out) and "data_files.json" in os.listdir(out)  # what such a run leaves
+    assert not os.path.exists(lock_path(out))
+    monkeypatch.undo()
+    assert _train(data, out, "--steps", "2") == 0  # the corrected command, neither --resume nor --overwrite
+    assert sorted(n for n in os.listdir(out) if n.startswith("model")) == ["model000000002.pt"]
+    assert _train(data, out, "--steps", "2") == 2  # a folder with a checkpoint is protected as before
+    assert "pass --resume to continue it" in capsys.readouterr().err
+
+
+def test_a_batch_that_cannot_fit_is_refused_at_once(tmp_path, data):
+    """0.7.0: `--batch 100000000` printed nothing for a minute while memory climbed."""
+    t0 = time.monotonic()
+    p = _smdm("train", "--data", data, "--out", tmp_path / "run", "--min-frames", "20", *TINY, "--batch", "100000000")
+    assert p.returncode == 2 and "Traceback" not in p.stderr and time.monotonic() - t0 < 60
+    line = p.stderr.strip()
+    assert len(line.splitlines()) == 1 and line.startswith("smdm train: error: argument --batch: 100000000 samples")
+    assert "GiB free on cpu" in line and sorted(os.listdir(tmp_path)) == ["data"]
+
+
+def test_the_batch_bound_is_a_lower_bound_of_a_step(monkeypatch):
+    """What check_batch_fits refuses cannot fit; the largest size it names is accepted, one more is not."""
+    import re
+
+    from smdm_plugin.core.config import SparseConfig
+    from smdm_plugin.training.memory import check_batch_fits, step_bytes
+
+    model = dict(T.DEFAULT_MODEL)
+    dev = torch.device("cpu")
+    with pytest.raises(ValueError, match=r"argument --batch: 4096 samples .* more than the 0.1 GiB free on cpu; "
+                                         r"at most about (\d+) can fit") as e:
+        check_batch_fits(4096, 196, 263, model, None, dev, available=100 << 20)
+    most = int(re.search(r"at most about (\d+)", str(e.value)).group(1))
+    check_batch_fits(most, 196, 263, model, None, dev, available=100 << 20)
+    with pytest.raises(ValueError):
+        check_batch_fits(most + 1, 196, 263, model, None, dev, available=100 << 20)
+    # at least the four [N, D] tensors of every sample; the sparse transformer runs on fewer tokens
+    assert step_bytes(16, 196, 263, model) - step_bytes(0, 196, 263, model) >= 16 * 4 * 4 * 196 * 263
+    assert step_bytes(16, 196, 263, model, SparseConfig()) < step_bytes(16, 196, 263, model)
+    with pytest.raises(ValueError, match="shared by 2 processes"):
+        check_batch_fits(most, 196, 263, model, None, dev, processes=2, available=100 << 20)

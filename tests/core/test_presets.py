@@ -120,3 +120,25 @@ def test_presets_live_in_the_top_level_configs_folder_and_are_installed():
     covered = sorted(f for f in files for dest, globs in installed.items() for g in globs
                      if Path(f).match(g) and dest == "share/smdm_plugin/" + str(Path(f).parent))
     assert covered == files
+
+
+def test_a_bare_name_is_always_the_packaged_preset(tmp_path, monkeypatch):
+    """0.7.0 read ./zero_shot/ first when the current folder held one (reduction 0.5 instead of 0.8);
+    a path (a separator, or a .json / .yaml ending) is a path."""
+    from smdm_plugin.adapters.warm import _config
+
+    monkeypatch.chdir(tmp_path)
+    SparseConfig(reduction=0.5, selector="uniform").save(tmp_path / "zero_shot")  # zero_shot/sparse_config.json
+    SparseConfig(reduction=0.6).save(tmp_path / "smdm_paper.yaml")
+    packaged = load_preset(str(CONFIGS / "zero_shot.yaml"))
+    assert load_preset("zero_shot") == packaged and packaged.reduction == 0.8
+    assert _config("zero_shot", "wrap_dense") == packaged  # wrap_dense / --sparse_preset read it so
+    assert load_preset(os.path.join(".", "zero_shot")).reduction == 0.5  # a path: the folder here
+    assert load_preset("smdm_paper.yaml").reduction == 0.6 and load_preset("smdm_paper").reduction == 0.8
+    assert load_preset(tmp_path / "zero_shot").reduction == 0.5  # a PathLike is a path
+    (tmp_path / "mine").mkdir()
+    SparseConfig(reduction=0.7).save(tmp_path / "mine")
+    with pytest.raises(ValueError, match=r"unknown preset 'mine' .*; for the file or folder 'mine' here, pass ./mine"):
+        load_preset("mine")
+    with pytest.raises(FileNotFoundError, match="no such file: 'zero_shot.json'"):
+        load_preset("zero_shot.json")

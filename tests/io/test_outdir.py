@@ -8,6 +8,10 @@ import builtins
 import errno
 import json
 import os
+import re
+import socket
+import subprocess
+import sys
 from pathlib import Path
 
 import pytest
@@ -121,6 +125,82 @@ def test_an_empty_lock_left_by_an_older_version_is_explained(tmp_path):
     Path(lock_path(out)).write_bytes(b"")
     with pytest.raises(OutputLockedError, match="an older version failed to write it"):
         OutputLock(out, "t").acquire()
+
+
+def _write_lock(out: Path, **owner) -> Path:
+    path = Path(lock_path(out))
+    path.write_text(json.dumps({"host": socket.gethostname(), "command": "smdm train", **owner}))
+    return path
+
+
+def _dead_pid() -> int:
+    dead = subprocess.Popen([sys.executable, "-c", "pass"])
+    dead.wait()
+    return dead.pid
+
+
+def test_a_lock_whose_owner_is_gone_is_named_and_taken_over(tmp_path, capsys):
+    out = tmp_path / "o"
+    pid = _dead_pid()
+    path = _write_lock(out, pid=pid)
+    with OutputLock(out, "smdm eval") as lock:
+        assert json.loads(path.read_text())["pid"] == os.getpid()  # ours now
+        assert lock.took_over == f"smdm eval: took over the stale lock {path} left by smdm train (pid {pid}, no longer running)"
+    assert lock.took_over in capsys.readouterr().err
+    assert os.listdir(tmp_path) == []
+
+
+@pytest.mark.skipif(outdir.process_start(os.getpid()) is None, reason="no /proc: a pid's start time is unknown")
+def test_a_reused_pid_is_told_apart_by_its_start_time(tmp_path):
+    """This process is alive: its pid with another start time is a dead owner whose pid was reused."""
+    out = tmp_path / "o"
+    path = _write_lock(out, pid=os.getpid(), start="another-boot:12")
+    with OutputLock(out, "t") as lock:
+        assert "its pid now belongs to another process" in lock.took_over and str(path) in lock.took_over
+    _write_lock(out, pid=os.getpid(), start=outdir.process_start(os.getpid()))  # the owner itself: live
+    with pytest.raises(OutputLockedError, match=rf"is being written by smdm train \(pid {os.getpid()} on .*; lock "
+                                                rf"{re.escape(str(path))}\)"):
+        OutputLock(out, "t").acquire()
+    assert json.loads(path.read_text())["start"] == outdir.process_start(os.getpid())  # untouched
+
+
+def test_a_lock_of_another_host_or_without_start_time_is_never_taken_over(tmp_path):
+    out = tmp_path / "o"
+    _write_lock(out, pid=_dead_pid(), host="elsewhere")  # its pid means nothing here
+    with pytest.raises(OutputLockedError, match="is being written by smdm train .* on elsewhere"):
+        OutputLock(out, "t").acquire()
+    _write_lock(out, pid=os.getpid())  # an older lock without start time, its pid alive: live
+    with pytest.raises(OutputLockedError, match="is being written by"):
+        OutputLock(out, "t").acquire()
+
+
+def test_of_two_runs_taking_over_one_stale_lock_only_one_removes_it(tmp_path):
+    out = tmp_path / "o"
+    stale = _write_lock(out, pid=_dead_pid()).read_bytes()
+    with OutputLock(out, "first"):  # took it over; a second run that judged the old content comes late
+        assert outdir._remove_if_unchanged(lock_path(out), stale) is False
+        assert json.loads(Path(lock_path(out)).read_text())["command"] == "first"  # put back, still held
+    assert os.listdir(tmp_path) == []
+
+
+def test_a_folder_without_a_checkpoint_is_started_over(tmp_path):
+    """A resumable command's folder holding only its own files and nothing ``protects`` names (a run
+    that failed before its first checkpoint) is not a run to protect; with a checkpoint it is."""
+    out = tmp_path / "run"
+    kw = dict(command="t", owns=("model*.pt", "log.txt"), resumable=True, protects=("model*.pt",))
+    with pytest.raises(RuntimeError):
+        with OutputDir(out, **kw):
+            (out / "log.txt").write_text("step 0 failed")
+            raise RuntimeError("failed at step 0")
+    with OutputDir(out, **kw):  # neither --resume nor --overwrite needed
+        assert not (out / "log.txt").exists()
+        (out / "model1.pt").write_text("1")
+    with pytest.raises(outdir.OutputExistsError, match="pass --resume to continue it"):
+        OutputDir(out, **kw).open()
+    (out / "model1.pt").unlink()
+    (out / "notes.txt").write_text("mine")  # not the command's own: not started over silently
+    with pytest.raises(outdir.OutputExistsError):
+        OutputDir(out, **kw).open()
 
 
 # ------------------------------------------------------------------------------ live output folders

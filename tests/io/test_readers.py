@@ -25,6 +25,9 @@ def motions(tmp_path) -> Path:
     absurd = rng.random((30, 22, 3))
     absurd[5] = 1e30
     np.save(tmp_path / "absurd.npy", absurd)
+    features = rng.random((30, 263)).astype(np.float32)
+    features[7, 100] = 1e30  # finite in float32; HumanML3D features of a real motion are far below 1e7
+    np.save(tmp_path / "absurd_features.npy", features)
     return tmp_path
 
 
@@ -32,7 +35,8 @@ def motions(tmp_path) -> Path:
     ("empty.npy", "empty.npy: not a readable .npy file"),
     ("complex.npy", "complex.npy: expected real numbers, got dtype complex64"),
     ("beyond_f32.npy", "beyond_f32.npy: holds 1e\\+300, beyond float32's range"),
-    ("absurd.npy", "absurd.npy: joint positions reach 1e\\+30"),
+    ("absurd.npy", r"absurd.npy: joint positions reach 1e\+30 at index \[5, 0, 0\] \(beyond ±1e\+07\)"),
+    ("absurd_features.npy", r"absurd_features.npy: features reach 1e\+30 at index \[7, 100\]"),
 ])
 def test_load_motion_refuses_unusable_files_in_one_line(motions, name, match):
     with pytest.raises(ValueError, match=match) as e:
@@ -56,6 +60,30 @@ def test_feature_motion_loader_for_eval_motions(tmp_path):
     np.save(tmp_path / "ok.npy", np.ones((10, 66)))
     ok = load_feature_motion(str(tmp_path / "ok.npy"), 66)
     assert ok.dtype == np.float32 and ok.shape == (10, 66)
+
+
+def test_every_motion_reader_refuses_absurd_values_naming_file_and_index(tmp_path):
+    """0.7.0 checked the magnitude of joint positions only: features scaled by 1e30 (finite in float32)
+    were scored (`smdm eval --motions`) and trained on."""
+    from helpers.synthetic_data import write_humanml3d
+    from smdm_plugin.io.humanml3d import load_humanml3d
+
+    a = np.ones((10, 66), np.float32)
+    a[4, 2] = -3e30
+    np.save(tmp_path / "m.npy", a)
+    with pytest.raises(ValueError, match=r"m.npy: motion features reach 3e\+30 at index \[4, 2\] \(beyond ±1e\+07\)"):
+        load_feature_motion(str(tmp_path / "m.npy"), 66)
+    np.save(tmp_path / "ok.npy", np.full((10, 66), 9.9e6, np.float32))  # at the bound: a motion still
+    assert load_feature_motion(str(tmp_path / "ok.npy"), 66).shape == (10, 66)
+    data = write_humanml3d(tmp_path / "d")
+    path = data / "new_joint_vecs" / "train002.npy"
+    np.save(path, np.load(path) * np.float32(1e30))
+    with pytest.raises(ValueError, match=rf"data: {path}: motion features reach .* at index \["):
+        load_humanml3d(str(data), "train", 196, 20)
+    path = data / "new_joints" / "val001.npy"
+    np.save(path, np.load(path) * np.float32(1e30))
+    with pytest.raises(ValueError, match=rf"data: {path}: joint positions reach .* at index \["):
+        load_humanml3d(str(data), "val", 196, 20, joints=True)
 
 
 def test_check_array_refuses_float64_beyond_float32():

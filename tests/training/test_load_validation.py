@@ -114,3 +114,64 @@ def test_options_files_must_agree_with_the_saved_config(model_dir, tmp_path):
     with pytest.raises(ValueError, match=r"opt.txt and .*sparse_config.json disagree: reduction: opt.txt 0.5, "
                                          r"sparse_config.json 0.7"):
         config_from_opt(opt)
+
+
+# ------------------------------------------------------------------------------ the files of a run agree
+def _loaders():
+    from smdm_plugin.adapters.checkpoint import load_checkpoint
+    from smdm_plugin.training.bundle import load_bundle
+
+    return {"load_trained": lambda d: T.load_trained(str(d)), "load_bundle": lambda d: load_bundle(str(d)),
+            "load_checkpoint": lambda d: load_checkpoint(str(next(d.glob("model*.pt"))))}
+
+
+@pytest.mark.parametrize("loader", ["load_trained", "load_bundle", "load_checkpoint"])
+@pytest.mark.parametrize("edit,match", [
+    # 0.7.0 loaded this as 50% dropped, uniform: only diffusion_steps was compared
+    (lambda d: _edit_json(d / "sparse_config.json", reduction=0.5, selector="uniform"),
+     r"train_config.json and .*sparse_config.json disagree: reduction: train_config.json 0.8, sparse_config.json 0.5; "
+     r"selector: train_config.json 'vw', sparse_config.json 'uniform'"),
+    (lambda d: _edit_json(d / "train_config.json", sparse=None), r"train_config.json says the run was dense, but "
+                                                                 r".*sparse_config.json holds a sparse config"),
+    (lambda d: _edit_json(d / "backbone.json", dropout=0.0),
+     r"train_config.json and .*backbone.json disagree: dropout: train_config.json 0.1, backbone.json 0.0"),
+    (lambda d: _edit_json(d / "motion.json", diffusion_steps=50),
+     r"sparse_config.json and .*motion.json disagree: diffusion_steps: sparse_config.json 10, motion.json 50"),
+    (lambda d: _edit_json(d / "sparse_config.json", diffusion_steps=50),
+     r"sparse_config.json and .*motion.json disagree: diffusion_steps: sparse_config.json 50, motion.json 10"),
+])
+def test_the_files_of_a_run_must_agree(model_dir, loader, edit, match):
+    """Every field two files of one run both hold agrees, or the load is one line naming both files and
+    the fields (the fields the adapter sets from the model aside: train_config.json's sparse
+    diffusion_steps is the command line's default, the model's is --diffusion-steps)."""
+    _loaders()[loader](model_dir)
+    edit(model_dir)
+    with pytest.raises(ValueError, match=match) as e:
+        _loaders()[loader](model_dir)
+    assert "\n" not in str(e.value)
+
+
+@pytest.fixture
+def text_model(tmp_path) -> Path:
+    from helpers.synthetic_data import write_humanml3d
+
+    data = write_humanml3d(tmp_path / "captioned", captions=True)
+    out = tmp_path / "t"
+    assert _train(data, out, "--text", "--steps", "1") == 0
+    return out
+
+
+def test_a_text_model_without_its_text_encoder_is_refused(text_model):
+    """0.7.0 sampled it unconditionally and called it "unconditional (trained without text)"."""
+    (text_model / "train_config.json").rename(text_model / "kept.json")  # without it too: backbone.json says text
+    (text_model / "text_encoder.json").unlink()
+    for load in _loaders().values():
+        with pytest.raises(ValueError, match=r"text_encoder.json: missing, but .*backbone.json says cond_mode 'text'"):
+            load(text_model)
+
+
+def test_a_text_encoder_config_must_agree_with_the_run(text_model):
+    _edit_json(text_model / "text_encoder.json", guidance_scale=1.0)
+    with pytest.raises(ValueError, match=r"train_config.json and .*text_encoder.json disagree: guidance_scale: "
+                                         r"train_config.json 2.5, text_encoder.json 1.0"):
+        T.load_trained(str(text_model))

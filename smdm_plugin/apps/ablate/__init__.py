@@ -70,7 +70,7 @@ import torch
 from ...io.files import OutputExistsError, atomic_write_json, atomic_write_text
 from ..common.args import add_common_flags, add_overwrite, existing_path, int_range, note_printer, progress_of, resolve_device
 from ..common.provenance import make_provenance
-from .grid import SHARED_SETTINGS, load_config, select_variants, slug, sparse_config
+from .grid import SHARED_SETTINGS, config_path, load_config, select_variants, slug, sparse_config
 from .report import write_report
 from .results import (MANIFEST, check_out_dir, FAILED_FILE, RESULT_FILE, Action, CacheState, Cached, Planned, Record, Status,  # noqa: F401
                       failure_record, is_ok, read_cached, row_from_cache)                                # (re-exported)
@@ -397,7 +397,10 @@ def main(argv: Optional[List[str]] = None) -> int:
         p.error("argument --out: expected a folder path, got ''")
     try:
         cfg = load_config(a.config)
-    except (FileNotFoundError, ValueError) as e:
+        from ...io.outdir import check_no_overlap
+
+        check_no_overlap(a.out, {"--config": config_path(a.config)})  # the grid is an input too
+    except (FileNotFoundError, ValueError, OutputExistsError) as e:
         p.error(str(e))
     if a.steps is not None:
         cfg["steps"] = a.steps

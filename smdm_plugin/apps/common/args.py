@@ -14,7 +14,7 @@ if TYPE_CHECKING:
 # the range-checked types live in core (the --sparse_* options use them too); re-exported here
 from ...core.argtypes import float_range, int_range, str2bool
 
-__all__ = ["int_range", "float_range", "str2bool", "existing_path", "device_type", "resolve_device",
+__all__ = ["int_range", "float_range", "str2bool", "existing_path", "device_type", "compile_backend", "resolve_device",
            "add_overwrite", "add_common_flags", "progress_of", "note_printer", "COMMON_FLAGS"]
 
 
@@ -58,6 +58,25 @@ def device_type(text: str) -> str:
             raise argparse.ArgumentTypeError(f"{text}: MPS is not available on this machine")
     elif dev.type != "cpu":
         raise argparse.ArgumentTypeError(f"expected auto, cpu, cuda, cuda:N or mps, got {text!r}")
+    return text
+
+
+def compile_backend(text: str) -> str:
+    """argparse ``type``: a ``torch.compile`` backend torch knows (``torch._dynamo.list_backends()``,
+    entry-point and registered backends included), checked when parsed, before anything is written."""
+    if text == "inductor":  # the default: no need to import the compiler to accept it
+        return text
+    from torch._dynamo import list_backends
+    from torch._dynamo.backends.registry import lookup_backend
+
+    from ...core.values import closest
+
+    try:
+        lookup_backend(text)
+    except Exception:  # torch._dynamo.exc.InvalidBackend, or a backend that fails to load
+        known = [b for b in list_backends(exclude_tags=()) if "TESTING" not in b]
+        raise argparse.ArgumentTypeError(f"unknown torch.compile backend {text!r}{closest(text, known)} (known: "
+                                         f"{', '.join(known)})") from None
     return text
 
 

@@ -21,7 +21,7 @@ from typing import Optional
 
 import numpy as np
 
-from ...io.validate import F32_MAX
+from ...io.validate import F32_MAX, check_magnitude
 
 ACCEPTED = ("joints [N, 22|21, 3] or [B, N, J, 3], HumanML3D features [N, 263], KIT features [N, 251], "
             "joints66 features [N, 66] (features also batched [S, N, D], as smdm inbetween writes them), "
@@ -101,7 +101,7 @@ def load_motion(path: str, fps: float = 20.0, sample: int = 0, allow_pickle: boo
         return _load_pickled(path, sample)
     except (EOFError, OSError) as e:  # an empty (0-byte) or truncated file
         raise ValueError(f"{path}: not a readable .npy file ({' '.join(str(e).split()) or 'empty file'})") from None
-    arr = check_real_values(arr, path)
+    arr = check_real_values(arr, path, "joint positions" if arr.shape[-1:] == (3,) else "features")
     if arr.ndim == 4 and arr.shape[-1] == 3:
         if not 0 <= sample < arr.shape[0]:
             raise ValueError(f"{path}: sample must be in [0, {arr.shape[0]}) for a [B, N, J, 3] file, got {sample}")
@@ -127,14 +127,11 @@ def load_motion(path: str, fps: float = 20.0, sample: int = 0, allow_pickle: boo
     return check_plausible(out)
 
 
-#: joint positions beyond this many metres (or a BVH's units) are not a motion (as io.bvh's bound)
-MAX_ABS_POSITION = 1e7
-
-
-def check_real_values(arr: np.ndarray, path: str) -> np.ndarray:
+def check_real_values(arr: np.ndarray, path: str, what: str = "joint positions") -> np.ndarray:
     """``arr`` as float64 when it holds real, finite numbers that float32 (what the models and
-    metrics compute in) can hold; else a ``ValueError`` naming ``path`` and the cause: complex or
-    non-numeric dtypes, NaN / inf, a value beyond float32's range."""
+    metrics compute in) can hold and a motion can be (``io.validate.check_magnitude``); else a
+    ``ValueError`` naming ``path`` and the cause: complex or non-numeric dtypes, NaN / inf, a value
+    beyond float32's range, an absurd one (``what`` the values are, and its index)."""
     if arr.dtype.kind not in "iuf":
         raise ValueError(f"{path}: expected real numbers, got dtype {arr.dtype}"
                          + (" (complex values are not a motion)" if arr.dtype.kind == "c" else ""))
@@ -145,16 +142,14 @@ def check_real_values(arr: np.ndarray, path: str) -> np.ndarray:
     big = float(np.abs(arr).max()) if arr.size else 0.0
     if big > F32_MAX:
         raise ValueError(f"{path}: holds {big:.3g}, beyond float32's range (±{F32_MAX:.3g})")
-    return arr
+    return check_magnitude(arr, path, what)
 
 
 def check_plausible(m: LoadedMotion) -> LoadedMotion:
-    """``m`` when its joint positions are within ±:data:`MAX_ABS_POSITION`; a ``ValueError`` naming
-    the file otherwise (1e30 m is no motion: every metric of it would overflow)."""
-    big = float(np.abs(m.joints).max())
-    if big > MAX_ABS_POSITION:
-        raise ValueError(f"{m.source}: joint positions reach {big:.3g} (beyond ±{MAX_ABS_POSITION:g}); expected "
-                         "metres (HumanML3D) or the BVH's own units")
+    """``m`` when its joint positions (also those computed from features) are within
+    ``io.validate.MAX_ABS_VALUE``; a ``ValueError`` naming the file and the index otherwise (1e30 m
+    is no motion: every metric of it would overflow)."""
+    check_magnitude(m.joints, m.source, "joint positions")
     return m
 
 
