@@ -2,8 +2,9 @@
 run does with it, per phase: the files beside the checkpoint say it too, but a user reading the
 training or sampling log should not have to look there.
 
-    smdm: sparse keyframe mode ON (MDM/DiP, sampling): reduction 0.8; sampling: uniform keyframes at
-    every step (dynamic update off), linear fill; FSQ keys off, Lipschitz MLPs off, T 50
+    smdm: sparse keyframe mode ON (MDM/DiP, sampling): reduction 0.8 (80% of the frames dropped);
+    sampling: uniform keyframes at every step (dynamic update off), linear fill; FSQ keys off,
+    Lipschitz MLPs off, T 50
 
 A training run states both phases (its checkpoint samples with the same settings); a sampling run
 only what sampling does: the keyframe selector and the mask noise act on training only.
@@ -70,8 +71,10 @@ def model_parts(config: SparseConfig) -> str:
 
 
 def describe_run(config: SparseConfig, training: bool, late_steps: int, features: Optional[int] = None) -> str:
-    """``reduction R; [training: ...;] sampling: ...; <model parts>``: what the run does."""
-    phases = [f"reduction {config.reduction:g}"] + ([training_phase(config)] if training else [])
+    """``reduction R (P% of the frames dropped); [training: ...;] sampling: ...; <model parts>``: what the
+    run does."""
+    r = config.reduction
+    phases = [f"reduction {r:g} ({r:.0%} of the frames dropped)"] + ([training_phase(config)] if training else [])
     return "; ".join(phases + [sampling_phase(config, late_steps, features), model_parts(config)])
 
 
