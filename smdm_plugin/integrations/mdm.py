@@ -4,7 +4,8 @@ sparsify where the model and diffusion are built, dense/sparse checkpoint checks
 Two ways in, one code path:
 
 * ``patches/mdm.patch`` (``git apply`` in an MDM checkout, commit d4fd88c) calls
-  :func:`add_sparse_options` from ``utils/parser_util.py:add_model_options``,
+  :func:`~smdm_plugin.integrations.options.add_sparse_options` from
+  ``utils/parser_util.py:add_model_options`` (a flag-off run loads no more than the options),
   :func:`sparsify_mdm` from ``utils/model_util.py:create_model_and_diffusion`` and
   :func:`check_mdm_state_dict` from ``utils/model_util.py:load_model_wo_clip``;
 * ``smdm run --repo PATH -- python -m train.train_mdm ... --sparse`` calls :func:`install_hooks`

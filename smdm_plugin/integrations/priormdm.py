@@ -4,7 +4,8 @@ forced keyframes for DoubleTake's two takes.
 Two ways in, same code path:
 
 * ``patches/priormdm.patch`` (``git apply`` in a priorMDM checkout) calls
-  :func:`add_sparse_options` from ``utils/parser_util.py:add_model_options`` and
+  :func:`~smdm_plugin.integrations.options.add_sparse_options` from
+  ``utils/parser_util.py:add_model_options`` and
   :func:`sparsify_priormdm` from ``utils/model_util.py:create_model_and_diffusion``;
 * ``smdm run --repo PATH -- python -m sample.double_take ...`` calls :func:`install_hooks`,
   which wraps the same two functions when their modules are imported.
