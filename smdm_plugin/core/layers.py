@@ -265,8 +265,11 @@ def _global_hooks() -> bool:
 
 def stock_stack(inner: nn.Module) -> Optional[StockStack]:
     """The :class:`StockStack` of ``inner`` when every layer is a stock layer and nothing hooks
-    into its modules, else None (run the modules). Built once per stack (its modules' identities
-    checked at each call, so a replaced submodule is seen)."""
+    into its modules, else None (run the modules). Built once per stack (rebuilt after any module
+    registration, so a replaced submodule is seen). None while ``torch.compile`` traces: a traced
+    graph has no per-call Python to save, and the modules trace without guards on this cache."""
+    if compiling():
+        return None
     stack = inner.__dict__.get("_smdm_stock")
     if stack is not None and stack.current():
         return stack if stack.usable() else None
