@@ -99,15 +99,17 @@ def aligned_key_bias(bias: Tensor) -> Tensor:
 
 def sdpa_layout_problems(q: Tensor, k: Tensor, v: Tensor, mask: Optional[Tensor]) -> List[str]:
     """What keeps ``F.scaled_dot_product_attention(q, k, v, attn_mask=mask)`` from the layout every
-    SDPA kernel (flash, memory-efficient, cuDNN, math) accepts: ``q, k, v [B, H, S, e]`` views of
-    contiguous ``[B, S, H·e]`` tensors (cuDNN's unpacked layout), head sizes multiples of 8, an
-    additive mask broadcast from ``[B, 1, 1, S]`` rows of unit stride starting every
-    :data:`MASK_ALIGN` elements. Empty when it is met (a check for tests)."""
+    SDPA kernel (flash, memory-efficient, cuDNN, math) accepts: in half precision (where cuDNN's
+    kernel runs) ``q, k, v [B, H, S, e]`` views of contiguous ``[B, S, H·e]`` tensors (cuDNN's
+    unpacked layout); head sizes multiples of 8; an additive mask broadcast from ``[B, 1, 1, S]``
+    rows of unit stride starting every :data:`MASK_ALIGN` elements. Empty when it is met (a check
+    for tests)."""
     out = []
+    half = q.dtype in (torch.float16, torch.bfloat16)
     for name, t in (("q", q), ("k", k), ("v", v)):
         B, H, S, e = t.shape
         want = (S * H * e, e, H * e, 1)
-        if any(n > 1 and s != w for n, s, w in zip(t.shape, t.stride(), want)):
+        if half and any(n > 1 and s != w for n, s, w in zip(t.shape, t.stride(), want)):
             out.append(f"{name} {tuple(t.shape)} strides {t.stride()} is not a view of a contiguous [B, S, H·e]")
         if t.shape[-1] % 8:
             out.append(f"{name}'s head size {t.shape[-1]} is not a multiple of 8")
@@ -119,10 +121,17 @@ def sdpa_layout_problems(q: Tensor, k: Tensor, v: Tensor, mask: Optional[Tensor]
     return out
 
 
-def layout_copies(t: Tensor) -> bool:
-    """Whether attention inputs on ``t``'s device get :func:`heads`' copies: on accelerators, and
-    on the CPU standing for one (:func:`~smdm_plugin.core.checks.static_mode`, tracing)."""
+def accelerator_path(t: Tensor) -> bool:
+    """Whether ``t`` takes the accelerators' code path: not on the CPU, or on the CPU standing for
+    one (:func:`~smdm_plugin.core.checks.static_mode`, tracing)."""
     return t.device.type != "cpu" or static_shapes()
+
+
+def layout_copies(t: Tensor, dtype: torch.dtype) -> bool:
+    """Whether attention inputs of ``dtype`` on ``t``'s device get :func:`heads`' copies: half
+    precision (where cuDNN's SDPA kernel runs, which reads only its own layouts) on the
+    accelerators' path (:func:`accelerator_path`)."""
+    return dtype in (torch.float16, torch.bfloat16) and accelerator_path(t)
 
 
 def heads(t: Tensor, H: int, copy: bool) -> Tensor:

@@ -20,10 +20,12 @@ LengthsLike = Union[torch.Tensor, Sequence[int], np.ndarray, None]
 _STATIC = threading.local()
 
 
+_IS_COMPILING = getattr(getattr(torch, "compiler", None), "is_compiling", None)
+
+
 def compiling() -> bool:
     """True while ``torch.compile`` traces (data-dependent Python branches are not allowed then)."""
-    is_compiling = getattr(getattr(torch, "compiler", None), "is_compiling", None)
-    return bool(is_compiling()) if is_compiling is not None else False
+    return bool(_IS_COMPILING()) if _IS_COMPILING is not None else False
 
 
 @contextmanager

@@ -16,8 +16,8 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
-from .attention import (aligned_key_bias, attend, attend_with_weights, compute_dtype, float_mask, heads,
-                        layout_copies, project_qkv)
+from .attention import (accelerator_path, aligned_key_bias, attend, attend_with_weights, compute_dtype, float_mask,
+                        heads, layout_copies, project_qkv)
 from .checks import compiling
 from .kernels.fsq_code import fsq_code
 
@@ -333,7 +333,7 @@ class FSQMultiheadAttention(nn.Module):
     def _heads_of(self, x: Tensor, batch_first: bool, size: int) -> Tensor:
         """``[B, T, H·size]`` (``batch_first``) or ``[T, B, H·size]`` -> ``[B, H, T, size]``: a view,
         on accelerators of a contiguous ``[B, T, H·size]`` (the layout every SDPA kernel accepts)."""
-        copy = layout_copies(x)
+        copy = layout_copies(x, x.dtype)
         if not batch_first:
             return heads(x, self.num_heads, copy)
         if copy:
@@ -398,7 +398,7 @@ class FSQMultiheadAttention(nn.Module):
                                  f"S={S}], got {tuple(kpm.shape)}")
             kpm = kpm.view(B, 1, 1, S)
             mask = kpm if mask is None else mask + kpm
-        if mask is not None and layout_copies(mask):
+        if mask is not None and accelerator_path(mask):
             mask = aligned_key_bias(mask)                           # rows every SDPA kernel reads
         return mask
 

@@ -219,12 +219,13 @@ class StockStack:
         1, S]`` additive key mask or None; decoders: ``memory [M, B, d]``, ``memory_bias [B, 1, 1,
         M]`` or None."""
         training = self.layers[0].module.training     # (the wrapper keeps the stack unregistered)
-        projections = self._projections(compute_dtype(x))
+        dtype = compute_dtype(x)
+        projections = self._projections(dtype)
         sample = None
         if self.decoder and memory.shape[0] == 1 and memory_bias is None:   # one key per sample
             S, B, _ = x.shape
             sample = consts.arange(B, x.device).repeat(S)                # [S·B]: each row's sample
-        copy = layout_copies(x)                               # the accelerators' SDPA layout
+        copy = layout_copies(x, dtype)                        # half precision on accelerators: cuDNN's layout
         for layer, proj in zip(self.layers, projections):
             x = layer.forward(x, bias, proj, training, copy, memory, memory_bias, sample)
         return x if self.norm is None else self.norm(x)

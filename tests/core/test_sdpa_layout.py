@@ -3,7 +3,8 @@ SDPA kernel accepts (issue 36: cuDNN's kernel crashed with ``misaligned address`
 trans_dec, whose FSQ attention handed it 8-channel query/key heads cut from one projection and a key
 mask of 39-element rows). Checked on the CPU under ``static_mode`` (the code path of accelerators):
 q, k, v views of contiguous ``[B, S, H·e]``, head sizes multiples of 8, mask rows 16-element
-aligned (:func:`smdm_plugin.core.attention.sdpa_layout_problems`)."""
+aligned (:func:`smdm_plugin.core.attention.sdpa_layout_problems`; the head layout in half
+precision, where cuDNN's kernel runs)."""
 import sys
 
 import pytest
@@ -87,14 +88,18 @@ def test_the_layout_check_sees_what_crashed_cudnn():
     """The checker itself: the 0.7 folded path's strided 8-channel heads cut from one projection and
     a key mask of 39-element rows are reported; contiguous heads and an aligned mask are not."""
     B, S, H, P, hd = 2, 39, 4, 8, 16
-    proj = torch.randn(S, B, 2 * H * P + H * hd)
+    proj = torch.randn(S, B, 2 * H * P + H * hd, dtype=torch.bfloat16)
     q = proj[..., :H * P].unflatten(-1, (H, P)).permute(1, 2, 0, 3)
     k = proj[..., H * P:2 * H * P].unflatten(-1, (H, P)).permute(1, 2, 0, 3)
     v = proj[..., 2 * H * P:].unflatten(-1, (H, hd)).permute(1, 2, 0, 3)
-    bias = torch.zeros(B, S)
+    bias = torch.zeros(B, S, dtype=torch.bfloat16)
     problems = sdpa_layout_problems(q, k, v, bias.view(B, 1, 1, S))
     assert len(problems) == 4 and "mask" in problems[-1]
     good = [t.transpose(1, 2).contiguous().transpose(1, 2) for t in (q, k, v)]
     aligned = aligned_key_bias(bias)
     assert not sdpa_layout_problems(*good, aligned)
     assert aligned.shape == (B, 1, 1, S) and aligned.stride(0) % 16 == 0 and torch.equal(aligned[:, 0, 0], bias)
+    f = proj.float()                                             # fp32 (no cuDNN): strided heads are fine
+    views = (f[..., :H * P].unflatten(-1, (H, P)).permute(1, 2, 0, 3),
+             f[..., H * P:2 * H * P].unflatten(-1, (H, P)).permute(1, 2, 0, 3))
+    assert not sdpa_layout_problems(*views, views[0], aligned_key_bias(bias.float()))
