@@ -80,7 +80,7 @@ def attend_with_weights(attn: nn.Module, q: Tensor, k: Tensor, v: Tensor, mask: 
 def compute_dtype(t: Tensor) -> torch.dtype:
     """The dtype a matmul on ``t`` runs in: autocast's for ``t``'s device when it is on, else
     ``t``'s."""
-    if torch.is_autocast_enabled(t.device.type):
+    if t.device.type != "meta" and torch.is_autocast_enabled(t.device.type):   # meta: no autocast state
         return torch.get_autocast_dtype(t.device.type)
     return t.dtype
 

@@ -311,7 +311,9 @@ def stock_stack(inner: nn.Module) -> Optional[StockStack]:
     into its modules, else None (run the modules). Built once per stack (its modules' identities
     checked at each call, so a replaced submodule is seen)."""
     stack = inner.__dict__.get("_smdm_stock")
-    if stack is not None and stack.current():
+    # traced: the stack an eager call built (a guard on the process-wide registration count would
+    # recompile the graph whenever any module anywhere is made, e.g. a guidance wrapper per sample)
+    if stack is not None and (compiling() or stack.current()):
         return stack if stack.usable() else None
     if not all(_stock_layer(layer) for layer in inner.layers):
         return None
