@@ -18,7 +18,7 @@ import importlib
 from typing import TYPE_CHECKING, Any, Dict, List
 
 
-__version__ = "0.7.0"
+__version__ = "0.8.0"
 
 _EXPORTS: Dict[str, str] = {
     # core: the method

@@ -35,7 +35,6 @@ from ..core.config import SparseConfig
 from ..core.fsq import FSQMultiheadAttention, quantize_attention_keys
 from ..core.interpolation import catmull_rom_refill
 from ..core.keyframe_transformer import KeyframeTransformer
-from ..core.lipschitz import lipschitz_pass
 from ..core.losses import add_lipschitz_term
 from ..core.plan import KeyframePlan
 from .call import CallInputs, reuse_for
@@ -50,12 +49,10 @@ class MDMState(FamilyState):
     """What the MDM family keeps on a sparse model (``state.family_state``): ``transformer``, the
     :class:`~smdm_plugin.core.keyframe_transformer.KeyframeTransformer` that replaced the dense
     one; per call ``embed_rows`` (the frame-major rows the input embedding ran on, written and
-    cleared by the embedding hooks) and ``lipschitz_pass`` (the Lipschitz weights of the running
-    call, entered by the forward pre-hook, left by the forward hook)."""
+    cleared by the embedding hooks)."""
 
     transformer: KeyframeTransformer
     embed_rows: Optional[Tuple[torch.Tensor, int, int]] = None
-    lipschitz_pass: Optional[lipschitz_pass] = None
 
 
 def mdm_state(state: SparseState) -> MDMState:
@@ -163,10 +160,6 @@ def _pre_hook(model: nn.Module, args: tuple, kwargs: dict):
     x, timesteps, y = _call_args(args, kwargs)
     state.plan = call_plan(state, x, timesteps, y)
     own.transformer.set_plan(state.plan)
-    if not compiling():                                    # training: all Lipschitz weights at once
-        if own.lipschitz_pass is not None:                 # (left by a call that raised)
-            own.lipschitz_pass.__exit__(None, None, None)
-        own.lipschitz_pass = lipschitz_pass(state.lipschitz_mlps).__enter__()
     return None
 
 
@@ -176,9 +169,6 @@ def _post_hook(model: nn.Module, args: tuple, kwargs: dict, output: Any) -> Any:
     plan = state.plan
     own.transformer.set_plan(None)
     state.plan = None
-    if own.lipschitz_pass is not None:
-        own.lipschitz_pass.__exit__(None, None, None)
-        own.lipschitz_pass = None
     if plan is None or plan.cubic is None or not isinstance(output, torch.Tensor) or output.dim() != 4:
         return None
     return cubic_output(output, plan)

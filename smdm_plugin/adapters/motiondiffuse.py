@@ -52,7 +52,7 @@ from ..core.config import SparseConfig
 from ..core.embedding import timestep_embedding
 from ..core.interpolation import catmull_rom_refill
 from ..core import consts
-from ..core.lipschitz import lipschitz_loss, lipschitz_pass
+from ..core.lipschitz import lipschitz_loss
 from .call import CallInputs, reuse_for
 from .family import ModelFamily, Variant
 from .request import KEYFRAMES_KEY, OLD_KEYS, request_of, with_request
@@ -105,8 +105,7 @@ def _sparse_forward(self, x, timesteps, length=None, text=None, xf_proj=None, xf
         xf_proj, xf_out = self.encode_text(text, x.device)
     emb = self.time_embed(motiondiffuse_state(state).timestep_embedding(timesteps, self.latent_dim)) + xf_proj
 
-    with lipschitz_pass(state.lipschitz_mlps):             # training: all Lipschitz weights at once
-        return _sparse_body(self, state, x, emb, xf_out, timesteps, length, request)
+    return _sparse_body(self, state, x, emb, xf_out, timesteps, length, request)
 
 
 def _sparse_body(self, state: SparseState, x, emb, xf_out, timesteps, length, request):

@@ -9,11 +9,13 @@ Attention modules keep ``nn.MultiheadAttention``'s parameter layout (``in_proj_w
 from __future__ import annotations
 
 import math
-from typing import Optional, Tuple
+from typing import List, Optional, Tuple
 
 import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
+
+from .checks import static_shapes
 
 
 def project_qkv(attn: nn.Module, query: Tensor, key: Tensor, value: Tensor) -> Tuple[Tensor, Tensor, Tensor]:
@@ -75,6 +77,61 @@ def attend_with_weights(attn: nn.Module, q: Tensor, k: Tensor, v: Tensor, mask: 
         scores = scores + mask
     weights = torch.softmax(scores, dim=-1)
     return F.dropout(weights, p=attn.dropout, training=attn.training) @ v, weights
+
+
+#: elements a key mask's rows are aligned to (the memory-efficient kernel's alignment: no padded copy)
+MASK_ALIGN = 16
+
+
+def aligned_key_bias(bias: Tensor) -> Tensor:
+    """An additive key mask ``[B, S]`` as ``[B, 1, 1, S]`` (a 4-D mask as it is) whose rows start
+    every :data:`MASK_ALIGN` elements: a copy into a padded buffer when they do not already (the
+    stride every SDPA kernel reads without a padded copy of its own; cuDNN reads it as given)."""
+    if bias.dim() == 2:
+        bias = bias[:, None, None, :]
+    if bias.stride(-1) == 1 and all(s % MASK_ALIGN == 0 for s in bias.stride()[:-1]) \
+            and bias.storage_offset() % MASK_ALIGN == 0:
+        return bias
+    S = bias.shape[-1]
+    out = bias.new_empty(*bias.shape[:-1], -(-S // MASK_ALIGN) * MASK_ALIGN)[..., :S]
+    return out.copy_(bias)
+
+
+def sdpa_layout_problems(q: Tensor, k: Tensor, v: Tensor, mask: Optional[Tensor]) -> List[str]:
+    """What keeps ``F.scaled_dot_product_attention(q, k, v, attn_mask=mask)`` from the layout every
+    SDPA kernel (flash, memory-efficient, cuDNN, math) accepts: ``q, k, v [B, H, S, e]`` views of
+    contiguous ``[B, S, H·e]`` tensors (cuDNN's unpacked layout), head sizes multiples of 8, an
+    additive mask broadcast from ``[B, 1, 1, S]`` rows of unit stride starting every
+    :data:`MASK_ALIGN` elements. Empty when it is met (a check for tests)."""
+    out = []
+    for name, t in (("q", q), ("k", k), ("v", v)):
+        B, H, S, e = t.shape
+        want = (S * H * e, e, H * e, 1)
+        if any(n > 1 and s != w for n, s, w in zip(t.shape, t.stride(), want)):
+            out.append(f"{name} {tuple(t.shape)} strides {t.stride()} is not a view of a contiguous [B, S, H·e]")
+        if t.shape[-1] % 8:
+            out.append(f"{name}'s head size {t.shape[-1]} is not a multiple of 8")
+    if mask is not None:
+        if mask.stride(-1) != 1 or any(s % MASK_ALIGN for s in mask.stride()[:-1]) \
+                or mask.storage_offset() % MASK_ALIGN:
+            out.append(f"mask {tuple(mask.shape)} strides {mask.stride()} offset {mask.storage_offset()} "
+                       f"is not aligned to {MASK_ALIGN} elements")
+    return out
+
+
+def layout_copies(t: Tensor) -> bool:
+    """Whether attention inputs on ``t``'s device get :func:`heads`' copies: on accelerators, and
+    on the CPU standing for one (:func:`~smdm_plugin.core.checks.static_mode`, tracing)."""
+    return t.device.type != "cpu" or static_shapes()
+
+
+def heads(t: Tensor, H: int, copy: bool) -> Tensor:
+    """``[S, B, H·e]`` (any strides) -> ``[B, H, S, e]``: with ``copy`` (accelerators), in the layout
+    every SDPA kernel accepts (``[B, S, H·e]`` contiguous, a view of it); else a view (the CPU's
+    kernels take any strides)."""
+    if copy:
+        return t.transpose(0, 1).contiguous().unflatten(-1, (H, -1)).transpose(1, 2)
+    return t.unflatten(-1, (H, -1)).permute(1, 2, 0, 3)
 
 
 def compute_dtype(t: Tensor) -> torch.dtype:

@@ -38,10 +38,10 @@ from typing import Callable, Optional, Tuple
 import torch
 import torch.nn as nn
 
-from .attention import compute_dtype, float_mask
+from .attention import aligned_key_bias, compute_dtype, float_mask
 from .checks import static_shapes
 from .fsq import FSQMultiheadAttention, fold_keys
-from .layers import aligned_key_bias, stock_stack
+from .layers import stock_stack
 from .packed_attention import supports_packed, varlen_packed
 from .plan import KeyframePlan
 from .registry import Registry

@@ -16,7 +16,8 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
-from .attention import attend, attend_with_weights, compute_dtype, float_mask, project_qkv
+from .attention import (aligned_key_bias, attend, attend_with_weights, compute_dtype, float_mask, heads,
+                        layout_copies, project_qkv)
 from .checks import compiling
 from .kernels.fsq_code import fsq_code
 
@@ -234,10 +235,9 @@ class FSQMultiheadAttention(nn.Module):
         return mha.train(self.training)
 
     def _heads(self, x: Tensor, batch_first: bool) -> Tensor:
-        """``[B, T, E]`` (``batch_first``) or ``[T, B, E]`` -> ``[B, H, T, head_dim]`` (a view)."""
-        if not batch_first:
-            x = x.transpose(0, 1)
-        return x.unflatten(-1, (self.num_heads, self.head_dim)).transpose(1, 2)
+        """``[B, T, E]`` (``batch_first``) or ``[T, B, E]`` -> ``[B, H, T, head_dim]`` (a view; on
+        accelerators a view of a contiguous ``[B, T, E]``: :func:`~smdm_plugin.core.attention.heads`)."""
+        return self._heads_of(x, batch_first, self.head_dim)
 
     def quantize_keys(self, k: Tensor) -> Tensor:
         """``[..., S, head_dim] -> [..., S, head_dim]`` through the FSQ bottleneck. ``key_down``
@@ -331,9 +331,13 @@ class FSQMultiheadAttention(nn.Module):
         return attend(self, qc, r, v, mask, scale), None
 
     def _heads_of(self, x: Tensor, batch_first: bool, size: int) -> Tensor:
-        """``[B, T, H·size]`` (``batch_first``) or ``[T, B, H·size]`` -> ``[B, H, T, size]`` (a view)."""
+        """``[B, T, H·size]`` (``batch_first``) or ``[T, B, H·size]`` -> ``[B, H, T, size]``: a view,
+        on accelerators of a contiguous ``[B, T, H·size]`` (the layout every SDPA kernel accepts)."""
+        copy = layout_copies(x)
         if not batch_first:
-            x = x.transpose(0, 1)
+            return heads(x, self.num_heads, copy)
+        if copy:
+            x = x.contiguous()
         return x.unflatten(-1, (self.num_heads, size)).transpose(1, 2)
 
     def forward(self, query: Tensor, key: Tensor, value: Tensor,
@@ -360,8 +364,7 @@ class FSQMultiheadAttention(nn.Module):
             q, k, v = project_qkv(self, query, key, value)         # in the input's own layout
             q, v = self._heads(q, bf), self._heads(v, bf)           # [B, H, T, hd]
             if self.quantize:                                       # [T, B, H, hd] or [B, T, H, hd]
-                k = self.quantize_keys(k.unflatten(-1, (H, hd)))
-                k = (k if bf else k.transpose(0, 1)).transpose(1, 2)
+                k = self._heads(self.quantize_keys(k.unflatten(-1, (H, hd))).flatten(-2), bf)
             else:
                 k = self._heads(k, bf)
             if need_weights:
@@ -395,6 +398,8 @@ class FSQMultiheadAttention(nn.Module):
                                  f"S={S}], got {tuple(kpm.shape)}")
             kpm = kpm.view(B, 1, 1, S)
             mask = kpm if mask is None else mask + kpm
+        if mask is not None and layout_copies(mask):
+            mask = aligned_key_bias(mask)                           # rows every SDPA kernel reads
         return mask
 
     def _forward_nested(self, query: Tensor, key: Tensor, value: Tensor, need_weights: bool,

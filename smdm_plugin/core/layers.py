@@ -26,61 +26,15 @@ import torch.nn.functional as F
 from torch import Tensor
 
 from . import consts
-from .attention import attend_single_key, compute_dtype
-from .checks import compiling, static_shapes
+from .attention import attend_single_key, compute_dtype, heads as _heads, layout_copies
+from .checks import compiling
 from .fsq import FSQMultiheadAttention, folded_projections
 from .kernels.fsq_code import fsq_code
 
-__all__ = ["StockStack", "stock_stack", "aligned_key_bias", "sdpa_layout_problems", "MASK_ALIGN"]
+__all__ = ["StockStack", "stock_stack"]
 
-#: elements a key mask's rows are aligned to (the memory-efficient kernel's alignment: no padded copy)
-MASK_ALIGN = 16
 _ENC, _DEC = nn.TransformerEncoderLayer, nn.TransformerDecoderLayer
 _HOOK_DICTS = ("_forward_hooks", "_forward_pre_hooks", "_backward_hooks", "_backward_pre_hooks")
-
-
-def aligned_key_bias(bias: Tensor) -> Tensor:
-    """``[B, S]`` additive key mask as ``[B, 1, 1, S]`` whose rows start every multiple of
-    :data:`MASK_ALIGN` elements (a copy into a padded buffer when they do not already): the stride
-    every SDPA kernel reads without a padded copy of its own (cuDNN reads it as given)."""
-    B, S = bias.shape
-    if bias.stride(-1) == 1 and bias.stride(0) % MASK_ALIGN == 0 and bias.storage_offset() % MASK_ALIGN == 0:
-        return bias.view(B, 1, 1, S) if bias.is_contiguous() else bias[:, None, None, :]
-    width = -(-S // MASK_ALIGN) * MASK_ALIGN
-    out = bias.new_empty(B, width)[:, :S]
-    out.copy_(bias)
-    return out[:, None, None, :]
-
-
-def sdpa_layout_problems(q: Tensor, k: Tensor, v: Tensor, mask: Optional[Tensor]) -> List[str]:
-    """What keeps ``F.scaled_dot_product_attention(q, k, v, attn_mask=mask)`` from the layout every
-    SDPA kernel (flash, memory-efficient, cuDNN, math) accepts: ``q, k, v [B, H, S, e]`` views of
-    contiguous ``[B, S, H·e]`` tensors (cuDNN's unpacked layout), head sizes multiples of 8, an
-    additive mask broadcast from ``[B, 1, 1, S]`` rows of unit stride starting every
-    :data:`MASK_ALIGN` elements. Empty when it is met (a check for tests)."""
-    out = []
-    for name, t in (("q", q), ("k", k), ("v", v)):
-        B, H, S, e = t.shape
-        if t.stride() != (S * H * e, e, H * e, 1):
-            out.append(f"{name} {tuple(t.shape)} strides {t.stride()} is not a view of a contiguous [B, S, H·e]")
-        if t.shape[-1] % 8:
-            out.append(f"{name}'s head size {t.shape[-1]} is not a multiple of 8")
-    if mask is not None:
-        if mask.stride(-1) != 1 or any(s % MASK_ALIGN for s in mask.stride()[:-1]) \
-                or mask.storage_offset() % MASK_ALIGN:
-            out.append(f"mask {tuple(mask.shape)} strides {mask.stride()} offset {mask.storage_offset()} "
-                       f"is not aligned to {MASK_ALIGN} elements")
-    return out
-
-
-def _heads(t: Tensor, H: int, copy: bool) -> Tensor:
-    """``[S, B, H·e]`` (any strides) -> ``[B, H, S, e]``: with ``copy`` (accelerators), in the layout
-    every SDPA kernel accepts (``[B, S, H·e]`` contiguous, a view of it); else a view (the CPU's
-    kernels take any strides)."""
-    if copy:
-        return t.transpose(0, 1).contiguous().unflatten(-1, (H, -1)).transpose(1, 2)
-    return t.unflatten(-1, (H, -1)).permute(1, 2, 0, 3)
-
 
 def _merge(o: Tensor) -> Tensor:
     """``[B, H, S, e]`` -> ``[S·B, H·e]`` (one copy, as ``nn.MultiheadAttention``)."""
@@ -104,15 +58,17 @@ class _Attention:
         if self.folded:
             self.code_dim, self.scale = m.code_dim, 1.0 / math.sqrt(m.head_dim)
 
-    def self_attention(self, x: Tensor, bias: Optional[Tensor], p: float,
-                       proj: Optional[Tuple[Tensor, Tensor]], copy: bool) -> Tensor:
+    def self_attention(self, x: Tensor, bias: Optional[Tensor], p: float, proj: Optional[tuple],
+                       copy: bool) -> Tensor:
         """Self-attention of ``x [S, B, E]`` (key mask ``bias [B, 1, 1, S]`` or None, attention
-        dropout ``p``; ``proj``: the folded in-projection of an FSQ layer): ``[S, B, E]``."""
+        dropout ``p``; ``proj``: how an FSQ layer makes its codes, :meth:`StockStack._projections`):
+        ``[S, B, E]``."""
         S, B, E = x.shape
         H, m = self.heads, self.module
-        if self.folded:                                        # FSQ keys, folded (core/fsq.py)
+        scale = None
+        if self.folded:                                        # FSQ keys (core/fsq.py)
             P = self.code_dim
-            qc, z, v = F.linear(x, proj[0], proj[1]).split([H * P, H * P, E], dim=-1)
+            qc, z, v = F.linear(x, proj[1], proj[2]).split([H * P, H * P, E], dim=-1)   # one folded in-projection
             buffers = m._buffers
             codes = fsq_code(z, buffers["_code_neg_offset"], buffers["_code_half_l"])
             q, k, v = _heads(qc, H, copy), _heads(codes, H, copy), _heads(v, H, copy)
@@ -121,7 +77,6 @@ class _Attention:
             params = m._parameters
             qkv = F.linear(x, params["in_proj_weight"], params["in_proj_bias"]).chunk(3, dim=-1)
             q, k, v = (_heads(t, H, copy) for t in qkv)
-            scale = None
         o = F.scaled_dot_product_attention(q, k, v, attn_mask=bias, dropout_p=p, scale=scale)
         return F.linear(_merge(o), *_linear(self.out)).view(S, B, E)
 
@@ -166,7 +121,7 @@ class _Layer:
         h = self.module.activation(F.linear(x, *_linear(self.l1)))
         return F.linear(F.dropout(h, self.drops[0].p, training), *_linear(self.l2))
 
-    def forward(self, x: Tensor, bias: Optional[Tensor], proj: Optional[Tuple[Tensor, Tensor]], training: bool,
+    def forward(self, x: Tensor, bias: Optional[Tensor], proj: Optional[tuple], training: bool,
                 copy: bool, memory: Optional[Tensor] = None, memory_bias: Optional[Tensor] = None,
                 sample: Optional[Tensor] = None) -> Tensor:
         """The layer's ``forward`` (encoder or decoder, either ``norm_first``) on ``x [S, B, d]``."""
@@ -237,23 +192,25 @@ class StockStack:
         return not (any(self._hooks) or (self._fsq_pre and max(map(len, self._fsq_pre)) > 1)
                     or _global_hooks())
 
-    def _projections(self, dtype: torch.dtype) -> List[Optional[Tuple[Tensor, Tensor]]]:
-        """Per layer, the folded in-projection of its FSQ self-attention in ``dtype`` (None for the
-        others): every layer's at once (:func:`~smdm_plugin.core.fsq.folded_projections`); without
-        autograd, outside tracing, kept while the parameters are the same tensors at the same
-        versions (a sampling loop folds once)."""
+    def _projections(self, dtype: torch.dtype) -> List[Optional[tuple]]:
+        """Per layer, ``("fold", weight, bias)``: the folded in-projection of its FSQ self-attention
+        in ``dtype`` (:func:`~smdm_plugin.core.fsq.folded_projections`: every layer's at once; one
+        matmul per layer), None for the other layers. Without autograd and outside tracing kept
+        while the parameters are the same tensors at the same versions (a sampling loop folds once).
+        (Applying the key maps to the activations instead — ``q_h U^T``, ``k_h D^T + c`` per layer —
+        is the same maths but costs more host time in the backward: measured, not used.)"""
         if not self._folded:
             return [None] * len(self.layers)
-        key = None
-        if not torch.is_grad_enabled() and not compiling():
-            t = [t for m in self._folded for t in _fold_tensors(m) if t is not None]
-            key = (dtype, tuple(map(_VERSION, t)), tuple(map(Tensor.data_ptr, t)))
-            if self._fold_cache is not None and self._fold_cache[0] == key:
-                return self._fold_cache[1]
+        if torch.is_grad_enabled() or compiling():
+            folds = iter(folded_projections(self._folded, dtype))
+            return [("fold",) + next(folds) if a.self_attn.folded else None for a in self.layers]
+        t = [t for m in self._folded for t in _fold_tensors(m) if t is not None]
+        key = (dtype, tuple(map(_VERSION, t)), tuple(map(Tensor.data_ptr, t)))
+        if self._fold_cache is not None and self._fold_cache[0] == key:
+            return self._fold_cache[1]
         folds = iter(folded_projections(self._folded, dtype))
-        out = [next(folds) if a.self_attn.folded else None for a in self.layers]
-        if key is not None:
-            self._fold_cache = (key, out)
+        out = [("fold",) + next(folds) if a.self_attn.folded else None for a in self.layers]
+        self._fold_cache = (key, out)
         return out
 
     def run(self, x: Tensor, bias: Optional[Tensor], memory: Optional[Tensor] = None,
@@ -267,7 +224,7 @@ class StockStack:
         if self.decoder and memory.shape[0] == 1 and memory_bias is None:   # one key per sample
             S, B, _ = x.shape
             sample = consts.arange(B, x.device).repeat(S)                # [S·B]: each row's sample
-        copy = x.device.type != "cpu" or static_shapes()       # the accelerators' SDPA layout
+        copy = layout_copies(x)                               # the accelerators' SDPA layout
         for layer, proj in zip(self.layers, projections):
             x = layer.forward(x, bias, proj, training, copy, memory, memory_bias, sample)
         return x if self.norm is None else self.norm(x)
@@ -308,12 +265,13 @@ def _global_hooks() -> bool:
 
 def stock_stack(inner: nn.Module) -> Optional[StockStack]:
     """The :class:`StockStack` of ``inner`` when every layer is a stock layer and nothing hooks
-    into its modules, else None (run the modules). Built once per stack (its modules' identities
-    checked at each call, so a replaced submodule is seen)."""
+    into its modules, else None (run the modules). Built once per stack (rebuilt after any module
+    registration, so a replaced submodule is seen). None while ``torch.compile`` traces: a traced
+    graph has no per-call Python to save, and the modules trace without guards on this cache."""
+    if compiling():
+        return None
     stack = inner.__dict__.get("_smdm_stock")
-    # traced: the stack an eager call built (a guard on the process-wide registration count would
-    # recompile the graph whenever any module anywhere is made, e.g. a guidance wrapper per sample)
-    if stack is not None and (compiling() or stack.current()):
+    if stack is not None and stack.current():
         return stack if stack.usable() else None
     if not all(_stock_layer(layer) for layer in inner.layers):
         return None

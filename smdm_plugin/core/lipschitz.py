@@ -134,8 +134,8 @@ class _NormalisedWeights(torch.autograd.Function):
 def normalised_weights(linears: List[nn.Linear], row_owner: Optional[Tensor] = None) -> Optional[List[Tensor]]:
     """The normalised weights of Lipschitz-parametrized ``linears`` (one
     :class:`LipschitzWeight` each, the same dtype), or None when they are not all such layers: in
-    eager mode one ``smdm::lipschitz_weight`` each (1 kernel forward, 2 backward); while tracing
-    (and on torch < 2.4) all in one pass (:class:`_NormalisedWeights`: ``2G + 5`` ops forward).
+    eager mode one :func:`~smdm_plugin.core.kernels.lipschitz_op.lipschitz_weight` each; while
+    tracing all in one pass (:class:`_NormalisedWeights`: ``2G + 5`` ops forward).
     ``row_owner``: :func:`row_owner` of the layers (a per-device constant the caller keeps), else
     made here."""
     params = []
@@ -149,7 +149,7 @@ def normalised_weights(linears: List[nn.Linear], row_owner: Optional[Tensor] = N
     if len({w.dtype for _, w in params}) != 1:
         return None
     if lipschitz_weight_op is not None and not _compiling():
-        return [lipschitz_weight_op(w, c) for c, w in params]            # 1 kernel each, 2 backward
+        return [lipschitz_weight_op(w, c) for c, w in params]            # one op each
     if row_owner is None:
         row_owner = _row_owner([w.shape[0] for _, w in params], params[0][1].device)
     return list(_NormalisedWeights.apply(row_owner, *(c for c, _ in params), *(w for _, w in params)))
@@ -280,17 +280,20 @@ class LipschitzMLP(nn.Module):
         return prod * (self.w0 ** self.num_sines)
 
     def forward(self, x: Tensor) -> Tensor:
-        """With autograd, every layer's normalised weight in one pass (:func:`normalised_weights`:
-        the same values, fewer kernels); without, the normalised weights kept while their inputs
-        are the same tensors at the same versions (:meth:`_sampling_weights`)."""
-        if torch.is_grad_enabled():
-            weights = self.__dict__.get("_call_weights")            # lipschitz_pass: the model's at once
-            if weights is None:
-                linears = [m for m in self.net if isinstance(m, nn.Linear)]
-                if len(linears) > 1:
-                    weights = normalised_weights(linears, self._buffers.get("row_owner"))
+        """Every linear layer's normalised weight read without the parametrization's per-access
+        machinery: with autograd one op each (:func:`~smdm_plugin.core.kernels.lipschitz_op.lipschitz_weight`;
+        while tracing all in one pass, :func:`normalised_weights`), without it kept while unchanged
+        (:meth:`_sampling_weights`). The same values as the parametrizations."""
+        pairs = self._weight_pairs()
+        if pairs is None:                                            # baked: plain layers
+            return self.net(x)
+        if not torch.is_grad_enabled():
+            weights = self._sampling_weights(x, pairs)
+        elif _compiling():
+            weights = normalised_weights([m for m in self.net if isinstance(m, nn.Linear)],
+                                         self._buffers.get("row_owner"))
         else:
-            weights = self._sampling_weights(x)
+            weights = [lipschitz_weight(w, c) for w, c in pairs]
         if weights is None:
             return self.net(x)
         it = iter(weights)
@@ -301,21 +304,27 @@ class LipschitzMLP(nn.Module):
                 x = F.linear(x, next(it), m.bias) if isinstance(m, nn.Linear) else m(x)
         return x
 
-    def _sampling_weights(self, x: Tensor) -> Optional[List[Tensor]]:
-        """Without autograd: every linear layer's normalised weight in the dtype it is used in
-        (autocast's, else its own), made once and kept while every weight and ``c`` is the same
-        tensor at the same version (a sampling loop normalises once); None while tracing or once
-        baked (the plain layers run)."""
-        if _compiling():
-            return None
-        linears = [m for m in self.net if isinstance(m, nn.Linear)]
+    def _weight_pairs(self) -> Optional[List[Tuple[Tensor, Tensor]]]:
+        """``(W, c)`` of every linear layer (read from the parametrization's modules directly),
+        or None once baked."""
         pairs = []
-        for m in linears:
+        for m in self.net:
+            if not isinstance(m, nn.Linear):
+                continue
             plist = m._modules.get("parametrizations")
             if plist is None:
                 return None
             weight = plist._modules["weight"]
             pairs.append((weight._parameters["original"], weight._modules["0"]._parameters["c"]))
+        return pairs
+
+    def _sampling_weights(self, x: Tensor, pairs: List[Tuple[Tensor, Tensor]]) -> Optional[List[Tensor]]:
+        """Without autograd: every linear layer's normalised weight in the dtype it is used in
+        (autocast's, else its own), made once and kept while every weight and ``c`` is the same
+        tensor at the same version (a sampling loop normalises once); None while tracing (the
+        parametrizations run)."""
+        if _compiling():
+            return None
         tensors = [t for pair in pairs for t in pair]
         device = tensors[0].device.type
         dtype = compute_dtype(tensors[0])
@@ -331,53 +340,6 @@ class LipschitzMLP(nn.Module):
     def extra_repr(self) -> str:
         return (f"in_features={self.in_features}, out_features={self.out_features}, "
                 f"hidden={self.hidden}, layers={self.num_layers}, w0={self.w0}")
-
-
-class lipschitz_pass:
-    """For one model call with autograd: the normalised weights of every (unbaked)
-    :class:`LipschitzMLP` of ``mlps`` (a module, or its MLPs as a sparse model's state lists them:
-    no walk over the modules per call) made at once by :func:`normalised_weights` (on torch < 2.4
-    one :class:`_NormalisedWeights` whose fixed kernels a model's input and output MLPs share; with
-    ``smdm::lipschitz_weight`` the same kernels as per MLP; the same values either way). Enter
-    before the call, exit after it (the adapters' forward hooks); without autograd, while tracing,
-    or with fewer than two such MLPs (or mixed dtypes), it does nothing."""
-
-    def __init__(self, mlps: MLPs) -> None:
-        self.mlps: List[LipschitzMLP] = []
-        if not torch.is_grad_enabled() or _compiling():
-            return
-        mlps = lipschitz_mlps(mlps)
-        if len(mlps) >= 2:
-            self.mlps = mlps
-
-    def __enter__(self) -> "lipschitz_pass":
-        groups = [[m for m in mlp.net if isinstance(m, nn.Linear)] for mlp in self.mlps]
-        linears = [m for g in groups for m in g]
-        if not linears:
-            return self
-        if not all(parametrize.is_parametrized(m, "weight") for m in linears):
-            self.mlps = []
-            return self
-        key = (tuple(m.out_features for m in linears), linears[0].parametrizations.weight.original.device)
-        owner = _pass_owners.get(key)
-        if owner is None:
-            owner = _pass_owners[key] = _row_owner(list(key[0]), key[1])
-        weights = normalised_weights(linears, owner)
-        if weights is None:
-            self.mlps = []
-            return self
-        start = 0
-        for mlp, g in zip(self.mlps, groups):
-            mlp._call_weights = weights[start:start + len(g)]
-            start += len(g)
-        return self
-
-    def __exit__(self, *exc) -> None:
-        for mlp in self.mlps:
-            mlp._call_weights = None
-
-
-_pass_owners: dict = {}
 
 
 def lipschitz_mlps(mlps: MLPs) -> List[LipschitzMLP]:

@@ -1,4 +1,5 @@
-"""Every file a sparse run writes states the settings that ran.
+"""Every file a sparse run writes states the settings that ran, and every sparse sampling run leaves
+its settings beside its samples (:func:`record_sampling_output`).
 
 Upstream writes its options (MDM / DiP / priorMDM ``args.json``, MotionDiffuse ``opt.txt``) before
 the model is built; sparsify then resolves some settings from the model and diffusion (DiP's dense
@@ -15,6 +16,7 @@ from typing import Any, Dict, Optional
 
 from ..core.atomic import atomic_write_json, atomic_write_text
 from ..core.config import SparseConfig
+from ..core.config_files import CONFIG_FILENAME
 
 OPT_BEGIN, OPT_END = "------------ Options -------------", "-------------- End ----------------"
 
@@ -123,3 +125,39 @@ def record_compile(args: Any, options_file: Optional[str]) -> bool:
     if options_file.endswith(".txt"):
         return set_opt_entries(options_file, values)
     return set_json_entries(options_file, values)
+
+
+#: the file upstream's sampling scripts (MDM ``sample.generate`` / ``sample.edit``, priorMDM
+#: ``sample.double_take``) write their samples to
+RESULTS_FILE = "results.npy"
+
+
+def record_sampling_output(model: Any, out_dir: Optional[str]) -> None:
+    """A sparse sampling run states its settings beside its outputs: when the process ends,
+    ``sparse_config.json`` (the model's config) goes into ``out_dir``, the folder the run writes
+    ``results.npy`` to (upstream replaces that folder at the end of sampling, so it cannot be
+    written earlier). Written atomically, and only when ``out_dir`` holds a ``results.npy`` of this
+    run (nothing when sampling failed or the script wrote no samples there); a ``sparse_config.json``
+    already there with other settings is left as it is, with a warning naming it."""
+    import atexit
+    import time
+    import warnings
+
+    from ..adapters.state import sparse_config_of
+
+    config, since = sparse_config_of(model), time.time() - 1.0
+    if config is None or not out_dir:
+        return
+
+    def write() -> None:
+        from ..adapters.checkpoint import save_sparse_config
+
+        results = os.path.join(out_dir, RESULTS_FILE)
+        if not os.path.isfile(results) or os.path.getmtime(results) < since:
+            return
+        try:
+            save_sparse_config(config, out_dir)
+        except (OSError, ValueError) as e:
+            warnings.warn(f"smdm: {CONFIG_FILENAME} not written beside {results}: {e}")
+
+    atexit.register(write)

@@ -4,7 +4,8 @@ sparsify where the model and diffusion are built, dense/sparse checkpoint checks
 Two ways in, one code path:
 
 * ``patches/mdm.patch`` (``git apply`` in an MDM checkout, commit d4fd88c) calls
-  :func:`add_sparse_options` from ``utils/parser_util.py:add_model_options``,
+  :func:`~smdm_plugin.integrations.options.add_sparse_options` from
+  ``utils/parser_util.py:add_model_options`` (a flag-off run loads no more than the options),
   :func:`sparsify_mdm` from ``utils/model_util.py:create_model_and_diffusion`` and
   :func:`check_mdm_state_dict` from ``utils/model_util.py:load_model_wo_clip``;
 * ``smdm run --repo PATH -- python -m train.train_mdm ... --sparse`` calls :func:`install_hooks`
@@ -28,10 +29,12 @@ from typing import Any, Optional, Tuple
 from ..core.config import SparseConfig
 from ..core.config_files import CONFIG_FILENAME
 from ._hooks import wrap_once
+from .options import add_sparse_options  # noqa: F401  (0.7.0's patches import it here; patches/mdm.patch: .options)
 from .registry import Integration, register_integration
 
 __all__ = ["add_sparse_options", "apply_compile", "sparsify_mdm", "check_mdm_state_dict", "dataset_mean_std",
-           "install_hooks", "is_mdm_repo", "patch_base_options", "patch_model_options", "warn_if_upstream_steps"]
+           "install_hooks", "is_mdm_repo", "patch_base_options", "patch_model_options", "sample_output_dir",
+           "warn_if_upstream_steps"]
 
 
 def is_mdm_repo(path: str) -> bool:
@@ -39,20 +42,6 @@ def is_mdm_repo(path: str) -> bool:
     return (os.path.isfile(os.path.join(path, "model", "mdm.py"))
             and os.path.isfile(os.path.join(path, "utils", "model_util.py"))
             and not os.path.isfile(os.path.join(path, "model", "DoubleTake_MDM.py")))
-
-
-def add_sparse_options(group: Any) -> Any:
-    """Add ``--sparse`` / ``--sparse_<field>`` to an argparse parser or group (MDM's ``model``
-    group, priorMDM's, MotionDiffuse's options parser); idempotent: the patch and the launcher may
-    both call it."""
-    if "--sparse" in getattr(group, "_option_string_actions", {}):
-        return group
-    SparseConfig.add_argparse_args(group)
-    if not isinstance(group, argparse.ArgumentParser):  # MDM / DiP / priorMDM's 'model' group (not MotionDiffuse)
-        from .start import add_start_options
-
-        add_start_options(group)   # --sparse_preset / --sparse_init_from: a dense checkpoint in (start.py)
-    return group
 
 
 def dataset_mean_std(data: Any) -> Tuple[Any, Any]:
@@ -97,15 +86,24 @@ def sparsify_mdm(model: Any, args: Any, data: Any = None, diffusion: Any = None,
     1. Text options, dense or sparse (:func:`.mdm_text.apply_text_options`): the sMDM-stella
        encoder swap (``--sparse_text_encoder``) and the opt-in text cache (``SMDM_TEXT_CACHE``);
        nothing when neither is asked for.
-    2. When ``args.sparse``: sparsify the MDM/DiP model, wrap ``diffusion.training_losses``
-       (keyframe masks from x0, ``lambda * L_lip``) and, when training (``args.save_dir``), write
-       ``sparse_config.json`` beside the weights, bring ``args.json``'s ``sparse_*`` entries to the
-       settings that ran, and warn if the run uses upstream's 1000 diffusion steps.
+    2. When ``args.sparse`` (or ``--sparse_preset``): sparsify the MDM/DiP model, wrap
+       ``diffusion.training_losses`` (keyframe masks from x0, ``lambda * L_lip``), say so in one
+       line (:mod:`.announce`) and, when training (``args.save_dir``), write ``sparse_config.json``
+       beside the weights, bring ``args.json``'s ``sparse_*`` entries to the settings that ran, and
+       warn if the run uses upstream's 1000 diffusion steps; when sampling (``sample.generate`` /
+       ``sample.edit``, DiP's too), write ``sparse_config.json`` beside ``results.npy`` at the end.
     3. ``--sparse_compile`` (dense or sparse): :func:`apply_compile`.
 
-    Without ``--sparse``, a text option or ``--sparse_compile`` the model is returned untouched,
-    bit for bit.
+    Without ``--sparse``, ``--sparse_preset``, a text option or ``--sparse_compile`` the model is
+    returned untouched, bit for bit, and nothing more of the plugin is imported. Otherwise the
+    plugin's warnings are shown as ``smdm:`` lines whatever logging upstream set up
+    (:mod:`.messages`).
     """
+    if config is None and not _asks_for_anything(args):
+        return model                                   # a flag-off run: upstream's model
+    from .messages import show_plugin_warnings
+
+    show_plugin_warnings()
     from ..adapters.surgery import is_sparse
     from ._rng import upstream_rng_untouched
     from .mdm_text import apply_text_options
@@ -123,6 +121,56 @@ def sparsify_mdm(model: Any, args: Any, data: Any = None, diffusion: Any = None,
     return model
 
 
+def _asks_for_anything(args: Any) -> bool:
+    """Whether the run asks the plugin for anything: ``--sparse``, ``--sparse_preset``,
+    ``--sparse_init_from``, ``--sparse_text_encoder``, the text cache (``SMDM_TEXT_CACHE``) or
+    ``--sparse_compile`` (decided from the options alone: a flag-off run loads nothing more)."""
+    from .compile import check_compile_mode
+    from .mdm_text import cache_capacity_from_env
+
+    asked = ("sparse", "sparse_preset", "sparse_init_from", "sparse_text_encoder")
+    return bool(any(getattr(args, name, None) for name in asked) or cache_capacity_from_env()
+                or check_compile_mode(getattr(args, "sparse_compile", None)) != "none")
+
+
+def sample_output_dir(args: Any) -> Optional[str]:
+    """The folder MDM's ``sample.generate`` / ``sample.edit`` write ``results.npy`` to, derived from
+    their parsed options as they derive it (absolute): ``--output_dir`` when given, else beside
+    ``--model_path``: ``samples_<model folder>_<checkpoint number>_seed<seed>`` then
+    ``_<text_prompt>`` / ``_<input_text file name>`` / ``_<dynamic_text_path file name>``
+    (generate), or ``edit_<model folder>_<checkpoint number>_<edit_mode>_seed<seed>`` then
+    ``_<text_condition>`` (edit). None for a command that samples into no folder
+    (``eval.eval_humanml``: no ``--output_dir`` option) or without ``--model_path``."""
+    out = getattr(args, "output_dir", None)
+    model_path = getattr(args, "model_path", None)
+    if out is None or not model_path:
+        return None
+    if out:
+        return os.path.abspath(out)
+    name = os.path.basename(os.path.dirname(model_path))
+    niter = os.path.basename(model_path).replace("model", "").replace(".pt", "")
+    seed = getattr(args, "seed", 10)
+
+    def tag(text: str) -> str:
+        return "_" + text.replace(" ", "_").replace(".", "")
+
+    def file_tag(path: str) -> str:
+        return tag(os.path.basename(path).replace(".txt", ""))
+
+    if hasattr(args, "edit_mode"):
+        out = os.path.join(os.path.dirname(model_path), f"edit_{name}_{niter}_{args.edit_mode}_seed{seed}")
+        condition = getattr(args, "text_condition", "") or ""
+        return os.path.abspath(out + (tag(condition) if condition else ""))
+    out = os.path.join(os.path.dirname(model_path), f"samples_{name}_{niter}_seed{seed}")
+    if getattr(args, "text_prompt", ""):
+        out += tag(args.text_prompt)
+    elif getattr(args, "input_text", ""):
+        out += file_tag(args.input_text)
+    elif getattr(args, "dynamic_text_path", ""):
+        out += file_tag(args.dynamic_text_path)
+    return os.path.abspath(out)
+
+
 def _sparsify(model: Any, args: Any, data: Any, diffusion: Any, config: SparseConfig, start: Any = None) -> None:
     from ._rng import upstream_rng_untouched
     from .start import Start, apply as apply_start, record_origin
@@ -137,21 +185,26 @@ def _sparsify(model: Any, args: Any, data: Any, diffusion: Any, config: SparseCo
         apply_start(model, args, start, diffusion, mean, std, data)   # sparsify, or wrap / warm start
     from .announce import announce_sparse_mode
 
-    announce_sparse_mode(model, "MDM/DiP")
-    if _is_training(args):
-        steps = getattr(args, "diffusion_steps", None)
-        if steps is None and diffusion is not None:
-            from ..adapters.diffusion import diffusion_steps
+    training = _is_training(args)
+    announce_sparse_mode(model, "MDM/DiP", training)
+    if not training:
+        from ._files import record_sampling_output
 
-            steps = diffusion_steps(diffusion)
-        warn_if_upstream_steps(config, steps)
-        save_dir = args.save_dir
-        if os.path.isdir(save_dir):  # sparse_config.json, and args.json's sparse_* as resolved (DiP prefix, steps)
-            from ._files import record_run_config
+        record_sampling_output(model, sample_output_dir(args))
+        return
+    steps = getattr(args, "diffusion_steps", None)
+    if steps is None and diffusion is not None:
+        from ..adapters.diffusion import diffusion_steps
 
-            record_run_config(model, save_dir, args, os.path.join(save_dir, "args.json"),
-                              overwrite=bool(getattr(args, "overwrite", False)))
-            record_origin(args, os.path.join(save_dir, "args.json"))
+        steps = diffusion_steps(diffusion)
+    warn_if_upstream_steps(config, steps)
+    save_dir = args.save_dir
+    if os.path.isdir(save_dir):  # sparse_config.json, and args.json's sparse_* as resolved (DiP prefix, steps)
+        from ._files import record_run_config
+
+        record_run_config(model, save_dir, args, os.path.join(save_dir, "args.json"),
+                          overwrite=bool(getattr(args, "overwrite", False)))
+        record_origin(args, os.path.join(save_dir, "args.json"))
 
 
 def apply_compile(model: Any, args: Any, options_file: Optional[str] = None) -> Any:
@@ -161,12 +214,15 @@ def apply_compile(model: Any, args: Any, options_file: Optional[str] = None) -> 
     where). Returns the :class:`~smdm_plugin.integrations.compile.CompileSetting` or None."""
     import sys
 
-    from ._files import record_compile
     from .compile import compile_from_args
+    from .messages import show_plugin_warnings
 
+    show_plugin_warnings()
     setting = compile_from_args(model, args)
     if setting is None:
         return None
+    from ._files import record_compile
+
     sys.stderr.write(f"smdm: {type(model).__name__} runs {setting.describe()}\n")
     if options_file is None and _is_training(args) and os.path.isdir(args.save_dir):
         options_file = os.path.join(args.save_dir, "args.json")
@@ -180,10 +236,11 @@ def check_mdm_state_dict(model: Any, state_dict: Any, model_path: Optional[str] 
     :func:`smdm_plugin.io.checkpoint.check_state_dict`."""
     from ..io.checkpoint import check_state_dict, model_is_sparse, state_dict_is_sparse
 
-    from ..adapters.warm import is_dense_wrap
+    if model_is_sparse(model) and not state_dict_is_sparse(state_dict):
+        from ..adapters.warm import is_dense_wrap
 
-    if is_dense_wrap(model) and not state_dict_is_sparse(state_dict):
-        return  # --sparse_preset: a dense checkpoint wrapped for sparse sampling (its weights load as they are)
+        if is_dense_wrap(model):
+            return  # --sparse_preset: a dense checkpoint wrapped for sparse sampling (its weights load as they are)
 
     source = model_path or "checkpoint"
     if model_path and not model_is_sparse(model) and state_dict_is_sparse(state_dict):
@@ -252,10 +309,13 @@ def install_hooks() -> None:
     Modules that do ``from utils.model_util import create_model_and_diffusion`` get the wrapped
     function because the wrap happens right after ``utils.model_util`` executes. Then the
     extensions: text encoders (:mod:`.mdm_text`), multi-process training (:mod:`.mdm_train`),
-    keyframe in-betweening in ``sample.edit`` (:mod:`.mdm_edit`)."""
+    keyframe in-betweening in ``sample.edit`` (:mod:`.mdm_edit`); the plugin's warnings shown as
+    ``smdm:`` lines (:mod:`.messages`)."""
     from . import mdm_edit, mdm_text, mdm_train
     from ._hooks import on_import
+    from .messages import show_plugin_warnings
 
+    show_plugin_warnings()
     on_import("utils.parser_util", patch_model_options)
     on_import("utils.parser_util", patch_base_options)
     on_import("utils.model_util", _patch_model_util)

@@ -35,12 +35,12 @@ _DTYPES = ("float32", "bfloat16", "float16")
 
 def cache_capacity_from_env(environ: Optional[dict] = None) -> int:
     """Captions the text cache holds according to ``SMDM_TEXT_CACHE`` (0: off)."""
-    from ..adapters.text_cache import DEFAULT_CAPACITY
-
     raw = (os.environ if environ is None else environ).get(ENV_CACHE, "").strip().lower()
     if raw in _OFF:
         return 0
     if raw in _ON:
+        from ..adapters.text_cache import DEFAULT_CAPACITY
+
         return DEFAULT_CAPACITY
     try:
         value = int(raw)
@@ -68,16 +68,18 @@ def encoder_options_from_env(environ: Optional[dict] = None) -> dict:
 def apply_text_options(model: Any, config: SparseConfig, environ: Optional[dict] = None) -> Any:
     """Swap the text encoder (``config.text_encoder``) and install the text cache
     (``SMDM_TEXT_CACHE``) on an MDM/DiP model; idempotent, a no-op when neither is asked for."""
-    from ..adapters.text_cache import install_text_cache
-    from ..adapters.text_encoder import swap_text_encoder, swapped_text_encoder
-
     capacity = cache_capacity_from_env(environ)
-    if config.text_encoder and swapped_text_encoder(model) != config.text_encoder:
-        if not hasattr(model, "embed_text"):
-            raise ValueError(f"--sparse_text_encoder {config.text_encoder}: the model has no text "
-                             "conditioning (cond_mode must include 'text')")
-        swap_text_encoder(model, config.text_encoder, **encoder_options_from_env(environ))
+    if config.text_encoder:
+        from ..adapters.text_encoder import swap_text_encoder, swapped_text_encoder
+
+        if swapped_text_encoder(model) != config.text_encoder:
+            if not hasattr(model, "embed_text"):
+                raise ValueError(f"--sparse_text_encoder {config.text_encoder}: the model has no text "
+                                 "conditioning (cond_mode must include 'text')")
+            swap_text_encoder(model, config.text_encoder, **encoder_options_from_env(environ))
     if capacity and hasattr(model, "encode_text"):
+        from ..adapters.text_cache import install_text_cache
+
         install_text_cache(model, capacity=capacity)
     return model
 

@@ -38,10 +38,10 @@ import random
 import shutil
 import tempfile
 from dataclasses import dataclass
-from typing import Any, Optional
+from typing import TYPE_CHECKING, Any, Callable, Optional
 
-from ._hooks import wrap_once
-from .distributed import DistContext, constant_buffers_kwargs, launched_by_torchrun
+if TYPE_CHECKING:  # (imported when training under torchrun: patches/mdm.patch imports this module in every run)
+    from .distributed import DistContext
 
 
 @dataclass
@@ -61,8 +61,13 @@ _RUN: Optional[_Run] = None
 
 
 def active() -> bool:
-    """Whether this process trains under ``torchrun`` with the hooks on."""
-    return launched_by_torchrun() and os.environ.get("SMDM_DDP", "1") != "0"
+    """Whether this process trains under ``torchrun`` with the hooks on (outside ``torchrun``,
+    decided without importing anything)."""
+    if os.environ.get("SMDM_DDP", "1") == "0" or not os.environ.get("LOCAL_RANK"):
+        return False
+    from .distributed import launched_by_torchrun
+
+    return launched_by_torchrun()
 
 
 def _run() -> _Run:
@@ -73,7 +78,11 @@ def _run() -> _Run:
     return _RUN
 
 
-_wrap = functools.partial(wrap_once, marker="_smdm_ddp")  # owner.name -> make(original), once; its own marker
+def _wrap(owner: Any, name: str, make: Callable[[Callable], Callable]) -> bool:
+    """``owner.name`` -> ``make(original)``, once (:func:`~._hooks.wrap_once` with its own marker)."""
+    from ._hooks import wrap_once
+
+    return wrap_once(owner, name, make, marker="_smdm_ddp")
 
 
 # --------------------------------------------------------------------------- utils.parser_util
@@ -220,6 +229,8 @@ def _patch_training_loop(mod: Any) -> None:
             # MDM's buffers are constants (positional table, sparse marker), and DDP's per-forward
             # buffer broadcast fails on MDM's `pe` (a transposed view whose size-1 dimension has a
             # large stride: DDP copies it onto an overlapping view of itself)
+            from .distributed import constant_buffers_kwargs
+
             self.ddp_model = _ddp_class()(self.model, device_ids=[dev.index] if dev.type == "cuda" else None,
                                           **constant_buffers_kwargs())
             self.use_ddp = True

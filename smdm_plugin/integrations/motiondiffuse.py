@@ -29,11 +29,18 @@ import numpy as np
 
 from ..core.config import SparseConfig
 from ..core.config_files import CONFIG_FILENAME
-
-
 from ._hooks import wrap_once
-from .mdm import add_sparse_options  # noqa: F401  (the one --sparse* adder; patches import it here)
+from .options import add_sparse_options as _add_sparse_options, with_family_defaults
 from .registry import Integration, register_integration
+
+FAMILY = "motiondiffuse"
+
+
+def add_sparse_options(parser: Any) -> Any:
+    """``--sparse`` / ``--sparse_<field>`` on MotionDiffuse's option parser, with MotionDiffuse's own
+    defaults (:data:`~smdm_plugin.integrations.options.FAMILY_DEFAULTS`: ``--sparse_fsq false``, its
+    self-attention is linear); what ``patches/motiondiffuse.patch`` and the hooks call."""
+    return _add_sparse_options(parser, family=FAMILY)
 
 
 def _coerce(value: Any, default: Any) -> Any:
@@ -76,7 +83,7 @@ def config_from_opt(opt: Any) -> SparseConfig:
 
 def _options(opt: Any) -> dict:
     """``opt``'s ``sparse``/``sparse_*`` options with their types restored."""
-    d = dict(vars(opt))
+    d = with_family_defaults(vars(opt), FAMILY)
     defaults = SparseConfig(enabled=False).to_dict()
     for k, v in defaults.items():
         key = f"sparse_{k}"
@@ -119,6 +126,9 @@ def attach_trainer(trainer: Any, config: Optional[SparseConfig] = None) -> Any:
     from ..adapters.surgery import is_sparse, sparsify
     from ._rng import upstream_rng_untouched
 
+    from .messages import show_plugin_warnings
+
+    show_plugin_warnings()
     opt = trainer.opt
     config = config if config is not None else config_from_opt(opt)
     enc = trainer.encoder
@@ -126,10 +136,10 @@ def attach_trainer(trainer: Any, config: Optional[SparseConfig] = None) -> Any:
     if config.enabled and not is_sparse(core):
         mean, std = mean_std_from_opt(opt)
         with upstream_rng_untouched():  # upstream's batches / noise stay those of a dense run
-            sparsify(core, config, mean=mean, std=std, diffusion=trainer.diffusion, family="motiondiffuse")
+            sparsify(core, config, mean=mean, std=std, diffusion=trainer.diffusion, family=FAMILY)
         from .announce import announce_sparse_mode
 
-        announce_sparse_mode(core, "MotionDiffuse")
+        announce_sparse_mode(core, "MotionDiffuse", bool(getattr(opt, "is_train", False)))
     if config.enabled and getattr(opt, "is_train", False) and getattr(opt, "model_dir", None):
         # sparse_config.json (never replacing another config unasked), and opt.txt's sparse_* as
         # they ran (e.g. sparse_fsq False: FSQ keys cannot apply to linear attention, with a warning)
@@ -149,7 +159,9 @@ def compile_trainer(trainer: Any) -> Any:
 
     from ._files import record_compile
     from .compile import compile_from_args
+    from .messages import show_plugin_warnings
 
+    show_plugin_warnings()
     opt = trainer.opt
     core = getattr(trainer.encoder, "module", trainer.encoder)
     device = getattr(trainer, "device", None) or getattr(opt, "device", None)
@@ -225,7 +237,9 @@ def install_hooks() -> None:
     """Wrap MotionDiffuse's option classes and ``DDPMTrainer`` as they are imported (run from
     ``text2motion/``). Idempotent; do not combine with the patch."""
     from ._hooks import on_import
+    from .messages import show_plugin_warnings
 
+    show_plugin_warnings()
     on_import("options.train_options", lambda m: _patch_options(m, "TrainCompOptions"))
     on_import("options.evaluate_options", lambda m: _patch_options(m, "TestOptions"))
     on_import("trainers.ddpm_trainer", _patch_trainer)

@@ -4,7 +4,8 @@ forced keyframes for DoubleTake's two takes.
 Two ways in, same code path:
 
 * ``patches/priormdm.patch`` (``git apply`` in a priorMDM checkout) calls
-  :func:`add_sparse_options` from ``utils/parser_util.py:add_model_options`` and
+  :func:`~smdm_plugin.integrations.options.add_sparse_options` from
+  ``utils/parser_util.py:add_model_options`` and
   :func:`sparsify_priormdm` from ``utils/model_util.py:create_model_and_diffusion``;
 * ``smdm run --repo PATH -- python -m sample.double_take ...`` calls :func:`install_hooks`,
   which wraps the same two functions when their modules are imported.
@@ -21,10 +22,9 @@ import warnings
 from typing import Any, Optional
 
 from ..core.config import SparseConfig
-from ..core.config_files import CONFIG_FILENAME
 from ._hooks import wrap_once
-from .mdm import (_is_training, add_sparse_options, apply_compile, dataset_mean_std,  # noqa: F401  (the one
-                  patch_base_options, patch_model_options)                           # --sparse* adder; patches import it here)
+from .mdm import _is_training, apply_compile, dataset_mean_std, patch_base_options, patch_model_options
+from .options import add_sparse_options  # noqa: F401  (0.7.0's patches import it here; patches/priormdm.patch: .options)
 from .registry import Integration, register_integration
 
 
@@ -57,6 +57,11 @@ def sparsify_priormdm(model: Any, args: Any, data: Any = None, diffusion: Any = 
     from .start import apply as apply_start, record_origin, resolve
 
     config = config if config is not None else SparseConfig.from_args(args)
+    if not (config.enabled or getattr(args, "sparse_preset", None)):
+        return model
+    from .messages import show_plugin_warnings
+
+    show_plugin_warnings()
     start = resolve(args, config, _is_training(args))   # --sparse_preset / --sparse_init_from (start.py)
     config = start.config
     if not config.enabled or is_sparse(model):
@@ -72,19 +77,22 @@ def sparsify_priormdm(model: Any, args: Any, data: Any = None, diffusion: Any = 
     doubletake = is_doubletake_model(model)
     from .announce import announce_sparse_mode
 
-    announce_sparse_mode(model, "priorMDM DoubleTake" if doubletake else "priorMDM")
+    training = _is_training(args)
+    announce_sparse_mode(model, "priorMDM DoubleTake" if doubletake else "priorMDM", training)
     if doubletake:
         attach_doubletake_forcing(model)
         warn_if_not_paper_blend(args)
     save_dir = getattr(args, "save_dir", None)
-    if _is_training(args) and os.path.isdir(save_dir):  # sparse_config.json; args.json as resolved
+    if training and os.path.isdir(save_dir):  # sparse_config.json; args.json as resolved
         from ._files import record_run_config
 
         record_run_config(model, save_dir, args, os.path.join(save_dir, "args.json"),
                           overwrite=bool(getattr(args, "overwrite", False)))
         record_origin(args, os.path.join(save_dir, "args.json"))
-    elif doubletake and getattr(args, "model_path", None):
-        record_doubletake_output(model, args)
+    elif doubletake and getattr(args, "model_path", None):   # beside results.npy, when the process ends
+        from ._files import record_sampling_output
+
+        record_sampling_output(model, doubletake_output_dir(args))
     return model
 
 
@@ -120,33 +128,6 @@ def doubletake_output_dir(args: Any) -> Optional[str]:
     return os.path.abspath(out)
 
 
-def record_doubletake_output(model: Any, args: Any) -> None:
-    """A sparse DoubleTake sampling run states its settings beside its outputs: when the process
-    ends, ``sparse_config.json`` goes into the folder it wrote ``results.npy`` to
-    (:func:`doubletake_output_dir`; upstream replaces that folder at the end of sampling, so it
-    cannot be written earlier). Nothing is written when that folder holds no ``results.npy`` of
-    this run (sampling failed, or the script was not ``sample.double_take``)."""
-    import atexit
-    import time
-
-    from ..adapters.state import sparse_config_of
-
-    config, since, out = sparse_config_of(model), time.time() - 1.0, doubletake_output_dir(args)
-
-    def write() -> None:
-        from ..adapters.checkpoint import save_sparse_config
-
-        results = os.path.join(out, "results.npy") if out else ""
-        if config is None or not os.path.isfile(results) or os.path.getmtime(results) < since:
-            return
-        try:
-            save_sparse_config(config, out)
-        except (OSError, ValueError) as e:
-            warnings.warn(f"smdm: could not write {CONFIG_FILENAME} into {out}: {e}")
-
-    atexit.register(write)
-
-
 # --------------------------------------------------------------------------- import hooks
 def _patch_model_util(mod) -> None:
     def make(original):
@@ -167,7 +148,9 @@ def install_hooks() -> None:
     ``utils.model_util.create_model_and_diffusion`` as they are imported (idempotent; a checkout
     that already carries ``patches/priormdm.patch`` is not sparsified twice)."""
     from ._hooks import on_import
+    from .messages import show_plugin_warnings
 
+    show_plugin_warnings()
     on_import("utils.parser_util", patch_model_options)
     on_import("utils.parser_util", patch_base_options)
     on_import("utils.model_util", _patch_model_util)

@@ -1,6 +1,6 @@
 """Upstream MDM / DiP / priorMDM: start sparse from a dense checkpoint.
 
-Two options beside ``--sparse*`` (:func:`add_start_options`), in a group of their own — not
+Two options beside ``--sparse*`` (:func:`~smdm_plugin.integrations.options.add_start_options`), in a group of their own — not
 upstream's ``model`` group, so ``load_args_from_model`` never restores them from a checkpoint's
 ``args.json``: they are what *this* command asks for.
 
@@ -18,64 +18,19 @@ upstream's ``model`` group, so ``load_args_from_model`` never restores them from
 from __future__ import annotations
 
 import argparse
-import inspect
 import os
 import sys
 from dataclasses import dataclass
 from typing import Any, NoReturn, Optional
 
 from ..core.config import SparseConfig
-from ..core.presets import load_preset
-
-PRESET_OPTION, INIT_OPTION = "--sparse_preset", "--sparse_init_from"
+from .options import INIT_OPTION, PRESET_OPTION
 
 
 def _fail(option: str, message: str) -> "NoReturn":
     """An argparse-style error naming the option: one line on stderr, exit status 2."""
     sys.stderr.write(f"error: argument {option}: {message}\n")
     raise SystemExit(2)
-GROUP_TITLE = "sparse start (from a dense checkpoint; read from this command line, never from args.json)"
-
-
-def _parser_of(group: Any) -> Optional[argparse.ArgumentParser]:
-    """The parser ``group`` belongs to: itself, or the ``parser`` of the caller that passed it
-    (upstream's ``add_model_options(parser)``, patched or hooked)."""
-    if isinstance(group, argparse.ArgumentParser):
-        return group
-    frame = inspect.currentframe()
-    try:
-        f = frame.f_back if frame is not None else None
-        for _ in range(4):
-            if f is None:
-                break
-            candidate = f.f_locals.get("parser")
-            if isinstance(candidate, argparse.ArgumentParser) and candidate._actions is group._actions:
-                return candidate
-            f = f.f_back
-    finally:
-        del frame
-    return None
-
-
-def add_start_options(group: Any) -> Any:
-    """Add ``--sparse_preset`` / ``--sparse_init_from`` (idempotent) in a group of their own on
-    ``group``'s parser; when that parser cannot be found, on ``group`` and then taken out of its
-    list, so that ``load_args_from_model`` does not restore them either way."""
-    if PRESET_OPTION in getattr(group, "_option_string_actions", {}):
-        return group
-    parser = _parser_of(group)
-    target = parser.add_argument_group(GROUP_TITLE) if parser is not None else group
-    a1 = target.add_argument(PRESET_OPTION, default=None, metavar="NAME",
-                             help="sparse settings from a preset (configs/*.yaml or a YAML/JSON path). Sampling / "
-                                  "evaluation: wrap a DENSE checkpoint for sparse sampling (zero_shot: every trained "
-                                  "weight kept). Training: the run's sparse settings (implies --sparse)")
-    a2 = target.add_argument(INIT_OPTION, default=None, metavar="PATH",
-                             help="training: start sparse from this DENSE checkpoint (model*.pt): its weights "
-                                  "loaded, the recipe's new layers fitted to the dense ones, fresh optimiser")
-    if parser is None:
-        for a in (a1, a2):
-            group._group_actions.remove(a)
-    return group
 
 
 def command_line_value(option: str, argv: Optional[list] = None) -> Optional[str]:
@@ -109,6 +64,8 @@ def resolve(args: Any, config: SparseConfig, training: bool) -> Start:
         warnings.warn(f"smdm: {PRESET_OPTION} {preset}: the checkpoint is already sparse; its own settings are used")
         preset = None
     if preset:
+        from ..core.presets import load_preset
+
         try:
             config = load_preset(preset).replace(enabled=True)
         except (FileNotFoundError, ValueError) as e:

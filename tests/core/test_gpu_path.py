@@ -266,7 +266,7 @@ def mdm_size_counts(name, sparse, precision, **cfg):
 LAUNCH_BUDGET = {
     ("trans_enc", "fp32", "train"): 1.2,    # 511 vs 430 (0.7: 486)
     ("trans_enc", "bf16", "train"): 1.15,
-    ("trans_enc", "fp32", "sample"): 1.15,
+    ("trans_enc", "fp32", "sample"): 1.32,   # 302 vs 232 (0.7: 252): the layout copies, 3 per attention
     ("trans_enc", "bf16", "sample"): 1.15,
     ("trans_dec", "fp32", "train"): 1.15,
     ("trans_dec", "bf16", "train"): 1.15,
@@ -554,19 +554,20 @@ def test_looked_up_uniform_plans_equal_built_plans():
                 assert torch.equal(_key_bias(got, lead, pad, torch.float32), _key_bias(bare, lead, pad, torch.float32))
 
 
-@pytest.mark.parametrize("per_weight_op", [True, False])
-def test_one_normalisation_pass_equals_the_parametrizations(per_weight_op, monkeypatch):
-    """The Lipschitz MLPs' weights in one pass (``lipschitz_pass``): eager mode's
-    ``smdm::lipschitz_weight`` per weight, or (traced, torch < 2.4) ``_NormalisedWeights`` (its
+@pytest.mark.parametrize("traced", [False, True], ids=["eager", "traced"])
+def test_lipschitz_mlps_normalise_as_the_parametrizations(traced, monkeypatch):
+    """A Lipschitz MLP's weights read without the parametrization's machinery: in eager mode one
+    ``lipschitz_weight`` each, while tracing every layer in one pass (``_NormalisedWeights``, its
     backward written out): the same forward values bit for bit, and the gradients of W and c as
-    autograd through the per-layer parametrizations, with clipped, unclipped and zero rows."""
+    autograd through the per-layer parametrizations, with clipped, unclipped and zero rows; without
+    autograd the kept sampling weights follow an update."""
     from torch import nn
     from smdm_plugin.core import lipschitz
-    from smdm_plugin.core.lipschitz import LipschitzMLP, lipschitz_pass
+    from smdm_plugin.core.lipschitz import LipschitzMLP
 
-    if not per_weight_op:
+    if traced:
+        monkeypatch.setattr(lipschitz, "_compiling", lambda: True)
         monkeypatch.setattr(lipschitz, "lipschitz_weight_op", None)
-
     torch.manual_seed(0)
     model = nn.Sequential(LipschitzMLP(12, 16, layers=2), LipschitzMLP(16, 7, layers=3)).double()
     with torch.no_grad():
@@ -579,14 +580,16 @@ def test_one_normalisation_pass_equals_the_parametrizations(per_weight_op, monke
     ref_out.square().sum().backward()
     ref = {n: p.grad.clone() for n, p in model.named_parameters()}
     model.zero_grad()
-    with lipschitz_pass(model) as p:
-        assert len(p.mlps) == 2
-        out = model(x)
+    out = model(x)
     assert torch.equal(out, ref_out)
     out.square().sum().backward()
     for n, q in model.named_parameters():
         torch.testing.assert_close(q.grad, ref[n], rtol=1e-10, atol=1e-12, msg=n)
-    assert all(m.__dict__.get("_call_weights") is None for m in model)   # cleared on exit
+    if not traced:
+        with torch.no_grad():
+            assert torch.equal(model(x), ref_out)
+            model[1].net[0].parametrizations.weight.original.mul_(0.5)    # an update: not kept
+            assert torch.equal(model(x), nn.Sequential(model[0].net, model[1].net)(x))
 
 
 def test_folded_fsq_keys_at_once_give_the_per_layer_gradients():

@@ -128,6 +128,9 @@ def test_edit_in_between_forces_the_seams_of_a_sparse_model(route, repos, sparse
     assert seen["kept_exact"] is True
     res = np.load(os.path.join(out_dir, "results.npy"), allow_pickle=True).item()
     assert res["motion"].shape == (2, 22, 3, 196) and np.isfinite(res["motion"]).all()
+    # the edit says how it was made: the checkpoint's config beside results.npy
+    ckpt_cfg = json.load(open(os.path.join(os.path.dirname(sparse_ckpt), "sparse_config.json")))
+    assert json.load(open(os.path.join(out_dir, "sparse_config.json"))) == ckpt_cfg
 
 
 def test_policy_from_the_environment(repos, sparse_ckpt, tmp_path):

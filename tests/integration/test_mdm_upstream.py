@@ -186,6 +186,8 @@ def test_sparse_trains_and_samples(arch, launcher, pristine, patched, tmp_path):
     n_frames = 80 if arch == "dip" else 40
     assert res["motion"].shape == (2, 22, 3, n_frames)
     assert np.isfinite(res["motion"]).all()
+    # the samples say how they were made: the checkpoint's config beside results.npy
+    assert json.load(open(os.path.join(str(tmp_path / "gen"), "sparse_config.json"))) == cfg
 
 
 RESTORE = r"""
@@ -242,6 +244,50 @@ def test_flag_off_equals_upstream_bit_for_bit(pristine, patched, tmp_path):
         for k in ref_sd:
             assert ref_sd[k].dtype == sd[k].dtype and bool((ref_sd[k] == sd[k]).all()), (name, k)
         assert np.array_equal(motion, ref_motion), f"{name}: samples differ from upstream"
+
+
+@needs_mdm
+@pytest.mark.parametrize("launcher", [False, True], ids=["patch", "launcher"])
+def test_the_plugins_warnings_reach_the_log_despite_moviepy(launcher, pristine, patched, tmp_path):
+    """MDM's training imports moviepy 1.0.3 (train.training_loop -> sample.generate), which calls
+    ``logging.captureWarnings(True)``: 0.7.0's warnings vanished there. Sparse training at
+    upstream's 1000 diffusion steps (a deviation from the paper) says so in one ``smdm:`` line,
+    beside the ON line that states both phases."""
+    repo = pristine if launcher else patched
+    proc = mdm(repo, "train.train_mdm", ["--save_dir", str(tmp_path / "run"), "--num_steps", "2", *TINY,
+                                         "--diffusion_steps", "1000", "--sparse"], launcher=launcher)
+    lines = [ln for ln in proc.stderr.splitlines() if ln.startswith("smdm: ")]
+    assert sum("sparse training at 1000 diffusion steps" in ln for ln in lines) == 1, proc.stderr[-3000:]
+    on = [ln for ln in lines if "sparse keyframe mode ON (MDM/DiP, training)" in ln]
+    assert len(on) == 1 and "training: vw keyframes from x0, mask noise 0.1" in on[0], lines
+
+
+FLAG_OFF_IMPORTS = r"""
+import json, sys
+def plugin():
+    return sorted(m for m in sys.modules if m == "smdm_plugin" or m.startswith("smdm_plugin."))
+seen = {}
+import train.train_mdm                      # the patch's DDP hooks, at import
+seen["import"] = plugin()
+from utils.parser_util import train_args
+sys.argv = ["train_mdm", "--save_dir", sys.argv[1], "--dataset", "humanml"]
+args = train_args()                         # every option group, the flag off
+seen["parse"] = plugin()
+print("SEEN=" + json.dumps(seen))
+"""
+
+
+@needs_mdm
+def test_a_flag_off_run_loads_only_the_plugins_options(patched, tmp_path):
+    """The patched MDM with the flag off: 3 plugin modules at import (0.7.0: 5), and after parsing
+    only the option modules and the config they describe (0.7.0: 18, the integration, its start
+    options, presets and registry among them)."""
+    proc = harness_code(patched, FLAG_OFF_IMPORTS.replace("sys.argv[1]", repr(str(tmp_path / "x"))))
+    seen = json.loads(proc.stdout.split("SEEN=")[1].splitlines()[0])
+    assert seen["import"] == ["smdm_plugin", "smdm_plugin.integrations", "smdm_plugin.integrations.mdm_train"]
+    extra = [m for m in seen["parse"] if m not in seen["import"] and not m.startswith("smdm_plugin.core")]
+    assert extra == ["smdm_plugin.integrations.compile", "smdm_plugin.integrations.options"], seen["parse"]
+    assert "smdm_plugin.core.presets" not in seen["parse"] and len(seen["parse"]) <= 13, seen["parse"]
 
 
 @needs_mdm

@@ -126,9 +126,12 @@ def check_training(t2m: str, out: str, record: str) -> np.ndarray:
     assert opt["sparse"] == "True" and float(opt["sparse_reduction"]) == REDUCTION, opt
     cfg = json.load(open(os.path.join(save, "model", "sparse_config.json")))
     assert cfg["enabled"] is True and cfg["reduction"] == REDUCTION, cfg
-    # opt.txt states what ran: FSQ keys cannot apply to MotionDiffuse's linear attention (turned
-    # off with a warning), the diffusion steps come from the diffusion
-    assert opt["sparse_fsq"] == str(cfg["fsq"]) and opt["sparse_diffusion_steps"] == str(cfg["diffusion_steps"]), (opt, cfg)
+    # opt.txt states what ran: no FSQ keys (MotionDiffuse's default: its attention is linear; no
+    # warning about it), the diffusion steps come from the diffusion
+    assert opt["sparse_fsq"] == str(cfg["fsq"]) == "False" and cfg["fsq"] is False, (opt, cfg)
+    assert opt["sparse_diffusion_steps"] == str(cfg["diffusion_steps"]), (opt, cfg)
+    assert "fsq=True cannot apply" not in out, out[-3000:]
+    assert "smdm: sparse keyframe mode ON (MotionDiffuse, training): " in out, out[-3000:]
     sd = torch.load(os.path.join(save, "model", "latest.tar"), map_location="cpu")["encoder"]
     assert "smdm_sparse_version" in sd and any(k.startswith("joint_embed.net.") for k in sd)
 

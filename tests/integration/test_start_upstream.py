@@ -59,6 +59,13 @@ def test_generate_wraps_a_dense_checkpoint(launcher, dense_mdm, mdm_patched, mdm
     proc, wrapped = M.generate(repo, dense_mdm, str(tmp_path / "wrapped"), "trans_enc",
                                ["--sparse_preset", "zero_shot"], launcher=launcher)
     assert WRAPPED in proc.stdout and "zero_shot" in proc.stdout, proc.stdout[-2000:]
+    on = [ln for ln in proc.stderr.splitlines() if "sparse keyframe mode ON" in ln]   # what the run does
+    assert len(on) == 1 and on[0].startswith("smdm: sparse keyframe mode ON (MDM/DiP, sampling): "), proc.stderr[-2000:]
+    assert "uniform keyframes at every step (dynamic update off), linear fill" in on[0]
+    assert "vw" not in on[0] and "mask noise" not in on[0]
+    cfg = json.load(open(os.path.join(str(tmp_path / "wrapped"), "sparse_config.json")))   # beside results.npy
+    assert cfg["reduction"] == 0.8 and cfg["fsq"] is False and cfg["lipschitz"] is False
+    assert not os.path.exists(os.path.join(str(tmp_path / "dense"), "sparse_config.json"))
     assert wrapped["motion"].shape == dense["motion"].shape and np.isfinite(wrapped["motion"]).all()
     assert not np.allclose(wrapped["motion"], dense["motion"], atol=1e-3)   # 80% of the frames dropped
     # a preset at reduction 0: the wrapped model computes the dense model's samples

@@ -87,22 +87,3 @@ def test_sparsify_init_still_follows_the_seed():
         return [p.detach().clone() for p in m.parameters()]
     a, b = weights(), weights()
     assert all(torch.equal(x, y) for x, y in zip(a, b))
-
-
-def test_the_users_run_says_sparse_mode_is_on_and_with_what(capsys):
-    """One line in the user's own log (stderr) when the integration sparsifies: the settings the
-    model runs with; once per model; nothing for a dense run."""
-    m = TinyMDM(njoints=8, nfeats=1, latent_dim=32, ff_size=64, num_layers=2, cond_mode="no_cond")
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore")
-        sparsify_mdm(m, _args(False))
-        assert "sparse keyframe mode" not in capsys.readouterr().err
-        sparsify_mdm(m, _args(True))
-        sparsify_mdm(m, _args(True))                    # patch + launcher both call it
-    lines = [ln for ln in capsys.readouterr().err.splitlines() if "sparse keyframe mode ON" in ln]
-    from smdm_plugin import sparse_config_of
-
-    cfg = sparse_config_of(m)
-    assert lines == [f"smdm: sparse keyframe mode ON (MDM/DiP): {cfg.summary()}"]
-    assert f"reduction {cfg.reduction:g}" in lines[0] and ("FSQ keys on" if cfg.fsq else "FSQ keys off") in lines[0]
-    assert not [k for k in vars(m) if k.startswith("_smdm") and k != "_smdm_state"]

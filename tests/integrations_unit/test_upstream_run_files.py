@@ -7,7 +7,9 @@ indent=4, sort_keys=True)``; MotionDiffuse's ``key: value`` lines)."""
 import argparse
 import json
 import os
+import subprocess
 import sys
+import textwrap
 import warnings
 
 import numpy as np
@@ -17,11 +19,12 @@ import torch
 from smdm_plugin import SparseConfig, TinyMDM
 from smdm_plugin.core.agreement import disagreement
 from smdm_plugin.core.config_files import CONFIG_FILENAME
-from smdm_plugin.integrations.mdm import add_sparse_options, sparsify_mdm
+from smdm_plugin.integrations.mdm import add_sparse_options, sample_output_dir, sparsify_mdm
 from smdm_plugin.integrations.priormdm import doubletake_output_dir, sparsify_priormdm
 from smdm_plugin.reference.diffusion import SimpleDiffusion
 
 from helpers.motiondiffuse_standin import StandInDiffusion, StandInMotionTransformer
+from helpers.paths import ROOT
 
 
 def _train_args(save_dir: str, *argv: str) -> argparse.Namespace:
@@ -109,33 +112,39 @@ def test_doubletake_output_dir_given_or_impossible():
     assert doubletake_output_dir(_dt_args(model_path=None)) is None
 
 
-def _doubletake_run(cwd, args: str, then: str) -> None:
-    """A sparse DoubleTake sampling run in a child process, in ``cwd`` (sparse_config.json is
-    written when the process ends, after upstream has replaced its output folder): sparsify with
-    the option values ``args`` (Python keyword text), then run ``then`` (writes the outputs)."""
-    import subprocess
-    import textwrap
-
+def _sampling_run(cwd, args: str, then: str, model: str = "doubleTake_TinyMDM", entry: str = "priormdm",
+                  sparse: bool = True, extra: str = "") -> subprocess.CompletedProcess:
+    """A sampling run in a child process, in ``cwd`` (sparse_config.json is written when the process
+    ends, after upstream has replaced its output folder): build ``model`` (``doubleTake_TinyMDM``,
+    ``TinyMDM``, ``DiP``), call the integration's entry point (``priormdm``: ``sparsify_priormdm``,
+    ``mdm``: ``sparsify_mdm``) with the option values ``args`` (Python keyword text), then run
+    ``then`` (writes the outputs as upstream does). ``extra``: code run first (upstream's set-up)."""
     script = textwrap.dedent("""
         import argparse, os, time, warnings, numpy as np
-        warnings.simplefilter("ignore")
+        {extra}
         from smdm_plugin import TinyMDM
         from smdm_plugin.integrations.priormdm import sparsify_priormdm
+        from smdm_plugin.integrations.mdm import sparsify_mdm
         class doubleTake_TinyMDM(TinyMDM):
             pass
-        m = doubleTake_TinyMDM(njoints=8, nfeats=1, latent_dim=32, ff_size=64, num_layers=1, cond_mode="no_cond")
-        args = argparse.Namespace(sparse=True, sparse_feature="raw", sparse_reduction=0.75, blend_len=5, {args})
-        sparsify_priormdm(m, args)
-    """).format(args=args) + textwrap.dedent(then)
-    repo = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
-    env = dict(os.environ, PYTHONPATH=os.pathsep.join([repo, os.environ.get("PYTHONPATH", "")]))
-    subprocess.run([sys.executable, "-c", script], check=True, env=env, cwd=str(cwd), timeout=120)
+        kw = dict(njoints=8, nfeats=1, latent_dim=32, ff_size=64, num_layers=1, cond_mode="no_cond")
+        m = {model}(**kw) if {model!r} != "DiP" else TinyMDM(context_len=20, pred_len=40, **kw)
+        args = argparse.Namespace(sparse={sparse}, sparse_feature="raw", sparse_reduction=0.75, blend_len=5, {args})
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")   # (no dataset Mean/Std here)
+            sparsify_{entry}(m, args)
+    """).format(args=args, model=model, entry=entry, sparse=sparse, extra=extra) + textwrap.dedent(then)
+    env = dict(os.environ, PYTHONPATH=os.pathsep.join([str(ROOT), os.environ.get("PYTHONPATH", "")]))
+    proc = subprocess.run([sys.executable, "-c", script], env=env, cwd=str(cwd), timeout=300,
+                          capture_output=True, text=True)
+    assert proc.returncode == 0, proc.stderr
+    return proc
 
 
 def test_doubletake_sampling_writes_sparse_config_beside_its_outputs(tmp_path):
     """With --output_dir: that folder's sparse_config.json is the model's config."""
     out = tmp_path / "out"
-    _doubletake_run(tmp_path, f"model_path={str(tmp_path / 'model000001.pt')!r}, output_dir={str(out)!r}", """
+    _sampling_run(tmp_path, f"model_path={str(tmp_path / 'model000001.pt')!r}, output_dir={str(out)!r}", """
         os.makedirs(args.output_dir)
         np.save(os.path.join(args.output_dir, "results.npy"), np.zeros(1))
     """)
@@ -149,7 +158,7 @@ def test_doubletake_sparse_config_goes_to_the_derived_folder_not_the_newest(tmp_
     run = tmp_path / "run"
     run.mkdir()
     exact = "DoubleTake_samples_run_000000100_seed4_handshake_20_double_take_blend_5_skipSteps_100"
-    _doubletake_run(tmp_path, 'model_path="run/model000000100.pt", output_dir="", input_text="", seed=4, '
+    _sampling_run(tmp_path, 'model_path="run/model000000100.pt", output_dir="", input_text="", seed=4, '
                               "sample_gt=False, double_take=True, handshake_size=20, skip_steps_double_take=100", f"""
         for name in ({exact!r}, "DoubleTake_samples_other"):   # the second one written last: the newest
             os.makedirs(os.path.join("run", name))
@@ -158,6 +167,95 @@ def test_doubletake_sparse_config_goes_to_the_derived_folder_not_the_newest(tmp_
     """)
     assert SparseConfig.load(str(run / exact / CONFIG_FILENAME)).reduction == 0.75
     assert not (run / "DoubleTake_samples_other" / CONFIG_FILENAME).exists()
+
+
+def _mdm_args(**kw):
+    base = dict(model_path="save/my_model/model000200000.pt", output_dir="", seed=10, text_prompt="", input_text="",
+                dynamic_text_path="")
+    return argparse.Namespace(**{**base, **kw})
+
+
+def _edit_args(**kw):
+    base = dict(model_path="save/my_model/model000200000.pt", output_dir="", seed=10, edit_mode="in_between",
+                text_condition="")
+    return argparse.Namespace(**{**base, **kw})
+
+
+@pytest.mark.parametrize("args,name", [
+    (_mdm_args(), "samples_my_model_000200000_seed10"),
+    (_mdm_args(seed=3, text_prompt="a person. jumps"), "samples_my_model_000200000_seed3_a_person_jumps"),
+    (_mdm_args(input_text="texts/my prompts.v2.txt"), "samples_my_model_000200000_seed10_my_promptsv2"),
+    (_mdm_args(dynamic_text_path="d/dyn.txt"), "samples_my_model_000200000_seed10_dyn"),
+    (_mdm_args(text_prompt="walk", input_text="x.txt"), "samples_my_model_000200000_seed10_walk"),
+    (_edit_args(), "edit_my_model_000200000_in_between_seed10"),
+    (_edit_args(edit_mode="upper_body", seed=4, text_condition="wave. hands"),
+     "edit_my_model_000200000_upper_body_seed4_wave_hands"),
+])
+def test_mdm_sample_output_dir_is_derived_from_the_args_as_upstream_does(args, name):
+    """Expected names written out by hand from MDM's sample/generate.py and sample/edit.py (d4fd88c)."""
+    assert sample_output_dir(args) == os.path.abspath(os.path.join("save", "my_model", name))
+
+
+def test_mdm_sample_output_dir_given_or_none():
+    assert sample_output_dir(_mdm_args(output_dir="res/x")) == os.path.abspath("res/x")
+    assert sample_output_dir(argparse.Namespace(model_path="m/model1.pt", eval_mode="wo_mm")) is None  # eval_humanml
+    assert sample_output_dir(_mdm_args(model_path=None)) is None
+
+
+_WRITE_RESULTS = """
+os.makedirs(OUT, exist_ok=True)   # what sample.generate / sample.edit do at the end (rmtree, makedirs)
+np.save(os.path.join(OUT, "results.npy"), np.zeros(1))
+"""
+
+
+@pytest.mark.parametrize("model", ["TinyMDM", "DiP"])
+def test_mdm_sparse_sampling_writes_sparse_config_beside_its_results(tmp_path, model):
+    """sample.generate (MDM, DiP) with a sparse checkpoint: the folder of results.npy gets the config
+    that sampled it, so a sparse results.npy can be told from a dense one afterwards."""
+    out = tmp_path / "out"
+    _sampling_run(tmp_path, f"model_path={str(tmp_path / 'model000001.pt')!r}, output_dir={str(out)!r}",
+                  f"OUT = {str(out)!r}" + _WRITE_RESULTS, model=model, entry="mdm")
+    cfg = SparseConfig.load(str(out / CONFIG_FILENAME))
+    assert cfg.enabled and cfg.reduction == 0.75 and cfg.prefix_frames == (20 if model == "DiP" else 0)
+
+
+def test_mdm_zero_shot_edit_writes_sparse_config_in_the_derived_folder(tmp_path):
+    """sample.edit --sparse_preset zero_shot on a dense checkpoint, no --output_dir: the folder edit
+    derives from its options gets the preset's settings."""
+    (tmp_path / "run").mkdir()
+    out = tmp_path / "run" / "edit_run_000000100_in_between_seed4_jump"
+    _sampling_run(tmp_path, 'model_path="run/model000000100.pt", output_dir="", seed=4, edit_mode="in_between", '
+                            'text_condition="jump", sparse_preset="zero_shot"',
+                  f"OUT = {str(out)!r}" + _WRITE_RESULTS, model="TinyMDM", entry="mdm", sparse=False)
+    cfg = SparseConfig.load(str(out / CONFIG_FILENAME))
+    assert cfg.fsq is False and cfg.lipschitz is False and cfg.dynamic_update is False
+
+
+def test_dense_sampling_and_failed_sampling_write_no_sparse_config(tmp_path):
+    out = tmp_path / "out"
+    _sampling_run(tmp_path, f"model_path='m/model1.pt', output_dir={str(out)!r}", f"OUT = {str(out)!r}" +
+                  _WRITE_RESULTS, model="TinyMDM", entry="mdm", sparse=False)
+    assert (out / "results.npy").exists() and not (out / CONFIG_FILENAME).exists()     # dense: upstream's files
+    failed = tmp_path / "failed"
+    _sampling_run(tmp_path, f"model_path='m/model1.pt', output_dir={str(failed)!r}", "", model="TinyMDM", entry="mdm")
+    assert not failed.exists()                                                          # no results.npy: nothing
+
+
+def test_a_sparse_config_json_already_there_is_never_overwritten(tmp_path):
+    """Another config already in the results folder stays as it is; the run says so in one smdm:
+    line on stderr, even with warnings captured by logging (moviepy's set-up in MDM)."""
+    out = tmp_path / "out"
+    out.mkdir()
+    theirs = SparseConfig(reduction=0.5)
+    theirs.save(str(out / CONFIG_FILENAME))
+    before = (out / CONFIG_FILENAME).read_bytes()
+    proc = _sampling_run(tmp_path, f"model_path='m/model1.pt', output_dir={str(out)!r}", f"OUT = {str(out)!r}" +
+                         _WRITE_RESULTS, model="TinyMDM", entry="mdm",
+                         extra="import logging; logging.captureWarnings(True)")
+    assert (out / CONFIG_FILENAME).read_bytes() == before
+    lines = [ln for ln in proc.stderr.splitlines() if CONFIG_FILENAME in ln]
+    assert len(lines) == 1 and lines[0].startswith(f"smdm: {CONFIG_FILENAME} not written beside "), proc.stderr
+    assert "differs in reduction" in lines[0]
 
 
 def test_motiondiffuse_opt_txt_states_fsq_off_with_a_warning(tmp_path):

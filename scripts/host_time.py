@@ -1,0 +1,44 @@
+"""Host time per call on this CPU, dense against sparse: the table of docs/gpu.md ("Host time").
+
+    python scripts/host_time.py [--variants trans_enc trans_dec dip motiondiffuse] [--repeats 100]
+
+Each variant at MDM's depth and heads on tiny tensors, the static (GPU) code path, fused ops,
+SDPA and foreach ops charged one launch each (smdm_plugin/training/hosttime.py); one thread.
+Prints a markdown table (host ms per call, sparse / dense).
+"""
+from __future__ import annotations
+
+import argparse
+import sys
+from typing import List, Optional
+
+import torch
+
+from smdm_plugin.core.checks import static_mode
+from smdm_plugin.training.hosttime import HOST_SIZE, HOST_VARIANTS, host_cells, host_times
+
+
+def main(argv: Optional[List[str]] = None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--variants", nargs="+", choices=HOST_VARIANTS, default=list(HOST_VARIANTS))
+    p.add_argument("--repeats", type=int, default=100, help="interleaved repeats per cell (default 100)")
+    a = p.parse_args(argv)
+    if a.repeats < 1:
+        p.error(f"argument --repeats: must be >= 1, got {a.repeats}")
+    torch.set_num_threads(1)
+    print(f"host time per call (ms, thread CPU time; size {HOST_SIZE}; torch {torch.__version__})\n")
+    print("| variant | precision | call | dense ms | sparse ms | sparse / dense |")
+    print("| --- | --- | --- | ---: | ---: | ---: |")
+    for variant in a.variants:
+        for precision in ("fp32", "bf16"):
+            with static_mode():
+                dense, sparse = host_cells(variant, False, precision), host_cells(variant, True, precision)
+                for call in ("train", "sample"):
+                    r = host_times({"dense": dense[call], "sparse": sparse[call]}, repeats=a.repeats)
+                    print(f"| {variant} | {precision} | {call} | {r.ms['dense']:.2f} | {r.ms['sparse']:.2f} | "
+                          f"{r.ratio('sparse', 'dense'):.2f} |", flush=True)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,100 @@
+"""Every attention of a sparse call reaches ``F.scaled_dot_product_attention`` in the layout every
+SDPA kernel accepts (issue 36: cuDNN's kernel crashed with ``misaligned address`` on bf16 sampling of
+trans_dec, whose FSQ attention handed it 8-channel query/key heads cut from one projection and a key
+mask of 39-element rows). Checked on the CPU under ``static_mode`` (the code path of accelerators):
+q, k, v views of contiguous ``[B, S, H·e]``, head sizes multiples of 8, mask rows 16-element
+aligned (:func:`smdm_plugin.core.attention.sdpa_layout_problems`)."""
+import sys
+
+import pytest
+import torch
+import torch.nn.functional as F
+
+from smdm_plugin import SimpleDiffusion, SparseConfig, TinyMDM, sparsify
+from smdm_plugin.core.attention import aligned_key_bias, sdpa_layout_problems
+from smdm_plugin.core.checks import static_mode
+from smdm_plugin.reference.diffusion import ClassifierFreeGuidance
+
+VARIANTS = {
+    "trans_enc": dict(arch="trans_enc"),
+    "trans_dec": dict(arch="trans_dec"),
+    "dip": dict(arch="trans_dec", emb_trans_dec=True, context_len=20, pred_len=40),
+}
+
+
+class SdpaSpy:
+    """Patches ``F.scaled_dot_product_attention`` (looked up at call time by this package and
+    ``nn.MultiheadAttention``) and records the layout problems of every call the package makes
+    (``nn.MultiheadAttention``'s own calls — upstream's dense cross-attention — are PyTorch's)."""
+
+    def __init__(self, monkeypatch):
+        self.calls, self.problems = 0, []
+        original = F.scaled_dot_product_attention
+
+        def spy(q, k, v, attn_mask=None, *args, **kwargs):
+            if "smdm_plugin" in sys._getframe(1).f_code.co_filename:
+                self.calls += 1
+                self.problems += sdpa_layout_problems(q, k, v, attn_mask)
+            return original(q, k, v, attn_mask, *args, **kwargs)
+        monkeypatch.setattr(F, "scaled_dot_product_attention", spy)
+
+
+def _model(name, N, hooked=False):
+    torch.manual_seed(0)
+    model = TinyMDM(latent_dim=64, ff_size=128, num_layers=2, num_heads=4, dropout=0.1, **VARIANTS[name])
+    diffusion = SimpleDiffusion(10)
+    sparsify(model, SparseConfig(dynamic_update=True), diffusion=diffusion)
+    if hooked:   # a hook on a layer: the modules run (the functional path would skip the hook)
+        layer = (model.seqTransEncoder if name == "trans_enc" else model.seqTransDecoder).layers[0]
+        layer.register_forward_hook(lambda m, a, out: None)
+    B = 3
+    g = torch.Generator().manual_seed(1)
+    lengths = torch.tensor([N, N - 7, N - 20]) if name != "dip" else torch.full((B,), N)
+    x = torch.randn(B, 263, 1, N, generator=g)
+    y = {"mask": (torch.arange(N) < lengths[:, None]).view(B, 1, 1, N), "lengths": lengths,
+         "text_embed": torch.randn(1, B, 512, generator=g)}
+    if name == "dip":
+        y["prefix"] = torch.randn(B, 263, 1, 20, generator=g)
+    return model, diffusion, x, y
+
+
+@pytest.mark.parametrize("hooked", [False, True], ids=["functional", "modules"])
+@pytest.mark.parametrize("precision", ["fp32", "bf16"])
+@pytest.mark.parametrize("name", list(VARIANTS))
+def test_every_attention_of_a_sparse_call_has_the_layout_every_sdpa_kernel_accepts(name, precision, hooked, monkeypatch):
+    """Training step and sampling calls (early and late steps, the VW update on) of trans_enc,
+    trans_dec and DiP, fp32 and bf16 autocast, through the stock layers as functions and through the
+    modules (a hooked layer): no SDPA call with strided heads, odd head sizes or unaligned mask
+    rows. (The sequence lengths are chosen so that the keyframe slots are not a multiple of 16.)"""
+    spy = SdpaSpy(monkeypatch)
+    model, diffusion, x, y = _model(name, 40 if name == "dip" else 61, hooked)
+    bf16 = precision == "bf16"
+    with static_mode():
+        model.train()
+        with torch.autocast("cpu", torch.bfloat16, enabled=bf16):
+            loss = diffusion.training_losses(model, x, torch.tensor([1, 4, 8]), {"y": dict(y)})["loss"].mean()
+        loss.backward()
+        model.eval()
+        guided = ClassifierFreeGuidance(model)
+        with torch.no_grad(), torch.autocast("cpu", torch.bfloat16, enabled=bf16):
+            for t in (8, 0):
+                guided(x, torch.full((3,), t), dict(y))
+    assert spy.calls > 0
+    assert not spy.problems, spy.problems[:4]
+
+
+def test_the_layout_check_sees_what_crashed_cudnn():
+    """The checker itself: the 0.7 folded path's strided 8-channel heads cut from one projection and
+    a key mask of 39-element rows are reported; contiguous heads and an aligned mask are not."""
+    B, S, H, P, hd = 2, 39, 4, 8, 16
+    proj = torch.randn(S, B, 2 * H * P + H * hd)
+    q = proj[..., :H * P].unflatten(-1, (H, P)).permute(1, 2, 0, 3)
+    k = proj[..., H * P:2 * H * P].unflatten(-1, (H, P)).permute(1, 2, 0, 3)
+    v = proj[..., 2 * H * P:].unflatten(-1, (H, hd)).permute(1, 2, 0, 3)
+    bias = torch.zeros(B, S)
+    problems = sdpa_layout_problems(q, k, v, bias.view(B, 1, 1, S))
+    assert len(problems) == 4 and "mask" in problems[-1]
+    good = [t.transpose(1, 2).contiguous().transpose(1, 2) for t in (q, k, v)]
+    aligned = aligned_key_bias(bias)
+    assert not sdpa_layout_problems(*good, aligned)
+    assert aligned.shape == (B, 1, 1, S) and aligned.stride(0) % 16 == 0 and torch.equal(aligned[:, 0, 0], bias)
