@@ -43,8 +43,6 @@ from typing import Any, Callable, Dict, List, Optional, Tuple
 import torch
 import torch.nn as nn
 
-from ..core.checks import compiling, static_mode
-
 __all__ = ["COMPILE_MODES", "CompileSetting", "CompiledFunction", "add_compile_options", "check_compile_mode",
            "compile_function", "compile_model", "compile_setting", "compile_stats", "uncompile", "compile_from_args",
            "fused_optimizer_kwargs", "prepare_call", "PREPARERS"]
@@ -403,6 +401,8 @@ class CompiledFunction:
         return self._compiled[fullgraph], self._mode == "reduce-overhead" and device.type == "cuda"
 
     def __call__(self, *args: Any, **kwargs: Any) -> Any:
+        from ..core.checks import compiling, static_mode   # here: a flag-off run loads only the options
+
         if compiling():                              # inside an outer compiled function: one graph
             return self._run(*args, **kwargs)
         if self.prepare is not None:
