@@ -99,3 +99,16 @@ def triton_interpreter():
         assert res.returncode == 0, res.stderr[-2000:]
         return res.stdout
     return run
+
+
+@pytest.fixture
+def fresh_dynamo():
+    """Dynamo reset and its counters cleared before and after the test (compiled frames of earlier
+    tests neither count against the recompile limit nor in ``counters['stats']['unique_graphs']``);
+    modules opt in with ``pytestmark = pytest.mark.usefixtures("fresh_dynamo")``."""
+    from torch._dynamo.utils import counters
+
+    torch._dynamo.reset()
+    counters.clear()
+    yield
+    torch._dynamo.reset()

@@ -22,9 +22,12 @@ all alike):
 plus, for the sparse variants, the share of the step spent in keyframe selection and in the
 interpolation back to all frames, and peak memory (CUDA: max allocated; CPU: the peak rise of the
 process RSS), and each cell's kernel launches (:func:`~smdm_plugin.training.timing.launches`). ``--amp bf16`` runs under
-``torch.autocast``; ``--compile MODE [MODE ...]`` compiles dense and sparse models alike with each
-mode (the helper of ``--sparse_compile``, docs/compile.md; default on CUDA: eager and
-reduce-overhead, one table; speed-ups against the dense model at the same mode). Medians of
+``torch.autocast``; ``--compile MODE [MODE ...]`` compiles dense and sparse alike with each mode,
+each step whole (the training loss forward and backward with AdamW fused on CUDA; the guided call
+with both passes; the sampling step the loop replays: the helper of ``--sparse_compile``,
+docs/compile.md; default on CUDA: eager and reduce-overhead, one table; speed-ups against the
+dense model at the same mode). ``--arch dip`` / ``doubletake`` time DiP's prefix completion and
+priorMDM's DoubleTake model too. Medians of
 ``--repeats`` after ``--warmup`` runs (compilation happens in the warm-up). The table names the
 device, the mode and the attention backend the sparse model ran.
 
@@ -143,8 +146,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="--family motiondiffuse: a MotionDiffuse checkout (the folder holding text2motion/) whose "
                         f"own MotionTransformer to time (default ${MotionDiffuseWorkload.root_env} when set, else "
                         "the in-package one with the same layout)")
-    p.add_argument("--arch", nargs="+", default=None, choices=["trans_enc", "trans_dec"],
-                   help="MDM architectures to time (default: both; --family mdm only)")
+    p.add_argument("--arch", nargs="+", default=None, choices=list(WORKLOADS.get("mdm").archs),
+                   help="MDM variants to time: trans_enc, trans_dec (the default: both), dip (DiP's prefix "
+                        "completion, 20 + 40 frames), doubletake (priorMDM's model, its first take's handshake "
+                        "frames forced at sampling); --family mdm only")
     p.add_argument("--reductions", nargs="+", type=float_range(0.0, 1.0, hi_open=True), default=[0.6, 0.7, 0.8, 0.9],
                    help="fractions of frames dropped, each in [0, 1)")
     p.add_argument("--batch", type=int_range(1), default=None, help="motions per batch (default 64)")

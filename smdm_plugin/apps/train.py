@@ -72,9 +72,10 @@ def build_parser() -> argparse.ArgumentParser:
     t.add_argument("--save-every", type=int_range(0), default=0,
                    help="also save a checkpoint every this many steps (default 0: only at the end)")
     t.add_argument("--compile", nargs="?", const="default", default="none", choices=COMPILE_MODES, metavar="MODE",
-                   help="torch.compile the model once before the loop, dense or sparse: none (default), default "
-                        "(also the bare --compile) or reduce-overhead (CUDA graphs; CUDA only, else default with a "
-                        "warning); docs/compile.md")
+                   help="capture the whole training step (loss forward and backward; AdamW fused on CUDA; under "
+                        "torchrun the model call, inside DDP), dense or sparse: none (default), default (also the "
+                        "bare --compile) or reduce-overhead (CUDA graphs; CUDA only, else default with a warning); "
+                        "docs/compile.md")
     t.add_argument("--compile-backend", type=compile_backend, default="inductor",
                    help="torch.compile backend (default: inductor)")
     m = p.add_argument_group("model (TinyMDM)")

@@ -146,7 +146,7 @@ def heads(t: Tensor, H: int, copy: bool) -> Tensor:
 def compute_dtype(t: Tensor) -> torch.dtype:
     """The dtype a matmul on ``t`` runs in: autocast's for ``t``'s device when it is on, else
     ``t``'s."""
-    if torch.is_autocast_enabled(t.device.type):
+    if t.device.type != "meta" and torch.is_autocast_enabled(t.device.type):   # meta: no autocast state
         return torch.get_autocast_dtype(t.device.type)
     return t.dtype
 

@@ -23,6 +23,7 @@ import torch.nn.functional as F
 from torch import Tensor, nn
 from torch.nn.utils import parametrize
 
+from .attention import compute_dtype
 from .checks import compiling as _compiling, module_device
 from .kernels.lipschitz_op import lipschitz_weight, row_abs_sum as _row_abs_sum
 
@@ -76,8 +77,7 @@ class LipschitzWeight(nn.Module):
         # would make at every call: the cached weight is no leaf, autocast would not cache its cast).
         key = None
         if not torch.is_grad_enabled() and not _compiling():
-            device = weight.device.type
-            dtype = torch.get_autocast_dtype(device) if torch.is_autocast_enabled(device) else weight.dtype
+            dtype = compute_dtype(weight)
             key = (weight.data_ptr(), weight._version, self.c.data_ptr(), self.c._version,
                    weight.dtype, weight.device, weight.shape, dtype)
             if self._cache is not None and self._cache[0] == key:
@@ -327,7 +327,7 @@ class LipschitzMLP(nn.Module):
             return None
         tensors = [t for pair in pairs for t in pair]
         device = tensors[0].device.type
-        dtype = torch.get_autocast_dtype(device) if torch.is_autocast_enabled(device) else tensors[0].dtype
+        dtype = compute_dtype(tensors[0])
         key = (dtype, tuple(map(Tensor.data_ptr, tensors)), tuple(t._version for t in tensors))
         cache = self.__dict__.get("_sampling_cache")
         if cache is not None and cache[0] == key:

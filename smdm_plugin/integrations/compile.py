@@ -17,9 +17,18 @@ side at its best:
   at sampling, classifier-free guidance's unconditional pass folded into zeroed text features
   (exact in eval mode), so both guidance passes share one graph.
 * **Static batch** (CUDA graphs replay fixed shapes): per phase (train / eval, grad on / off,
-  motion shape without the batch) the first batch size seen is the static one; a call with
-  another batch size (an epoch's last partial batch) runs **eagerly**, never recompiling, and is
-  counted in :attr:`CompileSetting.eager_calls` (warned once).
+  autocast, motion shape without the batch) the first batch size seen is the static one; a call
+  with another batch size (an epoch's last partial batch) runs **eagerly**, never recompiling, and
+  is counted in :attr:`CompileSetting.eager_calls` (warned once).
+* **The first call of a phase runs eagerly** (on the static-shape path the graph takes:
+  :func:`~smdm_plugin.core.checks.static_mode`), counted in :attr:`CompileSetting.warm_calls`: it
+  fills every per-device cache the sparse path keeps (the schedule's plan and count tables, the
+  selection constants, the noise table on the device), so the trace that follows only reads them:
+  no constant table, and no tensor of another device, is ever built inside a graph (issue 36's
+  ``cuda:0, cpu`` crash), and no cache write fails a guard afterwards.
+* :func:`compile_function` compiles more than the model call in the same way (``smdm train``'s
+  whole training loss, ``smdm bench``'s guided sampling call and sampling step): the model's own
+  compiled call is then traced inline (one graph for the whole function).
 * ``reduce-overhead`` (CUDA graphs): ``torch.compiler.cudagraph_mark_step_begin()`` before
   every call and the outputs cloned, so the second guidance pass never overwrites the first
   pass's output. Without CUDA it cannot apply: a warning, and the run compiles with ``default``
@@ -34,11 +43,17 @@ from typing import Any, Callable, Dict, List, Optional, Tuple
 import torch
 import torch.nn as nn
 
-__all__ = ["COMPILE_MODES", "CompileSetting", "add_compile_options", "check_compile_mode", "compile_model",
-           "compile_setting", "compile_stats", "uncompile", "compile_from_args", "PREPARERS"]
+__all__ = ["COMPILE_MODES", "CompileSetting", "CompiledFunction", "add_compile_options", "check_compile_mode",
+           "compile_function", "compile_model", "compile_setting", "compile_stats", "uncompile", "compile_from_args",
+           "fused_optimizer_kwargs", "prepare_call", "PREPARERS"]
 
 #: the values of ``--sparse_compile`` / ``smdm train --compile`` / ``smdm bench --compile``
 COMPILE_MODES = ("none", "default", "reduce-overhead")
+#: what one graph covers (:attr:`CompileSetting.captures`), as runs and tables state it
+CAPTURES_MODEL = "model call"
+CAPTURES_TRAIN = "training step: loss forward and backward"
+CAPTURES_GUIDED = "guided sampling call: every guidance pass"
+CAPTURES_SAMPLE_STEP = "sampling step: guided call and ancestral update"
 #: the argparse option the upstream integrations add (``smdm train`` / ``bench`` call it ``--compile``)
 FLAG = "--sparse_compile"
 _WARN = "smdm compile"
@@ -60,27 +75,32 @@ def check_compile_mode(mode: Any, name: str = FLAG) -> str:
 class CompileSetting:
     """How a model runs: ``requested`` (what was asked), ``mode`` (what applies: ``none`` /
     ``default`` / ``reduce-overhead``), ``backend``, ``fullgraph``, ``note`` (why ``mode`` differs
-    from ``requested``); counters: ``compiled_calls``, ``eager_calls`` (calls outside the static
-    batch, run eagerly)."""
+    from ``requested``), ``captures`` (what one graph covers: ``model call``, ``training step``,
+    ...); counters: ``compiled_calls``, ``warm_calls`` (each phase's first call, run eagerly to
+    fill the caches the graph reads), ``eager_calls`` (calls outside the static batch, run
+    eagerly), ``recompiles`` (graphs captured after a phase's first compiled call; 0 is the
+    guarantee)."""
 
     requested: str
     mode: str
     backend: str = "inductor"
     fullgraph: bool = True
     note: str = ""
+    captures: str = CAPTURES_MODEL
     compiled_calls: int = 0
+    warm_calls: int = 0
     eager_calls: int = 0
     recompiles: int = 0
 
     def to_dict(self) -> Dict[str, Any]:
         """What a run records (``args.json``'s ``sparse_compile_applied``, ``train_config.json``...)."""
         return {"requested": self.requested, "mode": self.mode, "backend": self.backend,
-                "fullgraph": self.fullgraph, "note": self.note}
+                "fullgraph": self.fullgraph, "captures": self.captures, "note": self.note}
 
     def describe(self) -> str:
         if self.mode == "none":
             return "eager" + (f" ({self.note})" if self.note else "")
-        s = f"torch.compile {self.mode} ({self.backend}, fullgraph={self.fullgraph})"
+        s = f"torch.compile {self.mode} ({self.backend}, fullgraph={self.fullgraph}; {self.captures})"
         return s + (f"; {self.note}" if self.note else "")
 
 
@@ -296,23 +316,69 @@ def _graph_count() -> int:
     return int(counters["stats"]["unique_graphs"])
 
 
+def _autocast_key(device: torch.device) -> Optional[Tuple[bool, torch.dtype]]:
+    """``(enabled, dtype)`` of autocast on ``device``'s type (a phase of its own: another dtype is
+    another graph); None where autocast has no state (``meta``)."""
+    try:
+        return torch.is_autocast_enabled(device.type), torch.get_autocast_dtype(device.type)
+    except RuntimeError:
+        return None
+
+
+def _contiguous(value: Any) -> Any:
+    """Tensors (top level, and in a top-level dict) made contiguous: a graph guards on strides, and
+    a model's output fed back (a sampling loop's ``x_t``) may come back in another layout."""
+    if isinstance(value, torch.Tensor):
+        return value.contiguous()
+    if isinstance(value, dict):
+        return {k: v.contiguous() if isinstance(v, torch.Tensor) else v for k, v in value.items()}
+    return value
+
+
 def _none() -> None:
     return None
 
 
-class _CompiledCall:
-    """What ``model.__call__`` runs once compiled (``nn.Module._compiled_call_impl``)."""
+class CompiledFunction:
+    """A function ``fn`` compiled for ``setting`` (:func:`compile_function`; the model call of
+    :func:`compile_model` is one too), with the guarantees of docs/compile.md:
 
-    def __init__(self, model: nn.Module, setting: CompileSetting) -> None:
-        self.model, self.setting = model, setting
-        self.prepare = _preparer(model)
+    * per *phase* (``model``'s train / eval, grad on / off, autocast, device, the first tensor's
+      shape without the batch, fullgraph) the **first call runs eagerly** on the static-shape path
+      (:func:`~smdm_plugin.core.checks.static_mode`; it fills the per-device caches the trace
+      then only reads) and fixes the phase's static batch; the next call captures the graph, and
+      no later call captures another (``recompiles`` counts any that does);
+    * a call with another batch size (a last partial batch) runs eagerly (``eager_calls``);
+    * ``reduce-overhead`` on CUDA: ``cudagraph_mark_step_begin()`` before each call and the
+      outputs cloned (a later replay never overwrites what a caller holds);
+    * called while an outer compiled function traces, ``fn`` is traced inline (one graph).
+
+    ``prepare(args, kwargs) -> (args, kwargs)`` runs first, eagerly, on every call (text encoded,
+    tensors on the motion's device: what cannot be captured)."""
+
+    def __init__(self, fn: Callable, setting: CompileSetting, model: Optional[nn.Module] = None,
+                 prepare: Optional[Callable[[tuple, dict], Tuple[tuple, dict]]] = None) -> None:
+        self.fn, self.setting, self.model, self.prepare = fn, setting, model, prepare
         self._compiled: Dict[bool, Callable] = {}
         self._mode: Optional[str] = None
         self._static: Dict[tuple, int] = {}
+        self._traced: set = set()
         self._warned_eager = False
 
+    def _run(self, *args: Any, **kwargs: Any) -> Any:
+        """``fn`` itself (eager, or traced)."""
+        return self.fn(*args, **kwargs)
+
+    def _fullgraph(self, args: tuple, kwargs: dict) -> bool:
+        return self.setting.fullgraph
+
+    def _phase(self, x: torch.Tensor, fullgraph: bool) -> tuple:
+        training = None if self.model is None else self.model.training
+        return (training, torch.is_grad_enabled(), _autocast_key(x.device), x.device.type, tuple(x.shape[1:]),
+                fullgraph)
+
     def _function(self, device: torch.device, fullgraph: bool) -> Tuple[Callable, bool]:
-        """The compiled ``_call_impl`` (made on the first call; one per ``fullgraph``) and whether
+        """The compiled ``fn`` (made on the first compiled call; one per ``fullgraph``) and whether
         CUDA graphs apply."""
         s = self.setting
         if self._mode is None:
@@ -326,32 +392,40 @@ class _CompiledCall:
             kwargs: Dict[str, Any] = dict(fullgraph=fullgraph, dynamic=False, backend=s.backend)
             if s.backend == "inductor":
                 kwargs["mode"] = None if self._mode == "default" else self._mode
-            model = self.model
+            run = self._run
 
             def call(*args: Any, **kw: Any) -> Any:    # traced as one frame, the hooks inlined
-                return model._call_impl(*args, **kw)
+                return run(*args, **kw)
 
             self._compiled[fullgraph] = torch.compile(call, **kwargs)
         return self._compiled[fullgraph], self._mode == "reduce-overhead" and device.type == "cuda"
 
     def __call__(self, *args: Any, **kwargs: Any) -> Any:
-        args, kwargs = self.prepare(self.model, args, kwargs)
+        from ..core.checks import compiling, static_mode   # here: a flag-off run loads only the options
+
+        if compiling():                              # inside an outer compiled function: one graph
+            return self._run(*args, **kwargs)
+        if self.prepare is not None:
+            args, kwargs = self.prepare(args, kwargs)
+        args, kwargs = tuple(map(_contiguous, args)), {k: _contiguous(v) for k, v in kwargs.items()}
         x = _first_tensor(args, kwargs)
         if x is None:
-            return self.model._call_impl(*args, **kwargs)
-        # forced keyframes (sample.edit, in-betweening) are counted on the host once per call, as in
-        # eager: such calls trace with a graph break there (a phase of their own, same guarantee)
-        fullgraph = self.setting.fullgraph and not _has_forced(args, kwargs)
-        phase = (self.model.training, torch.is_grad_enabled(), x.device.type, tuple(x.shape[1:]), fullgraph)
-        warm = phase in self._static
-        batch = self._static.setdefault(phase, x.shape[0])
+            return self._run(*args, **kwargs)
+        fullgraph = self._fullgraph(args, kwargs)
+        phase = self._phase(x, fullgraph)
+        batch = self._static.get(phase)
+        if batch is None:                            # the phase's first call: eager, caches filled
+            self._static[phase] = x.shape[0]
+            self.setting.warm_calls += 1
+            with static_mode():
+                return self._run(*args, **kwargs)
         if x.shape[0] != batch:                      # outside the static batch: eager, no recompile
             self.setting.eager_calls += 1
             if not self._warned_eager:
                 self._warned_eager = True
                 warnings.warn(f"{_WARN}: a call with batch {x.shape[0]} (static batch {batch} for this "
                               f"shape) runs eagerly; the compiled graph keeps its static batch", stacklevel=3)
-            return self.model._call_impl(*args, **kwargs)
+            return self._run(*args, **kwargs)
         fn, graphs = self._function(x.device, fullgraph)
         self.setting.compiled_calls += 1
         before = _graph_count()
@@ -360,12 +434,27 @@ class _CompiledCall:
             out = _clone_outputs(fn(*args, **kwargs))
         else:
             out = fn(*args, **kwargs)
-        if warm and _graph_count() > before:
+        if phase in self._traced and _graph_count() > before:
             self.setting.recompiles += 1
+        self._traced.add(phase)
         return out
 
     def __reduce__(self):                            # torch.save(model): saved uncompiled
         return (_none, ())
+
+
+class _CompiledCall(CompiledFunction):
+    """What ``model.__call__`` runs once compiled (``nn.Module._compiled_call_impl``): the module's
+    ``_call_impl`` (hooks included), each call prepared by the model's :data:`PREPARERS` entry;
+    calls carrying forced keyframes are a phase of their own, traced with a graph break."""
+
+    def __init__(self, model: nn.Module, setting: CompileSetting) -> None:
+        super().__init__(model._call_impl, setting, model, prepare_call(model))
+
+    def _fullgraph(self, args: tuple, kwargs: dict) -> bool:
+        # forced keyframes (sample.edit, in-betweening) are counted on the host once per call, as in
+        # eager: such calls trace with a graph break there (a phase of their own, same guarantee)
+        return self.setting.fullgraph and not _has_forced(args, kwargs)
 
 
 # --------------------------------------------------------------------------- entry points
@@ -378,7 +467,34 @@ def _fullgraph_default(model: nn.Module) -> bool:
     return is_sparse(model) and not has_doubletake_forcing(model)
 
 
-def compile_model(model: nn.Module, mode: Any, *, backend: str = "inductor", fullgraph: Optional[bool] = None,
+def _setting(mode: Any, backend: Any, fullgraph: bool, device: Any, name: str, captures: str) -> CompileSetting:
+    """The :class:`CompileSetting` of ``mode`` (checked, named ``name``) as it can apply with
+    ``backend`` on ``device`` (default: CUDA when available): ``reduce-overhead`` needs inductor and
+    CUDA, else a warning and ``default``."""
+    mode = check_compile_mode(mode, name)
+    setting = CompileSetting(requested=mode, mode=mode, backend=backend, fullgraph=fullgraph, captures=captures)
+    if mode == "none":
+        return setting
+    if backend != "inductor" and mode == "reduce-overhead":
+        setting.mode = "default"
+        setting.note = f"reduce-overhead needs the inductor backend, got {backend!r}: compiled without CUDA graphs"
+        warnings.warn(f"{_WARN}: {setting.note}", stacklevel=3)
+    dev = torch.device(device) if device is not None else torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    if setting.mode == "reduce-overhead" and dev.type != "cuda":
+        setting.mode = "default"
+        setting.note = f"reduce-overhead needs CUDA graphs; no CUDA device here ({dev.type}): compiled with default"
+        warnings.warn(f"{_WARN}: {setting.note}", stacklevel=3)
+    return setting
+
+
+def _inner(model: nn.Module) -> nn.Module:
+    """The module inside DDP / DataParallel wrappers (what is compiled)."""
+    if isinstance(model, (nn.parallel.DistributedDataParallel, nn.DataParallel)):
+        return model.module
+    return model
+
+
+def compile_model(model: nn.Module, mode: Any, *, backend: Any = "inductor", fullgraph: Optional[bool] = None,
                   device: Any = None, name: str = FLAG) -> CompileSetting:
     """Compile ``model`` in place for ``mode`` (:data:`COMPILE_MODES`); returns its
     :class:`CompileSetting` (also on ``compile_setting(model)``). ``none`` leaves the model
@@ -387,25 +503,15 @@ def compile_model(model: nn.Module, mode: Any, *, backend: str = "inductor", ful
     builds its padding mask in a Python loop). ``device``: where
     the model will run (default: CUDA when available), to decide now whether ``reduce-overhead``
     can apply (else a warning and ``default``). Compiling again replaces the previous setting."""
-    mode = check_compile_mode(mode, name)
     if not isinstance(model, nn.Module):
+        check_compile_mode(mode, name)
         raise TypeError(f"compile_model: expected an nn.Module, got {type(model).__name__}")
-    if isinstance(model, (nn.parallel.DistributedDataParallel, nn.DataParallel)):
-        model = model.module                         # compile inside DDP / DataParallel wrappers
+    model = _inner(model)                            # compile inside DDP / DataParallel wrappers
     uncompile(model)
     fullgraph = _fullgraph_default(model) if fullgraph is None else bool(fullgraph)
-    setting = CompileSetting(requested=mode, mode=mode, backend=backend, fullgraph=fullgraph)
-    if mode == "none":
+    setting = _setting(mode, backend, fullgraph, device, name, CAPTURES_MODEL)
+    if setting.requested == "none":
         return setting
-    if backend != "inductor" and mode == "reduce-overhead":
-        setting.mode = "default"
-        setting.note = f"reduce-overhead needs the inductor backend, got {backend!r}: compiled without CUDA graphs"
-        warnings.warn(f"{_WARN}: {setting.note}", stacklevel=2)
-    dev = torch.device(device) if device is not None else torch.device("cuda" if torch.cuda.is_available() else "cpu")
-    if setting.mode == "reduce-overhead" and dev.type != "cuda":
-        setting.mode = "default"
-        setting.note = f"reduce-overhead needs CUDA graphs; no CUDA device here ({dev.type}): compiled with default"
-        warnings.warn(f"{_WARN}: {setting.note}", stacklevel=2)
     encoder = getattr(model, "encode_text", None)
     if encoder is not None and not _is_motiondiffuse(model):    # uncompile() put the original back
         model.encode_text = _PassThroughEncoder(encoder)
@@ -413,11 +519,47 @@ def compile_model(model: nn.Module, mode: Any, *, backend: str = "inductor", ful
     return setting
 
 
-def compile_setting(model: nn.Module) -> Optional[CompileSetting]:
-    """The :class:`CompileSetting` of a model :func:`compile_model` compiled (None: eager)."""
-    if isinstance(model, (nn.parallel.DistributedDataParallel, nn.DataParallel)):
-        model = model.module
-    call = getattr(model, "_compiled_call_impl", None)
+def prepare_call(model: nn.Module) -> Callable[[tuple, dict], Tuple[tuple, dict]]:
+    """``prepare(args, kwargs)`` of a call whose arguments are ``model``'s own (``(x, timesteps, y)``
+    / MotionDiffuse's): its :data:`PREPARERS` entry (for :func:`compile_function`'s ``prepare``:
+    e.g. a guidance wrapper's call, prepared as the model's)."""
+    model = _inner(model)
+    prepare = _preparer(model)
+    return lambda args, kwargs: prepare(model, args, kwargs)
+
+
+def compile_function(fn: Callable, mode: Any, *, model: Optional[nn.Module] = None, backend: Any = "inductor",
+                     fullgraph: Optional[bool] = None, device: Any = None, name: str = FLAG,
+                     captures: str = "function", prepare: Optional[Callable] = None) -> Callable:
+    """``fn`` compiled for ``mode`` with the guarantees of :class:`CompiledFunction` (first call of
+    each phase eager, static batch, no recompiles, CUDA graphs under ``reduce-overhead``): a
+    whole training loss (its backward compiled with it by AOTAutograd), a guided sampling call,
+    a sampling step. ``model``: the module ``fn`` runs (its train / eval mode is part of the phase;
+    ``fullgraph`` defaults as :func:`compile_model`'s); ``captures``: what the graph covers, as the
+    run records it. ``none``: ``fn`` itself. The setting is on ``compile_setting(result)``."""
+    if fullgraph is None:
+        fullgraph = _fullgraph_default(_inner(model)) if model is not None else True
+    setting = _setting(mode, backend, bool(fullgraph), device, name, captures)
+    if setting.requested == "none":
+        return fn
+    return CompiledFunction(fn, setting, None if model is None else _inner(model), prepare)
+
+
+def fused_optimizer_kwargs(device: Any, mode: Any) -> Dict[str, Any]:
+    """AdamW's keyword arguments for a captured run: ``fused=True`` (the whole update in a few
+    multi-tensor kernels, no host sync) on CUDA when ``mode`` compiles; ``{}`` (torch's default,
+    ``foreach``) otherwise."""
+    if check_compile_mode(mode) != "none" and torch.device(device).type == "cuda":
+        return {"fused": True}
+    return {}
+
+
+def compile_setting(model: Any) -> Optional[CompileSetting]:
+    """The :class:`CompileSetting` of a model :func:`compile_model` compiled, or of a function
+    :func:`compile_function` compiled (None: eager)."""
+    if isinstance(model, CompiledFunction):
+        return model.setting
+    call = getattr(_inner(model), "_compiled_call_impl", None)
     return call.setting if isinstance(call, _CompiledCall) else None
 
 
@@ -449,7 +591,8 @@ def compile_stats() -> Dict[str, Any]:
 
     return {"graphs": int(counters["stats"]["unique_graphs"]),
             "models": [{"name": name, **s.to_dict(), "compiled_calls": s.compiled_calls,
-                        "eager_calls": s.eager_calls, "recompiles": s.recompiles, "phases": len(call._static)}
+                        "warm_calls": s.warm_calls, "eager_calls": s.eager_calls, "recompiles": s.recompiles,
+                        "phases": len(call._static)}
                        for name, s, call in _COMPILED]}
 
 

@@ -108,6 +108,24 @@ class SimpleDiffusion:
                              f"got {list(mask.shape)}") from None
         return mask, target.to(device=x.device, dtype=x.dtype)
 
+    def predict_x0(self, model: Callable, x_t: torch.Tensor, tt: torch.Tensor, model_kwargs: Dict[str, Any],
+                   impute_x0: bool = True) -> torch.Tensor:
+        """The model's clean motion at steps ``tt [B]`` (long, on ``x_t``'s device); with MDM's
+        in-painting keys in ``model_kwargs['y']`` and ``impute_x0``, its given entries replaced by
+        the target (see the module docstring)."""
+        x0 = model(x_t, tt, **model_kwargs)
+        given = self.constraint(model_kwargs, x0) if impute_x0 else None
+        if given is not None:
+            x0 = torch.where(given[0], given[1], x0)
+        return x0
+
+    def posterior_sample(self, x0: torch.Tensor, x_t: torch.Tensor, tt: torch.Tensor,
+                         noise: torch.Tensor) -> torch.Tensor:
+        """``x_{t-1}`` drawn from the posterior ``q(x_{t-1} | x_t, x0)`` at steps ``tt [B]`` with
+        ``noise`` (the shape of ``x_t``)."""
+        mean = self._at("coef_x0", tt, x_t) * x0 + self._at("coef_xt", tt, x_t) * x_t
+        return mean + self._at("post_std", tt, x_t) * noise
+
     @torch.no_grad()
     def p_sample(self, model: Callable, x_t: torch.Tensor, t: int, model_kwargs: Dict[str, Any],
                  generator: Optional[torch.Generator] = None, impute_x0: bool = True) -> torch.Tensor:
@@ -115,15 +133,21 @@ class SimpleDiffusion:
         in-painting keys in ``model_kwargs['y']`` and ``impute_x0``, the prediction's given entries
         are replaced by the target first (see the module docstring)."""
         tt = torch.full((x_t.shape[0],), t, device=x_t.device, dtype=torch.long)
-        x0 = model(x_t, tt, **model_kwargs)
-        given = self.constraint(model_kwargs, x0) if impute_x0 else None
-        if given is not None:
-            x0 = torch.where(given[0], given[1], x0)
-        mean = self._at("coef_x0", tt, x_t) * x0 + self._at("coef_xt", tt, x_t) * x_t
+        x0 = self.predict_x0(model, x_t, tt, model_kwargs, impute_x0)
         if t == 0:
             return x0
         noise = torch.randn(x_t.shape, generator=generator, device=x_t.device, dtype=x_t.dtype)
-        return mean + self._at("post_std", tt, x_t) * noise
+        return self.posterior_sample(x0, x_t, tt, noise)
+
+    def sample_step(self, model: Callable, x_t: torch.Tensor, tt: torch.Tensor, noise: torch.Tensor,
+                    model_kwargs: Dict[str, Any]) -> torch.Tensor:
+        """:meth:`p_sample` without a host value: steps ``tt [B]`` a tensor, ``noise`` drawn by the
+        caller (any values where ``tt == 0``: the clean prediction is taken there), no Python branch
+        on ``t``: one graph serves every step of a loop (a compiled or CUDA-graph-captured sampling
+        step). Equal to :meth:`p_sample` with the same noise."""
+        x0 = self.predict_x0(model, x_t, tt, model_kwargs)
+        last = (tt == 0).view(-1, *([1] * (x_t.dim() - 1)))
+        return torch.where(last, x0, self.posterior_sample(x0, x_t, tt, noise))
 
     @torch.no_grad()
     def p_sample_loop(self, model: Callable, shape: tuple, model_kwargs: Optional[Dict[str, Any]] = None,

@@ -3,8 +3,9 @@
 :func:`run_bench` times, for one family's :class:`~smdm_plugin.training.workloads.Workload`, the
 dense model and every reduction rate, interleaved (every repeat runs every variant in turn, so
 machine load hits all alike), at each compile mode: ``train`` (one training step with the sparse
-diffusion wrapper + backward + ``AdamW.step``), ``sample`` (one sampling step at a late step,
-dynamic update forced on), ``loop`` (the whole sampling loop). Each result row is a JSON-ready dict
+diffusion wrapper + backward + ``AdamW.step``), ``sample`` (one guided sampling call at a late
+step, dynamic update forced on), ``loop`` (the whole sampling loop). Compiled, each step is
+captured whole (:func:`training_loss`, :func:`guided_call`, :func:`sampling_step`; docs/compile.md). Each result row is a JSON-ready dict
 (wall and CPU medians, speed-ups against dense at the same compile mode, peak memory, kernel
 launches, and for sparse steps the share spent in keyframe selection and interpolation).
 :func:`bench_keyframes` times VW selection alone.
@@ -30,7 +31,20 @@ __all__ = ["TARGETS", "MODES", "run_bench", "compile_modes_of", "step_fn", "over
 TARGETS = {"train": 4.0, "sample": 3.5, "loop": 3.0, "overhead": 0.10}  # at 80% reduction
 MODES = ("train", "sample", "loop")
 
-Step = Callable[[], None]
+Step = Callable[[], Any]
+
+
+class TimedStep:
+    """One cell's timed callable: ``run()`` (returns what the step made: the training loss, the
+    sampling call's output, the sample), and ``compiled``, the function inside it that the compile
+    helper made (:func:`~smdm_plugin.integrations.compile.compile_setting` says how it ran). Its
+    inputs are drawn on the CPU with fixed seeds (the same on every device)."""
+
+    def __init__(self, run: Callable[[], Any], compiled: Callable) -> None:
+        self.run, self.compiled = run, compiled
+
+    def __call__(self) -> Any:
+        return self.run()
 
 
 def autocast(device: torch.device, amp: str) -> ContextManager[Any]:
@@ -40,88 +54,157 @@ def autocast(device: torch.device, amp: str) -> ContextManager[Any]:
     return contextlib.nullcontext()
 
 
-def _compiled(model: torch.nn.Module, compile_mode: str) -> torch.nn.Module:
-    """``model`` compiled in place by the helper every integration uses (``--sparse_compile``,
-    ``smdm train --compile``; docs/compile.md): the denoiser, guidance wrapper around it eager."""
-    from ..integrations.compile import compile_model
+def _compile(fn: Callable, model: torch.nn.Module, compile_mode: str, device: torch.device, backend: Any,
+             captures: str, prepare: Optional[Callable] = None) -> Callable:
+    """``fn`` compiled whole by the helper every integration uses (docs/compile.md), dense or
+    sparse alike; ``none``: ``fn`` itself."""
+    from ..integrations.compile import compile_function
 
-    if compile_mode != "none":
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore")        # reduce-overhead off CUDA: stated in the table instead
-            compile_model(model, compile_mode)
-    return model
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")            # reduce-overhead off CUDA: stated in the table instead
+        return compile_function(fn, compile_mode, model=model, backend=backend, device=device, name="--compile",
+                                captures=captures, prepare=prepare)
 
 
-def _applied(model: torch.nn.Module) -> str:
-    """How ``model`` ran: ``eager`` or the compile mode that applied (reduce-overhead falls back to
-    default without CUDA)."""
+def _applied(fn: Callable) -> str:
+    """How a timed callable ran: ``eager`` or the compile mode that applied (reduce-overhead falls
+    back to default without CUDA)."""
     from ..integrations.compile import compile_setting
 
-    s = compile_setting(model)
+    s = compile_setting(fn)
     return "eager" if s is None else s.mode
 
 
 # ----------------------------------------------------------------------------------------- steps
+def training_loss(work: Workload, model: torch.nn.Module, diffusion: Any, device: torch.device,
+                  compile_mode: str = "none", backend: Any = "inductor") -> Callable[..., torch.Tensor]:
+    """``loss(x, t, kwargs, noise)``: the mean training loss of one batch (the sparse diffusion
+    wrapper's keyframe selection included), compiled whole for ``compile_mode``: its forward and
+    backward are one graph each (AOTAutograd)."""
+    from ..integrations.compile import CAPTURES_TRAIN
+
+    def loss(x: torch.Tensor, t: torch.Tensor, kwargs: Dict[str, Any], noise: torch.Tensor) -> torch.Tensor:
+        return diffusion.training_losses(model, x, t, kwargs, noise=noise)["loss"].mean()
+
+    return _compile(loss, model, compile_mode, device, backend, CAPTURES_TRAIN)
+
+
+def guided_call(work: Workload, model: torch.nn.Module, device: torch.device, compile_mode: str = "none",
+                backend: Any = "inductor") -> Callable[..., torch.Tensor]:
+    """``call(x_t, t, **kwargs)``: one sampling call of the family (MDM: classifier-free guidance,
+    both passes), ``model`` in eval mode, compiled whole for ``compile_mode`` (one graph: the
+    guidance wrapper included)."""
+    from ..integrations.compile import CAPTURES_GUIDED, prepare_call
+
+    return _compile(work.denoiser(model), model, compile_mode, device, backend, CAPTURES_GUIDED, prepare_call(model))
+
+
+def sampling_step(work: Workload, model: torch.nn.Module, diffusion: Any, device: torch.device,
+                  compile_mode: str = "none", backend: Any = "inductor") -> Callable[..., torch.Tensor]:
+    """``step(x_t, tt, noise, kwargs) -> x_{t-1}``: one whole ancestral step (the guided call and
+    the posterior update, :meth:`~smdm_plugin.reference.diffusion.SimpleDiffusion.sample_step`),
+    compiled whole for ``compile_mode``: one graph replayed at every step of a loop."""
+    from ..integrations.compile import CAPTURES_SAMPLE_STEP
+
+    den = work.denoiser(model)
+
+    def step(x_t: torch.Tensor, tt: torch.Tensor, noise: torch.Tensor, kwargs: Dict[str, Any]) -> torch.Tensor:
+        return diffusion.sample_step(den, x_t, tt, noise, kwargs)
+
+    return _compile(step, model, compile_mode, device, backend, CAPTURES_SAMPLE_STEP)
+
+
+def sample_loop(step: Callable[..., torch.Tensor], shape: Tuple[int, ...], steps: int, kwargs: Dict[str, Any],
+                device: torch.device, generator: torch.Generator) -> torch.Tensor:
+    """The whole sampling loop with :func:`sampling_step`'s ``step``: ``steps`` steps from noise
+    drawn with ``generator`` (the draws of ``SimpleDiffusion.p_sample_loop``, so equal to it; a
+    generator on another device than ``device`` draws there: a CPU one gives every device the
+    same noise)."""
+    def draw() -> torch.Tensor:                      # on the generator's device (a CPU one: any device alike)
+        return torch.randn(shape, generator=generator, device=generator.device).to(device)
+
+    x = draw()
+    zeros = torch.zeros_like(x)
+    tts = [torch.full((shape[0],), t, dtype=torch.long, device=device) for t in range(steps)]
+    for t in range(steps - 1, -1, -1):
+        x = step(x, tts[t], draw() if t > 0 else zeros, kwargs)
+    return x
+
+
 def _train_step(work: Workload, model: torch.nn.Module, diffusion: Any, batch: WorkloadBatch,
-                device: torch.device, amp: str, compile_mode: str, seed: int = 0) -> Step:
+                device: torch.device, amp: str, compile_mode: str, backend: Any = "inductor", seed: int = 0) -> TimedStep:
+    from ..integrations.compile import fused_optimizer_kwargs
+
     model.train()
-    run = _compiled(model, compile_mode)
-    opt = torch.optim.AdamW(model.parameters(), lr=1e-4)
+    loss_fn = training_loss(work, model, diffusion, device, compile_mode, backend)
+    opt = torch.optim.AdamW(model.parameters(), lr=1e-4, **fused_optimizer_kwargs(device, compile_mode))
     g = torch.Generator(device="cpu").manual_seed(seed)
-    ts = [torch.randint(0, diffusion.num_timesteps, (batch.size,), generator=g).to(device) for _ in range(16)]
+    # made ahead of time: no host-to-device copy in the step
+    ts = [torch.randint(0, diffusion.num_timesteps, (batch.size,), generator=g).to(device) for _ in range(8)]
+    noises = [torch.randn(batch.x.shape, generator=g).to(device) for _ in range(2)]
     step_no = [0]
 
-    def step() -> None:
-        t = ts[step_no[0] % len(ts)]                 # made ahead of time: no host-to-device copy
+    def step() -> torch.Tensor:
+        i = step_no[0]
         step_no[0] += 1
         with autocast(device, amp):
-            loss = diffusion.training_losses(run, batch.x, t, work.kwargs(batch))["loss"].mean()
+            loss = loss_fn(batch.x, ts[i % len(ts)], work.kwargs(batch), noises[i % len(noises)])
         opt.zero_grad(set_to_none=True)
         loss.backward()
         opt.step()
+        return loss.detach()
 
-    return step
+    return TimedStep(step, loss_fn)
 
 
 def _sample_step(work: Workload, model: torch.nn.Module, diffusion: Any, batch: WorkloadBatch,
-                 device: torch.device, amp: str, compile_mode: str) -> Step:
+                 device: torch.device, amp: str, compile_mode: str, backend: Any = "inductor",
+                 seed: int = 0) -> TimedStep:
     from ..core.schedule import MaskSchedule
 
-    den = work.denoiser(_compiled(model, compile_mode))
+    model.eval()
+    call = guided_call(work, model, device, compile_mode, backend)
     config = sparse_config_of(model)  # the public accessor, not the model's private state
     late = MaskSchedule(config).late_steps if config is not None else 1
     t = torch.full((batch.size,), max(0, late - 1), dtype=torch.long, device=device)
-    x_t = diffusion.q_sample(batch.x, t)
+    noise = torch.randn(batch.x.shape, generator=torch.Generator().manual_seed(seed)).to(device)
+    x_t = diffusion.q_sample(batch.x, t, noise)
 
-    def step() -> None:
+    def step() -> torch.Tensor:
         with torch.no_grad(), autocast(device, amp):
             x_t.add_(0)                              # a new x_t every time
-            den(x_t, t, **work.kwargs(batch))
+            return call(x_t, t, **work.sample_kwargs(batch))
 
-    return step
+    return TimedStep(step, call)
 
 
 def _sample_loop(work: Workload, model: torch.nn.Module, diffusion: Any, batch: WorkloadBatch,
-                 device: torch.device, amp: str, compile_mode: str) -> Step:
-    den = work.denoiser(_compiled(model, compile_mode))
+                 device: torch.device, amp: str, compile_mode: str, backend: Any = "inductor") -> TimedStep:
+    model.eval()
+    step_fn_ = sampling_step(work, model, diffusion, device, compile_mode, backend)
     shape = tuple(batch.x.shape)
     g = torch.Generator(device=device).manual_seed(0)
 
-    def loop() -> None:
+    def loop() -> torch.Tensor:
         with torch.no_grad(), autocast(device, amp):
-            diffusion.p_sample_loop(den, shape, work.kwargs(batch), device=device, generator=g)
+            return sample_loop(step_fn_, shape, diffusion.num_timesteps, work.sample_kwargs(batch), device, g)
 
-    return loop
+    return TimedStep(loop, step_fn_)
 
 
-#: what each ``--modes`` entry times: ``maker(work, model, diffusion, batch, device, amp, compile_mode)``
-STEP_MAKERS: Dict[str, Callable[..., Step]] = {"train": _train_step, "sample": _sample_step, "loop": _sample_loop}
+#: what each ``--modes`` entry times: ``maker(work, model, diffusion, batch, device, amp, compile_mode, backend)``
+STEP_MAKERS: Dict[str, Callable[..., TimedStep]] = {"train": _train_step, "sample": _sample_step,
+                                                    "loop": _sample_loop}
 
 
 def step_fn(mode: str, work: Workload, model: torch.nn.Module, diffusion: Any, batch: WorkloadBatch,
-            device: torch.device, amp: str = "fp32", compile_mode: str = "none") -> Step:
-    """The timed callable of one cell: ``mode`` one of :data:`MODES`."""
-    return STEP_MAKERS[mode](work, model, diffusion, batch, device, amp, compile_mode)
+            device: torch.device, amp: str = "fp32", compile_mode: str = "none",
+            compile_backend: Any = "inductor") -> TimedStep:
+    """The timed callable of one cell: ``mode`` one of :data:`MODES`; with ``compile_mode`` the
+    whole step compiled (``train``: the loss forward and backward, AdamW fused on CUDA; ``sample``:
+    the guided call, every guidance pass; ``loop``: the sampling step, replayed at every step) with
+    ``compile_backend`` (a ``torch.compile`` backend)."""
+    return STEP_MAKERS[mode](work, model, diffusion, batch, device, amp, compile_mode, compile_backend)
 
 
 def overhead_fns(work: Workload, model: torch.nn.Module, batch: WorkloadBatch, device: torch.device,
@@ -195,6 +278,7 @@ class Cell:
     compile_mode: str
     model: torch.nn.Module
     fn: Step
+    applied: str
     wall: List[float] = field(default_factory=list)
     cpu: List[float] = field(default_factory=list)
     mem: int = 0
@@ -224,7 +308,7 @@ def run_bench(archs: Optional[Sequence[str]] = None, reductions: Sequence[float]
     them); ``root``: an upstream checkout whose model class to time (None = the in-package one);
     ``on_row``: called with each result row as it is measured. Returns the JSON-ready result."""
     work = WORKLOADS.get(family)
-    archs = list(work.archs if archs is None else archs)
+    archs = list(work.default_archs if archs is None else archs)
     bad = [a for a in archs if a not in work.archs]
     if bad:
         raise ValueError(f"run_bench: arch {bad[0]!r} is not a {family} variant; expected one of {list(work.archs)}")
@@ -246,9 +330,11 @@ def _run_bench(s: BenchSettings, on_row: Callable[[Dict[str, Any]], None]) -> Di
     work, dev = s.work, resolve_device(s.device)
     if dev.type == "cpu":
         pin_malloc()
-    data = work.batch(s.batch, s.frames, dev, s.quick)
     rows: List[Dict[str, Any]] = []
+    lengths: Dict[str, List[int]] = {}
     for arch in s.archs:
+        data = work.batch(s.batch, s.frames, dev, s.quick, arch)
+        lengths[arch] = [int(v) for v in data.lengths]
         for mode in s.modes:
             cells = _cells(s, arch, mode, data, dev)
             for _ in range(s.warmup):
@@ -268,7 +354,7 @@ def _run_bench(s: BenchSettings, on_row: Callable[[Dict[str, Any]], None]) -> Di
         "family": work.family, "model_source": work.source(s.root), "device": str(dev),
         "device_name": device_name(dev), "torch": torch.__version__,
         "threads": torch.get_num_threads(), "batch": s.batch, "frames": s.frames,
-        "lengths": [int(v) for v in data.lengths], "model": work.size(s.quick), "quick": bool(s.quick),
+        "lengths": lengths[s.archs[0]], "model": work.size(s.quick), "quick": bool(s.quick),
         "repeats": s.repeats, "warmup": s.warmup, "backend": s.backend,
         "sparse_backend": " / ".join(dict.fromkeys(work.backend(s.backend, dev, m) for m in s.compile_modes)),
         "amp": s.amp, "compile": ", ".join(s.compile_modes), "compile_modes": s.compile_modes,
@@ -285,7 +371,8 @@ def _cells(s: BenchSettings, arch: str, mode: str, data: WorkloadBatch, dev: tor
         for red in [None] + s.reductions:
             model, diffusion = build(arch, red, dev, s.quick, s.steps, s.backend, fsq=s.fsq, family=s.work.family,
                                      frames=s.frames, root=s.root, **sparse_kw)
-            cells.append(Cell(red, cmode, model, step_fn(mode, s.work, model, diffusion, data, dev, s.amp, cmode)))
+            fn = step_fn(mode, s.work, model, diffusion, data, dev, s.amp, cmode)
+            cells.append(Cell(red, cmode, model, fn, _applied(fn.compiled)))
     return cells
 
 
@@ -298,7 +385,7 @@ def _row(s: BenchSettings, arch: str, mode: str, c: Cell, cells: List[Cell], dat
     red, wall, cpu = c.reduction, statistics.median(c.wall), statistics.median(c.cpu)
     row: Dict[str, Any] = {
         "family": s.work.family, "arch": arch, "mode": mode, "reduction": 0.0 if red is None else red,
-        "compile": c.compile_mode, "compile_applied": _applied(c.model), "launches": c.launches,
+        "compile": c.compile_mode, "compile_applied": c.applied, "launches": c.launches,
         "sparse_backend": s.work.backend(s.backend, dev, c.compile_mode),
         "variant": "dense" if red is None else f"sparse {int(round(red * 100))}%",
         "median_s": wall, "cpu_s": cpu, "times_s": c.wall, "cpu_times_s": c.cpu,

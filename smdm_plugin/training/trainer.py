@@ -33,7 +33,8 @@ import torch.nn as nn
 from ..adapters.state import sparse_config_of
 from ..core.config import SparseConfig
 from ..core.config_files import CONFIG_FILENAME
-from ..integrations.compile import check_compile_mode, compile_model
+from ..integrations.compile import (CAPTURES_TRAIN, check_compile_mode, compile_function, compile_model,
+                                    compile_setting, fused_optimizer_kwargs)
 from ..integrations.distributed import DistContext, constant_buffers_kwargs, init_distributed
 from ..io.checkpoint import BACKBONE_FILENAME, TRAIN_CONFIG_FILENAME
 from ..io.files import atomic_open, atomic_write_json, atomic_write_text
@@ -107,9 +108,12 @@ class TrainConfig:
     """What to train and how. ``batch`` is per process (global batch = ``batch * world_size``);
     ``model``: :class:`TinyMDM` keyword arguments (``njoints`` comes from the data); ``sparse``:
     None trains the dense model. ``grad_clip`` 0 = off. ``compile``: ``none`` | ``default`` |
-    ``reduce-overhead`` (``True``/``False`` read as ``default``/``none``): the model compiled once,
-    in place, inside DDP, with ``compile_backend`` (:func:`smdm_plugin.integrations.compile.compile_model`;
-    docs/compile.md). ``text``: a
+    ``reduce-overhead`` (``True``/``False`` read as ``default``/``none``), with ``compile_backend``
+    (docs/compile.md): one process captures the whole training step (the loss forward and backward,
+    :func:`smdm_plugin.integrations.compile.compile_function`; AdamW fused on CUDA); under
+    ``torchrun`` the model call is compiled in place, inside DDP
+    (:func:`smdm_plugin.integrations.compile.compile_model`); either way the model's own call is
+    compiled too (sampling with the trained model). ``text``: a
     :class:`~smdm_plugin.reference.text.TextConfig` trains text-conditioned (the data needs
     captions; one caption drawn per sample per step; condition dropout for classifier-free
     guidance); None (default) trains unconditionally."""
@@ -262,16 +266,25 @@ class Trainer:
             sparsify(self.model, config.sparse, diffusion=self.diffusion, mean=data.mean, std=data.std)
         self.model.train()
         self.forward_model: nn.Module = self.model
-        #: how the model runs (``none``: eager); compiled in place before DDP wraps it
+        #: how the training step runs (``none``: eager): the model compiled in place before DDP wraps
+        #: it (its calls outside the step, and the step under torchrun), and one process's whole step
         self.compile_setting = compile_model(self.model, config.compile, backend=config.compile_backend,
                                              device=dev, name="TrainConfig.compile")
+        self._loss: Callable[..., torch.Tensor] = self.training_loss
         if self.dist.distributed:
             from torch.nn.parallel import DistributedDataParallel
 
             self.forward_model = DistributedDataParallel(
                 self.model, device_ids=[dev.index] if dev.type == "cuda" else None, **constant_buffers_kwargs())
-        self.optimizer = torch.optim.AdamW(self.model.parameters(), lr=config.lr,
-                                           weight_decay=config.weight_decay)
+            if config.compile != "none":
+                self.compile_setting.captures += " (inside DDP)"
+        elif config.compile != "none":
+            self._loss = compile_function(self.training_loss, config.compile, model=self.model,
+                                          backend=config.compile_backend, device=dev, name="TrainConfig.compile",
+                                          captures=CAPTURES_TRAIN)
+            self.compile_setting = compile_setting(self._loss)
+        self.optimizer = torch.optim.AdamW(self.model.parameters(), lr=config.lr, weight_decay=config.weight_decay,
+                                           **fused_optimizer_kwargs(dev, config.compile))
         # dropout: a stream of its own on each rank (mask noise: the model's table, core/noise.py)
         torch.manual_seed(mix_seed(config.seed, 3, self.dist.rank))
         self.step_count = 0
@@ -304,7 +317,7 @@ class Trainer:
             embs = [self.text_embeddings[i] for i in ids.tolist()]
             pick = caption_draws(self.config.seed, self.step_count, sample_ids, [len(e) for e in embs])
             y["text_embed"] = torch.stack([e[k] for e, k in zip(embs, pick)]).unsqueeze(0).to(dev)  # [1, b, dim]
-        loss = self.diffusion.training_losses(self.forward_model, x, t, {"y": y}, noise=noise)["loss"].mean()
+        loss = self._loss(x, t, {"y": y}, noise)
         self.optimizer.zero_grad(set_to_none=True)
         loss.backward()
         if self.config.grad_clip > 0:
@@ -316,6 +329,13 @@ class Trainer:
         self.step_count += 1
         self.losses.append(value)
         return value
+
+    def training_loss(self, x: torch.Tensor, t: torch.Tensor, model_kwargs: Dict[str, Any],
+                      noise: torch.Tensor) -> torch.Tensor:
+        """The mean loss of this rank's batch: ``x [b, D, 1, N]``, steps ``t [b]``, ``noise`` like
+        ``x`` (the sparse diffusion wrapper's keyframe selection included); what a compiled run
+        captures whole."""
+        return self.diffusion.training_losses(self.forward_model, x, t, model_kwargs, noise=noise)["loss"].mean()
 
     def train(self, steps: Optional[int] = None, progress: bool = False,
               callback: Optional[Callable[["Trainer", float], None]] = None) -> TrainResult:

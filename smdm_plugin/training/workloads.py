@@ -4,7 +4,8 @@ registered model family (:data:`~smdm_plugin.adapters.families.FAMILIES`).
 One :class:`Workload` per family, registered in :data:`WORKLOADS` under the family's name (the
 extension point: ``WORKLOADS.register("mymodel", MyWorkload())`` and ``smdm bench --family mymodel``
 offers it). Built in: ``mdm`` (:class:`~smdm_plugin.reference.backbone.TinyMDM` at MDM's HumanML3D
-size, ``trans_enc`` / ``trans_dec``) and ``motiondiffuse`` (MotionDiffuse's denoiser layout, or
+size, ``trans_enc`` / ``trans_dec``, and on request DiP's prefix completion ``dip`` and priorMDM's
+DoubleTake model ``doubletake``) and ``motiondiffuse`` (MotionDiffuse's denoiser layout, or
 MotionDiffuse's own class from a checkout). :func:`build` makes the dense or sparse model and its
 diffusion; :meth:`Workload.batch` a HumanML3D-like batch (:class:`WorkloadBatch`).
 """
@@ -12,7 +13,7 @@ from __future__ import annotations
 
 import os
 import sys
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any, Dict, List, Optional, Tuple
 
 import torch
@@ -20,7 +21,8 @@ import torch
 from ..core.registry import Registry
 
 __all__ = ["WorkloadBatch", "Workload", "MDMWorkload", "MotionDiffuseWorkload", "WORKLOADS", "FSQ_CHOICES",
-           "family_choices", "build", "upstream_motion_transformer", "valid_lengths"]
+           "family_choices", "build", "handshake_frames", "upstream_motion_transformer", "valid_lengths",
+           "without_dropout"]
 
 #: which side of the comparison gets FSQ-quantised attention keys (``build(fsq=)``, ``--fsq``)
 FSQ_CHOICES = {"paper": "sparse only (dense = upstream MDM, sparse = the paper's recipe)",
@@ -31,12 +33,14 @@ FSQ_CHOICES = {"paper": "sparse only (dense = upstream MDM, sparse = the paper's
 class WorkloadBatch:
     """One benchmark batch: ``x`` the motion as the model takes it, ``frames [B, N, D]`` (what
     keyframe selection reads), ``lengths [B]`` (long, CPU) and ``kwargs`` the model's keyword
-    arguments (copy them per call with :meth:`Workload.kwargs`: hooks may add keys)."""
+    arguments (copy them per call with :meth:`Workload.kwargs`: hooks may add keys);
+    ``sampling``: what sampling calls add to them (DoubleTake's ``is_transition``)."""
 
     x: torch.Tensor
     frames: torch.Tensor
     lengths: torch.Tensor
     kwargs: Dict[str, Any]
+    sampling: Dict[str, Any] = field(default_factory=dict)
 
     @property
     def size(self) -> int:
@@ -60,8 +64,10 @@ class Workload:
 
     #: the model family's registered name
     family: str = ""
-    #: the variants ``--arch`` chooses among (the first ones by default)
+    #: the variants ``--arch`` chooses among
     archs: Tuple[str, ...] = ()
+    #: the variants timed when ``--arch`` is left out
+    default_archs: Tuple[str, ...] = ()
     #: whether FSQ-quantised attention keys apply (softmax attention)
     fsq: bool = True
     #: model calls per sampling step (2: classifier-free guidance)
@@ -86,13 +92,23 @@ class Workload:
         """Raise ``ValueError`` (starting ``--root:``) unless ``root`` is a usable checkout."""
         raise ValueError(f"--root: --family {self.family} has no upstream model to load (leave it out)")
 
-    def batch(self, batch: int, frames: int, device: torch.device, quick: bool) -> WorkloadBatch:
-        """A HumanML3D-like batch of ``batch`` motions padded to ``frames`` (fixed seed)."""
+    def model_family(self, arch: str) -> str:
+        """The registered model family ``sparsify`` makes variant ``arch`` sparse with."""
+        return self.family
+
+    def batch(self, batch: int, frames: int, device: torch.device, quick: bool,
+              arch: Optional[str] = None, seed: int = 0) -> WorkloadBatch:
+        """A HumanML3D-like batch of ``batch`` motions padded to ``frames`` (drawn with ``seed``) for
+        variant ``arch`` (None: the first)."""
         raise NotImplementedError
 
     def kwargs(self, data: WorkloadBatch) -> Dict[str, Any]:
         """A fresh copy of the model keyword arguments (hooks may add keys to them)."""
         return dict(data.kwargs)
+
+    def sample_kwargs(self, data: WorkloadBatch) -> Dict[str, Any]:
+        """:meth:`kwargs` of a sampling call (with ``data.sampling``)."""
+        return {**self.kwargs(data), **data.sampling}
 
     def denoiser(self, model: torch.nn.Module) -> torch.nn.Module:
         """What one sampling step calls: ``denoiser(x_t, t, **kwargs)``."""
@@ -114,12 +130,31 @@ class Workload:
         return resolve_backend_name(backend, device) if compile_mode == "none" else "compact"
 
 
+#: DiP's windows (its defaults at 20 fps): ``context_len`` prefix frames, then ``pred_len`` frames
+DIP_CONTEXT, DIP_PRED = 20, 40
+#: priorMDM's ``--handshake_size`` default (frames DoubleTake's first take blends)
+DOUBLETAKE_HANDSHAKE = 20
+
+
+def _doubletake_class() -> type:
+    """An MDM whose class name says DoubleTake (priorMDM's ``doubleTake_MDM`` is recognised so)."""
+    from ..reference.backbone import TinyMDM
+
+    return type("DoubleTakeTinyMDM", (TinyMDM,), {"__doc__": "TinyMDM as priorMDM's doubleTake_MDM."})
+
+
 class MDMWorkload(Workload):
     """``TinyMDM`` at MDM's HumanML3D size (latent 512, 8 layers, 4 heads, ff 1024), ``trans_enc`` /
-    ``trans_dec``; normal features ``[B, 263, 1, N]``, cached text embeddings; sampling with
-    classifier-free guidance (two passes per step) as MDM samples."""
+    ``trans_dec`` (by default), ``dip`` (DiP: trans_dec with the step embedding as a token,
+    :data:`DIP_CONTEXT` prefix frames given, :data:`DIP_PRED` frames predicted: ``frames`` does
+    not apply) and ``doubletake`` (priorMDM's model, trans_enc; sampling calls carry the first
+    take's handshake frames, ``is_transition``, as forced keyframes); normal features
+    ``[B, 263, 1, N]``, cached text embeddings; sampling with classifier-free guidance (two passes
+    per step) as MDM samples."""
 
-    family, archs, fsq, passes = "mdm", ("trans_enc", "trans_dec"), True, 2
+    family, fsq, passes = "mdm", True, 2
+    archs = ("trans_enc", "trans_dec", "dip", "doubletake")
+    default_archs = ("trans_enc", "trans_dec")
 
     def size(self, quick: bool) -> Dict[str, int]:
         if quick:
@@ -129,24 +164,42 @@ class MDMWorkload(Workload):
     def model(self, arch: str, quick: bool, frames: int, root: Optional[str] = None) -> torch.nn.Module:
         from ..reference.backbone import TinyMDM
 
+        if arch == "dip":
+            return TinyMDM(arch="trans_dec", emb_trans_dec=True, context_len=DIP_CONTEXT, pred_len=DIP_PRED,
+                           **self.size(quick))
+        if arch == "doubletake":
+            return _doubletake_class()(arch="trans_enc", **self.size(quick))
         return TinyMDM(arch=arch, **self.size(quick))
+
+    def model_family(self, arch: str) -> str:
+        return "doubletake" if arch == "doubletake" else self.family
 
     def source(self, root: Optional[str]) -> str:
         return "in-package TinyMDM"
 
-    def batch(self, batch: int, frames: int, device: torch.device, quick: bool) -> WorkloadBatch:
+    def batch(self, batch: int, frames: int, device: torch.device, quick: bool,
+              arch: Optional[str] = None, seed: int = 0) -> WorkloadBatch:
         from ..adapters.mdm import frames_layout
 
-        g = torch.Generator().manual_seed(0)
-        lengths = valid_lengths(batch, frames, 40, g)
+        g = torch.Generator().manual_seed(seed)
+        frames = DIP_PRED if arch == "dip" else frames
+        lengths = torch.full((batch,), frames) if arch == "dip" else valid_lengths(batch, frames, 40, g)
         valid = torch.arange(frames) < lengths[:, None]
         x = (torch.randn(batch, 263, 1, frames, generator=g) * valid.view(batch, 1, 1, frames)).to(device)
         y = {"mask": valid.view(batch, 1, 1, frames).to(device), "lengths": lengths.to(device),
              "text_embed": torch.randn(1, batch, 512, generator=g).to(device)}
-        return WorkloadBatch(x, frames_layout(x), lengths, {"y": y})
+        if arch == "dip":
+            y["prefix"] = torch.randn(batch, 263, 1, DIP_CONTEXT, generator=g).to(device)
+        sampling = {}
+        if arch == "doubletake":
+            sampling["is_transition"] = handshake_frames(lengths, frames, DOUBLETAKE_HANDSHAKE).to(device)
+        return WorkloadBatch(x, frames_layout(x), lengths, {"y": y}, sampling)
 
     def kwargs(self, data: WorkloadBatch) -> Dict[str, Any]:
         return {"y": dict(data.kwargs["y"])}
+
+    def sample_kwargs(self, data: WorkloadBatch) -> Dict[str, Any]:
+        return {"y": {**data.kwargs["y"], **data.sampling}}
 
     def denoiser(self, model: torch.nn.Module) -> torch.nn.Module:
         from ..reference.diffusion import ClassifierFreeGuidance
@@ -169,7 +222,7 @@ class MotionDiffuseWorkload(Workload):
     model call per sampling step (MotionDiffuse samples without guidance). Its self-attention is
     linear: no FSQ keys, no attention backend (the sparse model runs its own blocks on the K slots)."""
 
-    family, archs, fsq, passes = "motiondiffuse", ("motiondiffuse",), False, 1
+    family, archs, default_archs, fsq, passes = "motiondiffuse", ("motiondiffuse",), ("motiondiffuse",), False, 1
     root_env = "SMDM_MOTIONDIFFUSE_ROOT"
 
     def size(self, quick: bool) -> Dict[str, int]:
@@ -190,9 +243,10 @@ class MotionDiffuseWorkload(Workload):
         return ("in-package MotionDiffuseDenoiser (MotionDiffuse's interface)" if root is None
                 else f"upstream MotionDiffuse {root}")
 
-    def batch(self, batch: int, frames: int, device: torch.device, quick: bool) -> WorkloadBatch:
+    def batch(self, batch: int, frames: int, device: torch.device, quick: bool,
+              arch: Optional[str] = None, seed: int = 0) -> WorkloadBatch:
         size = self.size(quick)
-        g = torch.Generator().manual_seed(0)
+        g = torch.Generator().manual_seed(seed)
         lengths = valid_lengths(batch, frames, 40, g)
         x = torch.randn(batch, frames, 263, generator=g) * (torch.arange(frames) < lengths[:, None])[..., None]
         kw = {"length": lengths.to(device),
@@ -208,6 +262,31 @@ class MotionDiffuseWorkload(Workload):
 
     def backend(self, backend: str, device: torch.device, compile_mode: str) -> str:
         return "n/a (linear attention)"
+
+
+def without_dropout(model: torch.nn.Module) -> torch.nn.Module:
+    """``model`` with dropout, attention dropout and condition dropout off, in place: a training
+    step then draws nothing from torch's random streams, so it gives the same loss on every device
+    and path (checks against a reference). Returns ``model``."""
+    for m in model.modules():
+        if isinstance(m, torch.nn.Dropout):
+            m.p = 0.0
+        elif isinstance(getattr(m, "dropout", None), float):    # MultiheadAttention's, FSQ attention's
+            m.dropout = 0.0
+    if hasattr(model, "cond_mask_prob"):
+        model.cond_mask_prob = 0.0
+    return model
+
+
+def handshake_frames(lengths: torch.Tensor, frames: int, handshake: int) -> torch.Tensor:
+    """bool ``[B, N]``: DoubleTake's first-take ``is_transition`` for ``B`` segments of ``lengths``
+    (one per prompt, in order): the first ``handshake`` frames of every segment after the first and
+    the last ``handshake`` valid frames of every segment before the last."""
+    B = lengths.shape[0]
+    i = torch.arange(frames)[None]
+    head = (i < handshake) & (torch.arange(B) > 0)[:, None]
+    tail = (i >= lengths[:, None] - handshake) & (i < lengths[:, None]) & (torch.arange(B) < B - 1)[:, None]
+    return head | tail
 
 
 def upstream_motion_transformer(root: str) -> type:
@@ -260,7 +339,7 @@ def build(arch: str, reduction: Optional[float], device: torch.device, quick: bo
     diffusion = SimpleDiffusion(steps)
     if reduction is not None:
         sparsify(model, SparseConfig(reduction=reduction, attention_backend=backend, fsq=fsq != "off", **sparse),
-                 diffusion=diffusion, family=family)
+                 diffusion=diffusion, family=work.model_family(arch))
     elif fsq == "both":
         quantize_attention_keys(model, SparseConfig().fsq_levels)
     return model, diffusion

@@ -59,6 +59,17 @@ def test_bench_several_compile_modes_one_table(capsys):
     assert "eager and torch.compile reduce-overhead" in text
 
 
+def test_bench_times_dip_and_doubletake_on_request(capsys):
+    """``--arch dip doubletake``: DiP's prefix completion (40 frames after 20) and priorMDM's
+    DoubleTake model (its first take's handshake frames forced at sampling); not by default."""
+    assert bench.main(["--quick", "--arch", "dip", "doubletake", "--reductions", "0.8", "--modes", "train", "sample",
+                       "--steps", "4", "--device", "cpu"]) == 0
+    text = capsys.readouterr().out
+    for arch in ("dip", "doubletake"):
+        assert f"| {arch} | train | eager | sparse 80% |" in text and f"| {arch} | sample | eager | dense |" in text
+    assert workloads.WORKLOADS.get("mdm").default_archs == ("trans_enc", "trans_dec")
+
+
 def test_launch_count_of_an_eager_cell_is_the_counters():
     from smdm_plugin.core.launches import count_launches
 

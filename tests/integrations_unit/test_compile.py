@@ -1,7 +1,7 @@
 """Graph capture with one flag (integrations/compile.py, docs/compile.md), on the CPU.
 
-The compiled model is captured once per phase (training; sampling in eval mode without grad) and
-never again: across steps, motion lengths, timesteps, both classifier-free guidance passes and the
+The compiled model is captured once per phase (training; sampling in eval mode without grad; the
+phase's first call runs eagerly) and never again: across steps, motion lengths, timesteps, both classifier-free guidance passes and the
 late-step keyframe switch; compiled equals eager; checkpoints keep plain names; a partial batch
 runs eagerly; ``reduce-overhead`` without CUDA is a warning. The backend is ``aot_eager`` (Dynamo +
 AOTAutograd, no code generation: quick; inductor compiles the same graphs to kernels).
@@ -31,6 +31,7 @@ from smdm_plugin.reference.text import TextConfig, sample_with_text  # noqa: E40
 from smdm_plugin.training import trainer as T  # noqa: E402
 from smdm_plugin.training.data import MotionSet  # noqa: E402
 
+pytestmark = pytest.mark.usefixtures("fresh_dynamo")
 BACKEND = "aot_eager"
 TINY = {"latent_dim": 32, "num_layers": 2, "num_heads": 4, "ff_size": 64, "dropout": 0.0}
 N, D = 40, 12
@@ -39,14 +40,6 @@ from helpers.paths import ROOT as REPO
 
 def graphs() -> int:
     return counters["stats"]["unique_graphs"]
-
-
-@pytest.fixture(autouse=True)
-def fresh_dynamo():
-    torch._dynamo.reset()
-    counters.clear()
-    yield
-    torch._dynamo.reset()
 
 
 def motion_set(n=10, captions=True, seed=0) -> MotionSet:
@@ -76,24 +69,29 @@ def sample(model, data, seed=1):
 # ----------------------------------------------------------------------------- no recompilation
 @pytest.mark.parametrize("sparse", [True, False], ids=["sparse", "dense"])
 def test_one_graph_per_phase_through_training_and_guided_sampling(sparse):
-    """Training: one graph for every step (other timesteps, lengths, captions). Sampling with
-    classifier-free guidance (two calls per step, the second with ``uncond``) over all 20 steps,
-    the late-step switch of the sparse schedule included (last round(0.1 * 20) = 2 steps on VW):
-    one more graph, and none after the first sampling step."""
+    """Training: the whole step (loss forward and backward) is one graph for every step (other
+    timesteps, lengths, captions); the first step runs eagerly (it fills the caches the graph
+    reads). Sampling with classifier-free guidance (two calls per step, the second with
+    ``uncond``) over all 20 steps, the late-step switch of the sparse schedule included (last
+    round(0.1 * 20) = 2 steps on VW): one more graph (the model call), and none after it."""
     data = motion_set()
     tr = T.Trainer(train_config("default", sparse), data, device="cpu")
-    assert C.compile_setting(tr.model).mode == "default"
-    tr.train(1)
+    step = tr.compile_setting
+    assert step.mode == "default" and step.captures == C.CAPTURES_TRAIN
+    assert C.compile_setting(tr.model).mode == "default"          # the model's own calls (sampling)
+    tr.train(2)
     after_warmup = graphs()
     assert after_warmup == 1
-    tr.train(5)
-    assert graphs() == after_warmup                                # no recompile in training
+    tr.train(4)
+    assert graphs() == after_warmup and step.recompiles == 0       # no recompile in training
+    assert (step.warm_calls, step.compiled_calls, step.eager_calls) == (1, 5, 0)
     tr.model.eval()
     out = sample(tr.model, data)
     assert graphs() == after_warmup + 1                            # both guidance passes, every t: one graph
     sample(tr.model, data, seed=2)                                 # other noise, so other keyframes
     assert graphs() == after_warmup + 1
-    assert C.compile_setting(tr.model).compiled_calls == 6 + 2 * 2 * 20 and C.compile_setting(tr.model).eager_calls == 0
+    call = C.compile_setting(tr.model)                             # warm: the eager training step's, sampling's
+    assert (call.warm_calls, call.compiled_calls, call.eager_calls, call.recompiles) == (2, 2 * 2 * 20 - 1, 0, 0)
     assert torch.isfinite(out).all()
 
 
@@ -150,9 +148,10 @@ def test_deepcopy_runs_its_own_weights():
     y = {"mask": torch.ones(2, 1, 1, N, dtype=torch.bool), "lengths": torch.full((2,), N)}
     eager_twin = C.uncompile(copy.deepcopy(twin))
     with torch.no_grad():
-        assert torch.allclose(twin(x, t, dict(y)), eager_twin(x, t, dict(y)), atol=1e-5)
+        for _ in range(2):                                         # the first call eager, then compiled
+            assert torch.allclose(twin(x, t, dict(y)), eager_twin(x, t, dict(y)), atol=1e-5)
         assert not torch.allclose(twin(x, t, dict(y)), model(x, t, dict(y)), atol=1e-3)
-    assert C.compile_setting(twin).compiled_calls == 2
+    assert (C.compile_setting(twin).warm_calls, C.compile_setting(twin).compiled_calls) == (1, 2)
 
 
 # ----------------------------------------------------------------------------- static batch, guidance
@@ -264,6 +263,7 @@ def test_smdm_train_compile_flag_is_written_with_the_run(tmp_path, hml_dir):
     cfg = json.loads((out / "train_config.json").read_text())
     result = json.loads((out / "result.json").read_text())
     assert cfg["compile"] == "default" and cfg["compile_applied"]["mode"] == "default"
+    assert cfg["compile_applied"]["captures"] == C.CAPTURES_TRAIN            # the whole training step
     assert result["compile"]["backend"] == BACKEND
 
 
@@ -393,4 +393,4 @@ def test_forced_keyframes_trace_with_a_break_and_never_recompile():
             assert torch.allclose(model(x, t, dict(yf)), ref(x, t, dict(yf)), atol=1e-5), step
             assert torch.allclose(model(x, t, dict(y)), ref(x, t, dict(y)), atol=1e-5), step
     s = C.compile_setting(model)
-    assert s.recompiles == 0 and s.compiled_calls == 10 and len(model._compiled_call_impl._static) == 2
+    assert s.recompiles == 0 and (s.warm_calls, s.compiled_calls) == (2, 8) and len(model._compiled_call_impl._static) == 2

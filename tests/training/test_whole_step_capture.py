@@ -1,0 +1,123 @@
+"""Whole steps captured by one flag (``smdm train --compile``, ``smdm bench --compile``;
+docs/compile.md), on the CPU with ``aot_eager`` (Dynamo + AOTAutograd, no code generation): the
+training loss (forward and backward), the guided sampling call (both guidance passes) and the
+ancestral sampling step each trace as one ``fullgraph`` graph for sparse models, capture once and
+never again over other timesteps (early and late: the dynamic update's VW on x_t), other lengths
+and other batches, equal eager (on the static-shape path a GPU runs), and a last partial batch
+still runs (eagerly, no new graph).
+"""
+from __future__ import annotations
+
+import copy
+import warnings
+
+import pytest
+import torch
+
+pytest.importorskip("torch._dynamo")
+from torch._dynamo.utils import counters  # noqa: E402
+
+from smdm_plugin.core.checks import static_mode  # noqa: E402
+from smdm_plugin.integrations import compile as C  # noqa: E402
+from smdm_plugin.training import benchmark, workloads  # noqa: E402
+
+pytestmark = pytest.mark.usefixtures("one_thread", "fresh_dynamo")
+BACKEND = "aot_eager"
+CPU = torch.device("cpu")
+T, N, B = 20, 40, 3                         # late steps (VW on x_t): t < round(0.1 * T) = 2
+CASES = [("mdm", "trans_enc"), ("mdm", "dip"), ("motiondiffuse", "motiondiffuse")]
+IDS = [a for _, a in CASES]
+
+
+def graphs() -> int:
+    return counters["stats"]["unique_graphs"]
+
+
+def build(family: str, arch: str):
+    """A tiny sparse model (no dropout, no condition dropout: eager and compiled draw nothing), an
+    eager twin, its diffusion and workload."""
+    model, diffusion = workloads.build(arch, 0.8, CPU, True, T, family=family, frames=N, dynamic_update=True)
+    workloads.without_dropout(model)
+    return model, copy.deepcopy(model), diffusion, workloads.WORKLOADS.get(family)
+
+
+def batch(work, arch: str, seed: int, size: int = B) -> workloads.WorkloadBatch:
+    return work.batch(size, N, CPU, True, arch, seed=seed)
+
+
+@pytest.mark.parametrize("family,arch", CASES, ids=IDS)
+def test_training_step_is_one_graph_equal_to_eager(family, arch):
+    """Loss and every gradient of four steps (other batches, lengths, timesteps) equal the eager
+    step's; the first runs eagerly, the second captures, none after; then a partial batch."""
+    model, ref, diffusion, work = build(family, arch)
+    loss_fn = benchmark.training_loss(work, model, diffusion, CPU, "default", BACKEND)
+    s = C.compile_setting(loss_fn)
+    assert s.fullgraph and s.captures == C.CAPTURES_TRAIN
+    model.train(), ref.train()
+    for i, size in enumerate((B, B, B, B, B - 1)):
+        data = batch(work, arch, seed=i, size=size)
+        t = (torch.tensor([17, 1, 9][:size]) + 5 * i) % T
+        noise = torch.randn(data.x.shape, generator=torch.Generator().manual_seed(i))
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always")
+            got = loss_fn(data.x, t, work.kwargs(data), noise)
+        assert any("runs eagerly" in str(w.message) for w in caught) == (size != B)
+        with static_mode():
+            want = diffusion.training_losses(ref, data.x, t, work.kwargs(data), noise=noise)["loss"].mean()
+        got.backward(), want.backward()
+        assert torch.allclose(got, want, rtol=1e-5, atol=1e-6), i
+        for (name, p), q in zip(model.named_parameters(), ref.parameters()):
+            assert (p.grad is None) == (q.grad is None), name
+            if p.grad is not None:
+                assert torch.allclose(p.grad, q.grad, rtol=1e-4, atol=1e-6), (i, name)
+        model.zero_grad(), ref.zero_grad()
+    assert (s.warm_calls, s.compiled_calls, s.eager_calls, s.recompiles) == (1, 3, 1, 0) and graphs() == 1
+
+
+@pytest.mark.parametrize("family,arch", CASES, ids=IDS)
+def test_guided_sampling_call_is_one_graph_equal_to_eager(family, arch):
+    """MDM: both classifier-free guidance passes in one graph; early and late steps (uniform
+    keyframes, then VW on x_t) and other batches share it; a partial batch runs eagerly."""
+    model, ref, _, work = build(family, arch)
+    call = benchmark.guided_call(work, model, CPU, "default", BACKEND)
+    eager = work.denoiser(ref)
+    s = C.compile_setting(call)
+    assert s.fullgraph and s.captures == C.CAPTURES_GUIDED
+    with torch.no_grad():
+        for i, (t, size) in enumerate(((15, B), (1, B), (15, B), (0, B), (1, B - 1))):
+            data = batch(work, arch, seed=i, size=size)
+            tt = torch.full((size,), t)
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore")
+                got = call(data.x, tt, **work.sample_kwargs(data))
+            with static_mode():
+                want = eager(data.x, tt, **work.sample_kwargs(data))
+            assert torch.allclose(got, want, rtol=1e-5, atol=1e-5), (i, t)
+    assert (s.warm_calls, s.compiled_calls, s.eager_calls, s.recompiles) == (1, 3, 1, 0) and graphs() == 1
+
+
+@pytest.mark.parametrize("family,arch", CASES[:2], ids=IDS[:2])
+def test_whole_sampling_loop_replays_one_step_graph_and_equals_p_sample_loop(family, arch):
+    """Every step of the loop (t = T-1 .. 0: the posterior draw, the last step's clean prediction,
+    the dynamic update's late steps) runs one captured graph; the samples equal
+    ``SimpleDiffusion.p_sample_loop`` with the same generator."""
+    model, ref, diffusion, work = build(family, arch)
+    step = benchmark.sampling_step(work, model, diffusion, CPU, "default", BACKEND)
+    data = batch(work, arch, seed=0)
+    shape = tuple(data.x.shape)
+    with torch.no_grad():
+        got = benchmark.sample_loop(step, shape, T, work.sample_kwargs(data), CPU, torch.Generator().manual_seed(5))
+        with static_mode():
+            want = diffusion.p_sample_loop(work.denoiser(ref), shape, work.sample_kwargs(data), device=CPU,
+                                           generator=torch.Generator().manual_seed(5))
+    s = C.compile_setting(step)
+    assert (s.warm_calls, s.compiled_calls, s.recompiles) == (1, T - 1, 0) and graphs() == 1
+    assert s.captures == C.CAPTURES_SAMPLE_STEP
+    assert torch.allclose(got, want, rtol=1e-4, atol=1e-4)
+
+
+def test_none_returns_the_function_and_fused_adamw_only_when_captured_on_cuda():
+    fn = lambda x: x  # noqa: E731
+    assert C.compile_function(fn, "none") is fn and C.compile_setting(fn) is None
+    assert C.fused_optimizer_kwargs("cuda", "reduce-overhead") == {"fused": True}
+    assert C.fused_optimizer_kwargs("cuda", "none") == {} and C.fused_optimizer_kwargs("cpu", "default") == {}
