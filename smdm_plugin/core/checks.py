@@ -96,7 +96,7 @@ def as_lengths(lengths: LengthsLike, B: int, N: int, device: torch.device, fn: s
         raise LengthsTypeError(f"{fn}: lengths must be an integer tensor [B={B}], got dtype {lengths.dtype}")
     if lengths.device.type == "meta":
         raise ValueError(f"{fn}: lengths is a 'meta' tensor (no values); pass the frame counts [B={B}] on the CPU"
-                         + ("" if torch.device(device).type == "cpu" else f" or on {device}"))
+                         + ("" if torch.device(device).type in ("cpu", "meta") else f" or on {device}"))
     if broadcast and lengths.numel() == 1:
         lengths = lengths.reshape(1).expand(B)
     if tuple(lengths.shape) != (B,):

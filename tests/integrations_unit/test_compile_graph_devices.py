@@ -35,8 +35,8 @@ CASES = [("mdm", "trans_enc", True), ("mdm", "trans_enc", False), ("mdm", "trans
 
 @pytest.fixture(autouse=True)
 def vw_on_meta(monkeypatch, fresh_dynamo):
-    """VW's output shape on ``meta`` (its eager kernels read values; see the module docstring)."""
-    monkeypatch.setitem(vw.OP.kernels, "meta", lambda f, *a: f.new_empty(f.shape[:2], dtype=torch.bool))
+    """VW on ``meta`` runs its output shape (the fused op's fake: its eager kernels read values)."""
+    assert vw.OP.kernels["meta"] is not None
 
 
 class Recorder:

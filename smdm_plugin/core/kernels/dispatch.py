@@ -63,7 +63,7 @@ class FusedOp:
         cuda: the CUDA kernel (a :class:`TritonKernel`, falling back to ``fallback`` or the composite).
         kernels: other eager kernels by device type (e.g. ``{"cpu": numpy_kernel}``).
         fallback: what a CUDA kernel that cannot run falls back to (default: the composite).
-        fake: output shapes for tracing; given with ``opaque=True``.
+        fake: output shapes (for tracing with ``opaque=True``, and the kernel on ``meta`` tensors).
         opaque: under ``torch.compile`` call a registered ``torch.library.custom_op`` (one graph
             node running the eager kernels) instead of tracing the composite.
     """
@@ -76,6 +76,8 @@ class FusedOp:
         if cuda is not None:
             fb = fallback or composite
             self.kernels["cuda"] = lambda *args: cuda(fb, *args)
+        if fake is not None:                  # meta tensors hold no values: the output's shape only
+            self.kernels.setdefault("meta", fake)
         self.traced: Callable[..., Any] = composite
         if opaque:
             self.traced = self._register(fake)
