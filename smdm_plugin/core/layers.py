@@ -174,18 +174,21 @@ class StockStack:
         self.norm: Optional[nn.Module] = inner.norm
         self.layers = [_Layer(layer) for layer in inner.layers]
         self._folded = [a.self_attn.module for a in self.layers if a.self_attn.folded]
+        self._fsq = [m for m in inner.modules() if isinstance(m, FSQMultiheadAttention)]
+        self._quantize = tuple(m.quantize for m in self._fsq)
         modules = list(inner.modules())
         # hooks would not run on the functional path; FSQ attention's own no-op pre-hook is known
-        fsq = {id(m) for m in self._folded}
+        fsq = {id(m) for m in self._fsq}
         self._hooks = [getattr(m, n) for m in modules for n in _HOOK_DICTS
                        if not (n == "_forward_pre_hooks" and id(m) in fsq)]
-        self._fsq_pre = [m._forward_pre_hooks for m in self._folded]
+        self._fsq_pre = [m._forward_pre_hooks for m in self._fsq]
         self._fold_cache: Optional[tuple] = None
 
     def current(self) -> bool:
         """No module, parameter or buffer was registered anywhere since the stack was built (a
-        replaced layer or submodule is a registration)."""
-        return _WATCHED and self.version == _STRUCTURE[0]
+        replaced layer or submodule is a registration), and every FSQ attention still quantises as
+        it did (``quantize`` is a plain attribute)."""
+        return _WATCHED and self.version == _STRUCTURE[0] and self._quantize == tuple(m.quantize for m in self._fsq)
 
     def usable(self) -> bool:
         """No hook on any module of the stack (it would not run here), no global module hooks."""

@@ -92,6 +92,10 @@ def test_hooks_and_custom_layers_run_the_modules():
     new = stock_stack(stack)
     assert new is not None and new is not old and new.layers[0].l1 is stack.layers[0].linear1
 
+    stack.layers[1].self_attn.quantize = False                     # a plain attribute: seen too
+    x = torch.randn(5, 2, 32, dtype=torch.float64)
+    torch.testing.assert_close(stock_stack(stack).run(x, None), stack(x), rtol=1e-10, atol=1e-11)
+
     class Custom(nn.TransformerEncoderLayer):
         pass
 
