@@ -117,6 +117,10 @@ def run(a: argparse.Namespace, p: argparse.ArgumentParser) -> int:
     if a.resume and a.overwrite:
         p.error("argument --overwrite: not allowed with argument --resume")
     apply_threads(a.threads)
+    try:
+        settings = settings_from_args(a)
+    except ValueError as e:
+        p.error(str(e))
     # as smdm train: locked, apart from the inputs, written into --out as it trains (each file atomic;
     # docs/reliability.md); --resume continues an interrupted or a finished run on the same data
     od = OutputDir(a.out, overwrite=a.overwrite, inputs={"--data": a.data, "--glove": a.glove},
@@ -132,10 +136,6 @@ def run(a: argparse.Namespace, p: argparse.ArgumentParser) -> int:
     except (FileNotFoundError, ValueError) as e:
         print(f"smdm evaluator train: {e}", file=sys.stderr)
         return 2
-    try:
-        settings = settings_from_args(a)
-    except ValueError as e:
-        p.error(str(e))
     try:
         from .common.args import resolve_device
 
@@ -245,11 +245,11 @@ def _train(a: argparse.Namespace, od: Any, settings: Any, ev: Any, train: Any, h
         print("(the weights were chosen on val: test is the unbiased number)")
     if check is not None:
         print(f"\n{check_split}, {CHECK_REPLICATIONS} replications of smdm eval's protocol (mean ± 95%): {check.line()}")
-        if not (check.sees_order() and check.sees_captions()):
-            print(f"warning: this evaluator's R-precision does not fall clearly for "
-                  f"{' and '.join(w for w, ok in (('time-reversed motion', check.sees_order()), ('swapped captions', check.sees_captions())) if not ok)}"
-                  "; its R-precision cannot rank models by how well they follow the caption's order "
-                  "(docs/evaluation.md)", file=sys.stderr)
+        blind = [w for w, ok in (("time-reversed motion", check.sees_order()),
+                                  ("swapped captions", check.sees_captions())) if not ok]
+        if blind:
+            print(f"warning: this evaluator's R-precision does not fall clearly for {' and '.join(blind)}: it cannot "
+                  "rank models by how well their motion follows the caption (docs/evaluation.md)", file=sys.stderr)
     spread = recipe_spread(settings, a.glove)
     if spread:
         print("\n" + spread)
@@ -267,7 +267,6 @@ def recipe_spread(settings: Any, glove: Optional[str]) -> str:
         return ""
     return (f"The same recipe over training seeds {table.seeds} on {table.data} (docs/evaluation.md; held-out "
             f"test, {table.replications} replications each):\n" + table.spread_markdown())
-
 
 
 def build_check_parser() -> argparse.ArgumentParser:

@@ -88,3 +88,30 @@ def test_seed_table_file_round_trip(tmp_path):
     (tmp_path / "s.json").write_text("[]")
     with pytest.raises(ValueError, match="s.json"):
         load_seed_table(path)
+
+
+def test_evaluator_train_prints_and_saves_its_check(tmp_path, capsys):
+    """smdm evaluator train ends with the R-precision check on its test split (in evaluator.json and
+    metrics.json, printed, a warning when a drop is not clear of 0); the reversed negatives belong to the
+    t2m recipe only (exit 2 before anything is written)."""
+    import json
+
+    from smdm_plugin.apps.cli import main as smdm
+
+    out = tmp_path / "ev"
+    assert smdm(["evaluator", "train", "--out", str(out), "--epochs", "1", "--ae-epochs", "1", "--hidden", "16",
+                 "--dim", "8", "--no-progress", "--threads", "1"]) == 0
+    captured = capsys.readouterr()
+    assert "replications of smdm eval's protocol" in captured.out and "time-reversed" in captured.out
+    info = json.loads((out / "evaluator.json").read_text())
+    check = info["retrieval_check"]
+    assert check["split"] == "test" and check["replications"] == 20 and len(check["drop_reversed_top3"]) == 2
+    assert info["train_settings"]["reversed_negatives"] is True and info["train_settings"]["select"] == "val_loss"
+    assert json.loads((out / "metrics.json").read_text())["retrieval_check"] == check
+    blind = not (check["drop_reversed_top3"][0] - check["drop_reversed_top3"][1] > 0
+                 and check["drop_swapped_top3"][0] - check["drop_swapped_top3"][1] > 0)
+    assert ("warning: this evaluator's R-precision does not fall clearly" in captured.err) == blind
+    with pytest.raises(SystemExit) as e:
+        smdm(["evaluator", "train", "--out", str(tmp_path / "c"), "--recipe", "contrastive", "--reversed-negatives"])
+    assert e.value.code == 2 and "only with --recipe t2m" in capsys.readouterr().err
+    assert not (tmp_path / "c").exists()

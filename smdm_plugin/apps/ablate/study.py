@@ -565,6 +565,10 @@ def plot_fid_vs_time(cfg: Dict[str, Any], rows: List[Dict[str, Any]], reference:
         if st:
             ax.scatter(*zip(*st), facecolors="none", edgecolors=color, marker="s", s=50)
     ax.axhline(reference["fid_train_vs_eval"], color="gray", ls="--", lw=1, label="real train vs eval motions")
+    for key, ls, label in (("fid_train_matched", "-.", "real train, eval captions and lengths"),
+                           ("fid_floor", ":", "floor: eval vs a second draw of itself")):
+        if key in reference:  # the anchors (results written before 0.8 have only the first line)
+            ax.axhline(reference[key], color="black", ls=ls, lw=1, label=label)
     ax.set_xlabel(f"training time ({'process CPU' if cfg['clock'] == 'cpu' else 'wall'} seconds, evaluation excluded)")
     ax.set_ylabel("FID (study evaluator) ↓")
     ax.set_title(f"{cfg['name']}: FID vs training time (squares: equal-step snapshots {cfg['snapshots']['steps']})",
