@@ -94,3 +94,17 @@ def test_primary_family_is_bonferroni_and_holm_over_itself():
     assert fid.half_family > fid.half95
     expl = [c for c in cells if not c.primary]
     assert all(c.half_family == c.half95 or math.isnan(c.half95) for c in expl)
+
+
+def test_a_study_without_a_finished_pair_says_so():
+    """Before any seed has both variants finished, the blocks name the pre-registered endpoints and the
+    finished runs instead of an empty table."""
+    run = {"seed": 0, "status": "ok", "snapshots": [
+        {"kind": "steps", "at": 5.0, "step": 5, **{m: 1.0 for m, _, _ in paired.METRICS}}]}
+    res = {"config": {"name": "x", "diffusion_steps": 50, "clock": "cpu",
+                      "primary": {"steps": [5], "metrics": ["fid"]}},
+           "reference": {}, "runs": {"dense": [], "sparse (VW)": [run]}}
+    for lines in (paired.summary_lines(res), paired.markdown_tables(res)):
+        text = "\n".join(lines)
+        assert "Pre-registered primary endpoints: FID at 5 steps." in text
+        assert "finished: dense seeds [], sparse (VW) seeds [0]" in text and "| snapshot |" not in text

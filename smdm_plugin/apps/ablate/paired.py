@@ -292,6 +292,23 @@ def cell_row(c: PairedCell, clock: str, pair: Tuple[str, str] = PAIR) -> str:
             f"{_g(_mean(c.treatment), spec)} | {ci} | {per} | {_p(c.p)} | {_p(c.p_holm)} |")
 
 
+def _unpaired(results: Dict[str, Any], pair: Tuple[str, str]) -> Optional[str]:
+    """A line saying that no seed has both variants finished (and which runs have), or None."""
+    done = {v: sorted(r["seed"] for r in results["runs"].get(v, []) if r.get("status") == "ok") for v in pair}
+    if set(done[pair[0]]) & set(done[pair[1]]):
+        return None
+    return ("No seed has finished both variants yet (finished: "
+            + ", ".join(f"{v} seeds {done[v]}" for v in pair) + "); the table fills in as they do.")
+
+
+def _primary_line(cfg: Dict[str, Any], clock: str) -> str:
+    ends = primary_endpoints(cfg)
+    if not ends:
+        return "No endpoint was pre-registered."
+    return ("Pre-registered primary endpoints: " + "; ".join(f"{LABELS[m][0]} at {snap_label(sn, clock)}"
+                                                             for sn, m in ends) + ".")
+
+
 def markdown_tables(results: Dict[str, Any], pair: Tuple[str, str] = PAIR) -> List[str]:
     """The paired tables of one study (primary endpoints, then the exploratory cells) as markdown lines."""
     cfg = results["config"]
@@ -304,6 +321,9 @@ def markdown_tables(results: Dict[str, Any], pair: Tuple[str, str] = PAIR) -> Li
             "| --- | --- | ---: | ---: | ---: | ---: | ---: | ---: |")
     out = [f"**{cfg['name']}** (T = {cfg['diffusion_steps']:g}): seeds {seeds} paired "
            f"({len(seeds)}; package {results.get('package_version', '?')}).", ""]
+    waiting = _unpaired(results, pair)
+    if waiting:
+        return out + [_primary_line(cfg, clock) + " " + waiting, ""]
     if prim:
         out += [f"Primary endpoints (pre-registered; {len(prim)} tests): difference ± Bonferroni simultaneous 95% "
                 "half-width, Holm-adjusted p.", "", *head, *(cell_row(c, clock, pair) for c in prim), ""]
@@ -362,8 +382,12 @@ def summary_lines(results: Dict[str, Any], pair: Tuple[str, str] = PAIR) -> List
         return _g(float(v), _spec(m)) if _number(v) else "—"
 
     b, t = pair
+    waiting = _unpaired(results, pair)
     out = [f"**{cfg['name']}** (T = {cfg['diffusion_steps']:g}; seeds {seeds}, package "
-           f"{results.get('package_version', '?')}): {b} / {t}, mean over seeds; {t} − {b} paired per seed.", "",
+           f"{results.get('package_version', '?')}): {b} / {t}, mean over seeds; {t} − {b} paired per seed.", ""]
+    if waiting:
+        return out + [_primary_line(cfg, clock) + " " + waiting, ""]
+    out += [
            f"| snapshot | steps | FID ↓ | FID diff. | R@3 ↑ (real {real('r_precision_top3')}) | R@3 diff. | "
            f"R@1 ↑ (real {real('r_precision_top1')}) | j/s (real {real('jitter_per_speed')}) | jitter (real "
            f"{real('jitter')}) | speed m/s (real {real('speed')}) | j/s diff. |",
@@ -380,6 +404,7 @@ def summary_lines(results: Dict[str, Any], pair: Tuple[str, str] = PAIR) -> List
     sig = sum(1 for c in fam if c.excludes_zero())
     out += ["", f"Differences: ± the 95% t half-width over the {len(seeds)} paired seeds"
             + (" (primary endpoints: Bonferroni over the pre-registered family)" if any(c.primary for c in cells.values())
-               else "") + f"; * Holm-adjusted p < 0.05 in its family. Exploratory family: {len(fam)} tests "
-            f"(every metric of {', '.join(m for m, _, _ in METRICS)} at every snapshot), {sig} below 0.05 after Holm.", ""]
+               else "") + f"; * Holm-adjusted p < 0.05 in its family. {_primary_line(cfg, clock)} Exploratory family: "
+            f"{len(fam)} tests (the metrics {', '.join(m for m, _, _ in METRICS)} at every snapshot"
+            + (", less the primaries" if len(fam) < len(cells) else "") + f"), {sig} below 0.05 after Holm.", ""]
     return out
