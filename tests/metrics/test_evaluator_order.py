@@ -72,6 +72,12 @@ def test_the_packaged_seed_table_is_the_docs_table_of_the_default_recipe():
     assert all(r.sees_order() and r.sees_captions() for r in table.rows)
     page = (ROOT / "docs" / "evaluation.md").read_text()
     assert table.markdown() in page and table.spread_markdown() in page
+    from smdm_plugin.apps.evaluator import recipe_spread
+
+    default = TrainSettings(recipe=DEFAULT_RECIPE)
+    assert table.spread_markdown() in recipe_spread(default, None)           # smdm evaluator train's summary
+    assert recipe_spread(dataclasses.replace(default, epochs=3), None) == ""  # another recipe: not its spread
+    assert recipe_spread(default, "glove") == ""
 
 
 def test_seed_table_file_round_trip(tmp_path):
