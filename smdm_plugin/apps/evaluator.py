@@ -18,6 +18,8 @@ import sys
 from typing import Any, Dict, List, Optional
 
 STATE_FILENAME = "train_state.pt"
+#: replications of the R-precision check at the end of training (smdm eval's default)
+CHECK_REPLICATIONS = 20
 OUTPUTS = ("evaluator.json", "evaluator.pt", "metrics.json", STATE_FILENAME)
 
 
@@ -25,7 +27,7 @@ from .common.args import note_printer, progress_of
 
 
 def build_parser() -> argparse.ArgumentParser:
-    from ..metrics.evaluator.train import DEFAULT_RECIPE, OWN_SIZES, RECIPES, T2M_SIZES, TrainSettings
+    from ..metrics.evaluator.train import DEFAULT_RECIPE, OWN_SIZES, RECIPES, SELECTIONS, T2M_SIZES, TrainSettings
     from .common.args import add_common_flags, add_overwrite, existing_path, float_range, int_range
 
     d = TrainSettings(recipe=DEFAULT_RECIPE)
@@ -48,11 +50,18 @@ def build_parser() -> argparse.ArgumentParser:
                         "negatives, movement encoder frozen) at T2M's sizes; contrastive: 0.4's one stage (batch "
                         f"cross-entropy, everything trained, small sizes) (default: {d.recipe})")
     p.add_argument("--epochs", type=int_range(1, 100000), default=None,
-                   help=f"text-motion matching epochs (default: {d.epochs} for t2m, 60 for contrastive)")
+                   help=f"text-motion matching epochs (default: {d.epochs})")
     p.add_argument("--ae-epochs", type=int_range(0, 100000), default=d.ae_epochs,
                    help=f"t2m: movement auto-encoder epochs before matching (default: {d.ae_epochs})")
     p.add_argument("--margin", type=float_range(0.0, lo_open=True), default=d.margin,
                    help=f"t2m: distance negatives are pushed beyond (default: {d.margin}, T2M's)")
+    p.add_argument("--select", choices=SELECTIONS, default=None,
+                   help="how the kept matching epoch is chosen on the val split: val_loss (T2M's: the lowest "
+                        "validation loss) or val_rprec (the highest validation R-precision) (default: val_loss for "
+                        "t2m, val_rprec for contrastive)")
+    p.add_argument("--reversed-negatives", action=argparse.BooleanOptionalAction, default=None,
+                   help="t2m: push each caption away from its own motion played backwards, so that R-precision "
+                        "sees the order of a motion (default: on for t2m; docs/evaluation.md)")
     p.add_argument("--batch", type=int_range(2, 4096), default=d.batch, help=f"motions per step (default: {d.batch})")
     p.add_argument("--lr", type=float_range(0.0, lo_open=True), default=None,
                    help=f"Adam, matching stage (default: {d.lr} for t2m, 1e-3 for contrastive)")
@@ -108,6 +117,10 @@ def run(a: argparse.Namespace, p: argparse.ArgumentParser) -> int:
     if a.resume and a.overwrite:
         p.error("argument --overwrite: not allowed with argument --resume")
     apply_threads(a.threads)
+    try:
+        settings = settings_from_args(a)
+    except ValueError as e:
+        p.error(str(e))
     # as smdm train: locked, apart from the inputs, written into --out as it trains (each file atomic;
     # docs/reliability.md); --resume continues an interrupted or a finished run on the same data
     od = OutputDir(a.out, overwrite=a.overwrite, inputs={"--data": a.data, "--glove": a.glove},
@@ -123,7 +136,6 @@ def run(a: argparse.Namespace, p: argparse.ArgumentParser) -> int:
     except (FileNotFoundError, ValueError) as e:
         print(f"smdm evaluator train: {e}", file=sys.stderr)
         return 2
-    settings = settings_from_args(a)
     try:
         from .common.args import resolve_device
 
@@ -156,6 +168,7 @@ def _train(a: argparse.Namespace, od: Any, settings: Any, ev: Any, train: Any, h
     from ..io.checkpoint import read_state_dict
     from ..io.files import atomic_open, atomic_write_json
     from ..metrics.evaluator.model import save_evaluator
+    from ..metrics.evaluator.check import retrieval_check
     from ..metrics.evaluator.train import held_out_accuracy, train_evaluator
 
     folder = od.path
@@ -203,15 +216,21 @@ def _train(a: argparse.Namespace, od: Any, settings: Any, ev: Any, train: Any, h
         raise
     metrics = {s: held_out_accuracy(ev, d, settings.eval_draws, seed=a.seed) for s, d in held.items()}
     metrics["train"] = held_out_accuracy(ev, train, settings.eval_draws, seed=a.seed)
+    check_split = "test" if "test" in held else ("val" if "val" in held else None)
+    check = None
+    if check_split is not None and len(held[check_split]) >= 4:
+        check = retrieval_check(ev, held[check_split], replications=CHECK_REPLICATIONS, seed=a.seed)
     info = {"data": os.path.abspath(a.data) if a.data else "embedded CMU clips", "representation": train.representation,
             "n_train": len(train), "recipe": settings.recipe, "best_epoch": st["best"]["epoch"] - settings.pretrain_epochs,
             "epochs": st["epoch"] - settings.pretrain_epochs, "ae_epochs": settings.pretrain_epochs,
             "train_seconds": st["seconds"], "settings": _settings_dict(settings, a, digests),
+            "train_settings": settings.to_dict(),
             "selected_on": "val" if "val" in held else ("test" if held else "last epoch"),
-            "metrics": metrics, "history": st["history"]}
+            "metrics": metrics, "retrieval_check": None if check is None else {"split": check_split, **check.to_dict()},
+            "history": st["history"]}
     save_evaluator(ev, folder, info)
-    atomic_write_json(os.path.join(folder, "metrics.json"), {k: info[k] for k in ("metrics", "best_epoch", "epochs",
-                                                                                  "train_seconds", "selected_on")})
+    atomic_write_json(os.path.join(folder, "metrics.json"), {k: info[k] for k in (
+        "metrics", "retrieval_check", "best_epoch", "epochs", "train_seconds", "selected_on")})
     print(f"trained {settings.pretrain_epochs} auto-encoder + {info['epochs']} matching epochs ({settings.recipe}) in "
           f"{st['seconds']:.1f} s (kept matching epoch {info['best_epoch']}, chosen on {info['selected_on']}); wall "
           f"{time.perf_counter() - t0:.1f} s")
@@ -224,7 +243,30 @@ def _train(a: argparse.Namespace, od: Any, settings: Any, ev: Any, train: Any, h
               f"{m['chance_top1']:.3f} / {m['chance_top3']:.3f} | {m['matching_score']:.3f} |")
     if "val" in held and "test" in held:
         print("(the weights were chosen on val: test is the unbiased number)")
+    if check is not None:
+        print(f"\n{check_split}, {CHECK_REPLICATIONS} replications of smdm eval's protocol (mean ± 95%): {check.line()}")
+        blind = [w for w, ok in (("time-reversed motion", check.sees_order()),
+                                  ("swapped captions", check.sees_captions())) if not ok]
+        if blind:
+            print(f"warning: this evaluator's R-precision does not fall clearly for {' and '.join(blind)}: it cannot "
+                  "rank models by how well their motion follows the caption (docs/evaluation.md)", file=sys.stderr)
+    spread = recipe_spread(settings, a.glove)
+    if spread:
+        print("\n" + spread)
     return 0
+
+
+def recipe_spread(settings: Any, glove: Optional[str]) -> str:
+    """What the same recipe gave over several training seeds on the CMU set (the measured table of
+    docs/evaluation.md, packaged as :data:`~smdm_plugin.metrics.evaluator.seeds.SEEDS_FILE`), when
+    ``settings`` are those it was measured with; else ``""``."""
+    from ..metrics.evaluator.seeds import load_seed_table, recipe_of
+
+    table = load_seed_table()
+    if table is None or glove is not None or table.settings != recipe_of(settings.to_dict()):
+        return ""
+    return (f"The same recipe over training seeds {table.seeds} on {table.data} (docs/evaluation.md; held-out "
+            f"test, {table.replications} replications each):\n" + table.spread_markdown())
 
 
 def build_check_parser() -> argparse.ArgumentParser:
@@ -307,8 +349,11 @@ def settings_from_args(a: argparse.Namespace) -> Any:
                      dim_text_hidden=a.hidden)
     if a.dim is not None:
         sizes["dim_coemb"] = a.dim
+    if a.reversed_negatives and a.recipe != "t2m":
+        raise ValueError("argument --reversed-negatives: only with --recipe t2m (a term of its margin loss)")
     return TrainSettings(recipe=a.recipe, epochs=a.epochs, batch=a.batch, lr=a.lr, ae_epochs=a.ae_epochs,
-                         margin=a.margin, seed=a.seed, sizes=sizes)
+                         margin=a.margin, seed=a.seed, sizes=sizes, select=a.select,
+                         reversed_negatives=a.reversed_negatives)
 
 
 def data_digests(train: Any, held: Dict[str, Any]) -> Dict[str, str]:

@@ -290,3 +290,37 @@ def test_evaluator_is_cached_and_reloads_to_the_same_embeddings(large_dir, tmp_p
     torch.testing.assert_close(t1, t2)
     cfg["evaluator"] = {"kind": kind, **settings, "seed": 1}  # other settings: another cache entry
     assert study.build_evaluator(cfg, data, str(tmp_path), logs.append)[1] != key
+
+
+def test_an_interrupted_run_continues_from_its_last_snapshot(large_dir, tmp_path, monkeypatch):
+    """run_seed with a checkpoint folder: interrupted right after its first snapshot's checkpoint, a
+    second call continues from that step (not from 0) and gives the uninterrupted run's snapshots;
+    the anchors and the FID interval are in every record."""
+    cfg = study.load_study("quality_compute_quick")
+    cfg["snapshots"] = {"steps": [2, 4], "seconds": []}      # steps only: the same snapshots every time
+    data = study.StudyData(str(large_dir), cfg)
+    ref = study._reference(cfg, data, str(tmp_path / "out"), lambda *_: None)
+    for k in ("fid_floor", "fid_train_matched", "fid_train_vs_eval", "fid_train_sample"):
+        lo, hi = ref.scores[f"{k}_interval"]
+        assert lo <= ref.scores[k] <= hi, k
+    variant = {"name": "sparse (VW)"}
+    args = (cfg, variant, 0, data, ref.evaluator, ref.text_emb, ref.real_emb, torch.device("cpu"))
+    whole = study.run_seed(*args, log=lambda *_: None)
+    real_checkpoint = study._checkpoint
+
+    def stop_after(trainer, folder, progress):
+        real_checkpoint(trainer, folder, progress)
+        raise KeyboardInterrupt
+
+    ckpt = str(tmp_path / "ckpt")
+    monkeypatch.setattr(study, "_checkpoint", stop_after)
+    with pytest.raises(KeyboardInterrupt):
+        study.run_seed(*args, log=lambda *_: None, checkpoint_dir=ckpt)
+    monkeypatch.setattr(study, "_checkpoint", real_checkpoint)
+    logs = []
+    again = study.run_seed(*args, log=logs.append, checkpoint_dir=ckpt)
+    assert any("continuing from step 2" in m for m in logs)
+    keys = ("kind", "at", "step", "fid", "fid_low", "fid_high", "r_precision_top3", "jitter", "speed")
+    assert [{k: s[k] for k in keys} for s in again["snapshots"]] == [{k: s[k] for k in keys} for s in whole["snapshots"]]
+    assert again["losses"] == whole["losses"]
+    assert all(s["fid_low"] <= s["fid"] <= s["fid_high"] for s in whole["snapshots"])

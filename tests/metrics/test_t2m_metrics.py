@@ -169,3 +169,41 @@ def test_same_numbers_as_upstream_metrics():
     r = retrieval(t, m, shuffle=False)
     assert (r.top1, r.top2, r.top3) == pytest.approx(tuple(top / size))
     assert r.matching_score == pytest.approx(match / size)
+
+
+@pytest.mark.parametrize("n1, n2, d", [(40, 40, 512), (12, 30, 64), (3, 5, 8)])
+def test_fid_in_the_samples_space_equals_the_covariance_form(n1, n2, d):
+    """With fewer motions than dimensions frechet_distance works through ``X1 X2ᵀ`` (nuclear norm): the
+    same number as the covariance form (two D × D eigen-decompositions)."""
+    from smdm_plugin.metrics.t2m import frechet_distance_from_stats, gaussian_stats
+
+    rng = np.random.default_rng(n1 + d)
+    a = rng.standard_normal((n1, d)) * 2.0
+    b = rng.standard_normal((n2, d)) * 1.3 + 0.4
+    assert n1 + n2 <= d  # the samples' space path
+    ref = frechet_distance_from_stats(*gaussian_stats(a), *gaussian_stats(b))
+    assert frechet_distance(a, b) == pytest.approx(ref, rel=1e-7)  # the covariance form's round-off: ~1e-8
+    assert abs(frechet_distance(a, a)) < 1e-9
+
+
+def test_fid_bootstrap_interval_and_floor():
+    """fid_bootstrap: the FID of the sets as given, an interval that contains it (the resamples'
+    percentiles re-centred on it), the raw percentiles around the bootstrap mean; the same set against
+    resamples of itself: mean above 0 (the floor); paired resampling keeps row i with row i."""
+    from smdm_plugin.metrics.t2m import fid_bootstrap
+
+    rng = np.random.default_rng(0)
+    a, b = rng.standard_normal((40, 64)), rng.standard_normal((40, 64)) + 0.3
+    r = fid_bootstrap(a, b, resamples=100, seed=1)
+    assert r.fid == pytest.approx(frechet_distance(a, b)) and r.low <= r.fid <= r.high
+    assert r.boot_low <= r.boot_mean <= r.boot_high and r.boot_mean > r.fid  # duplicates raise a resample's FID
+    assert r.high - r.low == pytest.approx(r.boot_high - r.boot_low)
+    assert fid_bootstrap(a, b, resamples=100, seed=1) == r                   # seeded
+    floor = fid_bootstrap(a, a, resamples=100, seed=2)
+    assert floor.fid == 0.0 and floor.boot_mean > 0 and floor.boot_low > 0
+    same = fid_bootstrap(a, a.copy(), resamples=20, paired=True, seed=3)
+    assert same.boot_mean == 0.0                                             # row i drawn with row i
+    with pytest.raises(ValueError, match="paired sets need the same N"):
+        fid_bootstrap(a, b[:10], paired=True)
+    with pytest.raises(ValueError, match="resamples"):
+        fid_bootstrap(a, b, resamples=1)

@@ -35,6 +35,7 @@ import argparse
 import csv
 import math
 import os
+import shutil
 import sys
 import time
 from dataclasses import dataclass
@@ -52,6 +53,7 @@ from .grid import (AblateConfigError, _check, _check_keys, config_path, over_def
                    sparse_config)
 from ...io.files import fingerprint_files
 from ..common.provenance import make_provenance, stable_hash
+from .paired import reference_lines
 
 KIND = "quality_compute"
 DEFAULT_DATA = os.path.join("..", "shared", "data", "cmu-humanml3d-large")
@@ -65,12 +67,21 @@ DEFAULTS: Dict[str, Any] = {
     "clock": "cpu",
     "eval": {"split": "test", "limit": None, "batch": 16},
     "evaluator": {"kind": "t2m"},
+    "primary": {},
 }
 #: the settings that shape every run's result (with the variant, its SparseConfig and the evaluator key)
 RUN_SETTINGS = ("batch", "max_frames", "min_frames", "diffusion_steps", "lr", "model", "text", "sparse", "snapshots",
                 "clock", "eval")
 METRICS = ("fid", "r_precision_top1", "r_precision_top2", "r_precision_top3", "matching_score", "diversity",
            "jitter", "speed", "jitter_per_speed", "foot_skating")
+#: how a set is scored (part of every run's provenance: a change makes earlier results stale): R-precision
+#: and matching score averaged over RETRIEVAL_DRAWS seeded pools of 32 of the evaluation motions; FID with
+#: a bootstrap over the motions (FID_RESAMPLES resamples, generated motion i with caption i resampled together)
+RETRIEVAL_DRAWS = 20
+FID_RESAMPLES = 200
+#: a (variant, seed) folder's checkpoint of an unfinished run (removed once its result is written)
+CHECKPOINT_DIR = "checkpoint"
+SCORING = f"retrieval mean of {RETRIEVAL_DRAWS} pools; FID bootstrap {FID_RESAMPLES} paired resamples"
 
 
 # ----------------------------------------------------------------------------------------- config
@@ -135,6 +146,7 @@ def resolve_study(cfg: Dict[str, Any]) -> Dict[str, Any]:
         settings_type(**{k: v for k, v in out["evaluator"].items() if k != "kind"})
     except TypeError as e:
         raise AblateConfigError(f"evaluator: {e}") from None
+    _check_primary(out)
     variants = out.get("variants")
     if not isinstance(variants, list) or not variants:
         raise AblateConfigError("the config lists no variants")
@@ -147,6 +159,25 @@ def resolve_study(cfg: Dict[str, Any]) -> Dict[str, Any]:
             raise AblateConfigError(f"variants[{i}]: the name {v['name']!r} (folder {slug(v['name'])!r}) is used twice")
         seen.add(slug(v["name"]))
     return out
+
+
+def _check_primary(out: Dict[str, Any]) -> None:
+    """``primary``: the pre-registered endpoints (``seconds`` and ``steps``: snapshots of the config;
+    ``metrics``: names of :data:`METRICS`), read by :mod:`~smdm_plugin.apps.ablate.paired`."""
+    pre = out["primary"]
+    _check("primary", pre, dict)
+    if not pre:
+        return
+    _check_keys("primary", pre, ["seconds", "steps", "metrics"])
+    for key, have in (("seconds", out["snapshots"]["seconds"]), ("steps", out["snapshots"]["steps"])):
+        vals = pre.get(key, [])
+        if not isinstance(vals, list) or any(v not in have for v in vals):
+            raise AblateConfigError(f"primary.{key}={vals!r}: expected a list of the config's snapshots.{key} {have}")
+    metrics = pre.get("metrics")
+    if not isinstance(metrics, list) or not metrics or any(m not in METRICS for m in metrics):
+        raise AblateConfigError(f"primary.metrics={metrics!r}: expected a non-empty list of {list(METRICS)}")
+    if not (pre.get("seconds") or pre.get("steps")):
+        raise AblateConfigError("primary: names metrics but no snapshot (seconds and/or steps)")
 
 
 def _range(lo: float):
@@ -219,15 +250,21 @@ class StudyData:
 # ----------------------------------------------------------------------------------------- scoring
 def score_set(evaluator, raw: torch.Tensor, norm: torch.Tensor, lengths: torch.Tensor, text_emb: np.ndarray,
               real_emb: np.ndarray, mean: np.ndarray, std: np.ndarray) -> Dict[str, float]:
-    """Every metric of one set of motions (one per caption, row ``i`` for caption ``i``)."""
+    """Every metric of one set of motions (one per caption, row ``i`` for caption ``i``): FID with its
+    bootstrap interval (``fid_low``, ``fid_high``), R-precision and matching score averaged over
+    :data:`RETRIEVAL_DRAWS` pools (:data:`SCORING`), diversity, jitter, speed, j/s, foot skating."""
     from ...metrics.features import per_motion_quality
-    from ...metrics.t2m import diversity, frechet_distance, retrieval
+    from ...metrics.t2m import diversity, fid_bootstrap, retrieval
 
     emb = evaluator.embed_motion(raw, lengths).double().numpy()
-    r = retrieval(text_emb, emb, seed=0)
+    rs = [retrieval(text_emb, emb, seed=d) for d in range(RETRIEVAL_DRAWS)]
+    r = rs[0]
+    top = {k: float(np.mean([getattr(x, k) for x in rs])) for k in ("top1", "top2", "top3", "matching_score")}
+    fid = fid_bootstrap(emb, real_emb, FID_RESAMPLES, paired=True, seed=0)
     q = per_motion_quality(norm, lengths, mean, std)
-    return {"fid": frechet_distance(emb, real_emb), "r_precision_top1": r.top1, "r_precision_top2": r.top2,
-            "r_precision_top3": r.top3, "matching_score": r.matching_score, "diversity": diversity(emb, seed=0)[0],
+    return {"fid": fid.fid, "fid_low": fid.low, "fid_high": fid.high, "r_precision_top1": top["top1"],
+            "r_precision_top2": top["top2"], "r_precision_top3": top["top3"], "matching_score": top["matching_score"],
+            "diversity": diversity(emb, seed=0)[0],
             "jitter": float(np.nanmean(q["jitter"])), "speed": float(np.nanmean(q["speed"])),
             # the set's j/s as smdm_plugin.metrics.jitter_per_speed reduces it: mean jitter / mean speed
             "jitter_per_speed": float(np.nanmean(q["jitter"]) / max(np.nanmean(q["speed"]), 1e-9)),
@@ -262,26 +299,37 @@ def generate(model, diffusion, text_cfg, data: StudyData, seed: int, batch: int,
 
 # ----------------------------------------------------------------------------------------- one run
 def run_seed(cfg: Dict[str, Any], variant: Dict[str, Any], seed: int, data: StudyData, evaluator, text_emb: np.ndarray,
-             real_emb: np.ndarray, device: torch.device, log: Callable[[str], Any] = print) -> Dict[str, Any]:
+             real_emb: np.ndarray, device: torch.device, log: Callable[[str], Any] = print,
+             checkpoint_dir: Optional[str] = None) -> Dict[str, Any]:
     """Train ``variant`` with ``seed`` until every snapshot is passed, scoring at each; returns the
     run's record (``snapshots``: one entry per snapshot, with ``kind`` steps|seconds, ``at``,
-    ``step``, ``train_s`` (the configured clock), ``train_cpu_s``, ``train_wall_s``, metrics)."""
+    ``step``, ``train_s`` (the configured clock), ``train_cpu_s``, ``train_wall_s``, metrics).
+
+    ``checkpoint_dir``: after every snapshot the trainer (weights, optimiser, random streams, step)
+    and the run's progress (clocks, snapshots so far) are saved there, and a run that finds them
+    continues from the last one (``smdm ablate --resume`` after an interruption: at most the training
+    since the last snapshot is redone; the clocks continue from their saved values)."""
     from ...integrations.distributed import DistContext
     from ...reference.text import TextConfig
     from ...training.trainer import TrainConfig, Trainer
 
     text_cfg = TextConfig.from_dict(cfg["text"])
     sc = sparse_config(cfg, variant)
-    step_marks = list(cfg["snapshots"]["steps"])
-    time_marks = list(cfg["snapshots"]["seconds"])
-    tc = TrainConfig(steps=max(step_marks or [1]), batch=int(cfg["batch"]), lr=float(cfg["lr"]),
+    progress: Dict[str, Any] = {"step_marks": list(cfg["snapshots"]["steps"]),
+                                "time_marks": list(cfg["snapshots"]["seconds"]),
+                                "spent": {"cpu": 0.0, "wall": 0.0}, "snapshots": [], "eval_s": 0.0}
+    tc = TrainConfig(steps=max(progress["step_marks"] or [1]), batch=int(cfg["batch"]), lr=float(cfg["lr"]),
                      diffusion_steps=int(cfg["diffusion_steps"]), seed=int(seed), model=dict(cfg["model"]),
                      sparse=sc, text=text_cfg)
     trainer = Trainer(tc, data.train, dist=DistContext(device=device))
-    clock = CLOCKS[cfg["clock"]]
-    spent = {"cpu": 0.0, "wall": 0.0}
-    snaps: List[Dict[str, Any]] = []
-    eval_s = 0.0
+    if checkpoint_dir is not None:
+        restored = _restore(trainer, checkpoint_dir)
+        if restored is not None:
+            progress = restored
+            log(f"    {variant['name']} seed {seed}: continuing from step {trainer.step_count} "
+                f"({progress['spent'][cfg['clock']]:.1f} s {cfg['clock']}) in {checkpoint_dir}")
+    spent, snaps = progress["spent"], progress["snapshots"]
+    step_marks, time_marks = progress["step_marks"], progress["time_marks"]
     while step_marks or time_marks:
         c0, w0 = time.process_time(), time.perf_counter()
         trainer.step()
@@ -299,7 +347,7 @@ def run_seed(cfg: Dict[str, Any], variant: Dict[str, Any], seed: int, data: Stud
         gen = generate(trainer.model, trainer.diffusion, text_cfg, data, seed, int(cfg["eval"]["batch"]), device)
         raw = gen * torch.from_numpy(data.std) + torch.from_numpy(data.mean)
         m = score_set(evaluator, raw, gen, data.lengths, text_emb, real_emb, data.mean, data.std)
-        eval_s += time.perf_counter() - e0
+        progress["eval_s"] += time.perf_counter() - e0
         recent = trainer.losses[-max(1, min(50, len(trainer.losses) // 10)):]
         for kind, at in hits:
             snaps.append({"kind": kind, "at": at, "step": trainer.step_count, "train_s": t_now,
@@ -308,11 +356,74 @@ def run_seed(cfg: Dict[str, Any], variant: Dict[str, Any], seed: int, data: Stud
         log(f"    {variant['name']} seed {seed}: {', '.join(f'{a:g} {k}' for k, a in hits)} -> step "
             f"{trainer.step_count}, {t_now:.1f} s {cfg['clock']}, FID {m['fid']:.3f}, R@3 {m['r_precision_top3']:.3f}, "
             f"j/s {m['jitter_per_speed']:.0f}")
-    _ = clock
+        if checkpoint_dir is not None and (step_marks or time_marks):
+            _checkpoint(trainer, checkpoint_dir, progress)
     return {"name": variant["name"], "seed": int(seed), "status": Status.OK, "steps": trainer.step_count,
             "steps_per_cpu_s": trainer.step_count / max(spent["cpu"], 1e-9), "train_cpu_s": spent["cpu"],
-            "train_wall_s": spent["wall"], "eval_wall_s": eval_s, "snapshots": snaps,
+            "train_wall_s": spent["wall"], "eval_wall_s": progress["eval_s"], "snapshots": snaps,
             "sparse_config": None if sc is None else sc.to_dict(), "losses": trainer.losses}
+
+
+def _checkpoint_of(folder: str, provenance: Dict[str, Any]) -> None:
+    """Make ``folder`` a checkpoint folder of the run of ``provenance``: one left by another run (other
+    settings, data, version, seed, device) is deleted, so that run is never continued here."""
+    import json
+
+    from ..common.provenance import differences
+
+    path = os.path.join(folder, "provenance.json")
+    if os.path.isdir(folder):
+        try:
+            with open(path, encoding="utf-8") as f:
+                stored = json.load(f)
+        except (OSError, ValueError):
+            stored = None
+        if differences(stored, provenance):
+            shutil.rmtree(folder)
+    os.makedirs(folder, exist_ok=True)
+    atomic_write_json(path, provenance)
+
+
+def _progress_file(step: int) -> str:
+    return f"progress{step:09d}.json"
+
+
+def _checkpoint(trainer, folder: str, progress: Dict[str, Any]) -> None:
+    """Save ``progress`` (as ``progress<step>.json``) then the trainer's checkpoint (its
+    ``train_state.pt`` written last: its presence says the step is complete) into ``folder``, and
+    delete the files of earlier steps."""
+    import re
+
+    step = trainer.step_count
+    os.makedirs(folder, exist_ok=True)
+    atomic_write_json(os.path.join(folder, _progress_file(step)), progress)
+    trainer.save(folder)
+    keep = {_progress_file(step), trainer.checkpoint_name()}
+    for name in os.listdir(folder):
+        if re.fullmatch(r"(progress\d{9}\.json|model\d{9}\.pt)", name) and name not in keep:
+            os.remove(os.path.join(folder, name))
+
+
+def _restore(trainer, folder: str) -> Optional[Dict[str, Any]]:
+    """The progress saved by :func:`_checkpoint` with ``trainer`` restored to its step, or None (no
+    complete checkpoint in ``folder``: the run starts at step 0)."""
+    import json
+
+    from ...io.checkpoint import read_state_dict
+    from ...training.trainer import TRAIN_STATE_FILENAME
+
+    path = os.path.join(folder, TRAIN_STATE_FILENAME)
+    if not os.path.exists(path):
+        return None
+    state = read_state_dict(path, what="training state")
+    step = int(state.get("step", -1)) if isinstance(state, dict) else -1
+    prog = os.path.join(folder, _progress_file(step))
+    if not os.path.exists(prog):
+        return None
+    with open(prog, encoding="utf-8") as f:
+        progress = json.load(f)
+    trainer.load_state(state, read_state_dict(os.path.join(folder, f"model{step:09d}.pt")), where=path)
+    return progress
 
 
 # ----------------------------------------------------------------------------------------- aggregation
@@ -418,8 +529,10 @@ def write_outputs(cfg: Dict[str, Any], out: str, runs: Dict[str, List[Dict[str, 
               f"R@3 {ref['r_precision_top3']:.3f}, MM-Dist {ref['matching_score']:.3f}, diversity {ref['diversity']:.3f}, "
               f"j/s {ref['jitter_per_speed']:.0f} 1/s² at speed {ref['speed']:.2f} m/s, jitter {ref['jitter']:.0f} m/s³, skating {ref['foot_skating']:.3f}; "
               f"FID of the real train motions against them: {ref['fid_train_vs_eval']:.3f} (FID of the set against "
-              f"itself is 0). Retrieval pool {ref['retrieval_pool']} ({ref['retrieval_scored']} motions scored; "
-              f"chance R@1 {1 / ref['retrieval_pool']:.3f}).", ""]
+              f"itself is 0). Retrieval pool {ref['retrieval_pool']} ({ref['retrieval_scored']} motions scored, "
+              f"{RETRIEVAL_DRAWS} draws; chance R@1 {1 / ref['retrieval_pool']:.3f}).", "",
+              "What a FID here is read against (95% bootstrap intervals over the motions):", "",
+              *reference_lines({"reference": ref})]
     failed = [(n, r) for n, rs in runs.items() for r in rs if status_of(r) is Status.FAILED]
     for n, r in failed:
         lines.append(f"{n} seed {r.get('seed')} failed: {r.get('error')}")
@@ -452,6 +565,10 @@ def plot_fid_vs_time(cfg: Dict[str, Any], rows: List[Dict[str, Any]], reference:
         if st:
             ax.scatter(*zip(*st), facecolors="none", edgecolors=color, marker="s", s=50)
     ax.axhline(reference["fid_train_vs_eval"], color="gray", ls="--", lw=1, label="real train vs eval motions")
+    for key, ls, label in (("fid_train_matched", "-.", "real train, eval captions and lengths"),
+                           ("fid_floor", ":", "floor: eval vs a second draw of itself")):
+        if key in reference:  # the anchors (results written before 0.8 have only the first line)
+            ax.axhline(reference[key], color="black", ls=ls, lw=1, label=label)
     ax.set_xlabel(f"training time ({'process CPU' if cfg['clock'] == 'cpu' else 'wall'} seconds, evaluation excluded)")
     ax.set_ylabel("FID (study evaluator) ↓")
     ax.set_title(f"{cfg['name']}: FID vs training time (squares: equal-step snapshots {cfg['snapshots']['steps']})",
@@ -536,6 +653,8 @@ def run_study(cfg: Dict[str, Any], out: str, data_root: str, device: str = "cpu"
     runs: Dict[str, List[Record]] = {v["name"]: [] for v in cfg["variants"]}
     try:
         for item in plan:
+            if item.run and overwrite:  # run again from step 0, not from a checkpoint
+                shutil.rmtree(os.path.join(item.vdir, CHECKPOINT_DIR), ignore_errors=True)
             rec = _run_one(cfg, item, data, ref, dev, log) if item.run else (
                 {**item.cached.record, "reused": True} if item.cached.state is CacheState.CURRENT else None)
             if rec is not None:
@@ -561,18 +680,69 @@ def _write_study_files(cfg: Dict[str, Any], out: str, data: StudyData, data_root
 
 
 def _reference(cfg: Dict[str, Any], data: StudyData, out: str, log: Callable[[str], Any]) -> Reference:
-    """The (cached) evaluator, the embeddings of the captions and real motions, and the real motions' scores."""
-    from ...metrics.t2m import frechet_distance
-
+    """The (cached) evaluator, the embeddings of the captions and real motions, and the real motions'
+    scores with the FID anchors of :func:`fid_anchors`."""
     evaluator, key, _ = build_evaluator(cfg, data, out, log)
     text_emb = evaluator.embed_text(data.caption_objs).double().numpy()
     real_emb = evaluator.embed_motion(data.raw, data.lengths).double().numpy()
     scores = score_set(evaluator, data.raw, data.norm, data.lengths, text_emb, real_emb, data.mean, data.std)
-    train_x, train_L = data.train.padded()
-    train_emb = evaluator.embed_motion(train_x * torch.from_numpy(data.std) + torch.from_numpy(data.mean),
-                                       train_L).double().numpy()
-    scores["fid_train_vs_eval"] = frechet_distance(train_emb, real_emb)
+    scores.update(fid_anchors(evaluator, data, real_emb, cfg["text"]))
     return Reference(evaluator, key, text_emb, real_emb, scores)
+
+
+def matched_train(data: StudyData, text: Dict[str, Any]) -> Tuple[List[int], torch.Tensor]:
+    """For each evaluation motion ``i`` (caption ``i``, length ``L_i``) the train motion a generator
+    that only memorised its training set would give: the one whose caption is nearest (cosine of the
+    study's own text encoder, any of its captions) among those at least ``L_i`` frames long (all when
+    none is), cut to its first ``L_i`` frames. Returns ``(train indices [M], lengths [M])``."""
+    from ...reference.text import TextConfig
+
+    enc = TextConfig.from_dict(text).build()
+    ev = enc.encode(data.captions)                                       # [M, dim], unit rows
+    owner = [i for i, caps in enumerate(data.train.captions) for _ in caps]
+    tr = enc.encode([c for caps in data.train.captions for c in caps])   # [C, dim]
+    _, train_L = data.train.padded()
+    sim = ev @ tr.T                                                      # [M, C]
+    idx, lens = [], []
+    for i, L in enumerate(data.lengths.tolist()):
+        ok = np.array([int(train_L[o]) >= L for o in owner])
+        c = int(np.argmax(np.where(ok, sim[i], -np.inf))) if ok.any() else int(np.argmax(sim[i]))
+        idx.append(owner[c])
+        lens.append(min(int(L), int(train_L[owner[c]])))
+    return idx, torch.tensor(lens)
+
+
+def fid_anchors(evaluator, data: StudyData, real_emb: np.ndarray, text: Dict[str, Any]) -> Dict[str, Any]:
+    """What a FID of ``M`` generated motions against the ``M`` real evaluation motions is read against
+    (each with a 95% bootstrap interval, :func:`~smdm_plugin.metrics.t2m.fid_bootstrap`):
+
+    * ``fid_floor`` — the real motions against a second draw of themselves (two independent resamples
+      of the ``M``; mean and percentiles of :data:`FID_RESAMPLES` pairs): a perfect generator's FID;
+    * ``fid_train_matched`` — the real train motions with the evaluation captions and lengths
+      (:func:`matched_train`): a generator that reproduces its training motions;
+    * ``fid_train_vs_eval`` — every real train motion (first ``max_frames``) against them;
+    * ``fid_train_sample`` — ``M`` train motions drawn without replacement (mean and percentiles over
+      :data:`FID_RESAMPLES` draws): the last at the generated sets' size."""
+    from ...metrics.t2m import fid_bootstrap, frechet_distance
+
+    std, mean = torch.from_numpy(data.std), torch.from_numpy(data.mean)
+    train_x, train_L = data.train.padded()
+    train_emb = evaluator.embed_motion(train_x * std + mean, train_L).double().numpy()
+    idx, lens = matched_train(data, text)
+    matched_emb = evaluator.embed_motion(train_x[idx] * std + mean, lens).double().numpy()
+    floor = fid_bootstrap(real_emb, real_emb, FID_RESAMPLES, seed=1)
+    allt = fid_bootstrap(train_emb, real_emb, FID_RESAMPLES, seed=2)
+    match = fid_bootstrap(matched_emb, real_emb, FID_RESAMPLES, paired=True, seed=3)
+    rng = np.random.default_rng(4)
+    M = len(real_emb)
+    sample = [frechet_distance(train_emb[rng.choice(len(train_emb), M, replace=False)], real_emb)
+              for _ in range(FID_RESAMPLES)] if len(train_emb) >= M else [float("nan")]
+    return {"fid_floor": floor.boot_mean, "fid_floor_interval": [floor.boot_low, floor.boot_high],
+            "fid_train_matched": match.fid, "fid_train_matched_interval": [match.low, match.high],
+            "fid_train_vs_eval": allt.fid, "fid_train_vs_eval_interval": [allt.low, allt.high],
+            "fid_train_sample": float(np.mean(sample)),
+            "fid_train_sample_interval": [float(np.percentile(sample, 2.5)), float(np.percentile(sample, 97.5))],
+            "train_matched": [data.train.ids[i] for i in idx]}
 
 
 def _meta(cfg: Dict[str, Any], data: StudyData, data_root: str, ref: Reference, dev: torch.device) -> Dict[str, Any]:
@@ -593,7 +763,7 @@ def _plan(cfg: Dict[str, Any], out: str, data: StudyData, ev_key: str, dev: torc
     for v in cfg["variants"]:
         for s in cfg["seeds"]:
             vdir = os.path.join(out, slug(v["name"]), f"seed{s}")
-            settings = {**{k: cfg[k] for k in RUN_SETTINGS}, "variant": v, "evaluator_key": ev_key}
+            settings = {**{k: cfg[k] for k in RUN_SETTINGS}, "variant": v, "evaluator_key": ev_key, "scoring": SCORING}
             try:
                 sc = sparse_config(cfg, v)
                 settings["sparse_config"] = None if sc is None else sc.to_dict()
@@ -623,8 +793,11 @@ def _run_one(cfg: Dict[str, Any], item: StudyRun, data: StudyData, ref: Referenc
     atomic_write_json(os.path.join(vdir, "config.json"), item.settings)
     log(f"  {name} seed {s}: training")
     t0 = time.perf_counter()
+    ckpt = os.path.join(vdir, CHECKPOINT_DIR)
+    _checkpoint_of(ckpt, item.provenance)
     try:
-        rec = run_seed(cfg, item.variant, s, data, ref.evaluator, ref.text_emb, ref.real_emb, dev, log)
+        rec = run_seed(cfg, item.variant, s, data, ref.evaluator, ref.text_emb, ref.real_emb, dev, log,
+                       checkpoint_dir=ckpt)
     except Exception as e:  # recorded; the other runs go on
         rec = failure_record(name, e, item.provenance, seed=s)
         atomic_write_json(fail_path, rec)
@@ -637,6 +810,7 @@ def _run_one(cfg: Dict[str, Any], item: StudyRun, data: StudyData, ref: Referenc
     atomic_write_json(res_path, rec, indent=None)
     if os.path.exists(fail_path):
         os.remove(fail_path)
+    shutil.rmtree(ckpt, ignore_errors=True)  # the result is written: the checkpoint has served
     return rec
 
 

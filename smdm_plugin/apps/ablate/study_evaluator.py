@@ -63,8 +63,8 @@ class T2MSettings:
     """Training of the T2M-architecture evaluator (:mod:`smdm_plugin.metrics.evaluator.train`):
     ``recipe`` (``contrastive``: 0.4's one stage, the default of configs written before it;
     ``t2m``: T2M's two stages, ``smdm evaluator train``'s default), ``epochs`` (matching epochs),
-    ``ae_epochs`` and ``margin`` (``t2m`` only), ``batch``, ``lr``, ``temperature`` (``contrastive``
-    only), ``seed``. A config's evaluator key is its ``evaluator`` mapping as written, so the fields
+    ``ae_epochs``, ``margin`` and ``reversed_negatives`` (``t2m`` only), ``batch``, ``lr``, ``temperature``
+    (``contrastive`` only), ``seed``, ``select`` (how the weights are chosen on val). A config's evaluator key is its ``evaluator`` mapping as written, so the fields
     added later leave earlier caches and results valid."""
 
     epochs: int = 60
@@ -75,12 +75,16 @@ class T2MSettings:
     recipe: str = "contrastive"
     ae_epochs: int = 50
     margin: float = 10.0
+    select: str = "val_rprec"
+    reversed_negatives: bool = False
 
     def __post_init__(self) -> None:
-        from ...metrics.evaluator.train import RECIPES
+        from ...metrics.evaluator.train import RECIPES, SELECTIONS
 
         if self.recipe not in RECIPES:
             raise TypeError(f"recipe={self.recipe!r}: expected one of {RECIPES}")
+        if self.select not in SELECTIONS:
+            raise TypeError(f"select={self.select!r}: expected one of {SELECTIONS}")
 
 
 class T2MEvaluator:
@@ -122,21 +126,24 @@ def train_t2m(data: Any, settings: T2MSettings, log: Callable[[str], Any] = prin
     with :mod:`smdm_plugin.metrics.evaluator.train`; held-out accuracy on the evaluation split in
     ``report``."""
     from ...metrics.evaluator.data import load_captioned
+    from ...metrics.evaluator.check import retrieval_check
     from ...metrics.evaluator.train import TrainSettings, build_evaluator, held_out_accuracy, train_evaluator
 
     ts = TrainSettings(recipe=settings.recipe, epochs=settings.epochs, batch=settings.batch, lr=settings.lr,
                        temperature=settings.temperature, seed=settings.seed, ae_epochs=settings.ae_epochs,
-                       margin=settings.margin)
+                       margin=settings.margin, select=settings.select, reversed_negatives=settings.reversed_negatives)
     train = load_captioned(data.root, "train")
     val = load_captioned(data.root, "val") if os.path.exists(os.path.join(data.root, "val.txt")) else None
     ev = build_evaluator(train, ts)
     st = train_evaluator(ev, train, val, ts)
-    acc = held_out_accuracy(ev, load_captioned(data.root, data.split), seed=settings.seed)
+    held = load_captioned(data.root, data.split)
+    acc = held_out_accuracy(ev, held, seed=settings.seed)
+    check = retrieval_check(ev, held, replications=20, seed=settings.seed)
     report = {"kept_epoch": st["best"]["epoch"] - ts.pretrain_epochs, "recipe": ts.recipe, "train_seconds": st["seconds"], "held_out": acc,
-              "train_motions": len(train)}
+              "train_motions": len(train), "retrieval_check": check.to_dict()}
     log(f"  evaluator (t2m): held-out {data.split} top-1 {acc['top1']:.3f}, top-3 {acc['top3']:.3f} (pool "
         f"{acc['pool_size']}; chance top-1 {acc['chance_top1']:.3f}), {ts.recipe} recipe, kept matching epoch "
-        f"{st['best']['epoch'] - ts.pretrain_epochs}")
+        f"{st['best']['epoch'] - ts.pretrain_epochs}; {check.line()}")
     return T2MEvaluator(ev, report)
 
 

@@ -31,7 +31,7 @@ import hashlib
 import json
 import os
 from dataclasses import dataclass
-from typing import Any, Callable, Dict, List, Optional, Sequence
+from typing import Any, Callable, Dict, List, Optional, Sequence, Tuple
 
 import numpy as np
 
@@ -191,21 +191,21 @@ def _separated(a: Sequence[float], b: Sequence[float], higher: bool) -> bool:
     return (a[0] - a[1] > b[0] + b[1]) if higher else (a[0] + a[1] < b[0] - b[1])
 
 
-def sensitivity(ev: Evaluator, data: CaptionedMotions, replications: int = 20, seed: int = 0,
-                protocol: str = "upstream", pool: int = 32, data_name: str = "", split: str = "test",
-                conditions: Optional[Sequence[str]] = None) -> SensitivityTable:
-    """The :class:`SensitivityTable` of ``ev`` on ``data`` (module docstring)."""
+def _replicate(ev: Evaluator, data: CaptionedMotions, names: Sequence[str], replications: int, seed: int,
+               protocol: str, pool: int) -> Tuple[Dict[str, Dict[str, List[float]]], int]:
+    """Per condition of ``names`` and metric of :data:`_METRICS`, the value of every replication (the
+    same draws, captions and caption embeddings for every condition), and the motions per draw."""
     if replications < 1:
         raise ValueError(f"sensitivity: replications must be >= 1, got {replications}")
-    names = list(conditions) if conditions is not None else list(CONDITIONS)
     unknown = [n for n in names if n not in CONDITIONS]
     if unknown or "real" not in names:
         raise ValueError(f"sensitivity: conditions must include 'real' and come from {list(CONDITIONS)}, got {names}")
+    names = ["real", *[n for n in names if n != "real"]]  # the real row first: its diversity scales the others
     std = np.asarray(data.std, np.float32)
     lengths = [len(m) for m in data.motions]
     ncap = [len(c) for c in data.captions]
     vals: Dict[str, Dict[str, List[float]]] = {n: {k: [] for k in _METRICS} for n in names}
-    P = None
+    P = 0
     for r in range(replications):
         rep = replication(protocol, lengths, ncap, seed=seed * 100003 + r, pool=pool)
         ref = embed_motions(ev, rep.reference.motions(data.motions))
@@ -233,6 +233,16 @@ def sensitivity(ev: Evaluator, data: CaptionedMotions, replications: int = 20, s
             v["top1"].append(ret.top1)
             v["top3"].append(ret.top3)
             v["matching_score"].append(ret.matching_score)
+    return vals, P
+
+
+def sensitivity(ev: Evaluator, data: CaptionedMotions, replications: int = 20, seed: int = 0,
+                protocol: str = "upstream", pool: int = 32, data_name: str = "", split: str = "test",
+                conditions: Optional[Sequence[str]] = None) -> SensitivityTable:
+    """The :class:`SensitivityTable` of ``ev`` on ``data`` (module docstring)."""
+    names = list(conditions) if conditions is not None else list(CONDITIONS)
+    vals, P = _replicate(ev, data, names, replications, seed, protocol, pool)
+    std = np.asarray(data.std, np.float32)
     # paired: every motion, first min(L, 196) frames, against itself degraded
     full = [m[:ev.config.max_motion_length] for m in data.motions]
     base = embed_motions(ev, full)
@@ -252,6 +262,59 @@ def sensitivity(ev: Evaluator, data: CaptionedMotions, replications: int = 20, s
         rows.append(CheckRow(n, cond.label, paired=float(paired), resolved=bool(resolved), **s))
     return SensitivityTable(rows, protocol, replications, int(P), len(data), data_name, split, seed,
                             weights_fingerprint(ev))
+
+
+@dataclass
+class RetrievalCheck:
+    """Whether an evaluator's R-precision reacts to order and to the caption, on a split's real motions,
+    under the evaluation protocol: each ``(mean, 95% interval)`` over ``replications`` (mean ±
+    1.96·std/√R). ``top1``/``top3``: the real motions against their captions; ``reversed_top3``: the
+    motions reversed in time; ``swapped_top3``: each scored against another motion's caption;
+    ``drop_reversed_top1``/``drop_reversed_top3``/``drop_swapped_top3``: the **paired** drops (real −
+    degraded, the same draws and captions in each replication); ``fid_floor``: the real-vs-real FID."""
+
+    top1: List[float]
+    top3: List[float]
+    reversed_top3: List[float]
+    swapped_top3: List[float]
+    drop_reversed_top1: List[float]
+    drop_reversed_top3: List[float]
+    drop_swapped_top3: List[float]
+    fid_floor: List[float]
+    replications: int
+    pool: int
+
+    def sees_order(self) -> bool:
+        """R-precision top-3 falls for time-reversed motion: the paired drop's interval is above 0."""
+        return self.drop_reversed_top3[0] - self.drop_reversed_top3[1] > 0
+
+    def sees_captions(self) -> bool:
+        """R-precision top-3 falls for swapped captions: the paired drop's interval is above 0."""
+        return self.drop_swapped_top3[0] - self.drop_swapped_top3[1] > 0
+
+    def to_dict(self) -> Dict[str, Any]:
+        return dataclasses.asdict(self)
+
+    def line(self) -> str:
+        """One line for a summary: R@3, its drops and whether they are clear of 0."""
+        pm = lambda v: f"{v[0]:.3f} ± {v[1]:.3f}"  # noqa: E731
+        return (f"R-precision top-3 {pm(self.top3)} (top-1 {pm(self.top1)}); time-reversed {pm(self.reversed_top3)}, "
+                f"paired drop {pm(self.drop_reversed_top3)} ({'clear of 0' if self.sees_order() else 'NOT clear of 0'});"
+                f" captions swapped {pm(self.swapped_top3)}, drop {pm(self.drop_swapped_top3)} "
+                f"({'clear of 0' if self.sees_captions() else 'NOT clear of 0'}); FID floor {self.fid_floor[0]:.2f}")
+
+
+def retrieval_check(ev: Evaluator, data: CaptionedMotions, replications: int = 20, seed: int = 0,
+                    protocol: str = "upstream", pool: int = 32) -> RetrievalCheck:
+    """The :class:`RetrievalCheck` of ``ev`` on ``data`` (the conditions ``real``, ``reversed`` and
+    ``caption_swap`` of :data:`CONDITIONS`)."""
+    vals, P = _replicate(ev, data, ["real", "reversed", "caption_swap"], replications, seed, protocol, pool)
+    real, rev, swap = vals["real"], vals["reversed"], vals["caption_swap"]
+    drop = lambda a, b: list(mean_interval(np.subtract(a, b)))  # noqa: E731
+    return RetrievalCheck(list(mean_interval(real["top1"])), list(mean_interval(real["top3"])),
+                          list(mean_interval(rev["top3"])), list(mean_interval(swap["top3"])),
+                          drop(real["top1"], rev["top1"]), drop(real["top3"], rev["top3"]),
+                          drop(real["top3"], swap["top3"]), list(mean_interval(real["fid"])), replications, P)
 
 
 def save_check(table: SensitivityTable, folder: str) -> str:

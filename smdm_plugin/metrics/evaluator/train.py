@@ -48,17 +48,24 @@ T2M_SIZES: Dict[str, int] = {"dim_word": 300, "dim_movement_hidden": 512, "dim_m
 RECIPES = ("t2m", "contrastive")
 #: the recipe ``smdm evaluator train`` uses by default
 DEFAULT_RECIPE = "t2m"
+#: how the kept weights are chosen among the matching epochs, when there is a validation split:
+#: ``val_loss`` (T2M's: the lowest :func:`validation_loss`), ``val_rprec`` (the highest mean of validation
+#: R-precision top-1 and top-3)
+SELECTIONS = ("val_loss", "val_rprec")
 
 
 @dataclass
 class TrainSettings:
     """``recipe`` (:data:`RECIPES`; ``smdm evaluator train`` uses ``t2m``, the dataclass keeps 0.4's
     ``contrastive`` for library callers), ``epochs`` (matching epochs, after ``ae_epochs`` of movement
-    auto-encoder pretraining for ``t2m``; default 40 for ``t2m``, 60 for ``contrastive``), ``batch``
-    (motions per step), ``lr`` (Adam; default 1e-4 for ``t2m`` as T2M, 1e-3 for ``contrastive``;
-    ``ae_lr`` for the auto-encoder), ``margin`` (``t2m``: negatives pushed beyond this distance), ``temperature``
-    (``contrastive``: distance scale of the logits), ``ae_window`` (frames per auto-encoder crop),
-    ``seed``, ``eval_draws`` (caption draws averaged in held-out accuracy), ``sizes``."""
+    auto-encoder pretraining for ``t2m``; default 60 for both), ``batch`` (motions per step), ``lr``
+    (Adam; default 1e-4 for ``t2m`` as T2M, 1e-3 for ``contrastive``; ``ae_lr`` for the auto-encoder),
+    ``margin`` (``t2m``: negatives pushed beyond this distance), ``temperature`` (``contrastive``:
+    distance scale of the logits), ``ae_window`` (frames per auto-encoder crop), ``seed``,
+    ``eval_draws`` (caption draws averaged in held-out accuracy and the validation loss), ``sizes``,
+    ``select`` (:data:`SELECTIONS`; default ``val_loss`` for ``t2m``, ``val_rprec`` for
+    ``contrastive``), ``reversed_negatives`` (``t2m``: each caption is also pushed beyond ``margin``
+    from its own motion played backwards; default on for ``t2m``)."""
 
     recipe: str = "contrastive"
     epochs: Optional[int] = None
@@ -72,15 +79,25 @@ class TrainSettings:
     seed: int = 0
     eval_draws: int = 5
     sizes: Optional[Dict[str, int]] = None
+    select: Optional[str] = None
+    reversed_negatives: Optional[bool] = None
 
     def __post_init__(self) -> None:
         if self.recipe not in RECIPES:
             raise ValueError(f"TrainSettings: recipe must be one of {RECIPES}, got {self.recipe!r}")
         t2m = self.recipe == "t2m"
+        if self.select is None:
+            self.select = "val_loss" if t2m else "val_rprec"
+        if self.select not in SELECTIONS:
+            raise ValueError(f"TrainSettings: select must be one of {SELECTIONS}, got {self.select!r}")
+        if self.reversed_negatives is None:
+            self.reversed_negatives = t2m
+        if self.reversed_negatives and not t2m:
+            raise ValueError("TrainSettings: reversed_negatives is part of the t2m recipe's margin loss")
         if self.sizes is None:
             self.sizes = dict(T2M_SIZES if t2m else OWN_SIZES)
         if self.epochs is None:
-            self.epochs = 40 if t2m else 60
+            self.epochs = 60
         if self.lr is None:
             self.lr = 1e-4 if t2m else 1e-3
         if (self.epochs < 1 or self.batch < 2 or not self.lr > 0 or not self.temperature > 0 or self.eval_draws < 1
@@ -151,6 +168,28 @@ def held_out_accuracy(ev: Evaluator, data: CaptionedMotions, draws: int = 5, see
             "chance_top1": 1.0 / pool, "chance_top3": min(1.0, 3.0 / pool), "caption_draws": draws}
 
 
+def validation_loss(ev: Evaluator, data: CaptionedMotions, settings: "TrainSettings", draws: int = 5,
+                    seed: int = 0) -> float:
+    """T2M's matching loss on held-out ``data`` (the criterion T2M keeps its weights by), without its
+    randomness: every motion whole (first ``max_motion_length`` frames), one caption drawn per motion
+    and draw (``draws`` draws, seeded), squared distance of the true pairs plus the squared shortfall
+    below ``settings.margin`` of **every** mismatched pair (T2M: one random shift of the batch).
+    Mean over the draws (a float; lower is better)."""
+    was = ev.training
+    ev.eval()
+    x, L = _padded([m[:ev.config.max_motion_length] for m in data.motions])
+    with torch.no_grad():
+        m_emb = ev.encode_motion(x.to(ev.mean.device), L)
+        out = []
+        for d in range(draws):
+            t_emb = ev.encode_text(data.first_captions(seed=seed + d))
+            dist = torch.cdist(t_emb.double(), m_emb.double())                       # [N, N]
+            off = ~torch.eye(len(dist), dtype=torch.bool, device=dist.device)
+            out.append(float((dist.diagonal() ** 2).mean() + (torch.clamp(settings.margin - dist[off], min=0) ** 2).mean()))
+    ev.train(was)
+    return float(np.mean(out))
+
+
 def _padded(motions: List[np.ndarray]) -> tuple:
     x = np.zeros((len(motions), max(len(m) for m in motions), motions[0].shape[1]), np.float32)
     for r, m in enumerate(motions):
@@ -192,7 +231,15 @@ def _matching_loss(ev: Evaluator, settings: TrainSettings, motions: List[np.ndar
         neg = m_emb[(torch.arange(B) + shift) % B]
         d_pos = F.pairwise_distance(t_emb, m_emb)
         d_neg = F.pairwise_distance(t_emb, neg)
-        return (d_pos ** 2).mean() + (torch.clamp(settings.margin - d_neg, min=0.0) ** 2).mean()
+        loss = (d_pos ** 2).mean() + (torch.clamp(settings.margin - d_neg, min=0.0) ** 2).mean()
+        if settings.reversed_negatives:  # each caption against its own motion played backwards
+            rev = torch.stack([torch.cat([x[b, :int(n)].flip(0), x[b, int(n):]]) for b, n in enumerate(L)])
+            xr, _ = ev.prepare_motion(rev, L)
+            with torch.no_grad():
+                mov_r = ev.movement_encoder(xr)
+            d_rev = F.pairwise_distance(t_emb, ev.motion_encoder(mov_r, steps))
+            loss = loss + (torch.clamp(settings.margin - d_rev, min=0.0) ** 2).mean()
+        return loss
     m_emb = ev.encode_motion(x, L)
     logits = -torch.cdist(t_emb, m_emb) * (1.0 / settings.temperature) / math.sqrt(ev.config.dim_coemb)
     target = torch.arange(len(motions), device=logits.device)
@@ -273,8 +320,9 @@ def train_evaluator(ev: Evaluator, train: CaptionedMotions, val: Optional[Captio
             score = None
             if val is not None:
                 acc = held_out_accuracy(ev, val, draws=settings.eval_draws, seed=settings.seed)
-                row.update(val_top1=acc["top1"], val_top3=acc["top3"])
-                score = 0.5 * (acc["top1"] + acc["top3"])
+                vloss = validation_loss(ev, val, settings, draws=settings.eval_draws, seed=settings.seed)
+                row.update(val_top1=acc["top1"], val_top3=acc["top3"], val_loss=vloss)
+                score = -vloss if settings.select == "val_loss" else 0.5 * (acc["top1"] + acc["top3"])
             if st["best"] is None or score is None or score > st["best"]["score"]:
                 st["best"] = {"epoch": epoch + 1, "score": score, "model": _snapshot(ev)}
         st["history"].append(row)
