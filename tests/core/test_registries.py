@@ -55,6 +55,10 @@ def test_backend_capabilities_decide_the_dispatch():
     register_backend("_dynamic", recording, static_shapes=False)
     register_backend("_picky", recording, supports=lambda inner: False)
     try:
+        with pytest.raises(ValueError, match="'_picky' is already registered"):
+            register_backend("_picky", recording)                 # no silent replacement
+        assert ab.BACKENDS.get("_picky").supports(None) is False
+        register_backend("_picky", recording, supports=lambda inner: False, replace=True)
         assert SparseConfig(attention_backend="_dynamic").attention_backend == "_dynamic"
         cpu = torch.device("cpu")
         assert ab.resolve_backend_name("_dynamic", cpu) == "_dynamic"
@@ -74,3 +78,4 @@ def test_backend_capabilities_decide_the_dispatch():
     finally:
         ab.BACKENDS.unregister("_dynamic")
         ab.BACKENDS.unregister("_picky")
+        ab._WARNED.clear()
