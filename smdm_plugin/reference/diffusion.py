@@ -162,7 +162,9 @@ class SimpleDiffusion:
         x = torch.randn(shape, generator=generator, device=device)
         given = self.constraint(model_kwargs, x)
         steps = range(self.num_timesteps - 1, -1, -1)
-        if progress:
+        from ..io.progress import bars_on  # stderr a terminal (or --progress)
+
+        if bars_on(progress):
             from tqdm.auto import tqdm
 
             steps = tqdm(steps, desc="sampling", unit="step")

@@ -345,7 +345,9 @@ class Trainer:
         if n < 0:
             raise ValueError(f"Trainer.train: steps must be >= 0, got {steps}")
         bar = None
-        if progress and self.dist.is_main:
+        from ..io.progress import bars_on  # stderr a terminal (or --progress)
+
+        if self.dist.is_main and bars_on(progress):
             from tqdm.auto import tqdm
 
             bar = tqdm(total=n, desc="sparse" if self.config.sparse is not None else "dense",
@@ -507,7 +509,9 @@ def race_fair(trainers: Dict[str, "Trainer"], seconds: float = float("inf"), max
     spent = torch.zeros(len(names), dtype=torch.float64)
     runs: Dict[str, Dict[str, Any]] = {n: {"steps": 0, "seconds": 0.0, "loss": [], "time": []} for n in names}
     bar = None
-    if progress and dist.is_main:
+    from ..io.progress import bars_on  # stderr a terminal (or --progress)
+
+    if dist.is_main and bars_on(progress):
         from tqdm.auto import tqdm
 
         bar = tqdm(total=round(seconds) if math.isfinite(seconds) else len(names) * max_steps,

@@ -424,7 +424,7 @@ def main(argv: Optional[List[str]] = None) -> int:
         print(f"smdm ablate: error: {e}", file=sys.stderr)
         return 2
     try:
-        results = run_ablation(cfg, a.out, data_root, a.device, a.only, progress=progress_of(a) and ctx.is_main,
+        results = run_ablation(cfg, a.out, data_root, a.device, a.only, progress=ctx.is_main and progress_of(a),
                                log=note_printer(a), resume=a.resume, overwrite=a.overwrite, dist=ctx)
     except (OutputExistsError, FileNotFoundError, ValueError, PermissionError, NotADirectoryError) as e:
         if ctx.is_main:

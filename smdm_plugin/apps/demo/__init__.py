@@ -514,7 +514,7 @@ def main_demo(args: argparse.Namespace) -> int:
         print(f"smdm demo: {e}", file=sys.stderr)
         return 2
     run = DemoRun(args, ctx, note_printer(args) if ctx.is_main else (lambda *a, **k: None),
-                  progress_of(args) and not args.quick)
+                  not args.quick and progress_of(args))
     try:
         return _demo_steps(run, t_start)
     except DemoError as e:

@@ -280,7 +280,9 @@ def train_evaluator(ev: Evaluator, train: CaptionedMotions, val: Optional[Captio
             ae_opt.load_state_dict(state["ae_optimizer"])
         st = {k: state[k] for k in ("epoch", "history", "best", "seconds")}
     bar = None
-    if progress:
+    from ...io.progress import bars_on  # stderr a terminal (or --progress)
+
+    if bars_on(progress):
         from tqdm.auto import tqdm
 
         bar = tqdm(total=total, initial=st["epoch"], desc="evaluator", unit="epoch", mininterval=0.5)
