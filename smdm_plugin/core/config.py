@@ -393,14 +393,14 @@ def _check_field(name: str, spec: FieldSpec, v: Any) -> Any:
             raise bad(ConfigTypeError)
         if not v:
             raise bad()
-        wrong = [e for e in v if not _is_int(e)]
+        wrong = [e for e in v if not is_int(e)]
         if wrong:
             raise bad(ConfigTypeError, of=wrong[0], hint=f" element {wrong[0]!r}")
         if not all(e in spec.range for e in v):
             raise bad()
         return tuple(int(e) for e in v)
     if spec.kind is int:
-        if not _is_int(v):
+        if not is_int(v):
             raise bad(ConfigTypeError)
         if v not in spec.range:
             raise bad()
@@ -412,10 +412,6 @@ def _check_field(name: str, spec: FieldSpec, v: Any) -> Any:
     if not math.isfinite(x) or x not in spec.range:
         raise bad()
     return x
-
-
-def _is_int(v: Any) -> bool:
-    return is_int(v)
 
 
 def _located(e: Exception, source: Optional[str]) -> Exception:

@@ -17,7 +17,6 @@ upstream's ``model`` group, so ``load_args_from_model`` never restores them from
 """
 from __future__ import annotations
 
-import argparse
 import os
 import sys
 from dataclasses import dataclass
@@ -31,14 +30,6 @@ def _fail(option: str, message: str) -> "NoReturn":
     """An argparse-style error naming the option: one line on stderr, exit status 2."""
     sys.stderr.write(f"error: argument {option}: {message}\n")
     raise SystemExit(2)
-
-
-def command_line_value(option: str, argv: Optional[list] = None) -> Optional[str]:
-    """``option``'s value on this process's command line (None when absent)."""
-    p = argparse.ArgumentParser(add_help=False)
-    p.add_argument(option, default=None)
-    known, _ = p.parse_known_args(sys.argv[1:] if argv is None else argv)
-    return getattr(known, option.lstrip("-"))
 
 
 @dataclass

@@ -243,8 +243,6 @@ class StudyData:
         for i in list(self.train.ids) + self.ids + val_ids:
             files += [os.path.join(root, "new_joint_vecs", f"{i}.npy"), os.path.join(root, "texts", f"{i}.txt")]
         self.fingerprint = fingerprint_files(root, files)
-        self.train_raw = [(self.train.frames[self.train.offsets[i]:self.train.offsets[i + 1]].numpy() * self.std
-                           + self.mean) for i in range(len(self.train))]
 
 
 # ----------------------------------------------------------------------------------------- scoring
