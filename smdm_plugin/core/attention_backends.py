@@ -1,35 +1,5 @@
-"""How keyframe tokens go through the wrapped transformer: a small backend registry.
-
-A backend runs the kept tokens of one call (the ``lead`` tokens before the frames — MDM
-trans_enc's timestep/text token — and the keyframes of a :class:`~smdm_plugin.core.plan.KeyframePlan`)
-through the wrapped ``nn.TransformerEncoder`` / ``nn.TransformerDecoder`` so that they attend to each
-other only. Signature::
-
-    fn(inner, x, plan, lead, memory=None, memory_key_padding_mask=None, lead_padding=None)
-        -> (h [R, d], rows [lead + K, B] long)
-
-with ``x [S, B, d]`` sequence-first (``S = lead + N``). ``h`` holds output rows and ``rows[s, b]`` is
-the row of lead token ``s`` / keyframe slot ``s - lead`` of sample ``b`` (padded slots may point
-anywhere valid). The keyframe transformer interpolates every frame from these rows.
-
-* ``masked``  — the whole sequence with a key-padding mask: the slow, obviously correct reference
-  (costs as much as dense).
-* ``compact`` — the lead tokens and the ``K`` plan slots gathered to ``[lead + K, B, d]`` with a key
-  padding mask over the empty slots, the wrapped module called as it is. Static shapes, no host
-  sync: the default on accelerators and under ``torch.compile``; also the fallback for layers
-  ``varlen`` cannot run (custom layer classes, hooks on layers).
-* ``varlen``  — kept tokens packed with no padding at all ``[T, d]`` through PyTorch's own
-  ``nn.TransformerEncoder`` / ``Decoder`` and layer ``forward`` (run on the packed rows as one
-  unbatched sequence; the wrapped module is not changed); each layer's attention module is called
-  through :class:`~smdm_plugin.core.packed_attention._AttentionOnPackedRows`, which pads only the heads for
-  ``scaled_dot_product_attention`` (:mod:`smdm_plugin.core.attention`, the package's one copy of
-  the attention maths). No padded rows in projections, feed-forward and norms, but the packed size
-  ``T`` is data-dependent (host syncs, dynamic shapes): the default in eager mode on the CPU, where
-  rows, not launches, cost time.
-
-The rows a backend returns become every frame in :func:`smdm_plugin.core.fill.fill_frames`; the row
-operations are :mod:`.rows`, the packing :mod:`.packing` and :mod:`.packed_attention`.
-"""
+"""How keyframe tokens go through the wrapped transformer: a registry of backends (``masked``, the
+reference; ``compact``, static shapes; ``varlen``, packed rows with no padding) and the one dispatch."""
 from __future__ import annotations
 
 from dataclasses import dataclass
@@ -73,8 +43,12 @@ FALLBACK = "compact"
 def register_backend(name: str, fn: Backend, available: Callable[[torch.device], bool] = lambda d: True, *,
                      static_shapes: bool = True, supports: Callable[[nn.Module], bool] = lambda inner: True,
                      padded_lead: bool = True, replace: bool = False) -> AttentionBackend:
-    """Register ``fn`` (signature in the module docstring) under ``name`` with its capabilities
-    (see :class:`AttentionBackend`); a taken name is a ``ValueError`` unless ``replace``."""
+    """Register ``fn`` under ``name`` with its capabilities (see :class:`AttentionBackend`); a taken
+    name is a ``ValueError`` unless ``replace``. ``fn(inner, x, plan, lead, memory=None,
+    memory_key_padding_mask=None, lead_padding=None) -> (h [R, d], rows [lead + K, B] long)`` runs
+    the ``lead`` tokens and the plan's keyframes of sequence-first ``x [S, B, d]`` through ``inner``,
+    attending to each other only: ``rows[s, b]`` is the row of ``h`` for lead token ``s`` /
+    keyframe slot ``s - lead`` of sample ``b`` (padded slots may point anywhere valid)."""
     return BACKENDS.register(name, AttentionBackend(fn, available, static_shapes, supports, padded_lead),
                               replace=replace)
 

@@ -120,7 +120,7 @@ def add_common_flags(p: Any, *, device: Optional[str] = "auto", threads: bool = 
       (``device_help``: what ``auto`` means for this command, when it says more than the default help);
     * ``--threads N`` (default ``threads_default``: the automatic choice of ``common.threads``);
     * ``--no-progress`` — no progress bars or per-step progress lines; without it bars show only
-      when stderr is a terminal (:func:`smdm_plugin.io.progress.bars_on`), ``--progress`` shows
+      when stderr is a terminal (:func:`smdm_plugin.core.progress.bars_on`), ``--progress`` shows
       them whatever stderr is (a log file then holds every redraw);
     * ``--quiet`` — ``--no-progress`` and no notes (what the command is doing, where it wrote):
       results, warnings and errors still print (:func:`progress_of`, :func:`note_printer`).
@@ -157,8 +157,8 @@ def add_common_flags(p: Any, *, device: Optional[str] = "auto", threads: bool = 
 
 def progress_of(args: argparse.Namespace) -> bool | str:
     """Whether the command shows progress: neither ``--no-progress`` nor ``--quiet`` was given
-    (per-step lines then print; bars show where :func:`smdm_plugin.io.progress.bars_on` says);
-    ``"always"`` (:data:`smdm_plugin.io.progress.ALWAYS`: bars whatever stderr is) with ``--progress``."""
+    (per-step lines then print; bars show where :func:`smdm_plugin.core.progress.bars_on` says);
+    ``"always"`` (:data:`smdm_plugin.core.progress.ALWAYS`: bars whatever stderr is) with ``--progress``."""
     if getattr(args, "no_progress", False) or getattr(args, "quiet", False):
         return False
     return "always" if getattr(args, "progress", False) else True
