@@ -68,7 +68,7 @@ def test_backend_capabilities_decide_the_dispatch():
         tr = KeyframeTransformer(torch.nn.TransformerEncoder(layer, 1, enable_nested_tensor=False),
                                  backend="_picky").eval()
         tr.set_keyframes(torch.ones(2, 5, dtype=torch.bool))
-        with torch.no_grad():
+        with torch.no_grad(), pytest.warns(RuntimeWarning, match="'_picky' falls back to 'compact'"):
             tr(torch.randn(5, 2, 16))
         assert calls == []                                        # it cannot run these layers
         tr.backend = "_dynamic"
