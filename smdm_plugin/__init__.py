@@ -1,17 +1,4 @@
-"""smdm-plugin: sparse keyframe mode ("Less is More", sMDM) for MDM-family motion diffusion code.
-
-Layers (each imports only from those below it; see ``docs/architecture.md``)::
-
-    apps/          smdm demo | train | bench | ablate | eval | evaluator | inbetween | render | run | keyframes
-    training/      the in-package TinyMDM trainer behind smdm train / demo / ablate / eval
-    integrations/  upstream MDM / DiP, priorMDM, MotionDiffuse: launcher hooks, patch entry points
-    adapters/      model surgery: sparsify / unsparsify per model family, diffusion wrapper
-    core/          the method: selection, plan, keyframe transformer, interpolation, Lipschitz, FSQ
-    io/, reference/, metrics/   beside them: file formats, the in-package TinyMDM, motion metrics
-
-The public API below is importable from here; names are resolved on first use, so
-``import smdm_plugin`` stays cheap and importing one layer does not pull in the others.
-"""
+"""smdm-plugin: sparse keyframe mode ("Less is More", sMDM) for MDM-family motion diffusion code."""
 from __future__ import annotations
 
 import importlib

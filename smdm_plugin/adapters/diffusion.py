@@ -1,22 +1,6 @@
 """Wrap a Gaussian diffusion's ``training_losses`` (MDM / guided-diffusion style, or the
-in-package :class:`~smdm_plugin.reference.diffusion.SimpleDiffusion`) for sparse training:
-
-* the keyframe mask is selected from the clean motion ``x_start`` (+ mask noise) and handed to
-  the model, with its static capacity, as a
-  :class:`~smdm_plugin.adapters.request.KeyframeRequest` by the model family's ``with_keyframes``
-  (unless the batch already carries one, chosen while loading: MDM's
-  :class:`~smdm_plugin.adapters.mdm.keyframe_collate`);
-* the loss stays on the dense, interpolated frames with the upstream valid-frame mask — or on
-  keyframes only when ``config.interpolate`` is False (ablation);
-* ``config.lipschitz_lambda * L_lip`` is added to ``terms['loss']``.
-
-The wrapper holds no model and no config: at every call it finds the sparsified module inside the
-model it is given (through DDP / EMA / guidance wrappers) and uses that module's own state. A dense
-model passes straight through to the upstream function. So sparsify, unsparsify and re-sparsify, in
-any order and with several models sharing one diffusion, always train each model with its own
-current config. ``unsparsify`` of the last sparse model attached to a diffusion restores the
-diffusion's original method.
-"""
+in-package :class:`~smdm_plugin.reference.diffusion.SimpleDiffusion`) for sparse training: keyframes
+selected from the clean motion, the loss on every (interpolated) frame, ``+ lipschitz_lambda * L_lip``."""
 from __future__ import annotations
 
 import functools

@@ -1,33 +1,4 @@
-"""Forced keyframes for priorMDM's DoubleTake (long-sequence generation from a sparse prior).
-
-DoubleTake runs the model twice (see ``docs/priormdm.md``):
-
-* **First take**: a batch of ``S`` segments, one per text prompt, sampled together. After every
-  denoising step, the last ``h`` (handshake) frames of segment ``i`` and the first ``h`` frames of
-  segment ``i + 1`` are replaced by their linear blend, so neighbouring segments agree there.
-  priorMDM marks exactly these frames in ``y['is_transition']``.
-* **Second take**: ``S - 1`` sequences, each made of the inner part of segment ``i``, the shared
-  handshake and the inner part of segment ``i + 1``; it is re-noised and denoised again as
-  inpainting (``y['inpainting_mask']`` 1 = keep, a ramp ``0.85 -> 0`` over ``blend_len`` frames
-  before the handshake and ``0 -> 0.85`` after it). The model's output is used where the mask is
-  below 1: the blend windows.
-
-Frames that are forced to be keyframes (computed by the model, not interpolated):
-
-* first take: the handshake frames (``is_transition``). The blend writes into them after every
-  step; if they were interpolated from keyframes outside the handshake the two segments would be
-  blended from unrelated interpolants and the transition would be a straight line.
-* second take: the whole transition window ``[b - blend_len, b + h + blend_len)`` around each
-  handshake start ``b``: the blend ramps (where the model's output is actually used) and the
-  handshake between them, so that the regenerated frames are model outputs and the kept frames
-  next to them anchor the interpolation. With ``blend_len < 2`` priorMDM draws no ramp (the
-  whole second take is kept from the first), so nothing is forced.
-
-Blend length: priorMDM's ``--blend_len`` defaults to 20 frames (1 s at 20 fps; its README samples
-with 10). The sMDM paper blends over 0.25 s, i.e. :data:`PAPER_BLEND_LEN` = 5 frames at HumanML3D's
-20 fps; that is this module's default, and the priorMDM integration warns when a sparse DoubleTake
-samples with another value (it never changes the user's flag).
-"""
+"""Forced keyframes for priorMDM's DoubleTake (long-sequence generation from a sparse prior)."""
 from __future__ import annotations
 
 from typing import Any, Dict, Optional, Sequence

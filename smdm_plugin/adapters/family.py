@@ -1,30 +1,4 @@
-"""The model-family protocol: what ``sparsify`` needs to know about one kind of model.
-
-In the way PEFT registers a tuner per method or diffusers an attention processor, every model
-family (MDM trans_enc / trans_dec, DiP, priorMDM's DoubleTake, MotionDiffuse, ...) is one
-:class:`ModelFamily` registered with :func:`register_family`. The generic surgery
-(:mod:`smdm_plugin.adapters.surgery`: ``sparsify``, ``unsparsify``, ``set_mean_std``), the diffusion
-wrapper (:mod:`smdm_plugin.adapters.diffusion`) and ``load_checkpoint`` only talk to a model through
-its family. A family says:
-
-* :meth:`~ModelFamily.matches` — whether a model is one of its own (by structure);
-* :meth:`~ModelFamily.variant` — what kind it is (arch, prefix frames kept dense, a name);
-* :meth:`~ModelFamily.io_layers` — the input and output ``nn.Linear`` layers that become Lipschitz
-  sine MLPs;
-* :meth:`~ModelFamily.install` — which blocks become keyframe-only and how (MDM: the
-  ``seqTransEncoder``/``Decoder`` wrapped by ``KeyframeTransformer`` plus forward hooks;
-  MotionDiffuse: its ``forward``), recording every replacement in ``state.originals``;
-* :meth:`~ModelFamily.read_call` — how one model call's frames, timesteps, lengths and
-  :class:`~smdm_plugin.adapters.request.KeyframeRequest` (forced frames, training keyframes) arrive:
-  a typed :class:`CallInputs`;
-* :meth:`~ModelFamily.training_inputs` / :meth:`~ModelFamily.with_keyframes` /
-  :meth:`~ModelFamily.finish_losses` — how the family's diffusion ``training_losses`` is hooked:
-  where x0's lengths and forced frames are, how the chosen keyframes reach the model, what is
-  added to the returned terms.
-
-A new family is one module defining a subclass and calling ``register_family(MyFamily())``
-(:mod:`smdm_plugin.adapters.families`, the registry); ``docs/architecture.md`` shows an example.
-"""
+"""The model-family protocol: what ``sparsify`` needs to know about one kind of model."""
 from __future__ import annotations
 
 from abc import ABC, abstractmethod

@@ -1,21 +1,4 @@
-"""Keyframe-conditioned in-betweening for any MDM-family model, dense or sparse.
-
-The user's keyframes are imposed in two ways at once:
-
-* **imputation** (as MDM's ``sample.edit``): the given entries of the motion are written into MDM's
-  in-painting keys ``y['inpainting_mask']`` / ``y['inpainted_motion']`` (``[B, J, F, N]``), which MDM's
-  ``GaussianDiffusion`` and the in-package ``SimpleDiffusion`` impose at every sampling step, so the
-  given frames of the output equal the target exactly (in the model's representation);
-* **forced keyframes** (sparse models only): the given frames become keyframe tokens of the sparse
-  transformer at every step (bool ``[B, N]``, :func:`~smdm_plugin.adapters.request.with_forced`),
-  so the model attends to them and interpolates its output from them. Which given frames are forced is a ``policy`` (see
-  :func:`forced_keyframes`): a long run of given frames (MDM's in-between prefix / suffix) would
-  otherwise take most of the keyframe budget.
-
-Conventions: batch-major at the API (``target [B, N, D]``, ``given [B, N]`` or ``[B, N, D]`` bool,
-``lengths [B]``); MDM's frame-last layout ``[B, J, F, N]`` (``J * F = D``) inside ``y``. Values are
-in the model's own feature space (normalised if the model was trained on normalised features).
-"""
+"""Keyframe-conditioned in-betweening for any MDM-family model, dense or sparse."""
 from __future__ import annotations
 
 import inspect

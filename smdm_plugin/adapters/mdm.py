@@ -1,24 +1,5 @@
 """The MDM family: MDM trans_enc / trans_dec, DiP, the in-package ``TinyMDM`` (priorMDM's
-doubleTake_MDM: :mod:`smdm_plugin.adapters.doubletake`, a specialisation of this one).
-
-What ``sparsify`` (:mod:`smdm_plugin.adapters.surgery`) changes on such a model:
-
-* ``input_process.poseEmbedding`` / ``output_process.poseFinal`` (and ``velEmbedding`` /
-  ``velFinal`` when present) become Lipschitz sine MLPs (``config.lipschitz``);
-* ``seqTransEncoder`` / ``seqTransDecoder`` is wrapped by :class:`KeyframeTransformer` (and its
-  self-attention keys FSQ-quantised with ``config.fsq``);
-* a forward pre-hook decides the keyframes of every call and builds its
-  :class:`~smdm_plugin.core.plan.KeyframePlan` once from the call's
-  :class:`~smdm_plugin.adapters.request.KeyframeRequest` (``y[KEYFRAMES_KEY]``): its ``mask`` when
-  given (training: the diffusion wrapper selects it from x0, with its ``capacity``), else the
-  sampling schedule on ``(x_t, timesteps)``; its ``forced`` frames are always keyframes (inside
-  the budget); DiP's ``context_len`` prefix frames are always kept. The input embedding, the
-  keyframe transformer and the interpolation all read that one plan.
-
-A call has static shapes and no host synchronisation (unless forced keyframes live on an
-accelerator: their count is read once to size the plan), so ``torch.compile(model,
-fullgraph=True)`` and CUDA graphs work on the sparse model as on the dense one.
-"""
+doubleTake_MDM: :mod:`smdm_plugin.adapters.doubletake`, a specialisation of this one)."""
 from __future__ import annotations
 
 import functools

@@ -1,39 +1,4 @@
-"""Sparse keyframe mode for MotionDiffuse's ``MotionTransformer`` (text2motion/models/transformer.py).
-
-MotionDiffuse's denoiser embeds every frame (``joint_embed``), adds a learned per-frame
-``sequence_embedding``, runs ``temporal_decoder_blocks`` (linear self-attention, cross-attention
-to the text, FFN; each conditioned on the timestep+text embedding) and maps back with ``out``.
-Its self-attention is *linear* (softmax kernels, ``O(T d^2)``), so the saving of sparse mode is in
-the number of tokens: here only keyframe tokens go through the decoder blocks.
-
-``sparsify`` (:mod:`smdm_plugin.adapters.surgery`) with :class:`MotionDiffuseFamily` changes the
-instance in place:
-
-* ``joint_embed`` / ``out`` become Lipschitz sine MLPs (``config.lipschitz``);
-* ``forward`` is replaced by a bound method that gathers the keyframe tokens of the call's
-  :class:`~smdm_plugin.core.plan.KeyframePlan` (after the positional ``sequence_embedding`` is added,
-  so every token keeps its frame position; static shapes: ``K`` slots, empty slots masked through
-  ``src_mask`` exactly like upstream masks padded frames), runs the blocks and interpolates the
-  hidden features of every frame from the slots before ``out`` — no host sync, so the call traces
-  with ``torch.compile(fullgraph=True)``;
-* the keyframes of a call come as the keyword ``smdm_keyframes=`` (:data:`KEYFRAMES_KEY`), a
-  :class:`~smdm_plugin.adapters.request.KeyframeRequest`: its ``mask`` when given (training: chosen
-  from x0 by the wrapped ``training_losses``, with its ``capacity``), else the sampling schedule on
-  ``(x_t, timesteps)``; its ``forced`` frames are always keyframes.
-
-``unsparsify`` puts the original layers and ``forward`` back.
-
-The loss. MotionDiffuse trains on the loss of ``DDPMTrainer.backward_G``: the per-frame MSE
-weighted by ``src_mask`` (frames before each motion's length), i.e. padded frames already excluded.
-``GaussianDiffusion.training_losses`` only returns ``pred`` / ``target`` (and an unused ``mse``), so
-the dense loss needs no fix. In sparse mode every valid frame still counts: keyframes (model
-outputs) and the frames between them (interpolated from the keyframes' hidden features), exactly
-the frames upstream's ``src_mask`` selects; padded frames are never keyframes, never enter the
-decoder blocks, and stay out of the loss as upstream. What sparse mode adds is
-:func:`trainer_loss`: ``+ lipschitz_lambda * L_lip`` and, for the keyframes-only ablation
-(``config.interpolate=False``), the loss on keyframes only. :func:`attach_motiondiffuse_diffusion`
-chooses each training sample's keyframes from ``x_start`` and passes them to the model.
-"""
+"""Sparse keyframe mode for MotionDiffuse's ``MotionTransformer`` (text2motion/models/transformer.py)."""
 from __future__ import annotations
 
 import types

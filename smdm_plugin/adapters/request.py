@@ -1,16 +1,4 @@
-"""The per-call protocol between the diffusion wrapper (or a user) and a sparse model.
-
-What a caller tells a sparse model about the keyframes of one call is one typed, frozen
-:class:`KeyframeRequest`, carried under the one key :data:`KEYFRAMES_KEY` of the call's keyword
-container: MDM's ``y`` dict (upstream models pass ``y`` through and ignore keys they do not know)
-or, for MotionDiffuse, the model's keyword arguments (``model_kwargs``). Each family reads it in
-its ``read_call`` (through :func:`request_of`) and the diffusion wrapper hands the training
-keyframes over in the family's ``with_keyframes`` (through :func:`with_request`).
-
-Users who force keyframes (in-betweening, DoubleTake, their own code) call :func:`with_forced`.
-The string keys of 0.3 (``keyframe_mask`` / ``keyframe_capacity`` / ``keyframe_forced``) are a
-``TypeError`` naming this API, so a caller's keyframes are never ignored silently.
-"""
+"""The per-call protocol between the diffusion wrapper (or a user) and a sparse model."""
 from __future__ import annotations
 
 import dataclasses

@@ -1,31 +1,4 @@
-"""Opt-in text-embedding cache: encode each caption once, not on every training step.
-
-MDM's training loop hands the model raw captions and the model runs its frozen text encoder (CLIP
-ViT-B/32; DiP: DistilBERT; sMDM-stella: a 1.5B encoder) on all of them at every step. Once sparse
-mode makes the denoiser cheap, that encoder is a large share of the step (Amdahl). The encoder is
-frozen and deterministic, so a caption always gets the same embedding: :class:`CachedTextEncoder`
-wraps the model's ``encode_text`` (or TinyMDM's ``text_encoder``), looks every caption up in a
-:class:`TextEmbeddingCache` and encodes only the captions it has not seen, in one batch.
-
-* Key: ``(encoder identity, caption)``, the exact string. The identity names the encoder and
-  fingerprints its weights (:func:`module_fingerprint`), so two encoders never share entries.
-* Value: that caption's row of the encoder output, kept on the device it was computed on (the
-  model's); a row is moved once if the model moves.
-* Bound: least-recently-used eviction past ``capacity`` captions. Default 131,072 (2^17): HumanML3D
-  has 44,970 captions (89,940 with its mirrored copies), and with captions drawn uniformly an LRU of
-  ``C`` entries over ``n`` distinct captions hits about ``C / n`` of the time, so the cache only pays
-  off when it holds the whole caption set. Cost per entry: CLIP 512 floats = 2 KiB (all of HumanML3D:
-  176 MiB), stella's 1024-D head 4 KiB (352 MiB).
-* Exact: each caption's embedding is the one the encoder gives it in a batch (rows are independent:
-  CLIP pads to a fixed context, transformers encoders mask padding), equal to within float rounding
-  of batched matrix products; padded token positions of token-level outputs (DiP's
-  ``([L, B, W], pad mask)``) are zeros instead of the encoder's values at padding, which attention
-  never reads.
-* Safe: the cache steps aside (calls the encoder as upstream does, with a one-time warning) when the
-  encoder is not frozen (a parameter requires grad) or runs dropout (an ``nn.Dropout`` with ``p > 0``
-  in training mode: DiP's DistilBERT under ``model.train()``), because then a caption does not
-  always get the same embedding; and for inputs it does not understand (not a list of str).
-"""
+"""Opt-in text-embedding cache: encode each caption once, not on every training step."""
 from __future__ import annotations
 
 import hashlib

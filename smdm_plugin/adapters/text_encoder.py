@@ -1,27 +1,4 @@
-"""sMDM-stella: swap the text encoder of an MDM-family model for a frozen ``transformers`` encoder.
-
-The paper's second model replaces MDM's CLIP by stella_en_1.5B_v5. Here any ``transformers``
-encoder (a hub id or a local folder; ``AutoModel`` + ``AutoTokenizer``) can take the place of
-MDM's CLIP ViT-B/32, DiP's DistilBERT or the in-package ``TinyMDM``'s ``text_encoder`` callable:
-
-* :class:`HFTextEncoder`: captions -> one pooled embedding per caption ``[B, W]`` (float32), the
-  encoder frozen (no gradients, always in eval mode) and kept out of the model's ``parameters()``
-  and ``state_dict()`` (like MDM's CLIP, it is re-created from its id, never saved in checkpoints);
-* :func:`swap_text_encoder`: model surgery, in place. The model's own text projection
-  ``embed_text`` becomes a fresh ``nn.Linear(W, latent_dim)`` (``W`` read from the encoder's config,
-  or from its projection head) and ``encode_text`` / ``text_encoder`` returns the pooled embedding
-  in the model's own calling convention (MDM: ``[1, B, W]``; DiP: ``([1, B, W], pad mask [B, 1])``,
-  one text token; TinyMDM: ``[B, W]``).
-
-Pooling, as the encoder's authors meant it: when the folder (or hub repo) has a
-sentence-transformers layout (``modules.json``), its ``Pooling`` mode, ``Dense`` projection head,
-``Normalize`` step and default prompt are followed. stella_en_1.5B_v5 is such a model: mean of the
-last hidden state over the caption's tokens, then its ``2_Dense_1024`` head (1536 -> 1024, identity
-activation), no normalisation. Without that layout: mean pooling of the last hidden state over the
-non-padding tokens. ``pooling=`` overrides the mode (``mean`` | ``cls`` | ``last`` | ``max``).
-
-``transformers`` is an optional extra (``pip install "smdm-plugin[hf]"``), imported on first use.
-"""
+"""sMDM-stella: swap the text encoder of an MDM-family model for a frozen ``transformers`` encoder."""
 from __future__ import annotations
 
 import copy

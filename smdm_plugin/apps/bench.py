@@ -1,41 +1,4 @@
-"""``smdm bench``: what sparse keyframe mode saves, dense and sparse side by side in one run.
-
-For one registered model family (``--family``; each has a
-:class:`~smdm_plugin.training.workloads.Workload`): ``mdm``, the
-MDM-size in-package backbone (:class:`~smdm_plugin.reference.backbone.TinyMDM`, latent 512, 8
-layers, 4 heads, ff 1024; ``trans_enc`` and ``trans_dec``), or ``motiondiffuse``, MotionDiffuse's
-denoiser layout (:class:`~smdm_plugin.reference.motiondiffuse_denoiser.MotionDiffuseDenoiser`, latent 512,
-8 layers, 8 heads, ff 1024; one model call per sampling step, no guidance, as MotionDiffuse
-samples), on a HumanML3D-like batch (default batch 64, 196 frames, valid lengths drawn in 40..196
-with a fixed seed, cached text features — no CLIP) it times, dense and at every reduction rate, in
-the same process and interleaved (every repeat runs every variant in turn, so machine load hits
-all alike):
-
-* ``train`` — one training step: ``SimpleDiffusion.training_losses`` with the sparse diffusion
-  wrapper (keyframe selection on x0 + mask noise included) + backward + ``AdamW.step``;
-* ``sample`` — one sampling step (MDM: classifier-free guidance, two forward passes; ``eval``,
-  ``no_grad``) at a late step (``t < round(γT)``, dynamic update forced on: VW on x_t, the
-  costliest step of the schedule);
-* ``loop`` — the whole sampling loop a user runs: ``--steps`` steps (MDM: with classifier-free
-  guidance) and the config's own schedule;
-
-plus, for the sparse variants, the share of the step spent in keyframe selection and in the
-interpolation back to all frames, and peak memory (CUDA: max allocated; CPU: the peak rise of the
-process RSS), and each cell's kernel launches (:func:`~smdm_plugin.training.timing.launches`). ``--amp bf16`` runs under
-``torch.autocast``; ``--compile MODE [MODE ...]`` compiles dense and sparse alike with each mode,
-each step whole (the training loss forward and backward with AdamW fused on CUDA; the guided call
-with both passes; the sampling step the loop replays: the helper of ``--sparse_compile``,
-docs/compile.md; default on CUDA: eager and reduce-overhead, one table; speed-ups against the
-dense model at the same mode). ``--arch dip`` / ``doubletake`` time DiP's prefix completion and
-priorMDM's DoubleTake model too. Medians of
-``--repeats`` after ``--warmup`` runs (compilation happens in the warm-up). The table names the
-device, the mode and the attention backend the sparse model ran.
-
-``smdm bench keyframes`` times VW selection alone on ``[64, 196, 64]``.
-
-This module is the command (options, checks, the table); the workloads are
-:mod:`smdm_plugin.training.workloads`, the measurements :mod:`smdm_plugin.training.benchmark`.
-"""
+"""``smdm bench``: what sparse keyframe mode saves, dense and sparse side by side in one run."""
 from __future__ import annotations
 
 import argparse

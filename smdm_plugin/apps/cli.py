@@ -1,20 +1,4 @@
-"""The ``smdm`` command.
-
-* ``smdm bench``      — wall-clock of dense vs sparse training / sampling steps (MDM size);
-  ``smdm bench keyframes`` times batched VW alone.
-* ``smdm ablate``     — A/B ablation runner (``configs/ablations/*.yaml``) on real motion.
-* ``smdm demo``       — keyframes and dense-vs-sparse training on CMU motion capture (BVH).
-* ``smdm train``      — train TinyMDM (dense or --sparse) on HumanML3D-format motion; torchrun: DDP.
-* ``smdm run ...``    — run an upstream script (MDM, priorMDM, MotionDiffuse) in sparse mode.
-* ``smdm keyframes``  — keyframes of BVH clips (reconstruction error per method and rate).
-* ``smdm clips``      — the embedded CMU clips: list them, export one as a ``.npy`` motion file.
-
-Subcommand modules are imported lazily, so ``smdm --help`` is fast and ``smdm run`` does not
-import the benchmark code. Every command: bad arguments are one argparse line (exit status 2),
-outputs are never overwritten without ``--overwrite``, Ctrl-C ends with exit status 130 and no
-traceback (SIGTERM 143, SIGHUP 129: the same unwinding, ``common/signals.py``), an ``OSError`` (a full disk, a read-only or forbidden path) is one line naming the path
-and the reason, exit status 1.
-"""
+"""The ``smdm`` command: one entry point dispatching to the sub-commands of :data:`COMMANDS`."""
 from __future__ import annotations
 
 import importlib

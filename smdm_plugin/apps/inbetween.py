@@ -1,27 +1,5 @@
 """``smdm inbetween``: sample a motion that passes through your keyframes, with dense and sparse
-models side by side, and watch it (GIF).
-
-    smdm demo --out smdm_out/demo                       # trains smdm_out/demo/{dense,sparse}
-    smdm inbetween --keyframes clip.bvh --frames 0 30 60 90 119
-    smdm inbetween --model results/inbetween/models/humanml3d-dense results/inbetween/models/humanml3d-sparse \\
-        --keyframes new_joint_vecs/000003.npy --every 20
-
-Keyframes come from a motion file (``--keyframes``): frames picked from a clip (``--frames``, or one
-every ``--every`` frames), or a file of K poses placed at the K frames of ``--frames``. What a model
-accepts depends on its representation (see :mod:`smdm_plugin.io.representation`):
-
-* ``joints66`` models (``smdm demo``): a ``.bvh`` (CMU skeleton), joints ``[N, 22, 3]`` in metres,
-  or HumanML3D features ``[N, 263]`` (converted to joints); keyframes are imposed exactly, global
-  position included;
-* ``humanml3d`` models: HumanML3D features ``[N, 263]`` (un-normalised, as ``new_joint_vecs``);
-  the 263 values of each keyframe are imposed exactly, its global position follows from the
-  generated root velocities before it.
-
-The keyframes are imposed by imputation at every diffusion step (``--imputation``) and, for sparse
-models, are keyframe tokens of the sparse transformer (``--forced``). Writes to ``--out``: one
-``<model>_joints.npy`` ``[S, N, 22, 3]`` and ``<model>_features.npy`` ``[S, N, D]`` per model,
-``keyframes.json``, ``summary.md`` / ``summary.json`` (keyframe error, jitter) and ``inbetween.gif``.
-"""
+models side by side, and watch it (GIF)."""
 from __future__ import annotations
 
 import argparse

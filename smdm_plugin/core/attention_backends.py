@@ -1,35 +1,5 @@
-"""How keyframe tokens go through the wrapped transformer: a small backend registry.
-
-A backend runs the kept tokens of one call (the ``lead`` tokens before the frames — MDM
-trans_enc's timestep/text token — and the keyframes of a :class:`~smdm_plugin.core.plan.KeyframePlan`)
-through the wrapped ``nn.TransformerEncoder`` / ``nn.TransformerDecoder`` so that they attend to each
-other only. Signature::
-
-    fn(inner, x, plan, lead, memory=None, memory_key_padding_mask=None, lead_padding=None)
-        -> (h [R, d], rows [lead + K, B] long)
-
-with ``x [S, B, d]`` sequence-first (``S = lead + N``). ``h`` holds output rows and ``rows[s, b]`` is
-the row of lead token ``s`` / keyframe slot ``s - lead`` of sample ``b`` (padded slots may point
-anywhere valid). The keyframe transformer interpolates every frame from these rows.
-
-* ``masked``  — the whole sequence with a key-padding mask: the slow, obviously correct reference
-  (costs as much as dense).
-* ``compact`` — the lead tokens and the ``K`` plan slots gathered to ``[lead + K, B, d]`` with a key
-  padding mask over the empty slots, the wrapped module called as it is. Static shapes, no host
-  sync: the default on accelerators and under ``torch.compile``; also the fallback for layers
-  ``varlen`` cannot run (custom layer classes, hooks on layers).
-* ``varlen``  — kept tokens packed with no padding at all ``[T, d]`` through PyTorch's own
-  ``nn.TransformerEncoder`` / ``Decoder`` and layer ``forward`` (run on the packed rows as one
-  unbatched sequence; the wrapped module is not changed); each layer's attention module is called
-  through :class:`~smdm_plugin.core.packed_attention._AttentionOnPackedRows`, which pads only the heads for
-  ``scaled_dot_product_attention`` (:mod:`smdm_plugin.core.attention`, the package's one copy of
-  the attention maths). No padded rows in projections, feed-forward and norms, but the packed size
-  ``T`` is data-dependent (host syncs, dynamic shapes): the default in eager mode on the CPU, where
-  rows, not launches, cost time.
-
-The rows a backend returns become every frame in :func:`smdm_plugin.core.fill.fill_frames`; the row
-operations are :mod:`.rows`, the packing :mod:`.packing` and :mod:`.packed_attention`.
-"""
+"""How keyframe tokens go through the wrapped transformer: a registry of backends (``masked``, the
+reference; ``compact``, static shapes; ``varlen``, packed rows with no padding) and the one dispatch."""
 from __future__ import annotations
 
 from dataclasses import dataclass
@@ -54,12 +24,14 @@ Backend = Callable[..., Tuple[torch.Tensor, torch.Tensor]]
 class AttentionBackend:
     """A registered backend and its capabilities: ``available(device)`` (it can run there),
     ``static_shapes`` (no data-dependent shapes or host syncs: usable under ``torch.compile`` and
-    on the static path), ``supports(inner)`` (it can run that wrapped module's layers)."""
+    on the static path), ``supports(inner)`` (it can run that wrapped module's layers),
+    ``padded_lead`` (it can run calls whose caller pads some lead tokens)."""
 
     fn: Backend
     available: Callable[[torch.device], bool] = lambda d: True
     static_shapes: bool = True
     supports: Callable[[nn.Module], bool] = lambda inner: True
+    padded_lead: bool = True
 
 
 #: the attention backends by name (``SparseConfig.attention_backend`` is validated against it + auto)
@@ -70,10 +42,15 @@ FALLBACK = "compact"
 
 def register_backend(name: str, fn: Backend, available: Callable[[torch.device], bool] = lambda d: True, *,
                      static_shapes: bool = True, supports: Callable[[nn.Module], bool] = lambda inner: True,
-                     replace: bool = True) -> AttentionBackend:
-    """Register ``fn`` (signature in the module docstring) under ``name`` with its capabilities
-    (see :class:`AttentionBackend`)."""
-    return BACKENDS.register(name, AttentionBackend(fn, available, static_shapes, supports), replace=replace)
+                     padded_lead: bool = True, replace: bool = False) -> AttentionBackend:
+    """Register ``fn`` under ``name`` with its capabilities (see :class:`AttentionBackend`); a taken
+    name is a ``ValueError`` unless ``replace``. ``fn(inner, x, plan, lead, memory=None,
+    memory_key_padding_mask=None, lead_padding=None) -> (h [R, d], rows [lead + K, B] long)`` runs
+    the ``lead`` tokens and the plan's keyframes of sequence-first ``x [S, B, d]`` through ``inner``,
+    attending to each other only: ``rows[s, b]`` is the row of ``h`` for lead token ``s`` /
+    keyframe slot ``s - lead`` of sample ``b`` (padded slots may point anywhere valid)."""
+    return BACKENDS.register(name, AttentionBackend(fn, available, static_shapes, supports, padded_lead),
+                              replace=replace)
 
 
 def available_backends(device: torch.device) -> list:
@@ -86,20 +63,52 @@ def resolve_backend_name(name: str, device: torch.device, inner: Optional[nn.Mod
     and under ``torch.compile``, which needs static shapes); a backend whose capabilities do not
     fit (not available on ``device``, dynamic shapes while tracing or on the static path, cannot
     run ``inner``'s layers) becomes :data:`FALLBACK`."""
+    return _resolve(name, device, inner)[0]
+
+
+def _resolve(name: str, device: torch.device, inner: Optional[nn.Module], padded_lead: bool = False
+             ) -> Tuple[str, str]:
+    """:func:`resolve_backend_name`'s choice and, where it falls back, why (else ``""``)."""
     device = torch.device(device)
     if name == "auto":
         name = "varlen" if device.type == "cpu" and not static_shapes() else FALLBACK
     b = BACKENDS.get(name)
-    if (not b.available(device) or (static_shapes() and not b.static_shapes)
-            or (inner is not None and not b.supports(inner))):
-        return FALLBACK
-    return name
+    if not b.available(device):
+        return FALLBACK, f"it is not available on {device.type}"
+    if static_shapes() and not b.static_shapes:
+        return FALLBACK, "it has dynamic shapes (torch.compile or the static path needs static ones)"
+    if inner is not None and not b.supports(inner):
+        return FALLBACK, f"it cannot run the layers of {type(inner).__name__}"
+    if padded_lead and not b.padded_lead:
+        return FALLBACK, "it cannot run padded lead tokens"
+    return name, ""
 
 
-def get_backend(name: str, device: torch.device, training: bool = False,
-                inner: Optional[nn.Module] = None) -> Backend:
-    """The backend function :func:`resolve_backend_name` picks for ``name`` on ``device``."""
-    return BACKENDS.get(resolve_backend_name(name, device, inner)).fn
+def get_backend(name: str, device: torch.device, inner: Optional[nn.Module] = None,
+                padded_lead: bool = False) -> Backend:
+    """The backend function :func:`resolve_backend_name` picks for ``name`` on ``device`` (for a
+    call whose lead tokens are padded when ``padded_lead``); a backend asked for by name that
+    falls back says so once (:func:`warn_fallback`)."""
+    used, why = _resolve(name, device, inner, padded_lead)
+    if why and name not in ("auto", used):
+        warn_fallback(name, used, why)
+    return BACKENDS.get(used).fn
+
+
+#: (backend asked for, backend used, why) already warned about in this process
+_WARNED: set = set()
+
+
+def warn_fallback(asked: str, used: str, why: str) -> None:
+    """Warn once per process and (``asked``, ``used``, ``why``) that a backend asked for by name
+    does not run a call and ``used`` does; silent while ``torch.compile`` traces."""
+    key = (asked, used, why)
+    if key in _WARNED or torch.compiler.is_compiling():
+        return
+    import warnings
+
+    _WARNED.add(key)
+    warnings.warn(f"attention backend {asked!r} falls back to {used!r}: {why}", RuntimeWarning, stacklevel=3)
 
 
 # ---------------------------------------------------------------------------------- helpers
@@ -209,4 +218,4 @@ def varlen_backend(inner: nn.Module, x: torch.Tensor, plan: KeyframePlan, lead: 
 
 register_backend("masked", masked_backend)
 register_backend("compact", compact_backend)
-register_backend("varlen", varlen_backend, static_shapes=False, supports=supports_packed)
+register_backend("varlen", varlen_backend, static_shapes=False, supports=supports_packed, padded_lead=False)

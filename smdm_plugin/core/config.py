@@ -1,17 +1,4 @@
-"""`SparseConfig`: every knob of the sparse keyframe method in one validated dataclass.
-
-The config travels with a checkpoint (``sparse_config.json`` beside the weights, and the
-``sparse_*`` keys of MDM's ``args.json``) so that sampling and evaluation re-create the
-sparse model without extra flags.
-
-Every field is type-checked (a bool is a ``bool``, not ``"no"``; an int is an ``int``, not ``8.7``
-or ``True``; floats are finite) and range-checked, in Python, in files and on the command line
-(``--sparse_<field>``, range-checked by argparse). Unknown keys are errors that suggest the
-closest valid name; file errors name the file. The jobs around the dataclass live beside it:
-argparse types (:mod:`.argtypes`), reading and writing the files (:mod:`.config_files`), the
-packaged presets (:mod:`.presets`), a run's options agreeing with the saved config
-(:mod:`.agreement`); the config of a sparse model is :func:`smdm_plugin.adapters.state.sparse_config_of`.
-"""
+"""`SparseConfig`: every knob of the sparse keyframe method in one validated dataclass."""
 from __future__ import annotations
 
 import argparse
@@ -393,14 +380,14 @@ def _check_field(name: str, spec: FieldSpec, v: Any) -> Any:
             raise bad(ConfigTypeError)
         if not v:
             raise bad()
-        wrong = [e for e in v if not _is_int(e)]
+        wrong = [e for e in v if not is_int(e)]
         if wrong:
             raise bad(ConfigTypeError, of=wrong[0], hint=f" element {wrong[0]!r}")
         if not all(e in spec.range for e in v):
             raise bad()
         return tuple(int(e) for e in v)
     if spec.kind is int:
-        if not _is_int(v):
+        if not is_int(v):
             raise bad(ConfigTypeError)
         if v not in spec.range:
             raise bad()
@@ -412,10 +399,6 @@ def _check_field(name: str, spec: FieldSpec, v: Any) -> Any:
     if not math.isfinite(x) or x not in spec.range:
         raise bad()
     return x
-
-
-def _is_int(v: Any) -> bool:
-    return is_int(v)
 
 
 def _located(e: Exception, source: Optional[str]) -> Exception:

@@ -1,21 +1,4 @@
-"""What VW measures: per-frame selection features from a motion representation.
-
-* ``humanml3d``: ``x [B, N, 263]`` -> the 21 root-relative joint positions (features ``4:67``,
-  metres) + frame index × ``frame_index_scale`` (metres per frame) -> ``[B, N, 64]``.
-* ``kit``: ``x [B, N, 251]`` -> 20 × 3 positions (features ``4:64``, KIT's mm-scale units as
-  stored) + index column -> ``[B, N, 61]``.
-* ``raw``: ``x [B, N, D]`` itself + index column -> ``[B, N, D + 1]``.
-* ``joints``: global joint positions ``x [B, N, 3J]`` (metres, root first) -> joints ``1..J-1``
-  minus the root (``3(J - 1)``) + index column -> ``[B, N, 3J - 2]`` (22 joints: 64, as ``humanml3d``).
-
-One function computes them (:func:`extract_selection_features`); the mask schedule keeps its
-per-device constants (:func:`selection_constants`) and applies them with
-:func:`apply_selection_constants` on the hot path.
-
-HumanML3D layout per frame: root rotation velocity (1), root linear velocity xz (2), root y (1),
-ric positions ((joints - 1) × 3), 6-D rotations ((joints - 1) × 6), local velocities
-(joints × 3), foot contacts (4).
-"""
+"""What VW measures: per-frame selection features from a motion representation."""
 from __future__ import annotations
 
 from typing import NamedTuple, Optional, Union

@@ -117,7 +117,7 @@ class KeyframeTransformer(nn.Module):
             lead_padding = key_padding_mask[:, :lead].to(torch.bool)
             if host_checkable(lead_padding) and not bool(lead_padding.any()):
                 lead_padding = None
-        fn = get_backend(self.backend, x.device, self.training, self.inner)
+        fn = get_backend(self.backend, x.device, self.inner, lead_padding is not None)
         h, rows = fn(self.inner, x, plan, lead, memory, memory_key_padding_mask, lead_padding)
         out = fill_frames(h, rows, plan, lead, self.interpolate)
         return out.transpose(0, 1) if self.batch_first else out

@@ -1,19 +1,4 @@
-"""PyTorch's stock transformer layers run as functions on the kept tokens (the compact backend).
-
-``nn.TransformerEncoderLayer`` / ``nn.TransformerDecoderLayer`` (exactly those classes) whose
-self-attention is ``nn.MultiheadAttention`` or :class:`~smdm_plugin.core.fsq.FSQMultiheadAttention`
-and whose cross-attention is ``nn.MultiheadAttention`` run here with the same ``F.*`` operations as
-their modules (so the same values, autocast included), without the modules' per-call Python (fast-path
-and nested-tensor checks, mask canonicalisation, ``multi_head_attention_forward``'s argument checks):
-at MDM's size a step costs host time, not FLOPs. Anything else (custom layer classes, hooks on any
-module of the stack, ``kdim``/``vdim``, ``add_bias_kv``) runs through the modules as before
-(:func:`stock_stack` returns None).
-
-On accelerators (and on the static path that stands for them on the CPU) attention inputs reach
-``F.scaled_dot_product_attention`` in the layout every SDPA kernel accepts (:func:`sdpa_layout_problems`
-lists what is off): ``q, k, v`` views ``[B, H, S, e]`` of contiguous ``[B, S, H·e]`` tensors, head
-sizes multiples of 8, an additive key mask ``[B, 1, 1, S]`` whose rows start every 16 elements.
-"""
+"""PyTorch's stock transformer layers run as functions on the kept tokens (the compact backend)."""
 from __future__ import annotations
 
 import math

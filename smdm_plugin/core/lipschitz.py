@@ -1,17 +1,4 @@
-"""Lipschitz MLPs with sine activations (sMDM's input/output layers).
-
-Each linear layer carries a learned bound ``softplus(c)`` on its ∞-operator norm (the largest
-absolute row sum), enforced by a weight parametrization (Liu et al. 2022, "Learning Smooth Neural
-Functions via Lipschitz Regularization")::
-
-    W_hat = W * min(1, softplus(c) / rowsum|W|)        rowsum taken per output row
-
-so ``||W_hat x - W_hat y||_∞ <= softplus(c) ||x - y||_∞``. ``sin(w0 x)`` is ``w0``-Lipschitz
-element-wise, hence a :class:`LipschitzMLP` is ``∏ softplus(c_i) · w0^(#sines)``-Lipschitz in the
-∞-norm. The training penalty :func:`lipschitz_loss` is ``∏ softplus(c_i)`` (weighted by
-``SparseConfig.lipschitz_lambda`` by the caller). :func:`bake_lipschitz` freezes the normalised
-weights into plain ``nn.Linear`` weights for inference.
-"""
+"""Lipschitz MLPs with sine activations (sMDM's input/output layers)."""
 from __future__ import annotations
 
 import math

@@ -1,25 +1,4 @@
-"""Training mask noise without torch's global RNG and without a generator in the traced call.
-
-Upstream code draws its prompts, diffusion steps and noise from torch's global stream; if sparse
-mode drew its mask noise from that stream too, a sparse run would see other upstream draws than a
-dense one with the same seed. A private ``torch.Generator`` avoids that but cannot be traced by
-``torch.compile(fullgraph=True)``. So the random numbers are drawn once, outside any traced call:
-a table of :data:`TABLE_SIZE` uniforms made from the schedule's seed with a private CPU generator
-(:func:`noise_table`). Each training mask reads a window of it at an offset set by a step counter:
-``table[(step * STRIDE + i) mod TABLE_SIZE]`` for its ``i``-th number, with ``step`` an int64 tensor
-on the device (the sparse model's persistent buffer :data:`NOISE_STEP`, advanced in place once per
-mask: no host sync, saved and restored with the weights). A mask costs three small ops (offset,
-modulo, gather) plus the step's increment (a hash of the counter per number would cost
-dozens, over the launch budget of a training step). Same seed and step: the same numbers.
-
-How random: the offsets of successive steps follow a Weyl sequence (``STRIDE / TABLE_SIZE`` ≈ the
-golden ratio), so windows spread evenly over the table and an offset recurs only after
-``TABLE_SIZE`` steps; but a window of ``W`` numbers (``B·(N+1)`` per mask) overlaps, shifted,
-those of some steps about ``TABLE_SIZE / W`` apart (B=64, N=196: ~80), so numbers are reused at
-other positions of later masks, i.e. for other samples. For mask noise (how many keyframes a
-sample gains or loses, and which) this reuse on unrelated data is harmless; it is not a
-general-purpose generator.
-"""
+"""Training mask noise without torch's global RNG and without a generator in the traced call."""
 from __future__ import annotations
 
 from typing import Tuple

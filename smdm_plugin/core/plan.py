@@ -1,17 +1,4 @@
-"""The keyframe plan of one model call: where the keyframes are, with static shapes.
-
-Computed once per call from the keyframe mask and a fixed capacity ``K`` (a Python int: from the
-frame count, the reduction rate, the mask-noise bound and any forced frames), then used by the
-input embedding, the keyframe transformer and the interpolation back to every frame. Every tensor
-has a shape fixed by ``(B, N, K)``, so a call has no data-dependent shapes and no host syncs:
-CUDA graphs and ``torch.compile(fullgraph=True)`` apply as they do to the dense model.
-
-Slots: slot ``j < count[b]`` of sample ``b`` holds its ``j``-th keyframe (frame order); the slots
-after it hold distinct non-keyframes (padding, masked out of attention). Interpolation of frame
-``n``: ``f(n) = lerp(f(slot prev[n]), f(slot next[n]), w[n])`` with the keyframes around ``n``; at a
-keyframe ``prev = next`` = its own slot, before the first / after the last keyframe both are the
-first / last keyframe (constant extension).
-"""
+"""The keyframe plan of one model call: where the keyframes are, with static shapes."""
 from __future__ import annotations
 
 from dataclasses import dataclass

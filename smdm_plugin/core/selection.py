@@ -1,24 +1,5 @@
 """Keyframe selection: Visvalingam–Whyatt (VW), uniform, random, MDO; the heap VW reference;
-training-time mask noise.
-
-Shapes: ``features [B, N, F]`` (float), ``lengths [B]`` (long; None = all N valid), masks
-``[B, N]`` bool (True = keyframe). A sample of valid length ``L`` keeps
-``keyframe_count(L, reduction) = min(L, max(2, round((1 - reduction) * L)))`` frames, always
-including frames ``0`` and ``L - 1`` and nothing at or beyond ``L``. ``forced [B, N]`` frames
-(DoubleTake's handshake, user keyframes) are always kept and count inside that budget: a sample
-keeps ``max(K, its protected frames)`` where protected = both ends and the forced frames.
-
-VW area of interior point ``p`` with live neighbours ``p_prev``, ``p_next`` (any dimension F):
-``a = p_prev - p``, ``b = p_next - p``, ``area = 0.5 * sqrt(max(0, |a|²|b|² - (a·b)²))``. Points are
-ranked by the key ``(2·area)² = max(0, |a|²|b|² - (a·b)²)`` (the same order, no square root),
-computed in float64. The point with the smallest key is removed (ties: smallest frame index) and
-its two neighbours' keys are recomputed, until ``K`` points remain. VW runs as one registered
-operator (:mod:`smdm_plugin.core.kernels.vw`: Triton on CUDA, numpy on the CPU).
-
-Nothing here synchronises with a GPU except MDO (an ablation selector: its dynamic programme
-needs ``max K`` on the host): shapes are static, and value checks use
-:func:`smdm_plugin.core.checks.require`.
-"""
+training-time mask noise."""
 from __future__ import annotations
 
 import heapq

@@ -18,7 +18,7 @@ from ..core.atomic import atomic_write_json, atomic_write_text
 from ..core.config import SparseConfig
 from ..core.config_files import CONFIG_FILENAME
 
-OPT_BEGIN, OPT_END = "------------ Options -------------", "-------------- End ----------------"
+OPT_END = "-------------- End ----------------"  # closes upstream's options block in opt.txt
 
 
 def resolved_options(config: SparseConfig) -> Dict[str, Any]:

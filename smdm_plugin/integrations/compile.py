@@ -1,39 +1,4 @@
-"""Graph capture with one flag: ``--sparse_compile {none,default,reduce-overhead}`` (docs/compile.md).
-
-One place compiles every model the integrations build (MDM / DiP, priorMDM's DoubleTake,
-MotionDiffuse, ``smdm train``, ``smdm bench``), dense or sparse alike, so an A/B compares each
-side at its best:
-
-* :func:`compile_model` compiles the module **in place** (as ``nn.Module.compile`` does: the call,
-  forward hooks included, goes through ``torch.compile``; ``dynamic=False``; ``fullgraph=True``
-  for sparse models): parameter and buffer names do not change, so a checkpoint of a compiled
-  model loads into an uncompiled one and back (no ``_orig_mod.`` prefix), ``copy.deepcopy`` gives
-  an uncompiled copy (torch drops the compiled call; MDM's EMA model evaluates eagerly),
-  ``DistributedDataParallel`` wraps the compiled module as usual
-  (compile inside DDP).
-* Each call is first *prepared* eagerly (:data:`PREPARERS`): what cannot be captured runs
-  before the graph — text encoding (CLIP tokenises Python strings), strings dropped from ``y``,
-  tensors moved to the motion's device (no CPU tensor becomes a changing graph input), and,
-  at sampling, classifier-free guidance's unconditional pass folded into zeroed text features
-  (exact in eval mode), so both guidance passes share one graph.
-* **Static batch** (CUDA graphs replay fixed shapes): per phase (train / eval, grad on / off,
-  autocast, motion shape without the batch) the first batch size seen is the static one; a call
-  with another batch size (an epoch's last partial batch) runs **eagerly**, never recompiling, and
-  is counted in :attr:`CompileSetting.eager_calls` (warned once).
-* **The first call of a phase runs eagerly** (on the static-shape path the graph takes:
-  :func:`~smdm_plugin.core.checks.static_mode`), counted in :attr:`CompileSetting.warm_calls`: it
-  fills every per-device cache the sparse path keeps (the schedule's plan and count tables, the
-  selection constants, the noise table on the device), so the trace that follows only reads them:
-  no constant table, and no tensor of another device, is ever built inside a graph (issue 36's
-  ``cuda:0, cpu`` crash), and no cache write fails a guard afterwards.
-* :func:`compile_function` compiles more than the model call in the same way (``smdm train``'s
-  whole training loss, ``smdm bench``'s guided sampling call and sampling step): the model's own
-  compiled call is then traced inline (one graph for the whole function).
-* ``reduce-overhead`` (CUDA graphs): ``torch.compiler.cudagraph_mark_step_begin()`` before
-  every call and the outputs cloned, so the second guidance pass never overwrites the first
-  pass's output. Without CUDA it cannot apply: a warning, and the run compiles with ``default``
-  (stated in :attr:`CompileSetting.mode` / ``note``, which the runs write to their config).
-"""
+"""Graph capture with one flag: ``--sparse_compile {none,default,reduce-overhead}`` (docs/compile.md)."""
 from __future__ import annotations
 
 import warnings

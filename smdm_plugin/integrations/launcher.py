@@ -1,17 +1,5 @@
 """``smdm run``: run an upstream command (MDM / DiP, priorMDM, MotionDiffuse) in sparse-capable
-mode without editing a single upstream file.
-
-    smdm run --repo PATH -- python -m train.train_mdm --save_dir save/x --dataset humanml --sparse
-
-How: the command runs with ``cwd=PATH`` and ``PYTHONPATH`` starting with a temporary directory
-that holds a generated ``sitecustomize.py``. Python imports it at start-up; it calls
-the ``install_hooks()`` of the integration registered under ``<name>`` (detected from the checkout,
-see :func:`~smdm_plugin.integrations.registry.detect_repo`), which registers a ``sys.meta_path`` hook that wraps the upstream's option
-parser and model factory as they are imported. Then it runs whatever ``sitecustomize`` would have
-run without the launcher (the next one on ``sys.path``), so environments that rely on one keep
-working. Every Python process the command starts (``bash`` scripts, ``torchrun`` workers...)
-inherits the environment and gets the hooks too.
-"""
+mode without editing a single upstream file."""
 from __future__ import annotations
 
 import argparse

@@ -1,23 +1,5 @@
 """MDM (and DiP, which lives in the same repository) integration: ``--sparse*`` options,
-sparsify where the model and diffusion are built, dense/sparse checkpoint checks.
-
-Two ways in, one code path:
-
-* ``patches/mdm.patch`` (``git apply`` in an MDM checkout, commit d4fd88c) calls
-  :func:`~smdm_plugin.integrations.options.add_sparse_options` from
-  ``utils/parser_util.py:add_model_options`` (a flag-off run loads no more than the options),
-  :func:`sparsify_mdm` from ``utils/model_util.py:create_model_and_diffusion`` and
-  :func:`check_mdm_state_dict` from ``utils/model_util.py:load_model_wo_clip``;
-* ``smdm run --repo PATH -- python -m train.train_mdm ... --sparse`` calls :func:`install_hooks`
-  (from a generated ``sitecustomize``), which wraps the same three functions as their modules are
-  imported. Both together are harmless (every step is idempotent).
-
-The options join MDM's ``model`` argument group, so ``train/train_mdm.py`` writes them to
-``args.json`` and ``sample.generate`` / ``sample.edit`` / ``eval.eval_humanml`` restore them with
-``load_args_from_model`` (it overwrites the ``dataset``/``model``/``diffusion`` groups from the
-checkpoint's ``args.json``): a sparse checkpoint samples sparse without extra flags. Old
-``args.json`` files without ``sparse`` keys keep the defaults (dense).
-"""
+sparsify where the model and diffusion are built, dense/sparse checkpoint checks."""
 from __future__ import annotations
 
 import argparse
@@ -66,8 +48,8 @@ UPSTREAM_STEPS = 1000
 
 def warn_if_upstream_steps(config: SparseConfig, steps: Optional[int]) -> bool:
     """Warn (never override) when sparse training runs at upstream's 1000 diffusion steps: the
-    paper's sMDM is trained at 50 (App. B.1, Table 1) and its Table 2 compares step counts (as
-    read in issue 11). Returns whether it warned."""
+    paper's sMDM is trained at 50 (App. B.1, Table 1) and its Table 2 compares step counts.
+    Returns whether it warned."""
     if not config.enabled or steps is None or int(steps) != UPSTREAM_STEPS:
         return False
     warnings.warn(

@@ -1,25 +1,4 @@
-"""MDM's ``sample.edit`` with a sparse checkpoint: the frames the edit keeps become forced keyframes.
-
-MDM's edit script passes the frames to keep as ``y['inpainting_mask']`` (bool ``[B, J, F, N]``, True =
-keep) and ``y['inpainted_motion']``, and its ``GaussianDiffusion.p_mean_variance`` imposes them by
-imputation of the clean prediction at every step. A sparse model additionally needs those frames
-among its keyframe tokens, or it may interpolate straight over the seam between kept and generated
-frames. :func:`forced_for_edit` forces (``smdm_plugin.with_forced``, bool ``[B, N]``) the whole
-frames the mask keeps, per a policy (:func:`smdm_plugin.adapters.inbetween.forced_keyframes`); the default
-``ends`` forces the two ends of every kept segment — for ``--edit_mode in_between`` the first and
-last frame of the motion and the two frames on either side of the generated gap — and leaves the
-keyframe budget to the selection. (``all`` would make MDM's 25% prefix + 25% suffix half of all
-frames tokens; docs/inbetween.md measures the policies.) ``upper_body`` keeps channels, not whole
-frames, so it forces nothing. Dense models, and ``y`` that already forces keyframes, are left as
-they are. ``SMDM_EDIT_FORCED=ends|all|none`` picks the policy.
-
-Ways in: ``smdm run`` installs :func:`install_hooks` (wraps ``GaussianDiffusion.p_sample_loop`` as
-``diffusion.gaussian_diffusion`` is imported); patch users add two lines to ``sample/edit.py`` before
-the sampling loop::
-
-    from smdm_plugin.integrations.mdm_edit import add_forced_keyframes  # sMDM: kept frames are keyframes
-    add_forced_keyframes(model, model_kwargs)
-"""
+"""MDM's ``sample.edit`` with a sparse checkpoint: the frames the edit keeps become forced keyframes."""
 from __future__ import annotations
 
 import functools

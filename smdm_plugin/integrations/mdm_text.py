@@ -1,23 +1,4 @@
-"""MDM/DiP text conditioning: the sMDM-stella text-encoder swap and an opt-in text-embedding cache.
-
-Both are applied by :func:`apply_text_options`, which :func:`smdm_plugin.integrations.mdm.sparsify_mdm`
-calls right after upstream's ``create_model_and_diffusion`` builds the model, for dense and sparse
-runs alike. The patch (``patches/mdm.patch``) and the launcher (``smdm run``) both already call
-``sparsify_mdm`` there, so neither needs anything more; :func:`install_hooks` has nothing to add.
-
-* ``--sparse_text_encoder ID_OR_PATH`` (``SparseConfig.text_encoder``): MDM's CLIP (DiP's
-  DistilBERT) is replaced by that frozen ``transformers`` encoder, pooled
-  (:mod:`smdm_plugin.adapters.text_encoder`); ``embed_text`` takes its width. The option is in
-  MDM's ``model`` argument group, so ``args.json`` keeps it and ``sample.generate`` /
-  ``sample.edit`` / ``eval.eval_humanml`` rebuild the same encoder from the checkpoint with no
-  flag. Environment: ``SMDM_TRUST_REMOTE_CODE=1`` lets ``transformers`` run modelling code shipped
-  with the encoder (stella_en_1.5B_v5 ships its own); ``SMDM_TEXT_ENCODER_DTYPE`` (``float32`` |
-  ``bfloat16`` | ``float16``) is the dtype of the encoder's weights.
-* ``SMDM_TEXT_CACHE`` (environment; off when unset, empty, ``0`` or ``off``): cache each caption's
-  embedding (:mod:`smdm_plugin.adapters.text_cache`). ``on`` / ``1`` / ``true``: 131,072 captions;
-  an integer ``N >= 2``: ``N`` captions. It changes no result (the cached embedding is the one the
-  encoder gives), only how often the encoder runs; it stays out of ``args.json``.
-"""
+"""MDM/DiP text conditioning: the sMDM-stella text-encoder swap and an opt-in text-embedding cache."""
 from __future__ import annotations
 
 import os

@@ -1,33 +1,4 @@
-"""MDM/DiP training under ``torchrun``: DistributedDataParallel, a sampler per rank, rank-0 writes.
-
-    smdm run --repo PATH -- torchrun --nproc_per_node N -m train.train_mdm --save_dir save/x ... [--sparse]
-
-(or, in a checkout with ``patches/mdm.patch`` applied, the same ``torchrun`` command without
-``smdm run``). MDM's ``train/training_loop.py`` has the hooks of guided-diffusion's DDP loop
-(``use_ddp``, ``ddp_model``) but never turns them on, and ``utils/dist_util.setup_dist`` creates no
-process group. When the process was started by ``torchrun`` (``RANK``, ``WORLD_SIZE``,
-``LOCAL_RANK``, ``MASTER_ADDR``, ``MASTER_PORT`` set), :func:`install_hooks` wraps, as the modules
-are imported:
-
-* ``utils.dist_util.setup_dist``: joins the process group (``nccl`` on CUDA, ``gloo`` on CPU) and
-  points ``dist_util.dev()`` at ``cuda:LOCAL_RANK``;
-* ``utils.parser_util.train_args``: on ranks > 0, the start-up writes of ``train/train_mdm.py``
-  (``args.json``, ``sparse_config.json``) go to a private temporary folder, the train platform is
-  ``NoPlatform``, evaluation and generation during training are off (rank 0 does them);
-* ``data_loaders.get_data.get_dataset_loader``: the training loader draws from a
-  ``DistributedSampler`` (a new shuffle each epoch, seeded by ``--seed``, the same on every rank;
-  each rank gets ``1/N`` of every epoch);
-* ``train.training_loop.TrainLoop``: the model is wrapped in ``DistributedDataParallel``
-  (gradients all-reduced), ranks > 0 re-seed ``random``/``numpy``/``torch`` with ``seed + rank``
-  once training starts (timesteps, noise, dropout, text dropout and mask noise differ per rank;
-  the initial weights were drawn before, from the same seed), only rank 0 saves checkpoints,
-  evaluates and generates, the logged losses are averaged over every rank's samples, and the
-  progress bar shows on rank 0 only. ``resume`` works when every rank sees ``--save_dir``.
-
-Without ``torchrun`` nothing is installed: upstream runs bit for bit as before. ``SMDM_DDP=0``
-turns the hooks off under ``torchrun`` as well. Set ``SMDM_DIST_TIMEOUT_MIN`` (default 180)
-when rank 0's evaluation during training takes longer than that (the other ranks wait for it).
-"""
+"""MDM/DiP training under ``torchrun``: DistributedDataParallel, a sampler per rank, rank-0 writes."""
 from __future__ import annotations
 
 import atexit

@@ -1,29 +1,5 @@
 """The plugin's warnings inside an upstream run: each reaches the terminal (stderr) and upstream's log
-as one ``smdm: ...`` line, whatever logging upstream sets up.
-
-Why: MDM's ``sample/generate.py`` imports moviepy 1.0.3, whose ``ffmpeg_reader`` calls
-``logging.captureWarnings(True)``; from then on every Python warning goes to the ``py.warnings``
-logger, which has no handler in MDM's runs (training imports ``sample.generate`` too), so a warning
-such as "reduce-overhead needs CUDA graphs" or "sparse training at 1000 diffusion steps" was lost.
-
-How: :func:`show_plugin_warnings` (called by every integration entry point that does something:
-the launcher's hooks, ``sparsify_mdm``, ``apply_compile``, ``sparsify_priormdm``,
-``attach_trainer`` / ``compile_trainer``) wraps ``warnings._showwarnmsg``, the hook Python calls to
-show a warning that passed the filters (``captureWarnings`` and ``catch_warnings`` replace
-``showwarning`` behind it, never this hook). A warning *of the plugin* (:func:`is_plugin_warning`:
-issued by code of the ``smdm_plugin`` package, or of a category defined there; no call site needs
-to change) is then shown as one line, :func:`one_line`:
-
-* written to ``sys.stderr``, always;
-* when logging captures warnings and ``py.warnings`` has handlers (upstream or the user set up
-  logging, e.g. to a file), also logged there at level WARNING as that line; when one of those
-  handlers already writes to ``sys.stderr``, the line is not written a second time.
-
-Every other warning is shown as before, and so is a plugin warning while warnings are recorded
-(``warnings.catch_warnings(record=True)``: pytest, a library user) or shown by a ``showwarning``
-someone else installed. The filters (``-W``, ``simplefilter``, once per location) decide as
-always whether a warning is shown at all.
-"""
+as one ``smdm: ...`` line, whatever logging upstream sets up."""
 from __future__ import annotations
 
 import logging
@@ -107,7 +83,7 @@ def _writes_to_stderr(handler: logging.Handler) -> bool:
 
 def show(msg: "warnings.WarningMessage") -> None:
     """Show a plugin warning as :func:`one_line` on stderr and, when logging captures warnings, in
-    the handlers of ``py.warnings`` (see the module's docstring)."""
+    the handlers of ``py.warnings`` (see docs/modules.md)."""
     line = one_line(msg.message)
     on_stderr = False
     if _captured_by_logging():
@@ -133,5 +109,5 @@ def _make_hook(original: Callable[[Any], None]) -> Callable[[Any], None]:
 
 
 def show_plugin_warnings() -> bool:
-    """Install the hook (idempotent; see the module's docstring). Returns whether it installed now."""
+    """Install the hook (idempotent; see docs/modules.md). Returns whether it installed now."""
     return wrap_once(warnings, "_showwarnmsg", _make_hook)

@@ -1,24 +1,6 @@
 """MotionDiffuse (text2motion/) integration: ``--sparse*`` options, sparsify the
 ``MotionTransformer`` where ``DDPMTrainer`` receives it, sparse-mode loss terms (``+ L_lip``;
-keyframes only for the ``interpolate=False`` ablation) in ``DDPMTrainer.backward_G``.
-
-MotionDiffuse is released under the S-Lab License 1.0 (non-commercial); see
-``docs/motiondiffuse.md``. Nothing of it is copied here.
-
-Two ways in, same code path:
-
-* ``patches/motiondiffuse.patch`` adds the options to ``options/train_options.py``,
-  ``options/evaluate_options.py`` and ``tools/visualization.py`` and calls
-  :func:`attach_trainer` / :func:`smdm_plugin.adapters.motiondiffuse.trainer_loss` from
-  ``trainers/ddpm_trainer.py``;
-* ``smdm run --repo PATH/text2motion --integration motiondiffuse -- python -u tools/train.py ...``
-  calls :func:`install_hooks`, which wraps the same places on import (and, like the patch, falls
-  back to the CPU when CUDA is absent).
-
-The sparse config of a trained model is written to ``<model_dir>/sparse_config.json`` (beside
-``latest.tar``) and to ``opt.txt`` (the ``sparse_*`` keys); evaluation and visualisation read the
-JSON first, so no flag is needed there.
-"""
+keyframes only for the ``interpolate=False`` ablation) in ``DDPMTrainer.backward_G``."""
 from __future__ import annotations
 
 import functools

@@ -1,19 +1,5 @@
 """priorMDM (DoubleTake) integration: ``--sparse*`` options, sparsify where the model is built,
-forced keyframes for DoubleTake's two takes.
-
-Two ways in, same code path:
-
-* ``patches/priormdm.patch`` (``git apply`` in a priorMDM checkout) calls
-  :func:`~smdm_plugin.integrations.options.add_sparse_options` from
-  ``utils/parser_util.py:add_model_options`` and
-  :func:`sparsify_priormdm` from ``utils/model_util.py:create_model_and_diffusion``;
-* ``smdm run --repo PATH -- python -m sample.double_take ...`` calls :func:`install_hooks`,
-  which wraps the same two functions when their modules are imported.
-
-The options join priorMDM's ``model`` argument group, so ``train_mdm.py`` writes them to
-``args.json`` and ``sample/double_take.py`` / ``eval/eval_humanml_double_take.py`` read them back
-from there (``load_from_model`` overwrites the ``model`` group from the checkpoint's args).
-"""
+forced keyframes for DoubleTake's two takes."""
 from __future__ import annotations
 
 import functools

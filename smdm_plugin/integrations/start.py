@@ -1,23 +1,6 @@
-"""Upstream MDM / DiP / priorMDM: start sparse from a dense checkpoint.
-
-Two options beside ``--sparse*`` (:func:`~smdm_plugin.integrations.options.add_start_options`), in a group of their own — not
-upstream's ``model`` group, so ``load_args_from_model`` never restores them from a checkpoint's
-``args.json``: they are what *this* command asks for.
-
-* ``--sparse_preset NAME`` — sample / evaluate a dense checkpoint sparse (``sample.generate``,
-  ``eval.eval_humanml``, priorMDM's ``sample.double_take``): the model is wrapped with the preset
-  (:func:`smdm_plugin.adapters.warm.wrap_dense`; ``zero_shot``: every trained weight kept) and the
-  dense weights load into it; a line on stdout says that a dense checkpoint was wrapped. When
-  training, the preset's settings are the run's sparse settings (``--sparse`` implied).
-* ``--sparse_init_from PATH`` — training (``train.train_mdm``): the dense checkpoint's weights are
-  loaded into the new model before it is sparsified, and the recipe's new layers are fitted to the
-  dense ones (:func:`smdm_plugin.adapters.warm.warm_start`; measured errors printed); upstream's
-  optimiser is created afterwards (fresh). ``args.json`` records the origin
-  (``sparse_init_origin``: path, sha256, fit errors).
-"""
+"""Upstream MDM / DiP / priorMDM: start sparse from a dense checkpoint."""
 from __future__ import annotations
 
-import argparse
 import os
 import sys
 from dataclasses import dataclass
@@ -31,14 +14,6 @@ def _fail(option: str, message: str) -> "NoReturn":
     """An argparse-style error naming the option: one line on stderr, exit status 2."""
     sys.stderr.write(f"error: argument {option}: {message}\n")
     raise SystemExit(2)
-
-
-def command_line_value(option: str, argv: Optional[list] = None) -> Optional[str]:
-    """``option``'s value on this process's command line (None when absent)."""
-    p = argparse.ArgumentParser(add_help=False)
-    p.add_argument(option, default=None)
-    known, _ = p.parse_known_args(sys.argv[1:] if argv is None else argv)
-    return getattr(known, option.lstrip("-"))
 
 
 @dataclass

@@ -1,33 +1,4 @@
-"""One output folder, written safely: :class:`OutputDir`, used by every command that writes a folder.
-
-    with OutputDir(args.out, overwrite=args.overwrite, inputs={"--data": args.data}, command="smdm train") as od:
-        write_everything_into(od.path)        # a temporary sibling folder
-    # here args.out holds the new content, swapped in as one unit
-
-What it guarantees:
-
-* **Outputs never overlap inputs**: ``out`` equal to, inside or containing an input path is refused
-  (:class:`OutputOverlapError`) before anything is written, with or without ``overwrite``.
-* **One writer per folder**: a lock file ``.<name>.lock`` beside ``out`` (it holds the owner's pid,
-  host and command; it appears whole or not at all: written to a temporary file, then hard-linked,
-  which fails when the lock exists, as ``O_EXCL`` does). A second writer gets :class:`OutputLockedError`
-  naming the folder, the owner and the lock file. A lock whose owner is gone (same host, and its pid
-  no longer runs or now belongs to a process started at another time: the lock records the owner's
-  start time) is stale: it is named, and taken over by the next run allowed to write the folder.
-* **Replaced as one unit**: the content is written in ``.<name>.partial`` beside ``out`` and
-  swapped in by rename when the block ends without an error (on Linux one atomic
-  ``renameat2(RENAME_EXCHANGE)``; elsewhere two renames). A reader sees the old folder or the
-  new one, never a mix. On an error the partial folder is removed and ``out`` is untouched.
-* **Or written as it goes** (``live``, the default of ``resumable`` commands: ``smdm train``,
-  ``smdm evaluator train``): the content is written in ``out`` itself, each file atomically, so that
-  a long run's checkpoints are visible, loadable and resumable while it runs and after a crash.
-* **--overwrite replaces only the command's own files**: each committed folder holds a manifest
-  (``.smdm-manifest.json``) of what the command wrote. Other entries of an overwritten folder are
-  moved into the new one unchanged; one whose name the command would write itself is refused up
-  front (:class:`OutputExistsError`).
-* **OS errors name the path**: :func:`describe_os_error` turns an ``OSError`` into one line
-  (``smdm``'s top level uses it for every command).
-"""
+"""One output folder, written safely: :class:`OutputDir`, used by every command that writes a folder."""
 from __future__ import annotations
 
 import ctypes

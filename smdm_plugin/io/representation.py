@@ -1,17 +1,5 @@
 """Motion representations of the in-package models: what one frame's feature vector holds, and the
-way to and from joint positions (HumanML3D's 22 joints, metres, y up).
-
-* ``"joints66"`` — per frame: joints 1..21 minus the root (63), root height (1), root x and z (2),
-  all in metres. Every channel is a function of that frame's pose alone, so a keyframe given as
-  joint positions (a BVH frame, a ``[22, 3]`` pose) is imposed exactly, global position included.
-  Trained on with each clip's root x/z at its first frame moved to the origin (:func:`canonical_xz`).
-* ``"humanml3d"`` — HumanML3D's 263-D features (:mod:`smdm_plugin.io.humanml3d`). The root is
-  stored as velocities (heading rate, planar velocity in the facing frame) integrated from frame 0,
-  so imposing the 263 values of a frame fixes its pose, root height and velocities, but its global
-  position and heading come from the generated frames before it. Joint positions cannot be turned
-  into these features here (HumanML3D's processing fits rotations and foot contacts), so keyframes
-  for a ``humanml3d`` model are given as 263-D features.
-"""
+way to and from joint positions (HumanML3D's 22 joints, metres, y up)."""
 from __future__ import annotations
 
 from dataclasses import dataclass

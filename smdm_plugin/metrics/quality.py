@@ -1,28 +1,5 @@
 """Motion quality on joint positions: foot skating ratio, jitter (mean jerk), mean speed, jitter per
-unit speed, keyframe error.
-
-The sMDM paper evaluates its in-betweening model (sCondMDI) with the metrics of the keyframe
-in-betweening literature it builds on; these are those metrics, written so that they agree with
-the reference code to float tolerance (``tests/metrics/test_metrics.py`` checks them against it):
-
-* :func:`foot_skating_ratio` — GMD's ``calculate_skating_ratio`` (Karunratanakul et al. 2023,
-  ``korrawe/guided-motion-diffusion``, ``data_loaders/humanml/utils/metrics.py``), which CondMDI
-  (Cohan et al. 2024, ``setarehc/diffusion-motion-inbetweening``) and DNO (Karunratanakul et al.
-  2024, ``korrawe/Diffusion-Noise-Optimization``) evaluate with unchanged;
-* :func:`jitter` — DNO's ``compute_jitter`` (``eval/eval_shared.py``): mean magnitude of the
-  third finite difference of joint positions, in m/s³;
-* :func:`keyframe_error` — CondMDI's keyframe error (``compute_kps_error_arbitrary`` with
-  ``traj_only=False`` in ``sample/gmd/condition.py``, averaged by ``calculate_keyframe_error``):
-  mean joint position error at the given keyframes, in metres.
-
-Conventions shared by the three functions: ``motion`` holds joint positions in metres, ``[N, J, 3]``
-(one motion) or ``[B, N, J, 3]``, y up (HumanML3D's ``new_joints`` / ``recover_from_ric``;
-:func:`smdm_plugin.metrics.to_joint_positions` converts 263-D features); ``fps`` and ``lengths``
-(valid frames per motion: an int, or ``[B]``; None = all ``N``) are keyword arguments; frames at or
-beyond a motion's length never count. ``reduce="mean"`` returns one number (0-dim tensor): the mean
-over motions of each motion's value, as the reference evaluations average; ``reduce="none"``
-returns the per-motion values ``[B]``.
-"""
+unit speed, keyframe error."""
 from __future__ import annotations
 
 import warnings

@@ -1,29 +1,6 @@
 """The text-to-motion metrics of Guo et al. (CVPR 2022, "Generating Diverse and Natural 3D Human
 Motions from Text"), as MDM, priorMDM and MotionDiffuse compute them on the T2M evaluator's
-embeddings: FID, diversity, multimodality, R-precision top-1/2/3 and matching score (MM-Dist).
-
-Every function takes embeddings (numpy or torch, converted to float64 numpy) and works in float64:
-
-* :func:`frechet_distance` — ``||mu1 - mu2||^2 + Tr(S1 + S2 - 2 sqrt(S1 S2))`` of the Gaussians fitted
-  to two sets ``[N1, D]`` and ``[N2, D]`` (means, unbiased covariances as ``np.cov``). The trace of
-  ``sqrt(S1 S2)`` is computed without scipy as ``Tr sqrt(sqrt(S1) S2 sqrt(S1))`` (the same
-  eigenvalues, but of a symmetric positive semi-definite matrix: two ``eigh`` calls, no complex
-  round-off as ``scipy.linalg.sqrtm`` gives on nearly singular products).
-* :func:`fid_bootstrap` — a FID with a 95% interval from resampling the motions;
-* :func:`diversity` — mean distance between ``times`` random pairs of embeddings (T2M: 300 pairs);
-* :func:`multimodality` — mean distance between ``times`` random pairs of the motions generated for
-  the same caption ``[C, R, D]`` (T2M: 10 pairs of 30 generations for 100 captions);
-* :func:`retrieval` — R-precision top-k and matching score with T2M's protocol: the motions are
-  shuffled into batches of ``pool`` (32); inside a batch, each caption's embedding ranks the batch's
-  motions by Euclidean distance and counts a hit at k when its own motion is among the k nearest
-  (i.e. one true caption against ``pool - 1`` others); the matching score is the mean distance of
-  the true (caption, motion) pairs. As upstream's loader (``drop_last=True``), a last incomplete
-  batch is left out. **Fewer than ``pool`` motions:** upstream would score nothing; here they form one
-  batch of all ``N`` (pool size ``N``: chance top-1 is ``1/N`` instead of ``1/32``, so the numbers are
-  easier than the field's); :class:`Retrieval` reports the pool size and the motions scored.
-
-Random draws (which pairs, the shuffle) come from a ``numpy.random.Generator`` made from ``seed``.
-"""
+embeddings: FID, diversity, multimodality, R-precision top-1/2/3 and matching score (MM-Dist)."""
 from __future__ import annotations
 
 from dataclasses import asdict, dataclass
@@ -224,7 +201,7 @@ def pairwise_distances(a: np.ndarray, b: np.ndarray) -> np.ndarray:
 def retrieval(text: ArrayLike, motion: ArrayLike, pool: int = R_PRECISION_POOL, top_k: int = 3,
               seed: Union[int, np.random.Generator, None] = 0, shuffle: bool = True) -> Retrieval:
     """R-precision top-1..``top_k`` and matching score of caption embeddings ``text [N, D]`` against
-    their motions ``motion [N, D]`` (row ``i`` of each is one pair), T2M's protocol (module docstring):
+    their motions ``motion [N, D]`` (row ``i`` of each is one pair), T2M's protocol (docs/modules.md):
     batches of ``pool`` after a seeded shuffle (``shuffle=False``: in the given order), the last
     incomplete batch left out, one batch of all N when ``N < pool``."""
     t = _matrix("retrieval", text, "text", min_rows=2)

@@ -1,18 +1,7 @@
 """A small x0-predicting Gaussian diffusion (DDPM, cosine schedule) for the in-package backbone:
 training losses with valid-frame masking, and ancestral sampling with classifier-free guidance.
 It has MDM's ``training_losses(model, x_start, t, model_kwargs)`` interface, so the same
-:func:`~smdm_plugin.adapters.diffusion.attach_diffusion` wraps it.
-
-Sampling honours MDM's in-painting keys, as MDM's ``sample.edit`` passes them:
-``y['inpainting_mask']`` (bool, broadcastable to the motion ``[B, J, F, N]``; True = given) and
-``y['inpainted_motion']`` (``[B, J, F, N]``, the given values). How they are imposed
-(``imputation``): ``"x0"`` replaces the given entries of the model's clean-motion prediction at every
-step (MDM's ``p_mean_variance`` does exactly this); ``"xt"`` replaces them in ``x_t`` by the target
-noised to step ``t`` before every model call (and in the final output). Either way the given
-entries of the output equal the target. (Doing both is the same as ``"xt"``: the posterior step is
-per entry, so a replaced prediction changes only the given entries of ``x_{t-1}``, which ``"xt"``
-overwrites next.) Without the keys, sampling is unchanged bit
-for bit (same random draws)."""
+:func:`~smdm_plugin.adapters.diffusion.attach_diffusion` wraps it."""
 from __future__ import annotations
 
 import math
@@ -112,7 +101,7 @@ class SimpleDiffusion:
                    impute_x0: bool = True) -> torch.Tensor:
         """The model's clean motion at steps ``tt [B]`` (long, on ``x_t``'s device); with MDM's
         in-painting keys in ``model_kwargs['y']`` and ``impute_x0``, its given entries replaced by
-        the target (see the module docstring)."""
+        the target (see docs/modules.md)."""
         x0 = model(x_t, tt, **model_kwargs)
         given = self.constraint(model_kwargs, x0) if impute_x0 else None
         if given is not None:
@@ -131,7 +120,7 @@ class SimpleDiffusion:
                  generator: Optional[torch.Generator] = None, impute_x0: bool = True) -> torch.Tensor:
         """One ancestral step ``x_t -> x_{t-1}`` (at ``t == 0`` the clean prediction). With MDM's
         in-painting keys in ``model_kwargs['y']`` and ``impute_x0``, the prediction's given entries
-        are replaced by the target first (see the module docstring)."""
+        are replaced by the target first (see docs/modules.md)."""
         tt = torch.full((x_t.shape[0],), t, device=x_t.device, dtype=torch.long)
         x0 = self.predict_x0(model, x_t, tt, model_kwargs, impute_x0)
         if t == 0:
@@ -162,7 +151,9 @@ class SimpleDiffusion:
         x = torch.randn(shape, generator=generator, device=device)
         given = self.constraint(model_kwargs, x)
         steps = range(self.num_timesteps - 1, -1, -1)
-        if progress:
+        from ..core.progress import bars_on  # stderr a terminal (or --progress)
+
+        if bars_on(progress):
             from tqdm.auto import tqdm
 
             steps = tqdm(steps, desc="sampling", unit="step")
@@ -176,7 +167,7 @@ class SimpleDiffusion:
         return x
 
 
-#: how :meth:`SimpleDiffusion.p_sample_loop` imposes given frames (see the module docstring)
+#: how :meth:`SimpleDiffusion.p_sample_loop` imposes given frames (see docs/modules.md)
 IMPUTATIONS = ("x0", "xt")
 
 

@@ -1,20 +1,4 @@
-"""``MotionDiffuseDenoiser``: a denoiser with MotionDiffuse's *interface*, written here.
-
-So that the MotionDiffuse family (``smdm_plugin.adapters.motiondiffuse``) runs without an upstream
-checkout (``smdm bench --family motiondiffuse``). What the family reads is the interface: the
-model attributes ``joint_embed``, ``sequence_embedding``, ``time_embed``, ``temporal_decoder_blocks``
-(each called ``block(h [B, T, latent], xf_out [B, L, text], emb [B, 4·latent], src_mask [B, T, 1])``),
-``out``, ``encode_text``, ``latent_dim``, ``input_feats``, and
-``forward(x [B, T, D], timesteps [B], length, text, xf_proj, xf_out) -> [B, T, D]``. The same
-constructor arguments as upstream's class, so the benchmark builds either with one call.
-
-The computation is of the same kind as the paper's (Zhang et al. 2022, Sec. 3.3): per block,
-efficient (linear, softmax-kernel) self-attention over the frames with padded frames masked out,
-the same attention to the text tokens, and a GELU feed-forward; each sub-layer's output is
-modulated by the step embedding (LayerNorm, then scale and shift, a zero-initialised projection)
-and added to its input. The text encoder is a stand-in: captions' characters hashed into a learned
-table (benchmarks pass precomputed ``xf_proj`` / ``xf_out``, as a sampling loop does per prompt).
-"""
+"""``MotionDiffuseDenoiser``: a denoiser with MotionDiffuse's *interface*, written here."""
 from __future__ import annotations
 
 from typing import List, Optional, Sequence, Tuple

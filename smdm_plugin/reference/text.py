@@ -1,16 +1,4 @@
-"""Text conditioning for the in-package backbone without CLIP weights.
-
-:class:`HashedBagOfWords` is a frozen, deterministic text encoder: a caption is lower-cased and split
-into words (runs of ``[a-z0-9']``); each word gets a fixed pseudo-random ``±1/sqrt(dim)`` vector
-derived from BLAKE2b of ``(seed, word)`` (a hashed random projection of the bag of words: no
-vocabulary, no weights, the same on every machine and library version); the caption's embedding is
-the sum over its words, L2-normalised (``[B, dim]``). Word order is ignored. It stands in for MDM's
-frozen CLIP text encoder in ``smdm train``/``smdm ablate`` and is independent of any evaluator's
-text encoder (those learn their own word embeddings), so R-precision does not reward a shared
-tokenizer. :class:`TextConfig` (saved as ``text_encoder.json`` beside the model) holds everything
-needed to rebuild it, plus the classifier-free-guidance settings (MDM: 10% condition dropout in
-training, guidance scale 2.5 at sampling).
-"""
+"""Text conditioning for the in-package backbone without CLIP weights."""
 from __future__ import annotations
 
 import dataclasses

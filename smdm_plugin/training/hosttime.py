@@ -1,24 +1,4 @@
-"""Host time per call, measured on the CPU: what decides eager speed on a GPU at MDM's size.
-
-At MDM's size a GPU finishes a step's kernels faster than the host can issue them (bf16 on an
-H200: 6.8 ms of kernels for a sparse training step that took 29 ms), so the eager time of a step is
-its *host* time: Python, PyTorch's dispatcher, autograd, the optimizer's loop and one launch per
-kernel. :func:`host_times` measures that on a CPU with the kernels made as good as free:
-
-* the model at MDM's depth and heads on tiny tensors (:data:`HOST_SIZE`: latent 16, batch 2,
-  24 frames), so that PyTorch's CPU kernels cost what a launch costs;
-* the static path (:func:`~smdm_plugin.core.checks.static_mode`: the code GPUs run);
-* the kernels whose CPU version is expensive although CUDA runs one kernel — the package's fused
-  ops (:class:`~smdm_plugin.core.kernels.dispatch.FusedOp`: Triton on CUDA, a composite or numpy
-  on the CPU), ``F.scaled_dot_product_attention`` (flash / memory-efficient on CUDA, a math
-  decomposition on the CPU for unequal head sizes) and the optimizer's ``torch._foreach_*`` ops
-  (one multi-tensor kernel on CUDA, a loop over the tensors on the CPU) — timed apart and charged
-  as one launch each, the cost of one small op (:func:`launch_charge`);
-* thread CPU time (not wall time: other processes do not count), dense and sparse interleaved,
-  the 20th percentile of the repeats (the undisturbed runs).
-
-docs/gpu.md shows it next to the GPU's eager ratios of 0.7.0.
-"""
+"""Host time per call, measured on the CPU: what decides eager speed on a GPU at MDM's size."""
 from __future__ import annotations
 
 import time
@@ -117,7 +97,7 @@ def host_times(fns: Dict[str, Callable[[], object]], repeats: int = 100, warmup:
                quantile: float = 0.2) -> HostTime:
     """Host milliseconds per call of each callable in ``fns`` (run interleaved, ``repeats`` times
     after ``warmup`` calls each): thread CPU time, with fused ops and SDPA charged one launch each
-    (module docstring); the ``quantile`` of the repeats. Run on the CPU, one thread."""
+    (docs/modules.md); the ``quantile`` of the repeats. Run on the CPU, one thread."""
     if repeats < 1:
         raise ValueError(f"host_times: repeats must be >= 1, got {repeats}")
     charge = launch_charge()

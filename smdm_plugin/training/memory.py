@@ -1,16 +1,5 @@
 """Whether a training batch can fit at all: a lower bound of the memory one optimiser step of the
-in-package trainer needs, against the memory the device has free (``smdm train --batch``).
-
-The bound counts only what a step certainly holds, so a batch it refuses cannot fit, and one it
-accepts may still be too large for the rest (the allocator, the backward's temporaries):
-
-* the model: weights, gradients and AdamW's two moments, 4 float32 copies of every parameter;
-* per sample, the dense tensors of a diffusion step, ``[N, D]`` each: the motion, its noise, the
-  noised motion and the prediction (4);
-* per sample and layer, what the transformer keeps for the backward pass for each token (``N + 1``
-  dense; the keyframes + 1 sparse): the input, the attention's queries, keys, values and output and
-  the feed-forward's hidden layer (``5 d + ff`` floats).
-"""
+in-package trainer needs, against the memory the device has free (``smdm train --batch``)."""
 from __future__ import annotations
 
 import os

@@ -1,21 +1,6 @@
 """The in-package trainer: the reference :class:`~smdm_plugin.reference.backbone.TinyMDM` +
 :class:`~smdm_plugin.reference.diffusion.SimpleDiffusion`, dense or sparse, on HumanML3D-format
-motion; one process, or many under ``torchrun`` (DistributedDataParallel).
-
-    trainer = Trainer(TrainConfig(steps=300, sparse=SparseConfig()), MotionSet.from_split(load_humanml3d(root)))
-    result = trainer.train()              # fixed step count (smdm ablate)
-    loss = trainer.step()                 # one optimiser step (smdm demo's race_fair: equal steps, equal time)
-    trainer.save("runs/smdm")             # model*.pt + backbone.json (+ sparse_config.json)
-
-Under ``torchrun --nproc_per_node N -m smdm_plugin train ...`` every process builds the same model
-(same seed), wraps it in DDP (gradients all-reduced; ``gloo`` on CPU, ``nccl`` on CUDA) and trains
-on its own shard of every global batch; only rank 0 writes. The randomness that defines the
-objective (each sample's diffusion step ``t`` and noise) is a function of (seed, step, global
-sample index), so ``N`` processes with ``batch`` samples each follow the same trajectory as one
-process with ``N * batch`` (up to float rounding); dropout draws from a per-rank stream (seed
-offset by rank), training mask noise from the sparse model's counter-based table
-(:mod:`smdm_plugin.core.noise`, its own offset per rank), never from torch's global stream.
-"""
+motion; one process, or many under ``torchrun`` (DistributedDataParallel)."""
 from __future__ import annotations
 
 import dataclasses
@@ -345,7 +330,9 @@ class Trainer:
         if n < 0:
             raise ValueError(f"Trainer.train: steps must be >= 0, got {steps}")
         bar = None
-        if progress and self.dist.is_main:
+        from ..core.progress import bars_on  # stderr a terminal (or --progress)
+
+        if self.dist.is_main and bars_on(progress):
             from tqdm.auto import tqdm
 
             bar = tqdm(total=n, desc="sparse" if self.config.sparse is not None else "dense",
@@ -507,7 +494,9 @@ def race_fair(trainers: Dict[str, "Trainer"], seconds: float = float("inf"), max
     spent = torch.zeros(len(names), dtype=torch.float64)
     runs: Dict[str, Dict[str, Any]] = {n: {"steps": 0, "seconds": 0.0, "loss": [], "time": []} for n in names}
     bar = None
-    if progress and dist.is_main:
+    from ..core.progress import bars_on  # stderr a terminal (or --progress)
+
+    if dist.is_main and bars_on(progress):
         from tqdm.auto import tqdm
 
         bar = tqdm(total=round(seconds) if math.isfinite(seconds) else len(names) * max_steps,

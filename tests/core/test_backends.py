@@ -127,9 +127,38 @@ def test_auto_selection_and_forcing_by_name():
 def test_backend_unavailable_on_device_falls_back_to_compact():
     register_backend("_never", lambda *a, **k: 1 / 0, available=lambda d: False)
     try:
-        assert get_backend("_never", torch.device("cpu")) is compact_backend
+        with pytest.warns(RuntimeWarning, match="'_never' falls back to 'compact'"):
+            assert get_backend("_never", torch.device("cpu")) is compact_backend
     finally:
         ab.BACKENDS.unregister("_never")
+        ab._WARNED.clear()
+
+
+def test_a_fallback_says_so_once_naming_both_backends_and_why():
+    """A backend asked for by name that does not run a call warns once per process and reason;
+    ``auto`` choosing ``compact`` is not a fallback, and a call that runs as asked is silent."""
+    import warnings
+
+    ab._WARNED.clear()
+    tr = KeyframeTransformer(encoder(), backend="varlen").eval()
+    tr.set_keyframes(torch.tensor([[True, False, True, True]] * 2))
+    x = torch.randn(5, 2, 32)                                       # 1 lead token + 4 frames
+    pad = torch.tensor([[True, False, False, False, False], [False] * 5])
+    try:
+        with torch.no_grad(), warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always")
+            tr(x)                                                   # varlen runs it: silent
+            assert caught == []
+            for _ in range(3):                                      # padded lead tokens: compact
+                tr(x, src_key_padding_mask=pad)
+            tr.backend = "auto"
+            tr(x, src_key_padding_mask=pad)                         # auto: not a fallback
+        assert len(caught) == 1, [str(w.message) for w in caught]
+        msg = str(caught[0].message)
+        assert "'varlen' falls back to 'compact'" in msg and "padded lead tokens" in msg
+        assert caught[0].category is RuntimeWarning
+    finally:
+        ab._WARNED.clear()
 
 
 def test_varlen_decoder_with_padded_memory_is_correct():

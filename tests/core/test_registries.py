@@ -55,6 +55,10 @@ def test_backend_capabilities_decide_the_dispatch():
     register_backend("_dynamic", recording, static_shapes=False)
     register_backend("_picky", recording, supports=lambda inner: False)
     try:
+        with pytest.raises(ValueError, match="'_picky' is already registered"):
+            register_backend("_picky", recording)                 # no silent replacement
+        assert ab.BACKENDS.get("_picky").supports(None) is False
+        register_backend("_picky", recording, supports=lambda inner: False, replace=True)
         assert SparseConfig(attention_backend="_dynamic").attention_backend == "_dynamic"
         cpu = torch.device("cpu")
         assert ab.resolve_backend_name("_dynamic", cpu) == "_dynamic"
@@ -64,7 +68,7 @@ def test_backend_capabilities_decide_the_dispatch():
         tr = KeyframeTransformer(torch.nn.TransformerEncoder(layer, 1, enable_nested_tensor=False),
                                  backend="_picky").eval()
         tr.set_keyframes(torch.ones(2, 5, dtype=torch.bool))
-        with torch.no_grad():
+        with torch.no_grad(), pytest.warns(RuntimeWarning, match="'_picky' falls back to 'compact'"):
             tr(torch.randn(5, 2, 16))
         assert calls == []                                        # it cannot run these layers
         tr.backend = "_dynamic"
@@ -74,3 +78,4 @@ def test_backend_capabilities_decide_the_dispatch():
     finally:
         ab.BACKENDS.unregister("_dynamic")
         ab.BACKENDS.unregister("_picky")
+        ab._WARNED.clear()

@@ -1,59 +1,4 @@
-"""``smdm ablate``: A/B ablations of sparse keyframe mode on real motion, one results folder.
-
-Every variant of a YAML grid (``configs/ablations/table1.yaml``: the paper's Table 1 set) trains the
-in-package backbone (:class:`~smdm_plugin.reference.backbone.TinyMDM` + :class:`~smdm_plugin.reference.diffusion.SimpleDiffusion`)
-through the one in-package :class:`~smdm_plugin.training.trainer.Trainer` with the *same* seed,
-initial weights, data order, diffusion steps ``t`` and step count, on HumanML3D-format motion (``--data``, e.g. this project's ``../shared/data/cmu-humanml3d``: ``new_joint_vecs``,
-``new_joints``, ``Mean.npy``/``Std.npy``, ``train.txt``/``val.txt``). Unconditional (no CLIP).
-
-Per variant: final and best training loss, steps/s, wall time, the keyframe reconstruction error
-(mean joint position error in mm of linearly interpolating the 22 joints of the validation motions
-from the keyframes the variant's selector picks; "—" for dense), and the End-Effector Speed (EES,
-cm/frame, :func:`smdm_plugin.metrics.end_effector_speed`) of motions sampled from the trained
-model, with their jitter (m/s³) and foot skating ratio (:mod:`smdm_plugin.metrics`, on the joints
-``recover_from_ric`` gives, 20 fps); a last row gives the real validation motions' EES, jitter and
-foot skating for reference. Under ``torchrun --nproc_per_node N -m smdm_plugin ablate ...`` every
-variant trains with DistributedDataParallel (``batch`` per process); rank 0 alone decides what to
-run, evaluates, writes and prints.
-
-Output (``--out``): ``results.md``, ``results.csv``, ``loss_curves.png``, ``config.yaml`` (the grid
-as run, with ``--steps``/``--data`` overrides), ``ablate.json`` (what the folder is, last run) and
-per variant ``<slug>/result.json`` (or ``<slug>/failed.json``) + ``<slug>/config.json``. Every
-file is written atomically. Each result records its *provenance*: a hash of the settings that shape
-it (the grid's shared settings, the variant, its resolved ``SparseConfig``), a fingerprint of the
-data files' contents, the smdm-plugin version, steps, seed and device type.
-
-An existing non-empty ``--out`` is refused unless:
-
-* ``--resume``: results whose provenance matches are reused (a variant interrupted mid-training
-  continues from its ``<slug>/checkpoint/``, the mechanism of ``smdm train --resume``); missing,
-  failed and unreadable ones
-  run; a result from other settings, data, version, steps, seed or device stops the run before
-  anything trains, naming what differs (rerun those with ``--overwrite``, or pick another ``--out``);
-* ``--overwrite``: every selected variant runs again and replaces its result.
-
-``--only NAME ...`` (names or folder names) runs those variants and keeps the other rows: a current
-result stays as it is, an out-of-date one is shown as ``stale`` (no numbers), one never run as
-``not run``. A variant that fails (an invalid config included) is recorded in ``failed.json`` and
-shown as ``failed``; the others go on and the exit status is 1.
-
-YAML schema::
-
-    name: table1
-    seed: 0
-    steps: 300            # optimiser steps per variant
-    batch: 16
-    max_frames: 196
-    diffusion_steps: 100
-    lr: 0.0002
-    model: {latent_dim: 128, num_layers: 4, num_heads: 4, ff_size: 256, arch: trans_enc, dropout: 0.1}
-    sparse: {reduction: 0.8}      # SparseConfig fields shared by the sparse variants
-    eval: {samples: 8, frames: 120}
-    variants:
-      - {name: dense, dense: true}
-      - {name: sparse (VW)}
-      - {name: random keyframes, sparse: {selector: random}}
-"""
+"""``smdm ablate``: A/B ablations of sparse keyframe mode on real motion, one results folder."""
 from __future__ import annotations
 
 import argparse
@@ -424,7 +369,7 @@ def main(argv: Optional[List[str]] = None) -> int:
         print(f"smdm ablate: error: {e}", file=sys.stderr)
         return 2
     try:
-        results = run_ablation(cfg, a.out, data_root, a.device, a.only, progress=progress_of(a) and ctx.is_main,
+        results = run_ablation(cfg, a.out, data_root, a.device, a.only, progress=ctx.is_main and progress_of(a),
                                log=note_printer(a), resume=a.resume, overwrite=a.overwrite, dist=ctx)
     except (OutputExistsError, FileNotFoundError, ValueError, PermissionError, NotADirectoryError) as e:
         if ctx.is_main:

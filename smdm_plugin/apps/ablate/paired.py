@@ -1,23 +1,4 @@
-"""Paired differences of a quality-versus-compute study, read from its result files.
-
-A study folder (``smdm ablate --config <study> --out DIR``) holds ``results.json``: the config, the
-real-motion references and one record per (variant, seed) with a snapshot per step count and
-training-time budget. Seed ``k`` of two variants shares initial weights, data order and sampling
-noise, so the comparison is **paired**: per seed the difference ``treatment − baseline`` (default
-``sparse (VW) − dense``), then over the seeds both finished the mean and a Student-t interval.
-
-Multiple testing: a config may pre-register ``primary`` endpoints (``{seconds: [...], steps: [...],
-metrics: [...]}``, the cross product). Those form the confirmatory family: two-sided paired t-tests,
-**Holm**-adjusted p-values (family-wise error 0.05) and **Bonferroni** simultaneous 95% intervals
-(``t(1 − 0.025/m, n − 1)``). Every other cell is exploratory: its own 95% interval, and a Holm
-adjustment over all the exploratory cells of the table, so that a reader sees how many of them would
-survive. A study without ``primary`` (those run before it existed) has only exploratory cells.
-
-:func:`read_results` checks the file as a user's input: a missing file, a file that is not a JSON
-object, or a snapshot whose metric is not a number is a :class:`ResultsError` naming the file and
-what was expected (``scripts/decisive_paired.py`` and ``scripts/study_summary.py`` print it as one
-line and exit 2).
-"""
+"""Paired differences of a quality-versus-compute study, read from its result files."""
 from __future__ import annotations
 
 import json

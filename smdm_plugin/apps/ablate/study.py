@@ -1,34 +1,5 @@
 """The quality-versus-compute study: dense vs sparse variants trained to equal compute budgets and
-equal step counts, text-conditioned, scored with a text-motion evaluator trained on the same data.
-
-``smdm ablate --config quality_compute --out DIR`` (``--quick``: the ``quality_compute_quick`` grid,
-seconds, for CI) runs a config with ``kind: quality_compute``
-(``configs/ablations/quality_compute.yaml``). Design: ONE training run per (variant,
-seed), evaluated at snapshots along the run — at given optimiser step counts (``snapshots.steps``:
-equal steps) and at given training-time budgets (``snapshots.seconds``: equal compute); a run ends
-when it has passed every snapshot. Training time is the **process CPU time** spent in
-:meth:`~smdm_plugin.training.trainer.Trainer.step` (``clock: cpu``; torch runs with one thread): on a
-shared machine, wall time counts other users' work too, CPU time does not; evaluation is never
-counted. ``clock: wall`` uses wall time of the steps instead (on a dedicated machine). Both are
-recorded at every snapshot.
-
-At a snapshot the model (eval mode) generates one motion per id of the evaluation split (``eval.split``,
-default ``test``), for its first caption and its length (cut to ``max_frames``), with
-classifier-free guidance (``text.guidance_scale``), the same noise for every variant of a seed;
-the evaluator (:mod:`smdm_plugin.apps.ablate.study_evaluator`, trained once on the train split, cached in
-``DIR/evaluator/<key>/``) embeds them; scores: FID against the real motions of the split, diversity,
-R-precision top-1/2/3 and matching score (T2M's protocol, :mod:`smdm_plugin.metrics.t2m`), jitter
-(m/s³), mean joint speed (m/s), jitter per unit speed (the set's mean jitter over its mean joint speed,
-1/s², as :func:`smdm_plugin.metrics.jitter_per_speed` reduces it)
-and foot skating ratio, on the joints ``recover_from_ric`` gives at 20 fps.
-
-Outputs (each file written atomically): ``<variant>/seed<k>/result.json`` (or ``failed.json``) with
-every snapshot and its provenance; ``results.json`` (per-seed values, means and 95% intervals,
-real-motion references), ``results.csv`` (one row per variant × snapshot × metric), ``results.md``
-and ``fid_vs_time.png``. Intervals: Student-t, ``mean ± t(0.975, n-1) · sd / sqrt(n)`` over seeds
-(sd with ddof 1). ``--resume`` reuses every (variant, seed) whose provenance matches;
-``--overwrite`` reruns them.
-"""
+equal step counts, text-conditioned, scored with a text-motion evaluator trained on the same data."""
 from __future__ import annotations
 
 import argparse
@@ -243,8 +214,6 @@ class StudyData:
         for i in list(self.train.ids) + self.ids + val_ids:
             files += [os.path.join(root, "new_joint_vecs", f"{i}.npy"), os.path.join(root, "texts", f"{i}.txt")]
         self.fingerprint = fingerprint_files(root, files)
-        self.train_raw = [(self.train.frames[self.train.offsets[i]:self.train.offsets[i + 1]].numpy() * self.std
-                           + self.mean) for i in range(len(self.train))]
 
 
 # ----------------------------------------------------------------------------------------- scoring

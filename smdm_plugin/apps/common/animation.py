@@ -210,7 +210,9 @@ def render_gif(panels: Sequence[Panel], path: str, fps: float = 20.0, stride: in
     tmp = os.path.join(folder, f".{os.path.basename(path)}.{os.getpid()}.tmp.gif")
     writer = PillowWriter(fps=fps / int(stride))
     steps = range(len(shown))
-    if progress:
+    from ...core.progress import bars_on  # stderr a terminal (or --progress)
+
+    if bars_on(progress):
         from tqdm.auto import tqdm
 
         steps = tqdm(steps, desc=f"rendering {os.path.basename(path)}", unit="frame", mininterval=0.5)

@@ -1,7 +1,8 @@
 """Arguments shared by the ``smdm`` commands: every numeric option range-checked by argparse
 (a bad value is one line naming the option, exit status 2, no traceback), devices that exist,
 output paths that are never overwritten without ``--overwrite``, and the common flags every
-command takes (:func:`add_common_flags`: ``--device``, ``--threads``, ``--no-progress``, ``--quiet``)."""
+command takes (:func:`add_common_flags`: ``--device``, ``--threads``, ``--no-progress`` / ``--progress``,
+``--quiet``)."""
 from __future__ import annotations
 
 import argparse
@@ -95,7 +96,7 @@ def add_overwrite(p: argparse.ArgumentParser) -> None:
                    help="replace existing output files / write into a non-empty output folder")
 
 
-COMMON_FLAGS = ("--device", "--threads", "--no-progress", "--quiet")
+COMMON_FLAGS = ("--device", "--threads", "--no-progress", "--progress", "--quiet")
 DEVICE_HELP = "auto (CUDA, else MPS, else CPU), cpu, cuda, cuda:N or mps (default {default})"
 
 
@@ -118,7 +119,9 @@ def add_common_flags(p: Any, *, device: Optional[str] = "auto", threads: bool = 
     * ``--device DEV`` (default ``device``; ``None``: the command has no device) — :func:`device_type`
       (``device_help``: what ``auto`` means for this command, when it says more than the default help);
     * ``--threads N`` (default ``threads_default``: the automatic choice of ``common.threads``);
-    * ``--no-progress`` — no progress bars or per-step progress lines;
+    * ``--no-progress`` — no progress bars or per-step progress lines; without it bars show only
+      when stderr is a terminal (:func:`smdm_plugin.core.progress.bars_on`), ``--progress`` shows
+      them whatever stderr is (a log file then holds every redraw);
     * ``--quiet`` — ``--no-progress`` and no notes (what the command is doing, where it wrote):
       results, warnings and errors still print (:func:`progress_of`, :func:`note_printer`).
 
@@ -139,9 +142,12 @@ def add_common_flags(p: Any, *, device: Optional[str] = "auto", threads: bool = 
     else:
         refuse("--threads", 1)
     if progress:
-        p.add_argument("--no-progress", action="store_true", help="no progress bars or per-step progress lines")
+        p.add_argument("--no-progress", action="store_true", help="no progress bars or per-step progress lines "
+                       "(without it, bars show only when stderr is a terminal)")
+        p.add_argument("--progress", action="store_true", help="progress bars even when stderr is not a terminal")
     else:
         refuse("--no-progress", 0)
+        refuse("--progress", 0)
     if quiet:
         p.add_argument("--quiet", action="store_true",
                        help="--no-progress, and no notes: only results, warnings and errors print")
@@ -149,9 +155,13 @@ def add_common_flags(p: Any, *, device: Optional[str] = "auto", threads: bool = 
         refuse("--quiet", 0)
 
 
-def progress_of(args: argparse.Namespace) -> bool:
-    """Whether the command shows progress: neither ``--no-progress`` nor ``--quiet`` was given."""
-    return not (getattr(args, "no_progress", False) or getattr(args, "quiet", False))
+def progress_of(args: argparse.Namespace) -> bool | str:
+    """Whether the command shows progress: neither ``--no-progress`` nor ``--quiet`` was given
+    (per-step lines then print; bars show where :func:`smdm_plugin.core.progress.bars_on` says);
+    ``"always"`` (:data:`smdm_plugin.core.progress.ALWAYS`: bars whatever stderr is) with ``--progress``."""
+    if getattr(args, "no_progress", False) or getattr(args, "quiet", False):
+        return False
+    return "always" if getattr(args, "progress", False) else True
 
 
 def note_printer(args: argparse.Namespace) -> Callable[..., None]:

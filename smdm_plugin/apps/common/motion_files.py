@@ -1,17 +1,4 @@
-"""Reading a motion from a file the way a user has it (``smdm render``, ``smdm inbetween``).
-
-Accepted (:func:`load_motion`):
-
-* ``.bvh`` — a CMU clip is mapped to HumanML3D's 22 joints in metres (:func:`~smdm_plugin.io.bvh.load_cmu_clip`);
-  any other skeleton keeps its own joints and units (drawable, not usable as 22-joint keyframes);
-* ``.npy`` of joint positions ``[N, J, 3]`` (y up; 22: HumanML3D / SMPL order, 21: KIT) or
-  ``[B, N, J, 3]`` (``sample`` picks one);
-* ``.npy`` of per-frame features, un-normalised: ``[N, 263]`` HumanML3D (``new_joint_vecs``),
-  ``[N, 251]`` KIT-ML, ``[N, 66]`` the in-package ``joints66`` representation, or a batch of them
-  ``[S, N, D]`` (``sample`` picks one; ``smdm inbetween`` writes ``<model>_features.npy`` so);
-* MDM's ``results.npy`` (a pickled dict: ``motion [B, J, 3, N]``, ``lengths``) with ``allow_pickle``
-  (only for files you trust: unpickling can run code).
-"""
+"""Reading a motion from a file the way a user has it (``smdm render``, ``smdm inbetween``)."""
 from __future__ import annotations
 
 import argparse

@@ -1,19 +1,7 @@
 """How a command ends when it is told to stop: Ctrl-C (SIGINT), SIGTERM (``timeout``, a cluster's job
 cancel, ``docker stop``) and SIGHUP (the terminal closed) all unwind the command as Ctrl-C does
 (``with`` blocks exit: output-folder locks are released, an interrupted ``smdm train`` names the
-checkpoint to resume from), and the exit status is ``128 + N`` (130, 143, 129).
-
-Some code cannot be interrupted: torch's compiler may swallow the ``KeyboardInterrupt`` raised in
-it (``Exception ignored in ...``) and compile on for a minute. So a stop request is also recorded:
-:func:`check` (called between training steps) raises it again, and when the command has not ended
-:data:`GRACE_S` seconds after the signal, the process releases its locks and exits with ``128 + N``
-(what ``kill -9`` leaves, minus the lock: every checkpoint file is whole). A second signal exits at
-once the same way.
-
-    with stop_on_signals():     # smdm's top level, around every command but `smdm run`
-        status = command(argv)
-    status = exit_status(status)
-"""
+checkpoint to resume from), and the exit status is ``128 + N`` (130, 143, 129)."""
 from __future__ import annotations
 
 import contextlib

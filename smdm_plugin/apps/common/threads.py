@@ -1,17 +1,4 @@
-"""How many CPU threads a ``smdm`` command uses, so that the default is fast on the machine at hand.
-
-PyTorch's CPU build runs its intra-op work on an OpenMP pool with one thread per core, and
-OpenMP's default is to *spin* while waiting at a barrier. On a machine whose cores other processes
-keep busy, each parallel region then waits for partners that the scheduler has preempted: a command
-ran 14–35× slower with the default than with ``--threads 1`` (docs/threads.md). So every command:
-
-* sets ``OMP_WAIT_POLICY=PASSIVE`` before torch (and its OpenMP runtime) is first imported, unless
-  the variable is already set (:func:`prepare_process`, called by ``smdm``'s entry point);
-* uses ``--threads N`` when given; else ``OMP_NUM_THREADS`` when set; else
-  ``max(1, round(cores - load))`` threads, ``cores`` the CPUs this process may run on (divided
-  among torchrun's local processes) and ``load`` the 1-minute load average at start
-  (:func:`default_threads`): all cores on an idle machine, one on a busy one.
-"""
+"""How many CPU threads a ``smdm`` command uses, so that the default is fast on the machine at hand."""
 from __future__ import annotations
 
 import os

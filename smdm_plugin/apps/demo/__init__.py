@@ -1,53 +1,4 @@
-"""``smdm demo``: sparse keyframes on real motion capture, with nothing to download.
-
-1. **Keyframes.** Motion: the BVH files of ``--bvh PATH ...`` (files or folders), else those in
-   the folder ``$SMDM_MOCAP``, else the 17 CMU clips embedded in the package
-   (:func:`smdm_plugin.io.embedded.embedded_clips`; nothing to download); the source is printed. BVH
-   files are converts them
-   to HumanML3D's 22 joints in metres at 20 fps and cuts them into windows of up to 196 frames
-   (HumanML3D's longest motion). For every reduction rate it keeps the frames chosen by VW
-   (Visvalingam–Whyatt), uniform spacing, random choice and MDO, interpolates all 22 joints
-   linearly in between and reports the mean joint position error (mm) of that reconstruction.
-   Selection features: the global joint positions (66-D, metres) plus ``frame index × 0.3 m``
-   (``--frame-index-scale``, the time axis' weight in VW's triangle areas; 0.3 m/frame is the
-   library's default, ``SparseConfig.frame_index_scale``, measured in docs/defaults.md, and the
-   sparse model trains with the same value).
-   A PNG shows one window: a joint trajectory with the VW keyframes marked and the VW / uniform
-   reconstructions, and a stick-figure strip (original vs. VW reconstruction).
-2. **Training.** Trains the in-package backbone (:class:`~smdm_plugin.reference.backbone.TinyMDM` +
-   :class:`~smdm_plugin.reference.diffusion.SimpleDiffusion`) dense and sparse (80% reduction) from
-   the same weights on the same random crops for ``--minutes`` in total, to **equal steps and equal
-   time** (:func:`~smdm_plugin.training.trainer.race_fair`: both step in turn, so machine load hits both
-   alike, until the slower has used half the time; the faster one is saved at that step count
-   (``sparse_equal_steps/``) and trains on for as long as the slower took), and reports the measured
-   speed ratio and the loss curves. Each model then draws 32 unconditional samples (same noise),
-   scored by jitter per unit speed (j/s, 1/s²) beside the speed (m/s) it is relative to, jitter
-   (m/s³) and foot skating, and by FID against the real training crops and diversity
-   (:func:`evaluator_scores`) in the co-embedding of a ``joints66`` motion evaluator: ``--evaluator
-   EDIR``, else one trained at start on the training clips (:mod:`smdm_plugin.apps.demo.evaluator`,
-   a few seconds) and saved as ``evaluator/``; ``--no-evaluator`` skips it. Unconditional models: no
-   R-precision. Training goes through the one in-package
-   :class:`~smdm_plugin.training.trainer.Trainer`, so under ``torchrun --nproc_per_node N -m smdm_plugin
-   demo`` both models train with DistributedDataParallel (``--batch`` per process) and only rank 0
-   writes files and prints tables. HumanML3D's 263-D features need foot contacts and
-   rotations that BVH positions do not give directly, so the demo trains on a representation
-   computed from the joint positions, ``joints66`` (:mod:`smdm_plugin.io.representation`): joints
-   1..21 relative to the root (63), root height (1) and root x, z (2; each crop starts at x = z = 0),
-   normalised by the training-set mean / std. Every channel depends on one frame's pose only, so a
-   keyframe given as a pose is imposed exactly. Unconditional (no text). With three clips or more
-   the last one is held out of training.
-3. **In-betweening.** Both models in-between a window of the held-out clip from keyframes every
-   ``--every`` frames (imposed by imputation; the sparse model also keeps them as keyframe tokens):
-   keyframe error, jitter near the keyframes and overall, against the motion capture, and an
-   animation of motion capture, dense and sparse side by side with the keyframes in red.
-
-Writes to ``--out`` (refused when it exists and is not empty, unless ``--overwrite``):
-``keyframes.md`` / ``keyframes.csv``, ``keyframes.png``, ``training.md``, ``loss.png``,
-``inbetween.md``, ``inbetween.gif``, ``summary.json``, the evaluator ``evaluator/`` (unless ``--evaluator`` or
-``--no-evaluator``) and the trained models ``dense/``, ``sparse/`` and
-``sparse_equal_steps/`` (``smdm inbetween --model OUT/dense OUT/sparse`` samples from them). BVH files it cannot
-use are listed with the full reason, and the reader's warnings (``BVHWarning``) are shown.
-"""
+"""``smdm demo``: sparse keyframes on real motion capture, with nothing to download."""
 from __future__ import annotations
 
 import argparse
@@ -514,7 +465,7 @@ def main_demo(args: argparse.Namespace) -> int:
         print(f"smdm demo: {e}", file=sys.stderr)
         return 2
     run = DemoRun(args, ctx, note_printer(args) if ctx.is_main else (lambda *a, **k: None),
-                  progress_of(args) and not args.quick)
+                  not args.quick and progress_of(args))
     try:
         return _demo_steps(run, t_start)
     except DemoError as e:

@@ -1,16 +1,4 @@
-"""How the fused operators of :mod:`smdm_plugin.core.kernels` run: :class:`FusedOp`.
-
-In eager mode an op is a plain function call that picks its kernel by device (a Triton kernel on
-CUDA, a CPU kernel where one is written, else the composite of torch ops): no ``torch.library``
-dispatch on the hot path (a custom op costs 100-260 µs of host time per call, more than the kernels
-it saves at MDM's size). Under ``torch.compile`` the composite is traced (inductor fuses it), or,
-for an op whose kernel cannot be traced (``opaque``: VW's loop), a ``torch.library.custom_op`` that
-the graph holds as one node.
-
-A Triton kernel (:class:`TritonKernel`) is used when ``triton`` imports and the kernel builds on this
-GPU, else the op's fallback: no triton falls back quietly, a kernel that fails on this GPU warns once
-and falls back from then on (a kernel that cannot be built must not stop training).
-"""
+"""How the fused operators of :mod:`smdm_plugin.core.kernels` run: :class:`FusedOp`."""
 from __future__ import annotations
 
 import importlib

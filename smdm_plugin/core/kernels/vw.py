@@ -1,20 +1,4 @@
-"""``smdm::vw_keyframes``: Visvalingam–Whyatt keyframe selection as one registered operator.
-
-Eager mode calls one kernel per call, chosen by device (a :class:`~.dispatch.FusedOp`: no
-``torch.library`` dispatch on the hot path); ``torch.compile`` sees one opaque op (a
-``torch.library.custom_op`` with a fake implementation for its output shape):
-
-* ``cuda`` — a Triton kernel, one program per motion (:mod:`.vw_triton`), when ``triton`` imports;
-  otherwise (or if that kernel cannot be built on this GPU, with one warning) the portable loop;
-* ``cpu`` — numpy, samples batched per removal step (:mod:`.vw_numpy`);
-* ``mps`` — the CPU kernel on a copy (exact float64 keys; MPS has no float64);
-* anything else — the portable loop of small torch ops (:mod:`.vw_torch`).
-
-All give the frames of :func:`smdm_plugin.core.selection.vw_reference` (the heap algorithm):
-key ``(2·area)² = max(0, |a|²|b|² - (a·b)²)`` in float64, the smallest key removed first (ties: the
-lowest frame), until ``max(count, protected frames)`` frames remain, where protected = the first
-and last valid frame and the ``forced`` frames.
-"""
+"""``smdm::vw_keyframes``: Visvalingam–Whyatt keyframe selection as one registered operator."""
 from __future__ import annotations
 
 from typing import Optional

@@ -1,29 +1,4 @@
-"""What an evaluator can resolve: its **sensitivity table** on a split of real captioned motion.
-
-Each row scores the real motions after one known degradation, under the evaluation protocol
-(:mod:`~smdm_plugin.metrics.evaluator.protocol`, upstream's by default: per replication a reference
-draw and a scored draw of 32 motions with random crops and captions):
-
-* ``real`` — no change: the real-vs-real **floor** (the FID a perfect generator gets);
-* ``noise_0.1`` / ``noise_0.3`` / ``noise_1.0`` — Gaussian noise of 0.1 / 0.3 / 1.0 × the data's
-  per-feature Std on every feature of every frame;
-* ``smooth_9`` — a 9-frame moving average along time (edges replicated);
-* ``reversed`` — the frames in reverse order (the feature vectors as they are);
-* ``foot_sliding`` — the root carried forward at 0.5 m/s on top of its own motion, the pose
-  unchanged (``humanml3d``: +0.025 m/frame on the root's forward velocity, feature 2; ``joints66``:
-  +0.025 m/frame accumulated on the root's z, feature 65): the feet slide;
-* ``caption_swap`` — the real motions, each scored against another motion's caption (a random
-  derangement): R-precision must fall to chance, FID stays at the floor.
-
-Columns (means over replications, with 95% intervals): FID, FID ÷ (real diversity)² (scale-free:
-comparable across evaluators), R-precision top-1 / top-3 and matching score of the scored motions
-against their captions; ``paired`` is FID ÷ diversity² of all the split's motions (first
-``min(L, 196)`` frames) against themselves degraded — no sampling noise, the clean comparison
-between evaluators. A degradation is **resolved** when its FID interval lies above the floor's.
-
-Saved as ``EDIR/sensitivity.json`` (:func:`save_check`, atomic) with the evaluator's weights
-fingerprint; :func:`load_check` validates it and refuses a table of other weights.
-"""
+"""What an evaluator can resolve: its **sensitivity table** on a split of real captioned motion."""
 from __future__ import annotations
 
 import dataclasses
@@ -239,7 +214,7 @@ def _replicate(ev: Evaluator, data: CaptionedMotions, names: Sequence[str], repl
 def sensitivity(ev: Evaluator, data: CaptionedMotions, replications: int = 20, seed: int = 0,
                 protocol: str = "upstream", pool: int = 32, data_name: str = "", split: str = "test",
                 conditions: Optional[Sequence[str]] = None) -> SensitivityTable:
-    """The :class:`SensitivityTable` of ``ev`` on ``data`` (module docstring)."""
+    """The :class:`SensitivityTable` of ``ev`` on ``data`` (docs/modules.md)."""
     names = list(conditions) if conditions is not None else list(CONDITIONS)
     vals, P = _replicate(ev, data, names, replications, seed, protocol, pool)
     std = np.asarray(data.std, np.float32)

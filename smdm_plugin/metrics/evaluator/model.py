@@ -1,20 +1,5 @@
 """The T2M evaluator as one module (:class:`Evaluator`), from either of two sources, one interface:
-
-* **upstream's published evaluator** (HumanML3D ``t2m`` / KIT ``kit``): a folder holding
-  ``finest.tar`` (at ``<dir>/finest.tar``, ``<dir>/text_mot_match/model/finest.tar`` or
-  ``<dir>/{t2m,kit}/text_mot_match/model/finest.tar``: a dict with state dicts ``movement_encoder``,
-  ``motion_encoder``, ``text_encoder``), the GloVe files (``glove/our_vab_*`` there or ``--glove``),
-  and the feature normalisation the evaluator was trained with (MDM's ``dataset/t2m_mean.npy`` /
-  ``t2m_std.npy``, also accepted as ``mean.npy``/``std.npy`` or ``meta/mean.npy``);
-* **an evaluator trained here** on the user's data (``smdm evaluator train``): ``evaluator.json``
-  (config, vocabulary, held-out accuracy) + ``evaluator.pt`` (state dict).
-
-:func:`load_evaluator` detects the layout. Motions go in as raw (un-normalised) feature vectors
-``[B, N, D]`` with valid lengths ``[B]`` (frames); they are normalised with the evaluator's
-mean/std, zero beyond their length (upstream pads normalised motion with zeros), their lengths
-rounded down to a multiple of ``unit_length`` (4: one movement step per 4 frames), and the last
-``drop_tail`` features (HumanML3D's 4 foot contacts) left out of the movement encoder's input.
-"""
+upstream's published evaluator (``finest.tar`` + GloVe) or one trained here (``smdm evaluator train``)."""
 from __future__ import annotations
 
 import dataclasses
@@ -227,7 +212,7 @@ def _find_stats(folder: str, checkpoint: str) -> Optional[Tuple[str, str]]:
 
 def load_upstream_evaluator(folder: str, glove: Optional[str] = None, mean: Optional[np.ndarray] = None,
                             std: Optional[np.ndarray] = None, device: Any = "cpu") -> Evaluator:
-    """Upstream's published evaluator (``finest.tar`` + GloVe + normalisation; see the module docstring)
+    """Upstream's published evaluator (``finest.tar`` + GloVe + normalisation; see docs/modules.md)
     in upstream's sizes; ``dim_pose`` (263 HumanML3D, 251 KIT) is read from the weights."""
     ck = find_upstream_checkpoint(folder)
     if ck is None:

@@ -1,20 +1,7 @@
 """The three networks of the T2M evaluator (Guo et al., CVPR 2022, Sec. 3 and supp.), written from
 the paper's description; the attribute names and parameter shapes are those of the published
 checkpoint (``text_mot_match/model/finest.tar``: ``movement_encoder``, ``motion_encoder``,
-``text_encoder``), so its state dicts load into them unchanged.
-
-* :class:`MovementConvEncoder` — "movement" features: two 1-D convolutions (kernel 4, stride 2,
-  padding 1: one movement step per 4 frames), dropout 0.2, leaky ReLU 0.2, then a linear layer.
-  ``[B, N, D_in] -> [B, N // 4, D_out]`` (D_in: the pose features without the 4 foot contacts).
-* :class:`MotionEncoderBiGRUCo` — a bidirectional GRU over the valid movement steps, from a learned
-  initial state; the two final states (forward, backward) -> linear, LayerNorm, leaky ReLU, linear
-  -> the co-embedding ``[B, C]``.
-* :class:`TextEncoderBiGRUCo` — the same over the caption's tokens; each token's input is its word
-  vector plus a linear map of its one-hot part of speech.
-
-Sequences are packed with ``enforce_sorted=False``: any order in, the same order out (upstream sorts
-the batch by length first; the GRU's results per sequence are the same).
-"""
+``text_encoder``), so its state dicts load into them unchanged."""
 from __future__ import annotations
 
 import torch

@@ -1,18 +1,6 @@
 """Which real motions, crops and captions one replication of an evaluation reads: upstream's protocol
 (MDM ``eval/eval_humanml.py`` over ``Text2MotionDatasetV2`` with ``shuffle=True, drop_last=True``)
-or today's deterministic one.
-
-* ``upstream`` — every replication shuffles the split and keeps the whole batches of ``pool`` (32;
-  with 40 test motions: 32 of them, a different 32 each time); each kept motion gets a random caption
-  and a random crop: ``min(L, 196)`` rounded down to a multiple of 4, a third of the time 4 frames
-  shorter, at a random offset. Upstream draws twice per replication: once for the ground-truth
-  statistics FID is measured against (:attr:`Replication.reference`) and once for the captions,
-  lengths and real motions of the set being scored (:attr:`Replication.scored`). The real motions of
-  ``scored`` against ``reference`` give the **real-vs-real floor**: the FID a perfect generator gets.
-* ``fixed`` — every motion of the split whole (the evaluator reads its first ``min(L, 196)`` frames,
-  rounded down to a multiple of 4), a seeded caption per replication; ``reference`` and ``scored`` are
-  the same draw (FID of the real motions against themselves: 0).
-"""
+or today's deterministic one."""
 from __future__ import annotations
 
 from dataclasses import dataclass
@@ -74,7 +62,7 @@ def _draw(lengths: Sequence[int], n_captions: Sequence[int], rng: np.random.Gene
 
 def replication(protocol: str, lengths: Sequence[int], n_captions: Sequence[int], seed: int, pool: int = 32,
                 max_frames: int = 196) -> Replication:
-    """The draws of one replication (module docstring) for a split of motions of ``lengths`` frames
+    """The draws of one replication (docs/modules.md) for a split of motions of ``lengths`` frames
     with ``n_captions`` captions each; a function of ``seed``."""
     if protocol not in PROTOCOLS:
         raise ValueError(f"protocol must be one of {PROTOCOLS}, got {protocol!r}")

@@ -1,18 +1,6 @@
 """Scoring motions with an evaluator: :func:`score_motions` (features in, :class:`EvalResult` out),
 :func:`score_embeddings` (the same from embeddings computed once), :func:`motion_quality` (jitter,
-jitter per unit speed, foot skating of HumanML3D features).
-
-    ev = load_evaluator("checkpoints")                       # either layout
-    res = score_motions(ev, real, real_lengths, captions, generated, generated_lengths, seed=0)
-    res.fid, res.r_precision_top3, res.to_dict()
-
-Motions are raw (un-normalised) feature vectors: a list of ``[L_i, D]`` arrays, or a padded
-``[B, N, D]`` array/tensor with ``lengths [B]`` (frames). Captions are ``word/POS`` token lists
-(:func:`~smdm_plugin.metrics.evaluator.vocab.parse_caption_line`), one per real motion; the
-generated motion ``i`` is scored against caption ``i`` (as MDM scores a sample against the caption
-it was generated from). The "real" columns score the real motions with the same captions, the
-field's ground-truth row.
-"""
+jitter per unit speed, foot skating of HumanML3D features)."""
 from __future__ import annotations
 
 from dataclasses import asdict, dataclass

@@ -1,24 +1,7 @@
 """Training an evaluator on your own captioned motion: the T2M architecture
 (:mod:`~smdm_plugin.metrics.evaluator.networks`) on the train split, with GloVe word vectors when
-given and otherwise word embeddings learned from the captions, by one of two recipes:
-
-* ``t2m`` (``smdm evaluator train``'s default) — T2M's: first the movement encoder is trained as an
-  auto-encoder (decomposition stage: with :class:`~smdm_plugin.metrics.evaluator.networks.MovementConvDecoder`,
-  L1 reconstruction of every feature + 0.001 L1 sparsity + 0.1 L1 smoothness of the movement code,
-  random windows of ``ae_window`` frames, Adam 1e-4 as T2M), then it is **frozen** and the motion and text BiGRUs are
-  trained with T2M's margin loss (positive pairs: squared distance; negatives, the batch shifted by a
-  random 1..B-1: squared shortfall below ``margin`` 10), Adam 1e-4, gradients clipped at 0.5, at
-  T2M's sizes (:data:`T2M_SIZES`). The frozen auto-encoder keeps what the motion looks like
-  (noise, smoothing, timing) in the movement code, so FID sees it; a movement encoder trained only
-  for text matching learns to ignore it (0.4's evaluator: 5-14% of T2M's sensitivity).
-* ``contrastive`` (0.4's, kept for library callers and comparison) — one stage, end to end, a
-  symmetric cross-entropy over the batch on negative distances, small sizes (:data:`OWN_SIZES`).
-
-Every matching epoch draws one caption per motion and a random crop (length rounded down to a
-multiple of 4, a third of the time 4 frames shorter, random offset), as upstream's loader does.
-The weights kept are those of the matching epoch with the best mean validation R-precision (top-1
-and top-3) when there is a validation split, else the last; each epoch's numbers are in the history.
-"""
+given and otherwise word embeddings learned from the captions, by one of two recipes (:data:`RECIPES`:
+``t2m``, two stages and a margin loss, or ``contrastive``)."""
 from __future__ import annotations
 
 import dataclasses
@@ -280,7 +263,9 @@ def train_evaluator(ev: Evaluator, train: CaptionedMotions, val: Optional[Captio
             ae_opt.load_state_dict(state["ae_optimizer"])
         st = {k: state[k] for k in ("epoch", "history", "best", "seconds")}
     bar = None
-    if progress:
+    from ...core.progress import bars_on  # stderr a terminal (or --progress)
+
+    if bars_on(progress):
         from tqdm.auto import tqdm
 
         bar = tqdm(total=total, initial=st["epoch"], desc="evaluator", unit="epoch", mininterval=0.5)

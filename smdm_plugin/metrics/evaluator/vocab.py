@@ -1,16 +1,4 @@
-"""Captions for the T2M evaluator: parts of speech, word vectors (the caption files: io/captions.py).
-
-A HumanML3D caption line is ``caption#word/POS word/POS ...#from#to`` (seconds; ``0#0``: the whole
-motion); the words are lemmas with their spaCy part of speech. The evaluator reads a caption as
-``sos``, its first ``max_text_len`` (20) tokens, ``eos``; each token is a word vector (``unk``'s for
-a word not in the vocabulary, with part of speech ``OTHER``) and a one-hot of 15 categories: the 9
-spaCy tags below, ``OTHER``, and 5 "very important" word classes that override a word's tag
-(locations, body parts, objects, actions, manners) — the T2M protocol's categories and word lists.
-
-GloVe vocabulary files (``our_vab_data.npy`` ``[V, 300]``, ``our_vab_words.pkl`` a list of words,
-``our_vab_idx.pkl`` a dict word -> row) are read with :func:`safe_pickle_load`, which builds only
-plain Python containers and refuses any pickled class or function (no code runs on load).
-"""
+"""Captions for the T2M evaluator: parts of speech, word vectors (the caption files: io/captions.py)."""
 from __future__ import annotations
 
 import io
