@@ -7,10 +7,10 @@ from typing import List
 import torch.nn as nn
 
 from ..core.registry import Registry
-from .doubletake import DoubleTakeFamily
+from ..families.doubletake.model import DoubleTakeFamily
 from .family import ModelFamily
-from .mdm import MDMFamily
-from .motiondiffuse import MotionDiffuseFamily
+from ..families.mdm.model import MDMFamily
+from ..families.motiondiffuse.model import MotionDiffuseFamily
 
 #: the model families by name
 FAMILIES: Registry[ModelFamily] = Registry("model family")

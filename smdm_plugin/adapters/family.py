@@ -4,7 +4,7 @@ In the way PEFT registers a tuner per method or diffusers an attention processor
 family (MDM trans_enc / trans_dec, DiP, priorMDM's DoubleTake, MotionDiffuse, ...) is one
 :class:`ModelFamily` registered with :func:`register_family`. The generic surgery
 (:mod:`smdm_plugin.adapters.surgery`: ``sparsify``, ``unsparsify``, ``set_mean_std``), the diffusion
-wrapper (:mod:`smdm_plugin.adapters.diffusion`) and ``load_checkpoint`` only talk to a model through
+wrapper (:mod:`smdm_plugin.adapters.diffusion_wrapper`) and ``load_checkpoint`` only talk to a model through
 its family. A family says:
 
 * :meth:`~ModelFamily.matches` — whether a model is one of its own (by structure);

@@ -68,13 +68,13 @@ def main(argv: Optional[List[str]] = None) -> int:
         print(_usage())
         return 0
     if argv[0] in ("-V", "--version"):
-        from .. import __version__
+        from . import __version__
 
         print(f"smdm-plugin {__version__}")
         return 0
     cmd, rest = argv[0], argv[1:]
     if cmd not in COMMANDS:
-        from ..core.values import closest
+        from ..support.values import closest
 
         print(f"smdm: error: unknown command {cmd!r}{closest(cmd, COMMANDS)} (commands: {', '.join(COMMANDS)}; "
               "'smdm --help' for more)", file=sys.stderr)

@@ -12,10 +12,10 @@ import numpy as np
 import torch
 
 from ..core.config import SparseConfig
-from ..core.config_files import CONFIG_FILENAME
-from ..integrations.compile import COMPILE_MODES
-from ..integrations.distributed import init_distributed
-from ..io.checkpoint import BACKBONE_FILENAME
+from ..support.config_files import CONFIG_FILENAME
+from ..runtime.compile import COMPILE_MODES
+from ..runtime.distributed import init_distributed
+from ..io.checkpoint_files import BACKBONE_FILENAME
 from ..io.files import (atomic_open, atomic_write_json, atomic_write_text, describe_changes, digests_fingerprint,
                         file_digests)
 from ..io.humanml3d import load_humanml3d
@@ -192,7 +192,7 @@ def main(argv: Optional[List[str]] = None) -> int:
     import sys
     from contextlib import ExitStack
 
-    from ..integrations.distributed import shutdown_distributed
+    from ..runtime.distributed import shutdown_distributed
     from ..io.files import OutputExistsError
     from ..io.outdir import OutputDir
     from ..training.memory import check_batch_fits

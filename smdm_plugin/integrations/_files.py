@@ -14,9 +14,9 @@ import json
 import os
 from typing import Any, Dict, Optional
 
-from ..core.atomic import atomic_write_json, atomic_write_text
+from ..support.atomic import atomic_write_json, atomic_write_text
 from ..core.config import SparseConfig
-from ..core.config_files import CONFIG_FILENAME
+from ..support.config_files import CONFIG_FILENAME
 
 OPT_BEGIN, OPT_END = "------------ Options -------------", "-------------- End ----------------"
 
@@ -114,7 +114,7 @@ def record_run_config(model: Any, weights_dir: str, args: Any, options_file: Opt
 
 
 def record_compile(args: Any, options_file: Optional[str]) -> bool:
-    """After :func:`~smdm_plugin.integrations.compile.compile_from_args`: ``sparse_compile`` and
+    """After :func:`~smdm_plugin.runtime.compile.compile_from_args`: ``sparse_compile`` and
     ``sparse_compile_applied`` (what runs, and why it differs from what was asked) into the run's
     options file (``args.json`` or ``opt.txt``; written by upstream before the model is built).
     False when there is no such file or nothing to record."""

@@ -1,6 +1,6 @@
 """``MotionDiffuseDenoiser``: a denoiser with MotionDiffuse's *interface*, written here.
 
-So that the MotionDiffuse family (``smdm_plugin.adapters.motiondiffuse``) runs without an upstream
+So that the MotionDiffuse family (``smdm_plugin.families.motiondiffuse.model``) runs without an upstream
 checkout (``smdm bench --family motiondiffuse``). What the family reads is the interface: the
 model attributes ``joint_embed``, ``sequence_embedding``, ``time_embed``, ``temporal_decoder_blocks``
 (each called ``block(h [B, T, latent], xf_out [B, L, text], emb [B, 4·latent], src_mask [B, T, 1])``),
@@ -22,7 +22,7 @@ from typing import List, Optional, Sequence, Tuple
 import torch
 import torch.nn as nn
 
-from ..core.embedding import timestep_embedding
+from .embedding import timestep_embedding
 
 __all__ = ["MotionDiffuseDenoiser", "timestep_embedding", "motiondiffuse_size"]
 

@@ -179,7 +179,7 @@ class MDMWorkload(Workload):
 
     def batch(self, batch: int, frames: int, device: torch.device, quick: bool,
               arch: Optional[str] = None, seed: int = 0) -> WorkloadBatch:
-        from ..adapters.mdm import frames_layout
+        from ..families.mdm.model import frames_layout
 
         g = torch.Generator().manual_seed(seed)
         frames = DIP_PRED if arch == "dip" else frames
@@ -202,7 +202,7 @@ class MDMWorkload(Workload):
         return {"y": {**data.kwargs["y"], **data.sampling}}
 
     def denoiser(self, model: torch.nn.Module) -> torch.nn.Module:
-        from ..reference.diffusion import ClassifierFreeGuidance
+        from ..reference.simple_diffusion import ClassifierFreeGuidance
 
         return ClassifierFreeGuidance(model.eval(), scale=2.5)
 
@@ -330,7 +330,7 @@ def build(arch: str, reduction: Optional[float], device: torch.device, quick: bo
     from ..adapters.surgery import sparsify
     from ..core.config import SparseConfig
     from ..core.fsq import quantize_attention_keys
-    from ..reference.diffusion import SimpleDiffusion
+    from ..reference.simple_diffusion import SimpleDiffusion
 
     work = WORKLOADS.get(family)
     fsq = fsq if work.fsq else "off"

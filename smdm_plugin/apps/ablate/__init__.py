@@ -1,7 +1,7 @@
 """``smdm ablate``: A/B ablations of sparse keyframe mode on real motion, one results folder.
 
 Every variant of a YAML grid (``configs/ablations/table1.yaml``: the paper's Table 1 set) trains the
-in-package backbone (:class:`~smdm_plugin.reference.backbone.TinyMDM` + :class:`~smdm_plugin.reference.diffusion.SimpleDiffusion`)
+in-package backbone (:class:`~smdm_plugin.reference.backbone.TinyMDM` + :class:`~smdm_plugin.reference.simple_diffusion.SimpleDiffusion`)
 through the one in-package :class:`~smdm_plugin.training.trainer.Trainer` with the *same* seed,
 initial weights, data order, diffusion steps ``t`` and step count, on HumanML3D-format motion (``--data``, e.g. this project's ``../shared/data/cmu-humanml3d``: ``new_joint_vecs``,
 ``new_joints``, ``Mean.npy``/``Std.npy``, ``train.txt``/``val.txt``). Unconditional (no CLIP).
@@ -94,8 +94,8 @@ def run_variant(cfg: Dict[str, Any], variant: Dict[str, Any], data: "MotionData"
     the steps and, when one is there, training continues from it (``smdm train --resume``'s
     mechanism: weights, optimiser, random streams, step), so an interrupted variant resumes
     bit-identically instead of starting over."""
-    from ...integrations.distributed import DistContext
-    from ...metrics.features import feature_quality, keyframe_interpolation_error_mm
+    from ...runtime.distributed import DistContext
+    from ...metrics.feature_measures import feature_quality, keyframe_interpolation_error_mm
     from ...training.trainer import TrainConfig, Trainer, resume
     from ...training.validation import validation_loss
 
@@ -230,7 +230,7 @@ def run_ablation(cfg: Dict[str, Any], out: str, data_root: str, device: str = "a
                  resume: bool = False, overwrite: bool = False, dist=None) -> List[Dict[str, Any]]:
     """Run the grid ``cfg`` into ``out``; returns one row per variant of the grid, in its order.
 
-    ``dist``: a torchrun context (:func:`~smdm_plugin.integrations.distributed.init_distributed`):
+    ``dist``: a torchrun context (:func:`~smdm_plugin.runtime.distributed.init_distributed`):
     every rank trains each variant with DDP; rank 0 alone decides what to run, evaluates, writes
     and logs (the other ranks return ``[]``).
 
@@ -239,7 +239,7 @@ def run_ablation(cfg: Dict[str, Any], out: str, data_root: str, device: str = "a
     unreadable ones; results from another run stop it with :class:`StaleResultsError` before
     anything trains) or ``overwrite`` (run every selected variant again). See the module docstring.
     """
-    from ...integrations.distributed import DistContext
+    from ...runtime.distributed import DistContext
 
     if resume and overwrite:
         raise ValueError("run_ablation: resume and overwrite exclude each other")
@@ -267,7 +267,7 @@ def _run_locked(cfg: Dict[str, Any], out: str, data_root: str, ctx, selected: Se
 
     main_rank = ctx.is_main
     dev = ctx.device
-    from ...metrics.features import feature_quality
+    from ...metrics.feature_measures import feature_quality
     from ...training.data import MotionData  # noqa: F811 - at run time
 
     data = MotionData(data_root, int(cfg["max_frames"]))
@@ -312,7 +312,7 @@ def _run_locked(cfg: Dict[str, Any], out: str, data_root: str, ctx, selected: Se
         return []
 
     os.makedirs(out, exist_ok=True)
-    from ... import __version__
+    from . import __version__
 
     atomic_write_json(os.path.join(out, MANIFEST), {
         "tool": "smdm ablate", "format": 1, "grid": cfg.get("name"), "variants": [v["name"] for v in cfg["variants"]],
@@ -416,7 +416,7 @@ def main(argv: Optional[List[str]] = None) -> int:
                 "val.txt or test.txt), e.g. HumanML3D itself; the embedded CMU clips are joint positions, not "
                 "263-D features: `smdm demo` compares dense and sparse on them")
     cfg["data"] = data_root
-    from ...integrations.distributed import init_distributed, shutdown_distributed
+    from ...runtime.distributed import init_distributed, shutdown_distributed
 
     try:
         ctx = init_distributed(a.device)  # under torchrun: join the group (gloo on CPU, nccl on CUDA)

@@ -44,7 +44,7 @@ from typing import Any, Callable, Dict, List, Optional, Sequence, Tuple
 import numpy as np
 import torch
 
-from ...core.values import closest
+from ...support.values import closest
 from ...io.files import OutputExistsError, atomic_open, atomic_write_json, atomic_write_text
 from ..common.args import add_common_flags, add_overwrite, existing_path, note_printer, progress_of, resolve_device
 from .results import (MANIFEST, check_out_dir, FAILED_FILE, RESULT_FILE, CacheState, Cached, Record, Status, failure_record, is_ok, read_cached,
@@ -181,7 +181,7 @@ def _check_primary(out: Dict[str, Any]) -> None:
 
 
 def _range(lo: float):
-    from ...core.values import Range
+    from ...support.values import Range
 
     return Range(lo)
 
@@ -253,7 +253,7 @@ def score_set(evaluator, raw: torch.Tensor, norm: torch.Tensor, lengths: torch.T
     """Every metric of one set of motions (one per caption, row ``i`` for caption ``i``): FID with its
     bootstrap interval (``fid_low``, ``fid_high``), R-precision and matching score averaged over
     :data:`RETRIEVAL_DRAWS` pools (:data:`SCORING`), diversity, jitter, speed, j/s, foot skating."""
-    from ...metrics.features import per_motion_quality
+    from ...metrics.feature_measures import per_motion_quality
     from ...metrics.t2m import diversity, fid_bootstrap, retrieval
 
     emb = evaluator.embed_motion(raw, lengths).double().numpy()
@@ -309,7 +309,7 @@ def run_seed(cfg: Dict[str, Any], variant: Dict[str, Any], seed: int, data: Stud
     and the run's progress (clocks, snapshots so far) are saved there, and a run that finds them
     continues from the last one (``smdm ablate --resume`` after an interruption: at most the training
     since the last snapshot is redone; the clocks continue from their saved values)."""
-    from ...integrations.distributed import DistContext
+    from ...runtime.distributed import DistContext
     from ...reference.text import TextConfig
     from ...training.trainer import TrainConfig, Trainer
 
@@ -409,7 +409,7 @@ def _restore(trainer, folder: str) -> Optional[Dict[str, Any]]:
     complete checkpoint in ``folder``: the run starts at step 0)."""
     import json
 
-    from ...io.checkpoint import read_state_dict
+    from ...io.checkpoint_files import read_state_dict
     from ...training.trainer import TRAIN_STATE_FILENAME
 
     path = os.path.join(folder, TRAIN_STATE_FILENAME)
@@ -584,7 +584,7 @@ def plot_fid_vs_time(cfg: Dict[str, Any], rows: List[Dict[str, Any]], reference:
 def build_evaluator(cfg: Dict[str, Any], data: StudyData, out: str, log: Callable[[str], Any]):
     """The evaluator of ``cfg['evaluator']``, trained on the train split once and cached in
     ``out/evaluator/<key>/`` (key: data fingerprint + settings + package version)."""
-    from ... import __version__
+    from . import __version__
     from .study_evaluator import EVALUATORS, cached_evaluator
 
     kind = cfg["evaluator"]["kind"]
@@ -668,7 +668,7 @@ def _write_study_files(cfg: Dict[str, Any], out: str, data: StudyData, data_root
     """``out/`` with its manifest (what the folder is, last run) and ``config.yaml`` (the config as run)."""
     import yaml
 
-    from ... import __version__
+    from . import __version__
 
     os.makedirs(out, exist_ok=True)
     atomic_write_json(os.path.join(out, MANIFEST), {
@@ -747,7 +747,7 @@ def fid_anchors(evaluator, data: StudyData, real_emb: np.ndarray, text: Dict[str
 
 def _meta(cfg: Dict[str, Any], data: StudyData, data_root: str, ref: Reference, dev: torch.device) -> Dict[str, Any]:
     """What the report says about the run (data, evaluator, device, version, threads)."""
-    from ... import __version__
+    from . import __version__
 
     return {"data": data_root, "data_fingerprint": data.fingerprint, "train_motions": len(data.train),
             "eval_motions": len(data.ids), "evaluator_key": ref.key,

@@ -222,7 +222,7 @@ def render_gif(panels: Sequence[Panel], path: str, fps: float = 20.0, stride: in
                 writer.grab_frame()
         os.replace(tmp, path)
     except (OSError, RuntimeError) as e:
-        from ...core.atomic import write_error
+        from ...support.atomic import write_error
 
         named = write_error(e, path)  # a failed write (a full disk): one OSError naming the GIF
         if named is None and isinstance(e, OSError) and e.filename == tmp:

@@ -12,7 +12,7 @@ if TYPE_CHECKING:
     import torch
 
 # the range-checked types live in core (the --sparse_* options use them too); re-exported here
-from ...core.argtypes import float_range, int_range, str2bool
+from ...support.argtypes import float_range, int_range, str2bool
 
 __all__ = ["int_range", "float_range", "str2bool", "existing_path", "device_type", "compile_backend", "resolve_device",
            "add_overwrite", "add_common_flags", "progress_of", "note_printer", "COMMON_FLAGS"]
@@ -69,7 +69,7 @@ def compile_backend(text: str) -> str:
     from torch._dynamo import list_backends
     from torch._dynamo.backends.registry import lookup_backend
 
-    from ...core.values import closest
+    from ...support.values import closest
 
     try:
         lookup_backend(text)
@@ -83,8 +83,8 @@ def compile_backend(text: str) -> str:
 def resolve_device(name: str = "auto") -> "torch.device":
     """The ``torch.device`` of a ``--device`` value (checked by :func:`device_type`): ``auto`` is
     CUDA when available, else MPS when available, else the CPU (one rule for every command:
-    :func:`smdm_plugin.integrations.distributed.resolve_device`)."""
-    from ...integrations.distributed import resolve_device as resolve
+    :func:`smdm_plugin.runtime.distributed.resolve_device`)."""
+    from ...runtime.distributed import resolve_device as resolve
 
     return resolve(name if name == "auto" else device_type(name))
 

@@ -15,7 +15,7 @@
    A PNG shows one window: a joint trajectory with the VW keyframes marked and the VW / uniform
    reconstructions, and a stick-figure strip (original vs. VW reconstruction).
 2. **Training.** Trains the in-package backbone (:class:`~smdm_plugin.reference.backbone.TinyMDM` +
-   :class:`~smdm_plugin.reference.diffusion.SimpleDiffusion`) dense and sparse (80% reduction) from
+   :class:`~smdm_plugin.reference.simple_diffusion.SimpleDiffusion`) dense and sparse (80% reduction) from
    the same weights on the same random crops for ``--minutes`` in total, to **equal steps and equal
    time** (:func:`~smdm_plugin.training.trainer.race_fair`: both step in turn, so machine load hits both
    alike, until the slower has used half the time; the faster one is saved at that step count
@@ -66,7 +66,7 @@ from ..common.keyframe_study import (FRAME_INDEX_SCALE, keyframe_markdown, keyfr
                                      plot_keyframes, require_windows, windows)
 
 if TYPE_CHECKING:
-    from ...integrations.distributed import DistContext
+    from ...runtime.distributed import DistContext
     from ...training.data import MotionSet
     from ...training.trainer import Trainer
 
@@ -158,8 +158,8 @@ def inbetween_demo(bundles: Dict[str, Any], clip: Tuple[str, np.ndarray], length
                    seed: int, device: Any, gif: bool, progress: bool, stride: int = 1, note: str = "") -> str:
     """In-between one window of ``clip`` (keyframes every ``every`` frames and the last) with each
     model of ``bundles``; writes ``inbetween.md`` and ``inbetween.gif`` to ``out``; returns the table."""
-    from ...metrics.inbetween import keyframe_metrics
-    from ..common.inbetween import plan_keyframes, run_inbetween, summary_markdown
+    from ...metrics.inbetween_metrics import keyframe_metrics
+    from ..common.bundle_inbetween import plan_keyframes, run_inbetween, summary_markdown
     from ..common.motion_files import LoadedMotion
 
     name, joints = clip
@@ -503,7 +503,7 @@ def write_summary(run: DemoRun, motion: DemoMotion, study: Dict[str, Any], train
 def main_demo(args: argparse.Namespace) -> int:
     """Run the demo (options checked by :func:`main`); returns the exit status. Under torchrun every
     rank reads the motion and trains; rank 0 alone writes files and prints the tables."""
-    from ...integrations.distributed import init_distributed, shutdown_distributed
+    from ...runtime.distributed import init_distributed, shutdown_distributed
     from ..common.threads import apply_threads
 
     t_start = time.perf_counter()

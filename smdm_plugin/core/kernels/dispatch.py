@@ -22,7 +22,7 @@ from ..checks import compiling
 __all__ = ["TritonKernel", "FusedOp", "OBSERVERS"]
 
 #: who watches fused ops (innermost last): ``observer(name, kernel, args)`` runs ``kernel(*args)``
-#: and returns its result (:class:`~smdm_plugin.core.launches.LaunchCounter` counts one launch)
+#: and returns its result (:class:`~smdm_plugin.runtime.launches.LaunchCounter` counts one launch)
 OBSERVERS: List[Callable[[str, Callable[..., Any], list], Any]] = []
 
 

@@ -51,7 +51,7 @@ cuBLAS split-K), the fast paths PyTorch takes only on CUDA or only without torch
 Example (runs on the CPU)::
 
     import torch
-    from smdm_plugin.core.launches import count_launches
+    from smdm_plugin.runtime.launches import count_launches
     lin = torch.nn.Linear(8, 8)
     x = torch.randn(4, 8)
     print(count_launches(lambda: lin(x).sum().backward()).count)
@@ -70,7 +70,7 @@ from torch.utils._python_dispatch import TorchDispatchMode
 from torch.utils._pytree import tree_leaves
 from torch.utils.weak import WeakTensorKeyDictionary
 
-from .kernels.dispatch import OBSERVERS
+from ..core.kernels.dispatch import OBSERVERS
 
 __all__ = ["LaunchCounter", "LaunchCount", "count_launches", "SYNC_OPS", "AUTOCAST_DIFFERENCES"]
 

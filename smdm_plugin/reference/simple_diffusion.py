@@ -1,7 +1,7 @@
 """A small x0-predicting Gaussian diffusion (DDPM, cosine schedule) for the in-package backbone:
 training losses with valid-frame masking, and ancestral sampling with classifier-free guidance.
 It has MDM's ``training_losses(model, x_start, t, model_kwargs)`` interface, so the same
-:func:`~smdm_plugin.adapters.diffusion.attach_diffusion` wraps it.
+:func:`~smdm_plugin.adapters.diffusion_wrapper.attach_diffusion` wraps it.
 
 Sampling honours MDM's in-painting keys, as MDM's ``sample.edit`` passes them:
 ``y['inpainting_mask']`` (bool, broadcastable to the motion ``[B, J, F, N]``; True = given) and

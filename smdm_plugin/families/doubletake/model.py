@@ -36,9 +36,9 @@ import torch
 from torch import nn
 from torch.utils.hooks import RemovableHandle
 
-from .mdm import MDMFamily, is_doubletake_model
-from .request import request_of, with_forced
-from .state import SparseState
+from ..mdm.model import MDMFamily, is_doubletake_model
+from ...adapters.request import request_of, with_forced
+from ...adapters.state import SparseState
 
 #: the paper's DoubleTake transition blending length, in seconds
 PAPER_BLEND_SECONDS = 0.25

@@ -1,11 +1,11 @@
 """Wrap a Gaussian diffusion's ``training_losses`` (MDM / guided-diffusion style, or the
-in-package :class:`~smdm_plugin.reference.diffusion.SimpleDiffusion`) for sparse training:
+in-package :class:`~smdm_plugin.reference.simple_diffusion.SimpleDiffusion`) for sparse training:
 
 * the keyframe mask is selected from the clean motion ``x_start`` (+ mask noise) and handed to
   the model, with its static capacity, as a
   :class:`~smdm_plugin.adapters.request.KeyframeRequest` by the model family's ``with_keyframes``
   (unless the batch already carries one, chosen while loading: MDM's
-  :class:`~smdm_plugin.adapters.mdm.keyframe_collate`);
+  :class:`~smdm_plugin.families.mdm.model.keyframe_collate`);
 * the loss stays on the dense, interpolated frames with the upstream valid-frame mask — or on
   keyframes only when ``config.interpolate`` is False (ablation);
 * ``config.lipschitz_lambda * L_lip`` is added to ``terms['loss']``.

@@ -461,7 +461,7 @@ class _CompiledCall(CompiledFunction):
 def _fullgraph_default(model: nn.Module) -> bool:
     """Sparse models trace whole (fullgraph), except DoubleTake's: its forced keyframes are read
     from ``y`` on the host once per call (as in eager), which breaks the graph there."""
-    from ..adapters.doubletake import has_doubletake_forcing
+    from ..families.doubletake.model import has_doubletake_forcing
     from ..adapters.surgery import is_sparse
 
     return is_sparse(model) and not has_doubletake_forcing(model)
