@@ -20,10 +20,10 @@ import torch
 from smdm_plugin import (SparseConfig, attach_diffusion, families, is_sparse, load_checkpoint, register_family,
                          save_sparse_config, sparsify, unsparsify)
 from smdm_plugin.adapters.families import FAMILIES, family_for
-from smdm_plugin.adapters.mdm import MDMFamily
+from smdm_plugin.families.mdm.model import MDMFamily
 from smdm_plugin.adapters.state import SparseState
 from smdm_plugin.core.checks import static_mode
-from smdm_plugin.core.launches import LaunchCounter as Dispatched
+from smdm_plugin.runtime.launches import LaunchCounter as Dispatched
 
 from helpers.conformance import (MotionDiffuseCase, assert_every_family_has_cases, conformance_cases,
                                  families_without_cases)

@@ -10,8 +10,8 @@ from helpers.motiondiffuse_standin import StandInDiffusion, StandInMotionTransfo
 from smdm_plugin import LipschitzMLP, SparseConfig, lipschitz_loss
 from smdm_plugin import KeyframeRequest, with_forced
 from smdm_plugin import sparsify as sparsify_motiondiffuse, unsparsify as unsparsify_motiondiffuse
-from smdm_plugin.adapters.motiondiffuse import trainer_loss, training_mean_std
-from smdm_plugin.integrations.motiondiffuse import (add_sparse_options, attach_trainer,
+from smdm_plugin.families.motiondiffuse.model import trainer_loss, training_mean_std
+from smdm_plugin.families.motiondiffuse.upstream import (add_sparse_options, attach_trainer,
                                                     config_from_opt)
 
 

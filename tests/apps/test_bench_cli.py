@@ -71,7 +71,7 @@ def test_bench_times_dip_and_doubletake_on_request(capsys):
 
 
 def test_launch_count_of_an_eager_cell_is_the_counters():
-    from smdm_plugin.core.launches import count_launches
+    from smdm_plugin.runtime.launches import count_launches
 
     model, diffusion = workloads.build("trans_enc", 0.8, torch.device("cpu"), True, 4)
     data = workloads.WORKLOADS.get("mdm").batch(2, 24, torch.device("cpu"), True)

@@ -368,7 +368,7 @@ def test_fsq_code_op_equals_its_formula_with_a_straight_through_gradient():
     (a column block) and bfloat16; gradient ``g·half_l·(1 - tanh(z)²)``; counted as one CUDA
     launch each way, with no ``torch.library`` dispatch in eager mode (host time)."""
     from smdm_plugin.core.kernels.fsq_code import fsq_code
-    from smdm_plugin.core.launches import count_launches
+    from smdm_plugin.runtime.launches import count_launches
 
     attn = _self_attention_pair(True, False)
     neg, half = attn.code_constants(torch.float32)

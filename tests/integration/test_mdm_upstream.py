@@ -284,9 +284,9 @@ def test_a_flag_off_run_loads_only_the_plugins_options(patched, tmp_path):
     options, presets and registry among them)."""
     proc = harness_code(patched, FLAG_OFF_IMPORTS.replace("sys.argv[1]", repr(str(tmp_path / "x"))))
     seen = json.loads(proc.stdout.split("SEEN=")[1].splitlines()[0])
-    assert seen["import"] == ["smdm_plugin", "smdm_plugin.integrations", "smdm_plugin.integrations.mdm_train"]
+    assert seen["import"] == ["smdm_plugin", "smdm_plugin.integrations", "smdm_plugin.families.mdm.train"]
     extra = [m for m in seen["parse"] if m not in seen["import"] and not m.startswith("smdm_plugin.core")]
-    assert extra == ["smdm_plugin.integrations.compile", "smdm_plugin.integrations.options"], seen["parse"]
+    assert extra == ["smdm_plugin.runtime.compile", "smdm_plugin.integrations.options"], seen["parse"]
     assert "smdm_plugin.core.presets" not in seen["parse"] and len(seen["parse"]) <= 13, seen["parse"]
 
 
@@ -635,7 +635,7 @@ def test_ddp_wrapper_answers_the_model_attributes(tmp_path):
     import torch.distributed as dist
 
     from smdm_plugin.integrations import mdm_train
-    from smdm_plugin.integrations.distributed import constant_buffers_kwargs
+    from smdm_plugin.runtime.distributed import constant_buffers_kwargs
 
     if not dist.is_available() or not dist.is_gloo_available() or dist.is_initialized():
         pytest.skip("needs a fresh gloo process group")

@@ -220,7 +220,7 @@ def install_recorder(path: str) -> None:
     KeyframeTransformer.set_plan = set_plan
 
     # MotionDiffuse: the tokens that reach the decoder blocks, with the mask of that call
-    import smdm_plugin.adapters.motiondiffuse as md_adapter
+    import smdm_plugin.families.motiondiffuse.model as md_adapter
 
     import smdm_plugin.adapters.surgery as surgery
 

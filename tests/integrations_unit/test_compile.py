@@ -1,4 +1,4 @@
-"""Graph capture with one flag (integrations/compile.py, docs/compile.md), on the CPU.
+"""Graph capture with one flag (runtime/compile.py, docs/compile.md), on the CPU.
 
 The compiled model is captured once per phase (training; sampling in eval mode without grad; the
 phase's first call runs eagerly) and never again: across steps, motion lengths, timesteps, both classifier-free guidance passes and the
@@ -26,7 +26,7 @@ from torch._dynamo.utils import counters  # noqa: E402
 
 from smdm_plugin import SimpleDiffusion, SparseConfig, TinyMDM, load_checkpoint, sparsify  # noqa: E402
 from smdm_plugin.integrations import compile as C  # noqa: E402
-from smdm_plugin.reference.diffusion import ClassifierFreeGuidance  # noqa: E402
+from smdm_plugin.reference.simple_diffusion import ClassifierFreeGuidance  # noqa: E402
 from smdm_plugin.reference.text import TextConfig, sample_with_text  # noqa: E402
 from smdm_plugin.training import trainer as T  # noqa: E402
 from smdm_plugin.training.data import MotionSet  # noqa: E402
@@ -324,7 +324,7 @@ def test_mdm_integration_compiles_dense_models_and_records_the_setting(tmp_path,
     (never overwritten from ``args.json`` at sampling)."""
     import types
 
-    from smdm_plugin.integrations.mdm import patch_base_options, sparsify_mdm
+    from smdm_plugin.families.mdm.upstream import patch_base_options, sparsify_mdm
 
     (tmp_path / "args.json").write_text(json.dumps({"seed": 10, "sparse_compile": "reduce-overhead"}))
     args = argparse.Namespace(sparse=False, sparse_compile="reduce-overhead", save_dir=str(tmp_path),

@@ -4,7 +4,7 @@ import pytest
 import torch
 
 from smdm_plugin import SparseConfig, TinyMDM, check_state_dict, load_checkpoint, save_sparse_config, sparsify
-from smdm_plugin.io.checkpoint import find_sparse_config
+from smdm_plugin.io.checkpoint_files import find_sparse_config
 
 KW = dict(latent_dim=32, ff_size=64, num_layers=1)
 

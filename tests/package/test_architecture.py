@@ -203,19 +203,19 @@ def test_no_import_circle():
 
 def test_the_checks_see_run_time_imports():
     """The checks above see what a reading of module-level imports misses: the 0.6 back-edge
-    (io/checkpoint.py loading the adapters by name inside a function, a circle with
+    (io/checkpoint_files.py loading the adapters by name inside a function, a circle with
     adapters/checkpoint.py), ``__import__``, a registry's dotted name, a function-level ``from``;
     and they leave out what never runs (``if TYPE_CHECKING:``)."""
     old_io = ("def default_preparer():\n"
               "    import importlib\n"
               "    importlib.import_module('smdm_plugin.adapters')\n")
-    edges = list(imports_in(old_io, "smdm_plugin.io.checkpoint", False, MODULES))
+    edges = list(imports_in(old_io, "smdm_plugin.io.checkpoint_files", False, MODULES))
     assert edges == [(3, "smdm_plugin.adapters")]
-    assert layer_violations("smdm_plugin.io.checkpoint", edges) == [
-        "smdm_plugin.io.checkpoint:3: io -> adapters (smdm_plugin.adapters)"]
-    graph = {"smdm_plugin.io.checkpoint": {"smdm_plugin.adapters"},
+    assert layer_violations("smdm_plugin.io.checkpoint_files", edges) == [
+        "smdm_plugin.io.checkpoint_files:3: io -> adapters (smdm_plugin.adapters)"]
+    graph = {"smdm_plugin.io.checkpoint_files": {"smdm_plugin.adapters"},
              "smdm_plugin.adapters": {"smdm_plugin.adapters.checkpoint"},
-             "smdm_plugin.adapters.checkpoint": {"smdm_plugin.io.checkpoint"}}
+             "smdm_plugin.adapters.checkpoint": {"smdm_plugin.io.checkpoint_files"}}
     assert import_cycles(graph) == [sorted(graph)]
     assert import_cycles({"a": {"b"}, "b": set()}) == []
     snippet = ("from typing import TYPE_CHECKING\n"
@@ -224,10 +224,10 @@ def test_the_checks_see_run_time_imports():
                "def f():\n"
                "    from ..training import trainer\n"
                "    return __import__('smdm_plugin.apps.cli')\n"
-               "FAMILIES = Registry('family', builtins='smdm_plugin.adapters.mdm')\n"
+               "FAMILIES = Registry('family', builtins='smdm_plugin.families.mdm.model')\n"
                "COMMANDS = {'train': 'smdm_plugin.apps.train:main'}\n")
     assert sorted(imports_in(snippet, "smdm_plugin.core.x", False, MODULES)) == [
-        (5, "smdm_plugin.training.trainer"), (6, "smdm_plugin.apps.cli"), (7, "smdm_plugin.adapters.mdm"),
+        (5, "smdm_plugin.training.trainer"), (6, "smdm_plugin.apps.cli"), (7, "smdm_plugin.families.mdm.model"),
         (8, "smdm_plugin.apps.train")]
 
 
