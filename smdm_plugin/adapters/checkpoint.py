@@ -8,7 +8,7 @@ from typing import Any, Iterable, Optional, Tuple, Union
 import torch.nn as nn
 
 from ..core.config import SparseConfig
-from ..io import checkpoint as _io
+from ..io import checkpoint_files as _io
 from .state import sparse_config_of
 from .surgery import is_sparse, sparsify
 from .text_encoder import swap_text_encoder, swapped_text_encoder

@@ -48,7 +48,7 @@ import torch
 from ..core.config import BACKENDS
 from ..runtime.compile import COMPILE_MODES
 from ..training.benchmark import MODES, TARGETS, bench_keyframes, run_bench
-from ..training.workloads import FSQ_CHOICES, WORKLOADS, MotionDiffuseWorkload, family_choices
+from ..training.workloads import FSQ_CHOICES, WORKLOADS, family_choices
 from .common.args import add_common_flags, add_overwrite, float_range, int_range, note_printer, progress_of, resolve_device
 from .common.threads import apply_threads, load_average
 
@@ -144,7 +144,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                         "motiondiffuse (MotionDiffuse's MotionTransformer layout); default mdm")
     p.add_argument("--root", default=None,
                    help="--family motiondiffuse: a MotionDiffuse checkout (the folder holding text2motion/) whose "
-                        f"own MotionTransformer to time (default ${MotionDiffuseWorkload.root_env} when set, else "
+                        f"own MotionTransformer to time (default ${WORKLOADS.get('motiondiffuse').root_env} when set, else "
                         "the in-package one with the same layout)")
     p.add_argument("--arch", nargs="+", default=None, choices=list(WORKLOADS.get("mdm").archs),
                    help="MDM variants to time: trans_enc, trans_dec (the default: both), dip (DiP's prefix "

@@ -1,5 +1,6 @@
 """The integration registry: the upstream checkouts ``smdm run`` knows, each registered by its own
-module (``mdm``, ``priormdm``, ``motiondiffuse``) with how to recognise a checkout and how to hook it.
+model family (its ``FamilySpec.integration``: ``families/<name>/upstream.py``) with how to recognise
+a checkout and how to hook it; an integration without a model family with
 
     register_integration(Integration("mine", detect=is_my_repo, install_hooks=install_hooks,
                                      layout="model/mine.py (MyModel)", priority=5))
@@ -38,8 +39,23 @@ class Integration:
         return self.install_hooks.__module__
 
 
-#: the integrations by name (the built-in ones register on import of :mod:`.builtin`)
-INTEGRATIONS: Registry[Integration] = Registry("integration")
+_FROM_FAMILIES: set = set()
+
+
+def _from_families() -> None:
+    """Add the integration of every registered model family (its ``FamilySpec.integration``) once."""
+    from ..adapters.families import family_part, family_specs
+
+    for spec in family_specs():
+        if spec.integration is not None and spec.name not in _FROM_FAMILIES:
+            _FROM_FAMILIES.add(spec.name)
+            integration = family_part(spec, "integration")
+            INTEGRATIONS.register(integration.name, integration, replace=True)
+
+
+#: the integrations by name: the registered model families' (``FamilySpec.integration``) and any
+#: registered alone with :func:`register_integration`
+INTEGRATIONS: Registry[Integration] = Registry("integration", fill=_from_families)
 
 
 def register_integration(integration: Integration, *, replace: bool = False) -> Integration:

@@ -13,8 +13,8 @@ import numpy as np
 import pytest
 import torch
 
-from smdm_plugin import KEYFRAMES_KEY
-from smdm_plugin.adapters import inbetween as ib
+from smdm_plugin.adapters.request import KEYFRAMES_KEY
+from smdm_plugin.adapters import inbetween_sampling as ib
 from smdm_plugin.adapters.surgery import sparsify
 from smdm_plugin.adapters.state import get_state
 from smdm_plugin.core.config import SparseConfig
@@ -205,7 +205,7 @@ def test_mdm_style_diffusion_gets_the_inpainting_keys_and_xt_is_refused():
 
 # --------------------------------------------------------------------------- MDM's sample.edit hook
 def test_mdm_edit_hook_forces_the_kept_frames_of_a_sparse_model_only(monkeypatch):
-    from smdm_plugin.integrations import mdm_edit
+    from smdm_plugin.families.mdm import edit as mdm_edit
 
     seen = {}
 

@@ -195,7 +195,8 @@ def test_bench_motiondiffuse_takes_the_upstream_class_from_root(tmp_path):
     (models / "transformer.py").write_text(
         "from smdm_plugin.reference.motiondiffuse_denoiser import MotionDiffuseDenoiser as _Base\n\n\n"
         "class MotionTransformer(_Base):\n    pass\n")
-    cls = workloads.upstream_motion_transformer(str(tmp_path / "md"))
+    from smdm_plugin.families.motiondiffuse.workload import upstream_motion_transformer
+    cls = upstream_motion_transformer(str(tmp_path / "md"))
     assert cls.__module__ == "models.transformer"
     model, _ = workloads.build("motiondiffuse", 0.8, torch.device("cpu"), True, 4, family="motiondiffuse", frames=40,
                            root=str(tmp_path / "md"))

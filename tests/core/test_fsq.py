@@ -430,7 +430,7 @@ def test_unquantize_attention_keys_is_the_inverse_of_quantize():
     """``unquantize_attention_keys`` (public, the PEFT-style way back): every FSQ self-attention of a
     transformer becomes ``nn.MultiheadAttention`` with its current q/k/v/out weights (trained ones
     included), so the model equals the dense one it came from; cross-attention is untouched."""
-    from smdm_plugin import quantize_attention_keys, unquantize_attention_keys
+    from smdm_plugin.core.fsq import quantize_attention_keys, unquantize_attention_keys
 
     torch.manual_seed(0)
     layer = nn.TransformerDecoderLayer(32, 4, 64, dropout=0.0)

@@ -15,7 +15,8 @@ import pytest
 import torch
 
 from smdm_plugin import SimpleDiffusion, SparseConfig, TinyMDM, sparsify
-from smdm_plugin import KEYFRAMES_KEY, KeyframeRequest
+from smdm_plugin import KeyframeRequest
+from smdm_plugin.adapters.request import KEYFRAMES_KEY
 from smdm_plugin.core.checks import static_mode
 from smdm_plugin.core.fsq import quantize_attention_keys
 from smdm_plugin.runtime.launches import LaunchCounter, count_launches
@@ -322,7 +323,7 @@ def test_static_path_equals_default_cpu_path(name):
 # ----------------------------------------------------------------------------- C¹ sampling fill
 @pytest.mark.parametrize("name", VARIANTS)
 def test_cubic_sampling_compiles_fullgraph_without_host_sync(name, steps=3):
-    from smdm_plugin import interpolate_keyframes
+    from smdm_plugin.core.interpolation import interpolate_keyframes
     from smdm_plugin.families.mdm.model import call_plan
 
     """``sample_interpolation="cubic"`` in the last 3 steps: traced with fullgraph, same result as
@@ -367,13 +368,13 @@ MOTIONDIFFUSE_BUDGET = {("fp32", "train"): 1.15, ("bf16", "train"): 1.15,    # r
 
 @pytest.mark.parametrize("precision", ["fp32", "bf16"])
 def test_launch_budget_of_motiondiffuse(precision):
-    """MotionDiffuse (the stand-in of tests/helpers/motiondiffuse_standin.py at its depth: 8 blocks), B=8,
+    """MotionDiffuse (the stand-in of smdm_plugin/families/motiondiffuse/standin.py at its depth: 8 blocks), B=8,
     196 frames, lengths 40..196, counted as CUDA launches them (runtime/launches.py): the sparse model
     (defaults; FSQ does not apply to its linear attention) against the dense one, a training step
     (training_losses + backward + AdamW(foreach=True).step()) and a sampling call (one pass: it
     samples without guidance), early and late step, within ``MOTIONDIFFUSE_BUDGET``, no host sync.
     Its compile and zero-sync checks run in tests/adapters/test_family_conformance.py with every family."""
-    from helpers.motiondiffuse_standin import StandInDiffusion, StandInMotionTransformer
+    from smdm_plugin.families.motiondiffuse.standin import StandInDiffusion, StandInMotionTransformer
 
     B, N = 8, 196
     bf16 = precision == "bf16"
@@ -481,7 +482,7 @@ def test_cubic_fill_on_the_uniform_mask_looks_its_taps_up(name):
     taps come from the schedule's per-length table (``MaskSchedule.cubic_taps``; DiP: computed, its
     prefix shifts the frames). The output is the same C¹ curve through the paper's output at the
     keyframes as when the taps are computed, and it traces with fullgraph, with no host sync."""
-    from smdm_plugin import interpolate_keyframes
+    from smdm_plugin.core.interpolation import interpolate_keyframes
     from smdm_plugin.families.mdm.model import call_plan
 
     model, _ = make(name, sample_interpolation="cubic", dynamic_update=False)

@@ -25,7 +25,7 @@ pytest.importorskip("torch._dynamo")
 from torch._dynamo.utils import counters  # noqa: E402
 
 from smdm_plugin import SimpleDiffusion, SparseConfig, TinyMDM, load_checkpoint, sparsify  # noqa: E402
-from smdm_plugin.integrations import compile as C  # noqa: E402
+from smdm_plugin.runtime import compile as C
 from smdm_plugin.reference.simple_diffusion import ClassifierFreeGuidance  # noqa: E402
 from smdm_plugin.reference.text import TextConfig, sample_with_text  # noqa: E402
 from smdm_plugin.training import trainer as T  # noqa: E402

@@ -67,5 +67,5 @@ def test_a_flag_off_run_loads_only_what_the_options_need():
         sorted(set(seen["parse"]) - config_alone - options - set(seen["import"]))
     # building the model: the entry point itself, which returns at once (nothing of what runs sparse)
     extra = set(seen["build"]) - set(seen["parse"])
-    assert extra <= {"smdm_plugin.families.mdm.upstream", "smdm_plugin.families.mdm.text",
+    assert extra <= {"smdm_plugin.families.mdm.upstream", "smdm_plugin.families.mdm.upstream_text",
                      "smdm_plugin.integrations.checkouts", "smdm_plugin.integrations._hooks"}, sorted(extra)

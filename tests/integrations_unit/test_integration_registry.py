@@ -6,7 +6,9 @@ import types
 
 import pytest
 
-from smdm_plugin.integrations import mdm, motiondiffuse, priormdm
+from smdm_plugin.families.mdm import upstream as mdm
+from smdm_plugin.families.motiondiffuse import upstream as motiondiffuse
+from smdm_plugin.families.doubletake import upstream as priormdm
 from smdm_plugin.integrations._hooks import WRAPPED, wrap_once
 from smdm_plugin.integrations.launcher import make_environment, run
 from smdm_plugin.integrations.checkouts import (INTEGRATIONS, Integration, detect_repo, integrations,
@@ -160,7 +162,7 @@ def test_hooks_installed_twice_wrap_once():
     """Each integration's module hooks, called twice (the patch and the launcher), wrap once."""
     gd = types.SimpleNamespace(GaussianDiffusion=type("GaussianDiffusion", (), {
         "p_sample_loop": lambda self, model, shape, model_kwargs=None: model_kwargs}))
-    from smdm_plugin.integrations import mdm_edit
+    from smdm_plugin.families.mdm import edit as mdm_edit
 
     mdm_edit._patch_gaussian_diffusion(gd)
     first = gd.GaussianDiffusion.p_sample_loop

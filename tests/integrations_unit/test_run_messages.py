@@ -28,7 +28,7 @@ from smdm_plugin.families.mdm.upstream import apply_compile, sparsify_mdm, warn_
 from smdm_plugin.families.motiondiffuse.upstream import add_sparse_options as add_motiondiffuse_options
 from smdm_plugin.families.motiondiffuse.upstream import attach_trainer
 
-from helpers.motiondiffuse_standin import StandInDiffusion, StandInMotionTransformer
+from smdm_plugin.families.motiondiffuse.standin import StandInDiffusion, StandInMotionTransformer
 from helpers.paths import ROOT
 
 STEPS_LINE = "smdm: sparse training at 1000 diffusion steps"

@@ -23,7 +23,7 @@ from smdm_plugin.families.mdm.upstream import add_sparse_options, sample_output_
 from smdm_plugin.families.doubletake.upstream import doubletake_output_dir, sparsify_priormdm
 from smdm_plugin.reference.simple_diffusion import SimpleDiffusion
 
-from helpers.motiondiffuse_standin import StandInDiffusion, StandInMotionTransformer
+from smdm_plugin.families.motiondiffuse.standin import StandInDiffusion, StandInMotionTransformer
 from helpers.paths import ROOT
 
 

@@ -312,7 +312,7 @@ def _run_locked(cfg: Dict[str, Any], out: str, data_root: str, ctx, selected: Se
         return []
 
     os.makedirs(out, exist_ok=True)
-    from . import __version__
+    from ... import __version__
 
     atomic_write_json(os.path.join(out, MANIFEST), {
         "tool": "smdm ablate", "format": 1, "grid": cfg.get("name"), "variants": [v["name"] for v in cfg["variants"]],

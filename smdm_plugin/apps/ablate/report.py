@@ -85,7 +85,7 @@ def write_report(results: List[Dict[str, Any]], out: str, real_ees: Optional[flo
     lines += ["| " + " | ".join(r) + " |" for r in rows]
     lines.append(f"\nEES of the real validation motions: {_fmt(real_ees, '.3f')} cm/frame "
                  "(generated motions closer to it are better).")
-    from . import __version__
+    from ... import __version__
 
     lines.append(f"\nProvenance: smdm-plugin {__version__}, data {cfg.get('data')}"
                  + (f" (fingerprint {data_fingerprint})" if data_fingerprint else "")

@@ -584,7 +584,7 @@ def plot_fid_vs_time(cfg: Dict[str, Any], rows: List[Dict[str, Any]], reference:
 def build_evaluator(cfg: Dict[str, Any], data: StudyData, out: str, log: Callable[[str], Any]):
     """The evaluator of ``cfg['evaluator']``, trained on the train split once and cached in
     ``out/evaluator/<key>/`` (key: data fingerprint + settings + package version)."""
-    from . import __version__
+    from ... import __version__
     from .study_evaluator import EVALUATORS, cached_evaluator
 
     kind = cfg["evaluator"]["kind"]
@@ -668,7 +668,7 @@ def _write_study_files(cfg: Dict[str, Any], out: str, data: StudyData, data_root
     """``out/`` with its manifest (what the folder is, last run) and ``config.yaml`` (the config as run)."""
     import yaml
 
-    from . import __version__
+    from ... import __version__
 
     os.makedirs(out, exist_ok=True)
     atomic_write_json(os.path.join(out, MANIFEST), {
@@ -747,7 +747,7 @@ def fid_anchors(evaluator, data: StudyData, real_emb: np.ndarray, text: Dict[str
 
 def _meta(cfg: Dict[str, Any], data: StudyData, data_root: str, ref: Reference, dev: torch.device) -> Dict[str, Any]:
     """What the report says about the run (data, evaluator, device, version, threads)."""
-    from . import __version__
+    from ... import __version__
 
     return {"data": data_root, "data_fingerprint": data.fingerprint, "train_motions": len(data.train),
             "eval_motions": len(data.ids), "evaluator_key": ref.key,

@@ -30,7 +30,7 @@ def make_provenance(settings: Mapping[str, Any], data_fingerprint: str, steps: i
     but the data), on data with ``data_fingerprint``."""
     import torch
 
-    from . import __version__
+    from ... import __version__
 
     return {"config_hash": stable_hash(settings), "data_fingerprint": data_fingerprint,
             "package_version": __version__, "steps": int(steps), "seed": int(seed), "device": str(device),

@@ -254,6 +254,10 @@ class DoubleTakeFamily(MDMFamily):
     def mismatch(self, model: nn.Module) -> str:
         return super().mismatch(model) if not super().matches(model) else "class name has no 'doubletake'"
 
+    def traces_whole(self, model: nn.Module) -> bool:
+        # the forced keyframes are read from y on the host once per call (as in eager): a graph break
+        return not has_doubletake_forcing(model)
+
     def install(self, model: nn.Module, state: SparseState) -> None:
         super().install(model, state)
         handle = _attach(model)

@@ -25,7 +25,7 @@ from ...core.config import SparseConfig
 from ...integrations._hooks import wrap_once
 from ..mdm.upstream import _is_training, apply_compile, dataset_mean_std, patch_base_options, patch_model_options
 from ...integrations.options import add_sparse_options  # noqa: F401  (0.7.0's patches import it here; patches/priormdm.patch: .options)
-from ...integrations.checkouts import Integration, register_integration
+from ...integrations.checkouts import Integration
 
 
 def warn_if_not_paper_blend(args: Any) -> bool:
@@ -161,6 +161,7 @@ def is_priormdm_repo(path: str) -> bool:
     return os.path.isfile(os.path.join(path, "model", "DoubleTake_MDM.py"))
 
 
-register_integration(Integration(
+#: the upstream checkout `smdm run` hooks (this family's FamilySpec names it)
+INTEGRATION = Integration(
     "priormdm", detect=is_priormdm_repo, install_hooks=install_hooks, priority=10,
-    layout="model/DoubleTake_MDM.py (priorMDM)"))
+    layout="model/DoubleTake_MDM.py (priorMDM)")

@@ -30,7 +30,7 @@ from ...core.config import SparseConfig
 from ...support.config_files import CONFIG_FILENAME
 from ...integrations._hooks import wrap_once
 from ...integrations.options import add_sparse_options  # noqa: F401  (0.7.0's patches import it here; patches/mdm.patch: .options)
-from ...integrations.checkouts import Integration, register_integration
+from ...integrations.checkouts import Integration
 
 __all__ = ["add_sparse_options", "apply_compile", "sparsify_mdm", "check_mdm_state_dict", "dataset_mean_std",
            "install_hooks", "is_mdm_repo", "patch_base_options", "patch_model_options", "sample_output_dir",
@@ -97,7 +97,7 @@ def sparsify_mdm(model: Any, args: Any, data: Any = None, diffusion: Any = None,
     Without ``--sparse``, ``--sparse_preset``, a text option or ``--sparse_compile`` the model is
     returned untouched, bit for bit, and nothing more of the plugin is imported. Otherwise the
     plugin's warnings are shown as ``smdm:`` lines whatever logging upstream set up
-    (:mod:`.messages`).
+    (:mod:`smdm_plugin.integrations.messages`).
     """
     if config is None and not _asks_for_anything(args):
         return model                                   # a flag-off run: upstream's model
@@ -106,7 +106,7 @@ def sparsify_mdm(model: Any, args: Any, data: Any = None, diffusion: Any = None,
     show_plugin_warnings()
     from ...adapters.surgery import is_sparse
     from ...integrations._rng import upstream_rng_untouched
-    from .text import apply_text_options
+    from .upstream_text import apply_text_options
 
     config = config if config is not None else SparseConfig.from_args(args)
     with upstream_rng_untouched():  # a swapped text encoder's new layers draw from a forked stream
@@ -126,7 +126,7 @@ def _asks_for_anything(args: Any) -> bool:
     ``--sparse_init_from``, ``--sparse_text_encoder``, the text cache (``SMDM_TEXT_CACHE``) or
     ``--sparse_compile`` (decided from the options alone: a flag-off run loads nothing more)."""
     from ...runtime.compile import check_compile_mode
-    from .text import cache_capacity_from_env
+    from .upstream_text import cache_capacity_from_env
 
     asked = ("sparse", "sparse_preset", "sparse_init_from", "sparse_text_encoder")
     return bool(any(getattr(args, name, None) for name in asked) or cache_capacity_from_env()
@@ -212,22 +212,11 @@ def apply_compile(model: Any, args: Any, options_file: Optional[str] = None) -> 
     in place (``none`` / absent: nothing happens). The setting that applies is printed and, when
     training, written to ``args.json`` (``sparse_compile_applied``; ``options_file`` overrides
     where). Returns the :class:`~smdm_plugin.runtime.compile.CompileSetting` or None."""
-    import sys
+    from ...integrations._files import compile_upstream
 
-    from ...runtime.compile import compile_from_args
-    from ...integrations.messages import show_plugin_warnings
-
-    show_plugin_warnings()
-    setting = compile_from_args(model, args)
-    if setting is None:
-        return None
-    from ...integrations._files import record_compile
-
-    sys.stderr.write(f"smdm: {type(model).__name__} runs {setting.describe()}\n")
     if options_file is None and _is_training(args) and os.path.isdir(args.save_dir):
         options_file = os.path.join(args.save_dir, "args.json")
-    record_compile(args, options_file)
-    return setting
+    return compile_upstream(model, args, options_file)
 
 
 def check_mdm_state_dict(model: Any, state_dict: Any, model_path: Optional[str] = None) -> None:
@@ -308,10 +297,10 @@ def install_hooks() -> None:
     ``create_model_and_diffusion`` / ``load_model_wo_clip`` as they are imported (idempotent).
     Modules that do ``from utils.model_util import create_model_and_diffusion`` get the wrapped
     function because the wrap happens right after ``utils.model_util`` executes. Then the
-    extensions: text encoders (:mod:`.mdm_text`), multi-process training (:mod:`.mdm_train`),
-    keyframe in-betweening in ``sample.edit`` (:mod:`.mdm_edit`); the plugin's warnings shown as
-    ``smdm:`` lines (:mod:`.messages`)."""
-    from . import edit, text, train
+    extensions: text encoders (:mod:`.upstream_text`), multi-process training (:mod:`.upstream_train`),
+    keyframe in-betweening in ``sample.edit`` (:mod:`.upstream_edit`); the plugin's warnings shown as
+    ``smdm:`` lines (:mod:`smdm_plugin.integrations.messages`)."""
+    from . import upstream_edit as mdm_edit, upstream_text as mdm_text, upstream_train as mdm_train
     from ...integrations._hooks import on_import
     from ...integrations.messages import show_plugin_warnings
 
@@ -323,6 +312,7 @@ def install_hooks() -> None:
         extension.install_hooks()
 
 
-register_integration(Integration(
+#: the upstream checkout `smdm run` hooks (this family's FamilySpec names it)
+INTEGRATION = Integration(
     "mdm", detect=is_mdm_repo, install_hooks=install_hooks, priority=0,
-    layout="model/mdm.py + utils/model_util.py (MDM/DiP)"))
+    layout="model/mdm.py + utils/model_util.py (MDM/DiP)")

@@ -31,7 +31,7 @@ from ...core.config import SparseConfig
 from ...support.config_files import CONFIG_FILENAME
 from ...integrations._hooks import wrap_once
 from ...integrations.options import add_sparse_options as _add_sparse_options, with_family_defaults
-from ...integrations.checkouts import Integration, register_integration
+from ...integrations.checkouts import Integration
 
 FAMILY = "motiondiffuse"
 
@@ -155,23 +155,15 @@ def compile_trainer(trainer: Any) -> Any:
     DataParallel wrapper), dense or sparse, once, in place; training runs write the setting that
     applies to ``opt.txt`` (``sparse_compile``, ``sparse_compile_applied``). ``none`` / absent:
     nothing happens. Returns the :class:`~smdm_plugin.runtime.compile.CompileSetting` or None."""
-    import sys
+    from ...integrations._files import compile_upstream
 
-    from ...integrations._files import record_compile
-    from ...runtime.compile import compile_from_args
-    from ...integrations.messages import show_plugin_warnings
-
-    show_plugin_warnings()
     opt = trainer.opt
     core = getattr(trainer.encoder, "module", trainer.encoder)
     device = getattr(trainer, "device", None) or getattr(opt, "device", None)
-    setting = compile_from_args(core, opt, device=device)
-    if setting is None:
-        return None
-    sys.stderr.write(f"smdm: {type(core).__name__} runs {setting.describe()}\n")
+    options_file = None
     if getattr(opt, "is_train", False) and getattr(opt, "model_dir", None):
-        record_compile(opt, os.path.join(os.path.dirname(os.path.normpath(opt.model_dir)), "opt.txt"))
-    return setting
+        options_file = os.path.join(os.path.dirname(os.path.normpath(opt.model_dir)), "opt.txt")
+    return compile_upstream(core, opt, options_file, device=device)
 
 
 def add_options(parser: Any) -> Any:
@@ -253,6 +245,7 @@ def is_motiondiffuse_repo(path: str) -> bool:
         os.path.isfile(j(path, "trainers", "ddpm_trainer.py")) and os.path.isfile(j(path, "models", "transformer.py")))
 
 
-register_integration(Integration(
+#: the upstream checkout `smdm run` hooks (this family's FamilySpec names it)
+INTEGRATION = Integration(
     "motiondiffuse", detect=is_motiondiffuse_repo, install_hooks=install_hooks, priority=20,
-    layout="text2motion/ (MotionDiffuse, root or that folder)"))
+    layout="text2motion/ (MotionDiffuse, root or that folder)")

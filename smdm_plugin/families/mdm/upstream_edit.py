@@ -17,7 +17,7 @@ Ways in: ``smdm run`` installs :func:`install_hooks` (wraps ``GaussianDiffusion.
 ``diffusion.gaussian_diffusion`` is imported); patch users add two lines to ``sample/edit.py`` before
 the sampling loop::
 
-    from smdm_plugin.families.mdm.edit import add_forced_keyframes  # sMDM: kept frames are keyframes
+    from smdm_plugin.families.mdm.upstream_edit import add_forced_keyframes  # sMDM: kept frames are keyframes
     add_forced_keyframes(model, model_kwargs)
 """
 from __future__ import annotations
