@@ -13,7 +13,7 @@ import torch
 
 from ..core.config import SparseConfig
 from ..support.config_files import CONFIG_FILENAME
-from ..runtime.compile import COMPILE_MODES
+from ..runtime.compile import COMPILE_MODES, default_backend
 from ..runtime.distributed import init_distributed
 from ..io.checkpoint_files import BACKBONE_FILENAME
 from ..io.files import (atomic_open, atomic_write_json, atomic_write_text, describe_changes, digests_fingerprint,
@@ -76,8 +76,9 @@ def build_parser() -> argparse.ArgumentParser:
                         "torchrun the model call, inside DDP), dense or sparse: none (default), default (also the "
                         "bare --compile) or reduce-overhead (CUDA graphs; CUDA only, else default with a warning); "
                         "docs/compile.md")
-    t.add_argument("--compile-backend", type=compile_backend, default="inductor",
-                   help="torch.compile backend (default: inductor)")
+    t.add_argument("--compile-backend", type=compile_backend, default=None,
+                   help="torch.compile backend (default: $SMDM_COMPILE_BACKEND when set, else inductor; the same "
+                        "knob as upstream scripts' --sparse_compile backend)")
     m = p.add_argument_group("model (TinyMDM)")
     m.add_argument("--arch", choices=("trans_enc", "trans_dec"), default=DEFAULT_MODEL["arch"],
                    help=f"MDM architecture (default {DEFAULT_MODEL['arch']})")
@@ -138,7 +139,7 @@ def _parse(argv: Optional[List[str]]) -> Tuple[Any, TrainConfig]:
              "arch": a.arch, "dropout": a.dropout}
     cfg = TrainConfig(steps=a.steps, batch=a.batch, lr=a.lr, weight_decay=a.weight_decay, grad_clip=a.grad_clip,
                       diffusion_steps=a.diffusion_steps, seed=a.seed, model=model, sparse=sparse,
-                      compile=a.compile, compile_backend=a.compile_backend,
+                      compile=a.compile, compile_backend=a.compile_backend or default_backend(),
                       text=TextConfig(cond_mask_prob=a.cond_mask_prob, guidance_scale=a.guidance_scale) if a.text else None)
     return a, cfg
 

@@ -36,7 +36,7 @@ class Registry(Generic[T]):
         """Add ``entry`` under ``name`` (a taken name is a ``ValueError`` unless ``replace``)."""
         if not isinstance(name, str) or not name.strip():
             raise ValueError(f"register {self.what}: name must be a non-empty string, got {name!r}")
-        if name in self._filled() and not replace:
+        if name in self._items and not replace:   # (not filled: registering loads nothing)
             raise ValueError(f"register {self.what}: {name!r} is already registered (pass replace=True)")
         self._items[name] = entry
         return entry

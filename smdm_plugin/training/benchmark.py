@@ -199,11 +199,15 @@ STEP_MAKERS: Dict[str, Callable[..., TimedStep]] = {"train": _train_step, "sampl
 
 def step_fn(mode: str, work: Workload, model: torch.nn.Module, diffusion: Any, batch: WorkloadBatch,
             device: torch.device, amp: str = "fp32", compile_mode: str = "none",
-            compile_backend: Any = "inductor") -> TimedStep:
+            compile_backend: Any = None) -> TimedStep:
     """The timed callable of one cell: ``mode`` one of :data:`MODES`; with ``compile_mode`` the
     whole step compiled (``train``: the loss forward and backward, AdamW fused on CUDA; ``sample``:
     the guided call, every guidance pass; ``loop``: the sampling step, replayed at every step) with
-    ``compile_backend`` (a ``torch.compile`` backend)."""
+    ``compile_backend`` (a ``torch.compile`` backend; None: ``SMDM_COMPILE_BACKEND``, else inductor)."""
+    if compile_backend is None:
+        from ..runtime.compile import default_backend
+
+        compile_backend = default_backend()
     return STEP_MAKERS[mode](work, model, diffusion, batch, device, amp, compile_mode, compile_backend)
 
 

@@ -205,7 +205,7 @@ def test_mdm_style_diffusion_gets_the_inpainting_keys_and_xt_is_refused():
 
 # --------------------------------------------------------------------------- MDM's sample.edit hook
 def test_mdm_edit_hook_forces_the_kept_frames_of_a_sparse_model_only(monkeypatch):
-    from smdm_plugin.families.mdm import edit as mdm_edit
+    from smdm_plugin.families.mdm import upstream_edit as mdm_edit
 
     seen = {}
 

@@ -585,7 +585,7 @@ TORCHRUN_ENV = ("RANK", "WORLD_SIZE", "LOCAL_RANK", "MASTER_ADDR", "MASTER_PORT"
 
 def test_ddp_hooks_are_not_installed_without_torchrun(monkeypatch):
     from smdm_plugin.integrations import _hooks
-    from smdm_plugin.families.mdm import train as mdm_train
+    from smdm_plugin.families.mdm import upstream_train as mdm_train
 
     for k in TORCHRUN_ENV:
         monkeypatch.delenv(k, raising=False)
@@ -608,7 +608,7 @@ def test_ddp_training_loader_is_sharded_per_rank(monkeypatch):
 
     from torch.utils.data import DataLoader, DistributedSampler
 
-    from smdm_plugin.families.mdm import train as mdm_train
+    from smdm_plugin.families.mdm import upstream_train as mdm_train
 
     def get_dataset_loader(name, batch_size, num_frames, split="train", hml_mode="train", fixed_len=0):
         return DataLoader(list(range(20)), batch_size=batch_size, shuffle=True, drop_last=True,
@@ -635,7 +635,7 @@ def test_ddp_wrapper_answers_the_model_attributes(tmp_path):
     import torch
     import torch.distributed as dist
 
-    from smdm_plugin.families.mdm import train as mdm_train
+    from smdm_plugin.families.mdm import upstream_train as mdm_train
     from smdm_plugin.runtime.distributed import constant_buffers_kwargs
 
     if not dist.is_available() or not dist.is_gloo_available() or dist.is_initialized():

@@ -162,7 +162,7 @@ def test_hooks_installed_twice_wrap_once():
     """Each integration's module hooks, called twice (the patch and the launcher), wrap once."""
     gd = types.SimpleNamespace(GaussianDiffusion=type("GaussianDiffusion", (), {
         "p_sample_loop": lambda self, model, shape, model_kwargs=None: model_kwargs}))
-    from smdm_plugin.families.mdm import edit as mdm_edit
+    from smdm_plugin.families.mdm import upstream_edit as mdm_edit
 
     mdm_edit._patch_gaussian_diffusion(gd)
     first = gd.GaussianDiffusion.p_sample_loop
