@@ -17,7 +17,6 @@ first lookup. A model's family is found once, here (:func:`family_for`, :func:`f
 """
 from __future__ import annotations
 
-import dataclasses
 import importlib
 from dataclasses import dataclass
 from typing import Any, Dict, List, Optional, Tuple
@@ -25,7 +24,7 @@ from typing import Any, Dict, List, Optional, Tuple
 from ..core.registry import Registry
 
 __all__ = ["FamilySpec", "BUILTIN_FAMILIES", "FAMILY_SPECS", "FAMILIES", "register_family", "family_specs",
-           "families", "get_family", "family_for", "family_of", "family_part"]
+           "families", "get_family", "get_spec", "family_for", "family_of", "family_part", "load_builtin_families"]
 
 #: the built-in family packages, imported (each registers itself) on the first lookup
 BUILTIN_FAMILIES = ("smdm_plugin.families.mdm", "smdm_plugin.families.doubletake",
@@ -103,7 +102,7 @@ def register_family(spec: Any, *, replace: bool = False) -> FamilySpec:
         from .family import ModelFamily   # here: a spec naming its parts loads no torch (`smdm run`)
 
         if not isinstance(spec, ModelFamily):
-            raise TypeError("register_family: expected a FamilySpec or a ModelFamily instance, "
+            raise TypeError("register_family: family must be a ModelFamily instance (or a FamilySpec), "
                             f"got {type(spec).__name__}")
         spec = FamilySpec(name=spec.name, family=spec)
     elif spec.family is not None and not isinstance(spec.family, str):
@@ -207,8 +206,3 @@ def family_of(model: Any) -> Optional[Any]:
         return family_for(model)
     except TypeError:
         return None
-
-
-def with_spec_part(spec: FamilySpec, **parts: Any) -> FamilySpec:
-    """A copy of ``spec`` with ``parts`` replaced (``register_family(..., replace=True)`` it)."""
-    return dataclasses.replace(spec, **parts)

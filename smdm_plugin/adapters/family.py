@@ -22,8 +22,12 @@ its family. A family says:
   where x0's lengths and forced frames are, how the chosen keyframes reach the model, what is
   added to the returned terms.
 
-A new family is one module defining a subclass and calling ``register_family(MyFamily())``
-(:mod:`smdm_plugin.adapters.families`, the registry); ``docs/architecture.md`` shows an example.
+A new family is one folder (a subclass, its upstream hooks, compile preparer, bench workload,
+conformance cases) registered with one call, ``register_family(FamilySpec(name=..., family=MyFamily(),
+...))`` (:mod:`smdm_plugin.adapters.families`, the registry; ``smdm_plugin/families/<name>/`` for
+the built-in ones); ``docs/architecture.md`` shows an example. What a family is handed, the
+model's one :class:`SparseState`, is defined here too (the state holds its family, the family's
+methods receive the state).
 """
 from __future__ import annotations
 

@@ -13,7 +13,7 @@ registers it (``SMDM_INTEGRATION_MODULE``).
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Callable, List
+from typing import Any, Callable, Dict, List, Tuple
 
 from ..core.registry import Registry
 
@@ -39,17 +39,22 @@ class Integration:
         return self.install_hooks.__module__
 
 
-_FROM_FAMILIES: set = set()
+_FROM_FAMILIES: Dict[str, Tuple[Any, str]] = {}   # family name -> (its spec, its integration's name)
 
 
 def _from_families() -> None:
-    """Add the integration of every registered model family (its ``FamilySpec.integration``) once."""
+    """Keep :data:`INTEGRATIONS` in step with the registered families' ``FamilySpec.integration``."""
     from ..adapters.families import family_part, family_specs
 
-    for spec in family_specs():
-        if spec.integration is not None and spec.name not in _FROM_FAMILIES:
-            _FROM_FAMILIES.add(spec.name)
+    specs = {s.name: s for s in family_specs() if s.integration is not None}
+    for name, (spec, integration) in list(_FROM_FAMILIES.items()):
+        if specs.get(name) is not spec:              # unregistered or replaced
+            del _FROM_FAMILIES[name]
+            INTEGRATIONS.unregister(integration)
+    for name, spec in specs.items():
+        if name not in _FROM_FAMILIES:
             integration = family_part(spec, "integration")
+            _FROM_FAMILIES[name] = (spec, integration.name)
             INTEGRATIONS.register(integration.name, integration, replace=True)
 
 

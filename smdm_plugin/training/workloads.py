@@ -1,13 +1,13 @@
 """The benchmark workloads: how ``smdm bench`` builds, feeds and calls the in-package model of each
 registered model family (:data:`~smdm_plugin.adapters.families.FAMILIES`).
 
-One :class:`Workload` per family, registered in :data:`WORKLOADS` under the family's name (the
-extension point: ``WORKLOADS.register("mymodel", MyWorkload())`` and ``smdm bench --family mymodel``
-offers it). Built in: ``mdm`` (:class:`~smdm_plugin.reference.backbone.TinyMDM` at MDM's HumanML3D
-size, ``trans_enc`` / ``trans_dec``, and on request DiP's prefix completion ``dip`` and priorMDM's
-DoubleTake model ``doubletake``) and ``motiondiffuse`` (MotionDiffuse's denoiser layout, or
-MotionDiffuse's own class from a checkout). :func:`build` makes the dense or sparse model and its
-diffusion; :meth:`Workload.batch` a HumanML3D-like batch (:class:`WorkloadBatch`).
+One :class:`Workload` per family, its ``FamilySpec.workload`` (``families/<name>/workload.py``:
+``mdm`` — TinyMDM at MDM's HumanML3D size, ``trans_enc`` / ``trans_dec``, and on request DiP's
+prefix completion ``dip`` and priorMDM's DoubleTake model ``doubletake``; ``motiondiffuse`` —
+MotionDiffuse's denoiser layout, or MotionDiffuse's own class from a checkout); :data:`WORKLOADS`
+is filled from the specs (``WORKLOADS.register("mymodel", MyWorkload())`` adds one without a
+family spec). :func:`build` makes the dense or sparse model and its diffusion;
+:meth:`Workload.batch` a HumanML3D-like batch (:class:`WorkloadBatch`).
 """
 from __future__ import annotations
 
@@ -152,20 +152,26 @@ def handshake_frames(lengths: torch.Tensor, frames: int, handshake: int) -> torc
     return head | tail
 
 
-#: the benchmark's workload per model family name: each family's ``FamilySpec.workload``, and any
-#: registered here
-_FROM_FAMILIES: set = set()
+_FROM_FAMILIES: Dict[str, Any] = {}   # family name -> the spec its workload came from
 
 
 def _from_families() -> None:
+    """Keep :data:`WORKLOADS` in step with the registered families' ``FamilySpec.workload``."""
     from ..adapters.families import family_part, family_specs
 
-    for spec in family_specs():
-        if spec.workload is not None and spec.name not in _FROM_FAMILIES:
-            _FROM_FAMILIES.add(spec.name)
-            WORKLOADS.register(spec.name, family_part(spec, "workload"), replace=True)
+    specs = {s.name: s for s in family_specs() if s.workload is not None}
+    for name, spec in list(_FROM_FAMILIES.items()):
+        if specs.get(name) is not spec:              # unregistered or replaced
+            del _FROM_FAMILIES[name]
+            WORKLOADS.unregister(name)
+    for name, spec in specs.items():
+        if name not in _FROM_FAMILIES:
+            _FROM_FAMILIES[name] = spec
+            WORKLOADS.register(name, family_part(spec, "workload"), replace=True)
 
 
+#: the benchmark's workload per model family name: each family's ``FamilySpec.workload``, and any
+#: registered here
 WORKLOADS: Registry[Workload] = Registry("benchmark workload", fill=_from_families)
 
 

@@ -1,8 +1,8 @@
 """One conformance suite run over every registered model family (PEFT's common-tester idea).
 
 The cases come from the family registry (``smdm_plugin.adapters.families.families()``): each registered
-family is mapped to a case factory in tests/helpers/conformance.py (``register_cases``), and a registered
-family without one fails ``test_every_registered_family_has_a_conformance_case``. The built-in cases:
+family's ``FamilySpec.conformance`` names its case factory (smdm_plugin/families/<name>/conformance.py;
+tests/helpers/conformance.py collects them), and a registered family without one fails ``test_every_registered_family_has_a_conformance_case``. The built-in cases:
 MDM trans_enc, MDM trans_dec, DiP (TinyMDM with a dense prefix), priorMDM's DoubleTake (a TinyMDM
 subclass named like doubleTake_MDM) and MotionDiffuse (the stand-in of
 smdm_plugin/families/motiondiffuse/standin.py). Each case must pass every test: the family detected;
