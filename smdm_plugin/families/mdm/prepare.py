@@ -10,6 +10,7 @@ import torch.nn as nn
 
 from ...runtime.compile import CallPreparer, to_device as _to
 
+
 def _split_call(args: tuple, kwargs: dict) -> Tuple[Any, Any, Any]:
     x = args[0] if args else kwargs.get("x")
     t = args[1] if len(args) > 1 else kwargs.get("timesteps")

@@ -7,7 +7,8 @@ from typing import Tuple
 import torch
 import torch.nn as nn
 
-from ...runtime.compile import CallPreparer, to_device as _to
+from ...runtime.compile import to_device as _to
+
 
 def prepare_motiondiffuse(model: nn.Module, args: tuple, kwargs: dict) -> Tuple[tuple, dict]:
     """MotionDiffuse's ``forward(x [B, T, D], timesteps, length=, text=, xf_proj=, xf_out=)``: the
