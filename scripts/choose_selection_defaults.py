@@ -26,7 +26,7 @@ import numpy as np
 import torch
 
 from smdm_plugin.io.bvh import load_cmu_clip
-from smdm_plugin.core.features import extract_selection_features
+from smdm_plugin.core.selection_features import extract_selection_features
 from smdm_plugin.core.selection import select_keyframes
 from smdm_plugin.metrics import end_effector_speed, foot_skating_ratio, jitter
 

@@ -9,7 +9,7 @@ every seed, trains the in-package ``TinyMDM`` in sparse mode on the real HumanML
 * ``val loss``: dense-frame denoising MSE on the held-out motions at fixed timesteps and noise,
   the model using its own sampling masks (``smdm_plugin.training.validation.validation_loss``);
 * ``kf interp (mm)``: joint error of linearly interpolating the held-out motions from the keyframes
-  the variant's selector picks (``smdm_plugin.metrics.features.keyframe_interpolation_error_mm``);
+  the variant's selector picks (``smdm_plugin.metrics.feature_measures.keyframe_interpolation_error_mm``);
 * of unconditional samples with the held-out motions' lengths: ``jitter`` (m/s³),
   ``foot skating`` (ratio) and ``EES`` (cm/frame) — :mod:`smdm_plugin.metrics` — next to the
   same numbers for the real held-out motions.
@@ -35,7 +35,7 @@ import torch
 from smdm_plugin.apps.ablate import grid
 from smdm_plugin.io.files import atomic_write_json, atomic_write_text
 from smdm_plugin.metrics import end_effector_speed, to_joint_positions
-from smdm_plugin.metrics.features import feature_quality, keyframe_interpolation_error_mm
+from smdm_plugin.metrics.feature_measures import feature_quality, keyframe_interpolation_error_mm
 from smdm_plugin.training.data import MotionData
 from smdm_plugin.training.validation import validation_loss
 

@@ -159,7 +159,7 @@ def eval_set(data: Path, rep: str) -> Tuple[List[str], torch.Tensor, torch.Tenso
 
 def score(rep, out: torch.Tensor, ref: torch.Tensor, given: torch.Tensor, lengths: torch.Tensor) -> Dict[str, float]:
     """Metrics of generated features ``out [B, N, D]`` against the real motions ``ref`` (un-normalised)."""
-    from smdm_plugin.metrics.inbetween import keyframe_metrics
+    from smdm_plugin.metrics.inbetween_metrics import keyframe_metrics
 
     return {"feature_error": float((out - ref).abs()[given].max()),
             **keyframe_metrics(rep.to_joints(out.double()).numpy(), rep.to_joints(ref.double()).numpy(),
@@ -167,7 +167,7 @@ def score(rep, out: torch.Tensor, ref: torch.Tensor, given: torch.Tensor, length
 
 
 def cmd_eval(a: argparse.Namespace) -> int:
-    from smdm_plugin.adapters.inbetween import keyframe_constraint, sample_inbetween
+    from smdm_plugin.adapters.inbetween_sampling import keyframe_constraint, sample_inbetween
     from smdm_plugin.training.bundle import load_bundle
 
     torch.set_num_threads(a.threads)

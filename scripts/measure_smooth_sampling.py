@@ -27,7 +27,7 @@ import numpy as np
 import torch
 
 from smdm_plugin import SparseConfig
-from smdm_plugin.core.argtypes import int_range
+from smdm_plugin.support.argtypes import int_range
 from smdm_plugin.adapters.state import get_state
 from smdm_plugin.core.schedule import MaskSchedule
 from smdm_plugin.metrics import foot_skating_ratio, jitter, mean_speed

@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, Any, Callable, List, Optional
+from typing import Any, Callable, List, Optional, Protocol
 
 import torch
 
@@ -11,10 +11,18 @@ from ..core import consts
 from ..core.attention import compute_dtype
 from ..core.checks import as_mask, compiling, host_checkable
 from ..core.plan import KeyframePlan
+from ..core.schedule import MaskSchedule
 from .request import KEYFRAMES_KEY, KeyframeRequest
 
-if TYPE_CHECKING:   # the state holds the family, whose read_call returns CallInputs
-    from .state import SparseState
+
+class PlanState(Protocol):
+    """What :func:`keyframe_plan` reads of a model's :class:`~smdm_plugin.adapters.family.SparseState`
+    (named by its fields, so this module needs not import the state, which holds the family, whose
+    ``read_call`` returns :class:`CallInputs`)."""
+
+    schedule: MaskSchedule
+    variant: Any                          # its prefix_len: DiP's dense prefix frames
+    schedule_mask: Optional[torch.Tensor]
 
 
 @dataclass
@@ -52,7 +60,7 @@ class CallInputs:
         return cls(frames, timesteps, lengths, as_mask(request.forced, B, N, frames.device, f"{name}.forced"),
                    request.mask, request.capacity, f"{name}.mask")
 
-    def plan(self, state: "SparseState") -> KeyframePlan:
+    def plan(self, state: PlanState) -> KeyframePlan:
         """The call's :class:`~smdm_plugin.core.plan.KeyframePlan` (see :func:`keyframe_plan`)."""
         return keyframe_plan(state, self.frames, self.timesteps, self.lengths, self.forced, self.mask,
                              self.capacity, self.mask_name)
@@ -78,7 +86,7 @@ def reuse_for(source: torch.Tensor, key: tuple, compute: Callable[[], torch.Tens
     return out
 
 
-def keyframe_plan(state: "SparseState", frames: torch.Tensor, timesteps: Any, lengths: torch.Tensor,
+def keyframe_plan(state: PlanState, frames: torch.Tensor, timesteps: Any, lengths: torch.Tensor,
                   forced: Optional[torch.Tensor], mask: Any = None, capacity: Any = None,
                   mask_name: str = "KeyframeRequest.mask") -> KeyframePlan:
     """The keyframe plan of one model call, for every family.

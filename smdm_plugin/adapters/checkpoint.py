@@ -1,5 +1,5 @@
 """The one ``load_checkpoint`` (every model family) and ``save_sparse_config``: io reads and checks
-the files (:mod:`smdm_plugin.io.checkpoint`, which knows no model family); here a model becomes
+the files (:mod:`smdm_plugin.io.checkpoint_files`, which knows no model family); here a model becomes
 what the saved config describes."""
 from __future__ import annotations
 
@@ -8,7 +8,7 @@ from typing import Any, Iterable, Optional, Tuple, Union
 import torch.nn as nn
 
 from ..core.config import SparseConfig
-from ..io import checkpoint as _io
+from ..io import checkpoint_files as _io
 from .state import sparse_config_of
 from .surgery import is_sparse, sparsify
 from .text_encoder import swap_text_encoder, swapped_text_encoder
@@ -17,7 +17,7 @@ from .text_encoder import swap_text_encoder, swapped_text_encoder
 def save_sparse_config(model_or_config: Union[nn.Module, SparseConfig], directory: str,
                        overwrite: bool = False) -> str:
     """Write the config of a sparse model (or ``config``) as ``sparse_config.json`` into
-    ``directory``; returns its path. Rules of :func:`smdm_plugin.io.checkpoint.write_sparse_config`
+    ``directory``; returns its path. Rules of :func:`smdm_plugin.io.checkpoint_files.write_sparse_config`
     (the same config again is fine, another one needs ``overwrite``)."""
     config = model_or_config if isinstance(model_or_config, SparseConfig) else sparse_config_of(model_or_config)
     if config is None:

@@ -1,18 +1,18 @@
 """The model-family protocol: what ``sparsify`` needs to know about one kind of model."""
 from __future__ import annotations
 
+import weakref
 from abc import ABC, abstractmethod
-from dataclasses import dataclass
-from typing import TYPE_CHECKING, Any, ClassVar, Dict, Optional, Sequence, Tuple
+from dataclasses import dataclass, field
+from typing import Any, ClassVar, Dict, List, Optional, Sequence, Tuple, Type, TypeVar
 
 import torch
 import torch.nn as nn
 
 from ..core.config import SparseConfig
+from ..core.plan import KeyframePlan
+from ..core.schedule import MaskSchedule
 from .call import CallInputs
-
-if TYPE_CHECKING:   # the state holds its family
-    from .state import SparseState
 
 
 @dataclass(frozen=True)
@@ -102,7 +102,64 @@ class ModelFamily(ABC):
         a family builds the call's :class:`~smdm_plugin.adapters.request.KeyframeRequest` (with
         :func:`~smdm_plugin.adapters.request.with_request`)."""
 
+    # ------------------------------------------------------------------ graph capture
+    def traces_whole(self, model: nn.Module) -> bool:
+        """Whether graph capture takes a sparse call of ``model`` whole (``fullgraph=True``, the
+        default); False where the family reads something on the host once per call."""
+        return True
+
     def finish_losses(self, state: "SparseState", model: nn.Module, terms: Dict[str, Any],
                       mask: torch.Tensor) -> Dict[str, Any]:
         """What sparse mode adds to the diffusion's returned ``terms`` (default: nothing)."""
         return terms
+
+
+# ---------------------------------------------------------------------- the state a family is handed
+# (here, beside the family: the state holds its family, the family's methods receive the state)
+class FamilyState:
+    """What one family keeps on a sparse model besides :class:`SparseState` (a dataclass
+    subclass, defined by the family and set by its ``install``; the base: nothing)."""
+
+
+S = TypeVar("S", bound=FamilyState)
+
+
+def family_state_of(state: "SparseState", kind: Type[S]) -> S:
+    """``state.family_state``, checked to be a ``kind`` (the family that converted the model wrote
+    it); a ``TypeError`` naming both otherwise."""
+    family_state = state.family_state
+    if not isinstance(family_state, kind):
+        raise TypeError(f"{state.family.name}: the model's family state is {type(family_state).__name__}, "
+                        f"not {kind.__name__}")
+    return family_state
+
+
+@dataclass
+class SparseState:
+    """Everything sparse mode keeps on one model, for every family.
+
+    Set once by ``sparsify``: ``config``, ``variant``, ``schedule``, ``family`` (the registered
+    :class:`~smdm_plugin.adapters.family.ModelFamily` that converted the model), ``family_state``
+    (the family's own :class:`FamilyState`, set by its ``install``), ``originals`` (what was replaced,
+    ``(owner, attribute) -> old value`` — :data:`MISSING` when the attribute did not exist on the
+    instance — for ``unsparsify``), ``handles`` (hooks to remove), ``diffusions`` (weak references
+    to the diffusions whose loss was wrapped for this model), ``lipschitz_mlps`` (the Lipschitz MLPs
+    the conversion installed: a call reads them without walking the model). Per call: ``plan``, the
+    :class:`~smdm_plugin.core.plan.KeyframePlan` of the running call (over the model's frames, DiP
+    prefix included), for families whose hooks share it (MDM: written by the model's forward
+    pre-hook, read by the embedding hooks, cleared by the forward hook); ``schedule_mask``, the
+    training mask the diffusion wrapper made with the model's own schedule for the running step
+    (in the valid frames, within its capacity by construction: the plan does not check it again).
+    """
+
+    config: SparseConfig
+    variant: Variant
+    schedule: MaskSchedule
+    family: ModelFamily
+    family_state: FamilyState = field(default_factory=FamilyState)
+    originals: Dict[Tuple[Any, str], Any] = field(default_factory=dict)
+    handles: List[Any] = field(default_factory=list)
+    diffusions: List["weakref.ref"] = field(default_factory=list)
+    lipschitz_mlps: List[nn.Module] = field(default_factory=list)
+    plan: Optional[KeyframePlan] = None
+    schedule_mask: Optional[torch.Tensor] = None

@@ -22,7 +22,7 @@ from ..core.config import MARKER, SparseConfig
 from ..core.lipschitz import LipschitzMLP
 from ..core.noise import NOISE_STEP, NOISE_TABLE
 from ..core.schedule import MaskSchedule
-from .diffusion import attach_diffusion, diffusion_steps, release_diffusions
+from .diffusion_wrapper import attach_diffusion, diffusion_steps, release_diffusions
 from .families import family_for, get_family
 from .family import ModelFamily
 from .state import STATE_ATTR, SparseState, get_state, restore_originals

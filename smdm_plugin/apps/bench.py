@@ -9,9 +9,9 @@ from typing import Any, Dict, List, Optional, Tuple
 import torch
 
 from ..core.config import BACKENDS
-from ..integrations.compile import COMPILE_MODES
+from ..runtime.compile import COMPILE_MODES
 from ..training.benchmark import MODES, TARGETS, bench_keyframes, run_bench
-from ..training.workloads import FSQ_CHOICES, WORKLOADS, MotionDiffuseWorkload, family_choices
+from ..training.workloads import FSQ_CHOICES, WORKLOADS, family_choices
 from .common.args import add_common_flags, add_overwrite, float_range, int_range, note_printer, progress_of, resolve_device
 from .common.threads import apply_threads, load_average
 
@@ -71,7 +71,7 @@ def markdown(result: Dict[str, Any]) -> str:
         lines.append(f"| {r['arch']} | {r['mode']} | {cm} | {r['variant']} | {r['median_s'] * 1000:.1f} | "
                      f"{_launch_cell(r)} | {r['speedup']:.2f}× | {r['cpu_s'] * 1000:.1f} | {r['cpu_speedup']:.2f}× | "
                      f"{sel} | {itp} | {ov} | {r['peak_mem_mib']:.0f} | {mr} |")
-    lines += ["", "launches: kernel launches of the timed call, counted as CUDA runs them (smdm_plugin.core.launches; "
+    lines += ["", "launches: kernel launches of the timed call, counted as CUDA runs them (smdm_plugin.runtime.launches; "
               "eager cells, any device: off CUDA the sparse model's own CPU path, which packs keyframes; a GPU runs "
               "the static-shape path); compiled cells: on CUDA the launch calls the profiler records (a CUDA "
               "graph replay counts once), elsewhere — (a compiler's fused kernels bypass the dispatcher). "
@@ -107,7 +107,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                         "motiondiffuse (MotionDiffuse's MotionTransformer layout); default mdm")
     p.add_argument("--root", default=None,
                    help="--family motiondiffuse: a MotionDiffuse checkout (the folder holding text2motion/) whose "
-                        f"own MotionTransformer to time (default ${MotionDiffuseWorkload.root_env} when set, else "
+                        f"own MotionTransformer to time (default ${WORKLOADS.get('motiondiffuse').root_env} when set, else "
                         "the in-package one with the same layout)")
     p.add_argument("--arch", nargs="+", default=None, choices=list(WORKLOADS.get("mdm").archs),
                    help="MDM variants to time: trans_enc, trans_dec (the default: both), dip (DiP's prefix "

@@ -58,7 +58,7 @@ def main(argv: Optional[List[str]] = None) -> int:
         return 0
     cmd, rest = argv[0], argv[1:]
     if cmd not in COMMANDS:
-        from ..core.values import closest
+        from ..support.values import closest
 
         print(f"smdm: error: unknown command {cmd!r}{closest(cmd, COMMANDS)} (commands: {', '.join(COMMANDS)}; "
               "'smdm --help' for more)", file=sys.stderr)

@@ -58,7 +58,7 @@ def main(argv: Optional[List[str]] = None) -> int:
         print("write one out: smdm clips export NAME --out NAME.npy")
         return 0
     if a.name not in clips:
-        from ..core.values import closest
+        from ..support.values import closest
 
         p.error(f"argument NAME: no embedded clip {a.name!r}{closest(a.name, clips)} "
                 f"('smdm clips' lists the {len(clips)} clips)")

@@ -99,7 +99,7 @@ class Generator:
     def __init__(self, folder: str, device) -> None:
         import json
 
-        from ..reference.diffusion import SimpleDiffusion
+        from ..reference.simple_diffusion import SimpleDiffusion
         from ..reference.text import load_text_config
 
         self.device = device
@@ -164,7 +164,7 @@ class Generator:
             raw = {"text": list(texts[s:s + batch])} if self.swapped is not None else {}
             with torch.no_grad():
                 if targets is not None and every > 0:
-                    from ..adapters.inbetween import keyframe_constraint, sample_inbetween
+                    from ..adapters.inbetween_sampling import keyframe_constraint, sample_inbetween
 
                     tgt = torch.zeros(len(L), N, len(self.mean))
                     for i, t in enumerate(targets[s:s + batch]):

@@ -165,7 +165,7 @@ def _train(a: argparse.Namespace, od: Any, settings: Any, ev: Any, train: Any, h
 
     import torch
 
-    from ..io.checkpoint import read_state_dict
+    from ..io.checkpoint_files import read_state_dict
     from ..io.files import atomic_open, atomic_write_json
     from ..metrics.evaluator.model import save_evaluator
     from ..metrics.evaluator.check import retrieval_check

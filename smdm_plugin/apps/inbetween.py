@@ -10,11 +10,11 @@ from typing import Any, List, Optional
 import numpy as np
 import torch
 
-from ..adapters.inbetween import POLICIES
-from ..reference.diffusion import IMPUTATIONS
-from ..metrics.inbetween import keyframe_metrics
+from ..adapters.inbetween_sampling import POLICIES
+from ..reference.simple_diffusion import IMPUTATIONS
+from ..metrics.inbetween_metrics import keyframe_metrics
 from .common.args import add_common_flags, add_overwrite, int_range, note_printer, progress_of
-from .common.inbetween import model_inputs, plan_keyframes, run_inbetween, summary_markdown
+from .common.bundle_inbetween import model_inputs, plan_keyframes, run_inbetween, summary_markdown
 from .common.motion_files import ACCEPTED, add_motion_file_options
 
 DEFAULT_MODELS = (os.path.join("smdm_out", "demo", "dense"), os.path.join("smdm_out", "demo", "sparse"))

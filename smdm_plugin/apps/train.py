@@ -12,10 +12,10 @@ import numpy as np
 import torch
 
 from ..core.config import SparseConfig
-from ..core.config_files import CONFIG_FILENAME
-from ..integrations.compile import COMPILE_MODES
-from ..integrations.distributed import init_distributed
-from ..io.checkpoint import BACKBONE_FILENAME
+from ..support.config_files import CONFIG_FILENAME
+from ..runtime.compile import COMPILE_MODES, default_backend
+from ..runtime.distributed import init_distributed
+from ..io.checkpoint_files import BACKBONE_FILENAME
 from ..io.files import (atomic_open, atomic_write_json, atomic_write_text, describe_changes, digests_fingerprint,
                         file_digests)
 from ..io.humanml3d import load_humanml3d
@@ -76,8 +76,9 @@ def build_parser() -> argparse.ArgumentParser:
                         "torchrun the model call, inside DDP), dense or sparse: none (default), default (also the "
                         "bare --compile) or reduce-overhead (CUDA graphs; CUDA only, else default with a warning); "
                         "docs/compile.md")
-    t.add_argument("--compile-backend", type=compile_backend, default="inductor",
-                   help="torch.compile backend (default: inductor)")
+    t.add_argument("--compile-backend", type=compile_backend, default=None,
+                   help="torch.compile backend (default: $SMDM_COMPILE_BACKEND when set, else inductor; the same "
+                        "knob as upstream scripts' --sparse_compile backend)")
     m = p.add_argument_group("model (TinyMDM)")
     m.add_argument("--arch", choices=("trans_enc", "trans_dec"), default=DEFAULT_MODEL["arch"],
                    help=f"MDM architecture (default {DEFAULT_MODEL['arch']})")
@@ -138,7 +139,7 @@ def _parse(argv: Optional[List[str]]) -> Tuple[Any, TrainConfig]:
              "arch": a.arch, "dropout": a.dropout}
     cfg = TrainConfig(steps=a.steps, batch=a.batch, lr=a.lr, weight_decay=a.weight_decay, grad_clip=a.grad_clip,
                       diffusion_steps=a.diffusion_steps, seed=a.seed, model=model, sparse=sparse,
-                      compile=a.compile, compile_backend=a.compile_backend,
+                      compile=a.compile, compile_backend=a.compile_backend or default_backend(),
                       text=TextConfig(cond_mask_prob=a.cond_mask_prob, guidance_scale=a.guidance_scale) if a.text else None)
     return a, cfg
 
@@ -192,7 +193,7 @@ def main(argv: Optional[List[str]] = None) -> int:
     import sys
     from contextlib import ExitStack
 
-    from ..integrations.distributed import shutdown_distributed
+    from ..runtime.distributed import shutdown_distributed
     from ..io.files import OutputExistsError
     from ..io.outdir import OutputDir
     from ..training.memory import check_batch_fits

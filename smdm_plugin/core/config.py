@@ -9,11 +9,11 @@ from typing import Any, Callable, Dict, Iterable, Mapping, Optional, Sequence, T
 
 import numpy as np
 
-from .argtypes import float_range, int_range, non_empty, optional, str2bool
-from .config_files import PathLike, config_path, dump, read_mapping
+from ..support.argtypes import float_range, int_range, non_empty, optional, str2bool
+from ..support.config_files import PathLike, config_path, dump, read_mapping
 from .registry import Choices
 from .scalars import as_float, is_bool, is_int, scalar
-from .values import ConfigTypeError, Range, closest
+from ..support.values import ConfigTypeError, Range, closest
 
 CONFIG_VERSION = 1
 #: name of the persistent buffer that marks a state dict as sparse (its value: the config version)

@@ -6,7 +6,7 @@ import os
 from typing import List
 
 from .config import SparseConfig
-from .values import closest
+from ..support.values import closest
 
 
 def preset_dirs() -> List[str]:

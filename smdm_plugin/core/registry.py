@@ -8,23 +8,35 @@ as ``choices``): a newly registered entry is a valid value at once.
 """
 from __future__ import annotations
 
-from typing import Callable, Dict, Generic, Iterator, List, Tuple, TypeVar
+from typing import Callable, Dict, Generic, Iterator, List, Optional, Tuple, TypeVar
 
 T = TypeVar("T")
 
 
 class Registry(Generic[T]):
-    """Entries of one kind (``what``, for messages) by name."""
+    """Entries of one kind (``what``, for messages) by name. ``fill()``, when given, runs before
+    every read: it adds the entries that come from elsewhere (the model families' registrations)."""
 
-    def __init__(self, what: str) -> None:
+    def __init__(self, what: str, fill: Optional[Callable[[], None]] = None) -> None:
         self.what = what
         self._items: Dict[str, T] = {}
+        self._fill = fill
+        self._filling = False
+
+    def _filled(self) -> Dict[str, T]:
+        if self._fill is not None and not self._filling:
+            self._filling = True
+            try:
+                self._fill()
+            finally:
+                self._filling = False
+        return self._items
 
     def register(self, name: str, entry: T, *, replace: bool = False) -> T:
         """Add ``entry`` under ``name`` (a taken name is a ``ValueError`` unless ``replace``)."""
         if not isinstance(name, str) or not name.strip():
             raise ValueError(f"register {self.what}: name must be a non-empty string, got {name!r}")
-        if name in self._items and not replace:
+        if name in self._items and not replace:   # (not filled: registering loads nothing)
             raise ValueError(f"register {self.what}: {name!r} is already registered (pass replace=True)")
         self._items[name] = entry
         return entry
@@ -34,18 +46,19 @@ class Registry(Generic[T]):
 
     def get(self, name: str) -> T:
         """The entry named ``name``; an unknown name is a ``ValueError`` listing the registered ones."""
-        if name not in self._items:
-            raise ValueError(f"unknown {self.what} {name!r}; registered: {', '.join(self._items)}")
-        return self._items[name]
+        items = self._filled()
+        if name not in items:
+            raise ValueError(f"unknown {self.what} {name!r}; registered: {', '.join(items)}")
+        return items[name]
 
     def names(self) -> Tuple[str, ...]:
-        return tuple(self._items)
+        return tuple(self._filled())
 
     def entries(self) -> List[T]:
-        return list(self._items.values())
+        return list(self._filled().values())
 
     def __contains__(self, name: object) -> bool:
-        return name in self._items
+        return name in self._filled()
 
     def choices(self, *extra: str) -> "Choices":
         """A live tuple-like view of ``extra`` + the registered names (for validation)."""

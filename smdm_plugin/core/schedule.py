@@ -17,7 +17,7 @@ import torch
 
 from .checks import as_lengths, as_mask, compiling
 from .config import SparseConfig
-from .features import KINDS, SelectionConstants, apply_selection_constants, selection_constants
+from .selection_features import KINDS, SelectionConstants, apply_selection_constants, selection_constants
 from .interpolation import catmull_rom_taps
 from .noise import CounterNoise, default_noise_salt, default_noise_seed, noise_table
 from .plan import KeyframePlan, PlanTables
@@ -174,7 +174,7 @@ class MaskSchedule:
         """What VW measures, ``[B, N, F]``, from motion ``x [B, N, D]``: the joint positions of the
         HumanML3D/KIT layout (de-normalised with ``mean``/``std``) or the raw features, plus the
         frame index times ``frame_index_scale`` (see
-        :func:`~smdm_plugin.core.features.extract_selection_features`)."""
+        :func:`~smdm_plugin.core.selection_features.extract_selection_features`)."""
         if not isinstance(x, torch.Tensor) or x.dim() != 3:
             shape = tuple(x.shape) if isinstance(x, torch.Tensor) else type(x).__name__
             raise ValueError(f"MaskSchedule.features: x must be [B, N, D], got {shape}")
@@ -182,7 +182,7 @@ class MaskSchedule:
 
     def _features_checked(self, x: torch.Tensor) -> torch.Tensor:
         """:meth:`features` for a call's motion ``x [B, N, D]`` (shape known good), from per-device
-        constants (:func:`~smdm_plugin.core.features.selection_constants`; ``raw`` features are not
+        constants (:func:`~smdm_plugin.core.selection_features.selection_constants`; ``raw`` features are not
         de-normalised)."""
         B, N, D = x.shape
         kind = self._kind(D)

@@ -14,9 +14,9 @@ import json
 import os
 from typing import Any, Dict, Optional
 
-from ..core.atomic import atomic_write_json, atomic_write_text
+from ..support.atomic import atomic_write_json, atomic_write_text
 from ..core.config import SparseConfig
-from ..core.config_files import CONFIG_FILENAME
+from ..support.config_files import CONFIG_FILENAME
 
 OPT_END = "-------------- End ----------------"  # closes upstream's options block in opt.txt
 
@@ -113,18 +113,36 @@ def record_run_config(model: Any, weights_dir: str, args: Any, options_file: Opt
     return config
 
 
-def record_compile(args: Any, options_file: Optional[str]) -> bool:
-    """After :func:`~smdm_plugin.integrations.compile.compile_from_args`: ``sparse_compile`` and
-    ``sparse_compile_applied`` (what runs, and why it differs from what was asked) into the run's
-    options file (``args.json`` or ``opt.txt``; written by upstream before the model is built).
-    False when there is no such file or nothing to record."""
-    applied = getattr(args, "sparse_compile_applied", None)
-    if applied is None or not options_file:
+def record_compile(args: Any, setting: Any, options_file: Optional[str]) -> bool:
+    """After :func:`~smdm_plugin.runtime.compile.compile_from_args`: ``sparse_compile`` and
+    ``sparse_compile_applied`` (``setting.describe()``: what runs, and why it differs from what was
+    asked) into the run's options file (``args.json`` or ``opt.txt``; written by upstream before the
+    model is built). False when there is no such file or nothing to record."""
+    if setting is None or not options_file:
         return False
-    values = {"sparse_compile": getattr(args, "sparse_compile", "none"), "sparse_compile_applied": applied}
+    values = {"sparse_compile": getattr(args, "sparse_compile", "none"), "sparse_compile_applied": setting.describe()}
     if options_file.endswith(".txt"):
         return set_opt_entries(options_file, values)
     return set_json_entries(options_file, values)
+
+
+def compile_upstream(model: Any, args: Any, options_file: Optional[str] = None, *, device: Any = None) -> Any:
+    """``--sparse_compile`` in an upstream run (docs/compile.md), the one helper of every family's
+    hooks: compile ``model`` (dense or sparse) once, in place; print the setting that applies and
+    write it to ``options_file`` (``args.json`` / ``opt.txt``; None: nowhere). ``none`` / absent:
+    nothing happens. Returns the :class:`~smdm_plugin.runtime.compile.CompileSetting` or None."""
+    import sys
+
+    from ..runtime.compile import compile_from_args
+    from .messages import show_plugin_warnings
+
+    show_plugin_warnings()
+    setting = compile_from_args(model, args, device=device)
+    if setting is None:
+        return None
+    sys.stderr.write(f"smdm: {type(model).__name__} runs {setting.describe()}\n")
+    record_compile(args, setting, options_file)
+    return setting
 
 
 #: the file upstream's sampling scripts (MDM ``sample.generate`` / ``sample.edit``, priorMDM

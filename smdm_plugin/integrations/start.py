@@ -87,7 +87,7 @@ def warm_start_upstream(model: Any, start: Start, diffusion: Any, mean: Any, std
     MDM's checkpoints, may be missing; nothing else), then :func:`~smdm_plugin.adapters.warm.warm_start`
     with a probe on one batch of the training data (upstream's random streams untouched)."""
     from ..adapters.warm import file_digest, warm_start
-    from ..io.checkpoint import read_state_dict, state_dict_is_sparse, unwrap_state_dict
+    from ..io.checkpoint_files import read_state_dict, state_dict_is_sparse, unwrap_state_dict
     from ._rng import upstream_rng_untouched
 
     path = start.init_from
@@ -130,7 +130,7 @@ def record_origin(args: Any, args_json: str) -> None:
     """Add ``sparse_init_origin`` (path, digest, fit errors) to the run's ``args.json`` (atomic)."""
     import json
 
-    from ..core.atomic import atomic_write_json
+    from ..support.atomic import atomic_write_json
 
     origin = getattr(args, "sparse_init_origin", None)
     if not origin or not os.path.isfile(args_json):

@@ -2,7 +2,7 @@
 never over something that exists unless asked (``overwrite=True``; the CLI's ``--overwrite``).
 
 ``atomic_open`` / ``atomic_write_text`` / ``atomic_write_json`` are implemented in
-:mod:`smdm_plugin.core.atomic` (``SparseConfig.save`` needs them, and ``core`` imports nothing
+:mod:`smdm_plugin.support.atomic` (``SparseConfig.save`` needs them, and ``core`` imports nothing
 else of the package); import them from here. :func:`fingerprint_files`: a hash of files' names,
 sizes and contents (the data fingerprint of a cached result).
 """
@@ -12,7 +12,7 @@ import hashlib
 import os
 from typing import Dict, Iterable, List, Mapping
 
-from ..core.atomic import PathLike, atomic_open, atomic_write_json, atomic_write_text
+from ..support.atomic import PathLike, atomic_open, atomic_write_json, atomic_write_text
 
 __all__ = ["OutputExistsError", "check_new_file", "check_new_dir", "atomic_open", "atomic_write_text",
            "atomic_write_json", "fingerprint_files", "file_digests", "digests_fingerprint", "describe_changes"]

@@ -14,7 +14,7 @@ import sys
 import time
 from typing import Any, Callable, List, Mapping, Optional, Sequence
 
-from ..core.atomic import _fsync_dir, write_error
+from ..support.atomic import _fsync_dir, write_error
 from .files import OutputExistsError, PathLike, atomic_write_json
 
 __all__ = ["OutputDir", "OutputLock", "run_in_output_dir", "OutputLockedError", "OutputOverlapError", "MANIFEST", "check_no_overlap",

@@ -1,6 +1,6 @@
 """Checks for what a load read: every error names the file and the field (``ValueError``).
 
-One helper per idea, used by every loader (:mod:`~smdm_plugin.io.checkpoint`,
+One helper per idea, used by every loader (:mod:`~smdm_plugin.io.checkpoint_files`,
 :mod:`~smdm_plugin.training.bundle`, :func:`smdm_plugin.training.trainer.load_trained`, the data loaders):
 JSON decoded with an error naming the file, required fields present (a missing field is an error,
 not a default), settings of the right type and range, mean/std real, finite, of the right length

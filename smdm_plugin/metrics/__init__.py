@@ -13,7 +13,7 @@ from ..io.humanml3d import recover_from_ric, recover_root
 from .doubletake import doubletake_ees, motion_transition_masks, unfolded_step_sizes
 from .motion import (HUMANML3D_END_EFFECTORS, KIT_END_EFFECTORS, end_effector_speed,
                      to_joint_positions)
-from .inbetween import keyframe_metrics, transition_frames
+from .inbetween_metrics import keyframe_metrics, transition_frames
 from .quality import HUMANML3D_FEET, foot_skating_ratio, jitter, keyframe_error
 from .t2m import (Retrieval, diversity, frechet_distance, matching_score, mean_interval, multimodality,
                   r_precision, retrieval)

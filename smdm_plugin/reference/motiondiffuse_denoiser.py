@@ -6,7 +6,7 @@ from typing import List, Optional, Sequence, Tuple
 import torch
 import torch.nn as nn
 
-from ..core.embedding import timestep_embedding
+from .embedding import timestep_embedding
 
 __all__ = ["MotionDiffuseDenoiser", "timestep_embedding", "motiondiffuse_size"]
 

@@ -116,7 +116,7 @@ TEXT_ENCODERS = {"hashed_bow": HashedBagOfWords}
 
 def save_text_config(folder: str, config: TextConfig) -> str:
     """Write ``<folder>/text_encoder.json`` atomically; returns its path."""
-    from ..core.atomic import atomic_write_json
+    from ..support.atomic import atomic_write_json
 
     path = os.path.join(folder, TEXT_CONFIG_FILENAME)
     atomic_write_json(path, config.to_dict())
@@ -144,7 +144,7 @@ def text_condition(config: TextConfig, texts: Sequence[str], device: Any = "cpu"
 def guided(model: torch.nn.Module, config: TextConfig) -> torch.nn.Module:
     """What sampling calls: ``model`` wrapped in classifier-free guidance at ``config.guidance_scale``
     (``model`` itself at scale 1)."""
-    from .diffusion import ClassifierFreeGuidance
+    from .simple_diffusion import ClassifierFreeGuidance
 
     return model if config.guidance_scale == 1.0 else ClassifierFreeGuidance(model, config.guidance_scale)
 

@@ -22,7 +22,7 @@ from typing import Any, Callable, ContextManager, Dict, List, Optional, Sequence
 import torch
 
 from ..adapters.state import sparse_config_of
-from ..integrations.distributed import resolve_device
+from ..runtime.distributed import resolve_device
 from .timing import PeakMemory, device_name, launches, load_averages, pin_malloc, sync, time_it
 from .workloads import WORKLOADS, Workload, WorkloadBatch, build
 
@@ -37,7 +37,7 @@ Step = Callable[[], Any]
 class TimedStep:
     """One cell's timed callable: ``run()`` (returns what the step made: the training loss, the
     sampling call's output, the sample), and ``compiled``, the function inside it that the compile
-    helper made (:func:`~smdm_plugin.integrations.compile.compile_setting` says how it ran). Its
+    helper made (:func:`~smdm_plugin.runtime.compile.compile_setting` says how it ran). Its
     inputs are drawn on the CPU with fixed seeds (the same on every device)."""
 
     def __init__(self, run: Callable[[], Any], compiled: Callable) -> None:
@@ -58,7 +58,7 @@ def _compile(fn: Callable, model: torch.nn.Module, compile_mode: str, device: to
              captures: str, prepare: Optional[Callable] = None) -> Callable:
     """``fn`` compiled whole by the helper every integration uses (docs/compile.md), dense or
     sparse alike; ``none``: ``fn`` itself."""
-    from ..integrations.compile import compile_function
+    from ..runtime.compile import compile_function
 
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")            # reduce-overhead off CUDA: stated in the table instead
@@ -69,7 +69,7 @@ def _compile(fn: Callable, model: torch.nn.Module, compile_mode: str, device: to
 def _applied(fn: Callable) -> str:
     """How a timed callable ran: ``eager`` or the compile mode that applied (reduce-overhead falls
     back to default without CUDA)."""
-    from ..integrations.compile import compile_setting
+    from ..runtime.compile import compile_setting
 
     s = compile_setting(fn)
     return "eager" if s is None else s.mode
@@ -81,7 +81,7 @@ def training_loss(work: Workload, model: torch.nn.Module, diffusion: Any, device
     """``loss(x, t, kwargs, noise)``: the mean training loss of one batch (the sparse diffusion
     wrapper's keyframe selection included), compiled whole for ``compile_mode``: its forward and
     backward are one graph each (AOTAutograd)."""
-    from ..integrations.compile import CAPTURES_TRAIN
+    from ..runtime.compile import CAPTURES_TRAIN
 
     def loss(x: torch.Tensor, t: torch.Tensor, kwargs: Dict[str, Any], noise: torch.Tensor) -> torch.Tensor:
         return diffusion.training_losses(model, x, t, kwargs, noise=noise)["loss"].mean()
@@ -94,7 +94,7 @@ def guided_call(work: Workload, model: torch.nn.Module, device: torch.device, co
     """``call(x_t, t, **kwargs)``: one sampling call of the family (MDM: classifier-free guidance,
     both passes), ``model`` in eval mode, compiled whole for ``compile_mode`` (one graph: the
     guidance wrapper included)."""
-    from ..integrations.compile import CAPTURES_GUIDED, prepare_call
+    from ..runtime.compile import CAPTURES_GUIDED, prepare_call
 
     return _compile(work.denoiser(model), model, compile_mode, device, backend, CAPTURES_GUIDED, prepare_call(model))
 
@@ -102,9 +102,9 @@ def guided_call(work: Workload, model: torch.nn.Module, device: torch.device, co
 def sampling_step(work: Workload, model: torch.nn.Module, diffusion: Any, device: torch.device,
                   compile_mode: str = "none", backend: Any = "inductor") -> Callable[..., torch.Tensor]:
     """``step(x_t, tt, noise, kwargs) -> x_{t-1}``: one whole ancestral step (the guided call and
-    the posterior update, :meth:`~smdm_plugin.reference.diffusion.SimpleDiffusion.sample_step`),
+    the posterior update, :meth:`~smdm_plugin.reference.simple_diffusion.SimpleDiffusion.sample_step`),
     compiled whole for ``compile_mode``: one graph replayed at every step of a loop."""
-    from ..integrations.compile import CAPTURES_SAMPLE_STEP
+    from ..runtime.compile import CAPTURES_SAMPLE_STEP
 
     den = work.denoiser(model)
 
@@ -133,7 +133,7 @@ def sample_loop(step: Callable[..., torch.Tensor], shape: Tuple[int, ...], steps
 
 def _train_step(work: Workload, model: torch.nn.Module, diffusion: Any, batch: WorkloadBatch,
                 device: torch.device, amp: str, compile_mode: str, backend: Any = "inductor", seed: int = 0) -> TimedStep:
-    from ..integrations.compile import fused_optimizer_kwargs
+    from ..runtime.compile import fused_optimizer_kwargs
 
     model.train()
     loss_fn = training_loss(work, model, diffusion, device, compile_mode, backend)
@@ -199,11 +199,15 @@ STEP_MAKERS: Dict[str, Callable[..., TimedStep]] = {"train": _train_step, "sampl
 
 def step_fn(mode: str, work: Workload, model: torch.nn.Module, diffusion: Any, batch: WorkloadBatch,
             device: torch.device, amp: str = "fp32", compile_mode: str = "none",
-            compile_backend: Any = "inductor") -> TimedStep:
+            compile_backend: Any = None) -> TimedStep:
     """The timed callable of one cell: ``mode`` one of :data:`MODES`; with ``compile_mode`` the
     whole step compiled (``train``: the loss forward and backward, AdamW fused on CUDA; ``sample``:
     the guided call, every guidance pass; ``loop``: the sampling step, replayed at every step) with
-    ``compile_backend`` (a ``torch.compile`` backend)."""
+    ``compile_backend`` (a ``torch.compile`` backend; None: ``SMDM_COMPILE_BACKEND``, else inductor)."""
+    if compile_backend is None:
+        from ..runtime.compile import default_backend
+
+        compile_backend = default_backend()
     return STEP_MAKERS[mode](work, model, diffusion, batch, device, amp, compile_mode, compile_backend)
 
 
@@ -211,7 +215,7 @@ def overhead_fns(work: Workload, model: torch.nn.Module, batch: WorkloadBatch, d
                  train: bool) -> Tuple[Step, Step]:
     """Keyframe selection and the interpolation back to all frames, alone, with the step's
     shapes: ``(select, interp)`` callables."""
-    from ..adapters.diffusion import model_noise
+    from ..adapters.diffusion_wrapper import model_noise
     from ..adapters.state import get_state
     from ..core.fill import fill_frames
 
@@ -404,7 +408,7 @@ def _row(s: BenchSettings, arch: str, mode: str, c: Cell, cells: List[Cell], dat
 
 def compile_modes_of(compile_mode: Any) -> List[str]:
     """``--compile``'s modes as a list (one mode or several; each checked, duplicates dropped)."""
-    from ..integrations.compile import check_compile_mode
+    from ..runtime.compile import check_compile_mode
 
     modes = [compile_mode] if isinstance(compile_mode, str) else list(compile_mode)
     if not modes:

@@ -22,12 +22,12 @@ import torch.nn as nn
 from ..adapters.checkpoint import load_checkpoint, save_sparse_config
 from ..adapters.state import sparse_config_of
 from ..core.config import SparseConfig
-from ..core.config_files import CONFIG_FILENAME
-from ..io.checkpoint import BACKBONE_FILENAME, MOTION_FILENAME
+from ..support.config_files import CONFIG_FILENAME
+from ..io.checkpoint_files import BACKBONE_FILENAME, MOTION_FILENAME
 from ..io.files import atomic_open, atomic_write_json
 from ..io.representation import Representation
 from ..io.validate import check_stats, float_field, int_field, read_json_object, require_fields
-from ..reference.diffusion import SimpleDiffusion
+from ..reference.simple_diffusion import SimpleDiffusion
 
 WEIGHTS_FILENAME = "model.pt"
 

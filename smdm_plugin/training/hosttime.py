@@ -135,7 +135,7 @@ def host_cells(variant: str, sparse: bool, precision: str) -> Dict[str, Callable
     pass for MotionDiffuse). Run them under :func:`~smdm_plugin.core.checks.static_mode`."""
     from ..adapters.surgery import sparsify
     from ..core.config import SparseConfig
-    from ..reference.diffusion import ClassifierFreeGuidance, SimpleDiffusion
+    from ..reference.simple_diffusion import ClassifierFreeGuidance, SimpleDiffusion
 
     if variant not in HOST_VARIANTS:
         raise ValueError(f"host_cells: variant must be one of {HOST_VARIANTS}, got {variant!r}")

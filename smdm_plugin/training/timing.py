@@ -124,11 +124,11 @@ CUDA_LAUNCH_CALLS = ("cudaLaunchKernel", "cudaLaunchKernelExC", "cuLaunchKernel"
 
 def launches(fn: Callable[[], None], device: torch.device, compiled: bool) -> Optional[int]:
     """Kernel launches of one call of ``fn`` (already warmed up). Eager: counted as CUDA runs them
-    (:mod:`smdm_plugin.core.launches`, on any device). Compiled: on CUDA the launch calls the
+    (:mod:`smdm_plugin.runtime.launches`, on any device). Compiled: on CUDA the launch calls the
     profiler records (a CUDA graph replay counts once); elsewhere None (a compiler's fused kernels
     bypass the dispatcher: nothing CUDA-equivalent to count)."""
     if not compiled:
-        from ..core.launches import count_launches
+        from ..runtime.launches import count_launches
 
         return count_launches(fn, warmup=0).count
     if device.type != "cuda":

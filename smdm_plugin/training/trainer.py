@@ -1,5 +1,5 @@
 """The in-package trainer: the reference :class:`~smdm_plugin.reference.backbone.TinyMDM` +
-:class:`~smdm_plugin.reference.diffusion.SimpleDiffusion`, dense or sparse, on HumanML3D-format
+:class:`~smdm_plugin.reference.simple_diffusion.SimpleDiffusion`, dense or sparse, on HumanML3D-format
 motion; one process, or many under ``torchrun`` (DistributedDataParallel)."""
 from __future__ import annotations
 
@@ -17,11 +17,11 @@ import torch.nn as nn
 
 from ..adapters.state import sparse_config_of
 from ..core.config import SparseConfig
-from ..core.config_files import CONFIG_FILENAME
-from ..integrations.compile import (CAPTURES_TRAIN, check_compile_mode, compile_function, compile_model,
+from ..support.config_files import CONFIG_FILENAME
+from ..runtime.compile import (CAPTURES_TRAIN, check_compile_mode, compile_function, compile_model,
                                     compile_setting, fused_optimizer_kwargs)
-from ..integrations.distributed import DistContext, constant_buffers_kwargs, init_distributed
-from ..io.checkpoint import BACKBONE_FILENAME, TRAIN_CONFIG_FILENAME
+from ..runtime.distributed import DistContext, constant_buffers_kwargs, init_distributed
+from ..io.checkpoint_files import BACKBONE_FILENAME, TRAIN_CONFIG_FILENAME
 from ..io.files import atomic_open, atomic_write_json, atomic_write_text
 from ..reference.text import TextConfig, save_text_config
 from .data import MotionSet
@@ -95,9 +95,9 @@ class TrainConfig:
     None trains the dense model. ``grad_clip`` 0 = off. ``compile``: ``none`` | ``default`` |
     ``reduce-overhead`` (``True``/``False`` read as ``default``/``none``), with ``compile_backend``
     (docs/compile.md): one process captures the whole training step (the loss forward and backward,
-    :func:`smdm_plugin.integrations.compile.compile_function`; AdamW fused on CUDA); under
+    :func:`smdm_plugin.runtime.compile.compile_function`; AdamW fused on CUDA); under
     ``torchrun`` the model call is compiled in place, inside DDP
-    (:func:`smdm_plugin.integrations.compile.compile_model`); either way the model's own call is
+    (:func:`smdm_plugin.runtime.compile.compile_model`); either way the model's own call is
     compiled too (sampling with the trained model). ``text``: a
     :class:`~smdm_plugin.reference.text.TextConfig` trains text-conditioned (the data needs
     captions; one caption drawn per sample per step; condition dropout for classifier-free
@@ -222,7 +222,7 @@ class Trainer:
                  device: str = "auto", init_from: Optional[str] = None, init_amplitude: float = 0.05) -> None:
         from ..adapters.surgery import sparsify
         from ..reference.backbone import TinyMDM
-        from ..reference.diffusion import SimpleDiffusion
+        from ..reference.simple_diffusion import SimpleDiffusion
 
         if len(data) == 0:
             raise ValueError("Trainer: data holds no motion")
@@ -330,7 +330,7 @@ class Trainer:
         if n < 0:
             raise ValueError(f"Trainer.train: steps must be >= 0, got {steps}")
         bar = None
-        from ..core.progress import bars_on  # stderr a terminal (or --progress)
+        from ..support.progress import bars_on  # stderr a terminal (or --progress)
 
         if self.dist.is_main and bars_on(progress):
             from tqdm.auto import tqdm
@@ -494,7 +494,7 @@ def race_fair(trainers: Dict[str, "Trainer"], seconds: float = float("inf"), max
     spent = torch.zeros(len(names), dtype=torch.float64)
     runs: Dict[str, Dict[str, Any]] = {n: {"steps": 0, "seconds": 0.0, "loss": [], "time": []} for n in names}
     bar = None
-    from ..core.progress import bars_on  # stderr a terminal (or --progress)
+    from ..support.progress import bars_on  # stderr a terminal (or --progress)
 
     if dist.is_main and bars_on(progress):
         from tqdm.auto import tqdm
@@ -603,7 +603,7 @@ def resume(trainer: "Trainer", folder: str) -> str:
     path = os.path.join(folder, TRAIN_STATE_FILENAME)
     if not os.path.exists(path):
         return "no checkpoint saved yet; starting at step 0"
-    from ..io.checkpoint import read_state_dict
+    from ..io.checkpoint_files import read_state_dict
 
     state = read_state_dict(path, what="training state")
     step = int(state.get("step", -1)) if isinstance(state, dict) else -1
@@ -642,7 +642,7 @@ def init_from_dense(trainer: "Trainer", path: str, probe_motions: int = 16, ampl
     optimiser is built afterwards (fresh). Returns the origin record (path, content digest, fit
     errors). ``ValueError`` naming the file when it is sparse or of another TinyMDM size."""
     from ..adapters.warm import diffusion_probe, file_digest, warm_start
-    from ..io.checkpoint import read_state_dict, state_dict_is_sparse
+    from ..io.checkpoint_files import read_state_dict, state_dict_is_sparse
 
     weights = dense_checkpoint_path(path)
     sd = read_state_dict(weights)

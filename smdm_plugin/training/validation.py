@@ -4,7 +4,7 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-from ..reference.diffusion import masked_mse
+from ..reference.simple_diffusion import masked_mse
 from .data import MotionSet
 
 

@@ -1,18 +1,16 @@
 """The benchmark workloads: how ``smdm bench`` builds, feeds and calls the in-package model of each
 registered model family (:data:`~smdm_plugin.adapters.families.FAMILIES`).
 
-One :class:`Workload` per family, registered in :data:`WORKLOADS` under the family's name (the
-extension point: ``WORKLOADS.register("mymodel", MyWorkload())`` and ``smdm bench --family mymodel``
-offers it). Built in: ``mdm`` (:class:`~smdm_plugin.reference.backbone.TinyMDM` at MDM's HumanML3D
-size, ``trans_enc`` / ``trans_dec``, and on request DiP's prefix completion ``dip`` and priorMDM's
-DoubleTake model ``doubletake``) and ``motiondiffuse`` (MotionDiffuse's denoiser layout, or
-MotionDiffuse's own class from a checkout). :func:`build` makes the dense or sparse model and its
-diffusion; :meth:`Workload.batch` a HumanML3D-like batch (:class:`WorkloadBatch`).
+One :class:`Workload` per family, its ``FamilySpec.workload`` (``families/<name>/workload.py``:
+``mdm`` — TinyMDM at MDM's HumanML3D size, ``trans_enc`` / ``trans_dec``, and on request DiP's
+prefix completion ``dip`` and priorMDM's DoubleTake model ``doubletake``; ``motiondiffuse`` —
+MotionDiffuse's denoiser layout, or MotionDiffuse's own class from a checkout); :data:`WORKLOADS`
+is filled from the specs (``WORKLOADS.register("mymodel", MyWorkload())`` adds one without a
+family spec). :func:`build` makes the dense or sparse model and its diffusion;
+:meth:`Workload.batch` a HumanML3D-like batch (:class:`WorkloadBatch`).
 """
 from __future__ import annotations
 
-import os
-import sys
 from dataclasses import dataclass, field
 from typing import Any, Dict, List, Optional, Tuple
 
@@ -20,9 +18,8 @@ import torch
 
 from ..core.registry import Registry
 
-__all__ = ["WorkloadBatch", "Workload", "MDMWorkload", "MotionDiffuseWorkload", "WORKLOADS", "FSQ_CHOICES",
-           "family_choices", "build", "handshake_frames", "upstream_motion_transformer", "valid_lengths",
-           "without_dropout"]
+__all__ = ["WorkloadBatch", "Workload", "WORKLOADS", "FSQ_CHOICES", "family_choices", "build", "handshake_frames",
+           "valid_lengths", "without_dropout"]
 
 #: which side of the comparison gets FSQ-quantised attention keys (``build(fsq=)``, ``--fsq``)
 FSQ_CHOICES = {"paper": "sparse only (dense = upstream MDM, sparse = the paper's recipe)",
@@ -130,140 +127,6 @@ class Workload:
         return resolve_backend_name(backend, device) if compile_mode == "none" else "compact"
 
 
-#: DiP's windows (its defaults at 20 fps): ``context_len`` prefix frames, then ``pred_len`` frames
-DIP_CONTEXT, DIP_PRED = 20, 40
-#: priorMDM's ``--handshake_size`` default (frames DoubleTake's first take blends)
-DOUBLETAKE_HANDSHAKE = 20
-
-
-def _doubletake_class() -> type:
-    """An MDM whose class name says DoubleTake (priorMDM's ``doubleTake_MDM`` is recognised so)."""
-    from ..reference.backbone import TinyMDM
-
-    return type("DoubleTakeTinyMDM", (TinyMDM,), {"__doc__": "TinyMDM as priorMDM's doubleTake_MDM."})
-
-
-class MDMWorkload(Workload):
-    """``TinyMDM`` at MDM's HumanML3D size (latent 512, 8 layers, 4 heads, ff 1024), ``trans_enc`` /
-    ``trans_dec`` (by default), ``dip`` (DiP: trans_dec with the step embedding as a token,
-    :data:`DIP_CONTEXT` prefix frames given, :data:`DIP_PRED` frames predicted: ``frames`` does
-    not apply) and ``doubletake`` (priorMDM's model, trans_enc; sampling calls carry the first
-    take's handshake frames, ``is_transition``, as forced keyframes); normal features
-    ``[B, 263, 1, N]``, cached text embeddings; sampling with classifier-free guidance (two passes
-    per step) as MDM samples."""
-
-    family, fsq, passes = "mdm", True, 2
-    archs = ("trans_enc", "trans_dec", "dip", "doubletake")
-    default_archs = ("trans_enc", "trans_dec")
-
-    def size(self, quick: bool) -> Dict[str, int]:
-        if quick:
-            return dict(latent_dim=64, ff_size=128, num_layers=2, num_heads=4)
-        return dict(latent_dim=512, ff_size=1024, num_layers=8, num_heads=4)
-
-    def model(self, arch: str, quick: bool, frames: int, root: Optional[str] = None) -> torch.nn.Module:
-        from ..reference.backbone import TinyMDM
-
-        if arch == "dip":
-            return TinyMDM(arch="trans_dec", emb_trans_dec=True, context_len=DIP_CONTEXT, pred_len=DIP_PRED,
-                           **self.size(quick))
-        if arch == "doubletake":
-            return _doubletake_class()(arch="trans_enc", **self.size(quick))
-        return TinyMDM(arch=arch, **self.size(quick))
-
-    def model_family(self, arch: str) -> str:
-        return "doubletake" if arch == "doubletake" else self.family
-
-    def source(self, root: Optional[str]) -> str:
-        return "in-package TinyMDM"
-
-    def batch(self, batch: int, frames: int, device: torch.device, quick: bool,
-              arch: Optional[str] = None, seed: int = 0) -> WorkloadBatch:
-        from ..adapters.mdm import frames_layout
-
-        g = torch.Generator().manual_seed(seed)
-        frames = DIP_PRED if arch == "dip" else frames
-        lengths = torch.full((batch,), frames) if arch == "dip" else valid_lengths(batch, frames, 40, g)
-        valid = torch.arange(frames) < lengths[:, None]
-        x = (torch.randn(batch, 263, 1, frames, generator=g) * valid.view(batch, 1, 1, frames)).to(device)
-        y = {"mask": valid.view(batch, 1, 1, frames).to(device), "lengths": lengths.to(device),
-             "text_embed": torch.randn(1, batch, 512, generator=g).to(device)}
-        if arch == "dip":
-            y["prefix"] = torch.randn(batch, 263, 1, DIP_CONTEXT, generator=g).to(device)
-        sampling = {}
-        if arch == "doubletake":
-            sampling["is_transition"] = handshake_frames(lengths, frames, DOUBLETAKE_HANDSHAKE).to(device)
-        return WorkloadBatch(x, frames_layout(x), lengths, {"y": y}, sampling)
-
-    def kwargs(self, data: WorkloadBatch) -> Dict[str, Any]:
-        return {"y": dict(data.kwargs["y"])}
-
-    def sample_kwargs(self, data: WorkloadBatch) -> Dict[str, Any]:
-        return {"y": {**data.kwargs["y"], **data.sampling}}
-
-    def denoiser(self, model: torch.nn.Module) -> torch.nn.Module:
-        from ..reference.diffusion import ClassifierFreeGuidance
-
-        return ClassifierFreeGuidance(model.eval(), scale=2.5)
-
-    def call_args(self, data: WorkloadBatch, mask: torch.Tensor, capacity: int) -> Tuple[tuple, Dict[str, Any]]:
-        from ..adapters.request import with_request
-
-        return (data.x, None, with_request(data.kwargs["y"], mask=mask, capacity=capacity)), {}
-
-    def lead(self, model: torch.nn.Module) -> int:
-        return 1 if model.arch == "trans_enc" or getattr(model, "emb_trans_dec", False) else 0
-
-
-class MotionDiffuseWorkload(Workload):
-    """MotionDiffuse's denoiser layout (:class:`~smdm_plugin.reference.motiondiffuse_denoiser.MotionDiffuseDenoiser`,
-    latent 512, 8 layers, 8 heads, FFN 1024) on ``[B, N, 263]``; precomputed text features
-    (``xf_proj``, ``xf_out`` of 77 tokens) as MotionDiffuse computes them once per prompt; one
-    model call per sampling step (MotionDiffuse samples without guidance). Its self-attention is
-    linear: no FSQ keys, no attention backend (the sparse model runs its own blocks on the K slots)."""
-
-    family, archs, default_archs, fsq, passes = "motiondiffuse", ("motiondiffuse",), ("motiondiffuse",), False, 1
-    root_env = "SMDM_MOTIONDIFFUSE_ROOT"
-
-    def size(self, quick: bool) -> Dict[str, int]:
-        from ..reference.motiondiffuse_denoiser import motiondiffuse_size
-
-        return motiondiffuse_size(quick)
-
-    def check_root(self, root: str) -> None:
-        upstream_motion_transformer(root)
-
-    def model(self, arch: str, quick: bool, frames: int, root: Optional[str] = None) -> torch.nn.Module:
-        from ..reference.motiondiffuse_denoiser import MotionDiffuseDenoiser
-
-        cls = MotionDiffuseDenoiser if root is None else upstream_motion_transformer(root)
-        return cls(input_feats=263, num_frames=max(196, frames), **self.size(quick))
-
-    def source(self, root: Optional[str]) -> str:
-        return ("in-package MotionDiffuseDenoiser (MotionDiffuse's interface)" if root is None
-                else f"upstream MotionDiffuse {root}")
-
-    def batch(self, batch: int, frames: int, device: torch.device, quick: bool,
-              arch: Optional[str] = None, seed: int = 0) -> WorkloadBatch:
-        size = self.size(quick)
-        g = torch.Generator().manual_seed(seed)
-        lengths = valid_lengths(batch, frames, 40, g)
-        x = torch.randn(batch, frames, 263, generator=g) * (torch.arange(frames) < lengths[:, None])[..., None]
-        kw = {"length": lengths.to(device),
-              "xf_proj": torch.randn(batch, 4 * size["latent_dim"], generator=g).to(device),
-              "xf_out": torch.randn(batch, 77, size["text_latent_dim"], generator=g).to(device)}
-        x = x.to(device)
-        return WorkloadBatch(x, x, lengths, kw)
-
-    def call_args(self, data: WorkloadBatch, mask: torch.Tensor, capacity: int) -> Tuple[tuple, Dict[str, Any]]:
-        from ..adapters.request import with_request
-
-        return (data.x, None, data.kwargs["length"]), with_request({}, "model_kwargs", mask=mask, capacity=capacity)
-
-    def backend(self, backend: str, device: torch.device, compile_mode: str) -> str:
-        return "n/a (linear attention)"
-
-
 def without_dropout(model: torch.nn.Module) -> torch.nn.Module:
     """``model`` with dropout, attention dropout and condition dropout off, in place: a training
     step then draws nothing from torch's random streams, so it gives the same loss on every device
@@ -289,28 +152,27 @@ def handshake_frames(lengths: torch.Tensor, frames: int, handshake: int) -> torc
     return head | tail
 
 
-def upstream_motion_transformer(root: str) -> type:
-    """MotionDiffuse's own ``MotionTransformer`` class from the checkout ``root`` (the folder
-    holding ``text2motion/``). Raises ``ValueError`` naming ``root`` when it is not one or cannot be
-    imported (MotionDiffuse needs ``openai-clip`` and CLIP's weights)."""
-    import importlib
-
-    t2m = os.path.join(os.path.abspath(root), "text2motion")
-    if not os.path.isfile(os.path.join(t2m, "models", "transformer.py")):
-        raise ValueError(f"--root: {root} is not a MotionDiffuse checkout (no text2motion/models/transformer.py)")
-    if t2m not in sys.path:
-        sys.path.insert(0, t2m)
-    try:
-        return importlib.import_module("models.transformer").MotionTransformer
-    except Exception as e:  # noqa: BLE001 - any import failure is the checkout's, said in one line
-        raise ValueError(f"--root: cannot import MotionDiffuse's models.transformer from {t2m}: "
-                         f"{type(e).__name__}: {e}") from None
+_FROM_FAMILIES: Dict[str, Any] = {}   # family name -> the spec its workload came from
 
 
-#: the benchmark's workload per model family name
-WORKLOADS: Registry[Workload] = Registry("benchmark workload")
-for _w in (MDMWorkload(), MotionDiffuseWorkload()):
-    WORKLOADS.register(_w.family, _w)
+def _from_families() -> None:
+    """Keep :data:`WORKLOADS` in step with the registered families' ``FamilySpec.workload``."""
+    from ..adapters.families import family_part, family_specs
+
+    specs = {s.name: s for s in family_specs() if s.workload is not None}
+    for name, spec in list(_FROM_FAMILIES.items()):
+        if specs.get(name) is not spec:              # unregistered or replaced
+            del _FROM_FAMILIES[name]
+            WORKLOADS.unregister(name)
+    for name, spec in specs.items():
+        if name not in _FROM_FAMILIES:
+            _FROM_FAMILIES[name] = spec
+            WORKLOADS.register(name, family_part(spec, "workload"), replace=True)
+
+
+#: the benchmark's workload per model family name: each family's ``FamilySpec.workload``, and any
+#: registered here
+WORKLOADS: Registry[Workload] = Registry("benchmark workload", fill=_from_families)
 
 
 def family_choices() -> List[str]:
@@ -330,7 +192,7 @@ def build(arch: str, reduction: Optional[float], device: torch.device, quick: bo
     from ..adapters.surgery import sparsify
     from ..core.config import SparseConfig
     from ..core.fsq import quantize_attention_keys
-    from ..reference.diffusion import SimpleDiffusion
+    from ..reference.simple_diffusion import SimpleDiffusion
 
     work = WORKLOADS.get(family)
     fsq = fsq if work.fsq else "off"

@@ -6,13 +6,14 @@ import warnings
 import pytest
 import torch
 
-from smdm_plugin import SparseConfig, TinyMDM, keyframe_count, sparsify
-from smdm_plugin import KEYFRAMES_KEY
-from smdm_plugin.adapters.doubletake import (PAPER_BLEND_LEN, attach_doubletake_forcing, has_doubletake_forcing,
+from smdm_plugin import SparseConfig, TinyMDM, sparsify
+from smdm_plugin.core.selection import keyframe_count
+from smdm_plugin.adapters.request import KEYFRAMES_KEY
+from smdm_plugin.families.doubletake.model import (PAPER_BLEND_LEN, attach_doubletake_forcing, has_doubletake_forcing,
                                              detach_doubletake_forcing, doubletake_forced_frames,
                                              doubletake_forced_from_y, paper_blend_len)
-from smdm_plugin.integrations.priormdm import sparsify_priormdm
-from smdm_plugin.reference.diffusion import SimpleDiffusion
+from smdm_plugin.families.doubletake.upstream import sparsify_priormdm
+from smdm_plugin.reference.simple_diffusion import SimpleDiffusion
 
 H, BLEND = 6, 4
 

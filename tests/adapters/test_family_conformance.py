@@ -1,11 +1,11 @@
 """One conformance suite run over every registered model family (PEFT's common-tester idea).
 
 The cases come from the family registry (``smdm_plugin.adapters.families.families()``): each registered
-family is mapped to a case factory in tests/helpers/conformance.py (``register_cases``), and a registered
-family without one fails ``test_every_registered_family_has_a_conformance_case``. The built-in cases:
+family's ``FamilySpec.conformance`` names its case factory (smdm_plugin/families/<name>/conformance.py;
+tests/helpers/conformance.py collects them), and a registered family without one fails ``test_every_registered_family_has_a_conformance_case``. The built-in cases:
 MDM trans_enc, MDM trans_dec, DiP (TinyMDM with a dense prefix), priorMDM's DoubleTake (a TinyMDM
 subclass named like doubleTake_MDM) and MotionDiffuse (the stand-in of
-tests/helpers/motiondiffuse_standin.py). Each case must pass every test: the family detected;
+smdm_plugin/families/motiondiffuse/standin.py). Each case must pass every test: the family detected;
 sparsify/unsparsify round trip with a bit-identical state dict; all keyframes equals dense;
 save/load through ``load_checkpoint``; every sparse call under ``torch.compile(fullgraph=True)``;
 no host sync on the static path; the lifecycle with the diffusion in any order; a failed
@@ -17,13 +17,13 @@ import warnings
 import pytest
 import torch
 
-from smdm_plugin import (SparseConfig, attach_diffusion, families, is_sparse, load_checkpoint, register_family,
+from smdm_plugin import (SparseConfig, attach_diffusion, is_sparse, load_checkpoint, register_family,
                          save_sparse_config, sparsify, unsparsify)
-from smdm_plugin.adapters.families import FAMILIES, family_for
-from smdm_plugin.adapters.mdm import MDMFamily
+from smdm_plugin.adapters.families import FAMILIES, families, family_for
+from smdm_plugin.families.mdm.model import MDMFamily
 from smdm_plugin.adapters.state import SparseState
 from smdm_plugin.core.checks import static_mode
-from smdm_plugin.core.launches import LaunchCounter as Dispatched
+from smdm_plugin.runtime.launches import LaunchCounter as Dispatched
 
 from helpers.conformance import (MotionDiffuseCase, assert_every_family_has_cases, conformance_cases,
                                  families_without_cases)

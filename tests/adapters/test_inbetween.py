@@ -13,13 +13,13 @@ import numpy as np
 import pytest
 import torch
 
-from smdm_plugin import KEYFRAMES_KEY
-from smdm_plugin.adapters import inbetween as ib
+from smdm_plugin.adapters.request import KEYFRAMES_KEY
+from smdm_plugin.adapters import inbetween_sampling as ib
 from smdm_plugin.adapters.surgery import sparsify
 from smdm_plugin.adapters.state import get_state
 from smdm_plugin.core.config import SparseConfig
 from smdm_plugin.reference.backbone import TinyMDM
-from smdm_plugin.reference.diffusion import ClassifierFreeGuidance, SimpleDiffusion
+from smdm_plugin.reference.simple_diffusion import ClassifierFreeGuidance, SimpleDiffusion
 
 REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 D, N = 12, 24
@@ -205,7 +205,7 @@ def test_mdm_style_diffusion_gets_the_inpainting_keys_and_xt_is_refused():
 
 # --------------------------------------------------------------------------- MDM's sample.edit hook
 def test_mdm_edit_hook_forces_the_kept_frames_of_a_sparse_model_only(monkeypatch):
-    from smdm_plugin.integrations import mdm_edit
+    from smdm_plugin.families.mdm import upstream_edit as mdm_edit
 
     seen = {}
 
@@ -287,7 +287,7 @@ def test_model_folder_round_trip_samples_the_same(tmp_path):
 
 
 def test_plan_keyframes():
-    from smdm_plugin.apps.common.inbetween import plan_keyframes
+    from smdm_plugin.apps.common.bundle_inbetween import plan_keyframes
 
     kf = plan_keyframes(200, [30, 60, 90], None, None, None, 196)
     assert (kf.frames, kf.start, kf.length, kf.placed) == ([0, 30, 60], 30, 61, False)
@@ -426,7 +426,7 @@ def test_cli_humanml3d_features_and_clear_errors(model_folders, hml_dir, tmp_pat
 
 
 def test_transition_frames_and_metrics_known_answers(hml_dir):
-    from smdm_plugin.metrics.inbetween import keyframe_metrics, transition_frames
+    from smdm_plugin.metrics.inbetween_metrics import keyframe_metrics, transition_frames
     from smdm_plugin.metrics import jitter
 
     given = torch.tensor([[1, 0, 0, 0, 1, 1, 1, 0, 0, 1]], dtype=torch.bool)

@@ -8,8 +8,8 @@ import pytest
 import torch
 
 from smdm_plugin import SimpleDiffusion, SparseConfig, TinyMDM, is_sparse, sparsify, unsparsify
-from smdm_plugin import KEYFRAMES_KEY
-from smdm_plugin.adapters.mdm import keyframe_collate
+from smdm_plugin.adapters.request import KEYFRAMES_KEY
+from smdm_plugin.families.mdm.model import keyframe_collate
 from smdm_plugin.core.checks import static_mode
 
 

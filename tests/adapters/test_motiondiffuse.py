@@ -1,17 +1,18 @@
 """sparsify / unsparsify of MotionDiffuse (its family) on a small stand-in with MotionTransformer's
-attribute names and forward contract (tests/helpers/motiondiffuse_standin.py; CI has no MotionDiffuse
+attribute names and forward contract (smdm_plugin/families/motiondiffuse/standin.py; CI has no MotionDiffuse
 checkout)."""
 import argparse
 
 import pytest
 import torch
 
-from helpers.motiondiffuse_standin import StandInDiffusion, StandInMotionTransformer
-from smdm_plugin import LipschitzMLP, SparseConfig, lipschitz_loss
+from smdm_plugin.families.motiondiffuse.standin import StandInDiffusion, StandInMotionTransformer
+from smdm_plugin import SparseConfig
+from smdm_plugin.core.lipschitz import LipschitzMLP, lipschitz_loss
 from smdm_plugin import KeyframeRequest, with_forced
 from smdm_plugin import sparsify as sparsify_motiondiffuse, unsparsify as unsparsify_motiondiffuse
-from smdm_plugin.adapters.motiondiffuse import trainer_loss, training_mean_std
-from smdm_plugin.integrations.motiondiffuse import (add_sparse_options, attach_trainer,
+from smdm_plugin.families.motiondiffuse.model import trainer_loss, training_mean_std
+from smdm_plugin.families.motiondiffuse.upstream import (add_sparse_options, attach_trainer,
                                                     config_from_opt)
 
 

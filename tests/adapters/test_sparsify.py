@@ -5,9 +5,11 @@ import pytest
 import torch
 import torch.nn as nn
 
-from smdm_plugin import KEYFRAMES_KEY, KeyframeRequest, with_forced
-from smdm_plugin import (SimpleDiffusion, SparseConfig, TinyMDM, detect_variant, is_sparse, lipschitz_loss,
-                         sparsify, unsparsify)
+from smdm_plugin import KeyframeRequest, with_forced
+from smdm_plugin.adapters.request import KEYFRAMES_KEY
+from smdm_plugin import SimpleDiffusion, SparseConfig, TinyMDM, is_sparse, sparsify, unsparsify
+from smdm_plugin.families.mdm.model import detect_variant
+from smdm_plugin.core.lipschitz import lipschitz_loss
 from smdm_plugin.core.fsq import FSQMultiheadAttention, quantize_attention_keys
 from smdm_plugin.core.lipschitz import LipschitzMLP
 

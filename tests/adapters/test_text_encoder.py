@@ -16,8 +16,8 @@ pytest.importorskip("transformers")
 from smdm_plugin import SimpleDiffusion, SparseConfig, TinyMDM, sparsify  # noqa: E402
 from smdm_plugin.adapters.text_encoder import (EncodeText, HFTextEncoder, pool_hidden, read_layout,  # noqa: E402
                                                swap_text_encoder, swapped_text_encoder, text_encoder_of)
-from smdm_plugin.integrations import mdm_text  # noqa: E402
-from smdm_plugin.integrations.mdm import sparsify_mdm, warn_if_upstream_steps  # noqa: E402
+from smdm_plugin.families.mdm import upstream_text as mdm_text
+from smdm_plugin.families.mdm.upstream import sparsify_mdm, warn_if_upstream_steps  # noqa: E402
 
 from helpers.text_encoder import dense_head, make_tiny_encoder
 

@@ -11,7 +11,7 @@ from smdm_plugin.core.config import MARKER
 from smdm_plugin.core.presets import load_preset
 from smdm_plugin.core.noise import NOISE_STEP
 from smdm_plugin.core.lipschitz import LipschitzMLP
-from smdm_plugin.reference.diffusion import SimpleDiffusion
+from smdm_plugin.reference.simple_diffusion import SimpleDiffusion
 
 KW = dict(latent_dim=32, ff_size=64, num_layers=2, dropout=0.0, cond_mode="no_cond")
 D, N = 263, 40
@@ -181,7 +181,7 @@ def _mdm_like_parser():
     add_sparse_options(group), as patches/mdm.patch does."""
     import argparse
 
-    from smdm_plugin.integrations.mdm import add_sparse_options
+    from smdm_plugin.families.mdm.upstream import add_sparse_options
 
     def add_model_options(parser):
         group = parser.add_argument_group("model")

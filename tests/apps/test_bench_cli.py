@@ -71,7 +71,7 @@ def test_bench_times_dip_and_doubletake_on_request(capsys):
 
 
 def test_launch_count_of_an_eager_cell_is_the_counters():
-    from smdm_plugin.core.launches import count_launches
+    from smdm_plugin.runtime.launches import count_launches
 
     model, diffusion = workloads.build("trans_enc", 0.8, torch.device("cpu"), True, 4)
     data = workloads.WORKLOADS.get("mdm").batch(2, 24, torch.device("cpu"), True)
@@ -195,7 +195,8 @@ def test_bench_motiondiffuse_takes_the_upstream_class_from_root(tmp_path):
     (models / "transformer.py").write_text(
         "from smdm_plugin.reference.motiondiffuse_denoiser import MotionDiffuseDenoiser as _Base\n\n\n"
         "class MotionTransformer(_Base):\n    pass\n")
-    cls = workloads.upstream_motion_transformer(str(tmp_path / "md"))
+    from smdm_plugin.families.motiondiffuse.workload import upstream_motion_transformer
+    cls = upstream_motion_transformer(str(tmp_path / "md"))
     assert cls.__module__ == "models.transformer"
     model, _ = workloads.build("motiondiffuse", 0.8, torch.device("cpu"), True, 4, family="motiondiffuse", frames=40,
                            root=str(tmp_path / "md"))

@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 import torch
 
-import smdm_plugin.core.atomic as atomic
+import smdm_plugin.support.atomic as atomic
 from smdm_plugin.apps import ablate, cli
 from smdm_plugin.apps import train as train_cli
 from smdm_plugin.apps.common import keyframe_study as ks

@@ -119,7 +119,7 @@ def test_eval_with_a_model_and_resume(tmp_path):
     from smdm_plugin.training.bundle import save_bundle
     from smdm_plugin.io.representation import Representation
     from smdm_plugin.reference.backbone import TinyMDM
-    from smdm_plugin.reference.diffusion import SimpleDiffusion
+    from smdm_plugin.reference.simple_diffusion import SimpleDiffusion
 
     ev = tmp_path / "ev"
     small = ["--hidden", "32", "--dim", "16", "--ae-epochs", "2", "--no-progress", "--threads", "1"]

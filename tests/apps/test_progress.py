@@ -8,7 +8,7 @@ import io
 from helpers.commands import TINY_TRAIN
 from smdm_plugin.apps import train as train_cli
 from smdm_plugin.apps.common.args import add_common_flags, progress_of
-from smdm_plugin.core.progress import ALWAYS, bars_on
+from smdm_plugin.support.progress import ALWAYS, bars_on
 
 
 class _Terminal(io.StringIO):

@@ -15,8 +15,8 @@ from smdm_plugin.apps import ablate
 from smdm_plugin.apps.ablate import grid, study
 from smdm_plugin.training.data import MotionSet
 from smdm_plugin.training.trainer import TrainConfig, Trainer, caption_draws
-from smdm_plugin.integrations.distributed import DistContext
-from smdm_plugin.reference.diffusion import SimpleDiffusion
+from smdm_plugin.runtime.distributed import DistContext
+from smdm_plugin.reference.simple_diffusion import SimpleDiffusion
 from smdm_plugin.reference.text import (HashedBagOfWords, TextConfig, load_text_config, sample_with_text,
                                         words)
 
@@ -185,7 +185,7 @@ def test_t_interval_against_scipy():
 
 def test_speed_normalised_jitter_against_a_loop():
     from smdm_plugin.metrics import jitter, to_joint_positions
-    from smdm_plugin.metrics.features import per_motion_quality
+    from smdm_plugin.metrics.feature_measures import per_motion_quality
 
     g = torch.Generator().manual_seed(0)
     x = torch.randn(3, 30, 263, generator=g) * 0.3

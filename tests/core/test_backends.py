@@ -6,7 +6,8 @@ import pytest
 import torch
 import torch.nn as nn
 
-from smdm_plugin import KeyframeTransformer, register_backend
+from smdm_plugin import register_backend
+from smdm_plugin.core.keyframe_transformer import KeyframeTransformer
 from smdm_plugin.core import attention_backends as ab
 from smdm_plugin.core import packed_attention
 from smdm_plugin.core.attention_backends import available_backends, compact_backend, get_backend, varlen_backend
@@ -107,7 +108,7 @@ def test_keyframe_transformer_matches_reference_with_interpolation(backend):
     with torch.no_grad():
         out = wrap(x)
         ref = reference(enc, x, keep)
-    from smdm_plugin import interpolate_keyframes
+    from smdm_plugin.core.interpolation import interpolate_keyframes
 
     expect = torch.cat([ref[:1], interpolate_keyframes(ref[1:].transpose(0, 1), mask).transpose(0, 1)])
     assert torch.allclose(out, expect, atol=1e-5)

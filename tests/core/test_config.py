@@ -75,7 +75,7 @@ def test_presets():
     ("text_encoder", 5, "expected None or a non-empty string, got int"),
 ])
 def test_wrong_types_are_type_errors(field, value, needle):
-    from smdm_plugin.core.values import ConfigTypeError
+    from smdm_plugin.support.values import ConfigTypeError
 
     with pytest.raises(TypeError) as e:
         SparseConfig(**{field: value})
@@ -162,7 +162,7 @@ def test_sparse_section_is_the_config_and_other_sections_are_allowed(tmp_path):
 
 
 def test_save_and_to_json_write_atomically(tmp_path, monkeypatch):
-    import smdm_plugin.core.atomic as atomic
+    import smdm_plugin.support.atomic as atomic
 
     p = tmp_path / "sparse_config.json"
     SparseConfig(reduction=0.6).save(tmp_path)

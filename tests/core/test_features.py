@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 import torch
 
-from smdm_plugin.core.features import extract_selection_features, from_mdm_layout, to_mdm_layout
+from smdm_plugin.core.selection_features import extract_selection_features, from_mdm_layout, to_mdm_layout
 
 from helpers.paths import SHARED as DATA
 

@@ -368,7 +368,7 @@ def test_fsq_code_op_equals_its_formula_with_a_straight_through_gradient():
     (a column block) and bfloat16; gradient ``g·half_l·(1 - tanh(z)²)``; counted as one CUDA
     launch each way, with no ``torch.library`` dispatch in eager mode (host time)."""
     from smdm_plugin.core.kernels.fsq_code import fsq_code
-    from smdm_plugin.core.launches import count_launches
+    from smdm_plugin.runtime.launches import count_launches
 
     attn = _self_attention_pair(True, False)
     neg, half = attn.code_constants(torch.float32)
@@ -430,7 +430,7 @@ def test_unquantize_attention_keys_is_the_inverse_of_quantize():
     """``unquantize_attention_keys`` (public, the PEFT-style way back): every FSQ self-attention of a
     transformer becomes ``nn.MultiheadAttention`` with its current q/k/v/out weights (trained ones
     included), so the model equals the dense one it came from; cross-attention is untouched."""
-    from smdm_plugin import quantize_attention_keys, unquantize_attention_keys
+    from smdm_plugin.core.fsq import quantize_attention_keys, unquantize_attention_keys
 
     torch.manual_seed(0)
     layer = nn.TransformerDecoderLayer(32, 4, 64, dropout=0.0)

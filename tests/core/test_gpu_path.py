@@ -5,7 +5,7 @@
   DiP-style prefix) traces with ``torch.compile(fullgraph=True)`` and gives the eager result;
 * the static-shape path (what runs on accelerators: ``static_mode`` on the CPU) makes no host
   synchronisation and builds no tensor from host data per step;
-* the launch budget, counted as CUDA launches kernels (``core/launches.py``): a sparse training
+* the launch budget, counted as CUDA launches kernels (``runtime/launches.py``): a sparse training
   step and a guided sampling call against the dense upstream model's (``LAUNCH_BUDGET``, issue 27);
 * the static path gives the same outputs as the default CPU path.
 """
@@ -15,10 +15,11 @@ import pytest
 import torch
 
 from smdm_plugin import SimpleDiffusion, SparseConfig, TinyMDM, sparsify
-from smdm_plugin import KEYFRAMES_KEY, KeyframeRequest
+from smdm_plugin import KeyframeRequest
+from smdm_plugin.adapters.request import KEYFRAMES_KEY
 from smdm_plugin.core.checks import static_mode
 from smdm_plugin.core.fsq import quantize_attention_keys
-from smdm_plugin.core.launches import LaunchCounter, count_launches
+from smdm_plugin.runtime.launches import LaunchCounter, count_launches
 
 VARIANTS = {
     "trans_enc": dict(arch="trans_enc"),
@@ -27,7 +28,7 @@ VARIANTS = {
 }
 
 
-#: the sync and launch counter of these tests: CUDA-equivalent launches (core/launches.py)
+#: the sync and launch counter of these tests: CUDA-equivalent launches (runtime/launches.py)
 Dispatched = LaunchCounter
 
 
@@ -163,7 +164,7 @@ CUBIC_FILL_OPS = 40
 
 
 def static_path_counts(name, sparse, fsq=None, **cfg):
-    """CUDA-equivalent launches (core/launches.py) on the static path of MDM-depth TinyMDM (8
+    """CUDA-equivalent launches (runtime/launches.py) on the static path of MDM-depth TinyMDM (8
     layers), B=8, 196 frames, lengths 40..196, this file's ``make`` (dropout 0, dynamic update on):
     ``{"train": loss + backward, "sample t=40": early step, "sample t=2": late step (VW)}`` (one
     model call each; the second call is counted). ``fsq`` with ``sparse=False``: the dense model
@@ -209,7 +210,7 @@ def test_cubic_fill_adds_a_few_kernels_to_sampling_only(name, fsq):
 
 # --- issue 27: the sparse model as the paper trains it against the dense upstream model
 def mdm_size_counts(name, sparse, precision, **cfg):
-    """CUDA-equivalent launches (core/launches.py) of TinyMDM at MDM's depth and length (8 layers,
+    """CUDA-equivalent launches (runtime/launches.py) of TinyMDM at MDM's depth and length (8 layers,
     4 heads, 196 frames; latent 64 / ff 128: the counts do not depend on the width), B=8, lengths
     40..196, MDM's dropout 0.1 and condition dropout 0.1, on the static path, in ``precision``
     ("fp32", or "bf16": under ``torch.autocast("cpu", torch.bfloat16)``):
@@ -220,7 +221,7 @@ def mdm_size_counts(name, sparse, precision, **cfg):
 
     ``sparse``: ``sparsify`` with the paper's recipe, ``SparseConfig(**cfg)`` (defaults: FSQ keys,
     Lipschitz layers); dense: the upstream-equivalent TinyMDM unmodified (no FSQ)."""
-    from smdm_plugin.reference.diffusion import ClassifierFreeGuidance
+    from smdm_plugin.reference.simple_diffusion import ClassifierFreeGuidance
 
     B, N = 8, 196
     x, y = batch(name, B=B, N=N)
@@ -322,8 +323,8 @@ def test_static_path_equals_default_cpu_path(name):
 # ----------------------------------------------------------------------------- C¹ sampling fill
 @pytest.mark.parametrize("name", VARIANTS)
 def test_cubic_sampling_compiles_fullgraph_without_host_sync(name, steps=3):
-    from smdm_plugin import interpolate_keyframes
-    from smdm_plugin.adapters.mdm import call_plan
+    from smdm_plugin.core.interpolation import interpolate_keyframes
+    from smdm_plugin.families.mdm.model import call_plan
 
     """``sample_interpolation="cubic"`` in the last 3 steps: traced with fullgraph, same result as
     eager, no host sync on the static path, before (linear) and inside the cubic steps; and it does
@@ -367,13 +368,13 @@ MOTIONDIFFUSE_BUDGET = {("fp32", "train"): 1.15, ("bf16", "train"): 1.15,    # r
 
 @pytest.mark.parametrize("precision", ["fp32", "bf16"])
 def test_launch_budget_of_motiondiffuse(precision):
-    """MotionDiffuse (the stand-in of tests/helpers/motiondiffuse_standin.py at its depth: 8 blocks), B=8,
-    196 frames, lengths 40..196, counted as CUDA launches them (core/launches.py): the sparse model
+    """MotionDiffuse (the stand-in of smdm_plugin/families/motiondiffuse/standin.py at its depth: 8 blocks), B=8,
+    196 frames, lengths 40..196, counted as CUDA launches them (runtime/launches.py): the sparse model
     (defaults; FSQ does not apply to its linear attention) against the dense one, a training step
     (training_losses + backward + AdamW(foreach=True).step()) and a sampling call (one pass: it
     samples without guidance), early and late step, within ``MOTIONDIFFUSE_BUDGET``, no host sync.
     Its compile and zero-sync checks run in tests/adapters/test_family_conformance.py with every family."""
-    from helpers.motiondiffuse_standin import StandInDiffusion, StandInMotionTransformer
+    from smdm_plugin.families.motiondiffuse.standin import StandInDiffusion, StandInMotionTransformer
 
     B, N = 8, 196
     bf16 = precision == "bf16"
@@ -481,8 +482,8 @@ def test_cubic_fill_on_the_uniform_mask_looks_its_taps_up(name):
     taps come from the schedule's per-length table (``MaskSchedule.cubic_taps``; DiP: computed, its
     prefix shifts the frames). The output is the same C¹ curve through the paper's output at the
     keyframes as when the taps are computed, and it traces with fullgraph, with no host sync."""
-    from smdm_plugin import interpolate_keyframes
-    from smdm_plugin.adapters.mdm import call_plan
+    from smdm_plugin.core.interpolation import interpolate_keyframes
+    from smdm_plugin.families.mdm.model import call_plan
 
     model, _ = make(name, sample_interpolation="cubic", dynamic_update=False)
     linear, _ = make(name, sample_interpolation="linear", dynamic_update=False)
@@ -625,7 +626,7 @@ def test_the_schedules_own_training_mask_gives_the_checked_plan(name):
     without re-masking or a count check (``SparseState.schedule_mask``); the plan equals the checked
     plan of the same mask passed as a caller's, and a caller's mask is still checked."""
     from smdm_plugin.adapters.call import keyframe_plan
-    from smdm_plugin.adapters.diffusion import model_noise, training_keyframes
+    from smdm_plugin.adapters.diffusion_wrapper import model_noise, training_keyframes
     from smdm_plugin.adapters.state import get_state
 
     model, _ = make(name, layers=2)

@@ -2,7 +2,7 @@ import numpy as np
 import pytest
 import torch
 
-from smdm_plugin import interpolate_keyframes
+from smdm_plugin.core.interpolation import interpolate_keyframes
 
 
 def random_mask(B, N, k, gen):

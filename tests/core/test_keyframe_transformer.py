@@ -4,7 +4,8 @@ import pytest
 import torch
 import torch.nn as nn
 
-from smdm_plugin import KeyframeTransformer, interpolate_keyframes
+from smdm_plugin.core.keyframe_transformer import KeyframeTransformer
+from smdm_plugin.core.interpolation import interpolate_keyframes
 from smdm_plugin.core.attention_backends import get_backend
 
 BACKENDS = ["masked", "compact", "varlen"]

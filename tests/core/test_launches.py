@@ -1,8 +1,8 @@
-"""The CUDA-equivalent launch counter (core/launches.py) against hand-counted tiny programs."""
+"""The CUDA-equivalent launch counter (runtime/launches.py) against hand-counted tiny programs."""
 import torch
 import torch.nn.functional as F
 
-from smdm_plugin.core.launches import LaunchCounter, count_launches
+from smdm_plugin.runtime.launches import LaunchCounter, count_launches
 
 
 def test_linear_forward_and_backward():

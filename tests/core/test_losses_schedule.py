@@ -1,7 +1,10 @@
 import pytest
 import torch
 
-from smdm_plugin import keyframe_count, MaskSchedule, SparseConfig, dense_loss, keyframe_loss, lipschitz_term, select_keyframes
+from smdm_plugin import SparseConfig, select_keyframes
+from smdm_plugin.core.selection import keyframe_count
+from smdm_plugin.core.schedule import MaskSchedule
+from smdm_plugin.core.losses import dense_loss, keyframe_loss, lipschitz_term
 from smdm_plugin.core.lipschitz import LipschitzMLP
 
 

@@ -12,7 +12,7 @@ import pytest
 import torch
 
 from smdm_plugin import SimpleDiffusion, SparseConfig, TinyMDM, sparsify
-from smdm_plugin.adapters.diffusion import model_noise
+from smdm_plugin.adapters.diffusion_wrapper import model_noise
 from smdm_plugin.core.noise import NOISE_STEP, NOISE_TABLE, TABLE_SIZE, CounterNoise, noise_table
 from smdm_plugin.core.schedule import MaskSchedule
 from smdm_plugin.core.selection import keyframe_count
@@ -201,7 +201,7 @@ def test_perturb_op_equals_the_rule_written_out(seed):
     """``smdm::perturb_mask`` (one op: the composite on the CPU) equals the per-sample rule, with
     protected frames and tied uniforms, for several amounts."""
     from smdm_plugin.core.kernels.perturb import perturb_mask_op
-    from smdm_plugin.core.launches import count_launches
+    from smdm_plugin.runtime.launches import count_launches
 
     mask, lengths, u, protected = noise_cases(seed)
     for amount in (0.1, 0.5, 1.0):

@@ -3,7 +3,8 @@ the config, the selection entry points and the keyframe transformer accept it at
 import pytest
 import torch
 
-from smdm_plugin import KeyframeTransformer, SparseConfig, register_backend, register_selector, select_keyframes
+from smdm_plugin import SparseConfig, register_backend, register_selector, select_keyframes
+from smdm_plugin.core.keyframe_transformer import KeyframeTransformer
 from smdm_plugin.core import attention_backends as ab
 from smdm_plugin.core.checks import static_mode
 from smdm_plugin.core.schedule import MaskSchedule

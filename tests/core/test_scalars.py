@@ -8,7 +8,7 @@ import pytest
 
 from smdm_plugin.adapters.surgery import as_config
 from smdm_plugin.core.config import SparseConfig
-from smdm_plugin.core.values import ConfigTypeError
+from smdm_plugin.support.values import ConfigTypeError
 
 
 # ------------------------------------------------------------------------------ numbers and configs

@@ -14,7 +14,7 @@ import torch.nn.functional as F
 from smdm_plugin import SimpleDiffusion, SparseConfig, TinyMDM, sparsify
 from smdm_plugin.core.attention import aligned_key_bias, sdpa_layout_problems
 from smdm_plugin.core.checks import static_mode
-from smdm_plugin.reference.diffusion import ClassifierFreeGuidance
+from smdm_plugin.reference.simple_diffusion import ClassifierFreeGuidance
 
 VARIANTS = {
     "trans_enc": dict(arch="trans_enc"),

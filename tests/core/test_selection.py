@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 import torch
 
-from smdm_plugin.core.features import extract_selection_features
+from smdm_plugin.core.selection_features import extract_selection_features
 from smdm_plugin.core.selection import (METHODS, keyframe_count, perturb_mask, select_keyframes,
                                    vw_reference)
 

@@ -4,7 +4,6 @@ other.
 
 * ``paths``: the repository root, ../shared/data and the data sets in it.
 * ``synthetic_data``: a small synthetic HumanML3D-format folder (``write_humanml3d``).
-* ``motiondiffuse_standin``: a MotionDiffuse stand-in (``MotionTransformer``'s names and forward contract).
 * ``text_encoder``: tiny random ``transformers`` text encoders built offline (``make_tiny_encoder``).
 * ``noise``: the mask-noise cases of the ``smdm::perturb_mask`` tests (also run in a fresh interpreter).
 * ``commands``: running ``smdm`` / ``torchrun`` in a subprocess, the tiny training options, folder snapshots.

@@ -2,7 +2,7 @@
 the frames the edit keeps reach the sparse model as forced keyframes (``ends`` policy: the first and
 last frame and the two seams of the generated gap), those frames are keyframe tokens at every step,
 and MDM's imputation brings them out exact — through ``smdm run`` (the hook in
-``smdm_plugin.integrations.mdm_edit``) and through the patch plus the two lines
+``smdm_plugin.families.mdm.upstream_edit``) and through the patch plus the two lines
 ``mdm_edit.add_forced_keyframes`` documents for ``sample/edit.py``.
 
 Skipped unless ``SMDM_MDM_ROOT`` points at an MDM checkout (read-only: copied). CLIP has random weights
@@ -26,7 +26,7 @@ HARNESS = os.path.join(HERE, "mdm_harness.py")
 ENV = {"SMDM_TEST_CLIP_LAYERS": "1", "SMDM_TEST_NUM_WORKERS": "0", "SMDM_TEST_NO_RENDER": "1"}
 TINY = ["--dataset", "humanml", "--latent_dim", "64", "--layers", "2", "--batch_size", "8",
         "--save_interval", "1000000", "--seed", "10", "--diffusion_steps", "10"]
-EDIT_LINES = ("    from smdm_plugin.integrations.mdm_edit import add_forced_keyframes  # sMDM: kept frames are keyframes\n"
+EDIT_LINES = ("    from smdm_plugin.families.mdm.upstream_edit import add_forced_keyframes  # sMDM: kept frames are keyframes\n"
               "    add_forced_keyframes(model, model_kwargs)\n")
 
 pytestmark = pytest.mark.skipif(not ROOT, reason="SMDM_MDM_ROOT not set (an MDM checkout)")

@@ -279,15 +279,20 @@ print("SEEN=" + json.dumps(seen))
 
 @needs_mdm
 def test_a_flag_off_run_loads_only_the_plugins_options(patched, tmp_path):
-    """The patched MDM with the flag off: 3 plugin modules at import (0.7.0: 5), and after parsing
-    only the option modules and the config they describe (0.7.0: 18, the integration, its start
-    options, presets and registry among them)."""
+    """The patched MDM with the flag off: at import the hooks' module and its family's registration
+    (8 small modules, no torch; 0.7.0: 5), and after parsing only the option modules and the config
+    they describe (0.7.0: 18, the integration, its start options, presets and registry among them)."""
     proc = harness_code(patched, FLAG_OFF_IMPORTS.replace("sys.argv[1]", repr(str(tmp_path / "x"))))
     seen = json.loads(proc.stdout.split("SEEN=")[1].splitlines()[0])
-    assert seen["import"] == ["smdm_plugin", "smdm_plugin.integrations", "smdm_plugin.integrations.mdm_train"]
-    extra = [m for m in seen["parse"] if m not in seen["import"] and not m.startswith("smdm_plugin.core")]
-    assert extra == ["smdm_plugin.integrations.compile", "smdm_plugin.integrations.options"], seen["parse"]
-    assert "smdm_plugin.core.presets" not in seen["parse"] and len(seen["parse"]) <= 13, seen["parse"]
+    # the hooks' module, its family's package and the family's one registration (names, no torch)
+    assert seen["import"] == ["smdm_plugin", "smdm_plugin.adapters", "smdm_plugin.adapters.families", "smdm_plugin.core",
+                              "smdm_plugin.core.registry", "smdm_plugin.families", "smdm_plugin.families.mdm",
+                              "smdm_plugin.families.mdm.upstream_train"]
+    extra = [m for m in seen["parse"] if m not in seen["import"] and not m.startswith(("smdm_plugin.core",
+                                                                                      "smdm_plugin.support"))]
+    assert extra == ["smdm_plugin.integrations", "smdm_plugin.integrations.options", "smdm_plugin.runtime",
+                     "smdm_plugin.runtime.compile"], seen["parse"]
+    assert "smdm_plugin.core.presets" not in seen["parse"] and len(seen["parse"]) <= 19, seen["parse"]
 
 
 @needs_mdm
@@ -584,7 +589,8 @@ TORCHRUN_ENV = ("RANK", "WORLD_SIZE", "LOCAL_RANK", "MASTER_ADDR", "MASTER_PORT"
 
 
 def test_ddp_hooks_are_not_installed_without_torchrun(monkeypatch):
-    from smdm_plugin.integrations import _hooks, mdm_train
+    from smdm_plugin.integrations import _hooks
+    from smdm_plugin.families.mdm import upstream_train as mdm_train
 
     for k in TORCHRUN_ENV:
         monkeypatch.delenv(k, raising=False)
@@ -607,7 +613,7 @@ def test_ddp_training_loader_is_sharded_per_rank(monkeypatch):
 
     from torch.utils.data import DataLoader, DistributedSampler
 
-    from smdm_plugin.integrations import mdm_train
+    from smdm_plugin.families.mdm import upstream_train as mdm_train
 
     def get_dataset_loader(name, batch_size, num_frames, split="train", hml_mode="train", fixed_len=0):
         return DataLoader(list(range(20)), batch_size=batch_size, shuffle=True, drop_last=True,
@@ -634,8 +640,8 @@ def test_ddp_wrapper_answers_the_model_attributes(tmp_path):
     import torch
     import torch.distributed as dist
 
-    from smdm_plugin.integrations import mdm_train
-    from smdm_plugin.integrations.distributed import constant_buffers_kwargs
+    from smdm_plugin.families.mdm import upstream_train as mdm_train
+    from smdm_plugin.runtime.distributed import constant_buffers_kwargs
 
     if not dist.is_available() or not dist.is_gloo_available() or dist.is_initialized():
         pytest.skip("needs a fresh gloo process group")

@@ -18,7 +18,7 @@ What is checked (each would fail if the integration were wrong):
   down over 21 steps;
 * DoubleTake: every model call (both takes, both classifier-free-guidance passes) ran on a sparse
   mask that holds the forced frames computed from the geometry
-  (:func:`smdm_plugin.adapters.doubletake.doubletake_forced_frames`, independent of the
+  (:func:`smdm_plugin.families.doubletake.model.doubletake_forced_frames`, independent of the
   ``y``-based hook under test); the unfolded sample is finite, ``[1, 22, 3, 3*150 - 2*10]``.
 """
 import json
@@ -180,7 +180,7 @@ def dt_out_dir(run: str, ckpt: str, seed: int = 10, input_text: str = "") -> str
     (the folder it writes sparse_config.json into); it must hold this run's results.npy."""
     import argparse
 
-    from smdm_plugin.integrations.priormdm import doubletake_output_dir
+    from smdm_plugin.families.doubletake.upstream import doubletake_output_dir
 
     args = argparse.Namespace(model_path=ckpt, output_dir="", input_text=input_text, sample_gt=False,
                               double_take=True, seed=seed, handshake_size=H, blend_len=BLEND,
@@ -212,7 +212,7 @@ def check_files_agree(save: str, out_dir: str) -> None:
 
 def check_forced(record: str) -> None:
     """Every model call of both takes got a sparse mask holding the forced frames."""
-    from smdm_plugin.adapters.doubletake import doubletake_forced_frames
+    from smdm_plugin.families.doubletake.model import doubletake_forced_frames
 
     lens = [SEG] * 3
     first = doubletake_forced_frames(lens, H, take="first").numpy()

@@ -220,7 +220,7 @@ def install_recorder(path: str) -> None:
     KeyframeTransformer.set_plan = set_plan
 
     # MotionDiffuse: the tokens that reach the decoder blocks, with the mask of that call
-    import smdm_plugin.adapters.motiondiffuse as md_adapter
+    import smdm_plugin.families.motiondiffuse.model as md_adapter
 
     import smdm_plugin.adapters.surgery as surgery
 
@@ -261,9 +261,9 @@ def main() -> None:
     install_fake_clip()
     hooks = os.environ.get("SMDM_HOOKS", "")
     if hooks:
-        import importlib
+        from smdm_plugin.integrations.checkouts import INTEGRATIONS
 
-        importlib.import_module(f"smdm_plugin.integrations.{hooks}").install_hooks()
+        INTEGRATIONS.get(hooks).install_hooks()   # the family's integration, by its name
     if os.environ.get("SMDM_RECORD"):
         install_recorder(os.environ["SMDM_RECORD"])
     if os.path.exists(os.path.join(repo, "model", "rotation2xyz.py")):

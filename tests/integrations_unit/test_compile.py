@@ -1,4 +1,4 @@
-"""Graph capture with one flag (integrations/compile.py, docs/compile.md), on the CPU.
+"""Graph capture with one flag (runtime/compile.py, docs/compile.md), on the CPU.
 
 The compiled model is captured once per phase (training; sampling in eval mode without grad; the
 phase's first call runs eagerly) and never again: across steps, motion lengths, timesteps, both classifier-free guidance passes and the
@@ -25,8 +25,9 @@ pytest.importorskip("torch._dynamo")
 from torch._dynamo.utils import counters  # noqa: E402
 
 from smdm_plugin import SimpleDiffusion, SparseConfig, TinyMDM, load_checkpoint, sparsify  # noqa: E402
-from smdm_plugin.integrations import compile as C  # noqa: E402
-from smdm_plugin.reference.diffusion import ClassifierFreeGuidance  # noqa: E402
+from smdm_plugin.runtime import compile as C
+from smdm_plugin.families.mdm import prepare as P
+from smdm_plugin.reference.simple_diffusion import ClassifierFreeGuidance  # noqa: E402
 from smdm_plugin.reference.text import TextConfig, sample_with_text  # noqa: E402
 from smdm_plugin.training import trainer as T  # noqa: E402
 from smdm_plugin.training.data import MotionSet  # noqa: E402
@@ -188,14 +189,14 @@ def test_guidance_uncond_folds_into_zeroed_text_exactly():
     x, t = torch.randn(2, D, 1, N), torch.tensor([3, 7])
     y = {"mask": torch.ones(2, 1, 1, N, dtype=torch.bool), "lengths": torch.full((2,), N),
          "text_embed": torch.randn(1, 2, 16), "tokens": ["a", "b"], "uncond": True}
-    args, kwargs = C.prepare_mdm(model, (x, t, y), {})
+    args, kwargs = P.prepare_mdm(model, (x, t, y), {})
     py = args[2]
     assert "uncond" not in py and "tokens" not in py and torch.equal(py["text_embed"], torch.zeros(1, 2, 16))
     assert "uncond" in y and "tokens" in y                          # the caller's dict untouched
     with torch.no_grad():
         assert torch.equal(model(*args), model(x, t, y))
     model.train()
-    assert C.prepare_mdm(model, (x, t, y), {})[0][2]["uncond"] is True
+    assert P.prepare_mdm(model, (x, t, y), {})[0][2]["uncond"] is True
     cfg_model = copy.deepcopy(model).eval()
     C.compile_model(cfg_model, "default", backend=BACKEND)
     with torch.no_grad():
@@ -239,7 +240,7 @@ def test_none_leaves_the_model_untouched_and_bad_modes_name_the_flag():
     assert T.TrainConfig(compile=True).compile == "default" and T.TrainConfig(compile=False).compile == "none"
 
 
-def test_flag_parses_and_the_setting_is_recorded_on_the_args():
+def test_flag_parses_and_the_setting_is_returned():
     p = argparse.ArgumentParser()
     C.add_compile_options(C.add_compile_options(p))               # idempotent
     assert p.parse_args([]).sparse_compile == "none"
@@ -249,7 +250,8 @@ def test_flag_parses_and_the_setting_is_recorded_on_the_args():
     model = TinyMDM(njoints=D, cond_mode="no_cond", **TINY)
     assert C.compile_from_args(model, p.parse_args([])) is None and model._compiled_call_impl is None
     s = C.compile_from_args(model, args)
-    assert s.mode == "default" and args.sparse_compile_applied.startswith("torch.compile default")
+    assert s.mode == "default" and s.describe().startswith("torch.compile default")
+    assert not hasattr(args, "sparse_compile_applied")         # returned, not written on the args
 
 
 def test_smdm_train_compile_flag_is_written_with_the_run(tmp_path, hml_dir):
@@ -324,7 +326,7 @@ def test_mdm_integration_compiles_dense_models_and_records_the_setting(tmp_path,
     (never overwritten from ``args.json`` at sampling)."""
     import types
 
-    from smdm_plugin.integrations.mdm import patch_base_options, sparsify_mdm
+    from smdm_plugin.families.mdm.upstream import patch_base_options, sparsify_mdm
 
     (tmp_path / "args.json").write_text(json.dumps({"seed": 10, "sparse_compile": "reduce-overhead"}))
     args = argparse.Namespace(sparse=False, sparse_compile="reduce-overhead", save_dir=str(tmp_path),
@@ -362,13 +364,13 @@ def test_bert_text_tokens_padded_to_a_bucket_change_nothing():
     for L in (5, 17, 64):
         feats, mask = torch.randn(L, 3, 16), torch.zeros(3, L, dtype=torch.bool)
         mask[0, L // 2:] = True                                    # a shorter caption in the batch
-        pf, pm = C.pad_text_tokens((feats, mask))
+        pf, pm = P.pad_text_tokens((feats, mask))
         assert pf.shape == (64, 3, 16) and pm.shape == (3, 64) and pm[:, L:].all()
         with torch.no_grad():
             want = dec(tgt, feats, memory_key_padding_mask=mask)
             got = dec(tgt, pf, memory_key_padding_mask=pm)
         assert torch.allclose(got, want, atol=1e-5), L
-    assert C.pad_text_tokens((torch.randn(70, 3, 16), torch.zeros(3, 70, dtype=torch.bool)))[0].shape[0] == 128
+    assert P.pad_text_tokens((torch.randn(70, 3, 16), torch.zeros(3, 70, dtype=torch.bool)))[0].shape[0] == 128
 
 
 def test_forced_keyframes_trace_with_a_break_and_never_recompile():

@@ -24,7 +24,7 @@ import torch
 pytest.importorskip("torch._dynamo")
 
 from smdm_plugin.core.kernels import vw  # noqa: E402
-from smdm_plugin.integrations import compile as C  # noqa: E402
+from smdm_plugin.runtime import compile as C
 from smdm_plugin.training import benchmark, workloads  # noqa: E402
 
 META = torch.device("meta")

@@ -3,7 +3,7 @@ to upstream's parser needs (issue 40: 0.7.0 loaded 5 plugin modules at import an
 parsing, the ``mdm`` integration, ``start``, the presets and the integration registry among them).
 
 The calls are the ones ``patches/mdm.patch`` adds, in the order upstream runs them: the import of
-``train/train_mdm.py`` (the DDP hooks), ``add_base_options`` (``--sparse_compile``),
+``train/train_mdm.py`` (the DDP hooks; with them the family's one registration), ``add_base_options`` (``--sparse_compile``),
 ``add_model_options`` (``--sparse*``), the parse with the flag off, then
 ``create_model_and_diffusion`` (``sparsify_mdm``). Each count is taken in a fresh interpreter."""
 import json
@@ -60,12 +60,18 @@ def test_a_flag_off_run_loads_only_what_the_options_need():
         print(json.dumps(seen))
     """)
     config_alone = set(_run(f"import json, sys, smdm_plugin.core.config; print(json.dumps({COUNT}))"))
-    assert set(seen["import"]) == {"smdm_plugin", "smdm_plugin.integrations", calls["install_hooks"]}, seen["import"]
+    # the hooks' module, its family's package and the family's one registration (names, no torch)
+    family = calls["install_hooks"].rsplit(".", 1)[0]
+    registration = {"smdm_plugin.adapters", "smdm_plugin.adapters.families", "smdm_plugin.core",
+                    "smdm_plugin.core.registry"}
+    assert set(seen["import"]) == {"smdm_plugin", "smdm_plugin.families", family, calls["install_hooks"]} | registration, \
+        seen["import"]
     # the options: their modules and the config they describe (whatever it imports), nothing else
-    options = {"smdm_plugin.integrations", calls["add_sparse_options"], calls["add_compile_options"]}
+    options = {calls["add_sparse_options"].rsplit(".", 1)[0], calls["add_compile_options"].rsplit(".", 1)[0],
+               calls["add_sparse_options"], calls["add_compile_options"]}
     assert set(seen["parse"]) == config_alone | options | set(seen["import"]), \
         sorted(set(seen["parse"]) - config_alone - options - set(seen["import"]))
     # building the model: the entry point itself, which returns at once (nothing of what runs sparse)
     extra = set(seen["build"]) - set(seen["parse"])
-    assert extra <= {"smdm_plugin.integrations.mdm", "smdm_plugin.integrations.mdm_text",
-                     "smdm_plugin.integrations.registry", "smdm_plugin.integrations._hooks"}, sorted(extra)
+    assert extra <= {"smdm_plugin.families.mdm.upstream", "smdm_plugin.families.mdm.upstream_text",
+                     "smdm_plugin.integrations.checkouts", "smdm_plugin.integrations._hooks"}, sorted(extra)

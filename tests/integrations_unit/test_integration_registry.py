@@ -6,10 +6,12 @@ import types
 
 import pytest
 
-from smdm_plugin.integrations import mdm, motiondiffuse, priormdm
+from smdm_plugin.families.mdm import upstream as mdm
+from smdm_plugin.families.motiondiffuse import upstream as motiondiffuse
+from smdm_plugin.families.doubletake import upstream as priormdm
 from smdm_plugin.integrations._hooks import WRAPPED, wrap_once
 from smdm_plugin.integrations.launcher import make_environment, run
-from smdm_plugin.integrations.registry import (INTEGRATIONS, Integration, detect_repo, integrations,
+from smdm_plugin.integrations.checkouts import (INTEGRATIONS, Integration, detect_repo, integrations,
                                                register_integration)
 
 
@@ -30,7 +32,7 @@ def test_the_built_in_integrations_register_themselves():
     assert INTEGRATIONS.get("mdm").install_hooks is mdm.install_hooks
     assert INTEGRATIONS.get("priormdm").install_hooks is priormdm.install_hooks
     assert INTEGRATIONS.get("motiondiffuse").install_hooks is motiondiffuse.install_hooks
-    assert INTEGRATIONS.get("priormdm").module == "smdm_plugin.integrations.priormdm"
+    assert INTEGRATIONS.get("priormdm").module == "smdm_plugin.families.doubletake.upstream"
     names = [i.name for i in integrations()]
     assert names.index("priormdm") < names.index("mdm")  # priorMDM has MDM's files too: asked first
 
@@ -56,7 +58,7 @@ def test_an_unknown_checkout_names_every_registered_layout(tmp_path):
 
 TOY = '''
 import os
-from smdm_plugin.integrations.registry import Integration, register_integration
+from smdm_plugin.integrations.checkouts import Integration, register_integration
 
 def install_hooks():
     with open(os.environ["TOY_MARK"], "w") as f:
@@ -160,7 +162,7 @@ def test_hooks_installed_twice_wrap_once():
     """Each integration's module hooks, called twice (the patch and the launcher), wrap once."""
     gd = types.SimpleNamespace(GaussianDiffusion=type("GaussianDiffusion", (), {
         "p_sample_loop": lambda self, model, shape, model_kwargs=None: model_kwargs}))
-    from smdm_plugin.integrations import mdm_edit
+    from smdm_plugin.families.mdm import upstream_edit as mdm_edit
 
     mdm_edit._patch_gaussian_diffusion(gd)
     first = gd.GaussianDiffusion.p_sample_loop

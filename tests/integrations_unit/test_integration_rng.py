@@ -13,9 +13,9 @@ import torch
 
 from smdm_plugin import TinyMDM
 from smdm_plugin.adapters.surgery import is_sparse
-from smdm_plugin.integrations.mdm import sparsify_mdm
-from smdm_plugin.integrations.priormdm import sparsify_priormdm
-from smdm_plugin.reference.diffusion import SimpleDiffusion
+from smdm_plugin.families.mdm.upstream import sparsify_mdm
+from smdm_plugin.families.doubletake.upstream import sparsify_priormdm
+from smdm_plugin.reference.simple_diffusion import SimpleDiffusion
 
 STEPS, N = 10, 40
 

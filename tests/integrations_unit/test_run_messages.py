@@ -24,11 +24,11 @@ import torch
 from smdm_plugin import SparseConfig, TinyMDM, sparse_config_of
 from smdm_plugin.integrations import messages
 from smdm_plugin.integrations.announce import describe_run
-from smdm_plugin.integrations.mdm import apply_compile, sparsify_mdm, warn_if_upstream_steps
-from smdm_plugin.integrations.motiondiffuse import add_sparse_options as add_motiondiffuse_options
-from smdm_plugin.integrations.motiondiffuse import attach_trainer
+from smdm_plugin.families.mdm.upstream import apply_compile, sparsify_mdm, warn_if_upstream_steps
+from smdm_plugin.families.motiondiffuse.upstream import add_sparse_options as add_motiondiffuse_options
+from smdm_plugin.families.motiondiffuse.upstream import attach_trainer
 
-from helpers.motiondiffuse_standin import StandInDiffusion, StandInMotionTransformer
+from smdm_plugin.families.motiondiffuse.standin import StandInDiffusion, StandInMotionTransformer
 from helpers.paths import ROOT
 
 STEPS_LINE = "smdm: sparse training at 1000 diffusion steps"
@@ -105,7 +105,7 @@ def _plugin_warnings(tmp_path) -> None:
     warn_if_upstream_steps(SparseConfig(), 1000)                            # a deviation from the paper
     opt = _motiondiffuse_opt("--sparse_fsq", "true")                        # a setting that cannot apply
     attach_trainer(_Trainer(opt))
-    from smdm_plugin.integrations.compile import compile_model, uncompile  # a fallback
+    from smdm_plugin.runtime.compile import compile_model, uncompile  # a fallback
 
     model = _tiny()
     compile_model(model, "reduce-overhead", device="cpu")
@@ -179,16 +179,16 @@ def test_an_mdm_run_under_moviepys_capture_shows_the_plugins_warnings(tmp_path):
         import argparse, logging, os
         logging.captureWarnings(True)                 # moviepy 1.0.3, imported by sample/generate.py
         from smdm_plugin import TinyMDM
-        from smdm_plugin.integrations.compile import add_compile_options
+        from smdm_plugin.runtime.compile import add_compile_options
         from smdm_plugin.integrations.options import add_sparse_options
-        from smdm_plugin.reference.diffusion import SimpleDiffusion
+        from smdm_plugin.reference.simple_diffusion import SimpleDiffusion
         parser = argparse.ArgumentParser()
         add_compile_options(parser.add_argument_group("base"))
         add_sparse_options(parser.add_argument_group("model"))
         args = parser.parse_args(["--sparse", "--sparse_feature", "raw", "--sparse_compile", "reduce-overhead"])
         args.save_dir, args.diffusion_steps = "run", 1000
         os.makedirs("run")
-        from smdm_plugin.integrations.mdm import sparsify_mdm
+        from smdm_plugin.families.mdm.upstream import sparsify_mdm
         m = TinyMDM(njoints=8, nfeats=1, latent_dim=32, ff_size=64, num_layers=1, cond_mode="no_cond")
         sparsify_mdm(m, args, None, SimpleDiffusion(1000))
     """)
@@ -237,7 +237,7 @@ def test_a_training_run_states_both_phases_once(capsys, tmp_path):
     os.makedirs(args.save_dir)
     m = TinyMDM(njoints=8, nfeats=1, latent_dim=32, ff_size=64, num_layers=1, cond_mode="no_cond",
                 context_len=20, pred_len=40)
-    from smdm_plugin.reference.diffusion import SimpleDiffusion
+    from smdm_plugin.reference.simple_diffusion import SimpleDiffusion
 
     for _ in range(2):                                   # patch + launcher both call it
         with warnings.catch_warnings():
@@ -285,7 +285,7 @@ def test_motiondiffuse_runs_without_fsq_keys_by_default_and_says_nothing_about_i
 def test_motiondiffuse_options_files_without_the_fsq_key_mean_no_fsq_keys():
     """An ``opt.txt`` written before the option existed has no ``sparse_fsq`` line: MotionDiffuse's
     default, not the dataclass's, and no warning."""
-    from smdm_plugin.integrations.motiondiffuse import config_from_opt
+    from smdm_plugin.families.motiondiffuse.upstream import config_from_opt
 
     opt = argparse.Namespace(sparse="True", sparse_reduction="0.8", is_train=False, model_dir=None)
     assert config_from_opt(opt).fsq is False

@@ -18,12 +18,12 @@ import torch
 
 from smdm_plugin import SparseConfig, TinyMDM
 from smdm_plugin.core.agreement import disagreement
-from smdm_plugin.core.config_files import CONFIG_FILENAME
-from smdm_plugin.integrations.mdm import add_sparse_options, sample_output_dir, sparsify_mdm
-from smdm_plugin.integrations.priormdm import doubletake_output_dir, sparsify_priormdm
-from smdm_plugin.reference.diffusion import SimpleDiffusion
+from smdm_plugin.support.config_files import CONFIG_FILENAME
+from smdm_plugin.families.mdm.upstream import add_sparse_options, sample_output_dir, sparsify_mdm
+from smdm_plugin.families.doubletake.upstream import doubletake_output_dir, sparsify_priormdm
+from smdm_plugin.reference.simple_diffusion import SimpleDiffusion
 
-from helpers.motiondiffuse_standin import StandInDiffusion, StandInMotionTransformer
+from smdm_plugin.families.motiondiffuse.standin import StandInDiffusion, StandInMotionTransformer
 from helpers.paths import ROOT
 
 
@@ -123,8 +123,8 @@ def _sampling_run(cwd, args: str, then: str, model: str = "doubleTake_TinyMDM", 
         import argparse, os, time, warnings, numpy as np
         {extra}
         from smdm_plugin import TinyMDM
-        from smdm_plugin.integrations.priormdm import sparsify_priormdm
-        from smdm_plugin.integrations.mdm import sparsify_mdm
+        from smdm_plugin.families.doubletake.upstream import sparsify_priormdm
+        from smdm_plugin.families.mdm.upstream import sparsify_mdm
         class doubleTake_TinyMDM(TinyMDM):
             pass
         kw = dict(njoints=8, nfeats=1, latent_dim=32, ff_size=64, num_layers=1, cond_mode="no_cond")
@@ -259,7 +259,7 @@ def test_a_sparse_config_json_already_there_is_never_overwritten(tmp_path):
 
 
 def test_motiondiffuse_opt_txt_states_fsq_off_with_a_warning(tmp_path):
-    from smdm_plugin.integrations.motiondiffuse import attach_trainer, config_from_opt
+    from smdm_plugin.families.motiondiffuse.upstream import attach_trainer, config_from_opt
 
     parser = argparse.ArgumentParser()
     add_sparse_options(parser)
@@ -289,14 +289,14 @@ def test_motiondiffuse_opt_txt_states_fsq_off_with_a_warning(tmp_path):
     read = argparse.Namespace(**{k: v for k, v in (ln.split(": ", 1) for ln in lines[1:-1])})
     read.is_train, read.model_dir = False, opt.model_dir
     saved = config_from_opt(read)
-    from smdm_plugin.integrations.motiondiffuse import _options
+    from smdm_plugin.families.motiondiffuse.upstream import _options
     assert disagreement(saved, _options(read), "sparse_config.json", str(opt_file), ignore=("version",)) is None
 
 
 def test_doubletake_196_frame_mask_no_warning_lengths_from_the_window():
     """priorMDM passes y['mask'] [S, 1, 1, 196] to both takes; the window is 40 frames here: no
     mask-length warning, and the valid frames are y['lengths'] (not cut from 196)."""
-    from smdm_plugin.adapters.doubletake import doubletake_window_mask
+    from smdm_plugin.families.doubletake.model import doubletake_window_mask
 
     torch.manual_seed(0)
     model = doubleTake_TinyMDM(njoints=8, nfeats=1, latent_dim=32, ff_size=64, num_layers=1, cond_mode="no_cond")

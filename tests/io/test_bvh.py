@@ -177,7 +177,7 @@ def test_cmu_to_humanml22_mapping_and_midpoints():
 
 def test_joint_selection_features_are_root_relative():
     """BVH joints [.., T, 22, 3] -> the 64-D selection features (kind 'joints': joints 1..21 minus the root)."""
-    from smdm_plugin.core.features import extract_selection_features
+    from smdm_plugin.core.selection_features import extract_selection_features
 
     j = np.random.default_rng(1).normal(size=(2, 7, 22, 3))
     f = extract_selection_features(torch.from_numpy(j.reshape(2, 7, 66)), "joints", frame_index_scale=0.1).numpy()

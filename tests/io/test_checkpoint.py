@@ -3,8 +3,9 @@ import json
 import pytest
 import torch
 
-from smdm_plugin import SparseConfig, TinyMDM, check_state_dict, load_checkpoint, save_sparse_config, sparsify
-from smdm_plugin.io.checkpoint import find_sparse_config
+from smdm_plugin import SparseConfig, TinyMDM, load_checkpoint, save_sparse_config, sparsify
+from smdm_plugin.io.checkpoint_files import check_state_dict
+from smdm_plugin.io.checkpoint_files import find_sparse_config
 
 KW = dict(latent_dim=32, ff_size=64, num_layers=1)
 

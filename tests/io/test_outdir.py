@@ -17,7 +17,7 @@ from pathlib import Path
 import pytest
 import torch
 
-import smdm_plugin.core.atomic as atomic
+import smdm_plugin.support.atomic as atomic
 import smdm_plugin.io.outdir as outdir
 from smdm_plugin.io.files import atomic_open
 from smdm_plugin.io.outdir import MANIFEST, OutputDir, OutputLock, OutputLockedError, lock_path, partial_path

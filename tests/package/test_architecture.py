@@ -17,15 +17,24 @@ PKG = Path(smdm_plugin.__file__).resolve().parent
 
 # layer -> the layers it may import from (itself included)
 ALLOWED = {
-    "core": {"core"},
-    "reference": {"reference", "core"},
-    "adapters": {"adapters", "core", "io"},
-    "io": {"io", "core", "reference"},
-    "metrics": {"metrics", "io", "core"},
-    "integrations": {"integrations", "adapters", "core", "io", "reference", "metrics"},
-    "training": {"training", "integrations", "adapters", "core", "io", "reference", "metrics"},
-    "apps": {"apps", "training", "integrations", "adapters", "core", "io", "reference", "metrics"},
+    "support": {"support"},
+    "core": {"core", "support"},
+    "reference": {"reference", "core", "support"},
+    "io": {"io", "core", "reference", "support"},
+    "metrics": {"metrics", "io", "core", "support"},
+    "adapters": {"adapters", "core", "io", "support"},
+    "runtime": {"runtime", "adapters", "core", "io", "reference", "support"},
+    "integrations": {"integrations", "runtime", "adapters", "core", "io", "reference", "metrics", "support"},
+    "training": {"training", "runtime", "adapters", "core", "io", "reference", "metrics", "support"},
+    "families": {"families", "training", "integrations", "runtime", "adapters", "core", "io", "reference", "metrics",
+                 "support"},
+    "apps": {"apps", "families", "training", "integrations", "runtime", "adapters", "core", "io", "reference",
+             "metrics", "support"},
 }
+#: the one name a registry may give to modules above it: the family registry's built-in family
+#: packages (imported on its first lookup; each registers itself). Checked by
+#: test_the_family_registry_names_only_family_packages, left out of the layer and circle checks.
+PLUGIN_LISTS = {"smdm_plugin.adapters.families": "BUILTIN_FAMILIES"}
 
 
 def layer_of(module: str) -> str:
@@ -48,17 +57,27 @@ def is_type_checking(node: ast.AST) -> bool:
         isinstance(test, ast.Attribute) and test.attr == "TYPE_CHECKING")
 
 
-def run_time_nodes(tree: ast.AST):
+def run_time_nodes(tree: ast.AST, type_checking: bool = False):
     """Every node of ``tree`` that runs: module level and inside functions, the bodies of
-    ``if TYPE_CHECKING:`` left out (their ``else`` kept)."""
+    ``if TYPE_CHECKING:`` left out (their ``else`` kept) unless ``type_checking``."""
     stack = [tree]
     while stack:
         node = stack.pop()
         yield node
-        if is_type_checking(node):
+        if is_type_checking(node) and not type_checking:
             stack.extend(node.orelse)
             continue
         stack.extend(ast.iter_child_nodes(node))
+
+
+def plugin_list_nodes(tree: ast.AST, name: str) -> set:
+    """The ids of the string constants in the module-level assignment to ``PLUGIN_LISTS[name]``."""
+    target = PLUGIN_LISTS.get(name)
+    ids = set()
+    for node in getattr(tree, "body", []):
+        if isinstance(node, ast.Assign) and any(isinstance(t, ast.Name) and t.id == target for t in node.targets):
+            ids |= {id(n) for n in ast.walk(node.value) if isinstance(n, ast.Constant)}
+    return ids
 
 
 def resolve(name: str, modules) -> str:
@@ -72,19 +91,27 @@ def resolve(name: str, modules) -> str:
 
 
 DOTTED = re.compile(r"smdm_plugin(\.[A-Za-z_]\w*)+(:[A-Za-z_]\w*)?")
+#: a module named relatively, ``".plan_triton"`` (``importlib.import_module(name, __package__)``)
+RELATIVE = re.compile(r"(\.+)([A-Za-z_]\w*(?:\.[A-Za-z_]\w*)*)(:[A-Za-z_]\w*)?")
 
 
-def imports_in(source: str, name: str, is_package: bool, modules):
+def imports_in(source: str, name: str, is_package: bool, modules, type_checking: bool = False, plugins: bool = False):
     """``(line, module)`` for every module of the package that the module ``name`` loads at run
-    time: import statements (module level and inside functions, not under ``if TYPE_CHECKING:``),
-    ``importlib.import_module`` / ``__import__`` of a name, and strings that name a module (a
-    registry importing its entries by dotted name, ``"smdm_plugin.apps.train:main"``)."""
+    time: import statements (module level and inside functions, not under ``if TYPE_CHECKING:``
+    unless ``type_checking``), ``importlib.import_module`` / ``__import__`` of a name, and strings
+    that name a module (a registry importing its entries by dotted name,
+    ``"smdm_plugin.apps.train:main"``; a module of the same package named relatively,
+    ``".plan_triton"``). The names in a :data:`PLUGIN_LISTS` entry are left out (only they with
+    ``plugins``)."""
     package = name if is_package else name.rsplit(".", 1)[0]
     tree = ast.parse(source)
     docstrings = {id(n.body[0].value) for n in ast.walk(tree)
                   if isinstance(n, (ast.Module, ast.FunctionDef, ast.AsyncFunctionDef, ast.ClassDef))
                   and n.body and isinstance(n.body[0], ast.Expr) and isinstance(n.body[0].value, ast.Constant)}
-    for node in run_time_nodes(tree):
+    listed = plugin_list_nodes(tree, name)
+    for node in run_time_nodes(tree, type_checking):
+        if (id(node) in listed) != plugins:
+            continue
         if isinstance(node, ast.Import):
             for a in node.names:
                 if a.name.startswith("smdm_plugin."):
@@ -108,14 +135,21 @@ def imports_in(source: str, name: str, is_package: bool, modules):
                 target = resolve(node.value.split(":")[0], modules)
                 if target:
                     yield node.lineno, target
+            elif RELATIVE.fullmatch(node.value):   # import_module(".x", __package__)
+                m = RELATIVE.fullmatch(node.value)
+                base = package.split(".")
+                target = ".".join(base[:len(base) - len(m.group(1)) + 1] + [m.group(2)])
+                if target in modules:
+                    yield node.lineno, target
 
 
 MODULES = {module_name(p): p for p in PKG.rglob("*.py")}
 
 
-def imports_of(path: Path):
+def imports_of(path: Path, type_checking: bool = False, plugins: bool = False):
     """Every smdm_plugin module a file of the package loads at run time (see :func:`imports_in`)."""
-    return imports_in(path.read_text(), module_name(path), path.name == "__init__.py", MODULES)
+    return imports_in(path.read_text(), module_name(path), path.name == "__init__.py", MODULES, type_checking,
+                      plugins)
 
 
 def layer_violations(name: str, edges) -> list:
@@ -167,10 +201,11 @@ def import_cycles(graph) -> list:
     return sorted(out)
 
 
-def package_graph():
-    """module -> the package modules it loads at run time (the root package left out: it loads
-    its public names lazily, on first use)."""
-    return {name: {t for _, t in imports_of(path) if t in MODULES and t != "smdm_plugin"}
+def package_graph(type_checking: bool = True):
+    """module -> the package modules it loads at run time, and (``type_checking``) those it names
+    for type checkers (``if TYPE_CHECKING:``: a static circle is one too); the root package left
+    out (it loads its public names lazily, on first use)."""
+    return {name: {t for _, t in imports_of(path, type_checking) if t in MODULES and t != "smdm_plugin"}
             for name, path in MODULES.items() if name != "smdm_plugin"}
 
 
@@ -195,27 +230,28 @@ KNOWN_CIRCLES: set = set()
 
 def test_no_import_circle():
     """No module loads, directly or through others, a module that loads it: also not at run time
-    (an import inside a function, ``importlib``), which the layer check alone does not see when
-    the two modules sit in one layer."""
+    (an import inside a function, ``importlib``, a module named relatively for
+    ``import_module(name, __package__)``), which the layer check alone does not see when the two
+    modules sit in one layer; and not for type checkers (``if TYPE_CHECKING:``)."""
     cycles = [c for c in import_cycles(package_graph()) if frozenset(c) not in KNOWN_CIRCLES]
     assert not cycles, "import circles:\n" + "\n".join(" -> ".join(c) for c in cycles)
 
 
 def test_the_checks_see_run_time_imports():
     """The checks above see what a reading of module-level imports misses: the 0.6 back-edge
-    (io/checkpoint.py loading the adapters by name inside a function, a circle with
+    (io/checkpoint_files.py loading the adapters by name inside a function, a circle with
     adapters/checkpoint.py), ``__import__``, a registry's dotted name, a function-level ``from``;
     and they leave out what never runs (``if TYPE_CHECKING:``)."""
     old_io = ("def default_preparer():\n"
               "    import importlib\n"
               "    importlib.import_module('smdm_plugin.adapters')\n")
-    edges = list(imports_in(old_io, "smdm_plugin.io.checkpoint", False, MODULES))
+    edges = list(imports_in(old_io, "smdm_plugin.io.checkpoint_files", False, MODULES))
     assert edges == [(3, "smdm_plugin.adapters")]
-    assert layer_violations("smdm_plugin.io.checkpoint", edges) == [
-        "smdm_plugin.io.checkpoint:3: io -> adapters (smdm_plugin.adapters)"]
-    graph = {"smdm_plugin.io.checkpoint": {"smdm_plugin.adapters"},
+    assert layer_violations("smdm_plugin.io.checkpoint_files", edges) == [
+        "smdm_plugin.io.checkpoint_files:3: io -> adapters (smdm_plugin.adapters)"]
+    graph = {"smdm_plugin.io.checkpoint_files": {"smdm_plugin.adapters"},
              "smdm_plugin.adapters": {"smdm_plugin.adapters.checkpoint"},
-             "smdm_plugin.adapters.checkpoint": {"smdm_plugin.io.checkpoint"}}
+             "smdm_plugin.adapters.checkpoint": {"smdm_plugin.io.checkpoint_files"}}
     assert import_cycles(graph) == [sorted(graph)]
     assert import_cycles({"a": {"b"}, "b": set()}) == []
     snippet = ("from typing import TYPE_CHECKING\n"
@@ -224,17 +260,80 @@ def test_the_checks_see_run_time_imports():
                "def f():\n"
                "    from ..training import trainer\n"
                "    return __import__('smdm_plugin.apps.cli')\n"
-               "FAMILIES = Registry('family', builtins='smdm_plugin.adapters.mdm')\n"
+               "FAMILIES = Registry('family', builtins='smdm_plugin.families.mdm.model')\n"
                "COMMANDS = {'train': 'smdm_plugin.apps.train:main'}\n")
     assert sorted(imports_in(snippet, "smdm_plugin.core.x", False, MODULES)) == [
-        (5, "smdm_plugin.training.trainer"), (6, "smdm_plugin.apps.cli"), (7, "smdm_plugin.adapters.mdm"),
+        (5, "smdm_plugin.training.trainer"), (6, "smdm_plugin.apps.cli"), (7, "smdm_plugin.families.mdm.model"),
         (8, "smdm_plugin.apps.train")]
+
+
+def test_the_checks_see_static_circles_and_relative_names():
+    """The 0.8 circles the checks did not see: the state, the family protocol and the call naming
+    each other for type checkers (adapters/state.py -> family.py -> call.py -> state.py), and the
+    plan op loading its Triton kernel by a short name while the kernel imported the op back."""
+    state = ("from typing import TYPE_CHECKING\n"
+             "if TYPE_CHECKING:\n"
+             "    from .state import SparseState\n")
+    assert list(imports_in(state, "smdm_plugin.adapters.call", False, MODULES)) == []
+    assert list(imports_in(state, "smdm_plugin.adapters.call", False, MODULES, type_checking=True)) == [
+        (3, "smdm_plugin.adapters.state")]
+    op = "OP = FusedOp('keyframe_plan', cuda=TritonKernel('.plan_triton', 'keyframe_plan_triton', 'plan'))\n"
+    assert list(imports_in(op, "smdm_plugin.core.kernels.plan_op", False, MODULES)) == [
+        (1, "smdm_plugin.core.kernels.plan_triton")]
+    graph = {"smdm_plugin.core.kernels.plan_op": {"smdm_plugin.core.kernels.plan_triton"},
+             "smdm_plugin.core.kernels.plan_triton": {"smdm_plugin.core.kernels.plan_op"}}
+    assert import_cycles(graph) == [sorted(graph)]
+    graph = package_graph()
+    assert "smdm_plugin.core.kernels.plan_triton" in graph["smdm_plugin.core.kernels.plan_op"]
+    assert "smdm_plugin.core.kernels.plan_op" not in graph["smdm_plugin.core.kernels.plan_triton"]
+
+
+def test_the_family_registry_names_only_family_packages():
+    """The one name that points up: the family registry's built-in family packages
+    (:data:`PLUGIN_LISTS`), imported on its first lookup. Each is a package of families/, and each
+    imports alone in a fresh interpreter (no half-initialised module) and registers its one spec."""
+    for name, const in PLUGIN_LISTS.items():
+        named = [t for _, t in imports_of(MODULES[name], plugins=True)]
+        assert named and all(t.startswith("smdm_plugin.families.") and t.count(".") == 2 for t in named), named
+        code = ("import importlib, json, sys\n"
+                f"from {name} import FAMILY_SPECS, {const}\n"
+                f"for m in {const}:\n"
+                "    importlib.import_module(m)\n"
+                "print(json.dumps([s.name for s in FAMILY_SPECS._items.values()]))")
+        for module in named:
+            out = subprocess.run([sys.executable, "-c", f"import {module}"], capture_output=True, text=True)
+            assert out.returncode == 0, out.stderr
+        out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
+        assert len(json.loads(out.strip().splitlines()[-1])) == len(named)
+
+
+def test_a_module_name_says_which_one_it_is():
+    """No two modules share a file name, except each family's folder (families/<name>/model.py,
+    upstream.py, ...: the folder says which) and the names listed here."""
+    known = {"data.py", "evaluator.py", "train.py"}
+    seen: dict = {}
+    for path in PKG.rglob("*.py"):
+        rel = path.relative_to(PKG)
+        if path.name in ("__init__.py", "__main__.py") or (rel.parts[0] == "families" and len(rel.parts) == 3):
+            continue
+        seen.setdefault(path.name, []).append(str(rel))
+    twice = {n: sorted(p) for n, p in seen.items() if len(p) > 1 and n not in known}
+    assert not twice, twice
+
+
+def test_training_knows_no_upstream_checkout():
+    """training/ (the in-package trainer, smdm bench's loop) imports nothing of integrations/: graph
+    capture and distributed training are runtime/."""
+    bad = [f"{p.relative_to(PKG)}:{line} {t}" for p in sorted((PKG / "training").rglob("*.py"))
+           for line, t in imports_of(p) if layer_of(t) in ("integrations", "families")]
+    assert not bad, bad
 
 
 OPTIONAL_EXTRAS = {"triton", "transformers"}   # setup.cfg's [gpu] / [hf]: the core installs without them
 
 
-@pytest.mark.parametrize("layer", ["core", "reference", "adapters", "io", "metrics", "integrations", "training"])
+@pytest.mark.parametrize("layer", ["support", "core", "reference", "adapters", "io", "metrics", "runtime",
+                                   "integrations", "training", "families"])
 def test_importing_a_layer_pulls_in_only_what_it_may(layer):
     modules = sorted(module_name(p) for p in (PKG / layer).rglob("*.py"))
     # a module that needs an optional extra (core/kernels/vw_triton.py: triton) is left out where
@@ -266,7 +365,7 @@ def test_public_api_resolves_every_name():
 
 def test_architecture_doc_names_every_command_and_family():
     """docs/architecture.md (the one-page map) lists every `smdm` command and every built-in family."""
-    from smdm_plugin import families
+    from smdm_plugin.adapters.families import families
     from smdm_plugin.apps.cli import COMMANDS
 
     doc = (PKG.parent / "docs" / "architecture.md").read_text()
@@ -312,7 +411,7 @@ def test_io_knows_no_model_family():
     bad = [f"{p.relative_to(PKG)}:{line} {t}" for p in sorted((PKG / "io").rglob("*.py"))
            for line, t in imports_of(p) if layer_of(t) == "adapters"]
     assert not bad, bad
-    from smdm_plugin.io import checkpoint as io_checkpoint
+    from smdm_plugin.io import checkpoint_files as io_checkpoint
 
     assert not hasattr(io_checkpoint, "load_checkpoint") and not hasattr(io_checkpoint, "register_model_preparer")
 

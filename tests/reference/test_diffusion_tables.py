@@ -2,7 +2,7 @@
 float64 host tables gives, and sampling unchanged."""
 import torch
 
-from smdm_plugin.reference.diffusion import SimpleDiffusion
+from smdm_plugin.reference.simple_diffusion import SimpleDiffusion
 
 
 def _old_at(table: torch.Tensor, t: torch.Tensor, like: torch.Tensor) -> torch.Tensor:

@@ -74,7 +74,7 @@ def test_bundle_motion_json_is_validated(tmp_path):
     from smdm_plugin.training.bundle import load_bundle, save_bundle
     from smdm_plugin.io.representation import Representation
     from smdm_plugin.reference.backbone import TinyMDM
-    from smdm_plugin.reference.diffusion import SimpleDiffusion
+    from smdm_plugin.reference.simple_diffusion import SimpleDiffusion
 
     rep = Representation("joints66")
     kw = dict(njoints=66, nfeats=1, latent_dim=16, ff_size=32, num_layers=1, num_heads=2, cond_mode="no_cond")
@@ -99,7 +99,7 @@ def test_bundle_motion_json_is_validated(tmp_path):
 def test_options_files_must_agree_with_the_saved_config(model_dir, tmp_path):
     import argparse
 
-    from smdm_plugin.integrations.motiondiffuse import config_from_opt
+    from smdm_plugin.families.motiondiffuse.upstream import config_from_opt
 
     # diffusion_steps is set from the diffusion when the model is built: a CLI default there is fine
     (model_dir / "args.json").write_text('{"sparse": true, "sparse_diffusion_steps": 50, "sparse_reduction": 0.8}')

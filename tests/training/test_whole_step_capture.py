@@ -18,7 +18,7 @@ pytest.importorskip("torch._dynamo")
 from torch._dynamo.utils import counters  # noqa: E402
 
 from smdm_plugin.core.checks import static_mode  # noqa: E402
-from smdm_plugin.integrations import compile as C  # noqa: E402
+from smdm_plugin.runtime import compile as C
 from smdm_plugin.training import benchmark, workloads  # noqa: E402
 
 pytestmark = pytest.mark.usefixtures("one_thread", "fresh_dynamo")

@@ -39,8 +39,8 @@ def run_variant(cfg: Dict[str, Any], variant: Dict[str, Any], data: "MotionData"
     the steps and, when one is there, training continues from it (``smdm train --resume``'s
     mechanism: weights, optimiser, random streams, step), so an interrupted variant resumes
     bit-identically instead of starting over."""
-    from ...integrations.distributed import DistContext
-    from ...metrics.features import feature_quality, keyframe_interpolation_error_mm
+    from ...runtime.distributed import DistContext
+    from ...metrics.feature_measures import feature_quality, keyframe_interpolation_error_mm
     from ...training.trainer import TrainConfig, Trainer, resume
     from ...training.validation import validation_loss
 
@@ -175,7 +175,7 @@ def run_ablation(cfg: Dict[str, Any], out: str, data_root: str, device: str = "a
                  resume: bool = False, overwrite: bool = False, dist=None) -> List[Dict[str, Any]]:
     """Run the grid ``cfg`` into ``out``; returns one row per variant of the grid, in its order.
 
-    ``dist``: a torchrun context (:func:`~smdm_plugin.integrations.distributed.init_distributed`):
+    ``dist``: a torchrun context (:func:`~smdm_plugin.runtime.distributed.init_distributed`):
     every rank trains each variant with DDP; rank 0 alone decides what to run, evaluates, writes
     and logs (the other ranks return ``[]``).
 
@@ -184,7 +184,7 @@ def run_ablation(cfg: Dict[str, Any], out: str, data_root: str, device: str = "a
     unreadable ones; results from another run stop it with :class:`StaleResultsError` before
     anything trains) or ``overwrite`` (run every selected variant again). See the module docstring.
     """
-    from ...integrations.distributed import DistContext
+    from ...runtime.distributed import DistContext
 
     if resume and overwrite:
         raise ValueError("run_ablation: resume and overwrite exclude each other")
@@ -212,7 +212,7 @@ def _run_locked(cfg: Dict[str, Any], out: str, data_root: str, ctx, selected: Se
 
     main_rank = ctx.is_main
     dev = ctx.device
-    from ...metrics.features import feature_quality
+    from ...metrics.feature_measures import feature_quality
     from ...training.data import MotionData  # noqa: F811 - at run time
 
     data = MotionData(data_root, int(cfg["max_frames"]))
@@ -361,7 +361,7 @@ def main(argv: Optional[List[str]] = None) -> int:
                 "val.txt or test.txt), e.g. HumanML3D itself; the embedded CMU clips are joint positions, not "
                 "263-D features: `smdm demo` compares dense and sparse on them")
     cfg["data"] = data_root
-    from ...integrations.distributed import init_distributed, shutdown_distributed
+    from ...runtime.distributed import init_distributed, shutdown_distributed
 
     try:
         ctx = init_distributed(a.device)  # under torchrun: join the group (gloo on CPU, nccl on CUDA)

@@ -11,7 +11,7 @@ import re
 from typing import Any, Dict, List, Optional, Sequence, Set
 
 from ...core.presets import preset_dirs
-from ...core.values import ConfigTypeError, Range, closest
+from ...support.values import ConfigTypeError, Range, closest
 
 DEFAULT_DATA = os.path.join("..", "shared", "data", "cmu-humanml3d")  # the scripts/ default (this project's data)
 DEFAULTS: Dict[str, Any] = {

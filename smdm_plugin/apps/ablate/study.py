@@ -15,7 +15,7 @@ from typing import Any, Callable, Dict, List, Optional, Sequence, Tuple
 import numpy as np
 import torch
 
-from ...core.values import closest
+from ...support.values import closest
 from ...io.files import OutputExistsError, atomic_open, atomic_write_json, atomic_write_text
 from ..common.args import add_common_flags, add_overwrite, existing_path, note_printer, progress_of, resolve_device
 from .results import (MANIFEST, check_out_dir, FAILED_FILE, RESULT_FILE, CacheState, Cached, Record, Status, failure_record, is_ok, read_cached,
@@ -152,7 +152,7 @@ def _check_primary(out: Dict[str, Any]) -> None:
 
 
 def _range(lo: float):
-    from ...core.values import Range
+    from ...support.values import Range
 
     return Range(lo)
 
@@ -222,7 +222,7 @@ def score_set(evaluator, raw: torch.Tensor, norm: torch.Tensor, lengths: torch.T
     """Every metric of one set of motions (one per caption, row ``i`` for caption ``i``): FID with its
     bootstrap interval (``fid_low``, ``fid_high``), R-precision and matching score averaged over
     :data:`RETRIEVAL_DRAWS` pools (:data:`SCORING`), diversity, jitter, speed, j/s, foot skating."""
-    from ...metrics.features import per_motion_quality
+    from ...metrics.feature_measures import per_motion_quality
     from ...metrics.t2m import diversity, fid_bootstrap, retrieval
 
     emb = evaluator.embed_motion(raw, lengths).double().numpy()
@@ -278,7 +278,7 @@ def run_seed(cfg: Dict[str, Any], variant: Dict[str, Any], seed: int, data: Stud
     and the run's progress (clocks, snapshots so far) are saved there, and a run that finds them
     continues from the last one (``smdm ablate --resume`` after an interruption: at most the training
     since the last snapshot is redone; the clocks continue from their saved values)."""
-    from ...integrations.distributed import DistContext
+    from ...runtime.distributed import DistContext
     from ...reference.text import TextConfig
     from ...training.trainer import TrainConfig, Trainer
 
@@ -378,7 +378,7 @@ def _restore(trainer, folder: str) -> Optional[Dict[str, Any]]:
     complete checkpoint in ``folder``: the run starts at step 0)."""
     import json
 
-    from ...io.checkpoint import read_state_dict
+    from ...io.checkpoint_files import read_state_dict
     from ...training.trainer import TRAIN_STATE_FILENAME
 
     path = os.path.join(folder, TRAIN_STATE_FILENAME)

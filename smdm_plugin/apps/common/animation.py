@@ -210,7 +210,7 @@ def render_gif(panels: Sequence[Panel], path: str, fps: float = 20.0, stride: in
     tmp = os.path.join(folder, f".{os.path.basename(path)}.{os.getpid()}.tmp.gif")
     writer = PillowWriter(fps=fps / int(stride))
     steps = range(len(shown))
-    from ...core.progress import bars_on  # stderr a terminal (or --progress)
+    from ...support.progress import bars_on  # stderr a terminal (or --progress)
 
     if bars_on(progress):
         from tqdm.auto import tqdm
@@ -224,7 +224,7 @@ def render_gif(panels: Sequence[Panel], path: str, fps: float = 20.0, stride: in
                 writer.grab_frame()
         os.replace(tmp, path)
     except (OSError, RuntimeError) as e:
-        from ...core.atomic import write_error
+        from ...support.atomic import write_error
 
         named = write_error(e, path)  # a failed write (a full disk): one OSError naming the GIF
         if named is None and isinstance(e, OSError) and e.filename == tmp:

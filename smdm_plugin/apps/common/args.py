@@ -13,7 +13,7 @@ if TYPE_CHECKING:
     import torch
 
 # the range-checked types live in core (the --sparse_* options use them too); re-exported here
-from ...core.argtypes import float_range, int_range, str2bool
+from ...support.argtypes import float_range, int_range, str2bool
 
 __all__ = ["int_range", "float_range", "str2bool", "existing_path", "device_type", "compile_backend", "resolve_device",
            "add_overwrite", "add_common_flags", "progress_of", "note_printer", "COMMON_FLAGS"]
@@ -70,7 +70,7 @@ def compile_backend(text: str) -> str:
     from torch._dynamo import list_backends
     from torch._dynamo.backends.registry import lookup_backend
 
-    from ...core.values import closest
+    from ...support.values import closest
 
     try:
         lookup_backend(text)
@@ -84,8 +84,8 @@ def compile_backend(text: str) -> str:
 def resolve_device(name: str = "auto") -> "torch.device":
     """The ``torch.device`` of a ``--device`` value (checked by :func:`device_type`): ``auto`` is
     CUDA when available, else MPS when available, else the CPU (one rule for every command:
-    :func:`smdm_plugin.integrations.distributed.resolve_device`)."""
-    from ...integrations.distributed import resolve_device as resolve
+    :func:`smdm_plugin.runtime.distributed.resolve_device`)."""
+    from ...runtime.distributed import resolve_device as resolve
 
     return resolve(name if name == "auto" else device_type(name))
 
@@ -120,7 +120,7 @@ def add_common_flags(p: Any, *, device: Optional[str] = "auto", threads: bool = 
       (``device_help``: what ``auto`` means for this command, when it says more than the default help);
     * ``--threads N`` (default ``threads_default``: the automatic choice of ``common.threads``);
     * ``--no-progress`` — no progress bars or per-step progress lines; without it bars show only
-      when stderr is a terminal (:func:`smdm_plugin.core.progress.bars_on`), ``--progress`` shows
+      when stderr is a terminal (:func:`smdm_plugin.support.progress.bars_on`), ``--progress`` shows
       them whatever stderr is (a log file then holds every redraw);
     * ``--quiet`` — ``--no-progress`` and no notes (what the command is doing, where it wrote):
       results, warnings and errors still print (:func:`progress_of`, :func:`note_printer`).
@@ -157,8 +157,8 @@ def add_common_flags(p: Any, *, device: Optional[str] = "auto", threads: bool = 
 
 def progress_of(args: argparse.Namespace) -> bool | str:
     """Whether the command shows progress: neither ``--no-progress`` nor ``--quiet`` was given
-    (per-step lines then print; bars show where :func:`smdm_plugin.core.progress.bars_on` says);
-    ``"always"`` (:data:`smdm_plugin.core.progress.ALWAYS`: bars whatever stderr is) with ``--progress``."""
+    (per-step lines then print; bars show where :func:`smdm_plugin.support.progress.bars_on` says);
+    ``"always"`` (:data:`smdm_plugin.support.progress.ALWAYS`: bars whatever stderr is) with ``--progress``."""
     if getattr(args, "no_progress", False) or getattr(args, "quiet", False):
         return False
     return "always" if getattr(args, "progress", False) else True

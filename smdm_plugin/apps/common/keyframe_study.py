@@ -126,8 +126,8 @@ def require_windows(wins: Sequence[Tuple[str, int, np.ndarray]], clips: Sequence
 
 def selection_features(joints: np.ndarray, frame_index_scale: float = FRAME_INDEX_SCALE) -> torch.Tensor:
     """``[1, T, 67]`` float32: the 22 global joint positions (metres) + frame index × scale
-    (:func:`~smdm_plugin.core.features.extract_selection_features`, kind ``raw``)."""
-    from ...core.features import extract_selection_features
+    (:func:`~smdm_plugin.core.selection_features.extract_selection_features`, kind ``raw``)."""
+    from ...core.selection_features import extract_selection_features
 
     T = joints.shape[0]
     x = torch.from_numpy(np.asarray(joints).reshape(1, T, -1)).double()

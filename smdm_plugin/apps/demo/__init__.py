@@ -17,7 +17,7 @@ from ..common.keyframe_study import (FRAME_INDEX_SCALE, keyframe_markdown, keyfr
                                      plot_keyframes, require_windows, windows)
 
 if TYPE_CHECKING:
-    from ...integrations.distributed import DistContext
+    from ...runtime.distributed import DistContext
     from ...training.data import MotionSet
     from ...training.trainer import Trainer
 
@@ -109,8 +109,8 @@ def inbetween_demo(bundles: Dict[str, Any], clip: Tuple[str, np.ndarray], length
                    seed: int, device: Any, gif: bool, progress: bool, stride: int = 1, note: str = "") -> str:
     """In-between one window of ``clip`` (keyframes every ``every`` frames and the last) with each
     model of ``bundles``; writes ``inbetween.md`` and ``inbetween.gif`` to ``out``; returns the table."""
-    from ...metrics.inbetween import keyframe_metrics
-    from ..common.inbetween import plan_keyframes, run_inbetween, summary_markdown
+    from ...metrics.inbetween_metrics import keyframe_metrics
+    from ..common.bundle_inbetween import plan_keyframes, run_inbetween, summary_markdown
     from ..common.motion_files import LoadedMotion
 
     name, joints = clip
@@ -454,7 +454,7 @@ def write_summary(run: DemoRun, motion: DemoMotion, study: Dict[str, Any], train
 def main_demo(args: argparse.Namespace) -> int:
     """Run the demo (options checked by :func:`main`); returns the exit status. Under torchrun every
     rank reads the motion and trains; rank 0 alone writes files and prints the tables."""
-    from ...integrations.distributed import init_distributed, shutdown_distributed
+    from ...runtime.distributed import init_distributed, shutdown_distributed
     from ..common.threads import apply_threads
 
     t_start = time.perf_counter()

@@ -10,13 +10,14 @@ from ..checks import compiling
 __all__ = ["TritonKernel", "FusedOp", "OBSERVERS"]
 
 #: who watches fused ops (innermost last): ``observer(name, kernel, args)`` runs ``kernel(*args)``
-#: and returns its result (:class:`~smdm_plugin.core.launches.LaunchCounter` counts one launch)
+#: and returns its result (:class:`~smdm_plugin.runtime.launches.LaunchCounter` counts one launch)
 OBSERVERS: List[Callable[[str, Callable[..., Any], list], Any]] = []
 
 
 class TritonKernel:
-    """``kernel(fallback, *args)``: the function ``name`` of this package's module ``module`` (which
-    imports ``triton``) on ``args``, or ``fallback(*args)`` where it cannot run. ``what`` names the
+    """``kernel(fallback, *args)``: the function ``name`` of ``module`` (a module of this package named
+    relatively, ``.vw_triton``, so that the architecture test sees the import; it imports ``triton``)
+    on ``args``, or ``fallback(*args)`` where it cannot run. ``what`` names the
     kernel in the warning, ``slower`` what the fallback costs."""
 
     def __init__(self, module: str, name: str, what: str, slower: str = "the composite (more kernels)") -> None:
@@ -28,7 +29,7 @@ class TritonKernel:
         fn = self._fn
         if fn is None and self.broken is None:
             try:
-                fn = self._fn = getattr(importlib.import_module(f"{__package__}.{self.module}"), self.name)
+                fn = self._fn = getattr(importlib.import_module(self.module, __package__), self.name)
             except ImportError as e:  # no triton (e.g. Windows): the fallback, quietly
                 self.broken = f"triton is not importable ({e})"
         if fn is not None:

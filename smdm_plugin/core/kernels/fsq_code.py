@@ -31,9 +31,9 @@ def fsq_code_grad_composite(grad: Tensor, z: Tensor, half_l: Tensor) -> Tensor:
     return torch.ops.aten.tanh_backward(grad.float() * half_l, torch.tanh(z.float())).to(grad.dtype)
 
 
-CODE = FusedOp("fsq_code", fsq_code_composite, cuda=TritonKernel("fsq_triton", "fsq_code_triton", "FSQ code"))
+CODE = FusedOp("fsq_code", fsq_code_composite, cuda=TritonKernel(".fsq_triton", "fsq_code_triton", "FSQ code"))
 GRAD = FusedOp("fsq_code_backward", fsq_code_grad_composite,
-               cuda=TritonKernel("fsq_triton", "fsq_code_backward_triton", "FSQ code gradient"))
+               cuda=TritonKernel(".fsq_triton", "fsq_code_backward_triton", "FSQ code gradient"))
 
 
 class _CodeSTE(torch.autograd.Function):

@@ -52,9 +52,9 @@ def lipschitz_weight_grad_composite(grad: Tensor, weight: Tensor, c: Tensor) -> 
 
 
 WEIGHT = FusedOp("lipschitz_weight", lipschitz_weight_composite,
-                 cuda=TritonKernel("lipschitz_triton", "lipschitz_weight_triton", "Lipschitz weight"))
+                 cuda=TritonKernel(".lipschitz_triton", "lipschitz_weight_triton", "Lipschitz weight"))
 GRAD = FusedOp("lipschitz_weight_backward", lipschitz_weight_grad_composite,
-               cuda=TritonKernel("lipschitz_triton", "lipschitz_weight_backward_triton", "Lipschitz weight gradient"))
+               cuda=TritonKernel(".lipschitz_triton", "lipschitz_weight_backward_triton", "Lipschitz weight gradient"))
 
 
 class _Weight(torch.autograd.Function):

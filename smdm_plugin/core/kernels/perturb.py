@@ -66,7 +66,7 @@ def _fake(mask: Tensor, lengths: Tensor, u: Tensor, amount: float, protected: Op
 
 
 #: the op: a Triton kernel on CUDA, the composite elsewhere; one opaque node under ``torch.compile``
-OP = FusedOp("perturb_mask", _composite, cuda=TritonKernel("perturb_triton", "perturb_triton", "mask-noise"),
+OP = FusedOp("perturb_mask", _composite, cuda=TritonKernel(".perturb_triton", "perturb_triton", "mask-noise"),
              fake=_fake, opaque=True)
 
 

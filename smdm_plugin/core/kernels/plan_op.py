@@ -12,15 +12,13 @@ whose values every kernel gives. Under ``torch.compile`` the composite is traced
 """
 from __future__ import annotations
 
-from typing import Tuple
-
 import torch
 
 from .. import consts
 from .dispatch import FusedOp, TritonKernel
+from .plan_tensors import Plan
 
 Tensor = torch.Tensor
-Plan = Tuple[Tensor, Tensor, Tensor, Tensor, Tensor, Tensor, Tensor]
 
 __all__ = ["keyframe_plan", "keyframe_plan_composite"]
 
@@ -52,7 +50,7 @@ def keyframe_plan_composite(mask: Tensor, capacity: int) -> Plan:
 
 #: the op: a Triton kernel on CUDA (one program per sample), the composite elsewhere and under compile
 OP = FusedOp("keyframe_plan", keyframe_plan_composite,
-             cuda=TritonKernel("plan_triton", "keyframe_plan_triton", "keyframe plan"))
+             cuda=TritonKernel(".plan_triton", "keyframe_plan_triton", "keyframe plan"))
 
 
 def keyframe_plan(mask: Tensor, capacity: int) -> Plan:

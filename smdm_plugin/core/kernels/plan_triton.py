@@ -8,7 +8,7 @@ import torch
 import triton
 import triton.language as tl
 
-from .plan_op import Plan
+from .plan_tensors import Plan
 
 
 @triton.jit

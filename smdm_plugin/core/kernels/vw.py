@@ -24,7 +24,7 @@ def _cpu(features: Tensor, lengths: Tensor, counts: Tensor, forced: Optional[Ten
     return torch.from_numpy(mask).to(features.device)
 
 
-_KERNEL = TritonKernel("vw_triton", "vw_triton", "VW", "the portable implementation (slower)")
+_KERNEL = TritonKernel(".vw_triton", "vw_triton", "VW", "the portable implementation (slower)")
 
 
 def _mps(features: Tensor, lengths: Tensor, counts: Tensor, forced: Optional[Tensor],

@@ -263,7 +263,7 @@ def train_evaluator(ev: Evaluator, train: CaptionedMotions, val: Optional[Captio
             ae_opt.load_state_dict(state["ae_optimizer"])
         st = {k: state[k] for k in ("epoch", "history", "best", "seconds")}
     bar = None
-    from ...core.progress import bars_on  # stderr a terminal (or --progress)
+    from ...support.progress import bars_on  # stderr a terminal (or --progress)
 
     if bars_on(progress):
         from tqdm.auto import tqdm

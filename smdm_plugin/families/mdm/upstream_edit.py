@@ -8,7 +8,7 @@ from typing import Any, Dict, Optional
 
 import torch
 
-from ._hooks import wrap_once
+from ...integrations._hooks import wrap_once
 
 ENV_POLICY = "SMDM_EDIT_FORCED"
 DEFAULT_POLICY = "ends"
@@ -16,7 +16,7 @@ DEFAULT_POLICY = "ends"
 
 def _sparse_model(model: Any) -> Optional[Any]:
     """The sparsified module inside ``model`` (ClassifierFreeSampleModel, DDP, respacing wrappers)."""
-    from ..adapters.state import find_sparse_model
+    from ...adapters.state import find_sparse_model
 
     seen = set()
     while model is not None and id(model) not in seen:
@@ -30,7 +30,7 @@ def _sparse_model(model: Any) -> Optional[Any]:
 
 
 def policy_from_env() -> str:
-    from ..adapters.inbetween import POLICIES
+    from ...adapters.inbetween_sampling import POLICIES
 
     policy = os.environ.get(ENV_POLICY, DEFAULT_POLICY).strip() or DEFAULT_POLICY
     if policy not in POLICIES:
@@ -43,8 +43,8 @@ def forced_for_edit(model: Any, model_kwargs: Optional[Dict[str, Any]], policy: 
     """``model_kwargs`` with forced keyframes added to ``y`` (``smdm_plugin.with_forced``) when
     ``model`` is sparse and ``y`` has MDM's in-painting keys (a new dict; the caller's is not
     changed), else ``model_kwargs`` itself."""
-    from ..adapters.inbetween import forced_keyframes, frames_from_inpainting_mask
-    from ..adapters.request import request_of, with_forced
+    from ...adapters.inbetween_sampling import forced_keyframes, frames_from_inpainting_mask
+    from ...adapters.request import request_of, with_forced
 
     y = (model_kwargs or {}).get("y")
     if (not isinstance(y, dict) or "inpainting_mask" not in y or "inpainted_motion" not in y
@@ -66,7 +66,7 @@ def forced_for_edit(model: Any, model_kwargs: Optional[Dict[str, Any]], policy: 
 def add_forced_keyframes(model: Any, model_kwargs: Dict[str, Any], policy: Optional[str] = None) -> None:
     """In place: ``model_kwargs['y']`` forces the kept frames of a sparse ``model`` (see
     :func:`forced_for_edit`); the one call patch users add to ``sample/edit.py``."""
-    from ..adapters.request import KEYFRAMES_KEY
+    from ...adapters.request import KEYFRAMES_KEY
 
     new = forced_for_edit(model, model_kwargs, policy)
     if new is not model_kwargs:
@@ -92,7 +92,7 @@ def _patch_gaussian_diffusion(mod: Any) -> None:
 
 def install_hooks() -> None:
     """Wrap MDM's ``GaussianDiffusion.p_sample_loop`` as ``diffusion.gaussian_diffusion`` is
-    imported (idempotent; called by :func:`smdm_plugin.integrations.mdm.install_hooks`)."""
-    from ._hooks import on_import
+    imported (idempotent; called by :func:`smdm_plugin.families.mdm.upstream.install_hooks`)."""
+    from ...integrations._hooks import on_import
 
     on_import("diffusion.gaussian_diffusion", _patch_gaussian_diffusion)

@@ -9,11 +9,11 @@ from typing import Any, Optional
 
 import numpy as np
 
-from ..core.config import SparseConfig
-from ..core.config_files import CONFIG_FILENAME
-from ._hooks import wrap_once
-from .options import add_sparse_options as _add_sparse_options, with_family_defaults
-from .registry import Integration, register_integration
+from ...core.config import SparseConfig
+from ...support.config_files import CONFIG_FILENAME
+from ...integrations._hooks import wrap_once
+from ...integrations.options import add_sparse_options as _add_sparse_options, with_family_defaults
+from ...integrations.checkouts import Integration
 
 FAMILY = "motiondiffuse"
 
@@ -53,7 +53,7 @@ def config_from_opt(opt: Any) -> SparseConfig:
         if os.path.exists(path) and not getattr(opt, "_smdm_cli_override", False):
             saved = SparseConfig.load(path)
             if _coerce(getattr(opt, "sparse", False), False):  # opt.txt describes the same model: it must agree
-                from ..core.agreement import SET_WHEN_ATTACHED, disagreement
+                from ...core.agreement import SET_WHEN_ATTACHED, disagreement
 
                 opt_file = os.path.join(os.path.dirname(os.path.normpath(model_dir)), "opt.txt")
                 why = disagreement(saved, _options(opt), path, opt_file, ignore=(*SET_WHEN_ATTACHED, "fsq"))
@@ -88,7 +88,7 @@ def merge_sparse_options(opt: Any, args: Any) -> Any:
 
 def mean_std_from_opt(opt: Any):
     """The statistics the denoiser's inputs are normalised with."""
-    from ..adapters.motiondiffuse import training_mean_std
+    from .model import training_mean_std
 
     meta = getattr(opt, "meta_dir", None)
     if not getattr(opt, "is_train", False) and meta and os.path.exists(os.path.join(meta, "mean.npy")):
@@ -105,10 +105,10 @@ def attach_trainer(trainer: Any, config: Optional[SparseConfig] = None) -> Any:
     """Sparsify ``trainer.encoder`` (or its ``.module``) and wrap ``trainer.diffusion`` according
     to ``trainer.opt``; training runs save the config beside the checkpoints and bring ``opt``
     and ``opt.txt``'s ``sparse*`` entries to the settings that ran."""
-    from ..adapters.surgery import is_sparse, sparsify
-    from ._rng import upstream_rng_untouched
+    from ...adapters.surgery import is_sparse, sparsify
+    from ...integrations._rng import upstream_rng_untouched
 
-    from .messages import show_plugin_warnings
+    from ...integrations.messages import show_plugin_warnings
 
     show_plugin_warnings()
     opt = trainer.opt
@@ -119,13 +119,13 @@ def attach_trainer(trainer: Any, config: Optional[SparseConfig] = None) -> Any:
         mean, std = mean_std_from_opt(opt)
         with upstream_rng_untouched():  # upstream's batches / noise stay those of a dense run
             sparsify(core, config, mean=mean, std=std, diffusion=trainer.diffusion, family=FAMILY)
-        from .announce import announce_sparse_mode
+        from ...integrations.announce import announce_sparse_mode
 
         announce_sparse_mode(core, "MotionDiffuse", bool(getattr(opt, "is_train", False)))
     if config.enabled and getattr(opt, "is_train", False) and getattr(opt, "model_dir", None):
         # sparse_config.json (never replacing another config unasked), and opt.txt's sparse_* as
         # they ran (e.g. sparse_fsq False: FSQ keys cannot apply to linear attention, with a warning)
-        from ._files import record_run_config
+        from ...integrations._files import record_run_config
 
         opt_file = os.path.join(os.path.dirname(os.path.normpath(opt.model_dir)), "opt.txt")
         record_run_config(core, opt.model_dir, opt, opt_file)
@@ -136,29 +136,21 @@ def compile_trainer(trainer: Any) -> Any:
     """``--sparse_compile`` (docs/compile.md): compile ``trainer.encoder`` (inside its DDP /
     DataParallel wrapper), dense or sparse, once, in place; training runs write the setting that
     applies to ``opt.txt`` (``sparse_compile``, ``sparse_compile_applied``). ``none`` / absent:
-    nothing happens. Returns the :class:`~smdm_plugin.integrations.compile.CompileSetting` or None."""
-    import sys
+    nothing happens. Returns the :class:`~smdm_plugin.runtime.compile.CompileSetting` or None."""
+    from ...integrations._files import compile_upstream
 
-    from ._files import record_compile
-    from .compile import compile_from_args
-    from .messages import show_plugin_warnings
-
-    show_plugin_warnings()
     opt = trainer.opt
     core = getattr(trainer.encoder, "module", trainer.encoder)
     device = getattr(trainer, "device", None) or getattr(opt, "device", None)
-    setting = compile_from_args(core, opt, device=device)
-    if setting is None:
-        return None
-    sys.stderr.write(f"smdm: {type(core).__name__} runs {setting.describe()}\n")
+    options_file = None
     if getattr(opt, "is_train", False) and getattr(opt, "model_dir", None):
-        record_compile(opt, os.path.join(os.path.dirname(os.path.normpath(opt.model_dir)), "opt.txt"))
-    return setting
+        options_file = os.path.join(os.path.dirname(os.path.normpath(opt.model_dir)), "opt.txt")
+    return compile_upstream(core, opt, options_file, device=device)
 
 
 def add_options(parser: Any) -> Any:
     """``--sparse*`` and ``--sparse_compile`` (what the hooks add to MotionDiffuse's option parsers)."""
-    from .compile import add_compile_options
+    from ...runtime.compile import add_compile_options
 
     add_sparse_options(parser)
     return add_compile_options(parser)
@@ -203,7 +195,7 @@ def _patch_trainer(mod) -> None:
         def backward_G(self):
             logs = backward(self)
             if getattr(self.opt, "sparse", False):
-                from ..adapters.motiondiffuse import trainer_loss
+                from .model import trainer_loss
 
                 self.loss_mot_rec = trainer_loss(self, self.loss_mot_rec)
                 logs["loss_mot_rec"] = self.loss_mot_rec.item()
@@ -218,8 +210,8 @@ def _patch_trainer(mod) -> None:
 def install_hooks() -> None:
     """Wrap MotionDiffuse's option classes and ``DDPMTrainer`` as they are imported (run from
     ``text2motion/``). Idempotent; do not combine with the patch."""
-    from ._hooks import on_import
-    from .messages import show_plugin_warnings
+    from ...integrations._hooks import on_import
+    from ...integrations.messages import show_plugin_warnings
 
     show_plugin_warnings()
     on_import("options.train_options", lambda m: _patch_options(m, "TrainCompOptions"))
@@ -235,6 +227,7 @@ def is_motiondiffuse_repo(path: str) -> bool:
         os.path.isfile(j(path, "trainers", "ddpm_trainer.py")) and os.path.isfile(j(path, "models", "transformer.py")))
 
 
-register_integration(Integration(
+#: the upstream checkout `smdm run` hooks (this family's FamilySpec names it)
+INTEGRATION = Integration(
     "motiondiffuse", detect=is_motiondiffuse_repo, install_hooks=install_hooks, priority=20,
-    layout="text2motion/ (MotionDiffuse, root or that folder)"))
+    layout="text2motion/ (MotionDiffuse, root or that folder)")

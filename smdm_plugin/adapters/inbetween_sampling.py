@@ -204,7 +204,7 @@ def sample_inbetween(model: Callable, diffusion: Any, constraint: KeyframeConstr
             MDM's ``p_sample_loop(model, shape, clip_denoised=..., model_kwargs=..., progress=...)``
             that honours the in-painting keys (MDM's ``GaussianDiffusion``: ``imputation="x0"``).
         y: extra conditioning (``text_embed``, ``text``, ``scale``...), copied, not changed.
-        imputation: ``"x0"`` (MDM's) or ``"xt"``; see ``smdm_plugin.reference.diffusion``.
+        imputation: ``"x0"`` (MDM's) or ``"xt"``; see ``smdm_plugin.reference.simple_diffusion``.
         policy: which given frames are forced keyframes (:func:`forced_keyframes`).
         generator: random generator (``SimpleDiffusion`` only).
     """

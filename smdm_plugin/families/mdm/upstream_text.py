@@ -4,7 +4,7 @@ from __future__ import annotations
 import os
 from typing import Any, Optional
 
-from ..core.config import SparseConfig
+from ...core.config import SparseConfig
 
 ENV_CACHE = "SMDM_TEXT_CACHE"
 ENV_TRUST_REMOTE_CODE = "SMDM_TRUST_REMOTE_CODE"
@@ -20,7 +20,7 @@ def cache_capacity_from_env(environ: Optional[dict] = None) -> int:
     if raw in _OFF:
         return 0
     if raw in _ON:
-        from ..adapters.text_cache import DEFAULT_CAPACITY
+        from ...adapters.text_cache import DEFAULT_CAPACITY
 
         return DEFAULT_CAPACITY
     try:
@@ -51,7 +51,7 @@ def apply_text_options(model: Any, config: SparseConfig, environ: Optional[dict]
     (``SMDM_TEXT_CACHE``) on an MDM/DiP model; idempotent, a no-op when neither is asked for."""
     capacity = cache_capacity_from_env(environ)
     if config.text_encoder:
-        from ..adapters.text_encoder import swap_text_encoder, swapped_text_encoder
+        from ...adapters.text_encoder import swap_text_encoder, swapped_text_encoder
 
         if swapped_text_encoder(model) != config.text_encoder:
             if not hasattr(model, "embed_text"):
@@ -59,14 +59,14 @@ def apply_text_options(model: Any, config: SparseConfig, environ: Optional[dict]
                                  "conditioning (cond_mode must include 'text')")
             swap_text_encoder(model, config.text_encoder, **encoder_options_from_env(environ))
     if capacity and hasattr(model, "encode_text"):
-        from ..adapters.text_cache import install_text_cache
+        from ...adapters.text_cache import install_text_cache
 
         install_text_cache(model, capacity=capacity)
     return model
 
 
 def install_hooks() -> None:
-    """Register this extension's import hooks (called by :func:`smdm_plugin.integrations.mdm.install_hooks`).
+    """Register this extension's import hooks (called by :func:`smdm_plugin.families.mdm.upstream.install_hooks`).
 
     None are needed: :func:`apply_text_options` runs inside ``sparsify_mdm``, which the MDM hooks
     (and the patch) already call where the model is built."""

@@ -1,5 +1,6 @@
 """The integration registry: the upstream checkouts ``smdm run`` knows, each registered by its own
-module (``mdm``, ``priormdm``, ``motiondiffuse``) with how to recognise a checkout and how to hook it.
+model family (its ``FamilySpec.integration``: ``families/<name>/upstream.py``) with how to recognise
+a checkout and how to hook it; an integration without a model family with
 
     register_integration(Integration("mine", detect=is_my_repo, install_hooks=install_hooks,
                                      layout="model/mine.py (MyModel)", priority=5))
@@ -12,7 +13,7 @@ registers it (``SMDM_INTEGRATION_MODULE``).
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Callable, List
+from typing import Any, Callable, Dict, List, Tuple
 
 from ..core.registry import Registry
 
@@ -38,8 +39,28 @@ class Integration:
         return self.install_hooks.__module__
 
 
-#: the integrations by name (the built-in ones register on import of :mod:`.builtin`)
-INTEGRATIONS: Registry[Integration] = Registry("integration")
+_FROM_FAMILIES: Dict[str, Tuple[Any, str]] = {}   # family name -> (its spec, its integration's name)
+
+
+def _from_families() -> None:
+    """Keep :data:`INTEGRATIONS` in step with the registered families' ``FamilySpec.integration``."""
+    from ..adapters.families import family_part, family_specs
+
+    specs = {s.name: s for s in family_specs() if s.integration is not None}
+    for name, (spec, integration) in list(_FROM_FAMILIES.items()):
+        if specs.get(name) is not spec:              # unregistered or replaced
+            del _FROM_FAMILIES[name]
+            INTEGRATIONS.unregister(integration)
+    for name, spec in specs.items():
+        if name not in _FROM_FAMILIES:
+            integration = family_part(spec, "integration")
+            _FROM_FAMILIES[name] = (spec, integration.name)
+            INTEGRATIONS.register(integration.name, integration, replace=True)
+
+
+#: the integrations by name: the registered model families' (``FamilySpec.integration``) and any
+#: registered alone with :func:`register_integration`
+INTEGRATIONS: Registry[Integration] = Registry("integration", fill=_from_families)
 
 
 def register_integration(integration: Integration, *, replace: bool = False) -> Integration:

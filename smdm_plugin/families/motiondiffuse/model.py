@@ -10,18 +10,18 @@ import numpy as np
 import torch
 import torch.nn as nn
 
-from ..core.fill import fill_frames
-from ..core.rows import gather_rows
-from ..core.checks import as_lengths
-from ..core.config import SparseConfig
-from ..core.embedding import timestep_embedding
-from ..core.interpolation import catmull_rom_refill
-from ..core import consts
-from ..core.lipschitz import lipschitz_loss
-from .call import CallInputs, reuse_for
-from .family import ModelFamily, Variant
-from .request import KEYFRAMES_KEY, OLD_KEYS, request_of, with_request
-from .state import MISSING, FamilyState, SparseState, family_state_of, find_sparse_model, get_state
+from ...core.fill import fill_frames
+from ...core.rows import gather_rows
+from ...core.checks import as_lengths
+from ...core.config import SparseConfig
+from ...reference.embedding import timestep_embedding
+from ...core.interpolation import catmull_rom_refill
+from ...core import consts
+from ...core.lipschitz import lipschitz_loss
+from ...adapters.call import CallInputs, reuse_for
+from ...adapters.family import ModelFamily, Variant
+from ...adapters.request import KEYFRAMES_KEY, OLD_KEYS, request_of, with_request
+from ...adapters.state import MISSING, FamilyState, SparseState, family_state_of, find_sparse_model, get_state
 
 
 @dataclass

@@ -7,17 +7,17 @@ import os
 import warnings
 from typing import Any, Optional
 
-from ..core.config import SparseConfig
-from ._hooks import wrap_once
-from .mdm import _is_training, apply_compile, dataset_mean_std, patch_base_options, patch_model_options
-from .options import add_sparse_options  # noqa: F401  (0.7.0's patches import it here; patches/priormdm.patch: .options)
-from .registry import Integration, register_integration
+from ...core.config import SparseConfig
+from ...integrations._hooks import wrap_once
+from ..mdm.upstream import _is_training, apply_compile, dataset_mean_std, patch_base_options, patch_model_options
+from ...integrations.options import add_sparse_options  # noqa: F401  (0.7.0's patches import it here; patches/priormdm.patch: .options)
+from ...integrations.checkouts import Integration
 
 
 def warn_if_not_paper_blend(args: Any) -> bool:
     """Warn (never override) when a sparse DoubleTake samples with a ``--blend_len`` other than the
     paper's 0.25 s (5 frames at 20 fps); priorMDM's own default is 20. Returns whether it warned."""
-    from ..adapters.doubletake import PAPER_BLEND_LEN, PRIORMDM_BLEND_LEN
+    from .model import PAPER_BLEND_LEN, PRIORMDM_BLEND_LEN
 
     blend = getattr(args, "blend_len", None)
     if blend is None or int(blend) == PAPER_BLEND_LEN:
@@ -33,19 +33,19 @@ def sparsify_priormdm(model: Any, args: Any, data: Any = None, diffusion: Any = 
                       config: Optional[SparseConfig] = None) -> Any:
     """Sparsify a priorMDM model built by ``create_model_and_diffusion`` (no-op unless
     ``args.sparse``); DoubleTake models also get their forced keyframes (see
-    :mod:`smdm_plugin.adapters.doubletake`) and a warning when ``--blend_len`` is not the paper's.
+    :mod:`smdm_plugin.families.doubletake.model`) and a warning when ``--blend_len`` is not the paper's.
     Training (``--save_dir``) writes ``sparse_config.json`` beside the weights and brings
     ``args.json``'s ``sparse_*`` entries to what ran; DoubleTake sampling writes it beside its
     ``results.npy``. Returns the model (changed in place)."""
-    from ..adapters.doubletake import attach_doubletake_forcing
-    from ..adapters.surgery import is_sparse
-    from ._rng import upstream_rng_untouched
-    from .start import apply as apply_start, record_origin, resolve
+    from .model import attach_doubletake_forcing
+    from ...adapters.surgery import is_sparse
+    from ...integrations._rng import upstream_rng_untouched
+    from ...integrations.start import apply as apply_start, record_origin, resolve
 
     config = config if config is not None else SparseConfig.from_args(args)
     if not (config.enabled or getattr(args, "sparse_preset", None)):
         return model
-    from .messages import show_plugin_warnings
+    from ...integrations.messages import show_plugin_warnings
 
     show_plugin_warnings()
     start = resolve(args, config, _is_training(args))   # --sparse_preset / --sparse_init_from (start.py)
@@ -58,10 +58,10 @@ def sparsify_priormdm(model: Any, args: Any, data: Any = None, diffusion: Any = 
                       "on normalised features")
     with upstream_rng_untouched():  # a sparse DoubleTake draws the same prompts / noise as a dense one
         apply_start(model, args, start, diffusion, mean, std, data)   # sparsify, or wrap / warm start
-    from ..adapters.mdm import is_doubletake_model   # here: `smdm run` imports this module without torch
+    from ..mdm.model import is_doubletake_model   # here: `smdm run` imports this module without torch
 
     doubletake = is_doubletake_model(model)
-    from .announce import announce_sparse_mode
+    from ...integrations.announce import announce_sparse_mode
 
     training = _is_training(args)
     announce_sparse_mode(model, "priorMDM DoubleTake" if doubletake else "priorMDM", training)
@@ -70,13 +70,13 @@ def sparsify_priormdm(model: Any, args: Any, data: Any = None, diffusion: Any = 
         warn_if_not_paper_blend(args)
     save_dir = getattr(args, "save_dir", None)
     if training and os.path.isdir(save_dir):  # sparse_config.json; args.json as resolved
-        from ._files import record_run_config
+        from ...integrations._files import record_run_config
 
         record_run_config(model, save_dir, args, os.path.join(save_dir, "args.json"),
                           overwrite=bool(getattr(args, "overwrite", False)))
         record_origin(args, os.path.join(save_dir, "args.json"))
     elif doubletake and getattr(args, "model_path", None):   # beside results.npy, when the process ends
-        from ._files import record_sampling_output
+        from ...integrations._files import record_sampling_output
 
         record_sampling_output(model, doubletake_output_dir(args))
     return model
@@ -133,8 +133,8 @@ def install_hooks() -> None:
     """Wrap priorMDM's ``utils.parser_util.add_model_options`` and
     ``utils.model_util.create_model_and_diffusion`` as they are imported (idempotent; a checkout
     that already carries ``patches/priormdm.patch`` is not sparsified twice)."""
-    from ._hooks import on_import
-    from .messages import show_plugin_warnings
+    from ...integrations._hooks import on_import
+    from ...integrations.messages import show_plugin_warnings
 
     show_plugin_warnings()
     on_import("utils.parser_util", patch_model_options)
@@ -147,6 +147,7 @@ def is_priormdm_repo(path: str) -> bool:
     return os.path.isfile(os.path.join(path, "model", "DoubleTake_MDM.py"))
 
 
-register_integration(Integration(
+#: the upstream checkout `smdm run` hooks (this family's FamilySpec names it)
+INTEGRATION = Integration(
     "priormdm", detect=is_priormdm_repo, install_hooks=install_hooks, priority=10,
-    layout="model/DoubleTake_MDM.py (priorMDM)"))
+    layout="model/DoubleTake_MDM.py (priorMDM)")

@@ -1,5 +1,5 @@
 """Wrap a Gaussian diffusion's ``training_losses`` (MDM / guided-diffusion style, or the
-in-package :class:`~smdm_plugin.reference.diffusion.SimpleDiffusion`) for sparse training: keyframes
+in-package :class:`~smdm_plugin.reference.simple_diffusion.SimpleDiffusion`) for sparse training: keyframes
 selected from the clean motion, the loss on every (interpolated) frame, ``+ lipschitz_lambda * L_lip``."""
 from __future__ import annotations
 

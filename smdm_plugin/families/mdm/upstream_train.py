@@ -12,7 +12,7 @@ from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any, Callable, Optional
 
 if TYPE_CHECKING:  # (imported when training under torchrun: patches/mdm.patch imports this module in every run)
-    from .distributed import DistContext
+    from ...runtime.distributed import DistContext
 
 
 @dataclass
@@ -36,7 +36,7 @@ def active() -> bool:
     decided without importing anything)."""
     if os.environ.get("SMDM_DDP", "1") == "0" or not os.environ.get("LOCAL_RANK"):
         return False
-    from .distributed import launched_by_torchrun
+    from ...runtime.distributed import launched_by_torchrun
 
     return launched_by_torchrun()
 
@@ -51,7 +51,7 @@ def _run() -> _Run:
 
 def _wrap(owner: Any, name: str, make: Callable[[Callable], Callable]) -> bool:
     """``owner.name`` -> ``make(original)``, once (:func:`~._hooks.wrap_once` with its own marker)."""
-    from ._hooks import wrap_once
+    from ...integrations._hooks import wrap_once
 
     return wrap_once(owner, name, make, marker="_smdm_ddp")
 
@@ -86,7 +86,7 @@ def _patch_dist_util(mod: Any) -> None:
         def setup_dist(device=0):
             import torch
 
-            from .distributed import init_distributed
+            from ...runtime.distributed import init_distributed
 
             original(device)
             run = _run()
@@ -102,7 +102,7 @@ def _patch_dist_util(mod: Any) -> None:
 
 
 def _shutdown() -> None:
-    from .distributed import shutdown_distributed
+    from ...runtime.distributed import shutdown_distributed
 
     if _RUN is not None and _RUN.ctx is not None:
         shutdown_distributed(_RUN.ctx)
@@ -200,7 +200,7 @@ def _patch_training_loop(mod: Any) -> None:
             # MDM's buffers are constants (positional table, sparse marker), and DDP's per-forward
             # buffer broadcast fails on MDM's `pe` (a transposed view whose size-1 dimension has a
             # large stride: DDP copies it onto an overlapping view of itself)
-            from .distributed import constant_buffers_kwargs
+            from ...runtime.distributed import constant_buffers_kwargs
 
             self.ddp_model = _ddp_class()(self.model, device_ids=[dev.index] if dev.type == "cuda" else None,
                                           **constant_buffers_kwargs())
@@ -263,12 +263,12 @@ def _patch_training_loop(mod: Any) -> None:
 
 # --------------------------------------------------------------------------- entry point
 def install_hooks() -> None:
-    """Register this extension's import hooks (called by :func:`smdm_plugin.integrations.mdm.install_hooks`,
+    """Register this extension's import hooks (called by :func:`smdm_plugin.families.mdm.upstream.install_hooks`,
     and by the line ``patches/mdm.patch`` adds to ``train/train_mdm.py``). A no-op unless the
     process was started by ``torchrun`` (and ``SMDM_DDP`` is not ``0``); idempotent."""
     if not active():
         return
-    from ._hooks import on_import
+    from ...integrations._hooks import on_import
 
     if _run().rank > 0:
         # MDM's diffusion.logger: no stdout/log/csv output on ranks > 0 (its own MPI rule, which

@@ -13,7 +13,7 @@ from torch.utils._python_dispatch import TorchDispatchMode
 from torch.utils._pytree import tree_leaves
 from torch.utils.weak import WeakTensorKeyDictionary
 
-from .kernels.dispatch import OBSERVERS
+from ..core.kernels.dispatch import OBSERVERS
 
 __all__ = ["LaunchCounter", "LaunchCount", "count_launches", "SYNC_OPS", "AUTOCAST_DIFFERENCES"]
 

@@ -14,7 +14,7 @@ import torch.nn as nn
 
 from ..core.agreement import disagreement
 from ..core.config import MARKER, SparseConfig
-from ..core.config_files import CONFIG_FILENAME
+from ..support.config_files import CONFIG_FILENAME
 from .files import OutputExistsError
 from .validate import int_field, read_json_object, require_fields
 

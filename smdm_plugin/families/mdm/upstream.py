@@ -8,11 +8,11 @@ import os
 import warnings
 from typing import Any, Optional, Tuple
 
-from ..core.config import SparseConfig
-from ..core.config_files import CONFIG_FILENAME
-from ._hooks import wrap_once
-from .options import add_sparse_options  # noqa: F401  (0.7.0's patches import it here; patches/mdm.patch: .options)
-from .registry import Integration, register_integration
+from ...core.config import SparseConfig
+from ...support.config_files import CONFIG_FILENAME
+from ...integrations._hooks import wrap_once
+from ...integrations.options import add_sparse_options  # noqa: F401  (0.7.0's patches import it here; patches/mdm.patch: .options)
+from ...integrations.checkouts import Integration
 
 __all__ = ["add_sparse_options", "apply_compile", "sparsify_mdm", "check_mdm_state_dict", "dataset_mean_std",
            "install_hooks", "is_mdm_repo", "patch_base_options", "patch_model_options", "sample_output_dir",
@@ -79,21 +79,21 @@ def sparsify_mdm(model: Any, args: Any, data: Any = None, diffusion: Any = None,
     Without ``--sparse``, ``--sparse_preset``, a text option or ``--sparse_compile`` the model is
     returned untouched, bit for bit, and nothing more of the plugin is imported. Otherwise the
     plugin's warnings are shown as ``smdm:`` lines whatever logging upstream set up
-    (:mod:`.messages`).
+    (:mod:`smdm_plugin.integrations.messages`).
     """
     if config is None and not _asks_for_anything(args):
         return model                                   # a flag-off run: upstream's model
-    from .messages import show_plugin_warnings
+    from ...integrations.messages import show_plugin_warnings
 
     show_plugin_warnings()
-    from ..adapters.surgery import is_sparse
-    from ._rng import upstream_rng_untouched
-    from .mdm_text import apply_text_options
+    from ...adapters.surgery import is_sparse
+    from ...integrations._rng import upstream_rng_untouched
+    from .upstream_text import apply_text_options
 
     config = config if config is not None else SparseConfig.from_args(args)
     with upstream_rng_untouched():  # a swapped text encoder's new layers draw from a forked stream
         apply_text_options(model, config)
-    from .start import resolve
+    from ...integrations.start import resolve
 
     start = resolve(args, config, _is_training(args))   # --sparse_preset / --sparse_init_from (start.py)
     config = start.config
@@ -107,8 +107,8 @@ def _asks_for_anything(args: Any) -> bool:
     """Whether the run asks the plugin for anything: ``--sparse``, ``--sparse_preset``,
     ``--sparse_init_from``, ``--sparse_text_encoder``, the text cache (``SMDM_TEXT_CACHE``) or
     ``--sparse_compile`` (decided from the options alone: a flag-off run loads nothing more)."""
-    from .compile import check_compile_mode
-    from .mdm_text import cache_capacity_from_env
+    from ...runtime.compile import check_compile_mode
+    from .upstream_text import cache_capacity_from_env
 
     asked = ("sparse", "sparse_preset", "sparse_init_from", "sparse_text_encoder")
     return bool(any(getattr(args, name, None) for name in asked) or cache_capacity_from_env()
@@ -154,8 +154,8 @@ def sample_output_dir(args: Any) -> Optional[str]:
 
 
 def _sparsify(model: Any, args: Any, data: Any, diffusion: Any, config: SparseConfig, start: Any = None) -> None:
-    from ._rng import upstream_rng_untouched
-    from .start import Start, apply as apply_start, record_origin
+    from ...integrations._rng import upstream_rng_untouched
+    from ...integrations.start import Start, apply as apply_start, record_origin
 
     start = start if start is not None else Start(config=config)
 
@@ -165,24 +165,24 @@ def _sparsify(model: Any, args: Any, data: Any, diffusion: Any, config: SparseCo
                       "normalised features", stacklevel=3)
     with upstream_rng_untouched():  # upstream's prompts / noise / batches stay those of a dense run
         apply_start(model, args, start, diffusion, mean, std, data)   # sparsify, or wrap / warm start
-    from .announce import announce_sparse_mode
+    from ...integrations.announce import announce_sparse_mode
 
     training = _is_training(args)
     announce_sparse_mode(model, "MDM/DiP", training)
     if not training:
-        from ._files import record_sampling_output
+        from ...integrations._files import record_sampling_output
 
         record_sampling_output(model, sample_output_dir(args))
         return
     steps = getattr(args, "diffusion_steps", None)
     if steps is None and diffusion is not None:
-        from ..adapters.diffusion import diffusion_steps
+        from ...adapters.diffusion_wrapper import diffusion_steps
 
         steps = diffusion_steps(diffusion)
     warn_if_upstream_steps(config, steps)
     save_dir = args.save_dir
     if os.path.isdir(save_dir):  # sparse_config.json, and args.json's sparse_* as resolved (DiP prefix, steps)
-        from ._files import record_run_config
+        from ...integrations._files import record_run_config
 
         record_run_config(model, save_dir, args, os.path.join(save_dir, "args.json"),
                           overwrite=bool(getattr(args, "overwrite", False)))
@@ -193,33 +193,22 @@ def apply_compile(model: Any, args: Any, options_file: Optional[str] = None) -> 
     """``--sparse_compile`` (docs/compile.md): compile the model just built, dense or sparse, once,
     in place (``none`` / absent: nothing happens). The setting that applies is printed and, when
     training, written to ``args.json`` (``sparse_compile_applied``; ``options_file`` overrides
-    where). Returns the :class:`~smdm_plugin.integrations.compile.CompileSetting` or None."""
-    import sys
+    where). Returns the :class:`~smdm_plugin.runtime.compile.CompileSetting` or None."""
+    from ...integrations._files import compile_upstream
 
-    from .compile import compile_from_args
-    from .messages import show_plugin_warnings
-
-    show_plugin_warnings()
-    setting = compile_from_args(model, args)
-    if setting is None:
-        return None
-    from ._files import record_compile
-
-    sys.stderr.write(f"smdm: {type(model).__name__} runs {setting.describe()}\n")
     if options_file is None and _is_training(args) and os.path.isdir(args.save_dir):
         options_file = os.path.join(args.save_dir, "args.json")
-    record_compile(args, options_file)
-    return setting
+    return compile_upstream(model, args, options_file)
 
 
 def check_mdm_state_dict(model: Any, state_dict: Any, model_path: Optional[str] = None) -> None:
     """Raise a clear error when a sparse checkpoint meets a dense MDM (``--sparse`` lost, e.g. an
     ``args.json`` without the ``sparse`` keys) or the reverse; see
-    :func:`smdm_plugin.io.checkpoint.check_state_dict`."""
-    from ..io.checkpoint import check_state_dict, model_is_sparse, state_dict_is_sparse
+    :func:`smdm_plugin.io.checkpoint_files.check_state_dict`."""
+    from ...io.checkpoint_files import check_state_dict, model_is_sparse, state_dict_is_sparse
 
     if model_is_sparse(model) and not state_dict_is_sparse(state_dict):
-        from ..adapters.warm import is_dense_wrap
+        from ...adapters.warm import is_dense_wrap
 
         if is_dense_wrap(model):
             return  # --sparse_preset: a dense checkpoint wrapped for sparse sampling (its weights load as they are)
@@ -255,7 +244,7 @@ def patch_base_options(mod: Any) -> None:
         @functools.wraps(original)
         def add_base_options(parser):
             result = original(parser)
-            from .compile import add_compile_options
+            from ...runtime.compile import add_compile_options
 
             group = next((g for g in parser._action_groups if g.title == "base"), parser)
             add_compile_options(group)
@@ -290,12 +279,12 @@ def install_hooks() -> None:
     ``create_model_and_diffusion`` / ``load_model_wo_clip`` as they are imported (idempotent).
     Modules that do ``from utils.model_util import create_model_and_diffusion`` get the wrapped
     function because the wrap happens right after ``utils.model_util`` executes. Then the
-    extensions: text encoders (:mod:`.mdm_text`), multi-process training (:mod:`.mdm_train`),
-    keyframe in-betweening in ``sample.edit`` (:mod:`.mdm_edit`); the plugin's warnings shown as
-    ``smdm:`` lines (:mod:`.messages`)."""
-    from . import mdm_edit, mdm_text, mdm_train
-    from ._hooks import on_import
-    from .messages import show_plugin_warnings
+    extensions: text encoders (:mod:`.upstream_text`), multi-process training (:mod:`.upstream_train`),
+    keyframe in-betweening in ``sample.edit`` (:mod:`.upstream_edit`); the plugin's warnings shown as
+    ``smdm:`` lines (:mod:`smdm_plugin.integrations.messages`)."""
+    from . import upstream_edit as mdm_edit, upstream_text as mdm_text, upstream_train as mdm_train
+    from ...integrations._hooks import on_import
+    from ...integrations.messages import show_plugin_warnings
 
     show_plugin_warnings()
     on_import("utils.parser_util", patch_model_options)
@@ -305,6 +294,7 @@ def install_hooks() -> None:
         extension.install_hooks()
 
 
-register_integration(Integration(
+#: the upstream checkout `smdm run` hooks (this family's FamilySpec names it)
+INTEGRATION = Integration(
     "mdm", detect=is_mdm_repo, install_hooks=install_hooks, priority=0,
-    layout="model/mdm.py + utils/model_util.py (MDM/DiP)"))
+    layout="model/mdm.py + utils/model_util.py (MDM/DiP)")

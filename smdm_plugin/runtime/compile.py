@@ -10,7 +10,7 @@ import torch.nn as nn
 
 __all__ = ["COMPILE_MODES", "CompileSetting", "CompiledFunction", "add_compile_options", "check_compile_mode",
            "compile_function", "compile_model", "compile_setting", "compile_stats", "uncompile", "compile_from_args",
-           "fused_optimizer_kwargs", "prepare_call", "PREPARERS"]
+           "fused_optimizer_kwargs", "prepare_call", "CallPreparer", "preparer_of", "to_device"]
 
 #: the values of ``--sparse_compile`` / ``smdm train --compile`` / ``smdm bench --compile``
 COMPILE_MODES = ("none", "default", "reduce-overhead")
@@ -82,24 +82,7 @@ def add_compile_options(parser: Any, flag: str = FLAG) -> Any:
 
 
 # --------------------------------------------------------------------------- call preparation
-def _split_call(args: tuple, kwargs: dict) -> Tuple[Any, Any, Any]:
-    x = args[0] if args else kwargs.get("x")
-    t = args[1] if len(args) > 1 else kwargs.get("timesteps")
-    y = args[2] if len(args) > 2 else kwargs.get("y")
-    return x, t, y
-
-
-def _join_call(args: tuple, kwargs: dict, x: Any, t: Any, y: Any) -> Tuple[tuple, dict]:
-    args, kwargs = list(args), dict(kwargs)
-    for i, (key, value) in enumerate((("x", x), ("timesteps", t), ("y", y))):
-        if len(args) > i:
-            args[i] = value
-        elif key in kwargs:
-            kwargs[key] = value
-    return tuple(args), kwargs
-
-
-def _to(value: Any, device: torch.device) -> Any:
+def to_device(value: Any, device: torch.device) -> Any:
     """A tensor on ``device``, contiguous (a slice's strides would be guarded: DiP's prefix is the
     previous window's tail); anything else as it is."""
     if isinstance(value, torch.Tensor):
@@ -109,140 +92,48 @@ def _to(value: Any, device: torch.device) -> Any:
     return value
 
 
-def _is_strings(value: Any) -> bool:
-    return isinstance(value, str) or (isinstance(value, (list, tuple)) and len(value) > 0
-                                      and all(isinstance(v, str) for v in value))
+class CallPreparer:
+    """How one model family's calls are made ready for graph capture (its ``FamilySpec.preparer``):
+    :meth:`prepare` runs eagerly before every compiled call (what cannot be captured: text
+    encoding, strings, tensors on other devices); :meth:`attach` / :meth:`detach` when a model is
+    compiled / uncompiled. The base class leaves a call as it is."""
 
-
-def _zeros_like_text(enc: Any) -> Any:
-    if isinstance(enc, tuple):          # DiP's BERT encoder: (features, padding mask); only features zeroed
-        return (torch.zeros_like(enc[0]),) + tuple(enc[1:])
-    return torch.zeros_like(enc)
-
-
-class _PassThroughEncoder:
-    """``model.encode_text`` that returns features already computed (tensor or tuple of tensors) and
-    encodes anything else (strings) with the original encoder."""
-
-    def __init__(self, original: Callable) -> None:
-        self.original = original
-
-    def __call__(self, raw: Any, *a: Any, **kw: Any) -> Any:
-        if isinstance(raw, torch.Tensor) or (isinstance(raw, tuple) and raw and isinstance(raw[0], torch.Tensor)):
-            return raw
-        return self.original(raw, *a, **kw)
-
-
-#: DiP's DistilBERT features are padded (masked tokens) to a multiple of this many tokens
-TEXT_TOKEN_BUCKET = 64
-
-
-def pad_text_tokens(enc: Tuple[torch.Tensor, ...], bucket: int = TEXT_TOKEN_BUCKET) -> Tuple[torch.Tensor, ...]:
-    """DiP's BERT text features ``(features [L, B, d], padding mask [B, L] bool, True = no token)``
-    padded with masked tokens to the next multiple of ``bucket`` tokens: the batch's longest
-    caption no longer sets a shape (one graph for every batch up to ``bucket`` tokens). Exact:
-    masked keys get zero attention weight."""
-    if len(enc) != 2 or not all(isinstance(t, torch.Tensor) for t in enc) or enc[0].dim() != 3 or enc[1].dim() != 2:
-        return enc
-    feats, mask = enc
-    L = feats.shape[0]
-    target = max(bucket, -(-L // bucket) * bucket)
-    if target == L or mask.shape[1] != L:
-        return enc
-    feats = torch.cat([feats, feats.new_zeros(target - L, *feats.shape[1:])], dim=0)
-    mask = torch.cat([mask, mask.new_ones(mask.shape[0], target - L)], dim=1)
-    return feats, mask
-
-
-def _mdm_text_encoder(model: nn.Module) -> Optional[Callable]:
-    enc = getattr(model, "encode_text", None)
-    if isinstance(enc, _PassThroughEncoder):
-        return enc.original
-    if enc is not None:
-        return enc
-    return getattr(model, "text_encoder", None)   # TinyMDM
-
-
-def prepare_mdm(model: nn.Module, args: tuple, kwargs: dict) -> Tuple[tuple, dict]:
-    """MDM / DiP / doubleTake_MDM / TinyMDM calls ``(x [B, J, F, N], timesteps [B], y)``: text
-    encoded before the graph (``y['text_embed']``; for ``doubleTake_MDM`` also ``y['text']``),
-    strings dropped, tensors on ``x``'s device, and in eval mode ``y['uncond']`` folded into zeroed
-    text features (MDM's ``mask_cond(force_mask=True)`` is exactly that)."""
-    x, t, y = _split_call(args, kwargs)
-    if not isinstance(x, torch.Tensor):
+    def prepare(self, model: nn.Module, args: tuple, kwargs: dict) -> Tuple[tuple, dict]:
         return args, kwargs
-    device = x.device
-    x = x.contiguous()                               # x_t's strides change between steps: one graph
-    t = _to(t, device)
-    if isinstance(y, dict):
-        y = dict(y)                                  # never write into the caller's dict
-        cond_mode = str(getattr(model, "cond_mode", ""))
-        text_cond = "text" in cond_mode and "action" not in cond_mode
-        if text_cond and "text_embed" not in y and _is_strings(y.get("text")):
-            encoder = _mdm_text_encoder(model)
-            if encoder is not None:
-                enc = encoder(list(y["text"]) if isinstance(y["text"], tuple) else y["text"])
-                if getattr(model, "encode_text", None) is None:       # TinyMDM: [B, dim] -> [1, B, dim]
-                    enc = enc.reshape(1, x.shape[0], -1)
-                y["text_embed"] = enc
-        if isinstance(y.get("text_embed"), tuple):
-            y["text_embed"] = pad_text_tokens(y["text_embed"])
-        uncond = y.get("uncond", False)   # True, or priorMDM's second take: 1.0
-        if text_cond and isinstance(uncond, (bool, int, float)) and not model.training and "text_embed" in y:
-            if uncond:
-                y["text_embed"] = _zeros_like_text(y["text_embed"])
-            y.pop("uncond", None)
-        if "text_embed" in y and isinstance(getattr(model, "encode_text", None), _PassThroughEncoder):
-            y["text"] = y["text_embed"]               # forwards that always call encode_text(y['text'])
-        y = {k: (tuple(_to(v, device) for v in val) if isinstance(val, tuple) and not _is_strings(val)
-                 else _to(val, device))
-             for k, val in y.items() if not _is_strings(val)}
-    return _join_call(args, kwargs, x, t, y)
+
+    def attach(self, model: nn.Module) -> None:
+        """Before the model's first compiled call (e.g. a text encoder that passes features through)."""
+
+    def detach(self, model: nn.Module) -> None:
+        """Undo :meth:`attach` (:func:`uncompile`)."""
+
+    def __call__(self, model: nn.Module, args: tuple, kwargs: dict) -> Tuple[tuple, dict]:
+        return self.prepare(model, args, kwargs)
 
 
-def prepare_motiondiffuse(model: nn.Module, args: tuple, kwargs: dict) -> Tuple[tuple, dict]:
-    """MotionDiffuse's ``forward(x [B, T, D], timesteps, length=, text=, xf_proj=, xf_out=)``: the
-    text encoded before the graph (``xf_proj``, ``xf_out``; upstream encodes inside forward when
-    they are absent), ``text`` dropped, tensors on ``x``'s device."""
-    x = args[0] if args else kwargs.get("x")
-    if not isinstance(x, torch.Tensor):
-        return args, kwargs
-    kwargs = dict(kwargs)
-    x = x.contiguous()
-    names = ("timesteps", "length", "text", "xf_proj", "xf_out")
-    for name, value in zip(names, args[1:]):
-        kwargs[name] = value
-    args = (x,)
-    if (kwargs.get("xf_proj") is None or kwargs.get("xf_out") is None) and kwargs.get("text") is not None:
-        text = kwargs["text"]
-        B = x.shape[0]
-        if len(text) != B:                           # upstream's DataParallel slice
-            index = x.device.index or 0
-            text = text[index * B: index * B + B]
-        kwargs["xf_proj"], kwargs["xf_out"] = model.encode_text(text, x.device)
-    kwargs.pop("text", None)
-    length = kwargs.get("length")
-    if isinstance(length, (list, tuple)) and all(isinstance(v, int) for v in length):
-        kwargs["length"] = torch.tensor(length, dtype=torch.long)   # Python ints would be guarded one by one
-    return args, {k: _to(v, x.device) for k, v in kwargs.items()}
+class _FunctionPreparer(CallPreparer):
+    """A ``FamilySpec.preparer`` given as a function ``prepare(model, args, kwargs)``."""
+
+    def __init__(self, fn: Callable[[nn.Module, tuple, dict], Tuple[tuple, dict]]) -> None:
+        self.fn = fn
+
+    def prepare(self, model: nn.Module, args: tuple, kwargs: dict) -> Tuple[tuple, dict]:
+        return self.fn(model, args, kwargs)
 
 
-def _is_motiondiffuse(model: nn.Module) -> bool:
-    return hasattr(model, "temporal_decoder_blocks") and hasattr(model, "encode_text")
+def preparer_of(model: nn.Module) -> CallPreparer:
+    """The call preparer of ``model``'s family (found once, by the family registry: the family that
+    converted a sparse model, else the first that matches); a preparer that changes nothing for a
+    model of no registered family, or of a family registered without one."""
+    from ..adapters.families import FAMILY_SPECS, family_of, family_part
 
-
-#: (which models, how their calls are prepared before the graph), first match wins
-PREPARERS: List[Tuple[Callable[[nn.Module], bool], Callable]] = [
-    (_is_motiondiffuse, prepare_motiondiffuse),
-    (lambda m: hasattr(m, "cond_mode") or hasattr(m, "input_process"), prepare_mdm),
-]
-
-
-def _preparer(model: nn.Module) -> Callable:
-    for matches, prepare in PREPARERS:
-        if matches(model):
-            return prepare
-    return lambda model, args, kwargs: (args, kwargs)
+    family = family_of(model)
+    if family is None or family.name not in FAMILY_SPECS:
+        return CallPreparer()
+    preparer = family_part(FAMILY_SPECS.get(family.name), "preparer")
+    if preparer is None:
+        return CallPreparer()
+    return preparer if isinstance(preparer, CallPreparer) else _FunctionPreparer(preparer)
 
 
 # --------------------------------------------------------------------------- the compiled call
@@ -410,11 +301,13 @@ class CompiledFunction:
 
 class _CompiledCall(CompiledFunction):
     """What ``model.__call__`` runs once compiled (``nn.Module._compiled_call_impl``): the module's
-    ``_call_impl`` (hooks included), each call prepared by the model's :data:`PREPARERS` entry;
+    ``_call_impl`` (hooks included), each call prepared by its family's :class:`CallPreparer`;
     calls carrying forced keyframes are a phase of their own, traced with a graph break."""
 
-    def __init__(self, model: nn.Module, setting: CompileSetting) -> None:
-        super().__init__(model._call_impl, setting, model, prepare_call(model))
+    def __init__(self, model: nn.Module, setting: CompileSetting, preparer: CallPreparer) -> None:
+        self.preparer = preparer
+        super().__init__(model._call_impl, setting, model,
+                         lambda args, kwargs: preparer.prepare(model, args, kwargs))
 
     def _fullgraph(self, args: tuple, kwargs: dict) -> bool:
         # forced keyframes (sample.edit, in-betweening) are counted on the host once per call, as in
@@ -424,12 +317,13 @@ class _CompiledCall(CompiledFunction):
 
 # --------------------------------------------------------------------------- entry points
 def _fullgraph_default(model: nn.Module) -> bool:
-    """Sparse models trace whole (fullgraph), except DoubleTake's: its forced keyframes are read
-    from ``y`` on the host once per call (as in eager), which breaks the graph there."""
-    from ..adapters.doubletake import has_doubletake_forcing
-    from ..adapters.surgery import is_sparse
+    """Sparse models trace whole (fullgraph) when their family says so
+    (:meth:`~smdm_plugin.adapters.family.ModelFamily.traces_whole`: not DoubleTake's, whose forced
+    keyframes are read from ``y`` on the host once per call, as in eager); dense ones do not."""
+    from ..adapters.state import get_state
 
-    return is_sparse(model) and not has_doubletake_forcing(model)
+    state = get_state(model)
+    return state is not None and state.family.traces_whole(model)
 
 
 def _setting(mode: Any, backend: Any, fullgraph: bool, device: Any, name: str, captures: str) -> CompileSetting:
@@ -477,20 +371,19 @@ def compile_model(model: nn.Module, mode: Any, *, backend: Any = "inductor", ful
     setting = _setting(mode, backend, fullgraph, device, name, CAPTURES_MODEL)
     if setting.requested == "none":
         return setting
-    encoder = getattr(model, "encode_text", None)
-    if encoder is not None and not _is_motiondiffuse(model):    # uncompile() put the original back
-        model.encode_text = _PassThroughEncoder(encoder)
-    model._compiled_call_impl = _CompiledCall(model, setting)
+    preparer = preparer_of(model)
+    preparer.attach(model)                           # uncompile() detaches it
+    model._compiled_call_impl = _CompiledCall(model, setting, preparer)
     return setting
 
 
 def prepare_call(model: nn.Module) -> Callable[[tuple, dict], Tuple[tuple, dict]]:
     """``prepare(args, kwargs)`` of a call whose arguments are ``model``'s own (``(x, timesteps, y)``
-    / MotionDiffuse's): its :data:`PREPARERS` entry (for :func:`compile_function`'s ``prepare``:
-    e.g. a guidance wrapper's call, prepared as the model's)."""
+    / MotionDiffuse's): its family's :class:`CallPreparer` (for :func:`compile_function`'s
+    ``prepare``: e.g. a guidance wrapper's call, prepared as the model's)."""
     model = _inner(model)
-    prepare = _preparer(model)
-    return lambda args, kwargs: prepare(model, args, kwargs)
+    preparer = preparer_of(model)
+    return lambda args, kwargs: preparer.prepare(model, args, kwargs)
 
 
 def compile_function(fn: Callable, mode: Any, *, model: Optional[nn.Module] = None, backend: Any = "inductor",
@@ -533,9 +426,7 @@ def uncompile(model: nn.Module) -> nn.Module:
     call = getattr(model, "_compiled_call_impl", None)
     if isinstance(call, _CompiledCall):
         model._compiled_call_impl = None
-    enc = model.__dict__.get("encode_text")
-    if isinstance(enc, _PassThroughEncoder):
-        model.encode_text = enc.original
+        call.preparer.detach(model)
     return model
 
 
@@ -573,22 +464,28 @@ def _write_stats() -> None:
 
 
 def compile_from_args(model: nn.Module, args: Any, device: Any = None) -> Optional[CompileSetting]:
-    """The integrations' entry point: compile ``model`` for ``args.sparse_compile`` (absent or
-    ``none``: nothing happens, upstream runs bit for bit) with the backend of ``SMDM_COMPILE_BACKEND``
-    (default inductor) and record what applies on ``args`` (``sparse_compile_applied``:
-    ``args.json`` / ``opt.txt`` carry it). With ``SMDM_COMPILE_STATS=FILE`` the process writes
-    :func:`compile_stats` there at exit. Returns the setting."""
+    """The upstream integrations' entry point: compile ``model`` for ``args.sparse_compile`` (absent
+    or ``none``: nothing happens, upstream runs bit for bit; returns None) with the backend of
+    ``SMDM_COMPILE_BACKEND`` (default inductor). Returns the :class:`CompileSetting` that applies
+    (the caller records it: ``args.json`` / ``opt.txt``). With ``SMDM_COMPILE_STATS=FILE`` the
+    process writes :func:`compile_stats` there at exit."""
     import atexit
     import os
 
     mode = getattr(args, "sparse_compile", None)
     if mode in (None, "none"):
         return None
-    setting = compile_model(model, mode, device=device, backend=os.environ.get(BACKEND_ENV, "inductor"))
+    setting = compile_model(model, mode, device=device, backend=default_backend())
     if os.environ.get(STATS_ENV):
         if not _COMPILED:
             atexit.register(_write_stats)
         _COMPILED.append((type(model).__name__, setting, model._compiled_call_impl))
-    if hasattr(args, "__dict__"):
-        args.sparse_compile_applied = setting.describe()
     return setting
+
+
+def default_backend() -> str:
+    """The torch.compile backend when none is named: ``SMDM_COMPILE_BACKEND``, else ``inductor``
+    (``--sparse_compile`` in upstream scripts, the default of ``smdm train / bench --compile-backend``)."""
+    import os
+
+    return os.environ.get(BACKEND_ENV) or "inductor"

@@ -120,7 +120,7 @@ def run_inbetween(bundle: Any, source: LoadedMotion, kf: Keyframes, samples: int
                   imputation: str = "x0", policy: str = "ends", device: Any = "cpu",
                   progress: bool = False) -> Result:
     """Sample ``samples`` in-betweens from ``bundle`` (:class:`~smdm_plugin.training.bundle.ModelBundle`)."""
-    from ...adapters.inbetween import keyframe_constraint, sample_inbetween
+    from ...adapters.inbetween_sampling import keyframe_constraint, sample_inbetween
 
     feats, target, offset = model_inputs(bundle, source, kf)
     x = bundle.normalise(torch.from_numpy(feats)).to(device).unsqueeze(0).expand(samples, -1, -1)

@@ -1,5 +1,5 @@
 """The MDM family: MDM trans_enc / trans_dec, DiP, the in-package ``TinyMDM`` (priorMDM's
-doubleTake_MDM: :mod:`smdm_plugin.adapters.doubletake`, a specialisation of this one)."""
+doubleTake_MDM: :mod:`smdm_plugin.families.doubletake.model`, a specialisation of this one)."""
 from __future__ import annotations
 
 import functools
@@ -10,19 +10,19 @@ from typing import Any, Callable, Dict, List, Optional, Tuple
 import torch
 import torch.nn as nn
 
-from ..core.rows import gather_rows, scatter_rows
-from ..core.checks import as_lengths, as_mask, compiling, host_checkable, require
-from ..core.config import SparseConfig
-from ..core.fsq import FSQMultiheadAttention, quantize_attention_keys
-from ..core.interpolation import catmull_rom_refill
-from ..core.keyframe_transformer import KeyframeTransformer
-from ..core.losses import add_lipschitz_term
-from ..core.plan import KeyframePlan
-from .call import CallInputs, reuse_for
-from .diffusion import training_keyframes
-from .family import ModelFamily, Variant
-from .request import KEYFRAMES_KEY, request_of, with_request
-from .state import STATE_ATTR, FamilyState, SparseState, family_state_of
+from ...core.rows import gather_rows, scatter_rows
+from ...core.checks import as_lengths, as_mask, compiling, host_checkable, require
+from ...core.config import SparseConfig
+from ...core.fsq import FSQMultiheadAttention, quantize_attention_keys
+from ...core.interpolation import catmull_rom_refill
+from ...core.keyframe_transformer import KeyframeTransformer
+from ...core.losses import add_lipschitz_term
+from ...core.plan import KeyframePlan
+from ...adapters.call import CallInputs, reuse_for
+from ...adapters.diffusion_wrapper import training_keyframes
+from ...adapters.family import ModelFamily, Variant
+from ...adapters.request import KEYFRAMES_KEY, request_of, with_request
+from ...adapters.state import STATE_ATTR, FamilyState, SparseState, family_state_of
 
 
 @dataclass

@@ -1,7 +1,7 @@
 """A small x0-predicting Gaussian diffusion (DDPM, cosine schedule) for the in-package backbone:
 training losses with valid-frame masking, and ancestral sampling with classifier-free guidance.
 It has MDM's ``training_losses(model, x_start, t, model_kwargs)`` interface, so the same
-:func:`~smdm_plugin.adapters.diffusion.attach_diffusion` wraps it."""
+:func:`~smdm_plugin.adapters.diffusion_wrapper.attach_diffusion` wraps it."""
 from __future__ import annotations
 
 import math
@@ -151,7 +151,7 @@ class SimpleDiffusion:
         x = torch.randn(shape, generator=generator, device=device)
         given = self.constraint(model_kwargs, x)
         steps = range(self.num_timesteps - 1, -1, -1)
-        from ..core.progress import bars_on  # stderr a terminal (or --progress)
+        from ..support.progress import bars_on  # stderr a terminal (or --progress)
 
         if bars_on(progress):
             from tqdm.auto import tqdm

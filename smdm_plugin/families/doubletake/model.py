@@ -7,9 +7,9 @@ import torch
 from torch import nn
 from torch.utils.hooks import RemovableHandle
 
-from .mdm import MDMFamily, is_doubletake_model
-from .request import request_of, with_forced
-from .state import SparseState
+from ..mdm.model import MDMFamily, is_doubletake_model
+from ...adapters.request import request_of, with_forced
+from ...adapters.state import SparseState
 
 #: the paper's DoubleTake transition blending length, in seconds
 PAPER_BLEND_SECONDS = 0.25
@@ -224,6 +224,10 @@ class DoubleTakeFamily(MDMFamily):
 
     def mismatch(self, model: nn.Module) -> str:
         return super().mismatch(model) if not super().matches(model) else "class name has no 'doubletake'"
+
+    def traces_whole(self, model: nn.Module) -> bool:
+        # the forced keyframes are read from y on the host once per call (as in eager): a graph break
+        return not has_doubletake_forcing(model)
 
     def install(self, model: nn.Module, state: SparseState) -> None:
         super().install(model, state)
