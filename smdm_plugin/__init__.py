@@ -5,7 +5,7 @@ import importlib
 from typing import TYPE_CHECKING, Any, Dict, List
 
 
-__version__ = "0.8.0"
+__version__ = "0.9.0"
 
 _EXPORTS: Dict[str, str] = {
     # the method's settings
@@ -37,6 +37,10 @@ _EXPORTS: Dict[str, str] = {
 }
 
 __all__: List[str] = sorted(_EXPORTS) + ["__version__"]
+
+from .support.moved import install as _install_moved  # noqa: E402  (0.8 module paths: one line naming the new one)
+
+_install_moved()
 
 
 
