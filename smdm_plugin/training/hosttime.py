@@ -4,12 +4,15 @@ from __future__ import annotations
 import time
 from contextlib import contextmanager
 from dataclasses import dataclass
-from typing import Callable, Dict, Iterator, List
+from typing import TYPE_CHECKING, Callable, Dict, Iterator, List, Optional
 
 import torch
 import torch.nn.functional as F
 
 from ..core.kernels.dispatch import OBSERVERS
+
+if TYPE_CHECKING:
+    from ..core.config import SparseConfig
 
 __all__ = ["HOST_SIZE", "HostTime", "host_times", "launch_charge", "charging_kernels"]
 
@@ -126,13 +129,15 @@ _MDM = {"trans_enc": dict(arch="trans_enc"), "trans_dec": dict(arch="trans_dec")
         "dip": dict(arch="trans_dec", emb_trans_dec=True, context_len=20, pred_len=20)}
 
 
-def host_cells(variant: str, sparse: bool, precision: str) -> Dict[str, Callable[[], object]]:
+def host_cells(variant: str, sparse: bool, precision: str, config: Optional["SparseConfig"] = None
+               ) -> Dict[str, Callable[[], object]]:
     """The two calls whose host time counts, for ``variant`` (:data:`HOST_VARIANTS`) at
     :data:`HOST_SIZE`, dense (the upstream model, no FSQ) or sparse (the paper's recipe,
     ``SparseConfig()``; MotionDiffuse: no FSQ, its attention is linear), ``precision`` ``fp32`` or
     ``bf16`` (CPU autocast): ``train`` (``training_losses`` + backward + ``AdamW(foreach=True)``)
     and ``sample`` (one sampling call: both classifier-free-guidance passes for MDM's models, one
-    pass for MotionDiffuse). Run them under :func:`~smdm_plugin.core.checks.static_mode`."""
+    pass for MotionDiffuse; ``config``: another sparse config). Run them under
+    :func:`~smdm_plugin.core.checks.static_mode`."""
     from ..adapters.surgery import sparsify
     from ..core.config import SparseConfig
     from ..reference.simple_diffusion import ClassifierFreeGuidance, SimpleDiffusion
@@ -154,7 +159,7 @@ def host_cells(variant: str, sparse: bool, precision: str) -> Dict[str, Callable
         x = torch.randn(B, N, 263, generator=g)
         kw = {"length": lengths, "xf_proj": torch.randn(B, 4 * s["latent_dim"], generator=g),
               "xf_out": torch.randn(B, 4, 8, generator=g)}
-        config = SparseConfig(fsq=False)
+        recipe = SparseConfig(fsq=False)
     else:
         from ..reference.backbone import TinyMDM
 
@@ -168,10 +173,10 @@ def host_cells(variant: str, sparse: bool, precision: str) -> Dict[str, Callable
              "text_embed": torch.randn(1, B, 512, generator=g)}
         if variant == "dip":
             y["prefix"] = torch.randn(B, 263, 1, spec["context_len"], generator=g)
-        config = SparseConfig()
+        recipe = SparseConfig()
     diffusion = SimpleDiffusion(50)
     if sparse:
-        sparsify(model, config, diffusion=diffusion)
+        sparsify(model, recipe if config is None else config, diffusion=diffusion)
     opt = torch.optim.AdamW(model.parameters(), lr=1e-4, foreach=True)
     t = torch.arange(B) * 6
     bf16 = precision == "bf16"
