@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import importlib
+import sys
 from typing import TYPE_CHECKING, Any, Dict, List
 
 
@@ -38,9 +39,25 @@ _EXPORTS: Dict[str, str] = {
 
 __all__: List[str] = sorted(_EXPORTS) + ["__version__"]
 
-from .support.moved import install as _install_moved  # noqa: E402  (0.8 module paths: one line naming the new one)
 
-_install_moved()
+
+class _MovedPaths:
+    """Last on ``sys.meta_path``, so asked only when no finder found a module: a module path 0.9
+    moved fails with one line naming the new one (``support/moved.py``, loaded only then)."""
+
+    @staticmethod
+    def find_spec(name: str, path: Any = None, target: Any = None) -> None:
+        if name.startswith(__name__ + "."):
+            from .support.moved import moved_message
+
+            message = moved_message(name)
+            if message is not None:
+                raise ModuleNotFoundError(message, name=name)
+        return None
+
+
+if not any(type(f).__name__ == "_MovedPaths" for f in sys.meta_path):
+    sys.meta_path.append(_MovedPaths())
 
 
 

@@ -1,8 +1,8 @@
 """Module paths that 0.9 moved: importing an old one fails with one line that names the new one
-(an upstream checkout patched by an older ``patches/*.patch`` imports them)."""
+(an upstream checkout patched by an older ``patches/*.patch`` imports them; the finder is
+``smdm_plugin/__init__.py``'s, which loads this module only on a miss)."""
 from __future__ import annotations
 
-import sys
 from typing import Dict, Optional
 
 #: old module -> new module, both below ``smdm_plugin.`` (CHANGELOG, 0.9.0 "Layout")
@@ -46,18 +46,3 @@ def moved_message(old: str) -> Optional[str]:
             f"checkout patched by an older patches/*.patch: restore the patched files (git checkout -- <files>) "
             f"and apply the patch of this version")
 
-
-class _MovedFinder:
-    """Last on ``sys.meta_path``: asked only when no finder found the module."""
-
-    def find_spec(self, fullname: str, path=None, target=None):
-        message = moved_message(fullname)
-        if message is not None:
-            raise ModuleNotFoundError(message, name=fullname)
-        return None
-
-
-def install() -> None:
-    """Append the finder to ``sys.meta_path`` (once)."""
-    if not any(isinstance(f, _MovedFinder) for f in sys.meta_path):
-        sys.meta_path.append(_MovedFinder())
