@@ -168,7 +168,10 @@ class FSQMultiheadAttention(nn.Module):
                 or vdim not in (None, embed_dim):
             raise ValueError("FSQMultiheadAttention: add_bias_kv, add_zero_attn and "
                              "kdim/vdim != embed_dim are not supported")
-        fk = {"device": device, "dtype": dtype}
+        # drawn on the CPU, then moved: the same seed gives the same weights on every device, and
+        # the device's own generator (upstream's noise on CUDA) is not advanced
+        target = torch.device(device) if device is not None else torch.empty(0).device
+        fk = {"device": torch.device("cpu"), "dtype": dtype}
         self.embed_dim, self.num_heads = int(embed_dim), int(num_heads)
         self.head_dim = self.embed_dim // self.num_heads
         self.kdim = self.vdim = self.embed_dim
@@ -179,7 +182,7 @@ class FSQMultiheadAttention(nn.Module):
         self.in_proj_weight = nn.Parameter(torch.empty(3 * self.embed_dim, self.embed_dim, **fk))
         self.in_proj_bias = nn.Parameter(torch.empty(3 * self.embed_dim, **fk)) if bias else None
         self.out_proj = nn.Linear(self.embed_dim, self.embed_dim, bias=bias, **fk)
-        self.fsq = FSQ(levels).to(device)
+        self.fsq = FSQ(levels)
         self.key_down = nn.Linear(self.head_dim, self.fsq.dim, **fk)
         self.key_up = nn.Linear(self.fsq.dim, self.head_dim, **fk)
         self.quantize = True
@@ -200,6 +203,8 @@ class FSQMultiheadAttention(nn.Module):
         self.key_up.bias.requires_grad_(False)
         self._code_cast: dict = {}
         self._reset_parameters()
+        if target.type != "cpu":
+            self.to(target)
         self.register_forward_pre_hook(_disable_transformer_fast_path)
 
     def _reset_parameters(self) -> None:

@@ -194,6 +194,9 @@ def build(arch: str, reduction: Optional[float], device: torch.device, quick: bo
     from ..core.fsq import quantize_attention_keys
     from ..reference.simple_diffusion import SimpleDiffusion
 
+    if not isinstance(fsq, str) or fsq not in FSQ_CHOICES:     # fsq=False would read as on
+        raise ValueError(f"build: fsq must be one of {sorted(FSQ_CHOICES)} (SparseConfig's fsq: "
+                         f"fsq='off'), got {fsq!r}")
     work = WORKLOADS.get(family)
     fsq = fsq if work.fsq else "off"
     torch.manual_seed(seed)

@@ -448,3 +448,29 @@ def test_unquantize_attention_keys_is_the_inverse_of_quantize():
     x, mem = torch.randn(5, 2, 32), torch.randn(7, 2, 32)
     torch.testing.assert_close(model(x, mem), dense(x, mem))
     assert unquantize_attention_keys(model) == 0             # nothing left to convert
+
+
+# ----------------------------------------------------------------------------- one seed, one model on every device
+def test_fsq_attention_draws_its_weights_on_the_cpu_whatever_the_device():
+    """A GPU's sparse model must equal the CPU's for one seed: the new key maps are drawn from the
+    CPU generator and moved (0.9 drew them on the device: the H200 check compared different weights,
+    and the device's generator, upstream's noise on CUDA, moved). ``meta`` stands for the GPU."""
+    torch.manual_seed(0)
+    cpu = FSQMultiheadAttention(32, 4, levels=LEVELS)
+    after_cpu = torch.rand(4)
+    torch.manual_seed(0)
+    meta = FSQMultiheadAttention(32, 4, levels=LEVELS, device="meta")
+    after_meta = torch.rand(4)
+    assert meta.key_down.weight.device.type == "meta" and meta._code_half_l.device.type == "meta"
+    assert torch.equal(after_cpu, after_meta)                 # the same CPU draws were made for both
+    torch.manual_seed(0)
+    again = FSQMultiheadAttention(32, 4, levels=LEVELS, device="cpu")
+    for (name, a), (_, b) in zip(cpu.state_dict().items(), again.state_dict().items()):
+        assert torch.equal(a, b), name
+
+
+def test_workload_build_refuses_a_fsq_setting_it_does_not_know():
+    from smdm_plugin.training import workloads
+
+    with pytest.raises(ValueError, match="fsq must be one of"):
+        workloads.build("trans_enc", 0.8, torch.device("cpu"), True, 10, frames=40, fsq=False)

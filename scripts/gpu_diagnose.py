@@ -1,0 +1,261 @@
+#!/usr/bin/env python
+"""Where a GPU check's cell goes wrong: the diagnostics behind docs/gpu.md's findings, on one CUDA GPU.
+
+* ``errors``: CUDA against the CPU (as ``gpu_check.py`` checks) for the sampling call and loop of
+  each MDM variant with parts of the recipe switched off (the Triton kernels, the dynamic update,
+  FSQ keys, Lipschitz layers), and the dense model's own bf16 error (the floor a bf16 cell is
+  judged against);
+* ``syncs``: host synchronisations of one sparse training step and sampling call per model
+  (``torch.cuda.set_sync_debug_mode``), each with the package's frames of its stack;
+* ``profile``: the torch profiler's host-side table (self CPU time) of dense and sparse trans_enc
+  bf16 training steps and sampling calls, and the counts of launches, copies and syncs;
+* ``parts``: eager speed of trans_enc with parts of the recipe off, dense beside it (the GPU's
+  version of ``scripts/host_time_parts.py``).
+
+    python scripts/gpu_diagnose.py --out DIR [--sections errors syncs profile parts]
+"""
+from __future__ import annotations
+
+import argparse
+import collections
+import gc
+import importlib.util
+import os
+import statistics
+import sys
+import time
+import traceback
+import warnings
+from pathlib import Path
+from typing import Dict, List
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+import torch  # noqa: E402
+
+from smdm_plugin.core.checks import static_mode  # noqa: E402
+from smdm_plugin.core.kernels.dispatch import TritonKernel  # noqa: E402
+from smdm_plugin.training import benchmark, workloads  # noqa: E402
+from smdm_plugin.training.timing import event_times  # noqa: E402
+
+_spec = importlib.util.spec_from_file_location("gpu_check", Path(__file__).with_name("gpu_check.py"))
+gcheck = importlib.util.module_from_spec(_spec)
+sys.modules["gpu_check"] = gcheck
+_spec.loader.exec_module(gcheck)
+
+MDM = [m for m in gcheck.MODELS if m[0] == "mdm"]
+#: the speed size (MDM's); ``--dry-run`` replaces it by the check's tiny size
+BIG = gcheck.Sizes(False, 64, 196, 50)
+PARTS = {"recipe": {}, "no FSQ": {"fsq": "off"}, "no Lipschitz": {"lipschitz": False},
+         "neither": {"fsq": "off", "lipschitz": False}}
+
+
+def triton_kernels(on: bool) -> None:
+    """Switch every Triton kernel of the package on or off (off: the composite on CUDA)."""
+    for obj in gc.get_objects():
+        if isinstance(obj, TritonKernel):
+            obj.broken = None if on else "switched off by gpu_diagnose"
+            if not on:
+                obj._fn = None
+
+
+def values(family: str, arch: str, call: str, device: torch.device, amp: str, reduction, **config) -> List[torch.Tensor]:
+    """``gpu_check.run_values`` at the check's size with SparseConfig changes ``config``."""
+    z = gcheck.Sizes(True, 4, 40, 10)
+    work = workloads.WORKLOADS.get(family)
+    sample = call != "train"
+    extra = dict(config)
+    if sample and reduction is not None:
+        extra.setdefault("dynamic_update", True)
+    model, diffusion = workloads.build(arch, reduction, device, z.quick, z.steps, family=family, frames=z.frames,
+                                       **(extra if reduction is not None else {}))
+    workloads.without_dropout(model)
+    data = work.batch(z.batch, z.frames, device, z.quick, arch)
+    if call == "loop":
+        model.eval()
+        step = benchmark.sampling_step(work, model, diffusion, device, "none", "inductor")
+        with torch.no_grad(), benchmark.autocast(device, amp):
+            out = benchmark.sample_loop(step, tuple(data.x.shape), z.steps, work.sample_kwargs(data), device,
+                                        torch.Generator().manual_seed(1))
+        vals = [out]
+    else:
+        fn = benchmark.step_fn(call, work, model, diffusion, data, device, amp, "none", "inductor")
+        vals = [fn() for _ in range(3)]
+    return [v.detach().float().cpu() for v in vals]
+
+
+def section_errors(dev: torch.device) -> None:
+    print("## errors: largest |CUDA - CPU| / largest |CPU| (check size: tiny model, B=4, 40 frames, T=10)")
+    print(f"tf32 matmul {torch.backends.cuda.matmul.allow_tf32}, cudnn tf32 {torch.backends.cudnn.allow_tf32}, "
+          f"float32 matmul precision {torch.get_float32_matmul_precision()}")
+    cases = [("recipe", {}, True), ("recipe, Triton kernels off", {}, False),
+             ("dynamic update off", {"dynamic_update": False}, True), ("no FSQ", {"fsq": "off"}, True),
+             ("no Lipschitz", {"lipschitz": False}, True), ("no FSQ, no dynamic update", {"fsq": "off",
+                                                                                         "dynamic_update": False}, True)]
+    for family, arch, name in gcheck.MODELS:
+        for call in ("sample", "loop"):
+            for label, config, triton_on in cases:
+                if arch not in ("trans_enc", "trans_dec") and label != "recipe":
+                    continue
+                try:
+                    with static_mode():
+                        ref = values(family, arch, call, torch.device("cpu"), "fp32", gcheck.REDUCTION, **config)
+                    triton_kernels(triton_on)
+                    got = values(family, arch, call, dev, "fp32", gcheck.REDUCTION, **config)
+                    got16 = values(family, arch, call, dev, "bf16", gcheck.REDUCTION, **config)
+                    msg = f"fp32 {gcheck.relative_error(got, ref):.1e}, bf16 {gcheck.relative_error(got16, ref):.1e}"
+                except Exception as e:  # noqa: BLE001
+                    msg = "error: " + gcheck.one_line(e)
+                finally:
+                    triton_kernels(True)
+                print(f"{name} {call} sparse [{label}]: {msg}", flush=True)
+            with static_mode():
+                ref = values(family, arch, call, torch.device("cpu"), "fp32", None)
+            got = values(family, arch, call, dev, "fp32", None)
+            got16 = values(family, arch, call, dev, "bf16", None)
+            print(f"{name} {call} DENSE: fp32 {gcheck.relative_error(got, ref):.1e}, "
+                  f"bf16 {gcheck.relative_error(got16, ref):.1e}", flush=True)
+
+
+def section_syncs(dev: torch.device) -> None:
+    print("## syncs: host synchronisations per call (sparse, bf16, MDM size B=64)")
+    root = str(Path(__file__).resolve().parents[1] / "smdm_plugin")
+    for family, arch, name in gcheck.MODELS:
+        for call in ("train", "sample"):
+            z = BIG
+            work = workloads.WORKLOADS.get(family)
+            data = work.batch(z.batch, z.frames, dev, z.quick, arch)
+            model, diffusion = workloads.build(arch, gcheck.REDUCTION, dev, z.quick, z.steps, family=family,
+                                               frames=z.frames, **({"dynamic_update": True} if call == "sample" else {}))
+            fn = benchmark.step_fn(call, work, model, diffusion, data, dev, "bf16", "none", "inductor")
+            fn()
+            fn()
+            if dev.type == "cuda":
+                torch.cuda.synchronize()
+            seen: Dict[str, int] = collections.Counter()
+            old = warnings.showwarning
+
+            def show(message, category, filename, lineno, file=None, line=None):  # noqa: ANN001
+                frames = [f"{Path(f.filename).name}:{f.lineno} {f.name}" for f in traceback.extract_stack()
+                          if f.filename.startswith(root)]
+                seen[f"{str(message)[:60]} @ " + " < ".join(reversed(frames[-3:]))] += 1
+
+            warnings.showwarning = show
+            try:
+                with warnings.catch_warnings():
+                    warnings.simplefilter("always")
+                    warnings.showwarning = show
+                    if dev.type == "cuda":
+                        torch.cuda.set_sync_debug_mode("warn")
+                    try:
+                        fn()
+                    finally:
+                        if dev.type == "cuda":
+                            torch.cuda.set_sync_debug_mode(0)
+            finally:
+                warnings.showwarning = old
+            print(f"{name} {call}: {sum(seen.values())} syncs", flush=True)
+            for k, v in seen.most_common(8):
+                print(f"    {v} x {k}")
+            del model, fn
+            gcheck.free(dev)
+
+
+def section_profile(dev: torch.device, out: Path) -> None:
+    print("## profile: trans_enc, bf16, MDM size B=64 (5 calls after 5 warm-ups)")
+    from torch.profiler import ProfilerActivity, profile
+
+    z = BIG
+    work = workloads.WORKLOADS.get("mdm")
+    data = work.batch(z.batch, z.frames, dev, z.quick, "trans_enc")
+    for call in ("train", "sample"):
+        for reduction in (None, gcheck.REDUCTION):
+            model, diffusion = workloads.build("trans_enc", reduction, dev, z.quick, z.steps, family="mdm",
+                                               frames=z.frames,
+                                               **({"dynamic_update": True} if call == "sample" and reduction else {}))
+            fn = benchmark.step_fn(call, work, model, diffusion, data, dev, "bf16", "none", "inductor")
+            for _ in range(5):
+                fn()
+            acts = [ProfilerActivity.CPU] + ([ProfilerActivity.CUDA] if dev.type == "cuda" else [])
+            with profile(activities=acts) as prof:
+                for _ in range(5):
+                    fn()
+                if dev.type == "cuda":
+                    torch.cuda.synchronize()
+            kind = "dense" if reduction is None else "sparse"
+            avg = prof.key_averages()
+            count = collections.Counter()
+            for e in avg:
+                for key in ("LaunchKernel", "cuLaunch", "Memcpy", "Synchronize", "EventSynchronize", "Memset"):
+                    if key in e.key:
+                        count[e.key] += e.count // 5
+            host = sum(e.self_cpu_time_total for e in avg) / 5 / 1e3
+            gpu = sum(getattr(e, "self_device_time_total", 0) for e in avg) / 5 / 1e3
+            print(f"{call} {kind}: host self total {host:.1f} ms/call (profiled), GPU busy {gpu:.1f} ms/call; "
+                  + ", ".join(f"{k} {v}" for k, v in sorted(count.items())), flush=True)
+            table = avg.table(sort_by="self_cpu_time_total", row_limit=45, max_name_column_width=70)
+            (out / f"profile_{call}_{kind}.txt").write_text(table)
+            del model, fn, prof
+            gcheck.free(dev)
+
+
+def section_parts(dev: torch.device) -> None:
+    print("## parts: eager trans_enc at MDM size, B=64, 196 frames: ms per call (CUDA events, median of 20)")
+    z = BIG
+    work = workloads.WORKLOADS.get("mdm")
+    data = work.batch(z.batch, z.frames, dev, z.quick, "trans_enc")
+    for amp in ("bf16", "fp32"):
+        for call in ("train", "sample"):
+            fns = {}
+            model, diffusion = workloads.build("trans_enc", None, dev, z.quick, z.steps, family="mdm", frames=z.frames)
+            fns["dense"] = benchmark.step_fn(call, work, model, diffusion, data, dev, amp, "none", "inductor")
+            for label, config in PARTS.items():
+                extra = dict(config, **({"dynamic_update": True} if call == "sample" else {}))
+                model, diffusion = workloads.build("trans_enc", gcheck.REDUCTION, dev, z.quick, z.steps, family="mdm",
+                                                   frames=z.frames, **extra)
+                fns[label] = benchmark.step_fn(call, work, model, diffusion, data, dev, amp, "none", "inductor")
+            times = {k: [] for k in fns}
+            for fn in fns.values():
+                for _ in range(5):
+                    fn()
+            for _ in range(20):
+                for k, fn in fns.items():
+                    times[k] += event_times(fn, dev, 1, 0)
+            med = {k: statistics.median(v) * 1e3 for k, v in times.items()}
+            print(f"{amp} {call}: " + ", ".join(f"{k} {v:.2f} ms ({med['dense'] / v:.2f}x)" for k, v in med.items()),
+                  flush=True)
+            del fns
+            gcheck.free(dev)
+
+
+def main() -> int:
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p.add_argument("--out", default=".", help="folder for the profiler tables")
+    p.add_argument("--sections", nargs="+", default=["errors", "syncs", "profile", "parts"],
+                   choices=["errors", "syncs", "profile", "parts"])
+    p.add_argument("--dry-run", action="store_true", help="on the CPU at the tiny size (checks that it runs)")
+    a = p.parse_args()
+    global BIG
+    if a.dry_run:
+        dev, BIG = torch.device("cpu"), gcheck.Sizes(True, 2, 24, 4)
+    elif not torch.cuda.is_available():
+        print("gpu_diagnose: no CUDA device here (--dry-run on a CPU)", file=sys.stderr)
+        return 2
+    else:
+        dev = torch.device("cuda")
+    out = Path(a.out)
+    out.mkdir(parents=True, exist_ok=True)
+    warnings.simplefilter("ignore")
+    for s in a.sections:
+        t0 = time.perf_counter()
+        try:
+            {"errors": lambda: section_errors(dev), "syncs": lambda: section_syncs(dev),
+             "profile": lambda: section_profile(dev, out), "parts": lambda: section_parts(dev)}[s]()
+        except Exception:  # noqa: BLE001 - the other sections still run
+            traceback.print_exc()
+        print(f"({s}: {time.perf_counter() - t0:.0f} s)\n", flush=True)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
