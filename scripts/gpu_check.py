@@ -6,8 +6,8 @@
 
 * **check**: every cell runs (``ok`` / the exception in one line) and matches the CPU within float
   tolerance: the sparse model (the paper's recipe, ``SparseConfig()`` at 80%, dynamic update on at
-  sampling except in bf16 loops, ``dynamic_update``; dropout off: its draws differ between devices) at a small size, the same weights and
-  inputs (drawn on the CPU), against the CPU's eager fp32 run on the static-shape path (what a GPU
+  sampling except in bf16 loops, ``dynamic_update``; dropout off: its draws differ between
+  devices) at a small size, the same weights and inputs (drawn on the CPU), against the CPU's eager fp32 run on the static-shape path (what a GPU
   runs): three training steps' losses (AdamW steps between them), three guided sampling calls, one
   whole sampling loop after a first one (its noise drawn on the CPU); the largest error relative to
   the reference's largest value;
@@ -154,15 +154,17 @@ def dynamic_update(call: str, precision: str) -> bool:
 
 def run_values(s: Settings, family: str, arch: str, call: str, device: torch.device, amp: str, mode: str,
                reduction: Optional[float] = REDUCTION, size: Optional[Sizes] = None,
-               dynamic: Optional[bool] = None) -> List[torch.Tensor]:
+               dynamic: Optional[bool] = None, **config: Any) -> List[torch.Tensor]:
     """What a check compares: three training losses, three sampling call outputs, or the sample of
     a second whole loop (the first warms it up), as CPU float32 tensors. ``dynamic``: sample with
-    the dynamic update (default: :func:`dynamic_update` of ``call`` and ``amp``)."""
+    the dynamic update (default: :func:`dynamic_update` of ``call`` and ``amp``); ``config``: more
+    ``workloads.build`` settings of the sparse model (``fsq="off"``, ``lipschitz=False``, ...)."""
     z = size or s.check
     work = workloads.WORKLOADS.get(family)
     dynamic = dynamic_update(call, amp) if dynamic is None else dynamic
+    sparse = dict(config, **({"dynamic_update": True} if dynamic else {})) if reduction is not None else {}
     model, diffusion = workloads.build(arch, reduction, device, z.quick, z.steps, family=family, frames=z.frames,
-                                       **({"dynamic_update": True} if dynamic and reduction is not None else {}))
+                                       **sparse)
     workloads.without_dropout(model)                 # random draws differ between devices
     data = work.batch(z.batch, z.frames, device, z.quick, arch)
     if call == "loop":

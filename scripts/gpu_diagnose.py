@@ -20,7 +20,6 @@ import argparse
 import collections
 import gc
 import importlib.util
-import os
 import statistics
 import sys
 import time
@@ -59,29 +58,16 @@ def triton_kernels(on: bool) -> None:
                 obj._fn = None
 
 
+#: what ``gpu_check.run_values`` reads of its settings: the check's size and the compile backend
+CHECK = gcheck.Settings(torch.device("cpu"), "inductor", gcheck.Sizes(True, 4, 40, 10), gcheck.Sizes(True, 4, 40, 10),
+                        1, 0, 1, float("inf"), [], [], [], [])
+
+
 def values(family: str, arch: str, call: str, device: torch.device, amp: str, reduction, **config) -> List[torch.Tensor]:
-    """``gpu_check.run_values`` at the check's size with SparseConfig changes ``config``."""
-    z = gcheck.Sizes(True, 4, 40, 10)
-    work = workloads.WORKLOADS.get(family)
-    sample = call != "train"
-    extra = dict(config)
-    if sample and reduction is not None:
-        extra.setdefault("dynamic_update", True)
-    model, diffusion = workloads.build(arch, reduction, device, z.quick, z.steps, family=family, frames=z.frames,
-                                       **(extra if reduction is not None else {}))
-    workloads.without_dropout(model)
-    data = work.batch(z.batch, z.frames, device, z.quick, arch)
-    if call == "loop":
-        model.eval()
-        step = benchmark.sampling_step(work, model, diffusion, device, "none", "inductor")
-        with torch.no_grad(), benchmark.autocast(device, amp):
-            out = benchmark.sample_loop(step, tuple(data.x.shape), z.steps, work.sample_kwargs(data), device,
-                                        torch.Generator().manual_seed(1))
-        vals = [out]
-    else:
-        fn = benchmark.step_fn(call, work, model, diffusion, data, device, amp, "none", "inductor")
-        vals = [fn() for _ in range(3)]
-    return [v.detach().float().cpu() for v in vals]
+    """``gpu_check.run_values`` (eager) at the check's size, the dynamic update on at sampling
+    (``dynamic_update=False`` in ``config``: off), with more sparse settings ``config``."""
+    dynamic = config.pop("dynamic_update", call != "train")
+    return gcheck.run_values(CHECK, family, arch, call, device, amp, "eager", reduction, dynamic=dynamic, **config)
 
 
 def section_errors(dev: torch.device) -> None:

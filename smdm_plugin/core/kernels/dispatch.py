@@ -90,7 +90,7 @@ class FusedOp:
             return self.eager
         op = torch.library.custom_op(f"smdm::{self.name}", mutates_args=())(self.composite)
         for device, kernel in self.kernels.items():
-            if device != "meta" or fake is None:     # register_fake is the meta kernel (torch < 2.13 refuses both)
+            if device != "meta" or fake is None:     # register_fake is the meta kernel (torch 2.11 refuses both)
                 op.register_kernel(device)(kernel)
         if fake is not None:
             op.register_fake(fake)
