@@ -10,9 +10,12 @@
 * ``profile``: the torch profiler's host-side table (self CPU time) of dense and sparse trans_enc
   bf16 training steps and sampling calls, and the counts of launches, copies and syncs;
 * ``parts``: eager speed of trans_enc with parts of the recipe off, dense beside it (the GPU's
-  version of ``scripts/host_time_parts.py``).
+  version of ``scripts/host_time_parts.py``);
+* ``kernels``: eager speed of trans_enc and trans_dec with each group of the package's Triton
+  kernels switched the other way (on against the composite), dense beside it: which one each device
+  should run (``TritonKernel(enabled=...)``; the CPU meter's answer: ``scripts/host_time.py --triton``).
 
-    python scripts/gpu_diagnose.py --out DIR [--sections errors syncs profile parts]
+    python scripts/gpu_diagnose.py --out DIR [--sections errors syncs profile parts kernels]
 """
 from __future__ import annotations
 
@@ -33,7 +36,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 import torch  # noqa: E402
 
 from smdm_plugin.core.checks import static_mode  # noqa: E402
-from smdm_plugin.core.kernels.dispatch import TritonKernel  # noqa: E402
+from smdm_plugin.core.kernels import TRITON_KERNELS, use_triton_kernels  # noqa: E402
 from smdm_plugin.training import benchmark, workloads  # noqa: E402
 from smdm_plugin.training.timing import event_times  # noqa: E402
 
@@ -49,13 +52,17 @@ PARTS = {"recipe": {}, "no FSQ": {"fsq": "off"}, "no Lipschitz": {"lipschitz": F
          "neither": {"fsq": "off", "lipschitz": False}}
 
 
-def triton_kernels(on: bool) -> None:
-    """Switch every Triton kernel of the package on or off (off: the composite on CUDA)."""
-    for obj in gc.get_objects():
-        if isinstance(obj, TritonKernel):
-            obj.broken = None if on else "switched off by gpu_diagnose"
-            if not on:
-                obj._fn = None
+#: the package's Triton kernels in the groups one decision switches (forward with its backward)
+KERNEL_GROUPS = {"FSQ codes": ["FSQ code", "FSQ code gradient"],
+                 "Lipschitz weights": ["Lipschitz weight", "Lipschitz weight gradient"],
+                 "keyframe plan": ["keyframe plan"], "mask noise": ["mask-noise"], "VW": ["VW"]}
+assert sorted(n for g in KERNEL_GROUPS.values() for n in g) == sorted(TRITON_KERNELS)
+
+
+def triton_kernels(on) -> None:
+    """Switch every Triton kernel of the package on (True), off (False: the composite on CUDA), or
+    back to its default (None)."""
+    use_triton_kernels(on)
 
 
 #: what ``gpu_check.run_values`` reads of its settings: the check's size and the compile backend
@@ -74,10 +81,10 @@ def section_errors(dev: torch.device) -> None:
     print("## errors: largest |CUDA - CPU| / largest |CPU| (check size: tiny model, B=4, 40 frames, T=10)")
     print(f"tf32 matmul {torch.backends.cuda.matmul.allow_tf32}, cudnn tf32 {torch.backends.cudnn.allow_tf32}, "
           f"float32 matmul precision {torch.get_float32_matmul_precision()}")
-    cases = [("recipe", {}, True), ("recipe, Triton kernels off", {}, False),
-             ("dynamic update off", {"dynamic_update": False}, True), ("no FSQ", {"fsq": "off"}, True),
-             ("no Lipschitz", {"lipschitz": False}, True), ("no FSQ, no dynamic update", {"fsq": "off",
-                                                                                         "dynamic_update": False}, True)]
+    cases = [("recipe", {}, None), ("recipe, Triton kernels off", {}, False),
+             ("dynamic update off", {"dynamic_update": False}, None), ("no FSQ", {"fsq": "off"}, None),
+             ("no Lipschitz", {"lipschitz": False}, None), ("no FSQ, no dynamic update", {"fsq": "off",
+                                                                                         "dynamic_update": False}, None)]
     for family, arch, name in gcheck.MODELS:
         for call in ("sample", "loop"):
             for label, config, triton_on in cases:
@@ -93,7 +100,7 @@ def section_errors(dev: torch.device) -> None:
                 except Exception as e:  # noqa: BLE001
                     msg = "error: " + gcheck.one_line(e)
                 finally:
-                    triton_kernels(True)
+                    triton_kernels(None)
                 print(f"{name} {call} sparse [{label}]: {msg}", flush=True)
             with static_mode():
                 ref = values(family, arch, call, torch.device("cpu"), "fp32", None)
@@ -214,11 +221,52 @@ def section_parts(dev: torch.device) -> None:
             gcheck.free(dev)
 
 
+def section_kernels(dev: torch.device) -> None:
+    print("## kernels: eager sparse speed with each group of Triton kernels switched the other way "
+          "(MDM size, B=64, 196 frames; ms per call, CUDA events, median of 20; dense beside it)")
+    print("defaults: " + ", ".join(f"{n} {'on' if k.default else 'off'}" for n, k in sorted(TRITON_KERNELS.items())))
+    z = BIG
+    work = workloads.WORKLOADS.get("mdm")
+    for arch in ("trans_enc", "trans_dec"):
+        data = work.batch(z.batch, z.frames, dev, z.quick, arch)
+        for amp in ("bf16", "fp32"):
+            for call in ("train", "sample"):
+                model, diffusion = workloads.build(arch, None, dev, z.quick, z.steps, family="mdm", frames=z.frames)
+                dense = benchmark.step_fn(call, work, model, diffusion, data, dev, amp, "none", "inductor")
+                model, diffusion = workloads.build(arch, gcheck.REDUCTION, dev, z.quick, z.steps, family="mdm",
+                                                   frames=z.frames)
+                sparse = benchmark.step_fn(call, work, model, diffusion, data, dev, amp, "none", "inductor")
+                cases = {"dense": (dense, None), "sparse, defaults": (sparse, None)}
+                for group, names in KERNEL_GROUPS.items():
+                    flip = not TRITON_KERNELS[names[0]].default
+                    cases[f"{group} {'on' if flip else 'off'}"] = (sparse, (flip, names))
+                times: Dict[str, List[float]] = {k: [] for k in cases}
+
+                def run(fn, switch, n, warm):  # noqa: ANN001
+                    if switch is not None:
+                        use_triton_kernels(*switch)
+                    try:
+                        return event_times(fn, dev, n, warm)
+                    finally:
+                        triton_kernels(None)
+
+                for fn, switch in cases.values():
+                    run(fn, switch, 1, 3)
+                for _ in range(20):
+                    for k, (fn, switch) in cases.items():
+                        times[k] += run(fn, switch, 1, 0)
+                med = {k: statistics.median(v) * 1e3 for k, v in times.items()}
+                print(f"{arch} {amp} {call}: " + ", ".join(
+                    f"{k} {v:.2f} ms ({med['dense'] / v:.2f}x)" for k, v in med.items()), flush=True)
+                del dense, sparse, cases
+                gcheck.free(dev)
+
+
 def main() -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--out", default=".", help="folder for the profiler tables")
-    p.add_argument("--sections", nargs="+", default=["errors", "syncs", "profile", "parts"],
-                   choices=["errors", "syncs", "profile", "parts"])
+    p.add_argument("--sections", nargs="+", default=["errors", "syncs", "profile", "parts", "kernels"],
+                   choices=["errors", "syncs", "profile", "parts", "kernels"])
     p.add_argument("--dry-run", action="store_true", help="on the CPU at the tiny size (checks that it runs)")
     a = p.parse_args()
     global BIG
@@ -236,7 +284,8 @@ def main() -> int:
         t0 = time.perf_counter()
         try:
             {"errors": lambda: section_errors(dev), "syncs": lambda: section_syncs(dev),
-             "profile": lambda: section_profile(dev, out), "parts": lambda: section_parts(dev)}[s]()
+             "profile": lambda: section_profile(dev, out), "parts": lambda: section_parts(dev),
+             "kernels": lambda: section_kernels(dev)}[s]()
         except Exception:  # noqa: BLE001 - the other sections still run
             traceback.print_exc()
         print(f"({s}: {time.perf_counter() - t0:.0f} s)\n", flush=True)

@@ -1,9 +1,13 @@
 """Host time per call on this CPU, dense against sparse: the table of docs/gpu.md ("Host time").
 
     python scripts/host_time.py [--variants trans_enc trans_dec dip motiondiffuse] [--repeats 100]
+                                [--triton NAME ...] [--no-triton NAME ...]
 
-Each variant at MDM's depth and heads on tiny tensors, the static (GPU) code path, fused ops,
-SDPA and foreach ops charged one launch each (smdm_plugin/training/hosttime.py); one thread.
+Each variant at MDM's depth and heads on tiny tensors, the static (GPU) code path; SDPA and
+foreach ops charged one launch each, fused ops that CUDA runs as Triton kernels TRITON_LAUNCH_OPS
+(smdm_plugin/training/hosttime.py); one thread. ``--triton`` / ``--no-triton`` switch Triton
+kernels (by name: smdm_plugin.core.kernels.dispatch.TRITON_KERNELS) on or off for the run, as
+``use_triton_kernels`` does (``--triton "FSQ code" "FSQ code gradient"``: 0.9.1's routing).
 Prints a markdown table (host ms per call, sparse / dense).
 """
 from __future__ import annotations
@@ -15,6 +19,7 @@ from typing import List, Optional
 import torch
 
 from smdm_plugin.core.checks import static_mode
+from smdm_plugin.core.kernels.dispatch import TRITON_KERNELS, use_triton_kernels
 from smdm_plugin.training.hosttime import HOST_SIZE, HOST_VARIANTS, host_cells, host_times
 
 
@@ -22,11 +27,21 @@ def main(argv: Optional[List[str]] = None) -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--variants", nargs="+", choices=HOST_VARIANTS, default=list(HOST_VARIANTS))
     p.add_argument("--repeats", type=int, default=100, help="interleaved repeats per cell (default 100)")
+    p.add_argument("--triton", nargs="+", default=[], choices=sorted(TRITON_KERNELS), metavar="NAME",
+                   help="Triton kernels to switch on for the run (names: " + ", ".join(sorted(TRITON_KERNELS)) + ")")
+    p.add_argument("--no-triton", nargs="+", default=[], choices=sorted(TRITON_KERNELS), metavar="NAME",
+                   help="Triton kernels to switch off for the run")
     a = p.parse_args(argv)
     if a.repeats < 1:
         p.error(f"argument --repeats: must be >= 1, got {a.repeats}")
+    if set(a.triton) & set(a.no_triton):
+        p.error(f"arguments --triton/--no-triton: a kernel named in both: {sorted(set(a.triton) & set(a.no_triton))}")
+    use_triton_kernels(True, a.triton)
+    use_triton_kernels(False, a.no_triton)
+    on = sorted(n for n, k in TRITON_KERNELS.items() if k.enabled)
     torch.set_num_threads(1)
-    print(f"host time per call (ms, thread CPU time; size {HOST_SIZE}; torch {torch.__version__})\n")
+    print(f"host time per call (ms, thread CPU time; size {HOST_SIZE}; torch {torch.__version__}; "
+          f"Triton kernels on: {', '.join(on) or 'none'})\n")
     print("| variant | precision | call | dense ms | sparse ms | sparse / dense |")
     print("| --- | --- | --- | ---: | ---: | ---: |")
     for variant in a.variants:

@@ -14,10 +14,17 @@ from ..core.kernels.dispatch import OBSERVERS
 if TYPE_CHECKING:
     from ..core.config import SparseConfig
 
-__all__ = ["HOST_SIZE", "HostTime", "host_times", "launch_charge", "charging_kernels"]
+__all__ = ["HOST_SIZE", "TRITON_LAUNCH_OPS", "HostTime", "host_times", "launch_charge", "charging_kernels"]
 
 #: the model size of the measurement: MDM's depth and heads, tiny tensors
 HOST_SIZE = dict(latent_dim=16, ff_size=32, num_layers=8, num_heads=4, batch=2, frames=24)
+
+#: what one Triton launch from Python costs the host, in small aten ops: the H200's profile
+#: (results/gpu_h200_2026-11-28/profile_train_sparse.txt, self CPU per call of the autograd functions
+#: that launch one Triton kernel: 106, 202, 79 and 149 µs) over an elementwise aten op's host time
+#: there (aten::add, 16-23 µs with its launch): 4.4-11, median ~7; rounded down to 6, since the
+#: functions' own Python is measured apart on the CPU (docs/gpu.md)
+TRITON_LAUNCH_OPS = 34
 
 
 @dataclass(frozen=True)
@@ -49,7 +56,9 @@ def launch_charge(repeats: int = 2000) -> float:
 
 
 class _Charges:
-    """Thread time spent in charged kernels and how many ran, since the last :meth:`reset`."""
+    """Thread time spent in charged kernels and how many launches' worth they cost (``count``: one
+    per SDPA or foreach call, :data:`TRITON_LAUNCH_OPS` per fused op that CUDA runs as a Triton
+    kernel), since the last :meth:`reset`."""
 
     def __init__(self) -> None:
         self.seconds, self.count = 0.0, 0
@@ -57,13 +66,13 @@ class _Charges:
     def reset(self) -> None:
         self.seconds, self.count = 0.0, 0
 
-    def run(self, fn: Callable, *args, **kwargs):
+    def run(self, fn: Callable, *args, ops: int = 1, **kwargs):
         t0 = time.thread_time()
         try:
             return fn(*args, **kwargs)
         finally:
             self.seconds += time.thread_time() - t0
-            self.count += 1
+            self.count += ops
 
 
 def _timed(charges: "_Charges", fn: Callable) -> Callable:
@@ -74,16 +83,17 @@ def _timed(charges: "_Charges", fn: Callable) -> Callable:
 
 @contextmanager
 def charging_kernels() -> Iterator[_Charges]:
-    """Within the block, the package's fused ops, ``F.scaled_dot_product_attention`` and
-    ``torch._foreach_*`` are timed apart (:class:`_Charges`), so that a measurement can charge each
-    as one launch. (They are looked up at call time by ``nn.MultiheadAttention``, this package and
-    ``torch.optim``.)"""
+    """Within the block, the package's fused ops that CUDA runs as Triton kernels,
+    ``F.scaled_dot_product_attention`` and ``torch._foreach_*`` are timed apart (:class:`_Charges`),
+    so that a measurement can charge each at what it costs a GPU's host: a Triton launch
+    :data:`TRITON_LAUNCH_OPS` small ops, the others one. (They are looked up at call time by
+    ``nn.MultiheadAttention``, this package and ``torch.optim``.)"""
     charges = _Charges()
     patched = [(F, "scaled_dot_product_attention")] + [(torch, n) for n in dir(torch) if n.startswith("_foreach_")]
     originals = [(owner, name, getattr(owner, name)) for owner, name in patched]
 
     def observer(name: str, kernel: Callable, args: list):
-        return charges.run(kernel, *args)
+        return charges.run(kernel, *args, ops=TRITON_LAUNCH_OPS)
 
     OBSERVERS.append(observer)
     for owner, name, fn in originals:
@@ -99,8 +109,9 @@ def charging_kernels() -> Iterator[_Charges]:
 def host_times(fns: Dict[str, Callable[[], object]], repeats: int = 100, warmup: int = 3,
                quantile: float = 0.2) -> HostTime:
     """Host milliseconds per call of each callable in ``fns`` (run interleaved, ``repeats`` times
-    after ``warmup`` calls each): thread CPU time, with fused ops and SDPA charged one launch each
-    (docs/modules.md); the ``quantile`` of the repeats. Run on the CPU, one thread."""
+    after ``warmup`` calls each): thread CPU time, with SDPA and foreach ops charged one launch each
+    and Triton-launching fused ops :data:`TRITON_LAUNCH_OPS` (:func:`charging_kernels`); the
+    ``quantile`` of the repeats. Run on the CPU, one thread."""
     if repeats < 1:
         raise ValueError(f"host_times: repeats must be >= 1, got {repeats}")
     charge = launch_charge()

@@ -365,8 +365,10 @@ def test_all_layers_folded_at_once_equal_each_layer_folded_alone():
 # ----------------------------------------------------------------------------- smdm::fsq_code
 def test_fsq_code_op_equals_its_formula_with_a_straight_through_gradient():
     """``fsq_code``: ``round(tanh(z)·half_l + neg_offset)`` in float32, in z's dtype, for strided z
-    (a column block) and bfloat16; gradient ``g·half_l·(1 - tanh(z)²)``; counted as one CUDA
-    launch each way, with no ``torch.library`` dispatch in eager mode (host time)."""
+    (a column block) and bfloat16; gradient ``g·half_l·(1 - tanh(z)²)``, the same with the bf16
+    composite's saved float32 tanh. By default CUDA runs the composite's few ops (the Triton
+    kernels are off: their launches cost the host more, docs/gpu.md); switched on, one CUDA launch
+    each way; no ``torch.library`` dispatch in eager mode either way (host time)."""
     from smdm_plugin.core.kernels.fsq_code import fsq_code
     from smdm_plugin.runtime.launches import count_launches
 
@@ -385,9 +387,28 @@ def test_fsq_code_op_equals_its_formula_with_a_straight_through_gradient():
     rb = fsq_code(zb, neg, half)
     assert rb.dtype == torch.bfloat16
     assert torch.equal(rb.float(), torch.round(torch.addcmul(neg, torch.tanh(zb.float()), half)))
+    zb.requires_grad_()
+    fsq_code(zb, neg, half).backward(g.bfloat16())
+    ref_b = (g.bfloat16().float() * half * (1 - torch.tanh(zb.detach().float()) ** 2)).bfloat16()
+    assert zb.grad.dtype == torch.bfloat16 and torch.equal(zb.grad, ref_b)
+    from smdm_plugin.core.kernels.dispatch import use_triton_kernels
+
+    names = ["FSQ code", "FSQ code gradient"]
     zz = z.detach().clone().requires_grad_()
     ops = count_launches(lambda: fsq_code(zz, neg, half).sum().backward()).ops
+    assert "smdm.fsq_code" not in ops and "smdm.fsq_code_backward" not in ops
+    assert ops["aten.tanh.default"] == 1 and ops["aten.tanh_backward.default"] == 1, ops   # tanh once
+    before = use_triton_kernels(True, names)
+    try:
+        zz.grad = None
+        ops = count_launches(lambda: fsq_code(zz, neg, half).sum().backward(), warmup=0).ops
+        grad = zz.grad
+    finally:
+        for name, on in before.items():
+            use_triton_kernels(on, [name])
     assert ops["smdm.fsq_code"] == 1 and ops["smdm.fsq_code_backward"] == 1
+    assert "aten.tanh.default" not in ops
+    torch.testing.assert_close(grad, half * (1 - torch.tanh(z.detach()) ** 2))
     assert not any(k.startswith("smdm.") and k.endswith(".default") for k in ops), ops   # no custom op
 
 

@@ -48,3 +48,32 @@ def test_dry_run_prints_every_model_and_part(tmp_path, capsys, monkeypatch):
             line = next(ln for ln in out.splitlines() if ln.startswith(f"{amp} {call}: "))
             assert all(f"{k} " in line for k in ["dense", *gd.PARTS]), line
     assert "Traceback" not in out
+
+
+def test_kernels_section_switches_each_group_the_other_way_and_restores(tmp_path, capsys, monkeypatch):
+    """``--sections kernels``: each timed case runs with exactly its group of Triton kernels switched
+    away from the default (the others at theirs), and the defaults are back afterwards."""
+    from smdm_plugin.core.kernels import TRITON_KERNELS
+
+    gd = _script()
+    states = []
+    real = gd.event_times
+
+    def recording(fn, device, repeats, warmup):
+        states.append({n: k.enabled for n, k in TRITON_KERNELS.items()})
+        return real(fn, device, repeats, warmup)
+
+    monkeypatch.setattr(gd, "event_times", recording)
+    monkeypatch.setattr(sys, "argv", ["gpu_diagnose.py", "--dry-run", "--sections", "kernels", "--out", str(tmp_path)])
+    assert gd.main() == 0
+    out = capsys.readouterr().out
+    defaults = {n: k.default for n, k in TRITON_KERNELS.items()}
+    assert {n: k.enabled for n, k in TRITON_KERNELS.items()} == defaults
+    flipped = {frozenset(n for n in s if s[n] != defaults[n]) for s in states}
+    assert flipped == {frozenset()} | {frozenset(g) for g in gd.KERNEL_GROUPS.values()}
+    for arch in ("trans_enc", "trans_dec"):
+        for amp in ("bf16", "fp32"):
+            for call in ("train", "sample"):
+                line = next(ln for ln in out.splitlines() if ln.startswith(f"{arch} {amp} {call}: "))
+                assert all(f"{g} " in line for g in gd.KERNEL_GROUPS), line
+    assert "Traceback" not in out

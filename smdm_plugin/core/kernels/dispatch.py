@@ -7,25 +7,45 @@ from typing import Any, Callable, Dict, List, Optional
 
 from ..checks import compiling
 
-__all__ = ["TritonKernel", "FusedOp", "OBSERVERS"]
+__all__ = ["TritonKernel", "FusedOp", "OBSERVERS", "TRITON_KERNELS", "use_triton_kernels"]
 
 #: who watches fused ops (innermost last): ``observer(name, kernel, args)`` runs ``kernel(*args)``
 #: and returns its result (:class:`~smdm_plugin.runtime.launches.LaunchCounter` counts one launch)
 OBSERVERS: List[Callable[[str, Callable[..., Any], list], Any]] = []
 
+#: every Triton kernel of the package, by what it computes (``TritonKernel.what``)
+TRITON_KERNELS: Dict[str, "TritonKernel"] = {}
+
 
 class TritonKernel:
     """``kernel(fallback, *args)``: the function ``name`` of ``module`` (a module of this package named
     relatively, ``.vw_triton``, so that the architecture test sees the import; it imports ``triton``)
-    on ``args``, or ``fallback(*args)`` where it cannot run. ``what`` names the
-    kernel in the warning, ``slower`` what the fallback costs."""
+    on ``args``, or ``fallback(*args)`` where it cannot run or is switched off. ``what`` names the
+    kernel in the warning (and in :data:`TRITON_KERNELS`), ``slower`` what the fallback costs.
 
-    def __init__(self, module: str, name: str, what: str, slower: str = "the composite (more kernels)") -> None:
+    ``enabled``: whether eager mode uses it (:func:`use_triton_kernels` switches it). A Triton launch
+    from Python costs the host 80-340 µs on the H200 that measured it (docs/gpu.md), several aten
+    ops' worth: a kernel that replaces only a few elementwise ops is off by default
+    (``enabled=False``: the composite, cheaper on the host at MDM's size)."""
+
+    def __init__(self, module: str, name: str, what: str, slower: str = "the composite (more kernels)",
+                 enabled: bool = True) -> None:
+        if what in TRITON_KERNELS:
+            raise ValueError(f"TritonKernel: a kernel named {what!r} exists already")
         self.module, self.name, self.what, self.slower = module, name, what, slower
-        self.broken: Optional[str] = None          # why the kernel is not used (None: not known yet)
+        self.default = self.enabled = bool(enabled)
+        self.broken: Optional[str] = None          # why the kernel cannot be used (None: not known yet)
         self._fn: Optional[Callable[..., Any]] = None
+        TRITON_KERNELS[what] = self
+
+    @property
+    def runs(self) -> bool:
+        """Whether a CUDA call runs this kernel (switched on, not found broken)."""
+        return self.enabled and self.broken is None
 
     def __call__(self, fallback: Callable[..., Any], *args: Any) -> Any:
+        if not self.enabled:
+            return fallback(*args)
         fn = self._fn
         if fn is None and self.broken is None:
             try:
@@ -40,6 +60,22 @@ class TritonKernel:
                 warnings.warn(f"smdm: the Triton {self.what} kernel failed on this GPU ({self.broken}); "
                               f"using {self.slower}", RuntimeWarning, stacklevel=2)
         return fallback(*args)
+
+
+def use_triton_kernels(on: Optional[bool] = None, names: Optional[List[str]] = None) -> Dict[str, bool]:
+    """Switch the package's Triton kernels (``names``: keys of :data:`TRITON_KERNELS`, default all)
+    on (``True``), off (``False``: the composite on CUDA) or back to their defaults (``None``), for
+    eager calls from now on; returns each kernel's previous setting (pass it back one by one to
+    restore). Values are the composite's either way (docs/gpu.md)."""
+    chosen = list(TRITON_KERNELS) if names is None else list(names)
+    unknown = [n for n in chosen if n not in TRITON_KERNELS]
+    if unknown:
+        raise ValueError(f"use_triton_kernels: names must be among {sorted(TRITON_KERNELS)}, got {unknown}")
+    before = {n: TRITON_KERNELS[n].enabled for n in chosen}
+    for n in chosen:
+        k = TRITON_KERNELS[n]
+        k.enabled = k.default if on is None else bool(on)
+    return before
 
 
 class FusedOp:
@@ -60,7 +96,7 @@ class FusedOp:
     def __init__(self, name: str, composite: Callable[..., Any], cuda: Optional[TritonKernel] = None,
                  kernels: Optional[Dict[str, Callable[..., Any]]] = None, fallback: Optional[Callable[..., Any]] = None,
                  fake: Optional[Callable[..., Any]] = None, opaque: bool = False) -> None:
-        self.name, self.composite = name, composite
+        self.name, self.composite, self.cuda = name, composite, cuda
         self.kernels: Dict[str, Callable[..., Any]] = dict(kernels or {})
         if cuda is not None:
             fb = fallback or composite
@@ -74,9 +110,28 @@ class FusedOp:
     def eager(self, *args: Any) -> Any:
         """The op outside tracing: the kernel of the first argument's device, else the composite."""
         kernel = self.kernels.get(args[0].device.type, self.composite)
-        if OBSERVERS and "cuda" in self.kernels:      # a launch counter: CUDA runs it as one kernel
+        if OBSERVERS and self.launches_on_cuda:      # a launch counter: CUDA runs it as one kernel
             return OBSERVERS[-1](f"smdm.{self.name}", kernel, list(args))
         return kernel(*args)
+
+    @property
+    def launches_on_cuda(self) -> bool:
+        """Whether eager mode on CUDA runs this op as one kernel (its Triton kernel is on), not as
+        its composite's ops."""
+        return self.cuda is not None and self.cuda.enabled
+
+    def fused_on(self, t: Any) -> bool:
+        """Whether eager mode runs a kernel of its own (not the composite) for tensors on ``t``'s
+        device: a CUDA kernel that is on, or another device's kernel; while an observer models CUDA
+        (:data:`OBSERVERS`), what CUDA runs; False while tracing."""
+        if compiling():
+            return False
+        if OBSERVERS and self.cuda is not None:
+            return self.cuda.enabled
+        kind = t.device.type
+        if kind not in self.kernels or kind == "meta":
+            return False
+        return kind != "cuda" or self.cuda is None or self.cuda.runs
 
     def __call__(self, *args: Any) -> Any:
         return self.traced(*args) if compiling() else self.eager(*args)

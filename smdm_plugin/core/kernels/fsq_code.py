@@ -1,13 +1,13 @@
-"""The key codes of FSQ attention's folded path as one fused op each way (:class:`~.dispatch.FusedOp`).
+"""The key codes of FSQ attention's folded path, with their straight-through gradient.
 
 ``fsq_code(z, neg_offset, half_l) = round(tanh(z) · half_l + neg_offset)`` per channel (the last
-dimension's ``C`` channels), computed in float32 and returned in ``z``'s dtype (the codes are small
-integers: exact in bfloat16/float16); its gradient is the straight-through one,
-``g · half_l · (1 - tanh(z)²)``. Eager mode launches one kernel each
-way: on CUDA a Triton kernel (:mod:`.fsq_triton`) when ``triton`` imports (else, or if it cannot be
-built on this GPU, with one warning, the composite); elsewhere the composite of torch ops
-(:func:`fsq_code_composite`). Under ``torch.compile`` the composite is traced instead (inductor
-fuses it). All give the composite's values (float32 maths, round half to even).
+dimension's ``C`` channels), in float32, returned in ``z``'s dtype (small integers: exact in bf16);
+gradient ``g · half_l · (1 - tanh(z)²)``. Eager mode runs the composite of torch ops on every device
+(tanh, a fused multiply-add, round; backward two ops from the saved tanh; plus bf16's casts): on the
+H200 its Triton kernels (:mod:`.fsq_triton`, :data:`CODE`/:data:`GRAD`) cost the host more per call
+(120 µs forward, 340 µs backward) than those few ops (docs/gpu.md); ``use_triton_kernels(True, ["FSQ
+code", "FSQ code gradient"])`` switches them on. Under ``torch.compile`` the composite is traced.
+All give the composite's values (float32 maths, round half to even).
 """
 from __future__ import annotations
 
@@ -31,29 +31,39 @@ def fsq_code_grad_composite(grad: Tensor, z: Tensor, half_l: Tensor) -> Tensor:
     return torch.ops.aten.tanh_backward(grad.float() * half_l, torch.tanh(z.float())).to(grad.dtype)
 
 
-CODE = FusedOp("fsq_code", fsq_code_composite, cuda=TritonKernel(".fsq_triton", "fsq_code_triton", "FSQ code"))
+CODE = FusedOp("fsq_code", fsq_code_composite,
+               cuda=TritonKernel(".fsq_triton", "fsq_code_triton", "FSQ code", enabled=False))
 GRAD = FusedOp("fsq_code_backward", fsq_code_grad_composite,
-               cuda=TritonKernel(".fsq_triton", "fsq_code_backward_triton", "FSQ code gradient"))
+               cuda=TritonKernel(".fsq_triton", "fsq_code_backward_triton", "FSQ code gradient", enabled=False))
 
 
 class _CodeSTE(torch.autograd.Function):
-    """The codes with the straight-through gradient: one op each way (:data:`CODE`, :data:`GRAD`)."""
+    """The codes with the straight-through gradient: where a kernel of its own runs (:data:`CODE`,
+    :data:`GRAD`), one op each way; else the composite, which keeps ``tanh(z)`` (float32) for the
+    backward (two ops and the casts instead of recomputing it)."""
 
     @staticmethod
     def forward(ctx, z: Tensor, neg_offset: Tensor, half_l: Tensor) -> Tensor:
-        ctx.save_for_backward(z, half_l)
-        return CODE(z, neg_offset, half_l)
+        ctx.fused = CODE.fused_on(z) and GRAD.fused_on(z)
+        if ctx.fused:
+            ctx.save_for_backward(z, half_l)
+            return CODE(z, neg_offset, half_l)
+        t = torch.tanh(z.float())
+        ctx.save_for_backward(t, half_l)
+        return torch.round(torch.addcmul(neg_offset, t, half_l)).to(z.dtype)
 
     @staticmethod
     def backward(ctx, grad: Tensor):
-        z, half_l = ctx.saved_tensors
-        return GRAD(grad, z, half_l), None, None
+        saved, half_l = ctx.saved_tensors
+        if ctx.fused:
+            return GRAD(grad, saved, half_l), None, None
+        return torch.ops.aten.tanh_backward(grad.float() * half_l, saved).to(grad.dtype), None, None
 
 
 def fsq_code(z: Tensor, neg_offset: Tensor, half_l: Tensor) -> Tensor:
     """FSQ key codes ``[..., C]`` of pre-codes ``z [..., C]`` (any float dtype), with the bound's
     ``neg_offset`` and ``half_l`` ``[C]`` float32 on ``z``'s device; straight-through gradient in
-    ``z``. One kernel each way on CUDA in eager mode; the composite elsewhere and under compile."""
+    ``z``. The composite (module docstring); one Triton kernel each way on CUDA where switched on."""
     if torch.is_grad_enabled() and z.requires_grad:
         return _CodeSTE.apply(z, neg_offset, half_l)
     return CODE(z, neg_offset, half_l)
