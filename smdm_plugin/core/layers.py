@@ -3,7 +3,7 @@ from __future__ import annotations
 
 import math
 import operator
-from typing import List, Optional, Sequence, Tuple
+from typing import Dict, List, Optional, Sequence, Tuple
 
 import torch
 import torch.nn as nn
@@ -27,9 +27,18 @@ def _merge(o: Tensor) -> Tensor:
     return o.permute(2, 0, 1, 3).reshape(S * B, H * e)
 
 
-def _linear(m: nn.Module) -> Tuple[Tensor, Optional[Tensor]]:
+#: per call under autocast, the layers' matmul weights and biases in autocast's dtype, by the
+#: parameter's ``id`` (or None: the parameters themselves; :meth:`StockStack._casts`)
+Casts = Optional[Dict[int, Tensor]]
+
+
+def _cast(t: Optional[Tensor], casts: Casts) -> Optional[Tensor]:
+    return t if casts is None or t is None else casts[id(t)]
+
+
+def _linear(m: nn.Module, casts: Casts = None) -> Tuple[Tensor, Optional[Tensor]]:
     p = m._parameters
-    return p["weight"], p["bias"]
+    return _cast(p["weight"], casts), _cast(p["bias"], casts)
 
 
 class _Attention:
@@ -44,10 +53,10 @@ class _Attention:
             self.code_dim, self.scale = m.code_dim, 1.0 / math.sqrt(m.head_dim)
 
     def self_attention(self, x: Tensor, bias: Optional[Tensor], p: float, proj: Optional[tuple],
-                       copy: bool) -> Tensor:
+                       copy: bool, casts: Casts = None) -> Tensor:
         """Self-attention of ``x [S, B, E]`` (key mask ``bias [B, 1, 1, S]`` or None, attention
-        dropout ``p``; ``proj``: how an FSQ layer makes its codes, :meth:`StockStack._projections`):
-        ``[S, B, E]``."""
+        dropout ``p``; ``proj``: how an FSQ layer makes its codes, :meth:`StockStack._projections`;
+        ``casts``: :meth:`StockStack._casts`): ``[S, B, E]``."""
         S, B, E = x.shape
         H, m = self.heads, self.module
         scale = None
@@ -60,19 +69,19 @@ class _Attention:
             scale = self.scale
         else:
             params = m._parameters
-            qkv = F.linear(x, params["in_proj_weight"], params["in_proj_bias"]).chunk(3, dim=-1)
-            q, k, v = (_heads(t, H, copy) for t in qkv)
+            qkv = F.linear(x, _cast(params["in_proj_weight"], casts), _cast(params["in_proj_bias"], casts))
+            q, k, v = (_heads(t, H, copy) for t in qkv.chunk(3, dim=-1))
         o = F.scaled_dot_product_attention(q, k, v, attn_mask=bias, dropout_p=p, scale=scale)
-        return F.linear(_merge(o), *_linear(self.out)).view(S, B, E)
+        return F.linear(_merge(o), *_linear(self.out, casts)).view(S, B, E)
 
     def cross_attention(self, x: Tensor, memory: Tensor, bias: Optional[Tensor], p: float,
-                        sample: Optional[Tensor], copy: bool) -> Tensor:
+                        sample: Optional[Tensor], copy: bool, casts: Casts = None) -> Tensor:
         """Attention of ``x [S, B, E]`` to ``memory [M, B, E]`` (key mask ``bias [B, 1, 1, M]`` or
         None): ``[S, B, E]``. One key per sample (MDM trans_dec's condition token) needs no softmax
         (:func:`~smdm_plugin.core.attention.attend_single_key`; ``sample [S·B]``)."""
         S, B, E = x.shape
         params = self.module._parameters
-        W, b = params["in_proj_weight"], params["in_proj_bias"]
+        W, b = _cast(params["in_proj_weight"], casts), _cast(params["in_proj_bias"], casts)
         if sample is not None:
             o = attend_single_key(self.module, memory[0], sample)
         else:
@@ -81,7 +90,7 @@ class _Attention:
             kv = F.linear(memory, W[E:], None if b is None else b[E:]).chunk(2, dim=-1)
             k, v = (_heads(t, H, copy) for t in kv)
             o = _merge(F.scaled_dot_product_attention(q, k, v, attn_mask=bias, dropout_p=p))
-        return F.linear(o, *_linear(self.out)).view(S, B, E)
+        return F.linear(o, *_linear(self.out, casts)).view(S, B, E)
 
 
 def _layer_norm(x: Tensor, m: nn.LayerNorm) -> Tensor:
@@ -102,22 +111,36 @@ class _Layer:
         self.l1, self.l2 = layer.linear1, layer.linear2
         self.drops = [getattr(layer, n) for n in ("dropout", "dropout1", "dropout2", "dropout3") if hasattr(layer, n)]
 
-    def _ff(self, x: Tensor, training: bool) -> Tensor:
-        h = self.module.activation(F.linear(x, *_linear(self.l1)))
-        return F.linear(F.dropout(h, self.drops[0].p, training), *_linear(self.l2))
+    def _ff(self, x: Tensor, training: bool, casts: Casts = None) -> Tensor:
+        h = self.module.activation(F.linear(x, *_linear(self.l1, casts)))
+        return F.linear(F.dropout(h, self.drops[0].p, training), *_linear(self.l2, casts))
+
+    def matmul_parameters(self) -> List[Tensor]:
+        """The parameters this layer reads as matmul weights and biases (what a sampling call may
+        read in its compute dtype: :meth:`StockStack._casts`); not the norms' (autocast runs
+        ``layer_norm`` in float32), not a folded in-projection's (made by the fold), not the
+        single-key cross-attention's value projection (read by ``attend_single_key``)."""
+        mods = [self.self_attn.out, self.l1, self.l2] + ([self.cross.out] if self.decoder else [])
+        out = [t for m in mods for t in _linear(m)]
+        attns = [] if self.self_attn.folded else [self.self_attn.module]
+        attns += [self.cross.module] if self.decoder else []
+        out += [a._parameters[n] for a in attns for n in ("in_proj_weight", "in_proj_bias")]
+        return [t for t in out if t is not None]
 
     def forward(self, x: Tensor, bias: Optional[Tensor], proj: Optional[tuple], training: bool,
                 copy: bool, memory: Optional[Tensor] = None, memory_bias: Optional[Tensor] = None,
-                sample: Optional[Tensor] = None) -> Tensor:
-        """The layer's ``forward`` (encoder or decoder, either ``norm_first``) on ``x [S, B, d]``."""
+                sample: Optional[Tensor] = None, casts: Casts = None) -> Tensor:
+        """The layer's ``forward`` (encoder or decoder, either ``norm_first``) on ``x [S, B, d]``
+        (``casts``: :meth:`StockStack._casts`)."""
         d = self.drops
         sa_p = self.self_attn.module.dropout if training else 0.0
-        blocks = [lambda h: F.dropout(self.self_attn.self_attention(h, bias, sa_p, proj, copy), d[1].p, training)]
+        blocks = [lambda h: F.dropout(self.self_attn.self_attention(h, bias, sa_p, proj, copy, casts), d[1].p,
+                                      training)]
         if self.decoder:
             ca_p = self.cross.module.dropout if training else 0.0
-            blocks.append(lambda h: F.dropout(self.cross.cross_attention(h, memory, memory_bias, ca_p, sample, copy),
-                                              d[2].p, training))
-        blocks.append(lambda h: F.dropout(self._ff(h, training), d[-1].p, training))
+            blocks.append(lambda h: F.dropout(self.cross.cross_attention(h, memory, memory_bias, ca_p, sample, copy,
+                                                                         casts), d[2].p, training))
+        blocks.append(lambda h: F.dropout(self._ff(h, training, casts), d[-1].p, training))
         if self.module.norm_first:
             for block, norm in zip(blocks, self.norms):
                 x = x + block(_layer_norm(x, norm))
@@ -168,6 +191,8 @@ class StockStack:
                        if not (n == "_forward_pre_hooks" and id(m) in fsq)]
         self._fsq_pre = [m._forward_pre_hooks for m in self._fsq]
         self._fold_cache: Optional[tuple] = None
+        self._matmul = [t for layer in self.layers for t in layer.matmul_parameters()]
+        self._cast_cache: Optional[tuple] = None
 
     def current(self) -> bool:
         """No module, parameter or buffer was registered anywhere since the stack was built (a
@@ -201,6 +226,40 @@ class StockStack:
         self._fold_cache = (key, out)
         return out
 
+    def _casts(self, x: Tensor) -> Casts:
+        """The layers' matmul weights and biases (:meth:`_Layer.matmul_parameters`) in autocast's
+        dtype for ``x``'s device, by parameter ``id``, the values autocast would make (it leaves
+        float64 alone). Without autograd cast once, not at every call (autocast casts each weight
+        at each use, its cache lasting one ``autocast`` block: ~6 casts per layer and call), kept
+        while the parameters are the same tensors at the same versions (an optimizer step, a move
+        or a reload makes new copies); with autograd :meth:`_stacked_casts`. None while tracing,
+        without autocast, or when the parameters already are in its dtype."""
+        params = self._matmul
+        if compiling() or not params or x.device.type == "meta" or not torch.is_autocast_enabled(x.device.type):
+            return None
+        dtype = torch.get_autocast_dtype(x.device.type)
+        if all(t.dtype in (dtype, torch.float64) for t in params):
+            return None
+        if torch.is_grad_enabled():
+            return self._stacked_casts(dtype)
+        key = (dtype, tuple(map(_VERSION, params)), tuple(map(Tensor.data_ptr, params)))
+        if self._cast_cache is None or self._cast_cache[0] != key:
+            self._cast_cache = None                       # the old copies go before the new are made
+            self._cast_cache = (key, {id(t): t if t.dtype == torch.float64 else t.detach().to(dtype)
+                                      for t in params})
+        return self._cast_cache[1]
+
+    def _stacked_casts(self, dtype: torch.dtype) -> Casts:
+        """With autograd: each matmul parameter's cast as one stack, cast and unbind per role over
+        the layers (3 ops each way for all layers instead of one cast each way per layer), when
+        every layer has the same parameters of the same shapes and dtypes; else None."""
+        per = len(self._matmul) // len(self.layers)
+        groups = [self._matmul[i::per] for i in range(per)]
+        if per * len(self.layers) != len(self._matmul) or len(self.layers) < 2 or any(
+                len({(t.shape, t.dtype, t.device) for t in g}) != 1 or g[0].dtype == torch.float64 for g in groups):
+            return None
+        return {id(t): c for g in groups for t, c in zip(g, torch.stack(g).to(dtype).unbind(0))}
+
     def run(self, x: Tensor, bias: Optional[Tensor], memory: Optional[Tensor] = None,
             memory_bias: Optional[Tensor] = None) -> Tensor:
         """``x [S, B, d]`` sequence-first through every layer (and the stack's norm); ``bias [B, 1,
@@ -214,8 +273,9 @@ class StockStack:
             S, B, _ = x.shape
             sample = consts.arange(B, x.device).repeat(S)                # [S·B]: each row's sample
         copy = layout_copies(x, dtype)                        # half precision on accelerators: cuDNN's layout
+        casts = self._casts(x)
         for layer, proj in zip(self.layers, projections):
-            x = layer.forward(x, bias, proj, training, copy, memory, memory_bias, sample)
+            x = layer.forward(x, bias, proj, training, copy, memory, memory_bias, sample, casts)
         return x if self.norm is None else self.norm(x)
 
 

@@ -101,3 +101,92 @@ def test_hooks_and_custom_layers_run_the_modules():
 
     stack.layers[0] = Custom(32, 4, 64).double()
     assert stock_stack(stack) is None
+
+
+def _autocast_stack(fsq):
+    stack = _stack("encoder", False, fsq, "gelu", layers=3).float()
+    g = torch.Generator().manual_seed(2)
+    x = torch.randn(9, 3, 32, generator=g)
+    pad = torch.zeros(3, 9, dtype=torch.bool)
+    pad[1, 6:] = True
+    return stack, x, aligned_key_bias(float_mask(pad, torch.bfloat16))
+
+
+def _param_casts(fn, params):
+    """How many ``_to_copy`` ops inside ``fn()`` read the storage of one of ``params``."""
+    from torch.utils._python_dispatch import TorchDispatchMode
+
+    ptrs = {p.data_ptr() for p in params}
+
+    class Casts(TorchDispatchMode):
+        n = 0
+
+        def __torch_dispatch__(self, func, types, args=(), kwargs=None):
+            if func is torch.ops.aten._to_copy.default and args[0].data_ptr() in ptrs:
+                Casts.n += 1
+            return func(*args, **(kwargs or {}))
+
+    with Casts():
+        out = fn()
+    return out, Casts.n
+
+
+@pytest.mark.parametrize("fsq", [True, False], ids=["fsq", "mha"])
+def test_a_sampling_call_under_autocast_casts_each_weight_once_per_version(fsq, monkeypatch):
+    """Without autograd under autocast the matmul weights are cast once and kept while the
+    parameters are unchanged: the second call casts no parameter, the outputs equal autocast's own
+    casts exactly, and an in-place update of a weight is seen by the next call."""
+    from smdm_plugin.core.layers import StockStack
+
+    stack, x, bias = _autocast_stack(fsq)
+    stack.eval()
+    run = stock_stack(stack)
+    params = [p for p in stack.parameters()]
+
+    def call():
+        with torch.no_grad(), torch.autocast("cpu", torch.bfloat16):
+            return run.run(x, bias)
+
+    def uncached():
+        with monkeypatch.context() as m:
+            m.setattr(StockStack, "_casts", lambda self, x: None)
+            return call()
+
+    first, n_first = _param_casts(call, params)
+    second, n_second = _param_casts(call, params)
+    ref, n_ref = _param_casts(uncached, params)
+    assert n_second == 0 < n_ref and n_first >= n_ref
+    assert first.dtype == torch.float32 and torch.equal(first, ref) and torch.equal(second, ref)
+    with torch.no_grad():
+        stack.layers[1].linear2.weight.mul_(1.5)
+    after, n_after = _param_casts(call, params)
+    assert n_after > 0 and torch.equal(after, uncached()) and not torch.equal(after, ref)
+
+
+@pytest.mark.parametrize("fsq", [True, False], ids=["fsq", "mha"])
+def test_a_training_call_under_autocast_casts_each_role_once_for_all_layers(fsq, monkeypatch):
+    """With autograd under autocast each matmul parameter's cast is one stack-cast-unbind per role
+    over the layers: outputs and every gradient equal autocast's own per-layer casts exactly."""
+    from smdm_plugin.core.layers import StockStack
+
+    stack, x, bias = _autocast_stack(fsq)
+    stack.train()
+    run = stock_stack(stack)
+    params = [p for p in stack.parameters() if p.requires_grad]
+    g = torch.randn(9, 3, 32, generator=torch.Generator().manual_seed(3))
+
+    def step(cached):
+        with monkeypatch.context() as m:
+            if not cached:
+                m.setattr(StockStack, "_stacked_casts", lambda self, dtype: None)
+            with torch.autocast("cpu", torch.bfloat16):
+                out = run.run(x, bias)
+            return out, torch.autograd.grad(out, params, g, allow_unused=True)
+
+    (out, grads), (ref, grads_ref) = step(True), step(False)
+    assert torch.equal(out, ref)
+    for a, b in zip(grads, grads_ref):
+        assert (a is None and b is None) or torch.equal(a, b)
+    _, n_cached = _param_casts(lambda: step(True), params)
+    _, n_ref = _param_casts(lambda: step(False), params)
+    assert n_cached < n_ref
