@@ -9,7 +9,7 @@ import torch
 
 from ..core import consts
 from ..core.attention import compute_dtype
-from ..core.checks import as_mask, compiling, host_checkable
+from ..core.checks import as_mask, compiling, host_checkable, require
 from ..core.plan import KeyframePlan
 from ..core.schedule import MaskSchedule
 from .request import KEYFRAMES_KEY, KeyframeRequest
@@ -39,6 +39,7 @@ class CallInputs:
             or None (sampling).
         capacity: the slot count chosen with ``mask`` (a Python int), or None.
         mask_name: how the family's calls pass ``mask`` (for error messages).
+        forced_bound: ``KeyframeRequest.forced_bound`` (a host-known bound on ``forced``), or None.
     """
 
     frames: torch.Tensor
@@ -48,6 +49,7 @@ class CallInputs:
     mask: Optional[torch.Tensor] = None
     capacity: Optional[int] = None
     mask_name: str = "KeyframeRequest.mask"
+    forced_bound: Optional[int] = None
 
     @classmethod
     def of(cls, frames: torch.Tensor, timesteps: Any, lengths: torch.Tensor, request: KeyframeRequest,
@@ -58,12 +60,12 @@ class CallInputs:
         B, N = frames.shape[:2]
         name = f"{where}[{KEYFRAMES_KEY!r}]"
         return cls(frames, timesteps, lengths, as_mask(request.forced, B, N, frames.device, f"{name}.forced"),
-                   request.mask, request.capacity, f"{name}.mask")
+                   request.mask, request.capacity, f"{name}.mask", request.forced_bound)
 
     def plan(self, state: PlanState) -> KeyframePlan:
         """The call's :class:`~smdm_plugin.core.plan.KeyframePlan` (see :func:`keyframe_plan`)."""
         return keyframe_plan(state, self.frames, self.timesteps, self.lengths, self.forced, self.mask,
-                             self.capacity, self.mask_name)
+                             self.capacity, self.mask_name, self.forced_bound)
 
 
 _REUSED: List[tuple] = []          # (source tensor, its version, key, result): the last few
@@ -88,7 +90,7 @@ def reuse_for(source: torch.Tensor, key: tuple, compute: Callable[[], torch.Tens
 
 def keyframe_plan(state: PlanState, frames: torch.Tensor, timesteps: Any, lengths: torch.Tensor,
                   forced: Optional[torch.Tensor], mask: Any = None, capacity: Any = None,
-                  mask_name: str = "KeyframeRequest.mask") -> KeyframePlan:
+                  mask_name: str = "KeyframeRequest.mask", forced_bound: Optional[int] = None) -> KeyframePlan:
     """The keyframe plan of one model call, for every family.
 
     Args:
@@ -101,6 +103,8 @@ def keyframe_plan(state: PlanState, frames: torch.Tensor, timesteps: Any, length
         capacity: the slot count that goes with a given ``mask`` (a Python int); None: the largest
             row of ``mask`` when it can be read without a sync, else ``N``.
         mask_name: how the caller passed ``mask`` (error messages).
+        forced_bound: the most frames ``forced`` marks in a sample, known on the host (sampling:
+            the plan is sized from it, no read of ``forced``; checked on the device), or None.
     """
     B, N = frames.shape[:2]
     device = frames.device
@@ -130,7 +134,7 @@ def keyframe_plan(state: PlanState, frames: torch.Tensor, timesteps: Any, length
             return state.schedule.uniform_plan(lengths, N, state.variant.prefix_len, cubic, taps,
                                                compute_dtype(frames))   # the key bias in the attention's dtype
         mask = state.schedule.sampling_mask(frames, t, lengths, forced, checked=True)
-        capacity = state.schedule.capacity(N, training=False, forced=protected_count(forced, lengths))
+        capacity = state.schedule.capacity(N, training=False, forced=protected_count(forced, lengths, forced_bound))
         check = False                                      # 2..capacity keyframes by construction
         cubic = state.schedule.cubic_samples(t, B, device, frames.shape[-1])   # C¹ fill: [B] bool
         if cubic is not None and forced is None and state.schedule.late_steps == 0 and not state.variant.prefix_len:
@@ -144,12 +148,18 @@ def keyframe_plan(state: PlanState, frames: torch.Tensor, timesteps: Any, length
     return KeyframePlan.build(mask, capacity, check=check, cubic=cubic, taps=taps)
 
 
-def protected_count(forced: Optional[torch.Tensor], lengths: torch.Tensor) -> int:
-    """The most protected frames (both ends + forced) of any sample: a host read of ``forced``
-    (free on the CPU; one device sync on an accelerator — DoubleTake and in-betweening only)."""
+def protected_count(forced: Optional[torch.Tensor], lengths: torch.Tensor, bound: Optional[int] = None) -> int:
+    """The most protected frames (both ends + forced) of any sample: with ``bound`` (the most
+    frames ``forced`` marks in a sample, known on the host) ``bound + 2``, at most ``N``, and the
+    bound checked on the device (no sync); else a host read of ``forced`` (free on the CPU; one
+    device sync on an accelerator)."""
     if forced is None:
         return 0
     idx = torch.arange(forced.shape[1], device=forced.device)
-    ends = (idx[None] == 0) | (idx[None] == (lengths - 1)[:, None])
     valid = idx[None] < lengths[:, None]
+    if bound is not None:
+        require(((forced & valid).sum(1) <= bound),
+                f"KeyframeRequest.forced marks more frames in a sample than its forced_bound={bound}")
+        return min(int(bound) + 2, forced.shape[1])
+    ends = (idx[None] == 0) | (idx[None] == (lengths - 1)[:, None])
     return int(((forced | ends) & valid).sum(1).max()) if forced.shape[0] else 0

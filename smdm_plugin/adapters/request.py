@@ -26,11 +26,15 @@ class KeyframeRequest:
             (then the largest row of ``mask`` when it can be read without a device sync, else
             ``N``).
         forced: bool ``[B, N]`` frames that must be keyframes (inside the keyframe budget), or None.
+        forced_bound: the most frames ``forced`` marks in any sample (a Python int >= 0), known on
+            the host, or None. Given, a sampling call sizes its plan from it instead of reading
+            ``forced`` (a device sync on an accelerator) and checks it on the device.
     """
 
     mask: Optional[torch.Tensor] = None
     capacity: Optional[int] = None
     forced: Optional[torch.Tensor] = None
+    forced_bound: Optional[int] = None
 
     def __post_init__(self) -> None:
         for name in ("mask", "forced"):
@@ -43,6 +47,9 @@ class KeyframeRequest:
             raise TypeError(f"KeyframeRequest.capacity must be a Python int >= 1 or None, got {c!r}")
         if c is not None and self.mask is None:
             raise TypeError("KeyframeRequest.capacity is the slot count of a given mask: pass mask too")
+        fb = self.forced_bound
+        if fb is not None and (isinstance(fb, bool) or not isinstance(fb, int) or fb < 0):
+            raise TypeError(f"KeyframeRequest.forced_bound must be a Python int >= 0 or None, got {fb!r}")
 
 
 _EMPTY = KeyframeRequest()
@@ -71,14 +78,17 @@ def request_of(container: Optional[Mapping[str, Any]], where: str = "y") -> Keyf
 
 def with_request(container: Optional[Mapping[str, Any]], where: str = "y", **changes: Any) -> Dict[str, Any]:
     """A copy of ``container`` whose :class:`KeyframeRequest` has the fields in ``changes``
-    (``mask=``, ``capacity=``, ``forced=``) replaced; the caller's dict is not changed."""
+    (``mask=``, ``capacity=``, ``forced=``, ``forced_bound=``) replaced; the caller's dict is not changed."""
     out = dict(container or {})
     out[KEYFRAMES_KEY] = dataclasses.replace(request_of(container, where), **changes)
     return out
 
 
-def with_forced(y: Optional[Mapping[str, Any]], forced: Optional[torch.Tensor]) -> Dict[str, Any]:
+def with_forced(y: Optional[Mapping[str, Any]], forced: Optional[torch.Tensor],
+                bound: Optional[int] = None) -> Dict[str, Any]:
     """A copy of ``y`` (MDM's conditions, or MotionDiffuse's model keyword arguments) in which the
     frames of bool ``forced [B, N]`` must be keyframes in every call of a sparse model (a dense
-    model ignores them). Replaces forced frames already requested; ``y`` is not changed."""
-    return with_request(y, forced=forced)
+    model ignores them); ``bound``: the most frames ``forced`` marks in a sample, when the caller
+    knows it (``KeyframeRequest.forced_bound``: no device sync). Replaces forced frames already
+    requested; ``y`` is not changed."""
+    return with_request(y, forced=forced, forced_bound=bound)

@@ -85,6 +85,10 @@ class Workload:
         """Where the model class comes from, as the table names it."""
         return "in-package"
 
+    def sparsified(self, model: torch.nn.Module, arch: str) -> None:
+        """What the upstream integration does to variant ``arch`` once it is sparse (default:
+        nothing)."""
+
     def check_root(self, root: str) -> None:
         """Raise ``ValueError`` (starting ``--root:``) unless ``root`` is a usable checkout."""
         raise ValueError(f"--root: --family {self.family} has no upstream model to load (leave it out)")
@@ -205,6 +209,7 @@ def build(arch: str, reduction: Optional[float], device: torch.device, quick: bo
     if reduction is not None:
         sparsify(model, SparseConfig(reduction=reduction, attention_backend=backend, fsq=fsq != "off", **sparse),
                  diffusion=diffusion, family=work.model_family(arch))
+        work.sparsified(model, arch)
     elif fsq == "both":
         quantize_attention_keys(model, SparseConfig().fsq_levels)
     return model, diffusion

@@ -204,3 +204,109 @@ def test_forced_frames_count_inside_the_budget():
     assert (protected <= K).all()                                      # the budget can hold them
     assert seen[-1][forced].all()
     assert seen[-1].sum(1).tolist() == [K] * 3                          # K, not K + forced
+
+
+# --------------------------------------------------------------------------- no host sync
+def _close_gaps_reference(free, max_gap):
+    """0.9.1's loop (a host read per row): fill runs of False of length <= max_gap between two Trues."""
+    out = free.clone()
+    for b in range(free.shape[0]):
+        idx = free[b].nonzero(as_tuple=True)[0].tolist()
+        for a, c in zip(idx[:-1], idx[1:]):
+            if 1 < c - a <= max_gap + 1:
+                out[b, a:c] = True
+    return out
+
+
+def test_closing_gaps_on_the_device_equals_the_loop():
+    from smdm_plugin.families.doubletake.model import _close_gaps
+
+    g = torch.Generator().manual_seed(0)
+    for p in (0.05, 0.2, 0.5):
+        free = torch.rand(64, 50, generator=g) < p
+        free[0] = False
+        free[1] = True
+        for max_gap in (0, 1, 3, 7, 50):
+            assert torch.equal(_close_gaps(free, max_gap), _close_gaps_reference(free, max_gap)), (p, max_gap)
+
+
+@pytest.mark.parametrize("h,blend", [(6, 4), (6, 1), (20, 20), (20, 5), (3, 0)])
+def test_the_forced_bound_holds_for_both_takes(h, blend):
+    from smdm_plugin.families.doubletake.model import doubletake_forced_bound
+
+    bound = doubletake_forced_bound(h, blend)
+    for lens in ([30, 40, 25], [60, 60, 60, 60], [2 * h + 12, 5 * h]):
+        first = doubletake_forced_frames(lens, h)
+        second = doubletake_forced_frames(lens, h, take="second", blend_len=blend)
+        assert int(first.sum(1).max()) <= bound and int(second.sum(1).max()) <= bound
+    assert bound == max(int(doubletake_forced_frames([60, 60, 60], h).sum(1).max()),
+                        int(doubletake_forced_frames([60, 60, 60], h, take="second", blend_len=blend).sum(1).max()))
+    with pytest.raises(ValueError, match="handshake_size and blend_len"):
+        doubletake_forced_bound(-1, 2)
+
+
+def _doubletake_calls(model, lens, n):
+    """A first-take and a second-take call's inputs (priorMDM's geometry)."""
+    S = len(lens)
+    n2 = (max(lens) - 2 * H) * 2 + H
+    first = (torch.randn(S, 8, 1, n), {"lengths": torch.tensor(lens), "is_transition": _first_take_transition(lens, n),
+                                       "mask": (torch.arange(n)[None] < torch.tensor(lens)[:, None]).view(S, 1, 1, n)})
+    lens2 = [lens[i] + lens[i + 1] - 3 * H for i in range(S - 1)]
+    second = (torch.randn(S - 1, 8, 1, n2),
+              {"lengths": torch.tensor(lens2), "is_transition": torch.zeros(S - 1, n2),
+               "inpainting_mask": _second_take_inpainting(lens, n2, 8),
+               "mask": (torch.arange(n2)[None] < torch.tensor(lens2)[:, None]).view(S - 1, 1, 1, n2)})
+    return first, second
+
+
+def test_with_the_run_bound_a_doubletake_call_reads_nothing_on_the_host():
+    """``attach_doubletake_forcing(model, forced_bound=...)`` (the priorMDM integration passes
+    ``doubletake_forced_bound(--handshake_size, --blend_len)``): both takes' sampling calls make no
+    host sync (counted as CUDA runs them) and give what the reading calls give; without the bound a
+    call reads its forced frames (one sync)."""
+    from smdm_plugin.core.checks import static_mode
+    from smdm_plugin.families.doubletake.model import doubletake_forced_bound
+    from smdm_plugin.runtime.launches import count_launches
+
+    lens = [30, 40, 25]
+    model, seen = _sparse_tiny()
+    calls = _doubletake_calls(model, lens, max(lens))
+    results = {}
+    for bound in (None, doubletake_forced_bound(H, BLEND)):
+        attach_doubletake_forcing(model, forced_bound=bound)
+        for take, (x, y) in zip(("first", "second"), calls):
+            with torch.no_grad(), static_mode():
+                out = model(x, torch.full((x.shape[0],), 7), dict(y))
+                counted = count_launches(lambda: model(x, torch.full((x.shape[0],), 7), dict(y)))
+            results[bound is None, take] = (out, seen[-1].clone(), sum(counted.syncs.values()))
+    for take in ("first", "second"):
+        (out_r, mask_r, syncs_r), (out_b, mask_b, syncs_b) = results[True, take], results[False, take]
+        assert syncs_r >= 1 and syncs_b == 0, (take, syncs_r, syncs_b)
+        assert torch.equal(mask_b, mask_r)
+        torch.testing.assert_close(out_b, out_r, rtol=1e-5, atol=1e-6)
+
+
+def test_a_bound_the_forced_frames_exceed_is_an_error():
+    lens = [30, 40, 25]
+    model, _ = _sparse_tiny()
+    (x, y), _ = _doubletake_calls(model, lens, max(lens))
+    attach_doubletake_forcing(model, forced_bound=H)         # the first take forces 2 H in the middle segment
+    with pytest.raises(ValueError, match="forced_bound=6"):
+        with torch.no_grad():
+            model(x, torch.full((3,), 7), dict(y))
+    for bad in (-1, 2.5, True, "6"):
+        with pytest.raises(TypeError, match="forced_bound"):
+            attach_doubletake_forcing(model, forced_bound=bad)
+
+
+def test_the_priormdm_integration_passes_the_run_bound():
+    from smdm_plugin.families.doubletake.model import _ForcingHook, doubletake_forced_bound
+
+    torch.manual_seed(0)
+    model = doubleTake_TinyMDM(njoints=8, nfeats=1, latent_dim=32, ff_size=64, num_layers=1, cond_mode="no_cond")
+    args = argparse.Namespace(sparse=True, sparse_feature="raw", handshake_size=20, blend_len=5)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        sparsify_priormdm(model, args)
+    hooks = [h for h in model._forward_pre_hooks.values() if isinstance(h, _ForcingHook)]
+    assert len(hooks) == 1 and hooks[0].bound == doubletake_forced_bound(20, 5) == 40

@@ -176,6 +176,9 @@ def test_the_string_keys_of_0_3_are_an_error_naming_the_request(key):
         KeyframeRequest(mask=torch.ones(2, 60, dtype=torch.bool), capacity=torch.tensor(3))
     with pytest.raises(TypeError, match="capacity is the slot count of a given mask"):
         KeyframeRequest(capacity=3)
+    for bad in (-1, 1.5, True, torch.tensor(3)):
+        with pytest.raises(TypeError, match="KeyframeRequest.forced_bound must be a Python int >= 0"):
+            KeyframeRequest(forced=torch.ones(2, 60, dtype=torch.bool), forced_bound=bad)
 
 
 def test_lipschitz_layers_swapped_and_unsparsify_restores_dense():

@@ -93,13 +93,17 @@ def doubletake_forced_from_y(y: Dict[str, Any], batch_size: int, n_frames: int,
     """
     forced = None
     mask = y.get("inpainting_mask")
+    trans = y.get("is_transition")
+    trans = trans if isinstance(trans, torch.Tensor) and trans.dim() == 2 and trans.shape == (batch_size, n_frames) \
+        else None
     if isinstance(mask, torch.Tensor) and mask.shape[0] == batch_size and mask.shape[-1] == n_frames:
         m = mask.reshape(batch_size, -1, n_frames).float()
         free = (m < 1.0).any(dim=1)  # frames where the model's output is (partly) used
-        if bool(free.any()):
+        # with is_transition there are forced frames either way (no free frame: none from here, the
+        # same values): no read of ``free`` on the host
+        if trans is not None or bool(free.any()):
             forced = _close_gaps(free, max_gap=_max_gap(y, free))
-    trans = y.get("is_transition")
-    if isinstance(trans, torch.Tensor) and trans.dim() == 2 and trans.shape == (batch_size, n_frames):
+    if trans is not None:
         t = trans.to(torch.bool)
         forced = t if forced is None else (forced | t.to(forced.device))
     if forced is None:
@@ -116,15 +120,14 @@ def _max_gap(y: Dict[str, Any], free: torch.Tensor) -> int:
 
 
 def _close_gaps(free: torch.Tensor, max_gap: int) -> torch.Tensor:
-    """Fill runs of False of length <= ``max_gap`` that lie between two True frames (per row)."""
-    out = free.clone()
-    B, N = free.shape
-    for b in range(B):
-        idx = free[b].nonzero(as_tuple=True)[0].tolist()
-        for a, c in zip(idx[:-1], idx[1:]):
-            if 1 < c - a <= max_gap + 1:
-                out[b, a:c] = True
-    return out
+    """Fill runs of False of length <= ``max_gap`` that lie between two True frames (per row), on
+    the device: a frame is filled when the nearest True frames before and after it are at most
+    ``max_gap + 1`` apart (no host read)."""
+    N = free.shape[1]
+    idx = torch.arange(N, device=free.device).expand_as(free)
+    before = torch.where(free, idx, -1).cummax(dim=1).values                     # last True at or before
+    after = torch.where(free, idx, N).flip(1).cummin(dim=1).values.flip(1)      # first True at or after
+    return free | ((before >= 0) & (after < N) & (after - before <= max_gap + 1))
 
 
 def doubletake_window_mask(y: Dict[str, Any], batch_size: int, n_frames: int) -> Optional[torch.Tensor]:
@@ -143,6 +146,17 @@ def doubletake_window_mask(y: Dict[str, Any], batch_size: int, n_frames: int) ->
     return (idx[None] < lengths.reshape(batch_size, 1)).view(batch_size, 1, 1, n_frames)
 
 
+def doubletake_forced_bound(handshake_size: int, blend_len: int) -> int:
+    """The most frames DoubleTake forces in one sample (priorMDM's geometry): a first-take segment's
+    two handshakes ``2 h``, a second-take pair's blend ramps and handshake ``h + 2 blend_len``
+    (:func:`doubletake_forced_frames`). Given to :func:`attach_doubletake_forcing`, a sampling call
+    sizes its plan from it without reading the forced frames (no device sync)."""
+    h, b = int(handshake_size), int(blend_len)
+    if h < 0 or b < 0:
+        raise ValueError(f"doubletake_forced_bound: handshake_size and blend_len must be >= 0, got {h}, {b}")
+    return max(2 * h, h + 2 * b if b >= 2 else 0)
+
+
 # --------------------------------------------------------------------------- model hook
 def _find_y(args, kwargs):
     if "y" in kwargs:
@@ -152,7 +166,18 @@ def _find_y(args, kwargs):
     return None, None
 
 
-def _doubletake_pre_hook(module: nn.Module, args, kwargs):
+class _ForcingHook:
+    """The forward pre-hook of :func:`attach_doubletake_forcing` (``bound``: the run's
+    :func:`doubletake_forced_bound`, or None: each call reads its forced frames to size its plan)."""
+
+    def __init__(self) -> None:
+        self.bound: Optional[int] = None
+
+    def __call__(self, module: nn.Module, args, kwargs):
+        return _doubletake_pre_hook(module, args, kwargs, self.bound)
+
+
+def _doubletake_pre_hook(module: nn.Module, args, kwargs, bound: Optional[int] = None):
     y, where = _find_y(args, kwargs)
     if not isinstance(y, dict):
         return None
@@ -168,10 +193,12 @@ def _doubletake_pre_hook(module: nn.Module, args, kwargs):
     if window is not None:
         y["mask"] = window
     if forced is not None:
-        prev = request_of(y).forced
+        request = request_of(y)
+        prev = request.forced
         if prev is not None and prev.shape == forced.shape:
             forced = forced | prev.to(forced.device, torch.bool)
-        y = with_forced(y, forced)
+            bound = None if bound is None or request.forced_bound is None else bound + request.forced_bound
+        y = with_forced(y, forced, bound)
     if where == "kw":
         kwargs = dict(kwargs)
         kwargs["y"] = y
@@ -183,7 +210,7 @@ def _doubletake_pre_hook(module: nn.Module, args, kwargs):
 def has_doubletake_forcing(model: nn.Module) -> bool:
     """Whether :func:`attach_doubletake_forcing` hooked ``model`` (read from its hooks: the model
     carries no attribute of ours)."""
-    return any(h is _doubletake_pre_hook for h in model._forward_pre_hooks.values())
+    return any(isinstance(h, _ForcingHook) for h in model._forward_pre_hooks.values())
 
 
 def _attach(model: nn.Module) -> Optional[RemovableHandle]:
@@ -191,20 +218,31 @@ def _attach(model: nn.Module) -> Optional[RemovableHandle]:
     if has_doubletake_forcing(model):
         return None
     # prepend: must run before sparsify's own pre-hook, which reads the forced frames
-    return model.register_forward_pre_hook(_doubletake_pre_hook, with_kwargs=True, prepend=True)
+    return model.register_forward_pre_hook(_ForcingHook(), with_kwargs=True, prepend=True)
 
 
-def attach_doubletake_forcing(model: nn.Module) -> nn.Module:
+def attach_doubletake_forcing(model: nn.Module, forced_bound: Optional[int] = None) -> nn.Module:
     """Make every call of ``model(x, t, y)`` carry forced keyframes (:func:`with_forced`) derived
     from DoubleTake's ``is_transition`` / ``inpainting_mask``, and a ``y['mask']`` of the call's own
-    window (:func:`doubletake_window_mask`), in a copy of ``y``. Idempotent; returns ``model``."""
+    window (:func:`doubletake_window_mask`), in a copy of ``y``. ``forced_bound``: the most frames
+    forced in a sample (:func:`doubletake_forced_bound` of the run's ``--handshake_size`` and
+    ``--blend_len``), so that no call reads them on the host (checked on the device); None: each
+    call reads them (one device sync per call on an accelerator). Idempotent (a second call sets the
+    bound); returns ``model``."""
+    if forced_bound is not None and (isinstance(forced_bound, bool) or not isinstance(forced_bound, int)
+                                     or forced_bound < 0):
+        raise TypeError(f"attach_doubletake_forcing: forced_bound must be a Python int >= 0 or None, "
+                        f"got {forced_bound!r}")
     _attach(model)
+    for h in model._forward_pre_hooks.values():
+        if isinstance(h, _ForcingHook):
+            h.bound = forced_bound
     return model
 
 
 def detach_doubletake_forcing(model: nn.Module) -> nn.Module:
     """Remove :func:`attach_doubletake_forcing`'s hook (if any); returns ``model``."""
-    for key in [k for k, h in model._forward_pre_hooks.items() if h is _doubletake_pre_hook]:
+    for key in [k for k, h in model._forward_pre_hooks.items() if isinstance(h, _ForcingHook)]:
         del model._forward_pre_hooks[key]
         model._forward_pre_hooks_with_kwargs.pop(key, None)
     return model

@@ -29,6 +29,18 @@ def warn_if_not_paper_blend(args: Any) -> bool:
     return True
 
 
+def _forced_bound(args: Any) -> Optional[int]:
+    """:func:`~.model.doubletake_forced_bound` of the run's ``--handshake_size`` and ``--blend_len``
+    (priorMDM's sampling options), or None when the run has not both (each call then reads its
+    forced frames)."""
+    from .model import doubletake_forced_bound
+
+    h, b = getattr(args, "handshake_size", None), getattr(args, "blend_len", None)
+    if not all(isinstance(v, int) and not isinstance(v, bool) and v >= 0 for v in (h, b)):
+        return None
+    return doubletake_forced_bound(h, b)
+
+
 def sparsify_priormdm(model: Any, args: Any, data: Any = None, diffusion: Any = None,
                       config: Optional[SparseConfig] = None) -> Any:
     """Sparsify a priorMDM model built by ``create_model_and_diffusion`` (no-op unless
@@ -66,7 +78,7 @@ def sparsify_priormdm(model: Any, args: Any, data: Any = None, diffusion: Any = 
     training = _is_training(args)
     announce_sparse_mode(model, "priorMDM DoubleTake" if doubletake else "priorMDM", training)
     if doubletake:
-        attach_doubletake_forcing(model)
+        attach_doubletake_forcing(model, forced_bound=_forced_bound(args))
         warn_if_not_paper_blend(args)
     save_dir = getattr(args, "save_dir", None)
     if training and os.path.isdir(save_dir):  # sparse_config.json; args.json as resolved

@@ -57,6 +57,15 @@ class MDMWorkload(Workload):
     def source(self, root: Optional[str]) -> str:
         return "in-package TinyMDM"
 
+    def sparsified(self, model: torch.nn.Module, arch: str) -> None:
+        """DoubleTake: the bound on its forced frames that the priorMDM integration passes (its
+        calls here are first takes: two handshakes per segment), so its sampling calls read nothing
+        on the host."""
+        if arch == "doubletake":
+            from ..doubletake.model import attach_doubletake_forcing, doubletake_forced_bound
+
+            attach_doubletake_forcing(model, forced_bound=doubletake_forced_bound(DOUBLETAKE_HANDSHAKE, 0))
+
     def batch(self, batch: int, frames: int, device: torch.device, quick: bool,
               arch: Optional[str] = None, seed: int = 0) -> WorkloadBatch:
         from .model import frames_layout
