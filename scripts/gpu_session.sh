@@ -1,0 +1,35 @@
+#!/usr/bin/env bash
+# The next GPU session's checks in one call (docs/gpu.md, "What the next GPU session runs"): about
+# 8 minutes on an H200, every output under OUT (default $OUT, else ./gpu_session_out).
+#
+#   bash scripts/gpu_session.sh            # on the GPU machine, from the repository root
+#   DRY=1 bash scripts/gpu_session.sh      # on a CPU: the same steps at the check's tiny size
+#
+# 1. which Triton kernels each device should run (gpu_diagnose --sections kernels, ~90 s);
+# 2. the eager matrix, CUDA against the CPU and dense against sparse (gpu_check --modes eager, 225 s);
+# 3. the captured trans_enc cells 0.9.1 did not reach (reduce-overhead, bf16 loop; 120 s);
+# 4. host syncs per call (gpu_diagnose --sections syncs, ~40 s).
+# Each step has its own time limit; a step that fails or runs out leaves what it wrote and the next runs.
+set -u
+OUT="${OUT:-gpu_session_out}"
+mkdir -p "$OUT"
+export PYTHONUNBUFFERED=1 PYTHONPATH="$PWD${PYTHONPATH:+:$PYTHONPATH}"
+dry=()
+diag=()
+if [ -n "${DRY:-}" ]; then
+  dry=(--dry-run --no-doc)
+  diag=(--dry-run)
+fi
+cp docs/gpu.md "$OUT/gpu_check.md"
+step() {  # step NAME LIMIT_S CMD...
+  local name=$1 limit=$2
+  shift 2
+  local t0=$SECONDS
+  timeout "$limit" "$@" > "$OUT/$name.out" 2> "$OUT/$name.log"
+  echo "$name: exit $? in $((SECONDS - t0)) s" | tee -a "$OUT/steps.txt"
+}
+step kernels 150 python3 scripts/gpu_diagnose.py --sections kernels --out "$OUT" "${diag[@]}"
+step eager 270 python3 scripts/gpu_check.py --modes eager --budget-s 225 --doc "$OUT/gpu_check.md" "${dry[@]}"
+step captured 160 python3 scripts/gpu_check.py --modes reduce-overhead --models trans_enc --precisions bf16 \
+  --calls loop --budget-s 120 --doc "$OUT/gpu_check_captured.md" "${dry[@]}"
+step syncs 60 python3 scripts/gpu_diagnose.py --sections syncs --out "$OUT" "${diag[@]}"
