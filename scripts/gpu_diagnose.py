@@ -59,12 +59,6 @@ KERNEL_GROUPS = {"FSQ codes": ["FSQ code", "FSQ code gradient"],
 assert sorted(n for g in KERNEL_GROUPS.values() for n in g) == sorted(TRITON_KERNELS)
 
 
-def triton_kernels(on) -> None:
-    """Switch every Triton kernel of the package on (True), off (False: the composite on CUDA), or
-    back to its default (None)."""
-    use_triton_kernels(on)
-
-
 #: what ``gpu_check.run_values`` reads of its settings: the check's size and the compile backend
 CHECK = gcheck.Settings(torch.device("cpu"), "inductor", gcheck.Sizes(True, 4, 40, 10), gcheck.Sizes(True, 4, 40, 10),
                         1, 0, 1, float("inf"), [], [], [], [])
@@ -93,14 +87,14 @@ def section_errors(dev: torch.device) -> None:
                 try:
                     with static_mode():
                         ref = values(family, arch, call, torch.device("cpu"), "fp32", gcheck.REDUCTION, **config)
-                    triton_kernels(triton_on)
+                    use_triton_kernels(triton_on)
                     got = values(family, arch, call, dev, "fp32", gcheck.REDUCTION, **config)
                     got16 = values(family, arch, call, dev, "bf16", gcheck.REDUCTION, **config)
                     msg = f"fp32 {gcheck.relative_error(got, ref):.1e}, bf16 {gcheck.relative_error(got16, ref):.1e}"
                 except Exception as e:  # noqa: BLE001
                     msg = "error: " + gcheck.one_line(e)
                 finally:
-                    triton_kernels(None)
+                    use_triton_kernels(None)
                 print(f"{name} {call} sparse [{label}]: {msg}", flush=True)
             with static_mode():
                 ref = values(family, arch, call, torch.device("cpu"), "fp32", None)
@@ -248,7 +242,7 @@ def section_kernels(dev: torch.device) -> None:
                     try:
                         return event_times(fn, dev, n, warm)
                     finally:
-                        triton_kernels(None)
+                        use_triton_kernels(None)
 
                 for fn, switch in cases.values():
                     run(fn, switch, 1, 3)
