@@ -13,9 +13,14 @@
   version of ``scripts/host_time_parts.py``);
 * ``kernels``: eager speed of trans_enc and trans_dec with each group of the package's Triton
   kernels switched the other way (on against the composite), dense beside it: which one each device
-  should run (``TritonKernel(enabled=...)``; the CPU meter's answer: ``scripts/host_time.py --triton``).
+  should run (``TritonKernel(enabled=...)``; the CPU meter's answer: ``scripts/host_time.py --triton``);
+* ``layout``: which head layouts each SDPA kernel takes in bf16 (copies into ``[B, S, H·e]``, views of
+  a sequence-first projection, views of a batch-first one; MDM's and the folded FSQ heads, with and
+  without a key mask; each case in a child process, so a kernel that breaks the CUDA context cannot
+  stop the others), then the MDM models' bf16 calls with the package's layout copies on and off
+  (``use_layout_copies``): speed beside dense, and each against the CPU.
 
-    python scripts/gpu_diagnose.py --out DIR [--sections errors syncs profile parts kernels]
+    python scripts/gpu_diagnose.py --out DIR [--sections errors syncs profile parts kernels layout]
 """
 from __future__ import annotations
 
@@ -24,6 +29,7 @@ import collections
 import gc
 import importlib.util
 import statistics
+import subprocess
 import sys
 import time
 import traceback
@@ -35,6 +41,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 import torch  # noqa: E402
 
+from smdm_plugin.core.attention import use_layout_copies  # noqa: E402
 from smdm_plugin.core.checks import static_mode  # noqa: E402
 from smdm_plugin.core.kernels import TRITON_KERNELS, use_triton_kernels  # noqa: E402
 from smdm_plugin.training import benchmark, workloads  # noqa: E402
@@ -256,12 +263,157 @@ def section_kernels(dev: torch.device) -> None:
                 gcheck.free(dev)
 
 
+#: the layout probe's cases: (keys, layout, heads, mask, backend) in the order they run
+LAYOUTS = ("copies", "seq-first views", "batch-first views")
+HEADS = {"MDM heads": (128, 128), "folded FSQ heads": (8, 128)}      # (query/key size, value size)
+BACKENDS = ("default", "CUDNN_ATTENTION", "FLASH_ATTENTION", "EFFICIENT_ATTENTION", "MATH")
+PROBES = [(S, layout, heads, mask, backend) for S in (40, 196) for layout in LAYOUTS for heads in HEADS
+          for mask in (False, True) for backend in BACKENDS]
+
+
+def probe_layout(dev: torch.device, start: int) -> int:
+    """Run :data:`PROBES` from ``start``, one line each (bf16, B=64, 4 heads; forward and backward
+    against float32 math on copies): 0 when all ran, 3 when a case broke the CUDA context (the
+    parent goes on from the next)."""
+    from torch.nn.attention import SDPBackend, sdpa_kernel
+    import torch.nn.functional as F
+    B, H = (64, 4) if dev.type == "cuda" else (2, 4)
+    for i in range(start, len(PROBES)):
+        S, layout, heads, masked, backend = PROBES[i]
+        e, ev = HEADS[heads]
+        S = S if dev.type == "cuda" else 8
+        g = torch.Generator(device="cpu").manual_seed(i)
+        width = 2 * H * e + H * ev
+        proj = torch.randn(S, B, width, generator=g).to(dev, torch.bfloat16)
+        bias = torch.zeros(B, 1, 1, S, device=dev, dtype=torch.bfloat16)
+        bias[::2, ..., S - S // 4:] = float("-inf")
+        grad = torch.randn(B, H, S, ev, generator=g).to(dev, torch.bfloat16)
+
+        def split(t):  # noqa: ANN001, ANN202
+            q, k, v = t.split([H * e, H * e, H * ev], dim=-1)
+            if layout == "copies":
+                return [x.transpose(0, 1).contiguous().unflatten(-1, (H, -1)).transpose(1, 2) for x in (q, k, v)]
+            if layout == "seq-first views":
+                return [x.unflatten(-1, (H, -1)).permute(1, 2, 0, 3) for x in (q, k, v)]
+            return [x.unflatten(-1, (H, -1)).transpose(1, 2) for x in (q, k, v)]   # t is [B, S, W]
+
+        def call(t):  # noqa: ANN001, ANN202
+            q, k, v = split(t)
+            return F.scaled_dot_product_attention(q, k, v, attn_mask=bias if masked else None, scale=e ** -0.5)
+
+        def run() -> torch.Tensor:
+            t = (proj if layout != "batch-first views" else proj.transpose(0, 1).contiguous()).requires_grad_(True)
+            out = call(t)
+            out.backward(grad)
+            return torch.cat([out.float().flatten(), t.grad.float().flatten()])
+
+        ref_t = proj.float().requires_grad_(True)
+        with sdpa_kernel([SDPBackend.MATH]):
+            q, k, v = [x.transpose(0, 1).unflatten(-1, (H, -1)).transpose(1, 2)
+                       for x in ref_t.split([H * e, H * e, H * ev], dim=-1)]
+            ref_out = F.scaled_dot_product_attention(q, k, v, attn_mask=bias.float() if masked else None,
+                                                     scale=e ** -0.5)
+            ref_out.backward(grad.float())
+        ref_g = ref_t.grad if layout != "batch-first views" else ref_t.grad.transpose(0, 1)
+        ref = torch.cat([ref_out.flatten(), ref_g.flatten()])
+        name = f"S={S} {layout}, {heads}, {'key mask' if masked else 'no mask'}, {backend}"
+        try:
+            ctx = sdpa_kernel([getattr(SDPBackend, backend)]) if backend != "default" else _null()
+            with ctx:
+                got = run()
+                if dev.type == "cuda":
+                    torch.cuda.synchronize()
+                err = ((got - ref).abs().max() / ref.abs().max()).item()
+                ms = statistics.median(event_times(run, dev, 10, 3)) * 1e3
+            print(f"[{i}] {name}: ok, error {err:.1e}, {ms:.3f} ms forward+backward", flush=True)
+        except Exception as e:  # noqa: BLE001
+            print(f"[{i}] {name}: {type(e).__name__}: {gcheck.one_line(e)[:160]}", flush=True)
+            try:
+                torch.ones(1, device=dev).add_(1).item()
+            except Exception:  # noqa: BLE001 - the context is gone: the parent starts a new process
+                print(f"[{i}] (CUDA context lost)", flush=True)
+                return 3
+    return 0
+
+
+class _null:
+    def __enter__(self) -> None:
+        return None
+
+    def __exit__(self, *a) -> None:  # noqa: ANN002
+        return None
+
+
+def probe_models(dev: torch.device) -> None:
+    """The MDM models' bf16 calls at MDM size with the layout copies on (default) and off: ms per
+    call beside dense (CUDA events, median of 20), then each against the CPU (check size)."""
+    z = BIG
+    work = workloads.WORKLOADS.get("mdm")
+    for arch in ("trans_enc", "trans_dec"):
+        data = work.batch(z.batch, z.frames, dev, z.quick, arch)
+        for call in ("train", "sample"):
+            model, diffusion = workloads.build(arch, None, dev, z.quick, z.steps, family="mdm", frames=z.frames)
+            dense = benchmark.step_fn(call, work, model, diffusion, data, dev, "bf16", "none", "inductor")
+            model, diffusion = workloads.build(arch, gcheck.REDUCTION, dev, z.quick, z.steps, family="mdm",
+                                               frames=z.frames)
+            sparse = benchmark.step_fn(call, work, model, diffusion, data, dev, "bf16", "none", "inductor")
+            cases = {"dense": (dense, None), "sparse, copies": (sparse, None), "sparse, views": (sparse, False)}
+            times: Dict[str, List[float]] = {k: [] for k in cases}
+
+            def run(fn, switch, n, warm):  # noqa: ANN001
+                use_layout_copies(switch)
+                try:
+                    return event_times(fn, dev, n, warm)
+                finally:
+                    use_layout_copies(None)
+
+            for fn, switch in cases.values():
+                run(fn, switch, 1, 3)
+            for _ in range(20):
+                for k, (fn, switch) in cases.items():
+                    times[k] += run(fn, switch, 1, 0)
+            med = {k: statistics.median(v) * 1e3 for k, v in times.items()}
+            print(f"{arch} bf16 {call}: " + ", ".join(
+                f"{k} {v:.2f} ms ({med['dense'] / v:.2f}x)" for k, v in med.items()), flush=True)
+            del dense, sparse, cases
+            gcheck.free(dev)
+            with static_mode():
+                ref = values("mdm", arch, call, torch.device("cpu"), "fp32", gcheck.REDUCTION)
+            errs = []
+            for switch in (None, False):
+                use_layout_copies(switch)
+                try:
+                    errs.append(gcheck.relative_error(values("mdm", arch, call, dev, "bf16", gcheck.REDUCTION), ref))
+                finally:
+                    use_layout_copies(None)
+            print(f"{arch} bf16 {call} against the CPU (check size): copies {errs[0]:.1e}, views {errs[1]:.1e}",
+                  flush=True)
+
+
+def section_layout(dev: torch.device, dry: bool) -> None:
+    print("## layout: which bf16 head layouts each SDPA kernel takes (B=64, 4 heads; forward+backward against "
+          "float32 math), then the models with the layout copies on and off")
+    start = 0
+    child = [sys.executable, __file__] + (["--dry-run"] if dry else []) + ["--child"]
+    while start < len(PROBES):
+        p = subprocess.run(child + ["probe", str(start)], stdout=subprocess.PIPE, text=True, timeout=600)
+        print(p.stdout, end="", flush=True)
+        done = [int(line[1:line.index("]")]) for line in p.stdout.splitlines() if line.startswith("[")]
+        if p.returncode != 3:                     # 3: a case broke the CUDA context; else all ran (or a bug)
+            break
+        start = (max(done) if done else start) + 1
+    p = subprocess.run(child + ["models", "0"], stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
+                       timeout=600)
+    print(p.stdout, end="", flush=True)
+
+
 def main() -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--out", default=".", help="folder for the profiler tables")
     p.add_argument("--sections", nargs="+", default=["errors", "syncs", "profile", "parts", "kernels"],
-                   choices=["errors", "syncs", "profile", "parts", "kernels"])
+                   choices=["errors", "syncs", "profile", "parts", "kernels", "layout"])
     p.add_argument("--dry-run", action="store_true", help="on the CPU at the tiny size (checks that it runs)")
+    p.add_argument("--child", nargs=2, metavar=("PART", "START"), help=argparse.SUPPRESS)
     a = p.parse_args()
     global BIG
     if a.dry_run:
@@ -271,15 +423,20 @@ def main() -> int:
         return 2
     else:
         dev = torch.device("cuda")
+    warnings.simplefilter("ignore")
+    if a.child:                                   # section_layout's child processes
+        if a.child[0] == "probe":
+            return probe_layout(dev, int(a.child[1]))
+        probe_models(dev)
+        return 0
     out = Path(a.out)
     out.mkdir(parents=True, exist_ok=True)
-    warnings.simplefilter("ignore")
     for s in a.sections:
         t0 = time.perf_counter()
         try:
             {"errors": lambda: section_errors(dev), "syncs": lambda: section_syncs(dev),
              "profile": lambda: section_profile(dev, out), "parts": lambda: section_parts(dev),
-             "kernels": lambda: section_kernels(dev)}[s]()
+             "kernels": lambda: section_kernels(dev), "layout": lambda: section_layout(dev, a.dry_run)}[s]()
         except Exception:  # noqa: BLE001 - the other sections still run
             traceback.print_exc()
         print(f"({s}: {time.perf_counter() - t0:.0f} s)\n", flush=True)

@@ -1,15 +1,18 @@
 #!/usr/bin/env bash
-# The next GPU session's checks in one call (docs/gpu.md, "What the next GPU session runs"): about
-# 8 minutes on an H200, every output under OUT (default $OUT, else ./gpu_session_out).
+# The next GPU session's checks in one call (docs/gpu.md, "What the next GPU session runs"): under
+# 10 minutes on an H200, every output under OUT (default $OUT, else ./gpu_session_out).
 #
 #   bash scripts/gpu_session.sh            # on the GPU machine, from the repository root
 #   DRY=1 bash scripts/gpu_session.sh      # on a CPU: the same steps at the check's tiny size
 #
-# 1. which Triton kernels each device should run (gpu_diagnose --sections kernels, ~90 s);
-# 2. the eager matrix, CUDA against the CPU and dense against sparse (gpu_check --modes eager, 225 s);
-# 3. the captured trans_enc cells 0.9.1 did not reach (reduce-overhead, bf16 loop; 120 s);
-# 4. host syncs per call (gpu_diagnose --sections syncs, ~40 s).
-# Each step has its own time limit; a step that fails or runs out leaves what it wrote and the next runs.
+# 1. the eager matrix, CUDA against the CPU and dense against sparse (gpu_check --modes eager, 200 s);
+# 2. which head layouts the SDPA kernels take, and the models with the layout copies on and off
+#    (gpu_diagnose --sections layout, ~60 s);
+# 3. which Triton kernels each device should run (gpu_diagnose --sections kernels, ~90 s);
+# 4. the captured trans_enc cells 0.9.1 did not reach (reduce-overhead, bf16 loop; 90 s);
+# 5. host syncs per call (gpu_diagnose --sections syncs, ~40 s).
+# Each step has its own time limit (595 s in all); a step that fails or runs out leaves what it wrote
+# and the next runs.
 set -u
 OUT="${OUT:-gpu_session_out}"
 mkdir -p "$OUT"
@@ -28,8 +31,9 @@ step() {  # step NAME LIMIT_S CMD...
   timeout "$limit" "$@" > "$OUT/$name.out" 2> "$OUT/$name.log"
   echo "$name: exit $? in $((SECONDS - t0)) s" | tee -a "$OUT/steps.txt"
 }
-step kernels 150 python3 scripts/gpu_diagnose.py --sections kernels --out "$OUT" "${diag[@]}"
-step eager 270 python3 scripts/gpu_check.py --modes eager --budget-s 225 --doc "$OUT/gpu_check.md" "${dry[@]}"
-step captured 160 python3 scripts/gpu_check.py --modes reduce-overhead --models trans_enc --precisions bf16 \
-  --calls loop --budget-s 120 --doc "$OUT/gpu_check_captured.md" "${dry[@]}"
-step syncs 60 python3 scripts/gpu_diagnose.py --sections syncs --out "$OUT" "${diag[@]}"
+step eager 240 python3 scripts/gpu_check.py --modes eager --budget-s 200 --doc "$OUT/gpu_check.md" "${dry[@]}"
+step layout 90 python3 scripts/gpu_diagnose.py --sections layout --out "$OUT" "${diag[@]}"
+step kernels 100 python3 scripts/gpu_diagnose.py --sections kernels --out "$OUT" "${diag[@]}"
+step captured 120 python3 scripts/gpu_check.py --modes reduce-overhead --models trans_enc --precisions bf16 \
+  --calls loop --budget-s 90 --doc "$OUT/gpu_check_captured.md" "${dry[@]}"
+step syncs 45 python3 scripts/gpu_diagnose.py --sections syncs --out "$OUT" "${diag[@]}"

@@ -127,10 +127,27 @@ def accelerator_path(t: Tensor) -> bool:
     return t.device.type != "cpu" or static_shapes()
 
 
+#: :func:`layout_copies`' setting: None = the default (copies in half precision on the
+#: accelerators' path), True / False = always / never (:func:`use_layout_copies`)
+_LAYOUT_COPIES: List[Optional[bool]] = [None]
+
+
+def use_layout_copies(on: Optional[bool]) -> None:
+    """Switch :func:`heads`' copies into cuDNN's layout: ``True`` always, ``False`` never (every
+    head a strided view; for measuring which layout a GPU's kernels take and what the copies
+    cost: ``scripts/gpu_diagnose.py --sections layout``), ``None`` back to the default."""
+    if on is not None and not isinstance(on, bool):
+        raise TypeError(f"use_layout_copies: expected True, False or None, got {on!r}")
+    _LAYOUT_COPIES[0] = on
+
+
 def layout_copies(t: Tensor, dtype: torch.dtype) -> bool:
     """Whether attention inputs of ``dtype`` on ``t``'s device get :func:`heads`' copies: half
     precision (where cuDNN's SDPA kernel runs, which reads only its own layouts) on the
-    accelerators' path (:func:`accelerator_path`)."""
+    accelerators' path (:func:`accelerator_path`), unless :func:`use_layout_copies` says otherwise."""
+    on = _LAYOUT_COPIES[0]
+    if on is not None:
+        return on
     return dtype in (torch.float16, torch.bfloat16) and accelerator_path(t)
 
 

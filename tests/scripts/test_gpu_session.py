@@ -28,7 +28,7 @@ def test_the_session_script_is_valid_bash():
 
 def test_every_option_the_session_passes_is_accepted(capsys, monkeypatch):
     commands = list(_commands())
-    assert {c for c, _ in commands} == {"scripts/gpu_diagnose.py", "scripts/gpu_check.py"} and len(commands) == 4
+    assert {c for c, _ in commands} == {"scripts/gpu_diagnose.py", "scripts/gpu_check.py"} and len(commands) == 5
     for path, args in commands:
         spec = importlib.util.spec_from_file_location(path.replace("/", "_")[:-3], ROOT / path)
         mod = importlib.util.module_from_spec(spec)
