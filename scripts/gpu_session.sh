@@ -12,7 +12,8 @@
 # 4. the captured trans_enc cells 0.9.1 did not reach (reduce-overhead, bf16 loop; 90 s);
 # 5. host syncs per call (gpu_diagnose --sections syncs, ~40 s).
 # Each step has its own time limit (595 s in all); a step that fails or runs out leaves what it wrote
-# and the next runs.
+# and the next runs. One file per step (its stdout and stderr) and the two tables: 7 files under OUT
+# (the device tool brings back at most 8); each step's exit status is printed.
 set -u
 OUT="${OUT:-gpu_session_out}"
 mkdir -p "$OUT"
@@ -23,13 +24,14 @@ if [ -n "${DRY:-}" ]; then
   dry=(--dry-run --no-doc)
   diag=(--dry-run)
 fi
-cp docs/gpu.md "$OUT/gpu_check.md"
+cp docs/gpu.md "$OUT/gpu_check.md"                # gpu_check.py writes its table into a copy of the doc
+cp docs/gpu.md "$OUT/gpu_check_captured.md"
 step() {  # step NAME LIMIT_S CMD...
   local name=$1 limit=$2
   shift 2
   local t0=$SECONDS
-  timeout "$limit" "$@" > "$OUT/$name.out" 2> "$OUT/$name.log"
-  echo "$name: exit $? in $((SECONDS - t0)) s" | tee -a "$OUT/steps.txt"
+  timeout "$limit" "$@" > "$OUT/$name.txt" 2>&1
+  echo "$name: exit $? in $((SECONDS - t0)) s"
 }
 step eager 240 python3 scripts/gpu_check.py --modes eager --budget-s 200 --doc "$OUT/gpu_check.md" "${dry[@]}"
 step layout 90 python3 scripts/gpu_diagnose.py --sections layout --out "$OUT" "${diag[@]}"

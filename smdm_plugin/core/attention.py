@@ -100,17 +100,18 @@ def aligned_key_bias(bias: Tensor) -> Tensor:
 def sdpa_layout_problems(q: Tensor, k: Tensor, v: Tensor, mask: Optional[Tensor]) -> List[str]:
     """What keeps ``F.scaled_dot_product_attention(q, k, v, attn_mask=mask)`` from the layout every
     SDPA kernel (flash, memory-efficient, cuDNN, math) accepts: in half precision (where cuDNN's
-    kernel runs) ``q, k, v [B, H, S, e]`` views of contiguous ``[B, S, H·e]`` tensors (cuDNN's
-    unpacked layout); head sizes multiples of 8; an additive mask broadcast from ``[B, 1, 1, S]``
-    rows of unit stride starting every :data:`MASK_ALIGN` elements. Empty when it is met (a check
-    for tests)."""
+    kernel runs) ``q, k, v [B, H, S, e]`` of unit last stride whose other strides and storage
+    offset are multiples of 8 elements (16 bytes: views of one projection qualify, sequence-first
+    or batch-first); head sizes multiples of 8; an additive mask broadcast from ``[B, 1, 1, S]`` rows
+    of unit stride starting every :data:`MASK_ALIGN` elements. Empty when it is met (a check for
+    tests; what the H200 took: docs/gpu.md, "Head layouts")."""
     out = []
     half = q.dtype in (torch.float16, torch.bfloat16)
     for name, t in (("q", q), ("k", k), ("v", v)):
-        B, H, S, e = t.shape
-        want = (S * H * e, e, H * e, 1)
-        if half and any(n > 1 and s != w for n, s, w in zip(t.shape, t.stride(), want)):
-            out.append(f"{name} {tuple(t.shape)} strides {t.stride()} is not a view of a contiguous [B, S, H·e]")
+        if half and (t.stride(-1) != 1 or t.storage_offset() % 8
+                     or any(n > 1 and s % 8 for n, s in zip(t.shape[:-1], t.stride()[:-1]))):
+            out.append(f"{name} {tuple(t.shape)} strides {t.stride()} offset {t.storage_offset()} "
+                       "is not aligned to 8 elements")
         if t.shape[-1] % 8:
             out.append(f"{name}'s head size {t.shape[-1]} is not a multiple of 8")
     if mask is not None:
@@ -127,34 +128,28 @@ def accelerator_path(t: Tensor) -> bool:
     return t.device.type != "cpu" or static_shapes()
 
 
-#: :func:`layout_copies`' setting: None = the default (copies in half precision on the
-#: accelerators' path), True / False = always / never (:func:`use_layout_copies`)
-_LAYOUT_COPIES: List[Optional[bool]] = [None]
+#: :func:`layout_copies`' setting (:func:`use_layout_copies`)
+_LAYOUT_COPIES: List[bool] = [False]
 
 
 def use_layout_copies(on: Optional[bool]) -> None:
-    """Switch :func:`heads`' copies into cuDNN's layout: ``True`` always, ``False`` never (every
-    head a strided view; for measuring which layout a GPU's kernels take and what the copies
-    cost: ``scripts/gpu_diagnose.py --sections layout``), ``None`` back to the default."""
+    """Switch :func:`heads`' copies into ``[B, S, H·e]``: ``True`` on, ``False`` or ``None`` (the
+    default) off: every head a view of its projection, which every SDPA kernel of the H200 took in
+    bf16 and which saved the copies' time (``scripts/gpu_diagnose.py --sections layout``, docs/gpu.md,
+    "Head layouts"); on, for a GPU whose kernels would not."""
     if on is not None and not isinstance(on, bool):
         raise TypeError(f"use_layout_copies: expected True, False or None, got {on!r}")
-    _LAYOUT_COPIES[0] = on
+    _LAYOUT_COPIES[0] = bool(on)
 
 
-def layout_copies(t: Tensor, dtype: torch.dtype) -> bool:
-    """Whether attention inputs of ``dtype`` on ``t``'s device get :func:`heads`' copies: half
-    precision (where cuDNN's SDPA kernel runs, which reads only its own layouts) on the
-    accelerators' path (:func:`accelerator_path`), unless :func:`use_layout_copies` says otherwise."""
-    on = _LAYOUT_COPIES[0]
-    if on is not None:
-        return on
-    return dtype in (torch.float16, torch.bfloat16) and accelerator_path(t)
+def layout_copies() -> bool:
+    """Whether :func:`heads` copies (:func:`use_layout_copies`; off by default)."""
+    return _LAYOUT_COPIES[0]
 
 
 def heads(t: Tensor, H: int, copy: bool) -> Tensor:
-    """``[S, B, H·e]`` (any strides) -> ``[B, H, S, e]``: with ``copy`` (accelerators), in the layout
-    every SDPA kernel accepts (``[B, S, H·e]`` contiguous, a view of it); else a view (the CPU's
-    kernels take any strides)."""
+    """``[S, B, H·e]`` (any strides) -> ``[B, H, S, e]``: a view; with ``copy`` a view of a
+    contiguous ``[B, S, H·e]`` copy (:func:`use_layout_copies`)."""
     if copy:
         return t.transpose(0, 1).contiguous().unflatten(-1, (H, -1)).transpose(1, 2)
     return t.unflatten(-1, (H, -1)).permute(1, 2, 0, 3)

@@ -240,8 +240,7 @@ class FSQMultiheadAttention(nn.Module):
         return mha.train(self.training)
 
     def _heads(self, x: Tensor, batch_first: bool) -> Tensor:
-        """``[B, T, E]`` (``batch_first``) or ``[T, B, E]`` -> ``[B, H, T, head_dim]`` (a view; on
-        accelerators a view of a contiguous ``[B, T, E]``: :func:`~smdm_plugin.core.attention.heads`)."""
+        """``[B, T, E]`` (``batch_first``) or ``[T, B, E]`` -> ``[B, H, T, head_dim]``: :meth:`_heads_of`."""
         return self._heads_of(x, batch_first, self.head_dim)
 
     def quantize_keys(self, k: Tensor) -> Tensor:
@@ -336,9 +335,10 @@ class FSQMultiheadAttention(nn.Module):
         return attend(self, qc, r, v, mask, scale), None
 
     def _heads_of(self, x: Tensor, batch_first: bool, size: int) -> Tensor:
-        """``[B, T, H·size]`` (``batch_first``) or ``[T, B, H·size]`` -> ``[B, H, T, size]``: a view,
-        on accelerators of a contiguous ``[B, T, H·size]`` (the layout every SDPA kernel accepts)."""
-        copy = layout_copies(x, x.dtype)
+        """``[B, T, H·size]`` (``batch_first``) or ``[T, B, H·size]`` -> ``[B, H, T, size]``: a view
+        (of a contiguous ``[B, T, H·size]`` copy when :func:`~smdm_plugin.core.attention.use_layout_copies`
+        is on)."""
+        copy = layout_copies()
         if not batch_first:
             return heads(x, self.num_heads, copy)
         if copy:

@@ -272,7 +272,7 @@ class StockStack:
         if self.decoder and memory.shape[0] == 1 and memory_bias is None:   # one key per sample
             S, B, _ = x.shape
             sample = consts.arange(B, x.device).repeat(S)                # [S·B]: each row's sample
-        copy = layout_copies(x, dtype)                        # half precision on accelerators: cuDNN's layout
+        copy = layout_copies()                                # views unless switched on (use_layout_copies)
         casts = self._casts(x)
         for layer, proj in zip(self.layers, projections):
             x = layer.forward(x, bias, proj, training, copy, memory, memory_bias, sample, casts)

@@ -2,9 +2,10 @@
 SDPA kernel accepts (issue 36: cuDNN's kernel crashed with ``misaligned address`` on bf16 sampling of
 trans_dec, whose FSQ attention handed it 8-channel query/key heads cut from one projection and a key
 mask of 39-element rows). Checked on the CPU under ``static_mode`` (the code path of accelerators):
-q, k, v views of contiguous ``[B, S, H·e]``, head sizes multiples of 8, mask rows 16-element
-aligned (:func:`smdm_plugin.core.attention.sdpa_layout_problems`; the head layout in half
-precision, where cuDNN's kernel runs)."""
+q, k, v with strides and offsets of multiples of 8 elements (views of one projection: the H200 ran
+every SDPA kernel on them, ``scripts/gpu_diagnose.py --sections layout``), head sizes multiples of
+8, mask rows 16-element aligned (:func:`smdm_plugin.core.attention.sdpa_layout_problems`; the
+head strides in half precision, where cuDNN's kernel runs)."""
 import sys
 
 import pytest
@@ -85,21 +86,59 @@ def test_every_attention_of_a_sparse_call_has_the_layout_every_sdpa_kernel_accep
 
 
 def test_the_layout_check_sees_what_crashed_cudnn():
-    """The checker itself: the 0.7 folded path's strided 8-channel heads cut from one projection and
-    a key mask of 39-element rows are reported; contiguous heads and an aligned mask are not."""
+    """The checker itself: the 0.7 folded path's key mask of 39-element rows is reported, and so are
+    heads of 6 channels (FSQ's six levels unpadded) or cut at an odd offset; the views of one
+    projection the package hands SDPA (8-channel query/key heads, 16-channel values) and an aligned
+    mask are not; in fp32 (no cuDNN) only the head size counts."""
     B, S, H, P, hd = 2, 39, 4, 8, 16
     proj = torch.randn(S, B, 2 * H * P + H * hd, dtype=torch.bfloat16)
-    q = proj[..., :H * P].unflatten(-1, (H, P)).permute(1, 2, 0, 3)
-    k = proj[..., H * P:2 * H * P].unflatten(-1, (H, P)).permute(1, 2, 0, 3)
-    v = proj[..., 2 * H * P:].unflatten(-1, (H, hd)).permute(1, 2, 0, 3)
+
+    def cut(t, start, size, n):
+        return t[..., start:start + H * size].unflatten(-1, (H, size)).permute(1, 2, 0, 3)[..., :n]
+
+    q, k, v = cut(proj, 0, P, P), cut(proj, H * P, P, P), cut(proj, 2 * H * P, hd, hd)
     bias = torch.zeros(B, S, dtype=torch.bfloat16)
     problems = sdpa_layout_problems(q, k, v, bias.view(B, 1, 1, S))
-    assert len(problems) == 4 and "mask" in problems[-1]
-    good = [t.transpose(1, 2).contiguous().transpose(1, 2) for t in (q, k, v)]
+    assert len(problems) == 1 and "mask" in problems[0]
     aligned = aligned_key_bias(bias)
-    assert not sdpa_layout_problems(*good, aligned)
+    assert not sdpa_layout_problems(q, k, v, aligned)
     assert aligned.shape == (B, 1, 1, S) and aligned.stride(0) % 16 == 0 and torch.equal(aligned[:, 0, 0], bias)
-    f = proj.float()                                             # fp32 (no cuDNN): strided heads are fine
-    views = (f[..., :H * P].unflatten(-1, (H, P)).permute(1, 2, 0, 3),
-             f[..., H * P:2 * H * P].unflatten(-1, (H, P)).permute(1, 2, 0, 3))
-    assert not sdpa_layout_problems(*views, views[0], aligned_key_bias(bias.float()))
+    odd = torch.randn(S, B, 6 * H * 3, dtype=torch.bfloat16)     # 6-channel heads: strides of 6 elements
+    six = [cut(odd, i * 6 * H, 6, 6) for i in range(3)]
+    found = sdpa_layout_problems(*six, aligned)
+    assert sum("head size 6" in m for m in found) == 3 and sum("aligned to 8" in m for m in found) == 3
+    shifted = cut(proj, 4, P, P)                                  # a head cut 4 elements (8 bytes) in
+    assert any("offset 4" in m for m in sdpa_layout_problems(shifted, k, v, aligned))
+    f = [t.float() for t in six]                                  # fp32: strides do not count
+    assert all("head size" in m for m in sdpa_layout_problems(*f, aligned_key_bias(bias.float())))
+
+
+def test_layout_copies_switch_changes_the_layout_not_the_values():
+    """``use_layout_copies(True)`` hands SDPA contiguous ``[B, S, H·e]`` heads (the switch for a GPU
+    whose kernels would refuse views), the default hands it views of the projections; a trans_dec
+    bf16 sampling call gives the same values either way; anything but a bool or None is refused."""
+    from smdm_plugin.core.attention import use_layout_copies
+
+    model, _, x, y = _model("trans_dec", 61)
+    model.eval()
+    seen = {}
+    original = F.scaled_dot_product_attention
+
+    def spy(q, *args, **kwargs):
+        seen.setdefault(mode, []).append(q.transpose(1, 2).is_contiguous())
+        return original(q, *args, **kwargs)
+
+    out = {}
+    try:
+        F.scaled_dot_product_attention = spy
+        for mode in (None, True):
+            use_layout_copies(mode)
+            with static_mode(), torch.no_grad(), torch.autocast("cpu", torch.bfloat16):
+                out[mode] = model(x, torch.full((3,), 5), y=dict(y)).float()
+    finally:
+        F.scaled_dot_product_attention = original
+        use_layout_copies(None)
+    assert seen[True] and all(seen[True]) and not any(seen[None])
+    torch.testing.assert_close(out[None], out[True], rtol=1e-2, atol=1e-2)
+    with pytest.raises(TypeError, match="use_layout_copies"):
+        use_layout_copies("yes")

@@ -39,3 +39,15 @@ def test_every_option_the_session_passes_is_accepted(capsys, monkeypatch):
             with pytest.raises(SystemExit) as e:
                 mod.main(sys.argv[1:]) if path.endswith("gpu_check.py") else mod.main()
             assert e.value.code == 0, (path, args, capsys.readouterr().err)
+
+
+def test_every_table_the_session_writes_into_is_copied_first():
+    """``gpu_check.py --doc`` rewrites an existing doc (the H200 session's captured step stopped at
+    once when its copy was missing): each ``--doc "$OUT/NAME"`` has a ``cp docs/gpu.md "$OUT/NAME"``
+    before it."""
+    text = SCRIPT.read_text()
+    docs = re.findall(r'--doc "\$OUT/([\w.]+)"', text)
+    assert len(docs) == 2
+    for name in docs:
+        copy = text.find(f'cp docs/gpu.md "$OUT/{name}"')
+        assert 0 <= copy < text.find(f'--doc "$OUT/{name}"'), name
