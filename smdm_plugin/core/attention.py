@@ -104,7 +104,7 @@ def sdpa_layout_problems(q: Tensor, k: Tensor, v: Tensor, mask: Optional[Tensor]
     offset are multiples of 8 elements (16 bytes: views of one projection qualify, sequence-first
     or batch-first); head sizes multiples of 8; an additive mask broadcast from ``[B, 1, 1, S]`` rows
     of unit stride starting every :data:`MASK_ALIGN` elements. Empty when it is met (a check for
-    tests; what the H200 took: docs/gpu.md, "Head layouts")."""
+    tests; what the H200 took: docs/gpu.md, section 0.9.3)."""
     out = []
     half = q.dtype in (torch.float16, torch.bfloat16)
     for name, t in (("q", q), ("k", k), ("v", v)):
