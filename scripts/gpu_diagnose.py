@@ -26,7 +26,6 @@ from __future__ import annotations
 
 import argparse
 import collections
-import gc
 import importlib.util
 import statistics
 import subprocess
@@ -35,7 +34,7 @@ import time
 import traceback
 import warnings
 from pathlib import Path
-from typing import Dict, List
+from typing import Callable, Dict, List, Tuple
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
@@ -222,6 +221,32 @@ def section_parts(dev: torch.device) -> None:
             gcheck.free(dev)
 
 
+def interleaved_medians(cases: Dict[str, Tuple[Callable[[], object], object]], dev: torch.device,
+                        switch: Callable[[object], None]) -> Dict[str, float]:
+    """ms per call of each case ``name: (fn, setting)``, ``switch(setting)`` before its calls and
+    ``switch(None)`` (the defaults) after: 3 warm-up calls each, then 20 rounds over the cases in
+    turn, CUDA events, medians."""
+    def run(fn, setting, warm: int) -> List[float]:  # noqa: ANN001
+        switch(setting)
+        try:
+            return event_times(fn, dev, 1, warm)
+        finally:
+            switch(None)
+
+    times: Dict[str, List[float]] = {k: [] for k in cases}
+    for fn, setting in cases.values():
+        run(fn, setting, 3)
+    for _ in range(20):
+        for k, (fn, setting) in cases.items():
+            times[k] += run(fn, setting, 0)
+    return {k: statistics.median(v) * 1e3 for k, v in times.items()}
+
+
+def print_medians(label: str, med: Dict[str, float]) -> None:
+    """One line: each case's ms and its speed-up over ``med["dense"]``."""
+    print(f"{label}: " + ", ".join(f"{k} {v:.2f} ms ({med['dense'] / v:.2f}x)" for k, v in med.items()), flush=True)
+
+
 def section_kernels(dev: torch.device) -> None:
     print("## kernels: eager sparse speed with each group of Triton kernels switched the other way "
           "(MDM size, B=64, 196 frames; ms per call, CUDA events, median of 20; dense beside it)")
@@ -241,24 +266,8 @@ def section_kernels(dev: torch.device) -> None:
                 for group, names in KERNEL_GROUPS.items():
                     flip = not TRITON_KERNELS[names[0]].default
                     cases[f"{group} {'on' if flip else 'off'}"] = (sparse, (flip, names))
-                times: Dict[str, List[float]] = {k: [] for k in cases}
-
-                def run(fn, switch, n, warm):  # noqa: ANN001
-                    if switch is not None:
-                        use_triton_kernels(*switch)
-                    try:
-                        return event_times(fn, dev, n, warm)
-                    finally:
-                        use_triton_kernels(None)
-
-                for fn, switch in cases.values():
-                    run(fn, switch, 1, 3)
-                for _ in range(20):
-                    for k, (fn, switch) in cases.items():
-                        times[k] += run(fn, switch, 1, 0)
-                med = {k: statistics.median(v) * 1e3 for k, v in times.items()}
-                print(f"{arch} {amp} {call}: " + ", ".join(
-                    f"{k} {v:.2f} ms ({med['dense'] / v:.2f}x)" for k, v in med.items()), flush=True)
+                print_medians(f"{arch} {amp} {call}", interleaved_medians(
+                    cases, dev, lambda setting: use_triton_kernels(*(setting or (None,)))))
                 del dense, sparse, cases
                 gcheck.free(dev)
 
@@ -358,23 +367,7 @@ def probe_models(dev: torch.device) -> None:
                                                frames=z.frames)
             sparse = benchmark.step_fn(call, work, model, diffusion, data, dev, "bf16", "none", "inductor")
             cases = {"dense": (dense, None), "sparse, copies": (sparse, True), "sparse, views": (sparse, None)}
-            times: Dict[str, List[float]] = {k: [] for k in cases}
-
-            def run(fn, switch, n, warm):  # noqa: ANN001
-                use_layout_copies(switch)
-                try:
-                    return event_times(fn, dev, n, warm)
-                finally:
-                    use_layout_copies(None)
-
-            for fn, switch in cases.values():
-                run(fn, switch, 1, 3)
-            for _ in range(20):
-                for k, (fn, switch) in cases.items():
-                    times[k] += run(fn, switch, 1, 0)
-            med = {k: statistics.median(v) * 1e3 for k, v in times.items()}
-            print(f"{arch} bf16 {call}: " + ", ".join(
-                f"{k} {v:.2f} ms ({med['dense'] / v:.2f}x)" for k, v in med.items()), flush=True)
+            print_medians(f"{arch} bf16 {call}", interleaved_medians(cases, dev, use_layout_copies))
             del dense, sparse, cases
             gcheck.free(dev)
             with static_mode():
