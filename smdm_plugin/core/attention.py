@@ -136,7 +136,7 @@ def use_layout_copies(on: Optional[bool]) -> None:
     """Switch :func:`heads`' copies into ``[B, S, H·e]``: ``True`` on, ``False`` or ``None`` (the
     default) off: every head a view of its projection, which every SDPA kernel of the H200 took in
     bf16 and which saved the copies' time (``scripts/gpu_diagnose.py --sections layout``, docs/gpu.md,
-    "Head layouts"); on, for a GPU whose kernels would not."""
+    section 0.9.3); on (every device and dtype), for a GPU whose kernels would not."""
     if on is not None and not isinstance(on, bool):
         raise TypeError(f"use_layout_copies: expected True, False or None, got {on!r}")
     _LAYOUT_COPIES[0] = bool(on)
