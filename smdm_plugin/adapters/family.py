@@ -105,8 +105,9 @@ class ModelFamily(ABC):
     # ------------------------------------------------------------------ graph capture
     def traces_whole(self, model: nn.Module) -> bool:
         """Whether graph capture takes a sparse call of ``model`` whole (``fullgraph=True``, the
-        default); False where the family reads something on the host once per call."""
-        return True
+        default); False where a forward pre-hook says it reads on the host once per call (its
+        ``reads_on_host``: DoubleTake's forcing without a bound, on any model it is attached to)."""
+        return not any(getattr(h, "reads_on_host", False) for h in model._forward_pre_hooks.values())
 
     def finish_losses(self, state: "SparseState", model: nn.Module, terms: Dict[str, Any],
                       mask: torch.Tensor) -> Dict[str, Any]:

@@ -154,14 +154,16 @@ def _clone_outputs(out: Any) -> Any:
     return out
 
 
-def _has_forced(args: tuple, kwargs: dict) -> bool:
+def _reads_forced(args: tuple, kwargs: dict) -> bool:
     """Whether a call carries forced keyframes (a :class:`KeyframeRequest` with ``forced``), in
-    MDM's ``y`` or MotionDiffuse's keyword arguments."""
+    MDM's ``y`` or MotionDiffuse's keyword arguments, without a ``forced_bound``: its plan is sized
+    by counting them on the host (with a bound nothing is read, and the call traces whole)."""
     from ..adapters.request import KEYFRAMES_KEY
 
     for container in [kwargs] + [a for a in args if isinstance(a, dict)] + \
             [v for v in kwargs.values() if isinstance(v, dict)]:
-        if getattr(container.get(KEYFRAMES_KEY), "forced", None) is not None:
+        request = container.get(KEYFRAMES_KEY)
+        if getattr(request, "forced", None) is not None and getattr(request, "forced_bound", None) is None:
             return True
     return False
 
@@ -302,7 +304,8 @@ class CompiledFunction:
 class _CompiledCall(CompiledFunction):
     """What ``model.__call__`` runs once compiled (``nn.Module._compiled_call_impl``): the module's
     ``_call_impl`` (hooks included), each call prepared by its family's :class:`CallPreparer`;
-    calls carrying forced keyframes are a phase of their own, traced with a graph break."""
+    calls carrying forced keyframes without a bound are a phase of their own, traced with a graph
+    break."""
 
     def __init__(self, model: nn.Module, setting: CompileSetting, preparer: CallPreparer) -> None:
         self.preparer = preparer
@@ -310,16 +313,17 @@ class _CompiledCall(CompiledFunction):
                          lambda args, kwargs: preparer.prepare(model, args, kwargs))
 
     def _fullgraph(self, args: tuple, kwargs: dict) -> bool:
-        # forced keyframes (sample.edit, in-betweening) are counted on the host once per call, as in
-        # eager: such calls trace with a graph break there (a phase of their own, same guarantee)
-        return self.setting.fullgraph and not _has_forced(args, kwargs)
+        # forced keyframes (sample.edit, in-betweening) without a bound are counted on the host once
+        # per call, as in eager: such calls trace with a graph break there (a phase of their own)
+        return self.setting.fullgraph and not _reads_forced(args, kwargs)
 
 
 # --------------------------------------------------------------------------- entry points
 def _fullgraph_default(model: nn.Module) -> bool:
     """Sparse models trace whole (fullgraph) when their family says so
-    (:meth:`~smdm_plugin.adapters.family.ModelFamily.traces_whole`: not DoubleTake's, whose forced
-    keyframes are read from ``y`` on the host once per call, as in eager); dense ones do not."""
+    (:meth:`~smdm_plugin.adapters.family.ModelFamily.traces_whole`: not DoubleTake's without a
+    forced bound, whose forced keyframes are counted on the host once per call, as in eager); dense
+    ones do not."""
     from ..adapters.state import get_state
 
     state = get_state(model)

@@ -310,3 +310,41 @@ def test_the_priormdm_integration_passes_the_run_bound():
         sparsify_priormdm(model, args)
     hooks = [h for h in model._forward_pre_hooks.values() if isinstance(h, _ForcingHook)]
     assert len(hooks) == 1 and hooks[0].bound == doubletake_forced_bound(20, 5) == 40
+
+
+def test_with_the_run_bound_both_takes_trace_whole():
+    """Graph capture (``compile_model``, issue 36): with the run's bound a DoubleTake model's
+    sparse calls trace whole (``fullgraph=True``, where a graph break raises) — both takes, early
+    and late steps, no recompile within a take — and equal eager; without the bound its calls count
+    their forced frames on the host, so the model compiles with graph breaks allowed."""
+    import copy
+
+    from smdm_plugin.families.doubletake.model import doubletake_forced_bound
+    from smdm_plugin.runtime import compile as C
+
+    pytest.importorskip("torch._dynamo")
+    lens = [30, 40, 25]
+    model, _ = _sparse_tiny()
+    del model.seqTransEncoder.set_plan                    # _sparse_tiny's spy (a copy would share it)
+    calls = _doubletake_calls(model, lens, max(lens))
+    unbounded = copy.deepcopy(model)
+    C.compile_model(unbounded, "default", backend="eager")
+    assert not C.compile_setting(unbounded).fullgraph
+    attach_doubletake_forcing(model, forced_bound=doubletake_forced_bound(H, BLEND))
+    ref = copy.deepcopy(model)
+    C.compile_model(model, "default", backend="eager")
+    assert C.compile_setting(model).fullgraph
+    with torch.no_grad():
+        for x, y in calls:
+            for step in (9, 8, 1, 0):
+                t = torch.full((x.shape[0],), step)
+                torch.testing.assert_close(model(x, t, dict(y)), ref(x, t, dict(y)), rtol=1e-5, atol=1e-6)
+    s = C.compile_setting(model)
+    assert s.compiled_calls > 0 and all(model._compiled_call_impl._compiled)
+    for bound in (None, doubletake_forced_bound(H, BLEND)):   # priorMDM's class (the DoubleTake family)
+        torch.manual_seed(0)
+        dt = doubleTake_TinyMDM(njoints=8, nfeats=1, latent_dim=32, ff_size=64, num_layers=1, cond_mode="no_cond")
+        sparsify(dt, SparseConfig(feature="raw"))
+        attach_doubletake_forcing(dt, forced_bound=bound)
+        C.compile_model(dt, "default", backend="eager")
+        assert C.compile_setting(dt).fullgraph == (bound is not None)

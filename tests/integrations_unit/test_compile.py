@@ -373,6 +373,35 @@ def test_bert_text_tokens_padded_to_a_bucket_change_nothing():
     assert P.pad_text_tokens((torch.randn(70, 3, 16), torch.zeros(3, 70, dtype=torch.bool)))[0].shape[0] == 128
 
 
+def test_forced_keyframes_with_a_bound_trace_whole():
+    """``with_forced(y, forced, bound)``: the plan is sized from the bound, nothing is read on the
+    host, so the call traces whole (``fullgraph=True``: a graph break would raise), in the same
+    phase as calls without forced frames; equal to eager, no recompile across steps. Without the
+    bound the same call would need its own phase with a break (the test below)."""
+    from smdm_plugin import with_forced
+
+    model, diffusion = TinyMDM(njoints=D, cond_mode="no_cond", **TINY), SimpleDiffusion(20)
+    sparsify(model, SparseConfig(mask_noise=0.0, feature="raw"), diffusion=diffusion)
+    model.eval()
+    ref = copy.deepcopy(model)
+    C.compile_model(model, "default", backend=BACKEND)
+    assert C.compile_setting(model).fullgraph
+    x = torch.randn(2, D, 1, N)
+    y = {"mask": torch.ones(2, 1, 1, N, dtype=torch.bool), "lengths": torch.tensor([N, 30])}
+    forced = torch.zeros(2, N, dtype=torch.bool)
+    forced[:, 10] = True
+    forced[1, 20] = True
+    with torch.no_grad():
+        for step in (19, 12, 5, 1, 0):
+            t = torch.full((2,), step)
+            yf = with_forced(y, forced, 2)
+            assert torch.allclose(model(x, t, dict(yf)), ref(x, t, dict(yf)), atol=1e-5), step
+    s = C.compile_setting(model)
+    call = model._compiled_call_impl
+    assert s.recompiles == 0 and s.compiled_calls == 4 and len(call._static) == 1
+    assert all(fullgraph for fullgraph in call._compiled), "the bounded calls traced with a break"
+
+
 def test_forced_keyframes_trace_with_a_break_and_never_recompile():
     """In-betweening / ``sample.edit``: forced keyframes are counted on the host once per call (as
     in eager), so those calls compile without fullgraph: no error, no recompile across steps and

@@ -9,8 +9,8 @@ node of every graph must be on ``meta``. Covered: the model call (``compile_mode
 early and a late step, both guidance passes, dynamic update on and off; a training step) and the
 whole steps (``compile_function``: training loss, guided call, sampling step) of trans_enc,
 trans_dec, DiP's prefix completion, DoubleTake's model and MotionDiffuse's layout. DoubleTake calls
-that carry forced frames count them on the host (a graph break), which a ``meta`` tensor cannot
-give: its calls here carry none; MotionDiffuse's calls pass no ``length`` (all frames valid: its
+carry their forced frames only under the workload's bound (without one they count them on the
+host, which a ``meta`` tensor cannot give); MotionDiffuse's calls pass no ``length`` (all frames valid: its
 lengths are validated on the host from values). VW's eager kernels read the removal counts on the host too, so on
 ``meta`` the test runs VW through its output shape (the fake the traced graph uses).
 """
@@ -120,3 +120,20 @@ def test_compiled_whole_steps_build_nothing_off_the_device(family, arch, dynamic
     assert all(C.compile_setting(f).recompiles == 0 and C.compile_setting(f).compiled_calls > 0
                for f in (loss, call, step))
     assert rec.graphs and not rec.off_device(), rec.off_device()[:10]
+
+
+def test_doubletake_calls_with_forced_frames_trace_whole_on_the_device():
+    """DoubleTake's sampling calls with their forced frames (``is_transition``) under the bound the
+    workload attaches (as the priorMDM integration does): traced whole (``fullgraph``), nothing off
+    the device, no recompile."""
+    rec = Recorder()
+    work, model, diffusion, data = _case("mdm", "doubletake", True, train=False)
+    C.compile_model(model, "default", backend=rec, device=META)
+    assert C.compile_setting(model).fullgraph
+    den = work.denoiser(model)
+    with torch.no_grad():
+        for t in _steps(data.size) * 2:
+            out = den(data.x, t, **work.sample_kwargs(data))
+    s = C.compile_setting(model)
+    assert out.device == META and rec.graphs and s.compiled_calls > 0 and s.recompiles == 0
+    assert not rec.off_device(), rec.off_device()[:10]

@@ -173,6 +173,12 @@ class _ForcingHook:
     def __init__(self) -> None:
         self.bound: Optional[int] = None
 
+    @property
+    def reads_on_host(self) -> bool:
+        """Whether a call reads on the host (without a bound: the count of its forced frames, to
+        size the plan): graph capture then allows a break (``ModelFamily.traces_whole``)."""
+        return self.bound is None
+
     def __call__(self, module: nn.Module, args, kwargs):
         return _doubletake_pre_hook(module, args, kwargs, self.bound)
 
@@ -262,10 +268,6 @@ class DoubleTakeFamily(MDMFamily):
 
     def mismatch(self, model: nn.Module) -> str:
         return super().mismatch(model) if not super().matches(model) else "class name has no 'doubletake'"
-
-    def traces_whole(self, model: nn.Module) -> bool:
-        # the forced keyframes are read from y on the host once per call (as in eager): a graph break
-        return not has_doubletake_forcing(model)
 
     def install(self, model: nn.Module, state: SparseState) -> None:
         super().install(model, state)
