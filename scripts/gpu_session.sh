@@ -5,14 +5,14 @@
 #   bash scripts/gpu_session.sh            # on the GPU machine, from the repository root
 #   DRY=1 bash scripts/gpu_session.sh      # on a CPU: the same steps at the check's tiny size
 #
-# 1. the eager matrix, CUDA against the CPU and dense against sparse (gpu_check --modes eager, 200 s);
+# 1. the eager matrix, CUDA against the CPU and dense against sparse (gpu_check --modes eager, 175 s);
 # 2. which head layouts the SDPA kernels take, and the models with the layout copies on and off
 #    (gpu_diagnose --sections layout, ~60 s);
-# 3. which Triton kernels each device should run (gpu_diagnose --sections kernels, ~90 s);
-# 4. the captured trans_enc cells 0.9.1 did not reach (reduce-overhead, bf16 loop; 90 s);
-# 5. host syncs per call (gpu_diagnose --sections syncs, ~40 s).
-# Each step has its own time limit (595 s in all); a step that fails or runs out leaves what it wrote
-# and the next runs. One file per step (its stdout and stderr) and the two tables: 7 files under OUT
+# 3. which Triton kernels each device should run (gpu_diagnose --sections kernels, ~60 s);
+# 4. host syncs per call (gpu_diagnose --sections syncs, ~20 s);
+# 5. the captured trans_enc bf16 loop and training step (reduce-overhead; ~180 s).
+# Each step has its own time limit (600 s in all; about 8 minutes on the H200); a step that fails
+# or runs out leaves what it wrote and the next runs. One file per step (its stdout and stderr) and the two tables: 7 files under OUT
 # (the device tool brings back at most 8); each step's exit status is printed.
 set -u
 OUT="${OUT:-gpu_session_out}"
@@ -33,9 +33,9 @@ step() {  # step NAME LIMIT_S CMD...
   timeout "$limit" "$@" > "$OUT/$name.txt" 2>&1
   echo "$name: exit $? in $((SECONDS - t0)) s"
 }
-step eager 240 python3 scripts/gpu_check.py --modes eager --budget-s 200 --doc "$OUT/gpu_check.md" "${dry[@]}"
-step layout 90 python3 scripts/gpu_diagnose.py --sections layout --out "$OUT" "${diag[@]}"
-step kernels 100 python3 scripts/gpu_diagnose.py --sections kernels --out "$OUT" "${diag[@]}"
-step captured 120 python3 scripts/gpu_check.py --modes reduce-overhead --models trans_enc --precisions bf16 \
-  --calls loop --budget-s 90 --doc "$OUT/gpu_check_captured.md" "${dry[@]}"
+step eager 200 python3 scripts/gpu_check.py --modes eager --budget-s 175 --doc "$OUT/gpu_check.md" "${dry[@]}"
+step layout 80 python3 scripts/gpu_diagnose.py --sections layout --out "$OUT" "${diag[@]}"
+step kernels 75 python3 scripts/gpu_diagnose.py --sections kernels --out "$OUT" "${diag[@]}"
 step syncs 45 python3 scripts/gpu_diagnose.py --sections syncs --out "$OUT" "${diag[@]}"
+step captured 200 python3 scripts/gpu_check.py --modes reduce-overhead --models trans_enc --precisions bf16 \
+  --calls loop train --budget-s 180 --doc "$OUT/gpu_check_captured.md" "${dry[@]}"
