@@ -272,7 +272,7 @@ def section_kernels(dev: torch.device) -> None:
                 gcheck.free(dev)
 
 
-#: the layout probe's cases: (keys, layout, heads, mask, backend) in the order they run
+#: the layout probe's cases: (sequence length, layout, heads, key mask, backend) in the order they run
 LAYOUTS = ("copies", "seq-first views", "batch-first views")
 HEADS = {"MDM heads": (128, 128), "folded FSQ heads": (8, 128)}      # (query/key size, value size)
 BACKENDS = ("default", "CUDNN_ATTENTION", "FLASH_ATTENTION", "EFFICIENT_ATTENTION", "MATH")
