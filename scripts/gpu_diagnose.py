@@ -207,16 +207,8 @@ def section_parts(dev: torch.device) -> None:
                 model, diffusion = workloads.build("trans_enc", gcheck.REDUCTION, dev, z.quick, z.steps, family="mdm",
                                                    frames=z.frames, **extra)
                 fns[label] = benchmark.step_fn(call, work, model, diffusion, data, dev, amp, "none", "inductor")
-            times = {k: [] for k in fns}
-            for fn in fns.values():
-                for _ in range(5):
-                    fn()
-            for _ in range(20):
-                for k, fn in fns.items():
-                    times[k] += event_times(fn, dev, 1, 0)
-            med = {k: statistics.median(v) * 1e3 for k, v in times.items()}
-            print(f"{amp} {call}: " + ", ".join(f"{k} {v:.2f} ms ({med['dense'] / v:.2f}x)" for k, v in med.items()),
-                  flush=True)
+            print_medians(f"{amp} {call}", interleaved_medians({k: (fn, None) for k, fn in fns.items()}, dev,
+                                                               lambda setting: None))
             del fns
             gcheck.free(dev)
 

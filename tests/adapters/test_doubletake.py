@@ -340,7 +340,7 @@ def test_with_the_run_bound_both_takes_trace_whole():
                 t = torch.full((x.shape[0],), step)
                 torch.testing.assert_close(model(x, t, dict(y)), ref(x, t, dict(y)), rtol=1e-5, atol=1e-6)
     s = C.compile_setting(model)
-    assert s.compiled_calls > 0 and all(model._compiled_call_impl._compiled)
+    assert s.compiled_calls > 0 and s.recompiles == 0 and all(model._compiled_call_impl._compiled)
     for bound in (None, doubletake_forced_bound(H, BLEND)):   # priorMDM's class (the DoubleTake family)
         torch.manual_seed(0)
         dt = doubleTake_TinyMDM(njoints=8, nfeats=1, latent_dim=32, ff_size=64, num_layers=1, cond_mode="no_cond")

@@ -93,10 +93,10 @@ def test_the_layout_check_sees_what_crashed_cudnn():
     B, S, H, P, hd = 2, 39, 4, 8, 16
     proj = torch.randn(S, B, 2 * H * P + H * hd, dtype=torch.bfloat16)
 
-    def cut(t, start, size, n):
-        return t[..., start:start + H * size].unflatten(-1, (H, size)).permute(1, 2, 0, 3)[..., :n]
+    def cut(t, start, size):          # H heads of ``size`` channels from ``start``: [B, H, S, size] views
+        return t[..., start:start + H * size].unflatten(-1, (H, size)).permute(1, 2, 0, 3)
 
-    q, k, v = cut(proj, 0, P, P), cut(proj, H * P, P, P), cut(proj, 2 * H * P, hd, hd)
+    q, k, v = cut(proj, 0, P), cut(proj, H * P, P), cut(proj, 2 * H * P, hd)
     bias = torch.zeros(B, S, dtype=torch.bfloat16)
     problems = sdpa_layout_problems(q, k, v, bias.view(B, 1, 1, S))
     assert len(problems) == 1 and "mask" in problems[0]
@@ -104,10 +104,10 @@ def test_the_layout_check_sees_what_crashed_cudnn():
     assert not sdpa_layout_problems(q, k, v, aligned)
     assert aligned.shape == (B, 1, 1, S) and aligned.stride(0) % 16 == 0 and torch.equal(aligned[:, 0, 0], bias)
     odd = torch.randn(S, B, 6 * H * 3, dtype=torch.bfloat16)     # 6-channel heads: strides of 6 elements
-    six = [cut(odd, i * 6 * H, 6, 6) for i in range(3)]
+    six = [cut(odd, i * 6 * H, 6) for i in range(3)]
     found = sdpa_layout_problems(*six, aligned)
     assert sum("head size 6" in m for m in found) == 3 and sum("aligned to 8" in m for m in found) == 3
-    shifted = cut(proj, 4, P, P)                                  # a head cut 4 elements (8 bytes) in
+    shifted = cut(proj, 4, P)                                  # a head cut 4 elements (8 bytes) in
     assert any("offset 4" in m for m in sdpa_layout_problems(shifted, k, v, aligned))
     f = [t.float() for t in six]                                  # fp32: strides do not count
     assert all("head size" in m for m in sdpa_layout_problems(*f, aligned_key_bias(bias.float())))
