@@ -2,8 +2,8 @@
 (:func:`keyframe_plan`), for every family."""
 from __future__ import annotations
 
-from dataclasses import dataclass
-from typing import Any, Callable, List, Optional, Protocol
+from dataclasses import dataclass, replace
+from typing import Any, Callable, List, Optional, Protocol, Tuple, Union
 
 import torch
 
@@ -68,23 +68,52 @@ class CallInputs:
                              self.capacity, self.mask_name, self.forced_bound)
 
 
-_REUSED: List[tuple] = []          # (source tensor, its version, key, result): the last few
+#: (source tensors, their versions, key, result), most recently used first: the last few
+_REUSED: List[tuple] = []
+#: how many results :func:`reuse_for` keeps (a guided step: per pass the lengths, the forced
+#: frames and the plan; an upstream guidance wrapper's copied ``y`` makes new ones every step)
+REUSE_KEEP = 8
+
+Sources = Union[Optional[torch.Tensor], Tuple[Optional[torch.Tensor], ...]]
 
 
-def reuse_for(source: torch.Tensor, key: tuple, compute: Callable[[], torch.Tensor]) -> torch.Tensor:
-    """``compute()``, or its result for the same ``source`` tensor (the same object, unchanged
-    since: same version) and ``key`` from one of the last few calls: the lengths of a sampling loop's
-    ``y['mask']`` are read and validated once, not at every step and guidance pass (and once per
-    training step: the diffusion wrapper's x0 call and the model call share them). Not while
-    tracing (the traced graph computes them)."""
+def _versions(sources: Tuple[Optional[torch.Tensor], ...]) -> Optional[tuple]:
+    """The version counters of ``sources`` (-1 for an absent one), or None when one is an inference
+    tensor (``torch.inference_mode``: no counter, an in-place change could not be seen)."""
+    out = []
+    for s in sources:
+        if s is None:
+            out.append(-1)
+        elif s.is_inference():
+            return None
+        else:
+            out.append(s._version)
+    return tuple(out)
+
+
+def reuse_for(source: Sources, key: tuple, compute: Callable[[], Any]) -> Any:
+    """``compute()``, or its result for the same ``source`` tensors (a tensor, or a tuple of tensors
+    and Nones: the same objects, each unchanged since: same version) and ``key`` (ints, devices,
+    dtypes, objects compared by ``==``) from one of the last :data:`REUSE_KEEP` calls: the lengths
+    of a sampling loop's ``y['mask']`` are read and validated once, not at every step and guidance
+    pass (and once per training step: the diffusion wrapper's x0 call and the model call share
+    them); a sampling loop's forced keyframes and their plan are made once. Not while tracing
+    (the traced graph computes them), not for inference tensors (no version counter)."""
     if compiling():
         return compute()
-    for src, version, k, out in _REUSED:
-        if src is source and version == source._version and k == key:
+    sources = source if isinstance(source, tuple) else (source,)
+    versions = _versions(sources)
+    if versions is None:
+        return compute()
+    for i, (srcs, vers, k, out) in enumerate(_REUSED):
+        if len(srcs) == len(sources) and all(a is b for a, b in zip(srcs, sources)) and vers == versions \
+                and k == key:
+            if i:
+                _REUSED.insert(0, _REUSED.pop(i))
             return out
     out = compute()
-    _REUSED.insert(0, (source, source._version, key, out))
-    del _REUSED[4:]
+    _REUSED.insert(0, (sources, versions, key, out))
+    del _REUSED[REUSE_KEEP:]
     return out
 
 
@@ -108,7 +137,6 @@ def keyframe_plan(state: PlanState, frames: torch.Tensor, timesteps: Any, length
     """
     B, N = frames.shape[:2]
     device = frames.device
-    taps = None                                            # C¹ fill taps looked up (sampling, uniform mask)
     if mask is not None and mask is state.schedule_mask and forced is None and not compiling():
         check, cubic = False, None                         # training: the schedule's own mask (valid, in capacity)
     elif mask is not None:                                 # training (or a caller's own mask)
@@ -126,26 +154,60 @@ def keyframe_plan(state: PlanState, frames: torch.Tensor, timesteps: Any, length
         check, cubic = True, None
     else:                                                  # sampling: the schedule on x_t
         t = timesteps if timesteps is not None else torch.zeros(B, dtype=torch.long, device=device)
-        if forced is None and state.schedule.late_steps == 0:   # the uniform mask: a table lookup
-            cubic = state.schedule.cubic_samples(t, B, device, frames.shape[-1])
-            if cubic is not None and not state.variant.prefix_len:
-                f_tab, w_tab = state.schedule.cubic_taps(N, device)
-                taps = (f_tab[lengths], w_tab[lengths])
-            return state.schedule.uniform_plan(lengths, N, state.variant.prefix_len, cubic, taps,
-                                               compute_dtype(frames))   # the key bias in the attention's dtype
+        cubic = state.schedule.cubic_samples(t, B, device, frames.shape[-1])   # C¹ fill: [B] bool
+        if state.schedule.late_steps == 0:
+            # the uniform mask (with any forced frames) depends on neither x_t nor t: a sampling loop
+            # makes its plan once (per lengths and forced tensor; not a per-sample C¹ fill's), its
+            # steps look it up
+            dtype = compute_dtype(frames)
+            if forced is None:                             # a table lookup
+                key, sources = ("uniform plan", state.schedule, N, state.variant.prefix_len, dtype, cubic), lengths
+                make = lambda: _uniform_plan(state, lengths, N, cubic, dtype)   # noqa: E731
+            else:
+                key = ("forced plan", state.schedule, N, state.variant.prefix_len, forced_bound, dtype, cubic)
+                sources = (forced, lengths)
+                make = lambda: _forced_plan(state, frames, t, lengths, forced, forced_bound, dtype, cubic)  # noqa: E731
+            return make() if isinstance(cubic, torch.Tensor) else reuse_for(sources, key, make)
         mask = state.schedule.sampling_mask(frames, t, lengths, forced, checked=True)
         capacity = state.schedule.capacity(N, training=False, forced=protected_count(forced, lengths, forced_bound))
         check = False                                      # 2..capacity keyframes by construction
-        cubic = state.schedule.cubic_samples(t, B, device, frames.shape[-1])   # C¹ fill: [B] bool
-        if cubic is not None and forced is None and state.schedule.late_steps == 0 and not state.variant.prefix_len:
-            f_tab, w_tab = state.schedule.cubic_taps(N, device)            # the uniform mask: look up
-            taps = (f_tab[lengths], w_tab[lengths])
+    return _build(state, mask, capacity, check, cubic)
+
+
+def _uniform_plan(state: PlanState, lengths: torch.Tensor, N: int, cubic: Any, dtype: torch.dtype) -> KeyframePlan:
+    """The sampling plan of the uniform mask, looked up (:meth:`MaskSchedule.uniform_plan`; the key
+    bias in ``dtype``, the attention's), with the C¹ fill's taps for ``cubic`` samples."""
+    taps = None
+    if cubic is not None and not state.variant.prefix_len:
+        f_tab, w_tab = state.schedule.cubic_taps(N, lengths.device)
+        taps = (f_tab[lengths], w_tab[lengths])
+    return state.schedule.uniform_plan(lengths, N, state.variant.prefix_len, cubic, taps, dtype)
+
+
+def _forced_plan(state: PlanState, frames: torch.Tensor, t: Any, lengths: torch.Tensor, forced: torch.Tensor,
+                 forced_bound: Optional[int], dtype: torch.dtype, cubic: Any) -> KeyframePlan:
+    """The sampling plan of the uniform mask with ``forced`` frames (no dynamic update: it depends
+    on neither ``x_t`` nor ``t``, so a sampling loop makes it once: :func:`keyframe_plan`); its key
+    bias in ``dtype`` (the attention's: cast once, not per call)."""
+    mask = state.schedule.sampling_mask(frames, t, lengths, forced, checked=True)
+    capacity = state.schedule.capacity(frames.shape[1], training=False,
+                                       forced=protected_count(forced, lengths, forced_bound))
+    plan = _build(state, mask, capacity, False, cubic)     # 2..capacity keyframes by construction
+    if compiling() or plan.key_bias.dtype == dtype:      # (traced: the attention casts it)
+        return plan
+    return replace(plan, key_bias=plan.key_bias.to(dtype))
+
+
+def _build(state: PlanState, mask: torch.Tensor, capacity: Any, check: bool, cubic: Any = None) -> KeyframePlan:
+    """The plan of keyframe ``mask [B, N]`` with ``capacity`` slots (clamped to ``1..N``), after the
+    variant's always-kept prefix frames (DiP), if any."""
+    B, N = mask.shape
     capacity = max(1, min(int(capacity), N))
     prefix = state.variant.prefix_len
     if prefix:
         mask = torch.cat([mask.new_ones(B, prefix), mask], dim=1)
         capacity += prefix
-    return KeyframePlan.build(mask, capacity, check=check, cubic=cubic, taps=taps)
+    return KeyframePlan.build(mask, capacity, check=check, cubic=cubic)
 
 
 def protected_count(forced: Optional[torch.Tensor], lengths: torch.Tensor, bound: Optional[int] = None) -> int:

@@ -9,9 +9,10 @@ import torch
 from smdm_plugin import SparseConfig, TinyMDM, sparsify
 from smdm_plugin.core.selection import keyframe_count
 from smdm_plugin.adapters.request import KEYFRAMES_KEY
+from smdm_plugin.adapters.state import get_state
 from smdm_plugin.families.doubletake.model import (PAPER_BLEND_LEN, attach_doubletake_forcing, has_doubletake_forcing,
-                                             detach_doubletake_forcing, doubletake_forced_frames,
-                                             doubletake_forced_from_y, paper_blend_len)
+                                             detach_doubletake_forcing, doubletake_forced_bound,
+                                             doubletake_forced_frames, doubletake_forced_from_y, paper_blend_len)
 from smdm_plugin.families.doubletake.upstream import sparsify_priormdm
 from smdm_plugin.reference.simple_diffusion import SimpleDiffusion
 
@@ -263,7 +264,8 @@ def test_with_the_run_bound_a_doubletake_call_reads_nothing_on_the_host():
     """``attach_doubletake_forcing(model, forced_bound=...)`` (the priorMDM integration passes
     ``doubletake_forced_bound(--handshake_size, --blend_len)``): both takes' sampling calls make no
     host sync (counted as CUDA runs them) and give what the reading calls give; without the bound a
-    call reads its forced frames (one sync)."""
+    call reads its forced frames (one sync), once per tensor: a loop's next call with the same
+    tensors looks its plan up (no sync either way)."""
     from smdm_plugin.core.checks import static_mode
     from smdm_plugin.families.doubletake.model import doubletake_forced_bound
     from smdm_plugin.runtime.launches import count_launches
@@ -275,9 +277,12 @@ def test_with_the_run_bound_a_doubletake_call_reads_nothing_on_the_host():
     for bound in (None, doubletake_forced_bound(H, BLEND)):
         attach_doubletake_forcing(model, forced_bound=bound)
         for take, (x, y) in zip(("first", "second"), calls):
+            fresh = {k: v.clone() if isinstance(v, torch.Tensor) else v for k, v in y.items()}
             with torch.no_grad(), static_mode():
                 out = model(x, torch.full((x.shape[0],), 7), dict(y))
-                counted = count_launches(lambda: model(x, torch.full((x.shape[0],), 7), dict(y)))
+                counted = count_launches(lambda: model(x, torch.full((x.shape[0],), 7), dict(fresh)), warmup=0)
+                again = count_launches(lambda: model(x, torch.full((x.shape[0],), 7), dict(fresh)), warmup=0)
+            assert sum(again.syncs.values()) == 0, (take, bound, again.syncs)
             results[bound is None, take] = (out, seen[-1].clone(), sum(counted.syncs.values()))
     for take in ("first", "second"):
         (out_r, mask_r, syncs_r), (out_b, mask_b, syncs_b) = results[True, take], results[False, take]
@@ -348,3 +353,96 @@ def test_with_the_run_bound_both_takes_trace_whole():
         attach_doubletake_forcing(dt, forced_bound=bound)
         C.compile_model(dt, "default", backend="eager")
         assert C.compile_setting(dt).fullgraph == (bound is not None)
+
+
+
+def _guided_loop(model, x, y, steps=4, change=None):
+    """Outputs of ``steps`` sampling calls with two passes each (MDM's guidance: the same ``y``
+    tensors, the second pass ``uncond``) at steps 7, 6, ...; ``change(y, step)`` may change ``y``'s
+    tensors in place before a step."""
+    outs = []
+    with torch.no_grad():
+        for i in range(steps):
+            if change is not None:
+                change(y, i)
+            t = torch.full((x.shape[0],), 7 - i)
+            outs.append(torch.stack([model(x + i, t, dict(y)), model(x + i, t, {**y, "uncond": True})]))
+    return outs
+
+
+@pytest.mark.parametrize("take", ["first", "second"])
+def test_a_loop_makes_its_forced_plan_once_and_samples_as_a_plan_per_call(take, monkeypatch):
+    """A sampling loop whose calls carry the same tensors (the uniform mask: no dynamic update)
+    builds DoubleTake's forced frames and their keyframe plan once for all its steps and guidance
+    passes (``call.reuse_for``), and samples exactly as a plan built at every call (the reference:
+    nothing kept); an in-place change of ``is_transition`` / ``inpainting_mask`` between steps is
+    seen at the next call."""
+    import smdm_plugin.adapters.call as call
+
+    lens = [30, 40, 25]
+    x, y = _doubletake_calls(None, lens, max(lens))[0 if take == "first" else 1]
+    name = "is_transition" if take == "first" else "inpainting_mask"
+
+    def change(y, step):
+        if step == 2:                     # the first take: one more forced frame; the second: a shorter ramp
+            if take == "first":
+                y[name][0, 5] = 1
+            else:
+                y[name][0, :, :, lens[0] - 2 * H - BLEND] = 1.0
+
+    built, make = [], call._forced_plan
+    monkeypatch.setattr(call, "_forced_plan", lambda *a: built.append(1) or make(*a))
+    results, kept = {}, call.REUSE_KEEP
+    for keep in (kept, 0):
+        monkeypatch.setattr(call, "REUSE_KEEP", keep)
+        call._REUSED.clear()
+        model, seen = _sparse_tiny()
+        assert get_state(model).schedule.late_steps == 0
+        attach_doubletake_forcing(model, forced_bound=doubletake_forced_bound(H, BLEND))
+        built.clear()
+        outs = _guided_loop(model, x, {k: v.clone() if isinstance(v, torch.Tensor) else v for k, v in y.items()},
+                            change=change)
+        results[keep] = (outs, len(built), [m.clone() for m in seen[-8:]])
+    (reused, n_reused, masks), (rebuilt, n_rebuilt, masks_rebuilt) = results[kept], results[0]
+    assert (n_reused, n_rebuilt) == (2, 8)              # once, and once more after the change
+    assert not torch.equal(masks[3], masks[4])            # the change reached the plan
+    for a, b in zip(masks + reused, masks_rebuilt + rebuilt):
+        assert torch.equal(a, b)
+
+
+def test_a_doubletake_call_launches_what_a_trans_enc_call_launches():
+    """Issue 36 (DoubleTake's loop, 0.58x dense on the H200 in bf16): with the run's bound, a guided
+    DoubleTake sampling call in a loop (its tensors as the last step's) launches no more kernels than
+    MDM trans_enc's on the uniform mask, counted as CUDA runs them at MDM's depth (0.9.3: 66 more
+    per call, the forced frames' plan built at every pass), and syncs nothing."""
+    from smdm_plugin.core.checks import static_mode
+    from smdm_plugin.families.mdm.workload import DOUBLETAKE_HANDSHAKE, _doubletake_class
+    from smdm_plugin.reference.simple_diffusion import ClassifierFreeGuidance
+    from smdm_plugin.runtime.launches import count_launches
+    from smdm_plugin.training.workloads import handshake_frames
+
+    B, N = 8, 196
+    lengths = torch.linspace(40, N, B).round().long()
+    y = {"lengths": lengths, "mask": (torch.arange(N) < lengths[:, None]).view(B, 1, 1, N),
+         "text_embed": torch.randn(1, B, 512)}
+    x = torch.randn(B, 263, 1, N)
+    for precision in ("fp32", "bf16"):
+        counts = {}
+        for name, cls in (("trans_enc", TinyMDM), ("doubletake", _doubletake_class())):
+            torch.manual_seed(0)
+            model = cls(arch="trans_enc", latent_dim=64, ff_size=128, num_layers=8, num_heads=4)
+            sparsify(model, SparseConfig(), diffusion=SimpleDiffusion(50))
+            yy = dict(y)
+            if name == "doubletake":
+                attach_doubletake_forcing(model, forced_bound=doubletake_forced_bound(DOUBLETAKE_HANDSHAKE, 0))
+                yy["is_transition"] = handshake_frames(lengths, N, DOUBLETAKE_HANDSHAKE)
+            guided = ClassifierFreeGuidance(model.eval())
+
+            def sample():
+                with torch.no_grad(), torch.autocast("cpu", torch.bfloat16, enabled=precision == "bf16"):
+                    guided(x + 3, torch.full((B,), 3), yy)
+            with static_mode():
+                counts[name] = count_launches(sample)
+        assert not counts["doubletake"].syncs, counts["doubletake"].syncs
+        assert counts["doubletake"].count <= counts["trans_enc"].count, \
+            (precision, counts["doubletake"].count, counts["trans_enc"].count)

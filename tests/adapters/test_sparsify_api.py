@@ -104,3 +104,44 @@ def test_a_new_family_is_one_subclass_and_a_registration():
     with pytest.raises(TypeError, match="must be a ModelFamily"):
         register_family(object())
     assert issubclass(RenamedFamily, ModelFamily)
+
+
+def test_sampling_under_inference_mode_runs_and_sees_in_place_changes():
+    """``torch.inference_mode`` (its tensors keep no version counter: 0.9.3 stopped with
+    "Inference tensors do not track version counter" when it reused what it had read of
+    ``y['mask']``): an MDM and a MotionDiffuse sampling call under it give what ``no_grad`` gives,
+    and an in-place change of the mask / lengths between calls is seen (nothing of an inference
+    tensor is kept)."""
+    from smdm_plugin.reference.motiondiffuse_denoiser import MotionDiffuseDenoiser
+
+    B, N = 2, 40
+    torch.manual_seed(0)
+    mdm = sparsify(TinyMDM(latent_dim=32, ff_size=64, num_layers=2, num_heads=4).eval(), SparseConfig())
+    md = MotionDiffuseDenoiser(input_feats=263, num_frames=N, latent_dim=32, ff_size=64, num_layers=2,
+                               num_heads=4, text_latent_dim=16).eval()
+    sparsify(md, SparseConfig(fsq=False), family="motiondiffuse")
+    x, t = torch.randn(B, 263, 1, N), torch.tensor([3, 4])
+    xf = {"xf_proj": torch.randn(B, 4 * 32), "xf_out": torch.randn(B, 4, 16)}
+
+    def calls(lens):
+        mask = (torch.arange(N) < lens[:, None]).view(B, 1, 1, N)
+        y = {"mask": mask, "lengths": lens.clone(), "text_embed": torch.zeros(1, B, 512)}
+        return mdm(x, t, y), md(x[:, :, 0].transpose(1, 2), t, length=lens.clone(), **xf), y
+
+    with torch.no_grad():
+        want = [calls(torch.tensor(lens))[:2] for lens in ([30, 40], [20, 40])]
+    with torch.inference_mode():
+        lens = torch.tensor([30, 40])
+        mask = (torch.arange(N) < lens[:, None]).view(B, 1, 1, N)
+        got_mdm, got_md = [], []
+        for change in (False, True):
+            if change:
+                lens[0] = 20
+                mask[0, ..., 20:] = False
+            y = {"mask": mask, "lengths": lens, "text_embed": torch.zeros(1, B, 512)}
+            got_mdm.append(mdm(x, t, y))
+            got_md.append(md(x[:, :, 0].transpose(1, 2), t, length=lens, **xf))
+    for (w_mdm, w_md), g_mdm, g_md in zip(want, got_mdm, got_md):
+        torch.testing.assert_close(g_mdm, w_mdm)
+        torch.testing.assert_close(g_md, w_md)
+    assert not torch.equal(got_mdm[0], got_mdm[1]) and not torch.equal(got_md[0], got_md[1])

@@ -8,6 +8,7 @@ from torch import nn
 from torch.utils.hooks import RemovableHandle
 
 from ..mdm.model import MDMFamily, is_doubletake_model
+from ...adapters.call import reuse_for
 from ...adapters.request import request_of, with_forced
 from ...adapters.state import SparseState
 
@@ -166,6 +167,20 @@ def _find_y(args, kwargs):
     return None, None
 
 
+def _forcing(y: Dict[str, Any], B: int, N: int, device: torch.device):
+    """``(forced [B, N] or None, window mask [B, 1, 1, N] or None)`` of a DoubleTake call
+    (:func:`doubletake_forced_from_y`, :func:`doubletake_window_mask`), made once for the same
+    tensors of ``y`` (the same objects, unchanged: :func:`~smdm_plugin.adapters.call.reuse_for`): a
+    sampling loop's steps and guidance passes share them, and with them their keyframe plan."""
+    h = y.get("handshake_size")
+    if h is not None and (isinstance(h, bool) or not isinstance(h, int)):
+        return doubletake_forced_from_y(y, B, N, device=device), doubletake_window_mask(y, B, N)
+    sources = tuple(v if isinstance(v, torch.Tensor) else None
+                    for v in (y.get(k) for k in ("inpainting_mask", "is_transition", "mask", "lengths")))
+    return reuse_for(sources, ("doubletake forcing", B, N, device, h, "is_transition" in y),
+                     lambda: (doubletake_forced_from_y(y, B, N, device=device), doubletake_window_mask(y, B, N)))
+
+
 class _ForcingHook:
     """The forward pre-hook of :func:`attach_doubletake_forcing` (``bound``: the run's
     :func:`doubletake_forced_bound`, or None: each call reads its forced frames to size its plan)."""
@@ -191,8 +206,7 @@ def _doubletake_pre_hook(module: nn.Module, args, kwargs, bound: Optional[int] =
     if not isinstance(x, torch.Tensor):
         return None
     B, N = x.shape[0], x.shape[-1]
-    forced = doubletake_forced_from_y(y, B, N, device=x.device)
-    window = doubletake_window_mask(y, B, N)
+    forced, window = _forcing(y, B, N, x.device)
     if forced is None and window is None:
         return None
     y = dict(y)  # never write into the caller's dict (DoubleTake reuses it across takes)
@@ -200,9 +214,10 @@ def _doubletake_pre_hook(module: nn.Module, args, kwargs, bound: Optional[int] =
         y["mask"] = window
     if forced is not None:
         request = request_of(y)
-        prev = request.forced
+        prev = None if request.forced is None else torch.as_tensor(request.forced)
         if prev is not None and prev.shape == forced.shape:
-            forced = forced | prev.to(forced.device, torch.bool)
+            forced = reuse_for((forced, prev), ("doubletake forced | request", forced.device),
+                               lambda: forced | prev.to(forced.device, torch.bool))
             bound = None if bound is None or request.forced_bound is None else bound + request.forced_bound
         y = with_forced(y, forced, bound)
     if where == "kw":
