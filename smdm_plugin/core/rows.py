@@ -30,18 +30,38 @@ class _RowGather(torch.autograd.Function):
         return g.new_zeros(ctx.rows, *g.shape[1:]).index_copy_(0, idx, g), None
 
 
+def _scatter(t: torch.Tensor, idx: torch.Tensor, rows: int) -> torch.Tensor:
+    """The values of :func:`scatter_rows` (no autograd of its own)."""
+    return t.new_zeros(rows, *t.shape[1:]).index_copy_(0, idx, t)
+
+
 class _RowScatter(torch.autograd.Function):
     """``zeros(rows, ...).index_copy_(0, idx, t)`` for distinct ``idx``; backward ``index_select``."""
 
     @staticmethod
     def forward(ctx, t: torch.Tensor, idx: torch.Tensor, rows: int) -> torch.Tensor:
         ctx.save_for_backward(idx)
-        return t.new_zeros(rows, *t.shape[1:]).index_copy_(0, idx, t)
+        return _scatter(t, idx, rows)
 
     @staticmethod
     def backward(ctx, g: torch.Tensor):
         (idx,) = ctx.saved_tensors
         return g.index_select(0, idx), None, None
+
+
+def _lerp(h: torch.Tensor, prev: torch.Tensor, nxt: torch.Tensor, w: torch.Tensor) -> torch.Tensor:
+    """The values of :func:`lerp_rows` (no autograd of its own)."""
+    shape = (*w.shape[:-1], -1)                           # w [..., 1] may be a strided view
+    out = torch.lerp(h.index_select(0, prev).view(shape), h.index_select(0, nxt).view(shape), w)
+    return out.reshape(prev.shape[0], *h.shape[1:])
+
+
+def _lerp_pairs(h: torch.Tensor, pairs: torch.Tensor, w: torch.Tensor) -> torch.Tensor:
+    """The values of :func:`lerp_row_pairs` (no autograd of its own)."""
+    R = pairs.shape[0] // 2
+    shape = (*w.shape[:-1], -1)                           # w [..., 1] may be a strided view
+    ends = h.index_select(0, pairs)
+    return torch.lerp(ends[:R].view(shape), ends[R:].view(shape), w).reshape(R, *h.shape[1:])
 
 
 class _LerpRows(torch.autograd.Function):
@@ -52,9 +72,7 @@ class _LerpRows(torch.autograd.Function):
     def forward(ctx, h: torch.Tensor, prev: torch.Tensor, nxt: torch.Tensor, w: torch.Tensor) -> torch.Tensor:
         ctx.save_for_backward(prev, nxt, w)
         ctx.rows = h.shape[0]
-        shape = (*w.shape[:-1], -1)                       # w [..., 1] may be a strided view
-        out = torch.lerp(h.index_select(0, prev).view(shape), h.index_select(0, nxt).view(shape), w)
-        return out.reshape(prev.shape[0], *h.shape[1:])
+        return _lerp(h, prev, nxt, w)
 
     @staticmethod
     def backward(ctx, g: torch.Tensor):
@@ -73,10 +91,7 @@ class _LerpRowPairs(torch.autograd.Function):
     def forward(ctx, h: torch.Tensor, pairs: torch.Tensor, w: torch.Tensor) -> torch.Tensor:
         ctx.save_for_backward(pairs, w)
         ctx.rows = h.shape[0]
-        R = pairs.shape[0] // 2
-        shape = (*w.shape[:-1], -1)                       # w [..., 1] may be a strided view
-        ends = h.index_select(0, pairs)
-        return torch.lerp(ends[:R].view(shape), ends[R:].view(shape), w).reshape(R, *h.shape[1:])
+        return _lerp_pairs(h, pairs, w)
 
     @staticmethod
     def backward(ctx, g: torch.Tensor):
@@ -89,25 +104,31 @@ class _LerpRowPairs(torch.autograd.Function):
         return grad.index_add_(0, pairs, both.view(-1, *g.shape[1:])), None, None
 
 
+def _differentiable(*tensors: torch.Tensor) -> bool:
+    """Whether a call needs its autograd function (else its forward runs as plain ops: no
+    ``Function.apply`` in a sampling call, host time)."""
+    return torch.is_grad_enabled() and any(t.requires_grad for t in tensors)
+
+
 def lerp_row_pairs(h: torch.Tensor, pairs: torch.Tensor, w: torch.Tensor) -> torch.Tensor:
     """Row ``r`` of the result is ``lerp(h[pairs[r]], h[pairs[R + r]], w[r])`` (``pairs [2R]``:
     the previous rows, then the next ones); one gather forward, one ``index_add_`` backward."""
-    return _LerpRowPairs.apply(h, pairs, w)
+    return _LerpRowPairs.apply(h, pairs, w) if _differentiable(h, w) else _lerp_pairs(h, pairs, w)
 
 
 def lerp_rows(h: torch.Tensor, prev: torch.Tensor, nxt: torch.Tensor, w: torch.Tensor) -> torch.Tensor:
     """Row ``r`` of the result is ``lerp(h[prev[r]], h[nxt[r]], w[r])``; ``w [R, 1]`` (or any
     ``[..., 1]`` whose leading dims flatten to the ``R`` rows, e.g. a transposed ``[N, B, 1]``)."""
-    return _LerpRows.apply(h, prev, nxt, w)
+    return _LerpRows.apply(h, prev, nxt, w) if _differentiable(h, w) else _lerp(h, prev, nxt, w)
 
 
 def gather_rows(t: torch.Tensor, idx: torch.Tensor) -> torch.Tensor:
     """Rows ``idx`` (distinct) of ``t``; fast backward."""
-    return _RowGather.apply(t, idx)
+    return _RowGather.apply(t, idx) if _differentiable(t) else t.index_select(0, idx)
 
 
 def scatter_rows(t: torch.Tensor, idx: torch.Tensor, rows: int) -> torch.Tensor:
     """``[rows, ...]`` zeros with row ``idx[i]`` = ``t[i]`` (``idx`` distinct); fast backward."""
-    return _RowScatter.apply(t, idx, rows)
+    return _RowScatter.apply(t, idx, rows) if _differentiable(t) else _scatter(t, idx, rows)
 
 

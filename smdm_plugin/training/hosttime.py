@@ -134,10 +134,14 @@ def host_times(fns: Dict[str, Callable[[], object]], repeats: int = 100, warmup:
     return HostTime(ms, charge * 1e6)
 
 
-#: the model variants :func:`host_cells` builds: MDM's three and MotionDiffuse's denoiser
-HOST_VARIANTS = ("trans_enc", "trans_dec", "dip", "motiondiffuse")
+#: the model variants :func:`host_cells` builds: MDM's three, DoubleTake's sampling (trans_enc with
+#: forced frames) and MotionDiffuse's denoiser
+HOST_VARIANTS = ("trans_enc", "trans_dec", "dip", "doubletake", "motiondiffuse")
 _MDM = {"trans_enc": dict(arch="trans_enc"), "trans_dec": dict(arch="trans_dec"),
-        "dip": dict(arch="trans_dec", emb_trans_dec=True, context_len=20, pred_len=20)}
+        "dip": dict(arch="trans_dec", emb_trans_dec=True, context_len=20, pred_len=20),
+        "doubletake": dict(arch="trans_enc")}
+#: DoubleTake's first-take handshake at :data:`HOST_SIZE`'s 24 frames (priorMDM's 20 of 196, scaled)
+HOST_HANDSHAKE = 3
 
 
 def host_cells(variant: str, sparse: bool, precision: str, config: Optional["SparseConfig"] = None
@@ -147,7 +151,8 @@ def host_cells(variant: str, sparse: bool, precision: str, config: Optional["Spa
     ``SparseConfig()``; MotionDiffuse: no FSQ, its attention is linear), ``precision`` ``fp32`` or
     ``bf16`` (CPU autocast): ``train`` (``training_losses`` + backward + ``AdamW(foreach=True)``)
     and ``sample`` (one sampling call: both classifier-free-guidance passes for MDM's models, one
-    pass for MotionDiffuse; ``config``: another sparse config). Run them under
+    pass for MotionDiffuse; DoubleTake's with its handshake frames forced; ``config``: another
+    sparse config). Run them under
     :func:`~smdm_plugin.core.checks.static_mode`."""
     from ..adapters.surgery import sparsify
     from ..core.config import SparseConfig
@@ -185,6 +190,7 @@ def host_cells(variant: str, sparse: bool, precision: str, config: Optional["Spa
         if variant == "dip":
             y["prefix"] = torch.randn(B, 263, 1, spec["context_len"], generator=g)
         recipe = SparseConfig()
+        sample_y = _doubletake_y(y, lengths, N, sparse) if variant == "doubletake" else y
     diffusion = SimpleDiffusion(50)
     if sparse:
         sparsify(model, recipe if config is None else config, diffusion=diffusion)
@@ -209,6 +215,19 @@ def host_cells(variant: str, sparse: bool, precision: str, config: Optional["Spa
             if md:
                 guided(x, torch.full((B,), 40), **kw)
             else:
-                guided(x, torch.full((B,), 40), dict(y))
+                guided(x, torch.full((B,), 40), dict(sample_y))
 
     return {"train": train, "sample": sample}
+
+
+def _doubletake_y(y: Dict[str, object], lengths: torch.Tensor, N: int, sparse: bool) -> Dict[str, object]:
+    """A DoubleTake first take's sampling ``y``: its handshake frames (``is_transition``, which
+    the dense model ignores), for the sparse model forced keyframes with the run's bound, as
+    priorMDM's forcing hook hands them on (``with_forced``; the same tensors at every call, as in a
+    sampling loop)."""
+    from ..adapters.request import with_forced
+    from .workloads import handshake_frames
+
+    forced = handshake_frames(lengths, N, HOST_HANDSHAKE)
+    y = {**y, "is_transition": forced}
+    return with_forced(y, forced, 2 * HOST_HANDSHAKE) if sparse else y

@@ -325,3 +325,27 @@ def test_varlen_falls_back_for_a_custom_layer_class():
         out = run(varlen_backend, enc, x, keep)
         ref = reference(enc, x, keep)
     assert torch.allclose(out[keep.t()], ref[keep.t()], atol=1e-5)
+
+
+def test_row_ops_with_and_without_autograd_equal_plain_indexing():
+    """The row operations (``core/rows.py``) give plain indexing's values with autograd (their own
+    backward: gradcheck) and without it (a sampling call runs their forward as plain ops, no
+    ``Function.apply``), and leave no graph behind when nothing needs a gradient."""
+    from smdm_plugin.core.rows import gather_rows, lerp_row_pairs, scatter_rows
+
+    h = torch.randn(6, 3, dtype=torch.float64, requires_grad=True)
+    prev, nxt = torch.tensor([0, 0, 2, 5, 5]), torch.tensor([0, 2, 4, 5, 1])
+    idx = torch.tensor([4, 0, 2])
+    w = torch.tensor([[0.0], [0.25], [0.5], [0.0], [0.9]], dtype=torch.float64)
+    pairs = torch.cat([prev, nxt])
+    want = {"lerp": torch.lerp(h[prev], h[nxt], w), "gather": h[idx],
+            "scatter": torch.zeros(7, 3, dtype=torch.float64).index_put((torch.tensor([1, 6, 3]),), h[:3])}
+    ops = {"lerp": lambda h: lerp_row_pairs(h, pairs, w), "gather": lambda h: gather_rows(h, idx),
+           "scatter": lambda h: scatter_rows(h[:3], torch.tensor([1, 6, 3]), 7)}
+    for name, op in ops.items():
+        assert torch.autograd.gradcheck(op, (h,)), name
+        assert torch.equal(op(h), want[name]) and op(h).grad_fn is not None, name
+        with torch.no_grad():
+            out = op(h)
+        assert torch.equal(out, want[name]) and out.grad_fn is None, name
+        assert torch.equal(op(h.detach()), want[name]), name

@@ -19,6 +19,8 @@ HOST_BUDGET = {
     ("trans_dec", "sample"): 1.15,       # 0.89-0.98
     ("dip", "train"): 1.20,              # 1.01-1.05
     ("dip", "sample"): 1.20,             # 1.01-1.06
+    ("doubletake", "train"): 1.45,       # trans_enc's training step
+    ("doubletake", "sample"): 1.30,      # forced frames: 1.35-1.46 (0.9.3: a plan per call), 1.14-1.24 (0.9.4)
     ("motiondiffuse", "train"): 1.12,    # 0.97-1.09
     ("motiondiffuse", "sample"): 1.12,   # 0.94-1.03
 }
