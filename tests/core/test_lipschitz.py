@@ -247,8 +247,8 @@ def test_normalised_weight_is_reused_without_autograd_and_never_stale():
 
 @pytest.mark.parametrize("shift", [-0.7, 0.0, 25.0])
 def test_lipschitz_weight_op_equals_the_parametrization(shift):
-    """``lipschitz_weight`` (on CUDA one op each way, its backward written out; elsewhere the
-    parametrization's operations under autograd): the parametrization's normalised weight bit for
+    """``lipschitz_weight`` (the parametrization's operations under autograd; with the Triton
+    kernels switched on, on CUDA one op each way, its backward written out): the parametrization's normalised weight bit for
     bit, and the gradients of W and c of autograd through the parametrization, with clipped,
     unclipped and zero rows and ``c`` past softplus's threshold; the written-out backward (CUDA's
     fallback) too."""
@@ -303,3 +303,39 @@ def test_lipschitz_triton_kernels_equal_the_composite_in_interpreter_mode(triton
         "print('mismatches', bad)\n")
     out = triton_interpreter(code)
     assert "mismatches 0" in out, out
+
+
+def test_lipschitz_weight_runs_its_composite_under_autograd_unless_triton_is_switched_on():
+    """0.9.4: with autograd, the normalised weight is the composite's ops under autograd on CUDA too
+    (counted as CUDA runs them: no fused op, no Python autograd function: less host time per
+    training step than the Triton pair, docs/gpu.md); ``use_triton_kernels(True, ...)`` brings the
+    pair back (one launch forward, its kernel and a sum backward); the gradients agree."""
+    from smdm_plugin.core.kernels.dispatch import use_triton_kernels
+    from smdm_plugin.core.kernels.lipschitz_op import lipschitz_weight
+    from smdm_plugin.runtime.launches import count_launches
+
+    torch.manual_seed(0)
+    lin = lipschitz_linear(11, 9)
+    p, W = lin.parametrizations.weight[0], lin.parametrizations.weight.original
+    g = torch.randn(9, 11)
+    grads = {}
+    names = ["Lipschitz weight", "Lipschitz weight gradient"]
+    for triton in (False, True):
+        before = use_triton_kernels(triton, names)
+        try:
+            W.grad, p.c.grad = None, None
+            out = {}
+            ops = count_launches(lambda: out.setdefault("w", lipschitz_weight(W, p.c)).mul(g).sum().backward(),
+                                 warmup=0).ops
+        finally:
+            for name, on in before.items():
+                use_triton_kernels(on, [name])
+        grads[triton] = (W.grad.clone(), p.c.grad.clone())
+        if triton:
+            assert ops["smdm.lipschitz_weight"] == 1 and ops["smdm.lipschitz_weight_backward"] == 1, ops
+            assert out["w"].grad_fn.name().startswith("_Weight")
+        else:
+            assert not any(k.startswith("smdm.") for k in ops), ops
+            assert ops["aten.linalg_vector_norm.default"] == 1 and "_Weight" not in out["w"].grad_fn.name()
+    torch.testing.assert_close(grads[True][0], grads[False][0], rtol=1e-5, atol=1e-6)
+    torch.testing.assert_close(grads[True][1], grads[False][1], rtol=1e-5, atol=1e-6)

@@ -4,11 +4,15 @@
 tensor, rowsum per output row), the value of :class:`~smdm_plugin.core.lipschitz.LipschitzWeight`
 bit for bit (the composite is its operations). Its gradient is
 written out: ``dW = g·scale - sign(W)·r`` with ``r = [ratio <= 1][rowsum >= eps]·ratio/rowsum·Σ_j
-g·W``, and per row ``softplus'(c)·[ratio <= 1]/rowsum·Σ_j g·W``, whose sum is ``dc``. Eager mode
-launches one kernel forward and two backward (the kernel and the sum over rows): on CUDA Triton
-kernels (:mod:`.lipschitz_triton`, one program per row) when ``triton`` imports (else, or if they
-cannot be built on this GPU, with one warning, the composite); elsewhere the composite. A Lipschitz
-MLP's weights thus cost 3 kernels each per training step instead of ~10.
+g·W``, and per row ``softplus'(c)·[ratio <= 1]/rowsum·Σ_j g·W``, whose sum is ``dc``.
+
+With autograd, eager mode runs the composite's five ops under autograd on every device (no Python
+in the backward): the Triton kernels (:mod:`.lipschitz_triton`, one program per row; one launch
+forward, two backward, in a Python autograd function) cost the host more per training step than
+those ops (0.9.4, the meter: docs/gpu.md; the H200 measured that function at 93 µs forward and 217
+µs backward per weight). ``use_triton_kernels(True, ["Lipschitz weight", "Lipschitz weight
+gradient"])`` switches them on for CUDA (else, or if they cannot be built on this GPU, with one
+warning, the composite); values are the composite's either way.
 """
 from __future__ import annotations
 
@@ -17,7 +21,6 @@ from typing import Tuple
 import torch
 import torch.nn.functional as F
 
-from ..checks import static_shapes
 from .dispatch import FusedOp, TritonKernel
 
 Tensor = torch.Tensor
@@ -52,13 +55,15 @@ def lipschitz_weight_grad_composite(grad: Tensor, weight: Tensor, c: Tensor) -> 
 
 
 WEIGHT = FusedOp("lipschitz_weight", lipschitz_weight_composite,
-                 cuda=TritonKernel(".lipschitz_triton", "lipschitz_weight_triton", "Lipschitz weight"))
+                 cuda=TritonKernel(".lipschitz_triton", "lipschitz_weight_triton", "Lipschitz weight", enabled=False))
 GRAD = FusedOp("lipschitz_weight_backward", lipschitz_weight_grad_composite,
-               cuda=TritonKernel(".lipschitz_triton", "lipschitz_weight_backward_triton", "Lipschitz weight gradient"))
+               cuda=TritonKernel(".lipschitz_triton", "lipschitz_weight_backward_triton", "Lipschitz weight gradient",
+                                 enabled=False))
 
 
 class _Weight(torch.autograd.Function):
-    """The normalised weight with its written-out gradient: one op forward, two backward."""
+    """The normalised weight with its written-out gradient: one op forward, two backward (where the
+    Triton kernels are switched on)."""
 
     @staticmethod
     def forward(ctx, weight: Tensor, c: Tensor) -> Tensor:
@@ -74,11 +79,11 @@ class _Weight(torch.autograd.Function):
 
 def lipschitz_weight(weight: Tensor, c: Tensor) -> Tensor:
     """The normalised weight ``[out, in]`` of ``weight [out, in]`` and the 0-d bound parameter ``c``,
-    differentiable in both: on CUDA one kernel forward and two backward (:class:`_Weight`);
-    elsewhere the composite under autograd (five ops, no Python in the backward: less host time
-    than a Python function's backward)."""
+    differentiable in both: the composite under autograd (five ops, no Python in the backward: less
+    host time than a Python function's backward); with the Triton kernels switched on, on CUDA one
+    kernel forward and two backward (:class:`_Weight`)."""
     if torch.is_grad_enabled() and (weight.requires_grad or c.requires_grad):
-        if weight.device.type == "cuda" or static_shapes():       # (static_mode: the CPU stands for CUDA)
+        if WEIGHT.fused_on(weight) and GRAD.fused_on(weight):
             return _Weight.apply(weight, c)
         # the parametrization's own operations (rows summing to < eps clamped: finite gradients)
         rowsum = row_abs_sum(weight).clamp_min(torch.finfo(weight.dtype).eps)
