@@ -268,7 +268,7 @@ def mdm_size_counts(name, sparse, precision, **cfg):
 #: training step), not once per layer and call (bf16: fewer). 0.9.3 hands SDPA views of the
 #: projections (0.8-0.9.2 copied each head into ``[B, S, H·e]`` in bf16 on accelerators: three copies
 #: per attention, which the H200 showed were not needed). 0.9.4 runs the Lipschitz weights as the
-#: composite's ops under autograd in training (20 launches per weight and step in place of 3, less
+#: composite's ops under autograd in training (23 launches per weight and step in place of 3, less
 #: host time than the Triton pair's Python function) and looks a sampling loop's plan up once.
 LAUNCH_BUDGET = {
     ("trans_enc", "fp32", "train"): 1.4,    # 591 vs 430 (0.9.3, the Lipschitz pair in Triton: 511)

@@ -1,18 +1,14 @@
-"""One Lipschitz-normalised weight as one fused op each way (:class:`~.dispatch.FusedOp`).
+"""One Lipschitz-normalised weight: the composite's ops under autograd, or one fused op each way.
 
 ``lipschitz_weight(W, c) = W · min(1, softplus(c) / rowsum|W|)`` (``W [out, in]``, ``c`` a 0-d
 tensor, rowsum per output row), the value of :class:`~smdm_plugin.core.lipschitz.LipschitzWeight`
-bit for bit (the composite is its operations). Its gradient is
-written out: ``dW = g·scale - sign(W)·r`` with ``r = [ratio <= 1][rowsum >= eps]·ratio/rowsum·Σ_j
-g·W``, and per row ``softplus'(c)·[ratio <= 1]/rowsum·Σ_j g·W``, whose sum is ``dc``.
-
-With autograd, eager mode runs the composite's five ops under autograd on every device (no Python
-in the backward): the Triton kernels (:mod:`.lipschitz_triton`, one program per row; one launch
-forward, two backward, in a Python autograd function) cost the host more per training step than
-those ops (0.9.4, the meter: docs/gpu.md; the H200 measured that function at 93 µs forward and 217
-µs backward per weight). ``use_triton_kernels(True, ["Lipschitz weight", "Lipschitz weight
-gradient"])`` switches them on for CUDA (else, or if they cannot be built on this GPU, with one
-warning, the composite); values are the composite's either way.
+bit for bit. With autograd, eager mode runs the composite's five ops on every device (no Python in
+the backward: less host time per training step than the Triton pair in its Python autograd
+function, which the H200 profiled at 93 µs forward and 217 µs backward per weight; docs/gpu.md).
+``use_triton_kernels(True, ["Lipschitz weight", "Lipschitz weight gradient"])`` switches the pair on
+for CUDA (:mod:`.lipschitz_triton`, one program per row; the gradient written out: ``dW = g·scale -
+sign(W)·r``, ``r = [ratio <= 1][rowsum >= eps]·ratio/rowsum·Σ_j g·W``, ``dc = Σ_rows
+softplus'(c)·[ratio <= 1]/rowsum·Σ_j g·W``). Values are the composite's either way.
 """
 from __future__ import annotations
 
