@@ -2,6 +2,7 @@
 (:func:`keyframe_plan`), for every family."""
 from __future__ import annotations
 
+import threading
 from dataclasses import dataclass, replace
 from typing import Any, Callable, List, Optional, Protocol, Tuple, Union
 
@@ -70,6 +71,7 @@ class CallInputs:
 
 #: (source tensors, their versions, key, result), most recently used first: the last few
 _REUSED: List[tuple] = []
+_REUSED_LOCK = threading.Lock()
 #: how many results :func:`reuse_for` keeps (a guided step: per pass the lengths, the forced
 #: frames and the plan; an upstream guidance wrapper's copied ``y`` makes new ones every step)
 REUSE_KEEP = 8
@@ -105,15 +107,17 @@ def reuse_for(source: Sources, key: tuple, compute: Callable[[], Any]) -> Any:
     versions = _versions(sources)
     if versions is None:
         return compute()
-    for i, (srcs, vers, k, out) in enumerate(_REUSED):
-        if len(srcs) == len(sources) and all(a is b for a, b in zip(srcs, sources)) and vers == versions \
-                and k == key:
-            if i:
-                _REUSED.insert(0, _REUSED.pop(i))
-            return out
+    with _REUSED_LOCK:                                  # (threads sampling at once share the list)
+        for i, (srcs, vers, k, out) in enumerate(_REUSED):
+            if len(srcs) == len(sources) and all(a is b for a, b in zip(srcs, sources)) and vers == versions \
+                    and k == key:
+                if i:
+                    _REUSED.insert(0, _REUSED.pop(i))
+                return out
     out = compute()
-    _REUSED.insert(0, (sources, versions, key, out))
-    del _REUSED[REUSE_KEEP:]
+    with _REUSED_LOCK:
+        _REUSED.insert(0, (sources, versions, key, out))
+        del _REUSED[REUSE_KEEP:]
     return out
 
 
