@@ -1,6 +1,6 @@
 """Host time per call on this CPU, dense against sparse: the table of docs/gpu.md ("Host time").
 
-    python scripts/host_time.py [--variants trans_enc trans_dec dip motiondiffuse] [--repeats 100]
+    python scripts/host_time.py [--variants trans_enc trans_dec dip doubletake motiondiffuse] [--repeats 100]
                                 [--triton NAME ...] [--no-triton NAME ...]
 
 Each variant at MDM's depth and heads on tiny tensors, the static (GPU) code path; SDPA and
