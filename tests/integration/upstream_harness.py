@@ -24,8 +24,8 @@ Only the *harness* is changed, never upstream files:
   slower; runs that keep it check that no backward op yields NaN);
 * ``SMDM_SEED=n`` seeds ``random``, ``numpy`` and ``torch`` before the script runs (MotionDiffuse
   seeds nothing; priorMDM seeds itself);
-* ``SMDM_RECORD=path``: every keyframe mask the plugin computes (``MaskSchedule.training_mask`` /
-  ``sampling_mask`` / ``uniform_plan``), every mask handed to a ``KeyframeTransformer`` and, for MotionDiffuse, the
+* ``SMDM_RECORD=path``: every training keyframe mask the plugin computes (``MaskSchedule.training_mask``),
+  every sampling call's plan (``adapters.call.keyframe_plan``), every mask handed to a ``KeyframeTransformer`` and, for MotionDiffuse, the
   number of tokens entering the first decoder block (with that call's mask) is recorded, with the
   sequence lengths, and pickled to ``path`` at exit, for the tests to check.
 """
@@ -186,9 +186,8 @@ def install_recorder(path: str) -> None:
     def wrap_schedule(kind, original):
         def method(self, x, *a, **k):
             mask = original(self, x, *a, **k)
-            i = 1 if kind == "sample" else 0  # (t, lengths, forced) / (lengths, forced, ...)
-            lengths = a[i] if len(a) > i else k.get("lengths")
-            forced = a[i + 1] if len(a) > i + 1 else k.get("forced")
+            lengths = a[0] if a else k.get("lengths")               # (lengths, forced, ...)
+            forced = a[1] if len(a) > 1 else k.get("forced")
             B, N = mask.shape
             lengths = resolve_lengths(lengths, B, N, mask.device)
             records.append({"kind": kind, "mask": mask.detach().cpu().numpy().copy(),
@@ -199,16 +198,20 @@ def install_recorder(path: str) -> None:
         return method
 
     MaskSchedule.training_mask = wrap_schedule("train", MaskSchedule.training_mask)
-    MaskSchedule.sampling_mask = wrap_schedule("sample", MaskSchedule.sampling_mask)
-    original_uniform = getattr(MaskSchedule, "uniform_plan", None)
-    if original_uniform is not None:  # the uniform sampling mask, looked up as a plan (no sampling_mask call)
-        def uniform_plan(self, lengths, n_frames, prefix=0, *a, **k):
-            plan = original_uniform(self, lengths, n_frames, prefix, *a, **k)
-            records.append({"kind": "sample", "mask": plan.mask[:, int(prefix):].detach().cpu().numpy().copy(),
-                            "lengths": lengths.detach().cpu().numpy().copy(), "forced": None})
-            return plan
+    import smdm_plugin.adapters.call as call
+    original_plan = call.keyframe_plan
 
-        MaskSchedule.uniform_plan = uniform_plan
+    def keyframe_plan(state, frames, timesteps, lengths, forced, mask=None, *a, **k):
+        # every sampling call's plan (a sampling loop makes it once and looks it up: record each call)
+        plan = original_plan(state, frames, timesteps, lengths, forced, mask, *a, **k)
+        if mask is None:
+            prefix = int(state.variant.prefix_len)
+            records.append({"kind": "sample", "mask": plan.mask[:, prefix:].detach().cpu().numpy().copy(),
+                            "lengths": lengths.detach().cpu().numpy().copy(),
+                            "forced": None if forced is None else forced.detach().cpu().bool().numpy().copy()})
+        return plan
+
+    call.keyframe_plan = keyframe_plan
     original_set = KeyframeTransformer.set_plan
 
     def set_plan(self, plan):  # every call's keyframes reach the transformer as a KeyframePlan
