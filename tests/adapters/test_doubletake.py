@@ -355,7 +355,6 @@ def test_with_the_run_bound_both_takes_trace_whole():
         assert C.compile_setting(dt).fullgraph == (bound is not None)
 
 
-
 def _guided_loop(model, x, y, steps=4, change=None):
     """Outputs of ``steps`` sampling calls with two passes each (MDM's guidance: the same ``y``
     tensors, the second pass ``uncond``) at steps 7, 6, ...; ``change(y, step)`` may change ``y``'s
