@@ -98,6 +98,15 @@ def _layer_norm(x: Tensor, m: nn.LayerNorm) -> Tensor:
     return F.layer_norm(x, m.normalized_shape, p["weight"], p["bias"], m.eps)
 
 
+def _dropout(x: Tensor, p: float) -> Tensor:
+    """Training's dropout (``F.dropout``; none for ``p = 0``)."""
+    return F.dropout(x, p, True) if p else x
+
+
+def _identity(x: Tensor, p: float) -> Tensor:
+    return x
+
+
 class _Layer:
     """One stock layer, called as a function."""
 
@@ -113,7 +122,7 @@ class _Layer:
 
     def _ff(self, x: Tensor, training: bool, casts: Casts = None) -> Tensor:
         h = self.module.activation(F.linear(x, *_linear(self.l1, casts)))
-        return F.linear(F.dropout(h, self.drops[0].p, training), *_linear(self.l2, casts))
+        return F.linear(_dropout(h, self.drops[0].p) if training else h, *_linear(self.l2, casts))
 
     def matmul_parameters(self) -> List[Tensor]:
         """The parameters this layer reads as matmul weights and biases (what a sampling call may
@@ -133,14 +142,14 @@ class _Layer:
         """The layer's ``forward`` (encoder or decoder, either ``norm_first``) on ``x [S, B, d]``
         (``casts``: :meth:`StockStack._casts`)."""
         d = self.drops
+        drop = _dropout if training else _identity           # (in eval no dropout call at all)
         sa_p = self.self_attn.module.dropout if training else 0.0
-        blocks = [lambda h: F.dropout(self.self_attn.self_attention(h, bias, sa_p, proj, copy, casts), d[1].p,
-                                      training)]
+        blocks = [lambda h: drop(self.self_attn.self_attention(h, bias, sa_p, proj, copy, casts), d[1].p)]
         if self.decoder:
             ca_p = self.cross.module.dropout if training else 0.0
-            blocks.append(lambda h: F.dropout(self.cross.cross_attention(h, memory, memory_bias, ca_p, sample, copy,
-                                                                         casts), d[2].p, training))
-        blocks.append(lambda h: F.dropout(self._ff(h, training, casts), d[-1].p, training))
+            blocks.append(lambda h: drop(self.cross.cross_attention(h, memory, memory_bias, ca_p, sample, copy,
+                                                                    casts), d[2].p))
+        blocks.append(lambda h: drop(self._ff(h, training, casts), d[-1].p))
         if self.module.norm_first:
             for block, norm in zip(blocks, self.norms):
                 x = x + block(_layer_norm(x, norm))

@@ -190,3 +190,33 @@ def test_a_training_call_under_autocast_casts_each_role_once_for_all_layers(fsq,
     _, n_cached = _param_casts(lambda: step(True), params)
     _, n_ref = _param_casts(lambda: step(False), params)
     assert n_cached < n_ref
+
+
+@pytest.mark.parametrize("fsq", [True, False], ids=["fsq", "mha"])
+@pytest.mark.parametrize("kind,M", [("encoder", 0), ("decoder", 5)])
+def test_dropout_draws_as_the_modules_in_training_and_is_not_called_in_eval(kind, M, fsq, monkeypatch):
+    """With dropout 0.1: in training the functional path draws the modules' masks (the same
+    outputs from the same seed); in eval it calls no dropout at all (a sampling call's host time:
+    ``F.dropout(x, p, False)`` returns ``x`` after a Python call) and equals the modules."""
+    import torch.nn.functional as F
+
+    stack = _stack(kind, False, fsq, "gelu")
+    for m in stack.modules():
+        if isinstance(m, nn.Dropout):
+            m.p = 0.1
+        elif hasattr(m, "in_proj_weight"):                 # (attention dropout)
+            m.dropout = 0.1
+    calls = []
+    dropout = F.dropout
+    monkeypatch.setattr(F, "dropout", lambda *a, **k: calls.append(1) or dropout(*a, **k))
+    for training in (True, False):
+        _, mem, ref, _ = _run_both(stack, 9, 3, M, training)
+        x = torch.randn(9, 3, 32, generator=torch.Generator().manual_seed(2), dtype=torch.float64)
+        run = stock_stack(stack)
+        torch.manual_seed(5)
+        ref = stack(x, mem) if mem is not None else stack(x)
+        torch.manual_seed(5)
+        calls.clear()
+        out = run.run(x, None, mem, None)
+        torch.testing.assert_close(out, ref, rtol=1e-10, atol=1e-11)
+        assert bool(calls) == training and (not training or not torch.equal(out, run.run(x, None, mem, None)))
