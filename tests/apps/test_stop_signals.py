@@ -51,9 +51,18 @@ sys.exit(main())
 '''
 
 
+def _default_signals() -> None:
+    """The stop signals at their defaults in the child, as a terminal starts a command: a test run
+    started under ``nohup`` (SIGHUP ignored) or as a script's background job (SIGINT ignored) would
+    hand its children ignored signals, which a command rightly leaves ignored."""
+    for s in (signal.SIGINT, signal.SIGTERM, signal.SIGHUP):
+        signal.signal(s, signal.SIG_DFL)
+
+
 def _start(*argv: str, driver: Path = None, marker: Path = None) -> subprocess.Popen:
     head = [sys.executable, str(driver), str(marker)] if driver else [sys.executable, "-m", "smdm_plugin"]
-    return subprocess.Popen([*head, *argv], env=env(), stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    return subprocess.Popen([*head, *argv], env=env(), stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                            preexec_fn=_default_signals)
 
 
 def _wait_for(path: Path, child: subprocess.Popen, timeout: float = 120) -> None:
