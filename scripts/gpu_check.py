@@ -209,9 +209,22 @@ def check_cell(s: Settings, family: str, arch: str, precision: str, call: str, m
     return f"ok {err:.1e}" if err <= tol else f"FAIL {err:.1e} > {tol:.0e}"
 
 
-def speed_cell(s: Settings, family: str, arch: str, precision: str, call: str, mode: str) -> Tuple[float, float]:
+def compile_counts() -> Tuple[int, int]:
+    """``(graphs, CUDA-graph skips)`` so far in this process: Dynamo's unique graphs, and the times
+    inductor ran a graph without the CUDA graphs ``reduce-overhead`` asked for (at compile time or,
+    for an input mutated in place, at a call: every kernel then launches from the host; the reason
+    is logged under ``TORCH_LOGS=cudagraphs``)."""
+    from torch._dynamo.utils import counters
+
+    return int(counters["stats"]["unique_graphs"]), int(counters["inductor"]["cudagraph_skips"])
+
+
+def speed_cell(s: Settings, family: str, arch: str, precision: str, call: str, mode: str,
+               log: Optional[Callable[[str], None]] = None) -> Tuple[float, float]:
     """``(dense ms, sparse ms)``: medians of CUDA-event times (wall clock off CUDA) after warm-up,
-    dense and sparse interleaved, each cell as ``smdm bench`` times it."""
+    dense and sparse interleaved, each cell as ``smdm bench`` times it. A compiled cell tells
+    ``log`` the graphs each model compiled and how many of them run without CUDA graphs, and the
+    graphs compiled while timing (recompiles)."""
     z, work = s.speed, workloads.WORKLOADS.get(family)
     data = work.batch(z.batch, z.frames, s.device, z.quick, arch)
     fns = []
@@ -224,14 +237,23 @@ def speed_cell(s: Settings, family: str, arch: str, precision: str, call: str, m
     loop = call == "loop"
     repeats, warmup = (s.loop_repeats, 1) if loop else (s.repeats, s.warmup)
     times: List[List[float]] = [[], []]
+    counts = []
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
         for fn in fns:                               # compiled: the eager first call, then the capture
+            before = compile_counts()
             for _ in range(max(warmup, 1 if loop else 2)):
                 fn()
+            counts.append([b - a for a, b in zip(before, compile_counts())])
+        before = compile_counts()
         for _ in range(repeats):                     # interleaved: machine load hits both alike
             for i, fn in enumerate(fns):
                 times[i] += event_times(fn, s.device, 1, 0)
+        timed = [b - a for a, b in zip(before, compile_counts())]
+    if log is not None and mode != "eager":
+        log(f"compiled {arch} {precision} {call} {mode}: dense {counts[0][0]} graph(s), {counts[0][1]} without CUDA "
+            f"graphs; sparse {counts[1][0]} graph(s), {counts[1][1]} without CUDA graphs; while timed {timed[0]} "
+            f"compiled, {timed[1]} CUDA-graph skips")
     return statistics.median(times[0]) * 1e3, statistics.median(times[1]) * 1e3
 
 
@@ -281,7 +303,7 @@ def run(s: Settings, log: Callable[[str], None] = print,
                                 after_cell(list(rows.values()), clock, skipped)
                             continue
                         try:
-                            row.speed[mode] = speed_cell(s, family, arch, precision, call, mode)
+                            row.speed[mode] = speed_cell(s, family, arch, precision, call, mode, log)
                             log(f"speed {name} {precision} {call} {mode}: dense {row.speed[mode][0]:.2f} ms, "
                                 f"sparse {row.speed[mode][1]:.2f} ms ({clock.elapsed():.0f} s)")
                         except Exception as e:  # noqa: BLE001 - a crash is the cell's result

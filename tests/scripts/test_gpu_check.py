@@ -2,6 +2,7 @@
 ``aot_eager``) and writes its one table between the markers of a copy of docs/gpu.md, leaving
 the rest of the page as it was; cells that crash, miss the tolerance or were not run say so."""
 import importlib.util
+import re
 import sys
 
 import pytest
@@ -50,7 +51,12 @@ def test_dry_run_writes_one_table_between_the_markers(tmp_path, capsys):
         cells = [c.strip() for c in r.strip("|").split("|")]
         assert cells[3].startswith("ok ") and cells[7].startswith("ok "), r     # eager, reduce-overhead
         assert float(cells[4]) > 0 and float(cells[5]) > 0 and cells[6].endswith("×"), r
-    assert block.strip() in capsys.readouterr().out                          # printed too
+    printed = capsys.readouterr()
+    assert block.strip() in printed.out                                      # printed too
+    for call in ("sample", "loop"):                                          # what each compiled cell compiled (log)
+        assert re.search(rf"compiled trans_enc bf16 {call} reduce-overhead: dense [1-9]\d* graph\(s\), 0 without CUDA "
+                         r"graphs; sparse [1-9]\d* graph\(s\), 0 without CUDA graphs; while timed 0 compiled, "
+                         r"0 CUDA-graph skips", printed.err), call
 
 
 def test_table_says_what_crashed_failed_or_did_not_run(tmp_path):
