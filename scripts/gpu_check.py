@@ -80,7 +80,8 @@ class Sizes:
 @dataclass
 class Settings:
     """What the check runs: device, compile backend, the check's and the speed's sizes, timing
-    repeats (loops: ``loop_repeats``), the time budget, the selected rows and modes."""
+    repeats (loops: ``loop_repeats``), the time budget, the selected rows and modes, and whether
+    compiled speed cells are profiled after timing."""
 
     device: torch.device
     backend: str
@@ -94,6 +95,7 @@ class Settings:
     precisions: List[str]
     calls: List[str]
     modes: List[str]
+    profile: bool = False      # compiled speed cells: where a call's time goes (:func:`profile_calls`)
 
 
 @dataclass
@@ -219,12 +221,50 @@ def compile_counts() -> Tuple[int, int]:
     return int(counters["stats"]["unique_graphs"]), int(counters["inductor"]["cudagraph_skips"])
 
 
+#: the profiler's host-side events that each stand for a launch, a copy or a wait
+PROFILE_EVENTS = ("LaunchKernel", "cuLaunch", "GraphLaunch", "Memcpy", "Synchronize", "EventSynchronize", "Memset")
+
+
+def profile_calls(fn: Callable[[], Any], device: torch.device, calls: int = 3
+                  ) -> Tuple[Any, float, float, Dict[str, int]]:
+    """``calls`` calls of ``fn`` under the torch profiler: ``(key averages, host self ms per call,
+    GPU busy ms per call, per call the count of each event of`` :data:`PROFILE_EVENTS` ``)``."""
+    from torch.profiler import ProfilerActivity, profile
+
+    acts = [ProfilerActivity.CPU] + ([ProfilerActivity.CUDA] if device.type == "cuda" else [])
+    with profile(activities=acts) as prof:
+        for _ in range(calls):
+            fn()
+        if device.type == "cuda":
+            torch.cuda.synchronize()
+    avg = prof.key_averages()
+    counts: Dict[str, int] = {}
+    for e in avg:
+        if any(k in e.key for k in PROFILE_EVENTS):
+            counts[e.key] = counts.get(e.key, 0) + e.count // calls
+    host = sum(e.self_cpu_time_total for e in avg) / calls / 1e3
+    gpu = sum(getattr(e, "self_device_time_total", 0) for e in avg) / calls / 1e3
+    return avg, host, gpu, counts
+
+
+def profile_lines(fn: Callable[[], Any], device: torch.device, calls: int = 3, top: int = 12) -> List[str]:
+    """A compiled call's profile in a few lines: host self time, GPU busy time, launches, copies and
+    waits per call, then the ``top`` host events by self time (what runs outside the CUDA graphs)."""
+    avg, host, gpu, counts = profile_calls(fn, device, calls)
+    lines = [f"host self {host:.2f} ms/call (profiled), GPU busy {gpu:.2f} ms/call; "
+             + (", ".join(f"{k} {v}" for k, v in sorted(counts.items())) or "no launches seen")]
+    for e in sorted(avg, key=lambda e: -e.self_cpu_time_total)[:top]:
+        lines.append(f"  {e.self_cpu_time_total / calls / 1e3:7.3f} ms  x{e.count // calls:<4d} {e.key[:90]}")
+    return lines
+
+
 def speed_cell(s: Settings, family: str, arch: str, precision: str, call: str, mode: str,
                log: Optional[Callable[[str], None]] = None) -> Tuple[float, float]:
     """``(dense ms, sparse ms)``: medians of CUDA-event times (wall clock off CUDA) after warm-up,
     dense and sparse interleaved, each cell as ``smdm bench`` times it. A compiled cell tells
-    ``log`` the graphs each model compiled and how many of them run without CUDA graphs, and the
-    graphs compiled while timing (recompiles)."""
+    ``log`` the graphs each model compiled and how many of them run without CUDA graphs, the graphs
+    compiled and CUDA-graph skips while timing, and with ``s.profile`` each model's profile
+    (:func:`profile_lines`) after the timing."""
     z, work = s.speed, workloads.WORKLOADS.get(family)
     data = work.batch(z.batch, z.frames, s.device, z.quick, arch)
     fns = []
@@ -254,6 +294,13 @@ def speed_cell(s: Settings, family: str, arch: str, precision: str, call: str, m
         log(f"compiled {arch} {precision} {call} {mode}: dense {counts[0][0]} graph(s), {counts[0][1]} without CUDA "
             f"graphs; sparse {counts[1][0]} graph(s), {counts[1][1]} without CUDA graphs; while timed {timed[0]} "
             f"compiled, {timed[1]} CUDA-graph skips")
+        if s.profile:
+            for kind, fn in zip(("dense", "sparse"), fns):
+                try:
+                    for line in profile_lines(fn, s.device):
+                        log(f"profile {arch} {precision} {call} {mode} {kind}: {line}")
+                except Exception as e:  # noqa: BLE001 - a diagnostic: the cell's times stand
+                    log(f"profile {arch} {precision} {call} {mode} {kind}: error: {one_line(e)}")
     return statistics.median(times[0]) * 1e3, statistics.median(times[1]) * 1e3
 
 
@@ -387,7 +434,7 @@ def settings(a: argparse.Namespace) -> Settings:
     if a.dry_run:
         tiny = Sizes(True, 2, 24, 4)
         return Settings(torch.device("cpu"), "aot_eager", tiny, tiny, 1, 0, 1, float("inf"),
-                        [m for m in MODELS if m[1] in a.models], a.precisions, a.calls, a.modes)
+                        [m for m in MODELS if m[1] in a.models], a.precisions, a.calls, a.modes, a.profile)
     device = torch.device(a.device)
     if device.type == "cuda" and not torch.cuda.is_available():
         raise SystemExit("gpu_check: no CUDA device here (use --dry-run on a CPU)")
@@ -396,7 +443,7 @@ def settings(a: argparse.Namespace) -> Settings:
     if a.quick:
         speed = replace(check)
     return Settings(device, a.backend, check, speed, a.repeats, a.warmup, a.loop_repeats, a.budget_s,
-                    [m for m in MODELS if m[1] in a.models], a.precisions, a.calls, a.modes)
+                    [m for m in MODELS if m[1] in a.models], a.precisions, a.calls, a.modes, a.profile)
 
 
 def main(argv: Optional[List[str]] = None) -> int:
@@ -420,6 +467,9 @@ def main(argv: Optional[List[str]] = None) -> int:
     p.add_argument("--doc", default=DOC, help="the markdown file whose gpu-check section is replaced "
                                               "(default docs/gpu.md)")
     p.add_argument("--no-doc", action="store_true", help="print the table only")
+    p.add_argument("--profile", action="store_true",
+                   help="after timing a compiled cell, log each model's profile (host and GPU time per call, launches, "
+                        "the top host events)")
     a = p.parse_args(argv)
     s = settings(a)
     def save(rows: List[Row], clock: Clock, skipped: int) -> None:

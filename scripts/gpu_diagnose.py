@@ -156,8 +156,6 @@ def section_syncs(dev: torch.device) -> None:
 
 def section_profile(dev: torch.device, out: Path) -> None:
     print("## profile: trans_enc, bf16, MDM size B=64 (5 calls after 5 warm-ups)")
-    from torch.profiler import ProfilerActivity, profile
-
     z = BIG
     work = workloads.WORKLOADS.get("mdm")
     data = work.batch(z.batch, z.frames, dev, z.quick, "trans_enc")
@@ -169,26 +167,13 @@ def section_profile(dev: torch.device, out: Path) -> None:
             fn = benchmark.step_fn(call, work, model, diffusion, data, dev, "bf16", "none", "inductor")
             for _ in range(5):
                 fn()
-            acts = [ProfilerActivity.CPU] + ([ProfilerActivity.CUDA] if dev.type == "cuda" else [])
-            with profile(activities=acts) as prof:
-                for _ in range(5):
-                    fn()
-                if dev.type == "cuda":
-                    torch.cuda.synchronize()
             kind = "dense" if reduction is None else "sparse"
-            avg = prof.key_averages()
-            count = collections.Counter()
-            for e in avg:
-                for key in ("LaunchKernel", "cuLaunch", "Memcpy", "Synchronize", "EventSynchronize", "Memset"):
-                    if key in e.key:
-                        count[e.key] += e.count // 5
-            host = sum(e.self_cpu_time_total for e in avg) / 5 / 1e3
-            gpu = sum(getattr(e, "self_device_time_total", 0) for e in avg) / 5 / 1e3
+            avg, host, gpu, count = gcheck.profile_calls(fn, dev, 5)
             print(f"{call} {kind}: host self total {host:.1f} ms/call (profiled), GPU busy {gpu:.1f} ms/call; "
                   + ", ".join(f"{k} {v}" for k, v in sorted(count.items())), flush=True)
             table = avg.table(sort_by="self_cpu_time_total", row_limit=45, max_name_column_width=70)
             (out / f"profile_{call}_{kind}.txt").write_text(table)
-            del model, fn, prof
+            del model, fn, avg
             gcheck.free(dev)
 
 

@@ -11,7 +11,8 @@
 # 3. which Triton kernels each device should run (gpu_diagnose --sections kernels, ~60 s);
 # 4. host syncs per call (gpu_diagnose --sections syncs, ~20 s);
 # 5. the captured trans_enc bf16 loop and training step (reduce-overhead; ~180 s), with the graphs each
-#    compiled, the CUDA-graph skips and why (TORCH_LOGS=cudagraphs: 0.9.2's 1.28x training step).
+#    compiled, the CUDA-graph skips and why (TORCH_LOGS=cudagraphs) and a profile of each model's call
+#    after its timing (--profile: host and GPU time, launches, the top host events): 0.9.2's 1.28x training step.
 # Each step has its own time limit (600 s in all; about 8 minutes on the H200); a step that fails
 # or runs out leaves what it wrote and the next runs. One file per step (its stdout and stderr) and the two tables: 7 files under OUT
 # (the device tool brings back at most 8); each step's exit status is printed.
@@ -39,4 +40,4 @@ step layout 80 python3 scripts/gpu_diagnose.py --sections layout --out "$OUT" "$
 step kernels 75 python3 scripts/gpu_diagnose.py --sections kernels --out "$OUT" "${diag[@]}"
 step syncs 45 python3 scripts/gpu_diagnose.py --sections syncs --out "$OUT" "${diag[@]}"
 TORCH_LOGS=cudagraphs step captured 200 python3 scripts/gpu_check.py --modes reduce-overhead --models trans_enc --precisions bf16 \
-  --calls loop train --budget-s 180 --doc "$OUT/gpu_check_captured.md" "${dry[@]}"
+  --calls loop train --budget-s 180 --profile --doc "$OUT/gpu_check_captured.md" "${dry[@]}"

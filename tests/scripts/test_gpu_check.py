@@ -33,7 +33,7 @@ def test_dry_run_writes_one_table_between_the_markers(tmp_path, capsys):
     original = (ROOT / "docs" / "gpu.md").read_text()
     doc.write_text(original)
     assert gc.main(["--dry-run", "--models", "trans_enc", "--precisions", "bf16", "--calls", "sample", "loop",
-                    "--modes", "eager", "reduce-overhead", "--doc", str(doc)]) == 0
+                    "--modes", "eager", "reduce-overhead", "--profile", "--doc", str(doc)]) == 0
     text = doc.read_text()
     before, rest = text.split(gc.BEGIN)
     block, after = rest.split(gc.END)
@@ -57,12 +57,16 @@ def test_dry_run_writes_one_table_between_the_markers(tmp_path, capsys):
         assert re.search(rf"compiled trans_enc bf16 {call} reduce-overhead: dense [1-9]\d* graph\(s\), 0 without CUDA "
                          r"graphs; sparse [1-9]\d* graph\(s\), 0 without CUDA graphs; while timed 0 compiled, "
                          r"0 CUDA-graph skips", printed.err), call
+        for kind in ("dense", "sparse"):                                     # --profile: each model's call
+            assert re.search(rf"profile trans_enc bf16 {call} reduce-overhead {kind}: host self \d+\.\d+ ms/call",
+                             printed.err), (call, kind)
+    assert "profile trans_enc bf16 sample eager" not in printed.err              # (compiled cells only)
 
 
 def test_table_says_what_crashed_failed_or_did_not_run(tmp_path):
     gc = _script()
     s = gc.settings(gc.argparse.Namespace(dry_run=True, models=["trans_dec"], precisions=["fp32"], calls=["train"],
-                                          modes=["eager", "default"]))
+                                          modes=["eager", "default"], profile=False))
     row = gc.Row("trans_dec", "fp32", "train", check={"eager": "FAIL 2.0e-01 > 1e-03",
                                                       "default": "error: " + gc.one_line(RuntimeError("a | b\nmore"))},
                  speed={"eager": (2.0, 1.0)})
