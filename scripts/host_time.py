@@ -8,7 +8,8 @@ foreach ops charged one launch each, fused ops that CUDA runs as Triton kernels 
 (smdm_plugin/training/hosttime.py); one thread. ``--triton`` / ``--no-triton`` switch Triton
 kernels (by name: smdm_plugin.core.kernels.dispatch.TRITON_KERNELS) on or off for the run, as
 ``use_triton_kernels`` does (``--triton "FSQ code" "FSQ code gradient"``: 0.9.1's routing).
-Prints a markdown table (host ms per call, sparse / dense).
+Prints a markdown table: host ms per call and sparse / dense, and the counted host work (aten ops,
+Python frames: ``host_work``, the same on any machine) sparse / dense.
 """
 from __future__ import annotations
 
@@ -20,7 +21,7 @@ import torch
 
 from smdm_plugin.core.checks import static_mode
 from smdm_plugin.core.kernels.dispatch import TRITON_KERNELS, use_triton_kernels
-from smdm_plugin.training.hosttime import HOST_SIZE, HOST_VARIANTS, host_cells, host_times
+from smdm_plugin.training.hosttime import HOST_SIZE, HOST_VARIANTS, host_cells, host_times, host_work
 
 
 def main(argv: Optional[List[str]] = None) -> int:
@@ -42,16 +43,18 @@ def main(argv: Optional[List[str]] = None) -> int:
     torch.set_num_threads(1)
     print(f"host time per call (ms, thread CPU time; size {HOST_SIZE}; torch {torch.__version__}; "
           f"Triton kernels on: {', '.join(on) or 'none'})\n")
-    print("| variant | precision | call | dense ms | sparse ms | sparse / dense |")
-    print("| --- | --- | --- | ---: | ---: | ---: |")
+    print("| variant | precision | call | dense ms | sparse ms | sparse / dense | ops sparse / dense | "
+          "frames sparse / dense |")
+    print("| --- | --- | --- | ---: | ---: | ---: | ---: | ---: |")
     for variant in a.variants:
         for precision in ("fp32", "bf16"):
             with static_mode():
                 dense, sparse = host_cells(variant, False, precision), host_cells(variant, True, precision)
                 for call in ("train", "sample"):
                     r = host_times({"dense": dense[call], "sparse": sparse[call]}, repeats=a.repeats)
+                    w = host_work(sparse[call]).ratio(host_work(dense[call]))
                     print(f"| {variant} | {precision} | {call} | {r.ms['dense']:.2f} | {r.ms['sparse']:.2f} | "
-                          f"{r.ratio('sparse', 'dense'):.2f} |", flush=True)
+                          f"{r.ratio('sparse', 'dense'):.2f} | {w['ops']:.2f} | {w['calls']:.2f} |", flush=True)
     return 0
 
 

@@ -1,6 +1,8 @@
-"""Host time per call, measured on the CPU: what decides eager speed on a GPU at MDM's size."""
+"""Host time per call, measured on the CPU (:func:`host_times`) and counted (:func:`host_work`): what
+decides eager speed on a GPU at MDM's size."""
 from __future__ import annotations
 
+import sys
 import time
 from contextlib import contextmanager
 from dataclasses import dataclass
@@ -8,22 +10,24 @@ from typing import TYPE_CHECKING, Callable, Dict, Iterator, List, Optional
 
 import torch
 import torch.nn.functional as F
+from torch.utils._python_dispatch import TorchDispatchMode
 
 from ..core.kernels.dispatch import OBSERVERS
 
 if TYPE_CHECKING:
     from ..core.config import SparseConfig
 
-__all__ = ["HOST_SIZE", "TRITON_LAUNCH_OPS", "HostTime", "host_times", "launch_charge", "charging_kernels"]
+__all__ = ["HOST_SIZE", "TRITON_LAUNCH_OPS", "HostTime", "HostWork", "host_times", "host_work", "launch_charge",
+           "charging_kernels"]
 
 #: the model size of the measurement: MDM's depth and heads, tiny tensors
 HOST_SIZE = dict(latent_dim=16, ff_size=32, num_layers=8, num_heads=4, batch=2, frames=24)
 
 #: what one Triton launch from Python costs the host, in small aten ops: the H200's profile
-#: (results/gpu_h200_2026-11-28/profile_train_sparse.txt, self CPU per call of the autograd functions
-#: that launch one Triton kernel: 106, 202, 79 and 149 µs) over an elementwise aten op's host time
-#: there (aten::add, 16-23 µs with its launch): 4.4-11, median ~7; rounded down to 6, since the
-#: functions' own Python is measured apart on the CPU (docs/gpu.md)
+#: (results/gpu_h200_2026-11-28/profile_train_sparse.txt) showed each Triton-launching autograd
+#: function costing the host 204 µs per call (mean over a training step's 24 calls), where a dense
+#: bf16 step took 4.2x its meter time; 204 µs / 4.2 / 1.4 µs (a small op on the meter) ≈ 34
+#: (docs/gpu.md, 0.9.2)
 TRITON_LAUNCH_OPS = 34
 
 
@@ -132,6 +136,72 @@ def host_times(fns: Dict[str, Callable[[], object]], repeats: int = 100, warmup:
         ts.sort()
         ms[name] = ts[min(len(ts) - 1, int(len(ts) * quantile))] * 1e3
     return HostTime(ms, charge * 1e6)
+
+
+@dataclass(frozen=True)
+class HostWork:
+    """The host work of one call, counted: ``ops``, the aten ops the dispatcher runs (forward,
+    backward, optimizer; a fused op that CUDA runs as a Triton kernel counts
+    :data:`TRITON_LAUNCH_OPS`, as :func:`host_times` charges it) and ``calls``, the Python frames
+    entered. Unlike :class:`HostTime` it does not depend on the machine or its load."""
+
+    ops: int
+    calls: int
+
+    def ratio(self, other: "HostWork") -> Dict[str, float]:
+        """``{"ops": ..., "calls": ...}``: this call's counts over ``other``'s."""
+        return {"ops": self.ops / max(other.ops, 1), "calls": self.calls / max(other.calls, 1)}
+
+
+class _OpCounter(TorchDispatchMode):
+    """Counts the aten ops that reach the dispatcher's Python key, except inside a charged fused op."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.ops, self.inside = 0, 0
+
+    def __torch_dispatch__(self, func, types, args=(), kwargs=None):
+        if not self.inside:
+            self.ops += 1
+        return func(*args, **(kwargs or {}))
+
+
+def host_work(fn: Callable[[], object], warmup: int = 2) -> HostWork:
+    """The :class:`HostWork` of a call of ``fn`` after ``warmup`` calls (caches filled, as in a loop):
+    its Python frames in one call, its aten ops in the next (the op counter's own frames are not
+    counted), neither inside a charged fused op (on the CPU its composite runs there; CUDA launches
+    one kernel). The same call counts the same on any machine: what a test can budget (time is what
+    :func:`host_times` and ``scripts/host_time.py`` measure)."""
+    for _ in range(warmup):
+        fn()
+    counter, frames, launches = _OpCounter(), [0], [0]
+
+    def observer(name: str, kernel: Callable, args: list):
+        counter.inside += 1
+        try:
+            return kernel(*args)
+        finally:
+            counter.inside -= 1
+            launches[0] += 1
+
+    def profile(frame, event, arg):
+        if event == "call" and not counter.inside:
+            frames[0] += 1
+
+    OBSERVERS.append(observer)
+    try:
+        previous = sys.getprofile()
+        sys.setprofile(profile)
+        try:
+            fn()
+        finally:
+            sys.setprofile(previous)
+        launches[0] = 0
+        with counter:
+            fn()
+    finally:
+        OBSERVERS.remove(observer)
+    return HostWork(counter.ops + TRITON_LAUNCH_OPS * launches[0], frames[0])
 
 
 #: the model variants :func:`host_cells` builds: MDM's three, DoubleTake's sampling (trans_enc with

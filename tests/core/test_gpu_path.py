@@ -261,7 +261,7 @@ def mdm_size_counts(name, sparse, precision, **cfg):
 
 
 #: sparse / dense launches, counted as CUDA launches them (fused ops one each). Since 0.8 the budget
-#: that governs eager speed is host time (tests/training/test_host_time.py, docs/gpu.md): the
+#: that governs eager speed is host time (counted in tests/training/test_host_time.py, docs/gpu.md): the
 #: launch count only guards against a regression of its own. 0.9.2 runs the FSQ codes as the
 #: composite's ops on CUDA (more launches, less host time than a Triton launch each way: docs/gpu.md)
 #: and, under autocast, casts the stacks' matmul weights once per sampling loop (once per role and
