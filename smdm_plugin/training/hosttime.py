@@ -222,7 +222,8 @@ def host_cells(variant: str, sparse: bool, precision: str, config: Optional["Spa
     ``bf16`` (CPU autocast): ``train`` (``training_losses`` + backward + ``AdamW(foreach=True)``)
     and ``sample`` (one sampling call: both classifier-free-guidance passes for MDM's models, one
     pass for MotionDiffuse; DoubleTake's with its handshake frames forced; ``config``: another
-    sparse config). Run them under
+    sparse config). Each sets the model's mode only when it changes, as a loop does (0.9.5 and
+    before: every call, which charged a sparse model its larger module tree). Run them under
     :func:`~smdm_plugin.core.checks.static_mode`."""
     from ..adapters.surgery import sparsify
     from ..core.config import SparseConfig
@@ -271,7 +272,8 @@ def host_cells(variant: str, sparse: bool, precision: str, config: Optional["Spa
     guided = model if md else ClassifierFreeGuidance(model)
 
     def train() -> None:
-        model.train()
+        if not model.training:  # a training loop sets the mode once, not per step (MDM: around its evaluations)
+            model.train()
         opt.zero_grad(set_to_none=True)
         with torch.autocast("cpu", torch.bfloat16, enabled=bf16):
             terms = diffusion.training_losses(model, x, t, dict(kw) if md else {"y": dict(y)})
@@ -280,7 +282,8 @@ def host_cells(variant: str, sparse: bool, precision: str, config: Optional["Spa
         opt.step()
 
     def sample() -> None:
-        model.eval()
+        if model.training:  # once per sampling loop
+            model.eval()
         with torch.no_grad(), torch.autocast("cpu", torch.bfloat16, enabled=bf16):
             if md:
                 guided(x, torch.full((B,), 40), **kw)
