@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import json
 import os
-from typing import Any, Dict, Optional
+from typing import Any, Callable, Dict, Optional, Tuple
 
 from ..support.atomic import atomic_write_json, atomic_write_text
 from ..core.config import SparseConfig
@@ -126,14 +126,19 @@ def record_compile(args: Any, setting: Any, options_file: Optional[str]) -> bool
     return set_json_entries(options_file, values)
 
 
-def compile_upstream(model: Any, args: Any, options_file: Optional[str] = None, *, device: Any = None) -> Any:
+def compile_upstream(model: Any, args: Any, options_file: Optional[str] = None, *, device: Any = None,
+                     losses: Optional[Tuple[Any, Callable]] = None) -> Any:
     """``--sparse_compile`` in an upstream run (docs/compile.md), the one helper of every family's
-    hooks: compile ``model`` (dense or sparse) once, in place; print the setting that applies and
-    write it to ``options_file`` (``args.json`` / ``opt.txt``; None: nowhere). ``none`` / absent:
-    nothing happens. Returns the :class:`~smdm_plugin.runtime.compile.CompileSetting` or None."""
+    hooks: compile ``model`` (dense or sparse) once, in place; with ``losses`` (``(diffusion,
+    prepare)``: a training run whose loss is ``diffusion.training_losses``) also the whole training
+    step (:func:`~smdm_plugin.runtime.compile.compile_training_losses`). Print the setting that
+    applies and write it to ``options_file`` (``args.json`` / ``opt.txt``; None: nowhere; the
+    training step's when it is captured). ``none`` / absent: nothing happens. Returns the
+    :class:`~smdm_plugin.runtime.compile.CompileSetting` that applies (the training step's, when
+    captured) or None."""
     import sys
 
-    from ..runtime.compile import compile_from_args
+    from ..runtime.compile import compile_from_args, compile_losses_from_args
     from .messages import show_plugin_warnings
 
     show_plugin_warnings()
@@ -141,6 +146,11 @@ def compile_upstream(model: Any, args: Any, options_file: Optional[str] = None, 
     if setting is None:
         return None
     sys.stderr.write(f"smdm: {type(model).__name__} runs {setting.describe()}\n")
+    if losses is not None:
+        step = compile_losses_from_args(losses[0], model, args, losses[1], device=device)
+        if step is not None:
+            sys.stderr.write(f"smdm: the training step runs {step.describe()}\n")
+            setting = step
     record_compile(args, setting, options_file)
     return setting
 

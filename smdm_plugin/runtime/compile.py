@@ -10,6 +10,7 @@ import torch.nn as nn
 
 __all__ = ["COMPILE_MODES", "CompileSetting", "CompiledFunction", "add_compile_options", "check_compile_mode",
            "compile_function", "compile_model", "compile_setting", "compile_stats", "uncompile", "compile_from_args",
+           "compile_training_losses", "compile_losses_from_args", "compile_wrapper_call", "register_stats",
            "fused_optimizer_kwargs", "prepare_call", "CallPreparer", "preparer_of", "to_device"]
 
 #: the values of ``--sparse_compile`` / ``smdm train --compile`` / ``smdm bench --compile``
@@ -197,6 +198,11 @@ def _none() -> None:
     return None
 
 
+#: how many compiled functions are running eagerly (a phase's first call, a call outside the static
+#: batch) on this thread's stack: compiled functions they call run eagerly as well
+_EAGER_OUTER = [0]
+
+
 class CompiledFunction:
     """A function ``fn`` compiled for ``setting`` (:func:`compile_function`; the model call of
     :func:`compile_model` is one too), with the guarantees of docs/compile.md:
@@ -209,7 +215,8 @@ class CompiledFunction:
     * a call with another batch size (a last partial batch) runs eagerly (``eager_calls``);
     * ``reduce-overhead`` on CUDA: ``cudagraph_mark_step_begin()`` before each call and the
       outputs cloned (a later replay never overwrites what a caller holds);
-    * called while an outer compiled function traces, ``fn`` is traced inline (one graph).
+    * called while an outer compiled function traces, ``fn`` is traced inline (one graph); called
+      while one runs eagerly (its warm call), ``fn`` runs eagerly (no graph of its own).
 
     ``prepare(args, kwargs) -> (args, kwargs)`` runs first, eagerly, on every call (text encoded,
     tensors on the motion's device: what cannot be captured)."""
@@ -229,6 +236,15 @@ class CompiledFunction:
 
     def _fullgraph(self, args: tuple, kwargs: dict) -> bool:
         return self.setting.fullgraph
+
+    def _eager(self, args: tuple, kwargs: dict) -> Any:
+        """``fn`` run eagerly, and compiled functions it calls (a compiled model) eagerly too: their
+        calls belong to this one's graph, and would otherwise capture one of their own."""
+        _EAGER_OUTER[0] += 1
+        try:
+            return self._run(*args, **kwargs)
+        finally:
+            _EAGER_OUTER[0] -= 1
 
     def _phase(self, x: torch.Tensor, fullgraph: bool) -> tuple:
         training = None if self.model is None else self.model.training
@@ -261,8 +277,8 @@ class CompiledFunction:
     def __call__(self, *args: Any, **kwargs: Any) -> Any:
         from ..core.checks import compiling, static_mode   # here: a flag-off run loads only the options
 
-        if compiling():                              # inside an outer compiled function: one graph
-            return self._run(*args, **kwargs)
+        if compiling() or _EAGER_OUTER[0]:           # inside an outer compiled function: one graph
+            return self._run(*args, **kwargs)        # (or that function's eager call: eager too)
         if self.prepare is not None:
             args, kwargs = self.prepare(args, kwargs)
         args, kwargs = tuple(map(_contiguous, args)), {k: _contiguous(v) for k, v in kwargs.items()}
@@ -276,14 +292,14 @@ class CompiledFunction:
             self._static[phase] = x.shape[0]
             self.setting.warm_calls += 1
             with static_mode():
-                return self._run(*args, **kwargs)
+                return self._eager(args, kwargs)
         if x.shape[0] != batch:                      # outside the static batch: eager, no recompile
             self.setting.eager_calls += 1
             if not self._warned_eager:
                 self._warned_eager = True
                 warnings.warn(f"{_WARN}: a call with batch {x.shape[0]} (static batch {batch} for this "
                               f"shape) runs eagerly; the compiled graph keeps its static batch", stacklevel=3)
-            return self._run(*args, **kwargs)
+            return self._eager(args, kwargs)
         fn, graphs = self._function(x.device, fullgraph)
         self.setting.compiled_calls += 1
         before = _graph_count()
@@ -315,6 +331,16 @@ class _CompiledCall(CompiledFunction):
     def _fullgraph(self, args: tuple, kwargs: dict) -> bool:
         # forced keyframes (sample.edit, in-betweening) without a bound are counted on the host once
         # per call, as in eager: such calls trace with a graph break there (a phase of their own)
+        return self.setting.fullgraph and not _reads_forced(args, kwargs)
+
+
+class _WrapperCall(CompiledFunction):
+    """What a wrapper module's ``__call__`` runs once :func:`compile_wrapper_call` compiled it
+    (``nn.Module._compiled_call_impl``): ``fn`` over the prepared call, the wrapped ``model``'s
+    calls traced inline; calls carrying forced keyframes without a bound trace with a graph break
+    (as :class:`_CompiledCall`'s)."""
+
+    def _fullgraph(self, args: tuple, kwargs: dict) -> bool:
         return self.setting.fullgraph and not _reads_forced(args, kwargs)
 
 
@@ -407,6 +433,22 @@ def compile_function(fn: Callable, mode: Any, *, model: Optional[nn.Module] = No
     return CompiledFunction(fn, setting, None if model is None else _inner(model), prepare)
 
 
+def compile_wrapper_call(wrapper: nn.Module, model: nn.Module, fn: Callable,
+                         prepare: Callable[[tuple, dict], Tuple[tuple, dict]], captures: str) -> Optional[CompileSetting]:
+    """A module that wraps a compiled ``model`` (a guidance wrapper: several calls of ``model`` per
+    call of its own) compiled in place as ``model`` is (mode, backend, fullgraph of
+    ``compile_setting(model)``): ``wrapper(*args)`` runs ``fn(*prepare(args))`` as one graph, the
+    model's calls traced inline (``captures`` says what it covers). Nothing happens, and None is
+    returned, when ``model`` is not compiled."""
+    inner = compile_setting(model)
+    if inner is None or inner.requested == "none":
+        return None
+    setting = CompileSetting(requested=inner.requested, mode=inner.mode, backend=inner.backend,
+                             fullgraph=inner.fullgraph, note=inner.note, captures=captures)
+    wrapper._compiled_call_impl = _WrapperCall(fn, setting, _inner(model), prepare)
+    return setting
+
+
 def fused_optimizer_kwargs(device: Any, mode: Any) -> Dict[str, Any]:
     """AdamW's keyword arguments for a captured run: ``fused=True`` (the whole update in a few
     multi-tensor kernels, no host sync) on CUDA when ``mode`` compiles; ``{}`` (torch's default,
@@ -440,7 +482,7 @@ BACKEND_ENV = "SMDM_COMPILE_BACKEND"
 #: environment: a JSON file the process writes at exit (``{rank}`` in it: torchrun's rank): per
 #: compiled model its setting, calls, phases (static shapes), recompiles, and Dynamo's graph count
 STATS_ENV = "SMDM_COMPILE_STATS"
-_COMPILED: List[Tuple[str, CompileSetting, "_CompiledCall"]] = []
+_COMPILED: List[Tuple[str, CompileSetting, CompiledFunction]] = []
 
 
 def compile_stats() -> Dict[str, Any]:
@@ -473,18 +515,66 @@ def compile_from_args(model: nn.Module, args: Any, device: Any = None) -> Option
     ``SMDM_COMPILE_BACKEND`` (default inductor). Returns the :class:`CompileSetting` that applies
     (the caller records it: ``args.json`` / ``opt.txt``). With ``SMDM_COMPILE_STATS=FILE`` the
     process writes :func:`compile_stats` there at exit."""
-    import atexit
-    import os
-
     mode = getattr(args, "sparse_compile", None)
     if mode in (None, "none"):
         return None
     setting = compile_model(model, mode, device=device, backend=default_backend())
+    register_stats(type(model).__name__, _inner(model)._compiled_call_impl)
+    return setting
+
+
+def compile_training_losses(diffusion: Any, model: nn.Module, mode: Any, *, prepare: Callable[[tuple, dict], Tuple[tuple, dict]],
+                            backend: Any = "inductor", device: Any = None, name: str = FLAG) -> Optional[CompiledFunction]:
+    """``diffusion.training_losses`` compiled whole for ``mode``, in place on the instance (the
+    sparse wrapper, when there is one, inside): a training step's loss forward, upstream's
+    diffusion arithmetic around the model included, and its backward by AOTAutograd: one graph,
+    what ``smdm train --compile`` captures (``captures``: :data:`CAPTURES_TRAIN`). ``model``: the
+    module it trains (its mode is part of the phase); ``prepare``: the call made ready, eagerly
+    (text encoded; upstream's noise drawn as upstream draws it). Compiling again replaces the
+    previous function. Returns the :class:`CompiledFunction` (None for ``none``: nothing changes)."""
+    current = diffusion.training_losses
+    if isinstance(current, CompiledFunction):
+        current = current.fn
+    compiled = compile_function(current, mode, model=model, backend=backend, device=device, name=name,
+                                captures=CAPTURES_TRAIN, prepare=prepare)
+    if not isinstance(compiled, CompiledFunction):
+        return None
+    diffusion.training_losses = compiled
+    return compiled
+
+
+def register_stats(name: str, compiled: CompiledFunction) -> None:
+    """Count ``compiled`` in what ``SMDM_COMPILE_STATS`` writes at exit (when it is set)."""
+    import atexit
+    import os
+
     if os.environ.get(STATS_ENV):
         if not _COMPILED:
             atexit.register(_write_stats)
-        _COMPILED.append((type(model).__name__, setting, model._compiled_call_impl))
-    return setting
+        _COMPILED.append((name, compiled.setting, compiled))
+
+
+def compile_losses_from_args(diffusion: Any, model: nn.Module, args: Any, prepare: Callable[[tuple, dict], Tuple[tuple, dict]],
+                             device: Any = None) -> Optional[CompileSetting]:
+    """:func:`compile_training_losses` for ``args.sparse_compile`` with :func:`default_backend`, as
+    :func:`compile_from_args` compiles the model (``SMDM_COMPILE_STATS`` counts it too, after the
+    model). Returns its setting, or None (``none`` / absent)."""
+    mode = getattr(args, "sparse_compile", None)
+    if mode in (None, "none"):
+        return None
+    inner = compile_setting(model)                # the model's, as it applies (its warning said why)
+    backend = inner.backend if inner is not None else default_backend()
+    with warnings.catch_warnings():
+        if inner is not None:
+            warnings.simplefilter("ignore")
+        compiled = compile_training_losses(diffusion, _inner(model), mode if inner is None else inner.mode,
+                                           prepare=prepare, backend=backend, device=device)
+    if compiled is None:
+        return None
+    if inner is not None:
+        compiled.setting.requested, compiled.setting.note = inner.requested, inner.note
+    register_stats("training_losses", compiled)
+    return compiled.setting
 
 
 def default_backend() -> str:

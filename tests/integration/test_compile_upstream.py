@@ -7,16 +7,18 @@ motion shape; each phase's first call runs eagerly: ``warm_calls``), its compile
 ``recompiles`` (calls after the first compiled call of their phase that made Dynamo capture a new
 graph).
 
-* MDM (``smdm run``): a sparse trans_enc trains 20 steps compiled: one graph, zero recompiles,
+* MDM (``smdm run``): a sparse trans_enc trains 20 steps compiled, the whole loss step
+  (``diffusion.training_losses``, forward and backward, the model's call inside): one graph, zero recompiles,
   the same weights as an eager run on the static-shape path (``static_mode``: what runs on a GPU;
   the CPU's eager default packs keyframes differently, so its dropout draws differ), the setting
   in ``args.json``, no ``_orig_mod.`` key in the checkpoint; ``sample.generate`` (classifier-free
   guidance: 2 calls per step) from it: one graph, zero recompiles, samples equal to eager;
   ``sample.edit`` (in-betweening: forced keyframes, a graph break at their host count): zero
-  recompiles, equal to eager. DiP: training and autoregressive sampling, zero recompiles.
+  recompiles, equal to eager. DiP: training (the whole loss step) and autoregressive sampling,
+  zero recompiles. Under ``torchrun`` (2 ranks): the model call, compiled inside DDP.
 * MDM through the patch: training and ``eval.eval_humanml``, zero recompiles, finite FID.
-* priorMDM (patch): training compiled (zero recompiles, ``args.json``); DoubleTake, both takes,
-  both guidance passes: zero recompiles after each take's first call, the unfolded sample equal
+* priorMDM (patch): training compiled, the whole loss step (zero recompiles, ``args.json``);
+  DoubleTake, both takes, both guidance passes: zero recompiles after each take's first call, the unfolded sample equal
   to eager.
 * MotionDiffuse (patch): a sparse MotionTransformer trains compiled: zero recompiles, ``opt.txt``
   states the setting, losses equal to eager within float tolerance (dropout 0 there).
@@ -52,6 +54,17 @@ def assert_no_recompiles(data: dict, phases: int) -> None:
         assert data["graphs"] == phases, data                     # one graph per phase, none after
 
 
+def assert_whole_training_step(data: dict, steps: int = None) -> None:
+    """A one-process training run captured its loss step whole: the last compiled function is
+    ``diffusion.training_losses`` (one graph, the model's call traced inside it, and run eagerly
+    inside the step's first, eager call: never a call of its own), ``steps`` loss calls when given."""
+    step, model = data["models"][-1], data["models"][-2]
+    assert step["name"] == "training_losses" and step["captures"] == "training step: loss forward and backward", data
+    assert model["compiled_calls"] == model["warm_calls"] == model["phases"] == 0, data
+    if steps is not None:
+        assert step["warm_calls"] + step["compiled_calls"] == steps, step
+
+
 # --------------------------------------------------------------------------- MDM (smdm run)
 MDM_ROOT = os.environ.get("SMDM_MDM_ROOT")
 
@@ -80,10 +93,13 @@ def test_mdm_trains_20_steps_and_samples_compiled(upstream_copy, tmp_path, monke
         else:
             proc, ckpt = M.train(repo, save, "trans_enc", 20, extra=["--sparse", "--sparse_compile", mode],
                                  launcher=True)
-            assert_no_recompiles(stats(st), phases=1)
+            data = stats(st)
+            assert_no_recompiles(data, phases=1)          # the whole step: one graph, the model's call inside
+            assert_whole_training_step(data, steps=21)    # --num_steps 20: 21 steps (MDM's loop)
             args = json.load(open(os.path.join(save, "args.json")))
             assert args["sparse_compile"] == "default"
-            assert args["sparse_compile_applied"].startswith("torch.compile default (aot_eager, fullgraph=True; model call)")
+            assert args["sparse_compile_applied"].startswith(
+                "torch.compile default (aot_eager, fullgraph=True; training step: loss forward and backward)")
         runs[mode] = M.load_sd(ckpt)
     assert not [k for k in runs["default"] if "_orig_mod" in k] and runs["default"].keys() == runs["none"].keys()
     for k, v in runs["none"].items():
@@ -138,7 +154,9 @@ def test_mdm_torchrun_compiled_inside_ddp(upstream_copy, tmp_path, monkeypatch):
     for k in r0:
         assert torch.equal(r0[k], r1[k]), k
     for r in (0, 1):
-        assert_no_recompiles(stats(str(tmp_path / f"rank{r}.json")), phases=1)
+        data = stats(str(tmp_path / f"rank{r}.json"))
+        assert_no_recompiles(data, phases=1)
+        assert [m["captures"] for m in data["models"]] == ["model call"], data    # DDP: the model call only
 
 
 # --------------------------------------------------------------------------- priorMDM DoubleTake
@@ -159,7 +177,9 @@ def test_doubletake_samples_compiled(tmp_path, monkeypatch):
     monkeypatch.setenv("SMDM_COMPILE_STATS", str(tmp_path / "train.json"))
     P.harness(run, *P.train_args(save, 2), "--sparse_compile", "default")   # priorMDM's training, compiled
     assert_no_recompiles(stats(str(tmp_path / "train.json")), phases=1)
-    assert json.load(open(os.path.join(save, "args.json")))["sparse_compile_applied"].startswith("torch.compile")
+    assert_whole_training_step(stats(str(tmp_path / "train.json")))
+    applied = json.load(open(os.path.join(save, "args.json")))["sparse_compile_applied"]
+    assert applied.startswith("torch.compile") and "training step: loss forward and backward" in applied, applied
     ckpt = os.path.join(save, "model000000002.pt")
     motions = {}
     for mode in ("none", "default"):
@@ -266,6 +286,7 @@ def test_dip_trains_and_samples_autoregressively_compiled(upstream_copy, tmp_pat
     _, ckpt = M.train(repo, str(tmp_path / "dip"), "dip", 6, extra=["--sparse", "--sparse_compile", "default"],
                       launcher=True)
     assert_no_recompiles(stats(st), phases=1)
+    assert_whole_training_step(stats(st))
     samples = {}
     for mode in ("none", "default"):
         st = str(tmp_path / f"gen_{mode}.json")

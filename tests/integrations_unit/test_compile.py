@@ -91,8 +91,8 @@ def test_one_graph_per_phase_through_training_and_guided_sampling(sparse):
     assert graphs() == after_warmup + 1                            # both guidance passes, every t: one graph
     sample(tr.model, data, seed=2)                                 # other noise, so other keyframes
     assert graphs() == after_warmup + 1
-    call = C.compile_setting(tr.model)                             # warm: the eager training step's, sampling's
-    assert (call.warm_calls, call.compiled_calls, call.eager_calls, call.recompiles) == (2, 2 * 2 * 20 - 1, 0, 0)
+    call = C.compile_setting(tr.model)           # warm: sampling's first (in the eager training step: eager)
+    assert (call.warm_calls, call.compiled_calls, call.eager_calls, call.recompiles) == (1, 2 * 2 * 20 - 1, 0, 0)
     assert torch.isfinite(out).all()
 
 
@@ -203,6 +203,71 @@ def test_guidance_uncond_folds_into_zeroed_text_exactly():
         guided = ClassifierFreeGuidance(cfg_model, 2.5)(x, t, {k: v for k, v in y.items() if k != "uncond"})
         ref = ClassifierFreeGuidance(model.eval(), 2.5)(x, t, {k: v for k, v in y.items() if k != "uncond"})
     assert torch.allclose(guided, ref, atol=1e-5) and graphs() == 1
+
+
+class _DeepCopyGuidance(torch.nn.Module):
+    """A guidance wrapper built as upstream MDM's ``ClassifierFreeSampleModel`` is: ``deepcopy(y)``
+    with ``uncond`` per call, two model calls, ``out_uncond + scale * (out - out_uncond)``."""
+
+    def __init__(self, model):
+        super().__init__()
+        self.model = model
+
+    def forward(self, x, timesteps, y=None):
+        y_uncond = copy.deepcopy(y)
+        y_uncond["uncond"] = True
+        out = self.model(x, timesteps, y)
+        out_uncond = self.model(x, timesteps, y_uncond)
+        return out_uncond + (y["scale"].view(-1, 1, 1, 1) * (out - out_uncond))
+
+
+@pytest.mark.parametrize("registered", [True, False], ids=["submodule", "vars"])
+def test_an_upstream_guidance_wrapper_is_one_graph_equal_to_eager(registered):
+    """``--sparse_compile`` in MDM's / priorMDM's sampling scripts: the guidance wrapper built
+    around a compiled model (its ``__init__`` hooked: ``patch_cfg_sampler``) runs both passes and
+    their combination as one graph over steps and timesteps (text given as strings, encoded
+    once per call), equal to the eager wrapper; the model's own compiled call is never entered
+    on its own; around an uncompiled model the wrapper stays upstream's. MDM registers the model
+    as a submodule, priorMDM keeps it in ``vars``."""
+    import types
+
+    from smdm_plugin.families.mdm.upstream_guidance import patch_cfg_sampler
+
+    class Wrapper(_DeepCopyGuidance):
+        def __init__(self, model):
+            super().__init__(model)
+            if not registered:
+                del self._modules["model"]
+                vars(self)["model"] = model
+
+    module = types.SimpleNamespace(ClassifierFreeSampleModel=Wrapper)
+    patch_cfg_sampler(module)
+    patch_cfg_sampler(module)                                     # idempotent
+    enc = TextConfig(dim=16).build()
+    torch.manual_seed(0)
+    model = TinyMDM(njoints=D, clip_dim=16, cond_mask_prob=0.1, text_encoder=enc, **TINY).eval()
+    ref = _DeepCopyGuidance(copy.deepcopy(model)).eval()
+    assert module.ClassifierFreeSampleModel(model)._compiled_call_impl is None     # not compiled: upstream's
+    C.compile_model(model, "default", backend=BACKEND)
+    wrapper = module.ClassifierFreeSampleModel(model).eval()
+    s = C.compile_setting(model)
+    guided = wrapper._compiled_call_impl
+    assert guided.setting.captures == C.CAPTURES_GUIDED and guided.setting.fullgraph == s.fullgraph
+    x = torch.randn(2, D, 1, N)
+    with torch.no_grad():
+        for i, t in enumerate((19, 11, 3, 0)):
+            texts = [["a person walks", "jump"], ["someone waves", "kick"]][i % 2]
+            y = {"mask": torch.ones(2, 1, 1, N, dtype=torch.bool), "lengths": torch.tensor([N, 30]),
+                 "text": texts, "scale": torch.full((2,), 2.5)}
+            tt = torch.full((2,), t)
+            got, want = wrapper(x + i, tt, dict(y)), ref(x + i, tt, dict(y))
+            assert torch.allclose(got, want, atol=1e-5), t
+            assert "uncond" not in y                               # the caller's y untouched
+    g = guided.setting
+    assert (g.warm_calls, g.compiled_calls, g.recompiles) == (1, 3, 0) and graphs() == 1
+    from smdm_plugin.families.mdm.upstream_guidance import compile_guidance
+    assert compile_guidance(wrapper) is g and wrapper._compiled_call_impl is guided   # patch + hook: once
+    assert s.compiled_calls == 0                                  # the model: only traced inside
 
 
 def test_text_given_as_strings_is_encoded_before_the_graph():
@@ -352,6 +417,38 @@ def test_mdm_integration_compiles_dense_models_and_records_the_setting(tmp_path,
     base = next(g for g in p._action_groups if g.title == "base")
     assert [a.dest for a in base._group_actions] == ["sparse_compile"]
     assert p.parse_args(["--sparse_compile", "default"]).sparse_compile == "default"
+
+
+def test_mdm_integration_captures_a_training_runs_whole_loss_step(tmp_path, capsys):
+    """With the diffusion that ``create_model_and_diffusion`` built, a training run (one process)
+    also compiles ``diffusion.training_losses`` whole, in place, and ``args.json`` states that
+    setting (``...; training step: loss forward and backward``); a sampling run (``model_path``)
+    leaves the diffusion as it is."""
+    from smdm_plugin.families.mdm.upstream import sparsify_mdm
+
+    (tmp_path / "args.json").write_text(json.dumps({"seed": 10}))
+    args = argparse.Namespace(sparse=False, sparse_compile="default", save_dir=str(tmp_path), model_path=None,
+                              overwrite=False)
+    model, diffusion = TinyMDM(njoints=D, cond_mode="no_cond", **TINY), SimpleDiffusion(20)
+    sparsify_mdm(model, args, None, diffusion)
+    step = C.compile_setting(diffusion.training_losses)
+    assert step is not None and step.captures == C.CAPTURES_TRAIN and C.compile_setting(model).captures == C.CAPTURES_MODEL
+    assert json.loads((tmp_path / "args.json").read_text())["sparse_compile_applied"] == step.describe()
+    assert "the training step runs torch.compile" in capsys.readouterr().err
+    x, t = torch.randn(4, D, 1, N), torch.tensor([3, 7, 11, 19])
+    y = {"mask": torch.ones(4, 1, 1, N, dtype=torch.bool), "lengths": torch.full((4,), N)}
+    for _ in range(3):
+        torch.manual_seed(0)
+        got = diffusion.training_losses(model, x, t, model_kwargs={"y": y})["loss"]
+        torch.manual_seed(0)
+        want = SimpleDiffusion.training_losses(diffusion, model, x, t, {"y": y})["loss"]
+        assert torch.allclose(got, want, atol=1e-6)
+    assert (step.warm_calls, step.compiled_calls, step.recompiles) == (1, 2, 0)
+
+    sampling = SimpleDiffusion(20)
+    sparsify_mdm(TinyMDM(njoints=D, cond_mode="no_cond", **TINY), argparse.Namespace(
+        sparse=False, sparse_compile="default", save_dir=None, model_path="m.pt"), None, sampling)
+    assert "training_losses" not in vars(sampling)
 
 
 def test_bert_text_tokens_padded_to_a_bucket_change_nothing():

@@ -116,6 +116,51 @@ def test_whole_sampling_loop_replays_one_step_graph_and_equals_p_sample_loop(fam
     assert torch.allclose(got, want, rtol=1e-4, atol=1e-4)
 
 
+@pytest.mark.parametrize("arch", ["trans_enc", "dip"])
+def test_upstream_training_losses_compiled_whole_equal_eager_with_upstream_noise_draws(arch):
+    """``--sparse_compile`` in an upstream training run (``compile_training_losses`` with MDM's
+    ``loss_preparer``): ``diffusion.training_losses(model, x, t, model_kwargs=...)`` as upstream's
+    loop calls it, replaced in place: one graph over other batches and timesteps,
+    loss and gradients equal to eager, and the global RNG drawn as eager draws it (upstream's
+    noise, drawn before the graph; a given ``noise`` draws nothing)."""
+    from smdm_plugin.families.mdm.prepare import loss_preparer
+
+    model, ref, diffusion, work = build("mdm", arch)
+    eager_losses = diffusion.training_losses
+    traced = []
+
+    def backend(gm, example_inputs):               # aot_eager, the graph's ops recorded
+        traced.extend(str(node.target) for node in gm.graph.nodes)
+        return torch._dynamo.lookup_backend(BACKEND)(gm, example_inputs)
+
+    compiled = C.compile_training_losses(diffusion, model, "default", prepare=loss_preparer(model), backend=backend)
+    assert diffusion.training_losses is compiled and compiled.setting.captures == C.CAPTURES_TRAIN
+    model.train(), ref.train()
+    for i in range(4):
+        data = batch(work, arch, seed=i)
+        t = (torch.tensor([17, 1, 9]) + 5 * i) % T
+        given = torch.randn(data.x.shape) if i == 3 else None
+        torch.manual_seed(100 + i)
+        got = diffusion.training_losses(model, data.x, t, model_kwargs=work.kwargs(data), noise=given)["loss"].mean()
+        after_compiled = torch.rand(4)
+        torch.manual_seed(100 + i)
+        with static_mode():
+            want = eager_losses(ref, data.x, t, work.kwargs(data), noise=given)["loss"].mean()
+        assert torch.equal(torch.rand(4), after_compiled), i           # the same draws, no more
+        got.backward(), want.backward()
+        assert torch.allclose(got, want, rtol=1e-5, atol=1e-6), i
+        for (name, p), q in zip(model.named_parameters(), ref.parameters()):
+            if p.grad is not None:
+                assert torch.allclose(p.grad, q.grad, rtol=1e-4, atol=1e-6), (i, name)
+        model.zero_grad(), ref.zero_grad()
+    s = compiled.setting
+    assert (s.warm_calls, s.compiled_calls, s.recompiles) == (1, 3, 0) and graphs() == 1
+    assert traced and not [op for op in traced if "rand" in op], traced   # no draw in the graph
+    again = C.compile_training_losses(diffusion, model, "default", prepare=loss_preparer(model), backend=BACKEND)
+    assert again.fn is compiled.fn                         # compiled again: the same function, not nested
+    assert C.compile_training_losses(diffusion, model, "none", prepare=loss_preparer(model)) is None
+
+
 def test_none_returns_the_function_and_fused_adamw_only_when_captured_on_cuda():
     fn = lambda x: x  # noqa: E731
     assert C.compile_function(fn, "none") is fn and C.compile_setting(fn) is None

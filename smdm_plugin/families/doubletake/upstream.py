@@ -134,7 +134,7 @@ def _patch_model_util(mod) -> None:
             model, diffusion = original(args, data, *a, **kw)
             if getattr(args, "sparse", False) or getattr(args, "sparse_preset", None):
                 sparsify_priormdm(model, args, data, diffusion)
-            apply_compile(model, args)  # --sparse_compile, dense or sparse (none: nothing)
+            apply_compile(model, args, diffusion=diffusion)  # --sparse_compile (none: nothing)
             return model, diffusion
         return create_model_and_diffusion
 
@@ -142,16 +142,19 @@ def _patch_model_util(mod) -> None:
 
 
 def install_hooks() -> None:
-    """Wrap priorMDM's ``utils.parser_util.add_model_options`` and
-    ``utils.model_util.create_model_and_diffusion`` as they are imported (idempotent; a checkout
+    """Wrap priorMDM's ``utils.parser_util.add_model_options``,
+    ``utils.model_util.create_model_and_diffusion`` and ``model.cfg_sampler.ClassifierFreeSampleModel``
+    as they are imported (idempotent; a checkout
     that already carries ``patches/priormdm.patch`` is not sparsified twice)."""
     from ...integrations._hooks import on_import
     from ...integrations.messages import show_plugin_warnings
+    from ..mdm.upstream_guidance import install_hooks as install_guidance_hooks
 
     show_plugin_warnings()
     on_import("utils.parser_util", patch_model_options)
     on_import("utils.parser_util", patch_base_options)
     on_import("utils.model_util", _patch_model_util)
+    install_guidance_hooks("model.cfg_sampler")     # --sparse_compile: both guidance passes, one graph
 
 
 def is_priormdm_repo(path: str) -> bool:

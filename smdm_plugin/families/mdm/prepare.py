@@ -119,6 +119,39 @@ def prepare_mdm(model: nn.Module, args: tuple, kwargs: dict) -> Tuple[tuple, dic
     return _join_call(args, kwargs, x, t, y)
 
 
+#: upstream's ``GaussianDiffusion.training_losses`` parameters, in order (MDM, DiP, priorMDM)
+LOSS_PARAMETERS = ("model", "x_start", "t", "model_kwargs", "noise", "dataset")
+
+
+def loss_preparer(model: nn.Module) -> Callable[[tuple, dict], Tuple[tuple, dict]]:
+    """``prepare(args, kwargs)`` of a call ``diffusion.training_losses(model, x_start [B, J, F, N],
+    t [B], model_kwargs={'y': y}, noise=None, dataset=None)`` (MDM's, DiP's, priorMDM's) for
+    :func:`~smdm_plugin.runtime.compile.compile_training_losses`: ``y`` prepared as ``model``'s
+    call (:func:`prepare_mdm`: text encoded, strings dropped) and, when no ``noise`` is given,
+    upstream's noise drawn here, eagerly, as its first draw there is (``torch.randn_like(x_start)``:
+    the same numbers as a run without the flag, whatever the backend does with random ops in a
+    graph). A call of another shape is left as it is."""
+    def prepare(args: tuple, kwargs: dict) -> Tuple[tuple, dict]:
+        if len(args) > len(LOSS_PARAMETERS) or not set(kwargs) <= set(LOSS_PARAMETERS):
+            return args, kwargs
+        bound = dict(zip(LOSS_PARAMETERS, args))
+        if set(bound) & set(kwargs):
+            return args, kwargs
+        bound.update(kwargs)
+        x, t, model_kwargs = bound.get("x_start"), bound.get("t"), bound.get("model_kwargs")
+        if not isinstance(x, torch.Tensor) or not isinstance(model_kwargs, dict) \
+                or not isinstance(model_kwargs.get("y"), dict):
+            return args, kwargs
+        (x, t, y), _ = prepare_mdm(model, (x, t, model_kwargs["y"]), {})
+        bound.update(x_start=x, t=t, model_kwargs={**model_kwargs, "y": y})
+        if bound.get("noise") is None:
+            bound["noise"] = torch.randn_like(x)
+        first = bound.pop("model")
+        return (first,), bound
+
+    return prepare
+
+
 class MDMPreparer(CallPreparer):
     """:func:`prepare_mdm`; a compiled model's ``encode_text`` passes features already computed
     through (forwards that always call ``encode_text(y['text'])``)."""

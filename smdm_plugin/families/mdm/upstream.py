@@ -99,7 +99,7 @@ def sparsify_mdm(model: Any, args: Any, data: Any = None, diffusion: Any = None,
     config = start.config
     if config.enabled and not is_sparse(model):  # sparse already: patch + launcher together
         _sparsify(model, args, data, diffusion, config, start)
-    apply_compile(model, args)
+    apply_compile(model, args, diffusion=diffusion)
     return model
 
 
@@ -189,16 +189,28 @@ def _sparsify(model: Any, args: Any, data: Any, diffusion: Any, config: SparseCo
         record_origin(args, os.path.join(save_dir, "args.json"))
 
 
-def apply_compile(model: Any, args: Any, options_file: Optional[str] = None) -> Any:
+def apply_compile(model: Any, args: Any, options_file: Optional[str] = None, diffusion: Any = None) -> Any:
     """``--sparse_compile`` (docs/compile.md): compile the model just built, dense or sparse, once,
-    in place (``none`` / absent: nothing happens). The setting that applies is printed and, when
-    training, written to ``args.json`` (``sparse_compile_applied``; ``options_file`` overrides
-    where). Returns the :class:`~smdm_plugin.runtime.compile.CompileSetting` or None."""
+    in place (``none`` / absent: nothing happens); when training with ``diffusion`` (one process:
+    not under ``torchrun``, where DDP wraps the model and the model call is what is compiled) also
+    the whole training step, ``diffusion.training_losses`` (its loss forward and backward). The
+    setting that applies is printed and, when training, written to ``args.json``
+    (``sparse_compile_applied``; ``options_file`` overrides where). Returns the
+    :class:`~smdm_plugin.runtime.compile.CompileSetting` or None."""
     from ...integrations._files import compile_upstream
 
-    if options_file is None and _is_training(args) and os.path.isdir(args.save_dir):
+    training = _is_training(args)
+    if options_file is None and training and os.path.isdir(args.save_dir):
         options_file = os.path.join(args.save_dir, "args.json")
-    return compile_upstream(model, args, options_file)
+    losses = None
+    if training and diffusion is not None and hasattr(diffusion, "training_losses"):
+        from .upstream_train import active
+
+        if not active():
+            from .prepare import loss_preparer
+
+            losses = (diffusion, loss_preparer(model))
+    return compile_upstream(model, args, options_file, losses=losses)
 
 
 def check_mdm_state_dict(model: Any, state_dict: Any, model_path: Optional[str] = None) -> None:
@@ -279,10 +291,12 @@ def install_hooks() -> None:
     ``create_model_and_diffusion`` / ``load_model_wo_clip`` as they are imported (idempotent).
     Modules that do ``from utils.model_util import create_model_and_diffusion`` get the wrapped
     function because the wrap happens right after ``utils.model_util`` executes. Then the
-    extensions: text encoders (:mod:`.upstream_text`), multi-process training (:mod:`.upstream_train`),
+    extensions: the guidance wrapper compiled whole (:mod:`.upstream_guidance`), text encoders
+    (:mod:`.upstream_text`), multi-process training (:mod:`.upstream_train`),
     keyframe in-betweening in ``sample.edit`` (:mod:`.upstream_edit`); the plugin's warnings shown as
     ``smdm:`` lines (:mod:`smdm_plugin.integrations.messages`)."""
-    from . import upstream_edit as mdm_edit, upstream_text as mdm_text, upstream_train as mdm_train
+    from . import upstream_edit as mdm_edit, upstream_guidance as mdm_guidance, upstream_text as mdm_text
+    from . import upstream_train as mdm_train
     from ...integrations._hooks import on_import
     from ...integrations.messages import show_plugin_warnings
 
@@ -290,6 +304,8 @@ def install_hooks() -> None:
     on_import("utils.parser_util", patch_model_options)
     on_import("utils.parser_util", patch_base_options)
     on_import("utils.model_util", _patch_model_util)
+    mdm_guidance.install_hooks("utils.sampler_util")    # (older checkouts: model.cfg_sampler)
+    mdm_guidance.install_hooks("model.cfg_sampler")
     for extension in (mdm_text, mdm_train, mdm_edit):
         extension.install_hooks()
 
