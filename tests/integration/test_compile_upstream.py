@@ -11,15 +11,17 @@ graph).
   (``diffusion.training_losses``, forward and backward, the model's call inside): one graph, zero recompiles,
   the same weights as an eager run on the static-shape path (``static_mode``: what runs on a GPU;
   the CPU's eager default packs keyframes differently, so its dropout draws differ), the setting
-  in ``args.json``, no ``_orig_mod.`` key in the checkpoint; ``sample.generate`` (classifier-free
-  guidance: 2 calls per step) from it: one graph, zero recompiles, samples equal to eager;
-  ``sample.edit`` (in-betweening: forced keyframes, a graph break at their host count): zero
-  recompiles, equal to eager. DiP: training (the whole loss step) and autoregressive sampling,
-  zero recompiles. Under ``torchrun`` (2 ranks): the model call, compiled inside DDP.
-* MDM through the patch: training and ``eval.eval_humanml``, zero recompiles, finite FID.
+  in ``args.json``, no ``_orig_mod.`` key in the checkpoint; ``sample.generate`` from it: the
+  guidance wrapper's call whole (both passes and their combination, one call per step): one
+  graph, zero recompiles, samples equal to eager; ``sample.edit`` (in-betweening: forced
+  keyframes, a graph break at their host count): zero recompiles, equal to eager. DiP: training
+  (the whole loss step) and autoregressive guided sampling (whole), zero recompiles. Under
+  ``torchrun`` (2 ranks): the model call, compiled inside DDP.
+* MDM through the patch: training and ``eval.eval_humanml`` (guided calls whole), zero
+  recompiles, finite FID.
 * priorMDM (patch): training compiled, the whole loss step (zero recompiles, ``args.json``);
-  DoubleTake, both takes, both guidance passes: zero recompiles after each take's first call, the unfolded sample equal
-  to eager.
+  DoubleTake, both takes, guided calls whole: zero recompiles after each take's first call, the
+  unfolded sample equal to eager.
 * MotionDiffuse (patch): a sparse MotionTransformer trains compiled: zero recompiles, ``opt.txt``
   states the setting, losses equal to eager within float tolerance (dropout 0 there).
 """
@@ -46,8 +48,26 @@ def stats(path: str) -> dict:
     return data
 
 
+def ran(data: dict) -> list:
+    """The compiled functions that ran (a training run also builds upstream's guidance wrapper for
+    its evaluations: compiled, not called; a whole step's model runs only inside it)."""
+    return [m for m in data["models"] if m["warm_calls"] + m["compiled_calls"] + m["eager_calls"] > 0]
+
+
+def entry(data: dict, name: str) -> dict:
+    found = [m for m in data["models"] if m["name"] == name]
+    assert len(found) == 1, data
+    return found[0]
+
+
+def model_call(data: dict) -> dict:
+    found = [m for m in data["models"] if m["captures"] == "model call"]
+    assert len(found) == 1, data
+    return found[0]
+
+
 def assert_no_recompiles(data: dict, phases: int) -> None:
-    m = data["models"][-1]
+    m = ran(data)[-1]
     assert m["recompiles"] == 0 and m["eager_calls"] == 0, data
     assert m["phases"] == phases and m["warm_calls"] == phases, data        # each phase's first call: eager
     if m["fullgraph"]:
@@ -58,11 +78,26 @@ def assert_whole_training_step(data: dict, steps: int = None) -> None:
     """A one-process training run captured its loss step whole: the last compiled function is
     ``diffusion.training_losses`` (one graph, the model's call traced inside it, and run eagerly
     inside the step's first, eager call: never a call of its own), ``steps`` loss calls when given."""
-    step, model = data["models"][-1], data["models"][-2]
-    assert step["name"] == "training_losses" and step["captures"] == "training step: loss forward and backward", data
+    step, model = entry(data, "training_losses"), model_call(data)
+    assert ran(data) == [step] and step["captures"] == "training step: loss forward and backward", data
     assert model["compiled_calls"] == model["warm_calls"] == model["phases"] == 0, data
     if steps is not None:
         assert step["warm_calls"] + step["compiled_calls"] == steps, step
+
+
+def assert_guided_whole(data: dict, calls: int = None) -> dict:
+    """A sampling run captured its guided calls whole: the last compiled function is upstream's
+    ``ClassifierFreeSampleModel`` (both passes and their combination, one graph per phase; the
+    model's call traced inside it, never a call of its own), zero recompiles, ``calls`` calls when
+    given. Returns its counters."""
+    guided, model = entry(data, "ClassifierFreeSampleModel"), model_call(data)
+    assert ran(data) == [guided], data
+    assert guided["captures"] == "guided sampling call: every guidance pass", data
+    assert guided["recompiles"] == 0 and guided["eager_calls"] == 0, data
+    assert model["compiled_calls"] == model["warm_calls"] == 0, data
+    if calls is not None:
+        assert guided["warm_calls"] + guided["compiled_calls"] == calls, guided
+    return guided
 
 
 # --------------------------------------------------------------------------- MDM (smdm run)
@@ -115,8 +150,7 @@ def test_mdm_trains_20_steps_and_samples_compiled(upstream_copy, tmp_path, monke
         if mode == "default":
             data = stats(st)
             assert_no_recompiles(data, phases=1)
-            m = data["models"][-1]
-            assert m["warm_calls"] + m["compiled_calls"] == 2 * 20    # both guidance passes, 20 steps
+            assert_guided_whole(data, calls=20)                  # 20 steps, both guidance passes in each
     assert np.allclose(samples["default"], samples["none"], atol=1e-4)
 
     edits = {}                       # sample.edit in_between: the kept frames are forced keyframes
@@ -128,8 +162,7 @@ def test_mdm_trains_20_steps_and_samples_compiled(upstream_copy, tmp_path, monke
                                     "--num_repetitions", "1", "--edit_mode", "in_between", "--text_condition",
                                     "a person walks", "--sparse_compile", mode], launcher=True)
         edits[mode] = np.load(os.path.join(out, "results.npy"), allow_pickle=True).item()["motion"]
-    m = stats(st)["models"][-1]
-    assert m["recompiles"] == 0 and m["eager_calls"] == 0 and m["warm_calls"] + m["compiled_calls"] == 2 * 20, m
+    assert_guided_whole(stats(st), calls=20)
     assert np.allclose(edits["default"], edits["none"], atol=1e-4)
 
 
@@ -156,7 +189,7 @@ def test_mdm_torchrun_compiled_inside_ddp(upstream_copy, tmp_path, monkeypatch):
     for r in (0, 1):
         data = stats(str(tmp_path / f"rank{r}.json"))
         assert_no_recompiles(data, phases=1)
-        assert [m["captures"] for m in data["models"]] == ["model call"], data    # DDP: the model call only
+        assert [m["captures"] for m in ran(data)] == ["model call"], data         # DDP: the model call only
 
 
 # --------------------------------------------------------------------------- priorMDM DoubleTake
@@ -199,8 +232,7 @@ def test_doubletake_samples_compiled(tmp_path, monkeypatch):
         if mode == "default":
             data = stats(st)
             assert_no_recompiles(data, phases=2)                  # first take, second take
-            m = data["models"][-1]
-            assert m["warm_calls"] + m["compiled_calls"] == 2 * P.DT_STEPS + 2 * (P.DT_STEPS - P.SKIP), m
+            assert_guided_whole(data, calls=P.DT_STEPS + (P.DT_STEPS - P.SKIP))   # both takes
     assert np.allclose(motions["default"], motions["none"], atol=1e-4)
 
 
@@ -264,8 +296,7 @@ def test_mdm_patch_trains_and_evaluates_compiled(tmp_path, monkeypatch):
     monkeypatch.setenv("SMDM_COMPILE_STATS", st)
     proc = E.harness(repo, ["--model_path", ckpt, "--eval_mode", "debug", "--sparse_compile", "default"], code=E.EVAL)
     assert "EVAL_MODEL_SPARSE=True" in proc.stdout + proc.stderr
-    m = stats(st)["models"][-1]
-    assert m["recompiles"] == 0 and m["compiled_calls"] > 0, m
+    assert assert_guided_whole(stats(st))["compiled_calls"] > 0
     text = open(glob.glob(os.path.join(save, "eval_humanml_*_debug.log"))[0]).read()
     fids = [float(v) for v in re.findall(r"\[vald\] FID: ([-0-9.eE+naninf]+)", text)]
     assert fids and all(np.isfinite(fids)), text[-2000:]
@@ -295,4 +326,5 @@ def test_dip_trains_and_samples_autoregressively_compiled(upstream_copy, tmp_pat
                             launcher=True)
         samples[mode] = res["motion"]
     assert_no_recompiles(stats(st), phases=1)
+    assert_guided_whole(stats(st))
     assert np.allclose(samples["default"], samples["none"], atol=1e-4)
