@@ -207,8 +207,12 @@ def apply_compile(model: Any, args: Any, options_file: Optional[str] = None, dif
         from .upstream_train import active
 
         if not active():
+            from ...runtime.compile import check_compile_mode
             from .prepare import loss_preparer
+            from .upstream_tables import tables_on_device
 
+            if check_compile_mode(getattr(args, "sparse_compile", None)) != "none":
+                tables_on_device(diffusion)     # the step's graph reads device tables, not CPU arrays
             losses = (diffusion, loss_preparer(model))
     return compile_upstream(model, args, options_file, losses=losses)
 
