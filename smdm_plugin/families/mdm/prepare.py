@@ -128,9 +128,9 @@ def loss_preparer(model: nn.Module) -> Callable[[tuple, dict], Tuple[tuple, dict
     t [B], model_kwargs={'y': y}, noise=None, dataset=None)`` (MDM's, DiP's, priorMDM's) for
     :func:`~smdm_plugin.runtime.compile.compile_training_losses`: ``y`` prepared as ``model``'s
     call (:func:`prepare_mdm`: text encoded, strings dropped) and, when no ``noise`` is given,
-    upstream's noise drawn here, eagerly, as its first draw there is (``torch.randn_like(x_start)``:
-    the same numbers as a run without the flag, whatever the backend does with random ops in a
-    graph). A call of another shape is left as it is."""
+    upstream's noise drawn here, eagerly, by torch's generator (``torch.randn_like(x_start)``,
+    upstream's first draw there), not by the graph's random-number code. A call of another shape is
+    left as it is."""
     def prepare(args: tuple, kwargs: dict) -> Tuple[tuple, dict]:
         if len(args) > len(LOSS_PARAMETERS) or not set(kwargs) <= set(LOSS_PARAMETERS):
             return args, kwargs
