@@ -1,6 +1,7 @@
 """Graph capture with one flag: ``--sparse_compile {none,default,reduce-overhead}`` (docs/compile.md)."""
 from __future__ import annotations
 
+import threading
 import warnings
 from dataclasses import dataclass
 from typing import Any, Callable, Dict, List, Optional, Tuple
@@ -198,9 +199,14 @@ def _none() -> None:
     return None
 
 
-#: how many compiled functions are running eagerly (a phase's first call, a call outside the static
-#: batch) on this thread's stack: compiled functions they call run eagerly as well
-_EAGER_OUTER = [0]
+class _EagerDepth(threading.local):
+    """How many compiled functions are running eagerly (a phase's first call, a call outside the
+    static batch) on this thread's stack: compiled functions they call run eagerly as well."""
+
+    depth = 0
+
+
+_EAGER_OUTER = _EagerDepth()
 
 
 class CompiledFunction:
@@ -240,11 +246,11 @@ class CompiledFunction:
     def _eager(self, args: tuple, kwargs: dict) -> Any:
         """``fn`` run eagerly, and compiled functions it calls (a compiled model) eagerly too: their
         calls belong to this one's graph, and would otherwise capture one of their own."""
-        _EAGER_OUTER[0] += 1
+        _EAGER_OUTER.depth += 1
         try:
             return self._run(*args, **kwargs)
         finally:
-            _EAGER_OUTER[0] -= 1
+            _EAGER_OUTER.depth -= 1
 
     def _phase(self, x: torch.Tensor, fullgraph: bool) -> tuple:
         training = None if self.model is None else self.model.training
@@ -277,7 +283,7 @@ class CompiledFunction:
     def __call__(self, *args: Any, **kwargs: Any) -> Any:
         from ..core.checks import compiling, static_mode   # here: a flag-off run loads only the options
 
-        if compiling() or _EAGER_OUTER[0]:           # inside an outer compiled function: one graph
+        if compiling() or _EAGER_OUTER.depth:        # inside an outer compiled function: one graph
             return self._run(*args, **kwargs)        # (or that function's eager call: eager too)
         if self.prepare is not None:
             args, kwargs = self.prepare(args, kwargs)
@@ -317,16 +323,9 @@ class CompiledFunction:
         return (_none, ())
 
 
-class _CompiledCall(CompiledFunction):
-    """What ``model.__call__`` runs once compiled (``nn.Module._compiled_call_impl``): the module's
-    ``_call_impl`` (hooks included), each call prepared by its family's :class:`CallPreparer`;
-    calls carrying forced keyframes without a bound are a phase of their own, traced with a graph
-    break."""
-
-    def __init__(self, model: nn.Module, setting: CompileSetting, preparer: CallPreparer) -> None:
-        self.preparer = preparer
-        super().__init__(model._call_impl, setting, model,
-                         lambda args, kwargs: preparer.prepare(model, args, kwargs))
+class _ModelCalls(CompiledFunction):
+    """A compiled function over a model's calls: calls carrying forced keyframes without a bound
+    are a phase of their own, traced with a graph break (their count is read on the host)."""
 
     def _fullgraph(self, args: tuple, kwargs: dict) -> bool:
         # forced keyframes (sample.edit, in-betweening) without a bound are counted on the host once
@@ -334,14 +333,14 @@ class _CompiledCall(CompiledFunction):
         return self.setting.fullgraph and not _reads_forced(args, kwargs)
 
 
-class _WrapperCall(CompiledFunction):
-    """What a wrapper module's ``__call__`` runs once :func:`compile_wrapper_call` compiled it
-    (``nn.Module._compiled_call_impl``): ``fn`` over the prepared call, the wrapped ``model``'s
-    calls traced inline; calls carrying forced keyframes without a bound trace with a graph break
-    (as :class:`_CompiledCall`'s)."""
+class _CompiledCall(_ModelCalls):
+    """What ``model.__call__`` runs once compiled (``nn.Module._compiled_call_impl``): the module's
+    ``_call_impl`` (hooks included), each call prepared by its family's :class:`CallPreparer`."""
 
-    def _fullgraph(self, args: tuple, kwargs: dict) -> bool:
-        return self.setting.fullgraph and not _reads_forced(args, kwargs)
+    def __init__(self, model: nn.Module, setting: CompileSetting, preparer: CallPreparer) -> None:
+        self.preparer = preparer
+        super().__init__(model._call_impl, setting, model,
+                         lambda args, kwargs: preparer.prepare(model, args, kwargs))
 
 
 # --------------------------------------------------------------------------- entry points
@@ -445,7 +444,7 @@ def compile_wrapper_call(wrapper: nn.Module, model: nn.Module, fn: Callable,
         return None
     setting = CompileSetting(requested=inner.requested, mode=inner.mode, backend=inner.backend,
                              fullgraph=inner.fullgraph, note=inner.note, captures=captures)
-    wrapper._compiled_call_impl = _WrapperCall(fn, setting, _inner(model), prepare)
+    wrapper._compiled_call_impl = _ModelCalls(fn, setting, _inner(model), prepare)
     return setting
 
 
