@@ -16,7 +16,8 @@ graph).
   graph, zero recompiles, samples equal to eager; ``sample.edit`` (in-betweening: forced
   keyframes, a graph break at their host count): zero recompiles, equal to eager. DiP: training
   (the whole loss step) and autoregressive guided sampling (whole), zero recompiles. Under
-  ``torchrun`` (2 ranks): the model call, compiled inside DDP.
+  ``torchrun`` (2 ranks): the model call, compiled inside DDP. A dense MDM: its whole loss step,
+  zero recompiles.
 * MDM through the patch: training and ``eval.eval_humanml`` (guided calls whole), zero
   recompiles, finite FID.
 * priorMDM (patch): training compiled, the whole loss step (zero recompiles, ``args.json``);
@@ -164,6 +165,30 @@ def test_mdm_trains_20_steps_and_samples_compiled(upstream_copy, tmp_path, monke
         edits[mode] = np.load(os.path.join(out, "results.npy"), allow_pickle=True).item()["motion"]
     assert_guided_whole(stats(st), calls=20)
     assert np.allclose(edits["default"], edits["none"], atol=1e-4)
+
+
+@pytest.mark.skipif(not MDM_ROOT, reason="SMDM_MDM_ROOT not set (an MDM checkout)")
+def test_mdm_dense_trains_its_whole_step_compiled(upstream_copy, tmp_path, monkeypatch):
+    """The A/B's other side: a dense MDM (no ``--sparse``) with ``--sparse_compile`` captures its
+    whole loss step too (``fullgraph=False`` for dense models): zero recompiles, ``args.json``
+    states it, the checkpoint loads into upstream's dense model (no ``_orig_mod.`` keys)."""
+    import test_mdm_upstream as M
+
+    repo = upstream_copy(MDM_ROOT, "mdm_compile_dense")
+    for k, v in COMPILE_ENV.items():
+        monkeypatch.setenv(k, v)
+    st = str(tmp_path / "train.json")
+    monkeypatch.setenv("SMDM_COMPILE_STATS", st)
+    save = str(tmp_path / "dense")
+    _, ckpt = M.train(repo, save, "trans_enc", 6, extra=["--sparse_compile", "default"], launcher=True)
+    data = stats(st)
+    assert_no_recompiles(data, phases=1)
+    assert_whole_training_step(data, steps=7)                     # --num_steps 6: 7 steps (MDM's loop)
+    assert entry(data, "training_losses")["fullgraph"] is False
+    applied = json.load(open(os.path.join(save, "args.json")))["sparse_compile_applied"]
+    assert applied == "torch.compile default (aot_eager, fullgraph=False; training step: loss forward and backward)"
+    sd = M.load_sd(ckpt)
+    assert not [k for k in sd if "_orig_mod" in k or k.startswith("smdm")], sorted(sd)[:5]
 
 
 @pytest.mark.skipif(not MDM_ROOT, reason="SMDM_MDM_ROOT not set (an MDM checkout)")
