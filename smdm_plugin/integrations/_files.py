@@ -113,27 +113,32 @@ def record_run_config(model: Any, weights_dir: str, args: Any, options_file: Opt
     return config
 
 
-def record_compile(args: Any, setting: Any, options_file: Optional[str]) -> bool:
+def record_compile(args: Any, setting: Any, options_file: Optional[str], also: Optional[str] = None) -> bool:
     """After :func:`~smdm_plugin.runtime.compile.compile_from_args`: ``sparse_compile`` and
     ``sparse_compile_applied`` (``setting.describe()``: what runs, and why it differs from what was
-    asked) into the run's options file (``args.json`` or ``opt.txt``; written by upstream before the
-    model is built). False when there is no such file or nothing to record."""
+    asked; then ``also``, when given, after ``; ``) into the run's options file (``args.json`` or
+    ``opt.txt``; written by upstream before the model is built). False when there is no such file
+    or nothing to record."""
     if setting is None or not options_file:
         return False
-    values = {"sparse_compile": getattr(args, "sparse_compile", "none"), "sparse_compile_applied": setting.describe()}
+    applied = setting.describe() + (f"; {also}" if also else "")
+    values = {"sparse_compile": getattr(args, "sparse_compile", "none"), "sparse_compile_applied": applied}
     if options_file.endswith(".txt"):
         return set_opt_entries(options_file, values)
     return set_json_entries(options_file, values)
 
 
 def compile_upstream(model: Any, args: Any, options_file: Optional[str] = None, *, device: Any = None,
-                     losses: Optional[Tuple[Any, Callable]] = None) -> Any:
+                     losses: Optional[Tuple[Any, Callable]] = None,
+                     optimizer: Optional[Callable[[], Optional[str]]] = None) -> Any:
     """``--sparse_compile`` in an upstream run (docs/compile.md), the one helper of every family's
     hooks: compile ``model`` (dense or sparse) once, in place; with ``losses`` (``(diffusion,
     prepare)``: a training run whose loss is ``diffusion.training_losses``) also the whole training
     step (:func:`~smdm_plugin.runtime.compile.compile_training_losses`). Print the setting that
     applies and write it to ``options_file`` (``args.json`` / ``opt.txt``; None: nowhere; the
-    training step's when it is captured). ``none`` / absent: nothing happens. Returns the
+    training step's when it is captured); ``optimizer`` (a training run): called once compiled,
+    returns what it changed of upstream's optimizer step (recorded after the setting) or None.
+    ``none`` / absent: nothing happens. Returns the
     :class:`~smdm_plugin.runtime.compile.CompileSetting` that applies (the training step's, when
     captured) or None."""
     import sys
@@ -151,7 +156,10 @@ def compile_upstream(model: Any, args: Any, options_file: Optional[str] = None, 
         if step is not None:
             sys.stderr.write(f"smdm: the training step runs {step.describe()}\n")
             setting = step
-    record_compile(args, setting, options_file)
+    also = optimizer() if optimizer is not None else None
+    if also:
+        sys.stderr.write(f"smdm: {also}\n")
+    record_compile(args, setting, options_file, also=also)
     return setting
 
 

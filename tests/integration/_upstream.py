@@ -80,6 +80,22 @@ def plugin_env(extra: Optional[Dict[str, str]] = None) -> Dict[str, str]:
     return env
 
 
+#: a ``sitecustomize`` that stands in for CUDA's optimizer policy on the CPU (torch's fused Adam /
+#: AdamW run on both): ``fused_optimizer_kwargs`` says fused wherever a run compiles
+FUSED_POLICY = ("import smdm_plugin.runtime.compile as C\n"
+                "C.fused_optimizer_kwargs = lambda device, mode: "
+                "{'fused': True} if C.check_compile_mode(mode) != 'none' else {}\n")
+
+
+def fused_policy_path(folder: str) -> str:
+    """``folder`` with :data:`FUSED_POLICY` as its ``sitecustomize.py``: put first on a
+    subprocess's ``PYTHONPATH``, the run takes the fused optimizer as it would on CUDA."""
+    os.makedirs(folder, exist_ok=True)
+    with open(os.path.join(folder, "sitecustomize.py"), "w") as f:
+        f.write(FUSED_POLICY)
+    return folder
+
+
 def run_logged(cmd: Sequence[str], cwd: str, env: Dict[str, str], timeout: float = 600,
                check: bool = True) -> subprocess.CompletedProcess:
     """Run a subprocess; on failure (``check``) fail the test with the tail of its output."""

@@ -39,6 +39,8 @@ import pytest
 HERE = os.path.dirname(os.path.abspath(__file__))
 sys.path.insert(0, HERE)
 
+from _upstream import fused_policy_path  # noqa: E402
+
 COMPILE_ENV = {"SMDM_COMPILE_BACKEND": "aot_eager"}
 
 
@@ -192,6 +194,53 @@ def test_mdm_dense_trains_its_whole_step_compiled(upstream_copy, tmp_path, monke
 
 
 @pytest.mark.skipif(not MDM_ROOT, reason="SMDM_MDM_ROOT not set (an MDM checkout)")
+def test_mdm_compiled_run_steps_a_fused_optimizer_across_a_resume(upstream_copy, tmp_path, monkeypatch):
+    """Where the fused optimizer applies (CUDA; here the policy stands in for it on the CPU), a
+    compiled MDM run's ``AdamW`` is fused, ``args.json`` says so, the optimizer checkpoint is fused,
+    a resume (upstream's ``--resume_checkpoint``: it loads the state and sets ``capturable``) steps
+    on fused from the saved counters, and the weights equal a run with upstream's foreach AdamW
+    (same compiled step) to float rounding."""
+    import torch
+
+    import test_mdm_upstream as M
+    from smdm_plugin.families.mdm.upstream_optim import OPTIMIZER_NOTE
+
+    repo = upstream_copy(MDM_ROOT, "mdm_compile_fused")
+    for k, v in COMPILE_ENV.items():
+        monkeypatch.setenv(k, v)
+    common = [*M.TINY, *M.ARCH["trans_enc"], "--sparse", "--sparse_compile", "default"]
+    plain_path, site = os.environ.get("PYTHONPATH", ""), fused_policy_path(str(tmp_path / "site"))
+    saves = {}
+    for name, fused in (("fused", True), ("foreach", False)):
+        monkeypatch.setenv("PYTHONPATH", site + os.pathsep + plain_path if fused else plain_path)
+        saves[name] = str(tmp_path / name)
+        M.mdm(repo, "train.train_mdm", ["--save_dir", saves[name], "--num_steps", "3", *common], launcher=True)
+        applied = json.load(open(os.path.join(saves[name], "args.json")))["sparse_compile_applied"]
+        assert applied.endswith("; " + OPTIMIZER_NOTE) == fused, applied
+    ckpt = M.latest_checkpoint(saves["fused"])
+    opt_file = os.path.join(saves["fused"], "opt" + os.path.basename(ckpt)[len("model"):])
+    groups = torch.load(opt_file, map_location="cpu", weights_only=False)["param_groups"]
+    assert groups[0]["fused"] is True
+    a, b = M.load_sd(ckpt), M.load_sd(M.latest_checkpoint(saves["foreach"]))
+    assert a.keys() == b.keys()
+    for k in a:
+        assert torch.allclose(a[k].float(), b[k].float(), atol=1e-5), k
+
+    resumed = str(tmp_path / "resumed")
+    monkeypatch.setenv("PYTHONPATH", site + os.pathsep + plain_path)
+    proc = M.mdm(repo, "train.train_mdm", ["--save_dir", resumed, "--num_steps", "6", "--resume_checkpoint", ckpt,
+                                           *common], launcher=True)
+    assert "loading optimizer state from checkpoint" in proc.stdout + proc.stderr
+    last = M.latest_checkpoint(resumed)
+    state = torch.load(os.path.join(resumed, "opt" + os.path.basename(last)[len("model"):]),
+                       map_location="cpu", weights_only=False)
+    assert state["param_groups"][0]["fused"] is True and state["param_groups"][0]["capturable"] is True
+    first = torch.load(opt_file, map_location="cpu", weights_only=False)["state"][0]["step"]
+    steps = {float(s["step"]) for s in state["state"].values()}
+    assert len(steps) == 1 and steps.pop() > float(first) > 0, (float(first), steps)   # on from the saved counters
+
+
+@pytest.mark.skipif(not MDM_ROOT, reason="SMDM_MDM_ROOT not set (an MDM checkout)")
 def test_mdm_torchrun_compiled_inside_ddp(upstream_copy, tmp_path, monkeypatch):
     """``smdm run -- torchrun --nproc_per_node 2`` (gloo): the model compiled inside MDM's DDP
     wrapper; both ranks end with identical parameters, zero recompiles on each."""
@@ -271,20 +320,33 @@ def test_motiondiffuse_trains_compiled(tmp_path, monkeypatch):
 
     if not D.DATA:
         pytest.skip("no HumanML3D-format data")
+    import torch
+
+    from smdm_plugin.families.motiondiffuse.upstream import OPTIMIZER_NOTE
+
     losses = {}
-    for mode in ("none", "default"):
+    plain_path, site = os.environ.get("PYTHONPATH", ""), fused_policy_path(str(tmp_path / "site"))
+    for name, mode in (("none", "none"), ("default", "default"), ("fused", "default")):
         for k, v in COMPILE_ENV.items():
             monkeypatch.setenv(k, v)
-        st = str(tmp_path / f"md_{mode}.json")
+        st = str(tmp_path / f"md_{name}.json")
         monkeypatch.setenv("SMDM_COMPILE_STATS", st)
-        t2m = D.prepare(str(tmp_path / f"md_{mode}"))
+        # "fused": the fused Adam as on CUDA (the policy stands in for it on the CPU)
+        monkeypatch.setenv("PYTHONPATH", site + os.pathsep + plain_path if name == "fused" else plain_path)
+        t2m = D.prepare(str(tmp_path / f"md_{name}"))
         out = D.harness(t2m, *D.train_args(3), "--sparse_compile", mode, anomaly=False)  # 21 iterations
-        losses[mode] = np.array([float(v) for v in re.findall(r"loss_mot_rec: (\S+)", out)])
+        losses[name] = np.array([float(v) for v in re.findall(r"loss_mot_rec: (\S+)", out)])
         if mode == "default":
             assert_no_recompiles(stats(st), phases=1)
-            opt = open(os.path.join(t2m, "checkpoints", "t2m", "sparse_ci", "opt.txt")).read()
-            assert "sparse_compile: default" in opt and "sparse_compile_applied: torch.compile default" in opt
-    assert len(losses["default"]) >= 20 and np.allclose(losses["default"], losses["none"], rtol=1e-3, atol=1e-5)
+            run = os.path.join(t2m, "checkpoints", "t2m", "sparse_ci")
+            applied = [ln for ln in open(os.path.join(run, "opt.txt")).read().splitlines()
+                       if ln.startswith("sparse_compile_applied: torch.compile default")]
+            assert len(applied) == 1 and applied[0].endswith("; " + OPTIMIZER_NOTE) == (name == "fused"), applied
+            groups = torch.load(os.path.join(run, "model", "latest.tar"), map_location="cpu",
+                                weights_only=False)["opt_encoder"]["param_groups"]
+            assert bool(groups[0]["fused"]) == (name == "fused"), groups[0]
+    for name in ("default", "fused"):
+        assert len(losses[name]) >= 20 and np.allclose(losses[name], losses["none"], rtol=1e-3, atol=1e-5), name
 
 
 # --------------------------------------------------------------------------- MDM eval (patch route)

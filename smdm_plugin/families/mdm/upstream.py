@@ -193,7 +193,8 @@ def apply_compile(model: Any, args: Any, options_file: Optional[str] = None, dif
     """``--sparse_compile`` (docs/compile.md): compile the model just built, dense or sparse, once,
     in place (``none`` / absent: nothing happens); when training with ``diffusion`` (one process:
     not under ``torchrun``, where DDP wraps the model and the model call is what is compiled) also
-    the whole training step, ``diffusion.training_losses`` (its loss forward and backward). The
+    the whole training step, ``diffusion.training_losses`` (its loss forward and backward), and,
+    on CUDA, upstream's optimizer step fused (:mod:`.upstream_optim`). The
     setting that applies is printed and, when training, written to ``args.json``
     (``sparse_compile_applied``; ``options_file`` overrides where). Returns the
     :class:`~smdm_plugin.runtime.compile.CompileSetting` or None."""
@@ -202,19 +203,22 @@ def apply_compile(model: Any, args: Any, options_file: Optional[str] = None, dif
     training = _is_training(args)
     if options_file is None and training and os.path.isdir(args.save_dir):
         options_file = os.path.join(args.save_dir, "args.json")
-    losses = None
+    losses = optimizer = None
     if training and diffusion is not None and hasattr(diffusion, "training_losses"):
         from .upstream_train import active
 
         if not active():
             from ...runtime.compile import check_compile_mode
             from .prepare import loss_preparer
+            from .upstream_optim import fast_optimizer_step, train_device
             from .upstream_tables import tables_on_device
 
-            if check_compile_mode(getattr(args, "sparse_compile", None)) != "none":
+            mode = check_compile_mode(getattr(args, "sparse_compile", None))
+            if mode != "none":
                 tables_on_device(diffusion)     # the step's graph reads device tables, not CPU arrays
             losses = (diffusion, loss_preparer(model))
-    return compile_upstream(model, args, options_file, losses=losses)
+            optimizer = functools.partial(fast_optimizer_step, train_device(), mode)
+    return compile_upstream(model, args, options_file, losses=losses, optimizer=optimizer)
 
 
 def check_mdm_state_dict(model: Any, state_dict: Any, model_path: Optional[str] = None) -> None:

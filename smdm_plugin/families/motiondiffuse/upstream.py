@@ -132,20 +132,63 @@ def attach_trainer(trainer: Any, config: Optional[SparseConfig] = None) -> Any:
     return trainer
 
 
+class _OptimFused:
+    """``torch.optim`` as MotionDiffuse's trainer module reads it (``optim.Adam(...)`` in
+    ``DDPMTrainer.train``), its ``Adam`` fused (:class:`~smdm_plugin.runtime.fused_optim.FusedAdam`)."""
+
+    def __init__(self) -> None:
+        from ...runtime.fused_optim import FusedAdam
+
+        self.Adam = FusedAdam
+
+    def __getattr__(self, name: str) -> Any:
+        import torch.optim
+
+        return getattr(torch.optim, name)
+
+
+#: what a training run whose Adam is fused records beside its compile setting (``opt.txt``)
+OPTIMIZER_NOTE = "optimizer step: Adam fused"
+
+
+def fuse_trainer_optimizer(trainer: Any, device: Any, mode: Any) -> Optional[str]:
+    """A compiled training run's optimizer step: where
+    :func:`~smdm_plugin.runtime.compile.fused_optimizer_kwargs` says the fused optimizer applies
+    (CUDA), the ``Adam`` that ``DDPMTrainer.train`` builds is fused (kept fused across
+    ``--is_continue``). Returns :data:`OPTIMIZER_NOTE`, or None (nothing changed)."""
+    import sys
+
+    import torch.optim
+
+    from ...runtime import compile as compile_mod
+
+    module = sys.modules.get(type(trainer).__module__)
+    if device is None or module is None or not compile_mod.fused_optimizer_kwargs(device, mode).get("fused"):
+        return None
+    if getattr(module, "optim", None) is torch.optim:
+        module.optim = _OptimFused()
+    return OPTIMIZER_NOTE if isinstance(getattr(module, "optim", None), _OptimFused) else None
+
+
 def compile_trainer(trainer: Any) -> Any:
     """``--sparse_compile`` (docs/compile.md): compile ``trainer.encoder`` (inside its DDP /
-    DataParallel wrapper), dense or sparse, once, in place; training runs write the setting that
-    applies to ``opt.txt`` (``sparse_compile``, ``sparse_compile_applied``). ``none`` / absent:
-    nothing happens. Returns the :class:`~smdm_plugin.runtime.compile.CompileSetting` or None."""
+    DataParallel wrapper), dense or sparse, once, in place; a training run's Adam fused on CUDA
+    (:func:`fuse_trainer_optimizer`); training runs write the setting that applies to ``opt.txt``
+    (``sparse_compile``, ``sparse_compile_applied``). ``none`` / absent: nothing happens. Returns
+    the :class:`~smdm_plugin.runtime.compile.CompileSetting` or None."""
     from ...integrations._files import compile_upstream
+    from ...runtime.compile import check_compile_mode
 
     opt = trainer.opt
     core = getattr(trainer.encoder, "module", trainer.encoder)
     device = getattr(trainer, "device", None) or getattr(opt, "device", None)
-    options_file = None
-    if getattr(opt, "is_train", False) and getattr(opt, "model_dir", None):
-        options_file = os.path.join(os.path.dirname(os.path.normpath(opt.model_dir)), "opt.txt")
-    return compile_upstream(core, opt, options_file, device=device)
+    options_file = optimizer = None
+    if getattr(opt, "is_train", False):
+        mode = check_compile_mode(getattr(opt, "sparse_compile", None))
+        optimizer = functools.partial(fuse_trainer_optimizer, trainer, device, mode)
+        if getattr(opt, "model_dir", None):
+            options_file = os.path.join(os.path.dirname(os.path.normpath(opt.model_dir)), "opt.txt")
+    return compile_upstream(core, opt, options_file, device=device, optimizer=optimizer)
 
 
 def add_options(parser: Any) -> Any:

@@ -1,0 +1,194 @@
+"""A captured upstream training run's optimizer step (``runtime/fused_optim.py``,
+``families/mdm/upstream_optim.py``): upstream's Adam / AdamW swapped for a fused one that stays
+fused across a resume, and MDM's logged norms read back in one host sync with upstream's values.
+torch's fused Adam(W) runs on the CPU (torch >= 2.4), so the optimizers are checked here against
+torch's foreach ones; the hooks apply only where ``fused_optimizer_kwargs`` says so (CUDA), which
+the tests stand in for."""
+from __future__ import annotations
+
+import copy
+import sys
+import types
+
+import numpy as np
+import pytest
+import torch
+
+from smdm_plugin.families.mdm import upstream_optim as U
+from smdm_plugin.runtime import compile as compile_mod
+from smdm_plugin.runtime.fused_optim import FUSED_OF, FusedAdamW
+
+PAIRS = pytest.mark.parametrize("torch_cls", list(FUSED_OF), ids=lambda c: c.__name__)
+
+
+def fused_on_cpu() -> bool:
+    try:
+        torch.optim.AdamW([torch.zeros(1, requires_grad=True)], fused=True)
+    except (RuntimeError, ValueError):
+        return False
+    return True
+
+
+needs_cpu_fused = pytest.mark.skipif(not fused_on_cpu(), reason="this torch has no fused AdamW on the CPU")
+
+KW = {"lr": 1e-2, "weight_decay": 0.01, "betas": (0.9, 0.99)}
+
+
+def params(seed: int = 0):
+    g = torch.Generator().manual_seed(seed)
+    return [torch.randn(7, 5, generator=g).requires_grad_(), torch.randn(5, generator=g).requires_grad_()]
+
+
+def run(opt, ps, steps: int, seed: int = 1) -> None:
+    g = torch.Generator().manual_seed(seed)
+    for _ in range(steps):
+        for p in ps:
+            p.grad = torch.randn(p.shape, generator=g)
+        opt.step()
+
+
+@needs_cpu_fused
+@PAIRS
+def test_fused_optimizer_steps_as_torchs(torch_cls):
+    a, b = params(), params()
+    fused, plain = FUSED_OF[torch_cls](a, **KW), torch_cls(b, **KW)
+    assert isinstance(fused, torch_cls)
+    assert fused.param_groups[0]["fused"] and not plain.param_groups[0]["fused"]
+    run(fused, a, 5)
+    run(plain, b, 5)
+    for x, y in zip(a, b):
+        assert torch.allclose(x, y, atol=1e-6, rtol=1e-5)
+        assert not torch.equal(x, params()[0] if x.dim() == 2 else params()[1])   # it moved
+
+
+@needs_cpu_fused
+@PAIRS
+def test_resuming_a_foreach_state_stays_fused_and_continues_as_torchs(torch_cls):
+    """Upstream's resume: ``load_state_dict`` of a state a foreach optimizer saved, then
+    ``param_groups[0]['capturable'] = True`` (MDM's ``_load_optimizer_state``); the steps after
+    match a foreach optimizer resumed from the same state."""
+    a = params()
+    first = torch_cls(a, **KW)
+    run(first, a, 3)
+    saved = first.state_dict()
+    assert saved["param_groups"][0]["fused"] in (None, False) and saved["state"][0]["step"].device.type == "cpu"
+    b, c = [p.detach().clone().requires_grad_() for p in a], [p.detach().clone().requires_grad_() for p in a]
+    resumed, plain = FUSED_OF[torch_cls](b, **KW), torch_cls(c, **KW)
+    resumed.load_state_dict(copy.deepcopy(saved))     # as read from a checkpoint: tensors of its own
+    plain.load_state_dict(copy.deepcopy(saved))
+    resumed.param_groups[0]["capturable"] = True
+    assert resumed.param_groups[0]["fused"] is True and resumed.param_groups[0]["foreach"] is None
+    for p in b:
+        step = resumed.state[p]["step"]
+        assert step.dtype == torch.float32 and step.device == p.device and float(step) == 3.0
+    run(resumed, b, 4, seed=2)
+    run(plain, c, 4, seed=2)
+    for x, y in zip(b, c):
+        assert torch.allclose(x, y, atol=1e-6, rtol=1e-5)
+    assert float(resumed.state[b[0]]["step"]) == 7.0
+
+
+@needs_cpu_fused
+@PAIRS
+def test_a_fused_state_resumes_in_torchs(torch_cls):
+    """A checkpoint of a fused run resumed without the flag: torch's optimizer takes the saved groups
+    (fused) and steps on."""
+    a = params()
+    fused = FUSED_OF[torch_cls](a, **KW)
+    run(fused, a, 2)
+    b = [p.detach().clone().requires_grad_() for p in a]
+    plain = torch_cls(b, **KW)
+    plain.load_state_dict(copy.deepcopy(fused.state_dict()))
+    run(plain, b, 2, seed=3)
+    run(fused, a, 2, seed=3)
+    for x, y in zip(a, b):
+        assert torch.allclose(x, y, atol=1e-6)
+
+
+@PAIRS
+def test_foreach_true_is_refused(torch_cls):
+    with pytest.raises(ValueError, match="foreach=True"):
+        FUSED_OF[torch_cls](params(), foreach=True)
+
+
+class Trainer:
+    """The part of upstream's ``MixedPrecisionTrainer`` the norms read: ``master_params``, and its
+    norms the way upstream computes them (a host sync per norm, summed in Python)."""
+
+    def __init__(self, ps):
+        self.master_params = ps
+
+    def _compute_norms(self, grad_scale=1.0):
+        grad_norm = param_norm = 0.0
+        for p in self.master_params:
+            with torch.no_grad():
+                param_norm += torch.norm(p, p=2, dtype=torch.float32).item() ** 2
+                if p.grad is not None:
+                    grad_norm += torch.norm(p.grad, p=2, dtype=torch.float32).item() ** 2
+        return np.sqrt(grad_norm) / grad_scale, np.sqrt(param_norm)
+
+
+class ScalarReads(torch.utils._python_dispatch.TorchDispatchMode):
+    """Counts ``.item()`` reads (``aten._local_scalar_dense``: a host sync on a GPU) and stacks."""
+
+    def __init__(self):
+        super().__init__()
+        self.items = self.stacks = 0
+
+    def __torch_dispatch__(self, func, types, args=(), kwargs=None):
+        self.items += func is torch.ops.aten._local_scalar_dense.default
+        self.stacks += func.overloadpacket is torch.ops.aten.stack or func.overloadpacket is torch.ops.aten.cat
+        return func(*args, **(kwargs or {}))
+
+
+@pytest.mark.parametrize("with_grads", [True, False])
+def test_norms_in_one_sync_equal_upstreams_bit_for_bit(with_grads):
+    ps = [torch.randn(64, 33) * 3, torch.randn(33), torch.randn(4, 4, 4)]
+    if with_grads:
+        for i, p in enumerate(ps[:2]):      # the last has no gradient (a frozen layer)
+            p.grad = torch.randn_like(p) * (i + 1)
+    t = Trainer(ps)
+    fast = U.norms_in_one_sync(Trainer._compute_norms)
+    with ScalarReads() as upstream_reads:
+        want = Trainer._compute_norms(t, 2.0)
+    with ScalarReads() as reads:
+        got = fast(t, 2.0)
+    assert got == want and all(type(g) is type(w) for g, w in zip(got, want))
+    assert upstream_reads.items == len(ps) + 2 * with_grads       # a read per norm upstream
+    assert reads.items == 0 and reads.stacks == 1                 # one stack, read back once by tolist
+
+
+def test_hooks_apply_only_where_the_fused_optimizer_does(monkeypatch):
+    loop = types.ModuleType(U._LOOP_MODULE)
+    loop.AdamW = torch.optim.AdamW
+    fp16 = types.ModuleType(U._FP16_MODULE)
+
+    class MixedPrecisionTrainer(Trainer):
+        pass
+
+    fp16.MixedPrecisionTrainer = MixedPrecisionTrainer
+    monkeypatch.setitem(sys.modules, U._LOOP_MODULE, loop)
+    monkeypatch.setitem(sys.modules, U._FP16_MODULE, fp16)
+    assert U.fast_optimizer_step("cpu", "default") is None                 # CPU: upstream's optimizer
+    assert U.fast_optimizer_step("cuda", "none") is None                   # no compile: upstream's
+    assert loop.AdamW is torch.optim.AdamW and MixedPrecisionTrainer._compute_norms is Trainer._compute_norms
+    assert U.fast_optimizer_step("cuda", "reduce-overhead") == U.OPTIMIZER_NOTE
+    assert loop.AdamW is FusedAdamW
+    hooked = MixedPrecisionTrainer._compute_norms
+    assert hooked is not Trainer._compute_norms and getattr(hooked, U._MARK)
+    U.fast_optimizer_step("cuda", "default")                               # twice: hooked once
+    assert MixedPrecisionTrainer._compute_norms is hooked
+
+
+def test_train_device_is_upstreams(monkeypatch):
+    dist_util = types.ModuleType("utils.dist_util")
+    dist_util.dev = lambda: torch.device("meta")
+    monkeypatch.setitem(sys.modules, "utils.dist_util", dist_util)
+    assert U.train_device() == torch.device("meta")
+    monkeypatch.delitem(sys.modules, "utils.dist_util")
+    assert U.train_device().type == ("cuda" if torch.cuda.is_available() else "cpu")
+
+
+def test_the_policy_is_the_one_smdm_train_uses():
+    assert compile_mod.fused_optimizer_kwargs("cuda", "default") == {"fused": True}
+    assert compile_mod.fused_optimizer_kwargs("cpu", "default") == {}
