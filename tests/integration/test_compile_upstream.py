@@ -196,10 +196,11 @@ def test_mdm_dense_trains_its_whole_step_compiled(upstream_copy, tmp_path, monke
 @pytest.mark.skipif(not MDM_ROOT, reason="SMDM_MDM_ROOT not set (an MDM checkout)")
 def test_mdm_compiled_run_steps_a_fused_optimizer_across_a_resume(upstream_copy, tmp_path, monkeypatch):
     """Where the fused optimizer applies (CUDA; here the policy stands in for it on the CPU), a
-    compiled MDM run's ``AdamW`` is fused, ``args.json`` says so, the optimizer checkpoint is fused,
-    a resume (upstream's ``--resume_checkpoint``: it loads the state and sets ``capturable``) steps
-    on fused from the saved counters, and the weights equal a run with upstream's foreach AdamW
-    (same compiled step) to float rounding."""
+    compiled MDM run's ``AdamW`` is fused (its norms and ``--use_ema``'s average hooked too),
+    ``args.json`` says so, the optimizer checkpoint is fused, a resume (upstream's
+    ``--resume_checkpoint``: it loads the state and sets ``capturable``) steps on fused from the
+    saved counters, and the weights and their average equal a run with upstream's optimizer step
+    (same compiled loss step) to float rounding."""
     import torch
 
     import test_mdm_upstream as M
@@ -208,7 +209,7 @@ def test_mdm_compiled_run_steps_a_fused_optimizer_across_a_resume(upstream_copy,
     repo = upstream_copy(MDM_ROOT, "mdm_compile_fused")
     for k, v in COMPILE_ENV.items():
         monkeypatch.setenv(k, v)
-    common = [*M.TINY, *M.ARCH["trans_enc"], "--sparse", "--sparse_compile", "default"]
+    common = [*M.TINY, *M.ARCH["trans_enc"], "--sparse", "--sparse_compile", "default", "--use_ema"]
     plain_path, site = os.environ.get("PYTHONPATH", ""), fused_policy_path(str(tmp_path / "site"))
     saves = {}
     for name, fused in (("fused", True), ("foreach", False)):
@@ -221,10 +222,13 @@ def test_mdm_compiled_run_steps_a_fused_optimizer_across_a_resume(upstream_copy,
     opt_file = os.path.join(saves["fused"], "opt" + os.path.basename(ckpt)[len("model"):])
     groups = torch.load(opt_file, map_location="cpu", weights_only=False)["param_groups"]
     assert groups[0]["fused"] is True
-    a, b = M.load_sd(ckpt), M.load_sd(M.latest_checkpoint(saves["foreach"]))
-    assert a.keys() == b.keys()
-    for k in a:
-        assert torch.allclose(a[k].float(), b[k].float(), atol=1e-5), k
+    a = torch.load(ckpt, map_location="cpu", weights_only=True)
+    b = torch.load(M.latest_checkpoint(saves["foreach"]), map_location="cpu", weights_only=True)
+    assert a.keys() == b.keys() == {"model", "model_avg"}                     # --use_ema: both saved
+    for part in a:
+        assert a[part].keys() == b[part].keys()
+        for k in a[part]:
+            assert torch.allclose(a[part][k].float(), b[part][k].float(), atol=1e-5), (part, k)
 
     resumed = str(tmp_path / "resumed")
     monkeypatch.setenv("PYTHONPATH", site + os.pathsep + plain_path)
@@ -238,6 +242,28 @@ def test_mdm_compiled_run_steps_a_fused_optimizer_across_a_resume(upstream_copy,
     first = torch.load(opt_file, map_location="cpu", weights_only=False)["state"][0]["step"]
     steps = {float(s["step"]) for s in state["state"].values()}
     assert len(steps) == 1 and steps.pop() > float(first) > 0, (float(first), steps)   # on from the saved counters
+
+
+@pytest.mark.skipif(not MDM_ROOT, reason="SMDM_MDM_ROOT not set (an MDM checkout)")
+def test_mdm_step_after_the_loss_host_work(upstream_copy, tmp_path):
+    """Upstream's step after the loss (the logged norms, AdamW, ``--use_ema``'s average) on its
+    own ``TrainLoop``, counted (``optimizer_step_work.py``): what a compiled run on CUDA runs
+    instead reads nothing back per tensor (0 ``.item()``; upstream: one per norm), runs a handful
+    of aten ops (upstream: thousands, a few per tensor) and logs the same norms."""
+    import test_mdm_upstream as M
+
+    repo = upstream_copy(MDM_ROOT, "mdm_step_work")
+    code = f"exec(open({os.path.join(HERE, 'optimizer_step_work.py')!r}).read())"
+    proc = M.mdm(repo, "-c", [code, "--save_dir", str(tmp_path / "save"), "--num_steps", "1", *M.TINY,
+                              *M.ARCH["trans_enc"], "--use_ema"])
+    line = [ln for ln in proc.stdout.splitlines() if ln.startswith("OPTIMIZER_STEP_WORK ")]
+    assert len(line) == 1, proc.stdout[-3000:]
+    row = json.loads(line[0].split(" ", 1)[1])
+    up, hooked = row["upstream"], row["hooked"]
+    assert row["same_norms"] and row["use_ema"], row
+    assert up["reads"] >= row["params"] + row["with_grad"] and hooked["reads"] == 0, row
+    assert hooked["ops"] <= 16 and up["ops"] >= 4 * row["params"], row
+    assert hooked["calls"] < up["calls"] / 4, row
 
 
 @pytest.mark.skipif(not MDM_ROOT, reason="SMDM_MDM_ROOT not set (an MDM checkout)")

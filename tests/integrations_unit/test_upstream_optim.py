@@ -129,21 +129,25 @@ class Trainer:
 
 
 class ScalarReads(torch.utils._python_dispatch.TorchDispatchMode):
-    """Counts ``.item()`` reads (``aten._local_scalar_dense``: a host sync on a GPU) and stacks."""
+    """Counts ``.item()`` reads (``aten._local_scalar_dense``: a host sync on a GPU), stacks, and
+    norms (one per tensor, or per list)."""
 
     def __init__(self):
         super().__init__()
-        self.items = self.stacks = 0
+        self.items = self.stacks = self.norms = self.foreach_norms = 0
 
     def __torch_dispatch__(self, func, types, args=(), kwargs=None):
         self.items += func is torch.ops.aten._local_scalar_dense.default
+        self.norms += func.overloadpacket is torch.ops.aten.linalg_vector_norm
+        self.foreach_norms += func.overloadpacket is torch.ops.aten._foreach_norm
         self.stacks += func.overloadpacket is torch.ops.aten.stack or func.overloadpacket is torch.ops.aten.cat
         return func(*args, **(kwargs or {}))
 
 
 @pytest.mark.parametrize("with_grads", [True, False])
 def test_norms_in_one_sync_equal_upstreams_bit_for_bit(with_grads):
-    ps = [torch.randn(64, 33) * 3, torch.randn(33), torch.randn(4, 4, 4)]
+    ps = [torch.randn(64, 33) * 3, torch.randn(33), torch.randn(4, 4, 4),
+          torch.randn(5, 9).half(), torch.randn(7).bfloat16()]            # MDM's frozen CLIP: float16
     if with_grads:
         for i, p in enumerate(ps[:2]):      # the last has no gradient (a frozen layer)
             p.grad = torch.randn_like(p) * (i + 1)
@@ -156,11 +160,65 @@ def test_norms_in_one_sync_equal_upstreams_bit_for_bit(with_grads):
     assert got == want and all(type(g) is type(w) for g, w in zip(got, want))
     assert upstream_reads.items == len(ps) + 2 * with_grads       # a read per norm upstream
     assert reads.items == 0 and reads.stacks == 1                 # one stack, read back once by tolist
+    assert reads.norms == 0 and reads.foreach_norms == 3 + with_grads   # per dtype (and the gradients')
+
+
+class Loop:
+    """The part of upstream's ``TrainLoop`` the EMA reads, and its EMA the way upstream updates it
+    (two ops per parameter)."""
+
+    def __init__(self, model, model_avg, use_ema=True, beta=0.9999):
+        self.model, self.model_avg, self.use_fp16 = model, model_avg, False
+        self.mp_trainer = Trainer(list(model.parameters()))
+        self.args = types.SimpleNamespace(use_ema=use_ema, avg_model_beta=beta)
+
+    def update_average_model(self):
+        if self.args.use_ema:
+            for param, avg_param in zip(self.mp_trainer.master_params, self.model_avg.parameters()):
+                avg_param.data.mul_(self.args.avg_model_beta).add_(param.data, alpha=1 - self.args.avg_model_beta)
+
+
+class OpCount(torch.utils._python_dispatch.TorchDispatchMode):
+    def __init__(self):
+        super().__init__()
+        self.ops = 0
+
+    def __torch_dispatch__(self, func, types, args=(), kwargs=None):
+        self.ops += 1
+        return func(*args, **(kwargs or {}))
+
+
+@pytest.mark.parametrize("use_ema", [True, False])
+def test_ema_in_two_ops_equals_upstreams_bit_for_bit(use_ema):
+    torch.manual_seed(0)
+    model = torch.nn.Sequential(torch.nn.Linear(9, 7), torch.nn.LayerNorm(7), torch.nn.Linear(7, 3))
+    avg = copy.deepcopy(model)
+    for p in avg.parameters():
+        p.data.add_(torch.randn_like(p))
+    avgs = [avg, copy.deepcopy(avg)]
+    ref, fast = Loop(model, avgs[0], use_ema, beta=0.9), Loop(model, avgs[1], use_ema, beta=0.9)
+    ema = U.average_in_two_ops(Loop.update_average_model)
+    before = [p.detach().clone() for p in avgs[0].parameters()]
+    for _ in range(3):
+        with OpCount() as upstream_ops:
+            Loop.update_average_model(ref)
+        with OpCount() as ops:
+            ema(fast)
+    for a, b, c in zip(avgs[0].parameters(), avgs[1].parameters(), before):
+        assert torch.equal(a, b) and torch.equal(a, c) != use_ema
+    n = len(list(model.parameters()))
+    assert ops.ops == (2 if use_ema else 0)                       # two multi-tensor ops
+    assert upstream_ops.ops >= (2 * n if use_ema else 0)          # upstream: two (and .data's) per tensor
 
 
 def test_hooks_apply_only_where_the_fused_optimizer_does(monkeypatch):
     loop = types.ModuleType(U._LOOP_MODULE)
     loop.AdamW = torch.optim.AdamW
+
+    class TrainLoop(Loop):
+        pass
+
+    loop.TrainLoop = TrainLoop
     fp16 = types.ModuleType(U._FP16_MODULE)
 
     class MixedPrecisionTrainer(Trainer):
@@ -172,8 +230,10 @@ def test_hooks_apply_only_where_the_fused_optimizer_does(monkeypatch):
     assert U.fast_optimizer_step("cpu", "default") is None                 # CPU: upstream's optimizer
     assert U.fast_optimizer_step("cuda", "none") is None                   # no compile: upstream's
     assert loop.AdamW is torch.optim.AdamW and MixedPrecisionTrainer._compute_norms is Trainer._compute_norms
+    assert TrainLoop.update_average_model is Loop.update_average_model
     assert U.fast_optimizer_step("cuda", "reduce-overhead") == U.OPTIMIZER_NOTE
     assert loop.AdamW is FusedAdamW
+    assert TrainLoop.update_average_model is not Loop.update_average_model
     hooked = MixedPrecisionTrainer._compute_norms
     assert hooked is not Trainer._compute_norms and getattr(hooked, U._MARK)
     U.fast_optimizer_step("cuda", "default")                               # twice: hooked once
