@@ -244,6 +244,56 @@ def test_mdm_compiled_run_steps_a_fused_optimizer_across_a_resume(upstream_copy,
     assert len(steps) == 1 and steps.pop() > float(first) > 0, (float(first), steps)   # on from the saved counters
 
 
+#: harness code: ``sample.generate`` with ``ARGS``, counting the numpy tables upstream's diffusion
+#: copies to the device inside ``p_sample`` (``torch.from_numpy``: one per ``_extract_into_tensor``
+#: call upstream; on CUDA a blocking copy, after which PyTorch synchronizes the stream)
+COUNT_TABLE_COPIES = """
+import atexit, runpy, sys, torch
+import diffusion.gaussian_diffusion as G
+n = {"copies": 0, "steps": 0, "inside": 0}
+_from_numpy, _p_sample = torch.from_numpy, G.GaussianDiffusion.p_sample
+def from_numpy(a):
+    n["copies"] += bool(n["inside"])
+    return _from_numpy(a)
+def p_sample(self, *a, **k):
+    n["steps"] += 1
+    n["inside"] += 1
+    try:
+        return _p_sample(self, *a, **k)
+    finally:
+        n["inside"] -= 1
+torch.from_numpy, G.GaussianDiffusion.p_sample = from_numpy, p_sample
+atexit.register(lambda: print("TABLE_COPIES", n["copies"], n["steps"], flush=True))
+sys.argv = ["generate"] + ARGS
+runpy.run_module("sample.generate", run_name="__main__")
+"""
+
+
+@pytest.mark.skipif(not MDM_ROOT, reason="SMDM_MDM_ROOT not set (an MDM checkout)")
+def test_mdm_compiled_sampling_copies_no_table_per_step(upstream_copy, tmp_path, monkeypatch):
+    """``--sparse_compile`` sampling reads upstream's schedules from device tables: upstream's
+    ``p_sample`` copies six numpy tables to the device per step (each a blocking copy and a stream
+    synchronization on CUDA); with the flag, each table once per run."""
+    import test_mdm_upstream as M
+
+    repo = upstream_copy(MDM_ROOT, "mdm_tables")
+    for k, v in COMPILE_ENV.items():
+        monkeypatch.setenv(k, v)
+    _, ckpt = M.train(repo, str(tmp_path / "save"), "trans_enc", 1, extra=["--sparse"], launcher=True)
+    counts = {}
+    for mode in ("none", "default"):
+        args = ["--model_path", ckpt, "--output_dir", str(tmp_path / f"gen_{mode}"), "--num_samples", "2",
+                "--num_repetitions", "1", "--seed", "3", *M.GEN["trans_enc"], "--sparse_compile", mode]
+        proc = M.mdm(repo, "-c", [COUNT_TABLE_COPIES.replace("ARGS", repr(args))], launcher=True)
+        line = [ln for ln in proc.stdout.splitlines() if ln.startswith("TABLE_COPIES ")]
+        assert len(line) == 1, proc.stdout[-3000:]
+        counts[mode] = tuple(int(v) for v in line[0].split()[1:])
+    (upstream, steps), (hooked, steps_hooked) = counts["none"], counts["default"]
+    assert steps == steps_hooked == 20, counts                   # --diffusion_steps 20
+    assert upstream == 6 * steps, counts                         # six per step upstream
+    assert hooked <= 6, counts                                   # each table once
+
+
 @pytest.mark.skipif(not MDM_ROOT, reason="SMDM_MDM_ROOT not set (an MDM checkout)")
 def test_mdm_step_after_the_loss_host_work(upstream_copy, tmp_path):
     """Upstream's step after the loss (the logged norms, AdamW, ``--use_ema``'s average) on its

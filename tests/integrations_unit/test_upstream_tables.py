@@ -1,4 +1,4 @@
-"""Upstream's diffusion tables on the device (``families/mdm/upstream_tables.py``): MDM's
+"""Upstream's diffusion tables on the device (``integrations/tables.py``): MDM's
 ``_extract_into_tensor`` copies a numpy table to the device at every call, which puts a CPU tensor
 into a compiled training step's graph; the hook reads a table made once per device, with the same
 values. Checked on the ``meta`` device (a stand-in for CUDA: any CPU tensor in the graph shows)."""
@@ -13,7 +13,7 @@ import torch
 
 pytest.importorskip("torch._dynamo")
 
-from smdm_plugin.families.mdm.upstream_tables import extract_from_device_table, tables_on_device  # noqa: E402
+from smdm_plugin.integrations.tables import extract_from_device_table, tables_on_device  # noqa: E402
 
 pytestmark = pytest.mark.usefixtures("fresh_dynamo")
 

@@ -194,28 +194,29 @@ def apply_compile(model: Any, args: Any, options_file: Optional[str] = None, dif
     in place (``none`` / absent: nothing happens); when training with ``diffusion`` (one process:
     not under ``torchrun``, where DDP wraps the model and the model call is what is compiled) also
     the whole training step, ``diffusion.training_losses`` (its loss forward and backward), and,
-    on CUDA, upstream's optimizer step fused (:mod:`.upstream_optim`). The
+    on CUDA, upstream's optimizer step fused (:mod:`.upstream_optim`); training and sampling, the
+    diffusion's schedules read from device tables (:mod:`smdm_plugin.integrations.tables`). The
     setting that applies is printed and, when training, written to ``args.json``
     (``sparse_compile_applied``; ``options_file`` overrides where). Returns the
     :class:`~smdm_plugin.runtime.compile.CompileSetting` or None."""
     from ...integrations._files import compile_upstream
+    from ...integrations.tables import tables_on_device
+    from ...runtime.compile import check_compile_mode
 
     training = _is_training(args)
     if options_file is None and training and os.path.isdir(args.save_dir):
         options_file = os.path.join(args.save_dir, "args.json")
     losses = optimizer = None
+    mode = check_compile_mode(getattr(args, "sparse_compile", None))
+    if diffusion is not None and mode != "none":
+        tables_on_device(diffusion)     # training: the step's graph reads device tables; sampling: no copy per step
     if training and diffusion is not None and hasattr(diffusion, "training_losses"):
         from .upstream_train import active
 
         if not active():
-            from ...runtime.compile import check_compile_mode
             from .prepare import loss_preparer
             from .upstream_optim import fast_optimizer_step, train_device
-            from .upstream_tables import tables_on_device
 
-            mode = check_compile_mode(getattr(args, "sparse_compile", None))
-            if mode != "none":
-                tables_on_device(diffusion)     # the step's graph reads device tables, not CPU arrays
             losses = (diffusion, loss_preparer(model))
             optimizer = functools.partial(fast_optimizer_step, train_device(), mode)
     return compile_upstream(model, args, options_file, losses=losses, optimizer=optimizer)

@@ -173,18 +173,22 @@ def fuse_trainer_optimizer(trainer: Any, device: Any, mode: Any) -> Optional[str
 def compile_trainer(trainer: Any) -> Any:
     """``--sparse_compile`` (docs/compile.md): compile ``trainer.encoder`` (inside its DDP /
     DataParallel wrapper), dense or sparse, once, in place; a training run's Adam fused on CUDA
-    (:func:`fuse_trainer_optimizer`); training runs write the setting that applies to ``opt.txt``
+    (:func:`fuse_trainer_optimizer`); the diffusion's schedules read from device tables
+    (:mod:`smdm_plugin.integrations.tables`); training runs write the setting that applies to ``opt.txt``
     (``sparse_compile``, ``sparse_compile_applied``). ``none`` / absent: nothing happens. Returns
     the :class:`~smdm_plugin.runtime.compile.CompileSetting` or None."""
     from ...integrations._files import compile_upstream
+    from ...integrations.tables import tables_on_device
     from ...runtime.compile import check_compile_mode
 
     opt = trainer.opt
     core = getattr(trainer.encoder, "module", trainer.encoder)
     device = getattr(trainer, "device", None) or getattr(opt, "device", None)
+    mode = check_compile_mode(getattr(opt, "sparse_compile", None))
+    if mode != "none" and getattr(trainer, "diffusion", None) is not None:
+        tables_on_device(trainer.diffusion)   # its loss and sampling steps copy no schedule per call
     options_file = optimizer = None
     if getattr(opt, "is_train", False):
-        mode = check_compile_mode(getattr(opt, "sparse_compile", None))
         optimizer = functools.partial(fuse_trainer_optimizer, trainer, device, mode)
         if getattr(opt, "model_dir", None):
             options_file = os.path.join(os.path.dirname(os.path.normpath(opt.model_dir)), "opt.txt")

@@ -1,8 +1,10 @@
-"""Upstream's diffusion tables on the model's device, made once: MDM's / priorMDM's
-``_extract_into_tensor(arr, timesteps, shape)`` copies a 1-D numpy array to ``timesteps``' device
-at every call; inside a compiled training step that array is a CPU tensor in the graph (a copy
-per step, and no CUDA graph). With the hook the copy is made once per array and device, eagerly,
-and a graph reads the device table (a static input)."""
+"""Upstream's diffusion tables on the model's device, made once: MDM's / priorMDM's /
+MotionDiffuse's ``_extract_into_tensor(arr, timesteps, shape)`` copies a 1-D numpy array to
+``timesteps``' device at every call: on CUDA a copy from pageable memory, which waits for the
+device (PyTorch synchronizes the stream after a blocking host-to-device copy), six times per
+sampling step of MDM's ``p_sample``; inside a compiled training step that array is a CPU tensor
+in the graph (a copy per step, and no CUDA graph). With the hook the copy is made once per array
+and device, eagerly, and a step (or its graph) reads the device table."""
 from __future__ import annotations
 
 import functools
