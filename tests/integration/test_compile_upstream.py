@@ -289,6 +289,7 @@ def test_mdm_compiled_sampling_copies_no_table_per_step(upstream_copy, tmp_path,
         line = [ln for ln in proc.stdout.splitlines() if ln.startswith("TABLE_COPIES ")]
         assert len(line) == 1, proc.stdout[-3000:]
         counts[mode] = tuple(int(v) for v in line[0].split()[1:])
+    print("table copies, steps (upstream, --sparse_compile):", counts["none"], counts["default"])
     (upstream, steps), (hooked, steps_hooked) = counts["none"], counts["default"]
     assert steps == steps_hooked == 20, counts                   # --diffusion_steps 20
     assert upstream == 6 * steps, counts                         # six per step upstream
