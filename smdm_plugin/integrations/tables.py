@@ -17,13 +17,17 @@ import torch
 __all__ = ["tables_on_device", "extract_from_device_table"]
 
 _MARK = "_smdm_device_tables"
+#: tables kept per hooked module (upstream's schedules: about 15 arrays, per device)
+MAX_TABLES = 64
 
 
 def extract_from_device_table(original: Callable) -> Callable:
     """``original`` (upstream's ``_extract_into_tensor``) with its numpy table kept on each device
     it is read on: ``table[timesteps]`` as float32, broadcast to ``broadcast_shape`` (the values of
     ``original``'s ``from_numpy(arr).to(device)[timesteps].float()``, expanded). The table is made
-    on an eager call; a traced call that meets a table not made yet runs ``original``."""
+    on an eager call; a traced call that meets a table not made yet runs ``original``, and so does
+    a call once :data:`MAX_TABLES` tables are kept (an array made anew at every call, as upstream's
+    ``FIXED_LARGE`` variances are, is not kept for ever)."""
     tables: Dict[Tuple[int, torch.device], Tuple[np.ndarray, torch.Tensor]] = {}
 
     @functools.wraps(original)
@@ -33,7 +37,7 @@ def extract_from_device_table(original: Callable) -> Callable:
         key = (id(arr), timesteps.device)
         entry = tables.get(key)
         if entry is None:
-            if torch.compiler.is_compiling():
+            if torch.compiler.is_compiling() or len(tables) >= MAX_TABLES:
                 return original(arr, timesteps, broadcast_shape)
             entry = tables[key] = (arr, torch.from_numpy(arr).to(device=timesteps.device))   # arr kept: its id stays its own
         res = entry[1][timesteps].float()

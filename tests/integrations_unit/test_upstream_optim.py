@@ -252,3 +252,21 @@ def test_train_device_is_upstreams(monkeypatch):
 def test_the_policy_is_the_one_smdm_train_uses():
     assert compile_mod.fused_optimizer_kwargs("cuda", "default") == {"fused": True}
     assert compile_mod.fused_optimizer_kwargs("cpu", "default") == {}
+
+
+def test_motiondiffuse_trainer_adam_is_fused_only_where_the_policy_says(monkeypatch):
+    """MotionDiffuse's ``DDPMTrainer.train`` builds ``optim.Adam`` from its module's ``optim``:
+    hooked only where the fused optimizer applies, every other name still torch's."""
+    from smdm_plugin.families.motiondiffuse.upstream import OPTIMIZER_NOTE, fuse_trainer_optimizer
+    from smdm_plugin.runtime.fused_optim import FusedAdam
+
+    mod = types.ModuleType("fake_ddpm_trainer")
+    mod.optim = torch.optim
+    trainer_cls = type("DDPMTrainer", (), {"__module__": mod.__name__})
+    monkeypatch.setitem(sys.modules, mod.__name__, mod)
+    trainer = trainer_cls()
+    assert fuse_trainer_optimizer(trainer, "cpu", "default") is None and mod.optim is torch.optim
+    assert fuse_trainer_optimizer(trainer, "cuda", "none") is None and mod.optim is torch.optim
+    assert fuse_trainer_optimizer(trainer, "cuda", "default") == OPTIMIZER_NOTE
+    assert mod.optim.Adam is FusedAdam and mod.optim.SGD is torch.optim.SGD
+    assert mod.optim.lr_scheduler is torch.optim.lr_scheduler

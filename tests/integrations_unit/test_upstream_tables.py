@@ -75,3 +75,26 @@ def test_tables_on_device_hooks_the_modules_of_the_diffusion_classes_once():
         assert torch.equal(first(np.arange(5.0), torch.tensor([4, 1]), (2,)), torch.tensor([4.0, 1.0]))
     finally:
         del sys.modules[module.__name__]
+
+
+def test_arrays_made_anew_at_every_call_are_not_kept_for_ever():
+    """Upstream's ``FIXED_LARGE`` variances are an array made at every call: past ``MAX_TABLES``
+    kept tables the hook copies as upstream does (the same values) instead of keeping each one."""
+    from smdm_plugin.integrations import tables as T
+
+    copies = []
+
+    def counting(arr, timesteps, broadcast_shape):
+        copies.append(id(arr))
+        return per_call_copy(arr, timesteps, broadcast_shape)
+
+    extract = extract_from_device_table(counting)
+    t, shape = torch.tensor([3, 0, 7]), (3, 2, 1, 4)
+    base = np.linspace(0.1, 0.9, 10)
+    for i in range(T.MAX_TABLES + 20):
+        arr = np.append(base[1:2], base[1:]) * (1 + i)                 # a new array per call
+        assert torch.equal(extract(arr, t, shape), numpy_reference(arr, t.numpy(), shape))
+    assert len(copies) == 20                     # the calls past the bound ran upstream's copy
+    keep = base.copy()
+    assert torch.equal(extract(keep, t, shape), numpy_reference(keep, t.numpy(), shape))
+    assert len(copies) == 21                     # full: a new table is not kept either

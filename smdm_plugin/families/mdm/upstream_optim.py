@@ -2,7 +2,8 @@
 one process): upstream's ``train.training_loop`` builds ``torch.optim.AdamW`` (torch's ``foreach``
 default: about a dozen multi-tensor ops per step, ``step`` counters on the host) and its
 ``MixedPrecisionTrainer._compute_norms`` (``diffusion.fp16_util``) logs the gradient and parameter
-norms with two host syncs per parameter (``.item()``: ~200 per step at MDM's size). Where the run
+norms with a host sync per norm (``.item()``: 478 per step at the paper's size, frozen CLIP
+included; docs/modules.md). Where the run
 compiles on a device with torch's fused AdamW (:func:`~smdm_plugin.runtime.compile.fused_optimizer_kwargs`):
 
 * ``AdamW`` is :class:`~smdm_plugin.runtime.fused_optim.FusedAdamW` (the update in a few fused
@@ -150,8 +151,9 @@ def _hook_fp16_util(mod: Any) -> None:
 def fast_optimizer_step(device: Any, mode: Any) -> Optional[str]:
     """Hook upstream's training loop (now, or when it is imported) for a run compiled with
     ``mode`` on ``device``: :class:`~smdm_plugin.runtime.fused_optim.FusedAdamW` for its ``AdamW``,
-    :func:`norms_in_one_sync` for its norms and :func:`average_in_two_ops` for its EMA, when :func:`~smdm_plugin.runtime.compile.fused_optimizer_kwargs` says the fused
-    optimizer applies there. Returns :data:`OPTIMIZER_NOTE`, or None (nothing hooked)."""
+    :func:`norms_in_one_sync` for its norms and :func:`average_in_two_ops` for its EMA, when
+    :func:`~smdm_plugin.runtime.compile.fused_optimizer_kwargs` says the fused optimizer applies
+    there. Returns :data:`OPTIMIZER_NOTE`, or None (nothing hooked)."""
     from ...integrations._hooks import on_import
     from ...runtime import compile as compile_mod
 
