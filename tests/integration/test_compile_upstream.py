@@ -321,19 +321,25 @@ def test_mdm_step_after_the_loss_host_work(upstream_copy, tmp_path):
 @pytest.mark.skipif(not MDM_ROOT, reason="SMDM_MDM_ROOT not set (an MDM checkout)")
 def test_mdm_torchrun_compiled_inside_ddp(upstream_copy, tmp_path, monkeypatch):
     """``smdm run -- torchrun --nproc_per_node 2`` (gloo): the model compiled inside MDM's DDP
-    wrapper; both ranks end with identical parameters, zero recompiles on each."""
+    wrapper, the optimizer step fused with ``--use_ema`` (the CUDA policy standing in on the CPU);
+    both ranks end with identical parameters, zero recompiles on each, ``args.json`` says so."""
     import torch
 
     import test_mdm_upstream as M
+    from smdm_plugin.families.mdm.upstream_optim import OPTIMIZER_NOTE
 
     repo = upstream_copy(MDM_ROOT, "mdm_compile_ddp")
     for k, v in COMPILE_ENV.items():
         monkeypatch.setenv(k, v)
+    monkeypatch.setenv("PYTHONPATH", fused_policy_path(str(tmp_path / "site")) + os.pathsep
+                       + os.environ.get("PYTHONPATH", ""))
     monkeypatch.setenv("SMDM_COMPILE_STATS", str(tmp_path / "rank{rank}.json"))
     probe = tmp_path / "probe"
     probe.mkdir()
     M.torchrun_train(repo, str(tmp_path / "save"), str(probe), "trans_enc",
-                     ["--sparse", "--sparse_compile", "default"], launcher=True)
+                     ["--sparse", "--sparse_compile", "default", "--use_ema"], launcher=True)
+    applied = json.load(open(tmp_path / "save" / "args.json"))["sparse_compile_applied"]
+    assert applied.endswith("; model call); " + OPTIMIZER_NOTE), applied
     r0, r1 = (torch.load(probe / f"rank{r}.pt", weights_only=True) for r in (0, 1))
     assert sorted(r0) == sorted(r1) and not [k for k in r0 if "_orig_mod" in k]
     for k in r0:

@@ -193,8 +193,9 @@ def apply_compile(model: Any, args: Any, options_file: Optional[str] = None, dif
     """``--sparse_compile`` (docs/compile.md): compile the model just built, dense or sparse, once,
     in place (``none`` / absent: nothing happens); when training with ``diffusion`` (one process:
     not under ``torchrun``, where DDP wraps the model and the model call is what is compiled) also
-    the whole training step, ``diffusion.training_losses`` (its loss forward and backward), and,
-    on CUDA, upstream's optimizer step fused (:mod:`.upstream_optim`); training and sampling, the
+    the whole training step, ``diffusion.training_losses`` (its loss forward and backward); when
+    training, on CUDA, upstream's optimizer step fused (:mod:`.upstream_optim`, under ``torchrun``
+    too); training and sampling, the
     diffusion's schedules read from device tables (:mod:`smdm_plugin.integrations.tables`). The
     setting that applies is printed and, when training, written to ``args.json``
     (``sparse_compile_applied``; ``options_file`` overrides where). Returns the
@@ -211,14 +212,14 @@ def apply_compile(model: Any, args: Any, options_file: Optional[str] = None, dif
     if diffusion is not None and mode != "none":
         tables_on_device(diffusion)     # training: the step's graph reads device tables; sampling: no copy per step
     if training and diffusion is not None and hasattr(diffusion, "training_losses"):
+        from .upstream_optim import fast_optimizer_step, train_device
         from .upstream_train import active
 
         if not active():
             from .prepare import loss_preparer
-            from .upstream_optim import fast_optimizer_step, train_device
 
             losses = (diffusion, loss_preparer(model))
-            optimizer = functools.partial(fast_optimizer_step, train_device(), mode)
+        optimizer = functools.partial(fast_optimizer_step, train_device(), mode)   # under torchrun too
     return compile_upstream(model, args, options_file, losses=losses, optimizer=optimizer)
 
 

@@ -1,5 +1,5 @@
 """The optimizer step of a captured upstream MDM / DiP / priorMDM training run (``--sparse_compile``,
-one process): upstream's ``train.training_loop`` builds ``torch.optim.AdamW`` (torch's ``foreach``
+one process or ``torchrun``): upstream's ``train.training_loop`` builds ``torch.optim.AdamW`` (torch's ``foreach``
 default: about a dozen multi-tensor ops per step, ``step`` counters on the host) and its
 ``MixedPrecisionTrainer._compute_norms`` (``diffusion.fp16_util``) logs the gradient and parameter
 norms with a host sync per norm (``.item()``: 478 per step at the paper's size, frozen CLIP
