@@ -18,9 +18,13 @@
   a sequence-first projection, views of a batch-first one; MDM's and the folded FSQ heads, with and
   without a key mask; each case in a child process, so a kernel that breaks the CUDA context cannot
   stop the others), then the MDM models' bf16 calls with the package's layout copies on and off
-  (``use_layout_copies``): speed beside dense, and each against the CPU.
+  (``use_layout_copies``): speed beside dense, and each against the CPU;
+* ``optimizer``: what a ``--sparse_compile`` upstream run does around its captured steps (0.9.7):
+  the fused AdamW resumed from a foreach state as MDM resumes (against foreach, host syncs), a fused
+  state in torch's AdamW, the logged norms read in one sync (against upstream's per-tensor reads),
+  the schedule tables read on the device (against upstream's copy per call).
 
-    python scripts/gpu_diagnose.py --out DIR [--sections errors syncs profile parts kernels layout]
+    python scripts/gpu_diagnose.py --out DIR [--sections errors syncs profile parts kernels layout optimizer]
 """
 from __future__ import annotations
 
@@ -175,6 +179,115 @@ def section_profile(dev: torch.device, out: Path) -> None:
             (out / f"profile_{call}_{kind}.txt").write_text(table)
             del model, fn, avg
             gcheck.free(dev)
+
+
+def _syncs(dev: torch.device, fn: Callable[[], object]) -> object:
+    """``(fn(), host synchronisations it made)``: CUDA's sync debug mode's warnings (None off CUDA)."""
+    if dev.type != "cuda":
+        return fn(), None
+    torch.cuda.synchronize()
+    with warnings.catch_warnings(record=True) as seen:
+        warnings.simplefilter("always")
+        torch.cuda.set_sync_debug_mode("warn")
+        try:
+            out = fn()
+        finally:
+            torch.cuda.set_sync_debug_mode(0)
+    return out, sum("synchroniz" in str(w.message) for w in seen)
+
+
+def section_optimizer(dev: torch.device) -> None:
+    """What a ``--sparse_compile`` upstream run does around its captured steps on the device (0.9.7;
+    checked on the CPU only): the fused AdamW across MDM's resume, the logged norms in one sync,
+    the schedule tables read on the device."""
+    import copy
+
+    import numpy as np
+
+    from smdm_plugin.families.mdm.upstream_optim import norms_in_one_sync
+    from smdm_plugin.integrations.tables import extract_from_device_table
+    from smdm_plugin.runtime.fused_optim import FusedAdamW
+
+    print("## optimizer: upstream runs' optimizer step, norms and schedule tables on the device (0.9.7)")
+    g = torch.Generator().manual_seed(0)
+    w = 512 if dev.type == "cuda" else 32                   # MDM's width on the GPU; small on a CPU's dry run
+    shapes = [(w, w), (w,), (2 * w, w), (263, w)] * 8
+
+    def params() -> List[torch.Tensor]:
+        return [torch.randn(s, generator=g).to(dev).requires_grad_() for s in shapes]
+
+    def steps(opt: torch.optim.Optimizer, ps: List[torch.Tensor], n: int, seed: int) -> None:
+        gg = torch.Generator().manual_seed(seed)
+        for _ in range(n):
+            for p in ps:
+                p.grad = torch.randn(p.shape, generator=gg).to(dev)
+            opt.step()
+
+    kw = {"lr": 1e-4, "weight_decay": 0.0}
+    a = params()
+    first = torch.optim.AdamW(a, **kw)                       # upstream's (foreach) first run
+    steps(first, a, 3, 1)
+    saved = copy.deepcopy(first.state_dict())
+    b, c = [p.detach().clone().requires_grad_() for p in a], [p.detach().clone().requires_grad_() for p in a]
+    fused, plain = FusedAdamW(b, **kw), torch.optim.AdamW(c, **kw)
+    fused.load_state_dict(copy.deepcopy(saved))
+    plain.load_state_dict(copy.deepcopy(saved))
+    fused.param_groups[0]["capturable"] = True               # MDM's _load_optimizer_state
+    step_devices = {str(fused.state[p]["step"].device) for p in b}
+    _, fused_syncs = _syncs(dev, lambda: steps(fused, b, 2, 2))
+    _, plain_syncs = _syncs(dev, lambda: steps(plain, c, 2, 2))
+    diff = max(float((x - y).abs().max()) for x, y in zip(b, c))
+    print(f"AdamW resumed from a foreach state: fused {fused.param_groups[0]['fused']}, step on {sorted(step_devices)}, "
+          f"max |fused - foreach| after 2 steps {diff:.2e}; syncs in 2 steps: fused {fused_syncs}, foreach {plain_syncs}",
+          flush=True)
+    d = [p.detach().clone().requires_grad_() for p in b]
+    again = torch.optim.AdamW(d, **kw)
+    again.load_state_dict(copy.deepcopy(fused.state_dict()))  # a fused state in torch's AdamW (no flag)
+    steps(again, d, 1, 3)
+    steps(fused, b, 1, 3)
+    print(f"a fused state in torch's AdamW: fused {again.param_groups[0]['fused']}, "
+          f"max |diff| after a step {max(float((x - y).abs().max()) for x, y in zip(b, d)):.2e}", flush=True)
+
+    class Trainer:
+        def __init__(self, ps: List[torch.Tensor]) -> None:
+            self.master_params = ps
+
+        def _compute_norms(self, grad_scale: float = 1.0):  # noqa: ANN202 - upstream's way: a read per norm
+            grad_norm = param_norm = 0.0
+            for p in self.master_params:
+                with torch.no_grad():
+                    param_norm += torch.norm(p, p=2, dtype=torch.float32).item() ** 2
+                    if p.grad is not None:
+                        grad_norm += torch.norm(p.grad, p=2, dtype=torch.float32).item() ** 2
+            return np.sqrt(grad_norm) / grad_scale, np.sqrt(param_norm)
+
+    ps = params() + [torch.randn(s, generator=g).to(dev).half() for s in shapes[:8]]    # CLIP: float16
+    for p in ps[:len(shapes)]:
+        p.grad = torch.randn(p.shape, generator=g).to(dev)
+    t = Trainer(ps)
+    want, want_syncs = _syncs(dev, lambda: Trainer._compute_norms(t))
+    got, got_syncs = _syncs(dev, lambda: norms_in_one_sync(Trainer._compute_norms)(t))
+    rel = max(abs(x - y) / max(abs(y), 1e-30) for x, y in zip(got, want))
+    print(f"norms of {len(ps)} tensors: max relative difference {rel:.2e}; syncs upstream {want_syncs}, "
+          f"one-sync {got_syncs}", flush=True)
+
+    table = np.linspace(1e-4, 0.02, 50)
+    tt = torch.randint(0, 50, (64,), generator=g).to(dev)
+
+    def per_call(arr, timesteps, shape):  # noqa: ANN001 - upstream's _extract_into_tensor
+        res = torch.from_numpy(arr).to(device=timesteps.device)[timesteps].float()
+        while len(res.shape) < len(shape):
+            res = res[..., None]
+        return res.expand(shape)
+
+    hooked = extract_from_device_table(per_call)
+    hooked(table, tt, (64, 263, 1, 196))                    # the table made (one copy)
+    shape = (64, 263, 1, 196)
+    want, up_syncs = _syncs(dev, lambda: [per_call(table, tt, shape) for _ in range(6)])
+    got, hook_syncs = _syncs(dev, lambda: [hooked(table, tt, shape) for _ in range(6)])
+    same = all(torch.equal(x, y) for x, y in zip(got, want))
+    print(f"6 schedule reads (a p_sample step): equal {same}; syncs upstream {up_syncs}, device table {hook_syncs}",
+          flush=True)
 
 
 def section_parts(dev: torch.device) -> None:
@@ -381,7 +494,7 @@ def main() -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--out", default=".", help="folder for the profiler tables")
     p.add_argument("--sections", nargs="+", default=["errors", "syncs", "profile", "parts", "kernels"],
-                   choices=["errors", "syncs", "profile", "parts", "kernels", "layout"])
+                   choices=["errors", "syncs", "profile", "parts", "kernels", "layout", "optimizer"])
     p.add_argument("--dry-run", action="store_true", help="on the CPU at the tiny size (checks that it runs)")
     p.add_argument("--child", nargs=2, metavar=("PART", "START"), help=argparse.SUPPRESS)
     a = p.parse_args()
@@ -406,7 +519,8 @@ def main() -> int:
         try:
             {"errors": lambda: section_errors(dev), "syncs": lambda: section_syncs(dev),
              "profile": lambda: section_profile(dev, out), "parts": lambda: section_parts(dev),
-             "kernels": lambda: section_kernels(dev), "layout": lambda: section_layout(dev, a.dry_run)}[s]()
+             "kernels": lambda: section_kernels(dev), "layout": lambda: section_layout(dev, a.dry_run),
+             "optimizer": lambda: section_optimizer(dev)}[s]()
         except Exception:  # noqa: BLE001 - the other sections still run
             traceback.print_exc()
         print(f"({s}: {time.perf_counter() - t0:.0f} s)\n", flush=True)

@@ -5,11 +5,13 @@
 #   bash scripts/gpu_session.sh            # on the GPU machine, from the repository root
 #   DRY=1 bash scripts/gpu_session.sh      # on a CPU: the same steps at the check's tiny size
 #
-# 1. the eager matrix, CUDA against the CPU and dense against sparse (gpu_check --modes eager, 175 s);
+# 1. the eager matrix, CUDA against the CPU and dense against sparse (gpu_check --modes eager, 160 s);
 # 2. which head layouts the SDPA kernels take, and the models with the layout copies on and off
 #    (gpu_diagnose --sections layout, ~60 s);
 # 3. which Triton kernels each device should run (gpu_diagnose --sections kernels, ~60 s);
-# 4. host syncs per call (gpu_diagnose --sections syncs, ~20 s);
+# 4. host syncs per call, and what upstream runs do around their captured steps (the fused AdamW
+#    across MDM's resume, the logged norms in one sync, the schedule tables on the device; 0.9.7)
+#    (gpu_diagnose --sections syncs optimizer, ~30 s);
 # 5. the captured trans_enc bf16 loop and training step (reduce-overhead; ~180 s), with the graphs each
 #    compiled, the CUDA-graph skips and why (TORCH_LOGS=cudagraphs) and a profile of each model's call
 #    after its timing (--profile: host and GPU time, launches, the top host events): 0.9.2's 1.28x training step.
@@ -35,9 +37,9 @@ step() {  # step NAME LIMIT_S CMD...
   timeout "$limit" "$@" > "$OUT/$name.txt" 2>&1
   echo "$name: exit $? in $((SECONDS - t0)) s"
 }
-step eager 200 python3 scripts/gpu_check.py --modes eager --budget-s 175 --doc "$OUT/gpu_check.md" "${dry[@]}"
+step eager 185 python3 scripts/gpu_check.py --modes eager --budget-s 160 --doc "$OUT/gpu_check.md" "${dry[@]}"
 step layout 80 python3 scripts/gpu_diagnose.py --sections layout --out "$OUT" "${diag[@]}"
 step kernels 75 python3 scripts/gpu_diagnose.py --sections kernels --out "$OUT" "${diag[@]}"
-step syncs 45 python3 scripts/gpu_diagnose.py --sections syncs --out "$OUT" "${diag[@]}"
+step syncs 60 python3 scripts/gpu_diagnose.py --sections syncs optimizer --out "$OUT" "${diag[@]}"
 TORCH_LOGS=cudagraphs step captured 200 python3 scripts/gpu_check.py --modes reduce-overhead --models trans_enc --precisions bf16 \
   --calls loop train --budget-s 180 --profile --doc "$OUT/gpu_check_captured.md" "${dry[@]}"

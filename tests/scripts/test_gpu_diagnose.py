@@ -77,3 +77,20 @@ def test_kernels_section_switches_each_group_the_other_way_and_restores(tmp_path
                 line = next(ln for ln in out.splitlines() if ln.startswith(f"{arch} {amp} {call}: "))
                 assert all(f"{g} " in line for g in gd.KERNEL_GROUPS), line
     assert "Traceback" not in out
+
+
+def test_optimizer_section_runs_and_agrees_on_a_cpu(tmp_path, capsys, monkeypatch):
+    """``--sections optimizer`` (0.9.7's upstream-run checks for the next GPU session): on a CPU's dry
+    run the fused AdamW resumed from a foreach state stays fused and agrees with foreach, a fused
+    state loads into torch's AdamW, the one-sync norms and the device tables equal upstream's."""
+    gd = _script()
+    monkeypatch.setattr(sys, "argv", ["gpu_diagnose.py", "--dry-run", "--sections", "optimizer", "--out", str(tmp_path)])
+    assert gd.main() == 0
+    out = capsys.readouterr().out
+    assert "Traceback" not in out
+    resumed = next(ln for ln in out.splitlines() if ln.startswith("AdamW resumed from a foreach state: fused True"))
+    assert float(resumed.split("after 2 steps ")[1].split(";")[0]) < 1e-5, resumed
+    assert "a fused state in torch's AdamW: fused True" in out
+    norms = next(ln for ln in out.splitlines() if ln.startswith("norms of 40 tensors"))
+    assert "max relative difference 0.00e+00" in norms, norms       # bit for bit on the CPU
+    assert "6 schedule reads (a p_sample step): equal True" in out
