@@ -1,22 +1,11 @@
-"""The optimizer step of a captured upstream MDM / DiP / priorMDM training run (``--sparse_compile``,
-one process or ``torchrun``): upstream's ``train.training_loop`` builds ``torch.optim.AdamW`` (torch's ``foreach``
-default: about a dozen multi-tensor ops per step, ``step`` counters on the host) and its
-``MixedPrecisionTrainer._compute_norms`` (``diffusion.fp16_util``) logs the gradient and parameter
-norms with a host sync per norm (``.item()``: 478 per step at the paper's size, frozen CLIP
-included; docs/modules.md). Where the run
-compiles on a device with torch's fused AdamW (:func:`~smdm_plugin.runtime.compile.fused_optimizer_kwargs`):
-
-* ``AdamW`` is :class:`~smdm_plugin.runtime.fused_optim.FusedAdamW` (the update in a few fused
-  kernels, no host sync, ``step`` on the device), kept fused across a resume (upstream's
-  ``_load_optimizer_state``);
-* the norms are computed in a few multi-tensor ops and read back in one sync, summed in Python in
-  upstream's order: the same logged values (bit for bit on the CPU; on CUDA to the last bit of a
-  float32 norm);
-* ``--use_ema``'s average (``TrainLoop.update_average_model``: two ops per parameter, frozen CLIP
-  included) runs as two multi-tensor ops, the same arithmetic.
-
-Dense and sparse runs alike; nothing changes without ``--sparse_compile`` or where the fused
-optimizer does not apply."""
+"""The step after the loss of a captured upstream MDM / DiP / priorMDM training run
+(``--sparse_compile``, one process or ``torchrun``), where the fused optimizer applies (CUDA:
+:func:`~smdm_plugin.runtime.compile.fused_optimizer_kwargs`): upstream's ``AdamW`` fused and kept
+fused across a resume (:class:`~smdm_plugin.runtime.fused_optim.FusedAdamW`); the norms that
+``MixedPrecisionTrainer._compute_norms`` logs (a ``.item()`` per tensor, frozen CLIP included: 478
+per step at the paper's size) in a few multi-tensor ops read back in one sync, the same values;
+``--use_ema``'s average (two ops per tensor) in two multi-tensor ops. Dense and sparse runs alike;
+the counts and why: docs/modules.md."""
 from __future__ import annotations
 
 import functools
