@@ -248,25 +248,20 @@ def section_optimizer(dev: torch.device) -> None:
     print(f"a fused state in torch's AdamW: fused {again.param_groups[0]['fused']}, "
           f"max |diff| after a step {max(float((x - y).abs().max()) for x, y in zip(b, d)):.2e}", flush=True)
 
-    class Trainer:
-        def __init__(self, ps: List[torch.Tensor]) -> None:
-            self.master_params = ps
-
-        def _compute_norms(self, grad_scale: float = 1.0):  # noqa: ANN202 - upstream's way: a read per norm
-            grad_norm = param_norm = 0.0
-            for p in self.master_params:
-                with torch.no_grad():
-                    param_norm += torch.norm(p, p=2, dtype=torch.float32).item() ** 2
-                    if p.grad is not None:
-                        grad_norm += torch.norm(p.grad, p=2, dtype=torch.float32).item() ** 2
-            return np.sqrt(grad_norm) / grad_scale, np.sqrt(param_norm)
+    def read_each(trainer, grad_scale: float = 1.0):  # noqa: ANN001, ANN202 - upstream's sums: a read per norm
+        def norm2(t: torch.Tensor) -> float:
+            return torch.norm(t, p=2, dtype=torch.float32).item() ** 2
+        params = trainer.master_params
+        with torch.no_grad():
+            p2, g2 = [norm2(p) for p in params], [norm2(p.grad) for p in params if p.grad is not None]
+        return np.sqrt(sum(g2, 0.0)) / grad_scale, np.sqrt(sum(p2, 0.0))
 
     ps = params() + [torch.randn(s, generator=g).to(dev).half() for s in shapes[:8]]    # CLIP: float16
     for p in ps[:len(shapes)]:
         p.grad = torch.randn(p.shape, generator=g).to(dev)
-    t = Trainer(ps)
-    want, want_syncs = _syncs(dev, lambda: Trainer._compute_norms(t))
-    got, got_syncs = _syncs(dev, lambda: norms_in_one_sync(Trainer._compute_norms)(t))
+    t = type("Trainer", (), {"master_params": ps})()
+    want, want_syncs = _syncs(dev, lambda: read_each(t))
+    got, got_syncs = _syncs(dev, lambda: norms_in_one_sync(read_each)(t))
     rel = max(abs(x - y) / max(abs(y), 1e-30) for x, y in zip(got, want))
     print(f"norms of {len(ps)} tensors: max relative difference {rel:.2e}; syncs upstream {want_syncs}, "
           f"one-sync {got_syncs}", flush=True)
