@@ -244,18 +244,26 @@ def test_mdm_compiled_run_steps_a_fused_optimizer_across_a_resume(upstream_copy,
     assert len(steps) == 1 and steps.pop() > float(first) > 0, (float(first), steps)   # on from the saved counters
 
 
-#: harness code: ``sample.generate`` with ``ARGS``, counting the numpy tables upstream's diffusion
-#: copies to the device inside ``p_sample`` (``torch.from_numpy``: one per ``_extract_into_tensor``
-#: call upstream; on CUDA a blocking copy, after which PyTorch synchronizes the stream)
+#: harness code: ``sample.generate`` with ``ARGS``, counting what upstream's diffusion copies from the
+#: host to the device (on CUDA a blocking copy, after which PyTorch synchronizes the stream): the
+#: numpy tables inside ``p_sample`` (``torch.from_numpy``: one per ``_extract_into_tensor`` call
+#: upstream) and the tensors the sampling loop makes from host data (``torch.tensor`` called by
+#: upstream's diffusion modules or the hook's ``th``: upstream's ``th.tensor([i] * B,
+#: device=device)``, one per step)
 COUNT_TABLE_COPIES = """
 import atexit, sys, torch
 import diffusion.gaussian_diffusion as G
 import sample.generate as generate         # the harness's no-render stubs are on this module
-n = {"copies": 0, "steps": 0, "inside": 0}
-_from_numpy, _p_sample = torch.from_numpy, G.GaussianDiffusion.p_sample
+n = {"copies": 0, "steps": 0, "inside": 0, "tensors": 0, "in_loop": 0}
+_from_numpy, _tensor, _p_sample = torch.from_numpy, torch.tensor, G.GaussianDiffusion.p_sample
+_loop = G.GaussianDiffusion.p_sample_loop_progressive
 def from_numpy(a):
     n["copies"] += bool(n["inside"])
     return _from_numpy(a)
+def tensor(*a, **k):
+    caller = sys._getframe(1).f_code.co_filename
+    n["tensors"] += bool(n["in_loop"]) and caller.endswith(("gaussian_diffusion.py", "respace.py", "timesteps.py"))
+    return _tensor(*a, **k)
 def p_sample(self, *a, **k):
     n["steps"] += 1
     n["inside"] += 1
@@ -263,8 +271,20 @@ def p_sample(self, *a, **k):
         return _p_sample(self, *a, **k)
     finally:
         n["inside"] -= 1
-torch.from_numpy, G.GaussianDiffusion.p_sample = from_numpy, p_sample
-atexit.register(lambda: print("TABLE_COPIES", n["copies"], n["steps"], flush=True))
+def loop(self, *a, **k):
+    steps = _loop(self, *a, **k)
+    while True:
+        n["in_loop"] += 1
+        try:
+            out = next(steps)
+        except StopIteration:
+            return
+        finally:
+            n["in_loop"] -= 1
+        yield out
+torch.from_numpy, torch.tensor, G.GaussianDiffusion.p_sample = from_numpy, tensor, p_sample
+G.GaussianDiffusion.p_sample_loop_progressive = loop
+atexit.register(lambda: print("TABLE_COPIES", n["copies"], n["steps"], n["tensors"], flush=True))
 sys.argv = ["generate"] + ARGS
 generate.main()
 """
@@ -272,9 +292,11 @@ generate.main()
 
 @pytest.mark.skipif(not MDM_ROOT, reason="SMDM_MDM_ROOT not set (an MDM checkout)")
 def test_mdm_compiled_sampling_copies_no_table_per_step(upstream_copy, tmp_path, monkeypatch):
-    """``--sparse_compile`` sampling reads upstream's schedules from device tables: upstream's
-    ``p_sample`` copies six numpy tables to the device per step (each a blocking copy and a stream
-    synchronization on CUDA); with the flag, each table once per run."""
+    """``--sparse_compile`` sampling reads upstream's schedules from device tables and fills each
+    step's timesteps on the device: upstream's ``p_sample`` copies six numpy tables to the device
+    per step, its loop a list of timesteps and ``respace``'s model wrapper its ``timestep_map``
+    (each a blocking copy and a stream synchronization on CUDA); with the flag, each table and the
+    map once per run, no timesteps; the same samples."""
     import test_mdm_upstream as M
 
     repo = upstream_copy(MDM_ROOT, "mdm_tables")
@@ -289,11 +311,14 @@ def test_mdm_compiled_sampling_copies_no_table_per_step(upstream_copy, tmp_path,
         line = [ln for ln in proc.stdout.splitlines() if ln.startswith("TABLE_COPIES ")]
         assert len(line) == 1, proc.stdout[-3000:]
         counts[mode] = tuple(int(v) for v in line[0].split()[1:])
-    print("table copies, steps (upstream, --sparse_compile):", counts["none"], counts["default"])
-    (upstream, steps), (hooked, steps_hooked) = counts["none"], counts["default"]
+    print("table copies, steps, timestep copies (upstream, --sparse_compile):", counts["none"], counts["default"])
+    (upstream, steps, upstream_t), (hooked, steps_hooked, hooked_t) = counts["none"], counts["default"]
     assert steps == steps_hooked == 20, counts                   # --diffusion_steps 20
-    assert upstream == 6 * steps, counts                         # six per step upstream
-    assert hooked <= 6, counts                                   # each table once (4 distinct ones)
+    assert upstream == 6 * steps and upstream_t == 2 * steps, counts   # six tables, two int lists per step
+    assert hooked <= 6 and hooked_t == 1, counts                 # each table once (4 distinct ones); the map once
+    a, b = (np.load(str(tmp_path / f"gen_{mode}" / "results.npy"), allow_pickle=True).item()["motion"]
+            for mode in ("none", "default"))
+    assert a.shape == b.shape and np.allclose(a, b, atol=1e-4), np.abs(a - b).max()
 
 
 @pytest.mark.skipif(not MDM_ROOT, reason="SMDM_MDM_ROOT not set (an MDM checkout)")
@@ -316,6 +341,52 @@ def test_mdm_step_after_the_loss_host_work(upstream_copy, tmp_path):
     assert up["reads"] >= row["params"] + row["with_grad"] and hooked["reads"] == 0, row
     assert hooked["ops"] <= 16 and up["ops"] >= 4 * row["params"], row
     assert hooked["calls"] < up["calls"] / 4, row
+
+
+def training_log(proc) -> dict:
+    line = [ln for ln in proc.stdout.splitlines() if ln.startswith("TRAINING_LOG ")]
+    assert len(line) == 1, proc.stdout[-3000:]
+    return json.loads(line[0].split(" ", 1)[1])
+
+
+@pytest.mark.skipif(not MDM_ROOT, reason="SMDM_MDM_ROOT not set (an MDM checkout)")
+def test_mdm_training_log_kept_until_read(upstream_copy, tmp_path, monkeypatch):
+    """Upstream's training log (``log_loss_dict``, the norms) kept until it is read
+    (``training_log_reads.py``): on upstream's own ``TrainLoop`` and logger, every dump has
+    upstream's keys, order, types and values, and no ``run_step`` reads a value back outside the
+    optimizer (upstream: three reads per loss, one per norm). A ``--sparse_compile`` run where the
+    fused optimizer applies (CUDA; the policy standing in): no read in any step at all."""
+    import test_mdm_upstream as M
+
+    repo = upstream_copy(MDM_ROOT, "mdm_log_kept")
+    code = f"exec(open({os.path.join(HERE, 'training_log_reads.py')!r}).read())"
+    common = ["--num_steps", "5", "--log_interval", "2", *M.TINY, *M.ARCH["trans_enc"]]
+    rows = {}
+    for keep in ("0", "1"):
+        monkeypatch.setenv("SMDM_TEST_KEEP_LOG", keep)
+        rows[keep] = training_log(M.mdm(repo, "-c", [code, "--save_dir", str(tmp_path / keep), *common]))
+    up, kept = rows["0"], rows["1"]
+    assert len(up["dumps"]) >= 3 and up["dumps"] == kept["dumps"], (up["dumps"], kept["dumps"])
+    keys = {k for dump in up["dumps"] for k, _, _ in dump}
+    assert {"loss", "grad_norm", "param_norm", "step"} <= keys and any("_q" in k for k in keys), keys
+    steps = len(up["reads"])
+    assert steps >= 5 and kept["reads"] == [0] * steps, kept["reads"]
+    assert min(up["reads"]) >= 3 * 2 + 2, up["reads"]                       # loss, rot_mse; two norms
+    assert up["optimizer_reads"] == kept["optimizer_reads"]                  # a foreach AdamW's counters
+
+    monkeypatch.delenv("SMDM_TEST_KEEP_LOG")
+    for k, v in COMPILE_ENV.items():
+        monkeypatch.setenv(k, v)
+    monkeypatch.setenv("PYTHONPATH", fused_policy_path(str(tmp_path / "site")) + os.pathsep
+                       + os.environ.get("PYTHONPATH", ""))
+    flagged = training_log(M.mdm(repo, "-c", [code, "--save_dir", str(tmp_path / "flag"), *common, "--sparse",
+                                              "--sparse_compile", "default"], launcher=True))
+    assert flagged["reads"] == [0] * len(flagged["reads"]) and flagged["optimizer_reads"] == flagged["reads"], flagged
+    # (apart: the CPU's numpy keyframe selection reads its input; CUDA runs its own kernel)
+    assert len(flagged["dumps"]) == len(up["dumps"]), flagged["dumps"]
+    for dump in flagged["dumps"]:
+        values = {k: v for k, _, v in dump}
+        assert {"loss", "grad_norm", "step"} <= values.keys() and np.isfinite(float(values["loss"])), dump
 
 
 @pytest.mark.skipif(not MDM_ROOT, reason="SMDM_MDM_ROOT not set (an MDM checkout)")

@@ -212,6 +212,9 @@ def test_ema_in_two_ops_equals_upstreams_bit_for_bit(use_ema):
 
 
 def test_hooks_apply_only_where_the_fused_optimizer_does(monkeypatch):
+    from smdm_plugin.integrations import _hooks
+
+    monkeypatch.setattr(_hooks, "_CALLBACKS", {})          # this test's modules, hooked afresh
     loop = types.ModuleType(U._LOOP_MODULE)
     loop.AdamW = torch.optim.AdamW
 

@@ -194,14 +194,16 @@ def apply_compile(model: Any, args: Any, options_file: Optional[str] = None, dif
     in place (``none`` / absent: nothing happens); when training with ``diffusion`` (one process:
     not under ``torchrun``, where DDP wraps the model and the model call is what is compiled) also
     the whole training step, ``diffusion.training_losses`` (its loss forward and backward); when
-    training, on CUDA, upstream's optimizer step fused (:mod:`.upstream_optim`, under ``torchrun``
-    too); training and sampling, the
-    diffusion's schedules read from device tables (:mod:`smdm_plugin.integrations.tables`). The
+    training, on CUDA, upstream's optimizer step fused and its log read when it is read
+    (:mod:`.upstream_optim`, under ``torchrun`` too); training and sampling, the diffusion's
+    schedules read from device tables (:mod:`smdm_plugin.integrations.tables`); sampling, each
+    step's timesteps filled on the device (:mod:`smdm_plugin.integrations.timesteps`). The
     setting that applies is printed and, when training, written to ``args.json``
     (``sparse_compile_applied``; ``options_file`` overrides where). Returns the
     :class:`~smdm_plugin.runtime.compile.CompileSetting` or None."""
     from ...integrations._files import compile_upstream
     from ...integrations.tables import tables_on_device
+    from ...integrations.timesteps import timesteps_without_copy
     from ...runtime.compile import check_compile_mode
 
     training = _is_training(args)
@@ -211,6 +213,8 @@ def apply_compile(model: Any, args: Any, options_file: Optional[str] = None, dif
     mode = check_compile_mode(getattr(args, "sparse_compile", None))
     if diffusion is not None and mode != "none":
         tables_on_device(diffusion)     # training: the step's graph reads device tables; sampling: no copy per step
+        if not training:
+            timesteps_without_copy(diffusion)     # sampling: each step's timesteps filled on the device
     if training and diffusion is not None and hasattr(diffusion, "training_losses"):
         from .upstream_optim import fast_optimizer_step, train_device
         from .upstream_train import active

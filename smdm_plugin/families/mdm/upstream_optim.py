@@ -3,9 +3,9 @@
 :func:`~smdm_plugin.runtime.compile.fused_optimizer_kwargs`): upstream's ``AdamW`` fused and kept
 fused across a resume (:class:`~smdm_plugin.runtime.fused_optim.FusedAdamW`); the norms that
 ``MixedPrecisionTrainer._compute_norms`` logs (a ``.item()`` per tensor, frozen CLIP included: 478
-per step at the paper's size) in a few multi-tensor ops read back in one sync, the same values;
-``--use_ema``'s average (two ops per tensor) in two multi-tensor ops. Dense and sparse runs alike;
-the counts and why: docs/modules.md."""
+per step at the paper's size) in a few multi-tensor ops, read with the log (:mod:`.upstream_log`)
+or in one sync; ``--use_ema``'s average (two ops per tensor) in two multi-tensor ops. Dense and
+sparse runs alike; the counts and why: docs/modules.md."""
 from __future__ import annotations
 
 import functools
@@ -16,14 +16,17 @@ import numpy as np
 import torch
 
 from ...runtime.fused_optim import FusedAdamW
+from .upstream_log import Later, deferred_logger, deferring, log_loss_dict_later, sample_without_sync
 
 __all__ = ["norms_in_one_sync", "average_in_two_ops", "fast_optimizer_step", "train_device", "OPTIMIZER_NOTE"]
 
 #: what a hooked run records beside its compile setting (``args.json``)
-OPTIMIZER_NOTE = "optimizer step: AdamW fused, norms read in one sync, EMA in two ops"
+OPTIMIZER_NOTE = ("optimizer step: AdamW fused, EMA in two ops; losses and norms logged without a sync, "
+                  "timesteps copied without one")
 _MARK = "_smdm_fast_optimizer"
 _EMA_LISTS = "_smdm_ema_lists"      # a TrainLoop's (key, parameters, averages), listed once
 _LOOP_MODULE, _FP16_MODULE = "train.training_loop", "diffusion.fp16_util"
+_LOGGER_MODULE, _SAMPLER_MODULE = "diffusion.logger", "diffusion.resample"
 
 
 def _norms(tensors: List[torch.Tensor]) -> List[torch.Tensor]:
@@ -49,14 +52,35 @@ def _norms(tensors: List[torch.Tensor]) -> List[torch.Tensor]:
     return out
 
 
+def _sums(values: List[float], n: int, grad_scale: float) -> Tuple[Any, Any]:
+    """Upstream's return value from the norms read back (``n`` parameters', then the gradients'):
+    ``(sqrt(sum grad_norm^2) / grad_scale, sqrt(sum param_norm^2))``, summed in upstream's order."""
+    grad_norm = param_norm = 0.0
+    for v in values[:n]:
+        param_norm += v ** 2
+    for v in values[n:]:
+        grad_norm += v ** 2
+    return np.sqrt(grad_norm) / grad_scale, np.sqrt(param_norm)
+
+
+def _grad_norm(n: int, grad_scale: float, host: torch.Tensor) -> Any:
+    return _sums(host.tolist(), n, grad_scale)[0]
+
+
+def _param_norm(n: int, host: torch.Tensor) -> Any:
+    return _sums(host.tolist(), n, 1.0)[1]
+
+
 def norms_in_one_sync(original: Callable) -> Callable:
     """``original`` (upstream's ``MixedPrecisionTrainer._compute_norms(self, grad_scale=1.0)``: the
     L2 norms of ``self.master_params`` and of their gradients, each read with ``.item()`` and
-    summed in Python) with every norm read back in one host sync: the norms in a few multi-tensor
-    ops (:func:`_norms`), stacked, one ``tolist``; the sums and the return value as upstream's
-    (``(sqrt(sum grad_norm^2) / grad_scale, sqrt(sum param_norm^2))``, numpy floats). The same
-    values bit for bit on the CPU; on CUDA the multi-tensor norm may round differently in the last
-    bit (logged values only: MDM's ``use_fp16`` is off)."""
+    summed in Python) with every norm computed in a few multi-tensor ops (:func:`_norms`), stacked,
+    and read back in one ``tolist``, or, where upstream's logger keeps its calls
+    (:mod:`.upstream_log`) and nothing but the log reads them (``use_fp16`` off: the fp16 path
+    checks the norm for overflow), returned as two :class:`~.upstream_log.Later` values read with
+    the log. The sums and values as upstream's (``(sqrt(sum grad_norm^2) / grad_scale, sqrt(sum
+    param_norm^2))``, numpy floats): bit for bit on the CPU; on CUDA the multi-tensor norm may
+    round differently in the last bit (logged values only: MDM's ``use_fp16`` is off)."""
 
     @functools.wraps(original)
     def _compute_norms(self: Any, grad_scale: float = 1.0) -> Tuple[Any, Any]:
@@ -66,13 +90,12 @@ def norms_in_one_sync(original: Callable) -> Callable:
         with torch.no_grad():
             norms = _norms(params)
             grads = _norms([p.grad for p in params if p.grad is not None])
-            values = torch.stack(norms + grads).tolist()          # the one sync
-        grad_norm = param_norm = 0.0
-        for v in values[:len(norms)]:
-            param_norm += v ** 2
-        for v in values[len(norms):]:
-            grad_norm += v ** 2
-        return np.sqrt(grad_norm) / grad_scale, np.sqrt(param_norm)
+            stacked = torch.stack(norms + grads)
+        n = len(norms)
+        if not getattr(self, "use_fp16", False) and deferring(sys.modules.get(_LOGGER_MODULE)):
+            return (Later((stacked,), functools.partial(_grad_norm, n, grad_scale)),
+                    Later((stacked,), functools.partial(_param_norm, n)))
+        return _sums(stacked.tolist(), n, grad_scale)                  # the one sync
 
     return _compute_norms
 
@@ -127,6 +150,21 @@ def _hook_training_loop(mod: Any) -> None:
     loop = getattr(mod, "TrainLoop", None)
     if loop is not None:
         wrap_once(loop, "update_average_model", average_in_two_ops, marker=_MARK)
+    wrap_once(mod, "log_loss_dict", log_loss_dict_later, marker=_MARK)
+
+
+def _hook_logger(mod: Any) -> None:
+    cls = getattr(mod, "Logger", None)
+    if isinstance(cls, type):
+        deferred_logger(cls)
+
+
+def _hook_sampler(mod: Any) -> None:
+    from ...integrations._hooks import wrap_once
+
+    sampler = getattr(mod, "ScheduleSampler", None)
+    if sampler is not None:
+        wrap_once(sampler, "sample", sample_without_sync, marker=_MARK)
 
 
 def _hook_fp16_util(mod: Any) -> None:
@@ -140,14 +178,17 @@ def _hook_fp16_util(mod: Any) -> None:
 def fast_optimizer_step(device: Any, mode: Any) -> Optional[str]:
     """Hook upstream's training loop (now, or when it is imported) for a run compiled with
     ``mode`` on ``device``: :class:`~smdm_plugin.runtime.fused_optim.FusedAdamW` for its ``AdamW``,
-    :func:`norms_in_one_sync` for its norms and :func:`average_in_two_ops` for its EMA, when
-    :func:`~smdm_plugin.runtime.compile.fused_optimizer_kwargs` says the fused optimizer applies
-    there. Returns :data:`OPTIMIZER_NOTE`, or None (nothing hooked)."""
+    :func:`norms_in_one_sync` for its norms, :func:`average_in_two_ops` for its EMA, its log read
+    when it is read (:mod:`.upstream_log`: ``Logger``, ``log_loss_dict``) and its timesteps
+    copied without a sync, when :func:`~smdm_plugin.runtime.compile.fused_optimizer_kwargs` says
+    the fused optimizer applies there. Returns :data:`OPTIMIZER_NOTE`, or None (nothing hooked)."""
     from ...integrations._hooks import on_import
     from ...runtime import compile as compile_mod
 
     if not compile_mod.fused_optimizer_kwargs(device, mode).get("fused"):
         return None
+    on_import(_LOGGER_MODULE, _hook_logger)
+    on_import(_SAMPLER_MODULE, _hook_sampler)
     on_import(_LOOP_MODULE, _hook_training_loop)
     on_import(_FP16_MODULE, _hook_fp16_util)
     return OPTIMIZER_NOTE
