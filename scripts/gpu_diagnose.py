@@ -22,7 +22,9 @@
 * ``optimizer``: what a ``--sparse_compile`` upstream run does around its captured steps (0.9.7):
   the fused AdamW resumed from a foreach state as MDM resumes (against foreach, host syncs), a fused
   state in torch's AdamW, the logged norms read in one sync (against upstream's per-tensor reads),
-  the schedule tables read on the device (against upstream's copy per call).
+  the schedule tables read on the device (against upstream's copy per call); 0.9.8: the sampling
+  loop's timesteps and ``timestep_map`` made on the device, the timestep sampler's pinned copies,
+  the training log's losses read at the dump (each against upstream's, with its syncs).
 
     python scripts/gpu_diagnose.py --out DIR [--sections errors syncs profile parts kernels layout optimizer]
 """
@@ -283,6 +285,52 @@ def section_optimizer(dev: torch.device) -> None:
     same = all(torch.equal(x, y) for x, y in zip(got, want))
     print(f"6 schedule reads (a p_sample step): equal {same}; syncs upstream {up_syncs}, device table {hook_syncs}",
           flush=True)
+    _loops(dev, g)
+
+
+def _loops(dev: torch.device, g: torch.Generator) -> None:
+    """0.9.8: upstream's loops around the captured steps (checked on the CPU only): 50 steps of
+    timesteps (``th.tensor([i] * B, device)``) and of ``respace``'s ``timestep_map``; the timestep
+    sampler's copies; 50 steps of losses logged (upstream: ``.item()`` and two ``.cpu()`` per loss)
+    against :class:`~smdm_plugin.families.mdm.upstream_log.Later` values read back at a dump."""
+    import numpy as np
+
+    from smdm_plugin.families.mdm import upstream_log
+    from smdm_plugin.integrations.timesteps import tensor as on_device
+
+    timestep_map = list(range(0, 1000, 20))
+    for name, make in (("torch", torch.tensor), ("hook", on_device)):
+        out, syncs = _syncs(dev, lambda: [(make([i] * 64, device=dev), make(timestep_map, device=dev, dtype=torch.int64))
+                                          for i in range(50)])
+        if name == "torch":
+            want, up = out, syncs
+    same = all(torch.equal(x, y) and torch.equal(a, b) for (x, a), (y, b) in zip(out, want))
+    print(f"50 steps of timesteps and timestep_map: equal {same}; syncs upstream {up}, hook {syncs}", flush=True)
+
+    class Sampler:                                        # upstream's ScheduleSampler.sample, uniform
+        def sample(self, batch_size, device):  # noqa: ANN001, ANN201
+            p = np.ones(1000) / 1000
+            idx = np.random.choice(len(p), size=(batch_size,), p=p)
+            return (torch.from_numpy(idx).long().to(device),
+                    torch.from_numpy(1 / (len(p) * p[idx])).float().to(device))
+
+    np.random.seed(0)
+    want, up = _syncs(dev, lambda: [Sampler().sample(64, dev) for _ in range(10)])
+    np.random.seed(0)
+    got, hook = _syncs(dev, lambda: [upstream_log.sample_without_sync(Sampler.sample)(Sampler(), 64, dev)
+                                     for _ in range(10)])
+    same = all(torch.equal(a, b) for x, y in zip(want, got) for a, b in zip(x, y))
+    print(f"10 timestep draws: equal {same}; syncs upstream {up}, pinned {hook}", flush=True)
+
+    losses = [torch.rand(64, generator=g).to(dev) for _ in range(50)]
+    ts = torch.randint(0, 1000, (64,), generator=g).to(dev)
+    want, up = _syncs(dev, lambda: [(v.mean().item(), ts.cpu().numpy(), v.cpu().numpy()) for v in losses])
+    later, kept = _syncs(dev, lambda: [upstream_log.Later((v.mean(), ts, v), lambda m, t, x: (m.item(), t.numpy(), x.numpy()))
+                                       for v in losses])
+    host, dump = _syncs(dev, lambda: upstream_log._to_host([t for v in later for t in v.tensors]))
+    got = [v.make(*(host[id(t)] for t in v.tensors)) for v in later]
+    same = all(a[0] == b[0] and np.array_equal(a[1], b[1]) and np.array_equal(a[2], b[2]) for a, b in zip(want, got))
+    print(f"50 steps of a logged loss: equal {same}; syncs upstream {up}, kept {kept}, at the dump {dump}", flush=True)
 
 
 def section_parts(dev: torch.device) -> None:

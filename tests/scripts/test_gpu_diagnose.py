@@ -82,7 +82,8 @@ def test_kernels_section_switches_each_group_the_other_way_and_restores(tmp_path
 def test_optimizer_section_runs_and_agrees_on_a_cpu(tmp_path, capsys, monkeypatch):
     """``--sections optimizer`` (0.9.7's upstream-run checks for the next GPU session): on a CPU's dry
     run the fused AdamW resumed from a foreach state stays fused and agrees with foreach, a fused
-    state loads into torch's AdamW, the one-sync norms and the device tables equal upstream's."""
+    state loads into torch's AdamW, the one-sync norms and the device tables equal upstream's, and
+    so do 0.9.8's timesteps made on the device, pinned timestep draws and losses read at a dump."""
     gd = _script()
     monkeypatch.setattr(sys, "argv", ["gpu_diagnose.py", "--dry-run", "--sections", "optimizer", "--out", str(tmp_path)])
     assert gd.main() == 0
@@ -94,3 +95,6 @@ def test_optimizer_section_runs_and_agrees_on_a_cpu(tmp_path, capsys, monkeypatc
     norms = next(ln for ln in out.splitlines() if ln.startswith("norms of 40 tensors"))
     assert "max relative difference 0.00e+00" in norms, norms       # bit for bit on the CPU
     assert "6 schedule reads (a p_sample step): equal True" in out
+    for line in ("50 steps of timesteps and timestep_map: equal True", "10 timestep draws: equal True",
+                 "50 steps of a logged loss: equal True"):
+        assert line in out, out
