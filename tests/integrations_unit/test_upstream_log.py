@@ -11,6 +11,7 @@ from collections import defaultdict
 import numpy as np
 import pytest
 import torch
+from helpers.upstream_norms import Trainer
 from torch.overrides import TorchFunctionMode
 
 from smdm_plugin.families.mdm import upstream_log as L
@@ -85,22 +86,6 @@ class Reads(TorchFunctionMode):
     def __torch_function__(self, func, types, args=(), kwargs=None):
         self.reads += getattr(func, "__name__", "") in self.NAMES
         return func(*args, **(kwargs or {}))
-
-
-class Trainer:
-    """Upstream's ``MixedPrecisionTrainer._compute_norms`` (a ``.item()`` per norm, summed in Python)."""
-
-    def __init__(self, ps, use_fp16=False):
-        self.master_params, self.use_fp16 = ps, use_fp16
-
-    def _compute_norms(self, grad_scale=1.0):
-        grad_norm = param_norm = 0.0
-        for p in self.master_params:
-            with torch.no_grad():
-                param_norm += torch.norm(p, p=2, dtype=torch.float32).item() ** 2
-                if p.grad is not None:
-                    grad_norm += torch.norm(p.grad, p=2, dtype=torch.float32).item() ** 2
-        return np.sqrt(grad_norm) / grad_scale, np.sqrt(param_norm)
 
 
 @pytest.fixture

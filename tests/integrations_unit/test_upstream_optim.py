@@ -13,6 +13,7 @@ import types
 import numpy as np
 import pytest
 import torch
+from helpers.upstream_norms import Trainer
 
 from smdm_plugin.families.mdm import upstream_optim as U
 from smdm_plugin.runtime import compile as compile_mod
@@ -109,23 +110,6 @@ def test_a_fused_state_resumes_in_torchs(torch_cls):
 def test_foreach_true_is_refused(torch_cls):
     with pytest.raises(ValueError, match="foreach=True"):
         FUSED_OF[torch_cls](params(), foreach=True)
-
-
-class Trainer:
-    """The part of upstream's ``MixedPrecisionTrainer`` the norms read: ``master_params``, and its
-    norms the way upstream computes them (a host sync per norm, summed in Python)."""
-
-    def __init__(self, ps):
-        self.master_params = ps
-
-    def _compute_norms(self, grad_scale=1.0):
-        grad_norm = param_norm = 0.0
-        for p in self.master_params:
-            with torch.no_grad():
-                param_norm += torch.norm(p, p=2, dtype=torch.float32).item() ** 2
-                if p.grad is not None:
-                    grad_norm += torch.norm(p.grad, p=2, dtype=torch.float32).item() ** 2
-        return np.sqrt(grad_norm) / grad_scale, np.sqrt(param_norm)
 
 
 class ScalarReads(torch.utils._python_dispatch.TorchDispatchMode):
