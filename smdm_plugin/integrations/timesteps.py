@@ -51,13 +51,12 @@ def tensor(data: Any, *args: Any, **kwargs: Any) -> torch.Tensor:
 
 
 class TorchView(types.ModuleType):
-    """``torch`` as an upstream module sees it, with :func:`tensor` in place of ``torch.tensor``:
-    torch's namespace copied once (what ``torch.compile`` reads of a module), any name added to
-    torch later read through."""
+    """``torch`` as an upstream module sees it: :func:`tensor` in place of ``torch.tensor``, every
+    other name read from torch at each use (a name torch gains or a test patches later included;
+    ``torch.compile`` reads a module's names the same way)."""
 
     def __init__(self) -> None:
         super().__init__("torch", torch.__doc__)
-        vars(self).update({k: v for k, v in vars(torch).items() if k not in ("__name__", "__doc__")})
         self.tensor = tensor
 
     def __getattr__(self, name: str) -> Any:

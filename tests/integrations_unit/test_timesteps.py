@@ -48,6 +48,13 @@ def test_a_view_is_torch_but_its_tensor():
     assert view._dynamo is torch._dynamo                          # read through: torch's lazy names
 
 
+def test_a_view_sees_what_is_patched_on_torch_later(monkeypatch):
+    view = T.TorchView()
+    patched = lambda a: a                                          # noqa: E731
+    monkeypatch.setattr(torch, "from_numpy", patched)
+    assert view.from_numpy is patched
+
+
 def test_upstream_code_seeing_a_view_compiles_whole():
     mod = types.ModuleType("fake_diffusion_module")
     mod.th = T.TorchView()
