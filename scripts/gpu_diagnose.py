@@ -292,10 +292,10 @@ def _loops(dev: torch.device, g: torch.Generator) -> None:
     """0.9.8: upstream's loops around the captured steps (checked on the CPU only): 50 steps of
     timesteps (``th.tensor([i] * B, device)``) and of ``respace``'s ``timestep_map``; the timestep
     sampler's copies; 50 steps of losses logged (upstream: ``.item()`` and two ``.cpu()`` per loss)
-    against :class:`~smdm_plugin.families.mdm.upstream_log.Later` values read back at a dump."""
+    against :class:`~smdm_plugin.families.mdm.upstream_loop.Later` values read back at a dump."""
     import numpy as np
 
-    from smdm_plugin.families.mdm import upstream_log
+    from smdm_plugin.families.mdm import upstream_loop
     from smdm_plugin.integrations.timesteps import tensor as on_device
 
     timestep_map = list(range(0, 1000, 20))
@@ -317,7 +317,7 @@ def _loops(dev: torch.device, g: torch.Generator) -> None:
     np.random.seed(0)
     want, up = _syncs(dev, lambda: [Sampler().sample(64, dev) for _ in range(10)])
     np.random.seed(0)
-    got, hook = _syncs(dev, lambda: [upstream_log.sample_without_sync(Sampler.sample)(Sampler(), 64, dev)
+    got, hook = _syncs(dev, lambda: [upstream_loop.sample_without_sync(Sampler.sample)(Sampler(), 64, dev)
                                      for _ in range(10)])
     same = all(torch.equal(a, b) for x, y in zip(want, got) for a, b in zip(x, y))
     print(f"10 timestep draws: equal {same}; syncs upstream {up}, pinned {hook}", flush=True)
@@ -325,9 +325,9 @@ def _loops(dev: torch.device, g: torch.Generator) -> None:
     losses = [torch.rand(64, generator=g).to(dev) for _ in range(50)]
     ts = torch.randint(0, 1000, (64,), generator=g).to(dev)
     want, up = _syncs(dev, lambda: [(v.mean().item(), ts.cpu().numpy(), v.cpu().numpy()) for v in losses])
-    later, kept = _syncs(dev, lambda: [upstream_log.Later((v.mean(), ts, v), lambda m, t, x: (m.item(), t.numpy(), x.numpy()))
+    later, kept = _syncs(dev, lambda: [upstream_loop.Later((v.mean(), ts, v), lambda m, t, x: (m.item(), t.numpy(), x.numpy()))
                                        for v in losses])
-    host, dump = _syncs(dev, lambda: upstream_log._to_host([t for v in later for t in v.tensors]))
+    host, dump = _syncs(dev, lambda: upstream_loop._to_host([t for v in later for t in v.tensors]))
     got = [v.make(*(host[id(t)] for t in v.tensors)) for v in later]
     same = all(a[0] == b[0] and np.array_equal(a[1], b[1]) and np.array_equal(a[2], b[2]) for a, b in zip(want, got))
     print(f"50 steps of a logged loss: equal {same}; syncs upstream {up}, kept {kept}, at the dump {dump}", flush=True)

@@ -355,7 +355,8 @@ def test_mdm_training_log_kept_until_read(upstream_copy, tmp_path, monkeypatch):
     (``training_log_reads.py``): on upstream's own ``TrainLoop`` and logger, every dump has
     upstream's keys, order, types and values, and no ``run_step`` reads a value back outside the
     optimizer (upstream: three reads per loss, one per norm). A ``--sparse_compile`` run where the
-    fused optimizer applies (CUDA; the policy standing in): no read in any step at all."""
+    fused optimizer applies (CUDA; the policy standing in): no read in any step at all, its batches
+    handed to the loop on its device."""
     import test_mdm_upstream as M
 
     repo = upstream_copy(MDM_ROOT, "mdm_log_kept")
@@ -382,6 +383,7 @@ def test_mdm_training_log_kept_until_read(upstream_copy, tmp_path, monkeypatch):
     flagged = training_log(M.mdm(repo, "-c", [code, "--save_dir", str(tmp_path / "flag"), *common, "--sparse",
                                               "--sparse_compile", "default"], launcher=True))
     assert flagged["reads"] == [0] * len(flagged["reads"]) and flagged["optimizer_reads"] == flagged["reads"], flagged
+    assert flagged["data"] == "DeviceBatches" and up["data"] == "DataLoader", (flagged["data"], up["data"])
     # (apart: the CPU's numpy keyframe selection reads its input; CUDA runs its own kernel)
     assert len(flagged["dumps"]) == len(up["dumps"]), flagged["dumps"]
     for dump in flagged["dumps"]:

@@ -1,11 +1,12 @@
-"""Upstream MDM's training log: upstream's, or kept until it is read (``families/mdm/upstream_log.py``
+"""Upstream MDM's training log: upstream's, or kept until it is read (``families/mdm/upstream_loop.py``
 and the norms of ``upstream_optim.norms_in_one_sync``; ``SMDM_TEST_KEEP_LOG=1``), on upstream's own
 ``TrainLoop`` and ``diffusion.logger``. Run inside ``train.train_mdm`` through ``mdm_harness.py -c``;
 at exit prints one line ``TRAINING_LOG {json}``: the host's reads of tensor values (``item``,
 ``tolist``, ``numpy``, ``cpu``: a host sync each on a GPU) inside each ``run_step``: inside the
 optimizer's ``step`` (a foreach AdamW's counters; the fused one reads none), apart (:class:`Reads`)
-and the others; and every dump (``dumpkvs``: key, type and value, in order). Under ``smdm run``
-with ``--sparse_compile`` the package's own hooks apply instead (where the fused optimizer does)."""
+and the others; every dump (``dumpkvs``: key, type and value, in order); the class of the loop's
+data. Under ``smdm run`` with ``--sparse_compile`` the package's hooks apply instead (where the
+fused optimizer does)."""
 import atexit
 import json
 import os
@@ -19,7 +20,7 @@ from diffusion import logger
 from diffusion.fp16_util import MixedPrecisionTrainer
 
 if os.environ.get("SMDM_TEST_KEEP_LOG") == "1":
-    from smdm_plugin.families.mdm.upstream_log import deferred_logger, log_loss_dict_later
+    from smdm_plugin.families.mdm.upstream_loop import deferred_logger, log_loss_dict_later
     from smdm_plugin.families.mdm.upstream_optim import norms_in_one_sync
 
     deferred_logger(logger.Logger)
@@ -65,11 +66,12 @@ class Reads:
         return call
 
 
-row = {"reads": [], "optimizer_reads": [], "apart": [], "dumps": []}
+row = {"reads": [], "optimizer_reads": [], "apart": [], "dumps": [], "data": None}
 _run_step, _dumpkvs = loop_mod.TrainLoop.run_step, logger.Logger.dumpkvs
 
 
 def run_step(self, batch, cond):
+    row["data"] = type(self.data).__name__
     opt_step = self.opt.step
     r = Reads()
 

@@ -3,7 +3,7 @@
 :func:`~smdm_plugin.runtime.compile.fused_optimizer_kwargs`): upstream's ``AdamW`` fused and kept
 fused across a resume (:class:`~smdm_plugin.runtime.fused_optim.FusedAdamW`); the norms that
 ``MixedPrecisionTrainer._compute_norms`` logs (a ``.item()`` per tensor, frozen CLIP included: 478
-per step at the paper's size) in a few multi-tensor ops, read with the log (:mod:`.upstream_log`)
+per step at the paper's size) in a few multi-tensor ops, read with the log (:mod:`.upstream_loop`)
 or in one sync; ``--use_ema``'s average (two ops per tensor) in two multi-tensor ops. Dense and
 sparse runs alike; the counts and why: docs/modules.md."""
 from __future__ import annotations
@@ -16,13 +16,14 @@ import numpy as np
 import torch
 
 from ...runtime.fused_optim import FusedAdamW
-from .upstream_log import Later, deferred_logger, deferring, log_loss_dict_later, sample_without_sync
+from .upstream_loop import (Later, batches_on_device, deferred_logger, deferring, log_loss_dict_later,
+                            sample_without_sync)
 
 __all__ = ["norms_in_one_sync", "average_in_two_ops", "fast_optimizer_step", "train_device", "OPTIMIZER_NOTE"]
 
 #: what a hooked run records beside its compile setting (``args.json``)
 OPTIMIZER_NOTE = ("optimizer step: AdamW fused, EMA in two ops; losses and norms logged without a sync, "
-                  "timesteps copied without one")
+                  "batches and timesteps copied without one")
 _MARK = "_smdm_fast_optimizer"
 _EMA_LISTS = "_smdm_ema_lists"      # a TrainLoop's (key, parameters, averages), listed once
 _LOOP_MODULE, _FP16_MODULE = "train.training_loop", "diffusion.fp16_util"
@@ -76,8 +77,8 @@ def norms_in_one_sync(original: Callable) -> Callable:
     L2 norms of ``self.master_params`` and of their gradients, each read with ``.item()`` and
     summed in Python) with every norm computed in a few multi-tensor ops (:func:`_norms`), stacked,
     and read back in one ``tolist``, or, where upstream's logger keeps its calls
-    (:mod:`.upstream_log`) and nothing but the log reads them (``use_fp16`` off: the fp16 path
-    checks the norm for overflow), returned as two :class:`~.upstream_log.Later` values read with
+    (:mod:`.upstream_loop`) and nothing but the log reads them (``use_fp16`` off: the fp16 path
+    checks the norm for overflow), returned as two :class:`~.upstream_loop.Later` values read with
     the log. The sums and values as upstream's (``(sqrt(sum grad_norm^2) / grad_scale, sqrt(sum
     param_norm^2))``, numpy floats): bit for bit on the CPU; on CUDA the multi-tensor norm may
     round differently in the last bit (logged values only: MDM's ``use_fp16`` is off)."""
@@ -150,6 +151,7 @@ def _hook_training_loop(mod: Any) -> None:
     loop = getattr(mod, "TrainLoop", None)
     if loop is not None:
         wrap_once(loop, "update_average_model", average_in_two_ops, marker=_MARK)
+        wrap_once(loop, "__init__", batches_on_device, marker=_MARK)
     wrap_once(mod, "log_loss_dict", log_loss_dict_later, marker=_MARK)
 
 
@@ -179,8 +181,8 @@ def fast_optimizer_step(device: Any, mode: Any) -> Optional[str]:
     """Hook upstream's training loop (now, or when it is imported) for a run compiled with
     ``mode`` on ``device``: :class:`~smdm_plugin.runtime.fused_optim.FusedAdamW` for its ``AdamW``,
     :func:`norms_in_one_sync` for its norms, :func:`average_in_two_ops` for its EMA, its log read
-    when it is read (:mod:`.upstream_log`: ``Logger``, ``log_loss_dict``) and its timesteps
-    copied without a sync, when :func:`~smdm_plugin.runtime.compile.fused_optimizer_kwargs` says
+    when it is read (:mod:`.upstream_loop`: ``Logger``, ``log_loss_dict``), its timesteps and
+    batches copied without a sync, when :func:`~smdm_plugin.runtime.compile.fused_optimizer_kwargs` says
     the fused optimizer applies there. Returns :data:`OPTIMIZER_NOTE`, or None (nothing hooked)."""
     from ...integrations._hooks import on_import
     from ...runtime import compile as compile_mod

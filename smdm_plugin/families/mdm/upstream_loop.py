@@ -1,11 +1,11 @@
-"""Upstream MDM's / DiP's / priorMDM's training log read from the device when it is read, not at
-every step (``--sparse_compile`` where the fused optimizer applies: CUDA; with :mod:`.upstream_optim`).
-``log_loss_dict`` read each loss back three times per step (``.item()``, two ``.cpu()``) and the
-norms once, each a host sync on a GPU: they go to the logger as :class:`Later` values, which
-``diffusion.logger.Logger`` keeps, in call order, until its values are read (``dumpkvs``,
-``name2val``) or :data:`LIMIT` calls wait; then one copy per dtype and upstream's calls replayed in
-order: the same values, keys and order. The timestep sampler draws as upstream and copies from
-pinned memory without a sync. Counts and why: docs/modules.md."""
+"""Upstream MDM's / DiP's / priorMDM's training loop without a host sync per step
+(``--sparse_compile`` where the fused optimizer applies: CUDA; with :mod:`.upstream_optim`).
+``log_loss_dict`` read each loss back three times per step and the norms once: they go to the
+logger as :class:`Later` values, which ``diffusion.logger.Logger`` keeps, in call order, until its
+values are read (``dumpkvs``, ``name2val``) or :data:`LIMIT` calls wait; then one copy per dtype
+and upstream's calls replayed in order: the same values, keys and order. The timestep sampler
+draws as upstream and each batch reaches the device before the loop's ``.to(device)`` (which then
+copies nothing), both copied from pinned memory without a sync. Counts and why: docs/modules.md."""
 from __future__ import annotations
 
 import functools
@@ -14,7 +14,8 @@ from typing import Any, Callable, Dict, List, Optional, Sequence, Tuple
 
 import torch
 
-__all__ = ["Later", "deferred_logger", "log_loss_dict_later", "sample_without_sync", "LIMIT"]
+__all__ = ["Later", "DeviceBatches", "deferred_logger", "log_loss_dict_later", "sample_without_sync",
+           "batches_on_device", "LIMIT"]
 
 #: calls a logger keeps before it reads them back by itself (one host sync per this many)
 LIMIT = 4096
@@ -144,6 +145,14 @@ def log_loss_dict_later(original: Callable) -> Callable:
     return log_loss_dict
 
 
+def _to_device(t: torch.Tensor, device: torch.device) -> torch.Tensor:
+    """``t`` on ``device``: from pinned memory without blocking on CUDA (a batch the loader pinned
+    is not copied again on the host), else ``t.to(device)``."""
+    if device.type == "cuda":
+        return t.pin_memory().to(device, non_blocking=True)
+    return t.to(device)
+
+
 def sample_without_sync(original: Callable) -> Callable:
     """``original`` (upstream's ``ScheduleSampler.sample(self, batch_size, device)``: numpy draws,
     then two blocking host-to-device copies) drawing the same on the host, copied to a CUDA
@@ -155,6 +164,53 @@ def sample_without_sync(original: Callable) -> Callable:
         if dev.type != "cuda":
             return original(self, batch_size, device)
         indices, weights = original(self, batch_size, "cpu")
-        return (indices.pin_memory().to(dev, non_blocking=True), weights.pin_memory().to(dev, non_blocking=True))
+        return _to_device(indices, dev), _to_device(weights, dev)
 
     return sample
+
+
+class DeviceBatches:
+    """Upstream's data loader (``TrainLoop.data``) whose batches ``(motion, {"y": {...}})`` come
+    with ``motion`` and the tensors of ``y`` on ``device`` (what upstream's loop moves there
+    itself, with a blocking copy each: on CUDA a stream sync per step); any other batch as the
+    loader gives it. ``len`` and every other name are the loader's."""
+
+    def __init__(self, loader: Any, device: torch.device) -> None:
+        self.loader, self.device = loader, device
+
+    def __iter__(self) -> Any:
+        for batch in self.loader:
+            yield self._moved(batch)
+
+    def _moved(self, batch: Any) -> Any:
+        if not (isinstance(batch, (tuple, list)) and len(batch) == 2 and torch.is_tensor(batch[0])
+                and isinstance(batch[1], dict) and isinstance(batch[1].get("y"), dict)):
+            return batch
+        motion, cond = batch
+        y = {k: _to_device(v, self.device) if torch.is_tensor(v) else v for k, v in cond["y"].items()}
+        return type(batch)((_to_device(motion, self.device), {**cond, "y": y}))
+
+    def __len__(self) -> int:
+        return len(self.loader)
+
+    def __getattr__(self, name: str) -> Any:
+        return getattr(self.loader, name)
+
+
+def batches_on_device(original: Callable) -> Callable:
+    """``original`` (upstream's ``TrainLoop.__init__``) then its ``data`` as :class:`DeviceBatches`
+    on the loop's ``device`` (a loader asked to pin its batches, on CUDA). Not with MDM's
+    ``--multi_target_cond``, whose goal sampling draws on the batch's device before the loop moves it."""
+
+    @functools.wraps(original)
+    def __init__(self: Any, *args: Any, **kwargs: Any) -> None:
+        original(self, *args, **kwargs)
+        device, data = getattr(self, "device", None), getattr(self, "data", None)
+        if (not isinstance(device, torch.device) or data is None or isinstance(data, DeviceBatches)
+                or getattr(getattr(self, "args", None), "multi_target_cond", False)):
+            return
+        if device.type == "cuda" and isinstance(data, torch.utils.data.DataLoader):
+            data.pin_memory = True              # pinned by the loader (its thread, with workers)
+        self.data = DeviceBatches(data, device)
+
+    return __init__

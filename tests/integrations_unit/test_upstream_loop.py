@@ -1,4 +1,4 @@
-"""Upstream MDM's training log read when it is read (``families/mdm/upstream_log.py``): against a
+"""Upstream MDM's training log read when it is read (``families/mdm/upstream_loop.py``): against a
 copy of upstream's ``Logger`` semantics and its ``log_loss_dict`` (the reference, written out
 here), the same values, keys, order and types at every dump, with no read from the device before
 the dump; the timestep sampler's draws unchanged."""
@@ -14,7 +14,7 @@ import torch
 from helpers.upstream_norms import Trainer
 from torch.overrides import TorchFunctionMode
 
-from smdm_plugin.families.mdm import upstream_log as L
+from smdm_plugin.families.mdm import upstream_loop as L
 from smdm_plugin.families.mdm import upstream_optim as U
 
 
@@ -251,3 +251,52 @@ def test_fast_optimizer_step_keeps_the_log_and_hooks_the_sampler_only_on_cuda(mo
     assert U.fast_optimizer_step("cuda", "default") == U.OPTIMIZER_NOTE
     assert L.deferring(log) and loop.log_loss_dict is not original_loss_log
     assert resample.ScheduleSampler.sample is not Sampler.sample
+
+
+def batches(n=3):
+    g = torch.Generator().manual_seed(5)
+    return [(torch.randn(2, 4, 1, 6, generator=g),
+             {"y": {"mask": torch.ones(2, 1, 1, 6, dtype=torch.bool), "lengths": torch.tensor([6, 4]),
+                    "text": ["a", "b"]}}) for _ in range(n)]
+
+
+class Loop:
+    """Upstream's ``TrainLoop.__init__`` as far as the data goes: ``device``, ``data``, ``args``."""
+
+    def __init__(self, data, device, multi_target_cond=False):
+        self.data, self.device = data, torch.device(device)
+        self.args = types.SimpleNamespace(multi_target_cond=multi_target_cond)
+
+
+def test_batches_reach_the_device_as_upstreams_loop_moves_them():
+    loader = torch.utils.data.DataLoader(batches(), batch_size=None)
+    loop = Loop(loader, "cpu")
+    L.batches_on_device(Loop.__init__)(loop, loader, "cpu")
+    assert isinstance(loop.data, L.DeviceBatches) and len(loop.data) == 3 and loop.data.dataset is loader.dataset
+    for (motion, cond), (m0, c0) in zip(loop.data, batches()):
+        moved = motion.to(loop.device)                           # upstream's loop: nothing left to copy
+        assert moved is motion and torch.equal(motion, m0) and cond["y"]["text"] == c0["y"]["text"]
+        assert all(torch.equal(cond["y"][k], c0["y"][k]) for k in ("mask", "lengths"))
+    other = L.DeviceBatches([("not", "a batch")], torch.device("cpu"))
+    assert list(other) == [("not", "a batch")]                   # any other batch as the loader gives it
+
+
+@pytest.mark.filterwarnings("ignore:'pin_memory' argument is set as true but no accelerator")
+def test_batches_go_to_cuda_from_pinned_memory(monkeypatch):
+    calls = []
+    monkeypatch.setattr(torch.Tensor, "pin_memory", lambda self: calls.append("pin") or self)
+    monkeypatch.setattr(torch.Tensor, "to", lambda self, *a, **k: calls.append((str(a[0]), k)) or self)
+    loader = torch.utils.data.DataLoader(batches(1), batch_size=None)
+    loop = Loop(loader, "cuda")
+    L.batches_on_device(Loop.__init__)(loop, loader, "cuda")
+    assert loader.pin_memory is True                              # the loader pins (its thread, with workers)
+    list(loop.data)
+    assert calls == ["pin", ("cuda", {"non_blocking": True})] * 3   # motion, mask, lengths
+
+
+def test_multi_target_cond_keeps_upstreams_data():
+    """MDM's ``--multi_target_cond`` samples goals on the batch's device before the loop moves it."""
+    loader = batches()
+    loop = Loop(loader, "cpu", multi_target_cond=True)
+    L.batches_on_device(Loop.__init__)(loop, loader, "cpu", multi_target_cond=True)
+    assert loop.data is loader
