@@ -23,8 +23,8 @@
   the fused AdamW resumed from a foreach state as MDM resumes (against foreach, host syncs), a fused
   state in torch's AdamW, the logged norms read in one sync (against upstream's per-tensor reads),
   the schedule tables read on the device (against upstream's copy per call); 0.9.8: the sampling
-  loop's timesteps and ``timestep_map`` made on the device, the timestep sampler's pinned copies,
-  the training log's losses read at the dump (each against upstream's, with its syncs).
+  loop's timesteps and ``timestep_map`` made on the device, the timestep sampler's and the batches'
+  pinned copies, the training log's losses read at the dump (each against upstream's, with its syncs).
 
     python scripts/gpu_diagnose.py --out DIR [--sections errors syncs profile parts kernels layout optimizer]
 """
@@ -291,8 +291,9 @@ def section_optimizer(dev: torch.device) -> None:
 def _loops(dev: torch.device, g: torch.Generator) -> None:
     """0.9.8: upstream's loops around the captured steps (checked on the CPU only): 50 steps of
     timesteps (``th.tensor([i] * B, device)``) and of ``respace``'s ``timestep_map``; the timestep
-    sampler's copies; 50 steps of losses logged (upstream: ``.item()`` and two ``.cpu()`` per loss)
-    against :class:`~smdm_plugin.families.mdm.upstream_loop.Later` values read back at a dump."""
+    sampler's copies; five batches handed to the loop; 50 steps of losses logged (upstream:
+    ``.item()`` and two ``.cpu()`` per loss) against
+    :class:`~smdm_plugin.families.mdm.upstream_loop.Later` values read back at a dump."""
     import numpy as np
 
     from smdm_plugin.families.mdm import upstream_loop
@@ -321,6 +322,14 @@ def _loops(dev: torch.device, g: torch.Generator) -> None:
                                      for _ in range(10)])
     same = all(torch.equal(a, b) for x, y in zip(want, got) for a, b in zip(x, y))
     print(f"10 timestep draws: equal {same}; syncs upstream {up}, pinned {hook}", flush=True)
+
+    batch = [(torch.randn(64, 263, 1, 196, generator=g), {"y": {"lengths": torch.randint(40, 196, (64,), generator=g)}})
+             for _ in range(5)]
+    want, up = _syncs(dev, lambda: [(m.to(dev), c["y"]["lengths"].to(dev)) for m, c in batch])
+    got, hook = _syncs(dev, lambda: [(m.to(dev), c["y"]["lengths"].to(dev))
+                                     for m, c in upstream_loop.DeviceBatches(batch, dev)])
+    same = all(torch.equal(a, b) for x, y in zip(want, got) for a, b in zip(x, y))
+    print(f"5 batches to the loop: equal {same}; syncs upstream {up}, handed on the device {hook}", flush=True)
 
     losses = [torch.rand(64, generator=g).to(dev) for _ in range(50)]
     ts = torch.randint(0, 1000, (64,), generator=g).to(dev)

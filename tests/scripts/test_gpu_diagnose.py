@@ -96,5 +96,6 @@ def test_optimizer_section_runs_and_agrees_on_a_cpu(tmp_path, capsys, monkeypatc
     assert "max relative difference 0.00e+00" in norms, norms       # bit for bit on the CPU
     assert "6 schedule reads (a p_sample step): equal True" in out
     for line in ("50 steps of timesteps and timestep_map: equal True", "10 timestep draws: equal True",
+                 "5 batches to the loop: equal True",
                  "50 steps of a logged loss: equal True"):
         assert line in out, out
