@@ -250,6 +250,8 @@ def test_fast_optimizer_step_keeps_the_log_and_hooks_the_sampler_only_on_cuda(mo
     assert resample.ScheduleSampler.sample is Sampler.sample
     assert U.fast_optimizer_step("cuda", "default") == U.OPTIMIZER_NOTE
     assert L.deferring(log) and loop.log_loss_dict is not original_loss_log
+    target = types.SimpleNamespace(multi_target_cond=True)            # the note says the batches are upstream's
+    assert U.fast_optimizer_step("cuda", "default", target) == U.OPTIMIZER_NOTE + U.UPSTREAM_BATCHES
     assert resample.ScheduleSampler.sample is not Sampler.sample
 
 

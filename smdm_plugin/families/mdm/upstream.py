@@ -223,7 +223,7 @@ def apply_compile(model: Any, args: Any, options_file: Optional[str] = None, dif
             from .prepare import loss_preparer
 
             losses = (diffusion, loss_preparer(model))
-        optimizer = functools.partial(fast_optimizer_step, train_device(), mode)   # under torchrun too
+        optimizer = functools.partial(fast_optimizer_step, train_device(), mode, args)   # under torchrun too
     return compile_upstream(model, args, options_file, losses=losses, optimizer=optimizer)
 
 

@@ -19,11 +19,14 @@ from ...runtime.fused_optim import FusedAdamW
 from .upstream_loop import (Later, batches_on_device, deferred_logger, deferring, log_loss_dict_later,
                             sample_without_sync)
 
-__all__ = ["norms_in_one_sync", "average_in_two_ops", "fast_optimizer_step", "train_device", "OPTIMIZER_NOTE"]
+__all__ = ["norms_in_one_sync", "average_in_two_ops", "fast_optimizer_step", "train_device", "OPTIMIZER_NOTE",
+           "UPSTREAM_BATCHES"]
 
 #: what a hooked run records beside its compile setting (``args.json``)
 OPTIMIZER_NOTE = ("optimizer step: AdamW fused, EMA in two ops; losses and norms logged without a sync, "
                   "batches and timesteps copied without one")
+#: what the note adds where the batches stay upstream's (:func:`~.upstream_loop.batches_on_device`)
+UPSTREAM_BATCHES = " (batches: upstream's copies, --multi_target_cond)"
 _MARK = "_smdm_fast_optimizer"
 _EMA_LISTS = "_smdm_ema_lists"      # a TrainLoop's (key, parameters, averages), listed once
 _LOOP_MODULE, _FP16_MODULE = "train.training_loop", "diffusion.fp16_util"
@@ -177,13 +180,15 @@ def _hook_fp16_util(mod: Any) -> None:
         wrap_once(trainer, "_compute_norms", norms_in_one_sync, marker=_MARK)
 
 
-def fast_optimizer_step(device: Any, mode: Any) -> Optional[str]:
+def fast_optimizer_step(device: Any, mode: Any, args: Any = None) -> Optional[str]:
     """Hook upstream's training loop (now, or when it is imported) for a run compiled with
     ``mode`` on ``device``: :class:`~smdm_plugin.runtime.fused_optim.FusedAdamW` for its ``AdamW``,
     :func:`norms_in_one_sync` for its norms, :func:`average_in_two_ops` for its EMA, its log read
     when it is read (:mod:`.upstream_loop`: ``Logger``, ``log_loss_dict``), its timesteps and
-    batches copied without a sync, when :func:`~smdm_plugin.runtime.compile.fused_optimizer_kwargs` says
-    the fused optimizer applies there. Returns :data:`OPTIMIZER_NOTE`, or None (nothing hooked)."""
+    batches copied without a sync, when :func:`~smdm_plugin.runtime.compile.fused_optimizer_kwargs`
+    says the fused optimizer applies there. Returns :data:`OPTIMIZER_NOTE` (with
+    :data:`UPSTREAM_BATCHES` when the run's ``args`` ask for MDM's ``--multi_target_cond``, whose
+    batches the loop copies as upstream), or None (nothing hooked)."""
     from ...integrations._hooks import on_import
     from ...runtime import compile as compile_mod
 
@@ -193,4 +198,4 @@ def fast_optimizer_step(device: Any, mode: Any) -> Optional[str]:
     on_import(_SAMPLER_MODULE, _hook_sampler)
     on_import(_LOOP_MODULE, _hook_training_loop)
     on_import(_FP16_MODULE, _hook_fp16_util)
-    return OPTIMIZER_NOTE
+    return OPTIMIZER_NOTE + (UPSTREAM_BATCHES if getattr(args, "multi_target_cond", False) else "")
