@@ -156,6 +156,18 @@ def test_reading_name2val_replays_what_waits(pair):
     assert list(log.Logger.CURRENT.name2cnt.items()) == [("a", 2)]
 
 
+def test_a_tensor_averaged_is_its_value_when_logged(pair):
+    """``logkv_mean`` of a tensor averages its value at the call (upstream's arithmetic runs then); a
+    tensor changed in place later does not change what the log says."""
+    (ref_log, _), (log, _) = pair
+    for m in (ref_log, log):
+        x = torch.tensor(3.0)
+        m.logkv_mean("x", x)
+        x.add_(10.0)
+        m.logkv_mean("x", x)
+    assert float(log.Logger.CURRENT.name2val["x"]) == float(ref_log.Logger.CURRENT.name2val["x"]) == 8.0
+
+
 def test_the_log_reads_back_by_itself_after_limit_calls(pair, monkeypatch):
     (_, _), (log, _) = pair
     monkeypatch.setattr(L, "LIMIT", 5)

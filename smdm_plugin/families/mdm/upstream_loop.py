@@ -89,6 +89,8 @@ def deferred_logger(cls: type) -> bool:
 
     def keep(mean: bool) -> Callable:
         def call(self: Any, key: Any, val: Any) -> None:
+            if mean and isinstance(val, torch.Tensor):     # upstream averages it now: its value now
+                val = val.detach().clone()
             pending = vars(self).setdefault(_PENDING, [])
             pending.append((mean, key, val))
             if len(pending) >= LIMIT:
