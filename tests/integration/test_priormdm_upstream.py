@@ -271,6 +271,30 @@ def test_launcher_train(tmp_path):
     check_training(save, out, rec, 2)
 
 
+def test_launcher_train_compiled_with_the_fused_optimizer_logs_each_step(tmp_path):
+    """``--sparse_compile default`` where the fused optimizer applies (the CUDA policy standing in
+    on the CPU): priorMDM's loop reads ``logger.get_current().name2val`` directly, never dumping,
+    while the logger keeps its calls (``families/mdm/upstream_loop.py``): every step still prints
+    its running loss mean, the run trains to its checkpoint, ``args.json`` says what applied."""
+    from _upstream import fused_policy_path
+
+    from smdm_plugin.families.mdm.upstream_optim import OPTIMIZER_NOTE
+
+    run, save = prepare(str(tmp_path / "priorMDM"), patch=False), str(tmp_path / "save" / "run")
+    rec = str(tmp_path / "train.pkl")
+    cmd = LAUNCHER + ["--repo", run, "--", sys.executable, os.path.join(HERE, "upstream_harness.py"), run,
+                      *train_args(save, 2), "--sparse_compile", "default"]
+    env = _env(record=rec)
+    env["SMDM_COMPILE_BACKEND"] = "aot_eager"
+    env["PYTHONPATH"] = fused_policy_path(str(tmp_path / "site")) + os.pathsep + env["PYTHONPATH"]
+    out = _run(cmd, REPO, env)
+    check_training(save, out, rec, 2)
+    losses = step_losses(out)
+    assert len(losses) >= 2 and np.isfinite(losses).all(), out[-3000:]
+    applied = json.load(open(os.path.join(save, "args.json")))["sparse_compile_applied"]
+    assert applied.endswith("; " + OPTIMIZER_NOTE), applied
+
+
 def test_sparse_double_take_draws_the_dense_prompts(tmp_path):
     """Same seed, prompts drawn from the dataset (no --input_text): a sparse DoubleTake samples the
     same prompts and lengths as a dense one (the plugin leaves upstream's RNG streams alone; the
