@@ -14,6 +14,9 @@ from typing import Any, Callable, Dict, List, Optional, Sequence, Tuple
 
 import torch
 
+from ...integrations.host_copies import DeviceBatches as _DeviceBatches, pin_batches, sample_without_sync, \
+    to_device_without_sync
+
 __all__ = ["Later", "DeviceBatches", "deferred_logger", "log_loss_dict_later", "sample_without_sync",
            "batches_on_device", "LIMIT"]
 
@@ -147,56 +150,19 @@ def log_loss_dict_later(original: Callable) -> Callable:
     return log_loss_dict
 
 
-def _to_device(t: torch.Tensor, device: torch.device) -> torch.Tensor:
-    """``t`` on ``device``: from pinned memory without blocking on CUDA (a batch the loader pinned
-    is not copied again on the host), else ``t.to(device)``."""
-    if device.type == "cuda":
-        return t.pin_memory().to(device, non_blocking=True)
-    return t.to(device)
-
-
-def sample_without_sync(original: Callable) -> Callable:
-    """``original`` (upstream's ``ScheduleSampler.sample(self, batch_size, device)``: numpy draws,
-    then two blocking host-to-device copies) drawing the same on the host, copied to a CUDA
-    ``device`` from pinned memory without a sync; other devices: ``original``."""
-
-    @functools.wraps(original)
-    def sample(self: Any, batch_size: int, device: Any) -> Tuple[torch.Tensor, torch.Tensor]:
-        dev = torch.device(device)
-        if dev.type != "cuda":
-            return original(self, batch_size, device)
-        indices, weights = original(self, batch_size, "cpu")
-        return _to_device(indices, dev), _to_device(weights, dev)
-
-    return sample
-
-
-class DeviceBatches:
+class DeviceBatches(_DeviceBatches):
     """Upstream's data loader (``TrainLoop.data``) whose batches ``(motion, {"y": {...}})`` come
     with ``motion`` and the tensors of ``y`` on ``device`` (what upstream's loop moves there
     itself, with a blocking copy each: on CUDA a stream sync per step); any other batch as the
     loader gives it. ``len`` and every other name are the loader's."""
-
-    def __init__(self, loader: Any, device: torch.device) -> None:
-        self.loader, self.device = loader, device
-
-    def __iter__(self) -> Any:
-        for batch in self.loader:
-            yield self._moved(batch)
 
     def _moved(self, batch: Any) -> Any:
         if not (isinstance(batch, (tuple, list)) and len(batch) == 2 and torch.is_tensor(batch[0])
                 and isinstance(batch[1], dict) and isinstance(batch[1].get("y"), dict)):
             return batch
         motion, cond = batch
-        y = {k: _to_device(v, self.device) if torch.is_tensor(v) else v for k, v in cond["y"].items()}
-        return type(batch)((_to_device(motion, self.device), {**cond, "y": y}))
-
-    def __len__(self) -> int:
-        return len(self.loader)
-
-    def __getattr__(self, name: str) -> Any:
-        return getattr(self.loader, name)
+        y = {k: to_device_without_sync(v, self.device) if torch.is_tensor(v) else v for k, v in cond["y"].items()}
+        return type(batch)((to_device_without_sync(motion, self.device), {**cond, "y": y}))
 
 
 def batches_on_device(original: Callable) -> Callable:
@@ -211,8 +177,7 @@ def batches_on_device(original: Callable) -> Callable:
         if (not isinstance(device, torch.device) or data is None or isinstance(data, DeviceBatches)
                 or getattr(getattr(self, "args", None), "multi_target_cond", False)):
             return
-        if device.type == "cuda" and isinstance(data, torch.utils.data.DataLoader):
-            data.pin_memory = True              # pinned by the loader (its thread, with workers)
+        pin_batches(data, device)
         self.data = DeviceBatches(data, device)
 
     return __init__

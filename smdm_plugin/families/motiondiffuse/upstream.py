@@ -122,6 +122,10 @@ def attach_trainer(trainer: Any, config: Optional[SparseConfig] = None) -> Any:
         from ...integrations.announce import announce_sparse_mode
 
         announce_sparse_mode(core, "MotionDiffuse", bool(getattr(opt, "is_train", False)))
+    if config.enabled:
+        from .upstream_loop import mask_without_loop
+
+        mask_without_loop(core)   # the trainer's padding mask in two ops (upstream: one write per frame)
     if config.enabled and getattr(opt, "is_train", False) and getattr(opt, "model_dir", None):
         # sparse_config.json (never replacing another config unasked), and opt.txt's sparse_* as
         # they ran (e.g. sparse_fsq False: FSQ keys cannot apply to linear attention, with a warning)
@@ -148,14 +152,17 @@ class _OptimFused:
 
 
 #: what a training run whose Adam is fused records beside its compile setting (``opt.txt``)
-OPTIMIZER_NOTE = "optimizer step: Adam fused"
+OPTIMIZER_NOTE = ("optimizer step: Adam fused; loss logged without a sync, batches, lengths and timesteps "
+                  "copied without one")
 
 
 def fuse_trainer_optimizer(trainer: Any, device: Any, mode: Any) -> Optional[str]:
-    """A compiled training run's optimizer step: where
+    """A compiled training run's step after the loss: where
     :func:`~smdm_plugin.runtime.compile.fused_optimizer_kwargs` says the fused optimizer applies
     (CUDA), the ``Adam`` that ``DDPMTrainer.train`` builds is fused (kept fused across
-    ``--is_continue``). Returns :data:`OPTIMIZER_NOTE`, or None (nothing changed)."""
+    ``--is_continue``) and the loop makes no host sync per step
+    (:func:`~.upstream_loop.loop_without_sync`). Returns :data:`OPTIMIZER_NOTE`, or None (nothing
+    changed)."""
     import sys
 
     import torch.optim
@@ -167,7 +174,12 @@ def fuse_trainer_optimizer(trainer: Any, device: Any, mode: Any) -> Optional[str
         return None
     if getattr(module, "optim", None) is torch.optim:
         module.optim = _OptimFused()
-    return OPTIMIZER_NOTE if isinstance(getattr(module, "optim", None), _OptimFused) else None
+    if not isinstance(getattr(module, "optim", None), _OptimFused):
+        return None
+    from .upstream_loop import loop_without_sync
+
+    loop_without_sync(trainer)   # no host sync per step (families/motiondiffuse/upstream_loop.py)
+    return OPTIMIZER_NOTE
 
 
 def compile_trainer(trainer: Any) -> Any:
@@ -187,6 +199,10 @@ def compile_trainer(trainer: Any) -> Any:
     mode = check_compile_mode(getattr(opt, "sparse_compile", None))
     if mode != "none" and getattr(trainer, "diffusion", None) is not None:
         tables_on_device(trainer.diffusion)   # its loss and sampling steps copy no schedule per call
+    if mode != "none":
+        from .upstream_loop import mask_without_loop
+
+        mask_without_loop(core)   # dense too: its denoiser's padding mask traces (no loop over frames)
     options_file = optimizer = None
     if getattr(opt, "is_train", False):
         optimizer = functools.partial(fuse_trainer_optimizer, trainer, device, mode)
@@ -240,13 +256,18 @@ def _patch_trainer(mod) -> None:
     def make_backward(backward):
         @functools.wraps(backward)
         def backward_G(self):
-            logs = backward(self)
-            if getattr(self.opt, "sparse", False):
+            from .upstream_loop import deferring, log_of, upstream_loss
+
+            sparse = getattr(self.opt, "sparse", False)
+            if not sparse and not deferring(self):
+                return backward(self)
+            loss = upstream_loss(self)           # upstream's loss, the same ops (read once, or later)
+            if sparse:
                 from .model import trainer_loss
 
-                self.loss_mot_rec = trainer_loss(self, self.loss_mot_rec)
-                logs["loss_mot_rec"] = self.loss_mot_rec.item()
-            return logs
+                loss = trainer_loss(self, loss)
+            self.loss_mot_rec = loss
+            return log_of(self, loss)
         return backward_G
 
     cls = getattr(mod, "DDPMTrainer", None)
