@@ -154,6 +154,8 @@ def test_loop_without_sync_hooks_the_trainer_and_keeps_its_values(monkeypatch):
     got = list(loader)
     assert list(got[0][0]) == ["x", "x"] and torch.equal(got[1][1][0], torch.full((8, 3), 2.0))
     assert torch.equal(got[1][2], torch.tensor([5, 6]))
-    assert L.loop_without_sync(tr) == ["lengths", "batches", "loss"]     # once: the sampler kept
+    hooked = (vars(tr)["forward"], vars(tr.sampler)["sample"], mod.build_dataloader, mod.torch)
+    assert L.loop_without_sync(tr) == ["lengths", "batches", "timesteps", "loss"]   # once: nothing wrapped twice
+    assert hooked == (vars(tr)["forward"], vars(tr.sampler)["sample"], mod.build_dataloader, mod.torch)
     assert isinstance(L.log_of(tr, torch.tensor(1.5))["loss_mot_rec"], L.LossValue)
     assert L.log_of(Trainer(), torch.tensor(1.5)) == OrderedDict(loss_mot_rec=1.5)

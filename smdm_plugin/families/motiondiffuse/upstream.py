@@ -178,7 +178,7 @@ def fuse_trainer_optimizer(trainer: Any, device: Any, mode: Any) -> Optional[str
         return None
     from .upstream_loop import loop_without_sync
 
-    loop_without_sync(trainer)   # no host sync per step (families/motiondiffuse/upstream_loop.py)
+    loop_without_sync(trainer, device)   # no host sync per step (families/motiondiffuse/upstream_loop.py)
     return OPTIMIZER_NOTE
 
 

@@ -153,25 +153,27 @@ def _lengths_on(device: torch.device) -> Iterator[None]:
         _LOCAL.device = previous
 
 
-def loop_without_sync(trainer: Any) -> List[str]:
+def loop_without_sync(trainer: Any, device: Any = None) -> List[str]:
     """Hook ``trainer`` (upstream's ``DDPMTrainer``, on CUDA) and its module: the loader that
     ``train`` builds pins its batches and hands ``motions`` on the device (:class:`MotionBatches`),
     ``forward``'s lengths copied without a sync (:class:`TrainerTorch`), the timestep sampler's
     copies too (:func:`~smdm_plugin.integrations.host_copies.sample_without_sync`), the loss logged
-    as a :class:`LossValue` (the caller's ``backward_G``: :func:`deferring`). Returns what it hooked."""
-    device = torch.device(trainer.device)
+    as a :class:`LossValue` (the caller's ``backward_G``: :func:`deferring`); ``device``: the
+    trainer's (``trainer.device`` when None). Once per trainer; returns what is hooked."""
+    device = torch.device(trainer.device if device is None else device)
     module = sys.modules.get(type(trainer).__module__)
     done = []
     if module is not None and getattr(module, "torch", None) is torch:
         module.torch = TrainerTorch()
-    if module is not None and isinstance(getattr(module, "torch", None), TrainerTorch):
-        forward = trainer.forward
+    forward = getattr(trainer, "forward", None)
+    if forward is not None and isinstance(getattr(module, "torch", None), TrainerTorch):
+        if not getattr(forward, _MARK, False):
+            def forward_hooked(*args: Any, **kwargs: Any) -> Any:
+                with _lengths_on(device):
+                    return forward(*args, **kwargs)
 
-        def forward_hooked(*args: Any, **kwargs: Any) -> Any:
-            with _lengths_on(device):
-                return forward(*args, **kwargs)
-
-        vars(trainer)["forward"] = forward_hooked
+            setattr(forward_hooked, _MARK, True)
+            vars(trainer)["forward"] = forward_hooked
         done.append("lengths")
     build = getattr(module, "build_dataloader", None)
     if build is not None and not getattr(build, _MARK, False):
@@ -185,8 +187,9 @@ def loop_without_sync(trainer: Any) -> List[str]:
     if build is not None:
         done.append("batches")
     sampler = getattr(trainer, "sampler", None)
-    if sampler is not None and "sample" not in vars(sampler):
-        vars(sampler)["sample"] = types.MethodType(sample_without_sync(type(sampler).sample), sampler)
+    if sampler is not None:
+        if "sample" not in vars(sampler):
+            vars(sampler)["sample"] = types.MethodType(sample_without_sync(type(sampler).sample), sampler)
         done.append("timesteps")
     vars(trainer)[_MARK] = True
     done.append("loss")

@@ -1,0 +1,47 @@
+"""scripts/time_src_mask.py: upstream's padding mask read from a checkout, timed beside the flag's."""
+import re
+import subprocess
+import sys
+from pathlib import Path
+
+SCRIPT = Path(__file__).resolve().parents[2] / "scripts" / "time_src_mask.py"
+
+#: a checkout's models/transformer.py as far as the script reads it (the mask as upstream writes it)
+TRANSFORMER = '''
+import torch.nn as nn
+
+class MotionTransformer(nn.Module):
+    def generate_src_mask(self, T, length):
+        B = len(length)
+        src_mask = torch.ones(B, T)
+        for i in range(B):
+            for j in range(length[i], T):
+                src_mask[i, j] = 0
+        return src_mask
+'''
+
+
+def _run(*args):
+    return subprocess.run([sys.executable, str(SCRIPT), *args], capture_output=True, text=True, timeout=300)
+
+
+def test_it_times_the_checkout_s_mask_beside_the_flag_s(tmp_path):
+    models = tmp_path / "text2motion" / "models"
+    models.mkdir(parents=True)
+    (models / "transformer.py").write_text(TRANSFORMER)
+    r = _run("--repo", str(tmp_path), "--batch", "4", "--frames", "60", "--repeats", "2")
+    assert r.returncode == 0, r.stderr
+    rows = [l for l in r.stdout.splitlines() if l.startswith("| ") and "---" not in l][1:]
+    assert [l.split("|")[1].strip() for l in rows] == ["upstream's `generate_src_mask`", "the flag's `src_mask`"]
+    assert all(re.search(r"\| \d+\.\d+ \|$", l) for l in rows)
+    assert "B = 4, T = 60" in r.stdout
+
+
+def test_a_folder_without_the_model_is_exit_2_naming_the_argument(tmp_path):
+    r = _run("--repo", str(tmp_path))
+    assert r.returncode == 2 and "argument --repo" in r.stderr.splitlines()[-1] and "Traceback" not in r.stderr
+    models = tmp_path / "text2motion" / "models"
+    models.mkdir(parents=True)
+    (models / "transformer.py").write_text("class Other:\n    pass\n")
+    r = _run("--repo", str(tmp_path))
+    assert r.returncode == 2 and "no MotionTransformer.generate_src_mask" in r.stderr
