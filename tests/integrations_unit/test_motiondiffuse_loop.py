@@ -11,16 +11,11 @@ import torch
 
 from smdm_plugin.families.motiondiffuse import upstream_loop as L
 from smdm_plugin.families.motiondiffuse.standin import StandInMotionTransformer
+from helpers import upstream_mask
 
 
 def generate_src_mask(T, length):
-    """MotionDiffuse's ``MotionTransformer.generate_src_mask`` as upstream writes it."""
-    B = len(length)
-    src_mask = torch.ones(B, T)
-    for i in range(B):
-        for j in range(length[i], T):
-            src_mask[i, j] = 0
-    return src_mask
+    return upstream_mask.generate_src_mask(None, T, length)
 
 
 @pytest.mark.parametrize("length", [torch.tensor([40, 31, 17, 1]), [40, 31, 17], [torch.tensor(5), torch.tensor(40)],

@@ -4,21 +4,11 @@ import subprocess
 import sys
 from pathlib import Path
 
+from helpers import upstream_mask
+
 SCRIPT = Path(__file__).resolve().parents[2] / "scripts" / "time_src_mask.py"
 
-#: a checkout's models/transformer.py as far as the script reads it (the mask as upstream writes it)
-TRANSFORMER = '''
-import torch.nn as nn
-
-class MotionTransformer(nn.Module):
-    def generate_src_mask(self, T, length):
-        B = len(length)
-        src_mask = torch.ones(B, T)
-        for i in range(B):
-            for j in range(length[i], T):
-                src_mask[i, j] = 0
-        return src_mask
-'''
+TRANSFORMER = upstream_mask.TRANSFORMER_SOURCE
 
 
 def _run(*args):
