@@ -10,6 +10,7 @@ import pytest
 import torch
 
 from smdm_plugin.families.motiondiffuse import upstream_loop as L
+from smdm_plugin.integrations._hooks import WRAPPED
 from smdm_plugin.families.motiondiffuse.standin import StandInMotionTransformer
 from helpers import upstream_mask
 
@@ -104,6 +105,13 @@ class _Sampler:
         return indices, weights
 
 
+def _hooked_backward(self):
+    """The hooks' ``backward_G`` (marked as ``wrap_once`` marks it)."""
+
+
+setattr(_hooked_backward, WRAPPED, True)
+
+
 def _trainer_module(monkeypatch):
     """A module standing in for ``trainers/ddpm_trainer.py``: ``torch``, ``build_dataloader`` and a
     trainer whose ``forward`` makes its lengths with ``torch.LongTensor`` (as upstream's)."""
@@ -114,6 +122,7 @@ def _trainer_module(monkeypatch):
 
     class Trainer:
         device = torch.device("cpu")
+        backward_G = _hooked_backward
 
         def __init__(self):
             self.sampler = _Sampler()
@@ -154,3 +163,6 @@ def test_loop_without_sync_hooks_the_trainer_and_keeps_its_values(monkeypatch):
     assert hooked == (vars(tr)["forward"], vars(tr.sampler)["sample"], mod.build_dataloader, mod.torch)
     assert isinstance(L.log_of(tr, torch.tensor(1.5))["loss_mot_rec"], L.LossValue)
     assert L.log_of(Trainer(), torch.tensor(1.5)) == OrderedDict(loss_mot_rec=1.5)
+    Trainer.backward_G = lambda self: None                    # upstream's own (the patch route)
+    other = Trainer()
+    assert L.loop_without_sync(other) == ["lengths", "batches", "timesteps"] and not L.deferring(other)

@@ -244,7 +244,8 @@ def test_the_policy_is_the_one_smdm_train_uses():
 def test_motiondiffuse_trainer_adam_is_fused_only_where_the_policy_says(monkeypatch):
     """MotionDiffuse's ``DDPMTrainer.train`` builds ``optim.Adam`` from its module's ``optim``:
     hooked only where the fused optimizer applies, every other name still torch's."""
-    from smdm_plugin.families.motiondiffuse.upstream import OPTIMIZER_NOTE, fuse_trainer_optimizer
+    from smdm_plugin.families.motiondiffuse.upstream import LOSS_READ_NOTE, OPTIMIZER_NOTE, fuse_trainer_optimizer
+    from smdm_plugin.integrations._hooks import WRAPPED
     from smdm_plugin.runtime.fused_optim import FusedAdam
 
     mod = types.ModuleType("fake_ddpm_trainer")
@@ -254,6 +255,10 @@ def test_motiondiffuse_trainer_adam_is_fused_only_where_the_policy_says(monkeypa
     trainer = trainer_cls()
     assert fuse_trainer_optimizer(trainer, "cpu", "default") is None and mod.optim is torch.optim
     assert fuse_trainer_optimizer(trainer, "cuda", "none") is None and mod.optim is torch.optim
-    assert fuse_trainer_optimizer(trainer, "cuda", "default") == OPTIMIZER_NOTE
+    # upstream's backward_G (the patch route) reads the loss: the note says so
+    assert fuse_trainer_optimizer(trainer, "cuda", "default") == LOSS_READ_NOTE
+    hooked = type("DDPMTrainer", (), {"__module__": mod.__name__, "backward_G": lambda self: None})
+    setattr(hooked.backward_G, WRAPPED, True)                 # the hooks' backward_G
+    assert fuse_trainer_optimizer(hooked(), "cuda", "default") == OPTIMIZER_NOTE
     assert mod.optim.Adam is FusedAdam and mod.optim.SGD is torch.optim.SGD
     assert mod.optim.lr_scheduler is torch.optim.lr_scheduler

@@ -154,6 +154,9 @@ class _OptimFused:
 #: what a training run whose Adam is fused records beside its compile setting (``opt.txt``)
 OPTIMIZER_NOTE = ("optimizer step: Adam fused; loss logged without a sync, batches, lengths and timesteps "
                   "copied without one")
+#: the note where ``backward_G`` is upstream's own (``patches/motiondiffuse.patch``): it reads the loss
+LOSS_READ_NOTE = ("optimizer step: Adam fused; batches, lengths and timesteps copied without a sync "
+                  "(the loss read each step: upstream's backward_G)")
 
 
 def fuse_trainer_optimizer(trainer: Any, device: Any, mode: Any) -> Optional[str]:
@@ -161,8 +164,8 @@ def fuse_trainer_optimizer(trainer: Any, device: Any, mode: Any) -> Optional[str
     :func:`~smdm_plugin.runtime.compile.fused_optimizer_kwargs` says the fused optimizer applies
     (CUDA), the ``Adam`` that ``DDPMTrainer.train`` builds is fused (kept fused across
     ``--is_continue``) and the loop makes no host sync per step
-    (:func:`~.upstream_loop.loop_without_sync`). Returns :data:`OPTIMIZER_NOTE`, or None (nothing
-    changed)."""
+    (:func:`~.upstream_loop.loop_without_sync`). Returns :data:`OPTIMIZER_NOTE` (through the patch:
+    :data:`LOSS_READ_NOTE`), or None (nothing changed)."""
     import sys
 
     import torch.optim
@@ -178,8 +181,8 @@ def fuse_trainer_optimizer(trainer: Any, device: Any, mode: Any) -> Optional[str
         return None
     from .upstream_loop import loop_without_sync
 
-    loop_without_sync(trainer, device)   # no host sync per step (families/motiondiffuse/upstream_loop.py)
-    return OPTIMIZER_NOTE
+    hooked = loop_without_sync(trainer, device)   # no host sync per step (families/motiondiffuse/upstream_loop.py)
+    return OPTIMIZER_NOTE if "loss" in hooked else LOSS_READ_NOTE
 
 
 def compile_trainer(trainer: Any) -> Any:

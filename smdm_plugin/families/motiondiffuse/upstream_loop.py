@@ -17,6 +17,7 @@ from typing import Any, Iterator, List, Optional, Sequence, Union
 
 import torch
 
+from ...integrations._hooks import WRAPPED
 from ...integrations.host_copies import DeviceBatches, pin_batches, sample_without_sync, to_device_without_sync
 
 __all__ = ["src_mask", "mask_without_loop", "LossValue", "upstream_loss", "loop_without_sync", "LIMIT"]
@@ -158,7 +159,8 @@ def loop_without_sync(trainer: Any, device: Any = None) -> List[str]:
     ``train`` builds pins its batches and hands ``motions`` on the device (:class:`MotionBatches`),
     ``forward``'s lengths copied without a sync (:class:`TrainerTorch`), the timestep sampler's
     copies too (:func:`~smdm_plugin.integrations.host_copies.sample_without_sync`), the loss logged
-    as a :class:`LossValue` (the caller's ``backward_G``: :func:`deferring`); ``device``: the
+    as a :class:`LossValue` (by the hooks' ``backward_G``: :func:`deferring`; the patch route's is
+    upstream's, which reads it); ``device``: the
     trainer's (``trainer.device`` when None). Once per trainer; returns what is hooked."""
     device = torch.device(trainer.device if device is None else device)
     module = sys.modules.get(type(trainer).__module__)
@@ -191,8 +193,9 @@ def loop_without_sync(trainer: Any, device: Any = None) -> List[str]:
         if "sample" not in vars(sampler):
             vars(sampler)["sample"] = types.MethodType(sample_without_sync(type(sampler).sample), sampler)
         done.append("timesteps")
-    vars(trainer)[_MARK] = True
-    done.append("loss")
+    if getattr(getattr(type(trainer), "backward_G", None), WRAPPED, False):   # the hooks' (not the patch's)
+        vars(trainer)[_MARK] = True
+        done.append("loss")
     return done
 
 
