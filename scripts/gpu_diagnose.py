@@ -340,6 +340,36 @@ def _loops(dev: torch.device, g: torch.Generator) -> None:
     got = [v.make(*(host[id(t)] for t in v.tensors)) for v in later]
     same = all(a[0] == b[0] and np.array_equal(a[1], b[1]) and np.array_equal(a[2], b[2]) for a, b in zip(want, got))
     print(f"50 steps of a logged loss: equal {same}; syncs upstream {up}, kept {kept}, at the dump {dump}", flush=True)
+    _motiondiffuse_loop(dev, g)
+
+
+def _motiondiffuse_loop(dev: torch.device, g: torch.Generator) -> None:
+    """0.9.9: MotionDiffuse's step (``families/motiondiffuse/upstream_loop.py``; checked on the CPU
+    only): the padding mask of device lengths against a row per sample, each length read from the
+    device (as upstream's ``generate_src_mask`` reads them, before its write per padded frame), and 50 steps of the loss summed and printed as upstream's
+    loop does (``logs[k] += loss.item()``, mean over ``log_every`` = 50)."""
+    from smdm_plugin.families.motiondiffuse import upstream_loop as md
+
+    def per_sample(T, length):  # noqa: ANN001, ANN202 -- a row per sample, each length read (as upstream's loop)
+        return torch.stack([(torch.arange(T) < int(n)).float() for n in length])
+
+    lengths = torch.randint(40, 197, (32,), generator=g).to(dev)
+    want, up = _syncs(dev, lambda: per_sample(196, lengths).to(dev))
+    got, hook = _syncs(dev, lambda: md.src_mask(196, lengths).to(dev))
+    print(f"MotionDiffuse padding mask, B=32: equal {torch.equal(want, got)}; syncs upstream {up}, flag {hook}",
+          flush=True)
+    losses = [torch.rand((), generator=g).to(dev) for _ in range(50)]
+
+    def summed(values):  # noqa: ANN001, ANN202 -- upstream's loop over 50 steps, then its print's read
+        total = None
+        for v in values:
+            total = v if total is None else total + v
+        return "%.17g" % (total / 50)
+
+    want, up = _syncs(dev, lambda: summed([v.item() for v in losses]))
+    got, hook = _syncs(dev, lambda: summed([md.LossValue.of(v) for v in losses]))
+    print(f"MotionDiffuse, 50 steps of the loss printed: equal {want == got}; syncs upstream {up}, "
+          f"LossValue {hook} (at the print)", flush=True)
 
 
 def section_parts(dev: torch.device) -> None:

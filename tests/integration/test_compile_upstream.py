@@ -507,6 +507,41 @@ def test_motiondiffuse_trains_compiled(tmp_path, monkeypatch):
         assert len(losses[name]) >= 20 and np.allclose(losses[name], losses["none"], rtol=1e-3, atol=1e-5), name
 
 
+@pytest.mark.skipif(not MD_ROOT, reason="SMDM_MOTIONDIFFUSE_ROOT not set")
+def test_motiondiffuse_hooks_compiled_loop_prints_the_loss_it_did_not_read(tmp_path, monkeypatch):
+    """The hooks' route (what ``smdm run`` installs) with ``--sparse_compile default`` and the fused
+    ``Adam`` as on CUDA (the policy standing in): ``loop_without_sync`` hooks upstream's own trainer
+    and loop (``families/motiondiffuse/upstream_loop.py``): ``backward_G`` returns a ``LossValue``,
+    upstream's loop sums three steps of it and ``print_current_loss`` prints their mean; the means
+    equal the eager hooks' run (rtol 1e-3: the compiled step and the fused Adam), the note says
+    the loss was logged without a sync."""
+    import test_motiondiffuse_upstream as D
+
+    if not D.DATA:
+        pytest.skip("no HumanML3D-format data")
+    from smdm_plugin.families.motiondiffuse.upstream import OPTIMIZER_NOTE
+
+    args = D.train_args(3)                                   # 21 iterations
+    args[args.index("--log_every") + 1] = "3"
+    plain_path, site = os.environ.get("PYTHONPATH", ""), fused_policy_path(str(tmp_path / "site"))
+    means = {}
+    for name in ("eager", "fused"):
+        for k, v in COMPILE_ENV.items():
+            monkeypatch.setenv(k, v)
+        monkeypatch.setenv("PYTHONPATH", site + os.pathsep + plain_path if name == "fused" else plain_path)
+        t2m = D.prepare(str(tmp_path / f"md_{name}"), patch=False)
+        extra = ["--sparse_compile", "default"] if name == "fused" else []
+        out = D.harness(t2m, *args, *extra, hooks="motiondiffuse", anomaly=False)
+        means[name] = np.array([float(v) for v in re.findall(r"loss_mot_rec: (\S+)", out)])
+        if name == "fused":
+            run = os.path.join(t2m, "checkpoints", "t2m", "sparse_ci")
+            applied = [ln for ln in open(os.path.join(run, "opt.txt")).read().splitlines()
+                       if ln.startswith("sparse_compile_applied: ")]
+            assert len(applied) == 1 and applied[0].endswith("; " + OPTIMIZER_NOTE), applied
+    assert len(means["eager"]) == 7 and np.isfinite(means["eager"]).all(), means
+    assert np.allclose(means["fused"], means["eager"], rtol=1e-3, atol=1e-5), means
+
+
 # --------------------------------------------------------------------------- MDM eval (patch route)
 @pytest.mark.skipif(not MDM_ROOT, reason="SMDM_MDM_ROOT not set (an MDM checkout)")
 def test_mdm_patch_trains_and_evaluates_compiled(tmp_path, monkeypatch):

@@ -193,3 +193,14 @@ def test_launcher_train(tmp_path):
                              *train_args(1)]
     out = _run(cmd, REPO, _env(record=rec))
     check_training(t2m, out, rec)
+
+
+@pytest.mark.parametrize("batch,frames", [(1, 40), (32, 196), (7, 60)])
+def test_the_flag_s_mask_is_the_checkout_s(batch, frames):
+    """``families/motiondiffuse/upstream_loop.src_mask`` against this checkout's own
+    ``MotionTransformer.generate_src_mask`` (``scripts/time_src_mask.py`` reads it from the file and
+    exits 1 when the two differ), and the script's table."""
+    script = os.path.join(REPO, "scripts", "time_src_mask.py")
+    out = _run([sys.executable, script, "--repo", ROOT, "--batch", str(batch), "--frames", str(frames),
+                "--repeats", "3"], REPO, _env())
+    assert f"B = {batch}, T = {frames}" in out and "| upstream's `generate_src_mask` |" in out, out

@@ -83,7 +83,8 @@ def test_optimizer_section_runs_and_agrees_on_a_cpu(tmp_path, capsys, monkeypatc
     """``--sections optimizer`` (0.9.7's upstream-run checks for the next GPU session): on a CPU's dry
     run the fused AdamW resumed from a foreach state stays fused and agrees with foreach, a fused
     state loads into torch's AdamW, the one-sync norms and the device tables equal upstream's, and
-    so do 0.9.8's timesteps made on the device, pinned timestep draws and losses read at a dump."""
+    so do 0.9.8's timesteps made on the device, pinned timestep draws and losses read at a dump, and
+    0.9.9's MotionDiffuse padding mask and printed loss."""
     gd = _script()
     monkeypatch.setattr(sys, "argv", ["gpu_diagnose.py", "--dry-run", "--sections", "optimizer", "--out", str(tmp_path)])
     assert gd.main() == 0
@@ -97,5 +98,6 @@ def test_optimizer_section_runs_and_agrees_on_a_cpu(tmp_path, capsys, monkeypatc
     assert "6 schedule reads (a p_sample step): equal True" in out
     for line in ("50 steps of timesteps and timestep_map: equal True", "10 timestep draws: equal True",
                  "5 batches to the loop: equal True",
-                 "50 steps of a logged loss: equal True"):
+                 "50 steps of a logged loss: equal True",
+                 "MotionDiffuse padding mask, B=32: equal True", "MotionDiffuse, 50 steps of the loss printed: equal True"):
         assert line in out, out

@@ -35,3 +35,12 @@ def test_a_folder_without_the_model_is_exit_2_naming_the_argument(tmp_path):
     (models / "transformer.py").write_text("class Other:\n    pass\n")
     r = _run("--repo", str(tmp_path))
     assert r.returncode == 2 and "no MotionTransformer.generate_src_mask" in r.stderr
+
+
+def test_a_mask_that_differs_is_exit_1(tmp_path):
+    models = tmp_path / "text2motion" / "models"
+    models.mkdir(parents=True)
+    # one frame more kept per sample than upstream's
+    (models / "transformer.py").write_text(TRANSFORMER.replace("range(length[i], T)", "range(length[i] + 1, T)"))
+    r = _run("--repo", str(tmp_path), "--batch", "3", "--frames", "50", "--repeats", "1")
+    assert r.returncode == 1 and "differs" in r.stderr, (r.returncode, r.stderr)
