@@ -166,3 +166,32 @@ def test_loop_without_sync_hooks_the_trainer_and_keeps_its_values(monkeypatch):
     Trainer.backward_G = lambda self: None                    # upstream's own (the patch route)
     other = Trainer()
     assert L.loop_without_sync(other) == ["lengths", "batches", "timesteps"] and not L.deferring(other)
+
+
+@pytest.mark.parametrize("is_train", [False, True])
+def test_compile_trainer_gives_the_mask_and_a_sampling_run_s_timesteps(monkeypatch, is_train):
+    """``--sparse_compile`` (dense too): the denoiser's padding mask without a loop; a sampling
+    run's diffusion module sees :class:`~smdm_plugin.integrations.timesteps.TorchView` (its
+    ``th.tensor([i] * B, device)`` per step filled on the device), a training run's stays torch."""
+    from smdm_plugin.families.motiondiffuse.upstream import compile_trainer
+    from smdm_plugin.integrations.timesteps import TorchView
+
+    mod = types.ModuleType("fake_motiondiffuse_gaussian_diffusion")
+    mod.th = torch
+    mod.GaussianDiffusion = type("GaussianDiffusion", (), {"__module__": mod.__name__})
+    monkeypatch.setitem(sys.modules, mod.__name__, mod)
+    model = StandInMotionTransformer()
+    opt = types.SimpleNamespace(sparse_compile="default", is_train=is_train, device=torch.device("cpu"))
+    trainer = types.SimpleNamespace(opt=opt, encoder=model, diffusion=mod.GaussianDiffusion(), device=opt.device)
+    assert compile_trainer(trainer) is not None
+    assert vars(model)["generate_src_mask"] is L.src_mask
+    assert isinstance(mod.th, TorchView) != is_train
+
+
+def test_compile_trainer_without_the_flag_leaves_upstream_alone():
+    from smdm_plugin.families.motiondiffuse.upstream import compile_trainer
+
+    model = StandInMotionTransformer()
+    opt = types.SimpleNamespace(sparse_compile="none", is_train=True, device=torch.device("cpu"))
+    trainer = types.SimpleNamespace(opt=opt, encoder=model, diffusion=None, device=opt.device)
+    assert compile_trainer(trainer) is None and "generate_src_mask" not in vars(model)

@@ -189,7 +189,9 @@ def compile_trainer(trainer: Any) -> Any:
     """``--sparse_compile`` (docs/compile.md): compile ``trainer.encoder`` (inside its DDP /
     DataParallel wrapper), dense or sparse, once, in place; a training run's Adam fused on CUDA
     (:func:`fuse_trainer_optimizer`); the diffusion's schedules read from device tables
-    (:mod:`smdm_plugin.integrations.tables`); training runs write the setting that applies to ``opt.txt``
+    (:mod:`smdm_plugin.integrations.tables`), sampling runs' timesteps made on the device
+    (:mod:`smdm_plugin.integrations.timesteps`), the padding mask without a loop
+    (:func:`~.upstream_loop.mask_without_loop`); training runs write the setting that applies to ``opt.txt``
     (``sparse_compile``, ``sparse_compile_applied``). ``none`` / absent: nothing happens. Returns
     the :class:`~smdm_plugin.runtime.compile.CompileSetting` or None."""
     from ...integrations._files import compile_upstream
@@ -206,6 +208,10 @@ def compile_trainer(trainer: Any) -> Any:
         from .upstream_loop import mask_without_loop
 
         mask_without_loop(core)   # dense too: its denoiser's padding mask traces (no loop over frames)
+        if not getattr(opt, "is_train", False) and getattr(trainer, "diffusion", None) is not None:
+            from ...integrations.timesteps import timesteps_without_copy
+
+            timesteps_without_copy(trainer.diffusion)   # sampling: each step's timesteps filled on the device
     options_file = optimizer = None
     if getattr(opt, "is_train", False):
         optimizer = functools.partial(fuse_trainer_optimizer, trainer, device, mode)
