@@ -20,7 +20,8 @@ import torch
 from ...integrations._hooks import WRAPPED
 from ...integrations.host_copies import DeviceBatches, pin_batches, sample_without_sync, to_device_without_sync
 
-__all__ = ["src_mask", "mask_without_loop", "LossValue", "upstream_loss", "loop_without_sync", "LIMIT"]
+__all__ = ["src_mask", "mask_without_loop", "LossValue", "upstream_loss", "deferring", "log_of", "MotionBatches",
+           "TrainerTorch", "loop_without_sync", "LIMIT"]
 
 #: device values a :class:`LossValue` keeps before it reads them by itself (one sync per this many)
 LIMIT = 4096
