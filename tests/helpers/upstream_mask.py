@@ -1,6 +1,8 @@
-"""MotionDiffuse's ``MotionTransformer.generate_src_mask`` as upstream writes it: the slow reference
-of ``families/motiondiffuse/upstream_loop.src_mask`` (CI has no MotionDiffuse checkout), and the
-source of a checkout's ``models/transformer.py`` as far as ``scripts/time_src_mask.py`` reads it."""
+"""The padding mask MotionDiffuse's ``MotionTransformer.generate_src_mask`` makes, written here from
+its definition (1.0 before each sample's length, 0.0 from it on; ``[B, T]`` float32 on the CPU), one
+element at a time: the slow reference of ``families/motiondiffuse/upstream_loop.src_mask`` (CI has no
+MotionDiffuse checkout); and a stand-in ``models/transformer.py`` carrying it as that method, which
+``scripts/time_src_mask.py`` reads as it reads a checkout's."""
 import inspect
 import textwrap
 
@@ -8,14 +10,10 @@ import torch
 
 
 def generate_src_mask(self, T, length):
-    B = len(length)
-    src_mask = torch.ones(B, T)
-    for i in range(B):
-        for j in range(length[i], T):
-            src_mask[i, j] = 0
-    return src_mask
+    rows = [[1.0 if frame < int(n) else 0.0 for frame in range(T)] for n in length]
+    return torch.tensor(rows, dtype=torch.float32).reshape(len(rows), T)
 
 
-#: ``text2motion/models/transformer.py`` with that method on ``MotionTransformer``
+#: a stand-in ``text2motion/models/transformer.py`` with that method on ``MotionTransformer``
 TRANSFORMER_SOURCE = ("import torch.nn as nn\n\n\nclass MotionTransformer(nn.Module):\n"
                       + textwrap.indent(inspect.getsource(generate_src_mask), "    "))

@@ -1,6 +1,6 @@
 """MotionDiffuse's training step without its mask loop or a host sync per step
-(``families/motiondiffuse/upstream_loop.py``), against slow references written as upstream's code
-reads (CI has no MotionDiffuse checkout; ``tests/integration`` runs the real one)."""
+(``families/motiondiffuse/upstream_loop.py``), against slow references written here from what
+upstream's code computes (CI has no MotionDiffuse checkout; ``tests/integration`` runs the real one)."""
 import sys
 import types
 from collections import OrderedDict
@@ -88,21 +88,25 @@ def test_upstream_loss_is_backward_g_s():
     tr = types.SimpleNamespace(mse_criterion=torch.nn.MSELoss(reduction="none"),
                                fake_noise=torch.randn(3, 10, 6, generator=g), real_noise=torch.randn(3, 10, 6, generator=g),
                                src_mask=generate_src_mask(10, torch.tensor([10, 4, 7])))
-    # backward_G as upstream writes it
-    loss = tr.mse_criterion(tr.fake_noise, tr.real_noise).mean(dim=-1)
-    want = (loss * tr.src_mask).sum() / tr.src_mask.sum()
-    assert torch.equal(L.upstream_loss(tr), want)
+    # backward_G's loss by its definition: each frame's mean squared error over features, averaged
+    # over the frames the mask keeps (slowly, in float64)
+    num = den = 0.0
+    for i in range(3):
+        for j in range(10):
+            w = float(tr.src_mask[i, j])
+            err = sum((float(a) - float(b)) ** 2 for a, b in zip(tr.fake_noise[i, j], tr.real_noise[i, j])) / 6
+            num, den = num + w * err, den + w
+    got = L.upstream_loss(tr)
+    assert got.dtype == torch.float32 and got.shape == () and abs(float(got) - num / den) < 1e-6 * (num / den)
 
 
 class _Sampler:
-    """MotionDiffuse's ``ScheduleSampler.sample`` as upstream writes it (numpy draws, two copies)."""
+    """A timestep sampler with ``ScheduleSampler.sample``'s contract: draws with numpy's global
+    generator, returns ``(timesteps int64, weights float32)`` copied to ``device``."""
 
     def sample(self, batch_size, device):
-        p = np.ones(50) / 50
-        indices_np = np.random.choice(len(p), size=(batch_size,), p=p)
-        indices = torch.from_numpy(indices_np).long().to(device)
-        weights = torch.from_numpy(1 / (len(p) * p[indices_np])).float().to(device)
-        return indices, weights
+        drawn = np.random.randint(0, 50, size=batch_size)
+        return torch.as_tensor(drawn, dtype=torch.int64).to(device), torch.full((batch_size,), 1.0).to(device)
 
 
 def _hooked_backward(self):

@@ -41,6 +41,6 @@ def test_a_mask_that_differs_is_exit_1(tmp_path):
     models = tmp_path / "text2motion" / "models"
     models.mkdir(parents=True)
     # one frame more kept per sample than upstream's
-    (models / "transformer.py").write_text(TRANSFORMER.replace("range(length[i], T)", "range(length[i] + 1, T)"))
+    (models / "transformer.py").write_text(TRANSFORMER.replace("frame < int(n)", "frame <= int(n)"))
     r = _run("--repo", str(tmp_path), "--batch", "3", "--frames", "50", "--repeats", "1")
     assert r.returncode == 1 and "differs" in r.stderr, (r.returncode, r.stderr)
