@@ -19,6 +19,7 @@ from torch import Tensor, nn
 from .attention import (accelerator_path, aligned_key_bias, attend, attend_with_weights, compute_dtype, float_mask,
                         heads, layout_copies, project_qkv)
 from .checks import compiling
+from .fsq_bank import KeyMapBank, bank_key_maps, key_map_tensors, remove_banks, shared_bank
 from .kernels.fsq_code import fsq_code
 
 __all__ = ["FSQ", "FSQMultiheadAttention", "quantize_attention_keys"]
@@ -270,7 +271,7 @@ class FSQMultiheadAttention(nn.Module):
         key = None
         if not torch.is_grad_enabled() and not compiling():
             key = (dtype,) + tuple((t.data_ptr(), t._version) for t in (
-                down.bias, down.weight, up.weight, up.bias, fsq._shift, fsq._half_width))
+                *key_map_tensors(self), fsq._shift, fsq._half_width))
             if self._fold_cache is not None and self._fold_cache[0] == key:
                 return self._fold_cache[1]
         _, _, shift, half_width = fsq.constants(down.bias.dtype)
@@ -311,8 +312,8 @@ class FSQMultiheadAttention(nn.Module):
 
     def _fold_inputs(self) -> Tuple[Tensor, ...]:
         b = self.in_proj_bias
-        return (self.in_proj_weight, self.key_down.weight, self.key_down.bias, self.key_up.weight,
-                self.fsq._shift, self.fsq._half_width) + (() if b is None else (b,))
+        return (self.in_proj_weight, *key_map_tensors(self)[:3], self.fsq._shift,
+                self.fsq._half_width) + (() if b is None else (b,))
 
     def _forward_folded(self, x: Tensor, bf: bool, mask: Optional[Tensor], need_weights: bool
                         ) -> Tuple[Tensor, Optional[Tensor]]:
@@ -441,22 +442,28 @@ def _stack(ts: Sequence[Tensor]) -> Tensor:
     return ts[0].unsqueeze(0) if len(ts) == 1 else torch.stack(list(ts))
 
 
-def folded_projections(attns: Sequence["FSQMultiheadAttention"], dtype: Optional[torch.dtype] = None
-                       ) -> List[Tuple[Tensor, Tensor]]:
+def folded_projections(attns: Sequence["FSQMultiheadAttention"], dtype: Optional[torch.dtype] = None,
+                       bank: Optional[KeyMapBank] = None) -> List[Tuple[Tensor, Tensor]]:
     """The in-projections of the folded path (:meth:`FSQMultiheadAttention._forward_folded`) of
     every layer in ``attns`` (the same sizes, levels and dtype), made at once for all layers:
     ``(weight [2·H·P + E, E], bias [2·H·P + E])`` per layer, rows ``[query codes (H·P), key
     pre-codes (H·P), values (E)]``. Per head ``h``, with ``U = [key_up.weight / floor(L/2) | 0]
     [hd, P]`` and ``D = [key_down.weight; 0] [P, hd]``: query codes ``U^T (W_q,h x + b_q,h)``, key
     pre-codes ``D (W_k,h x + b_k,h) + [key_down.bias + shift; 0]``. Differentiable in every
-    parameter it reads; computed in the parameters' dtype, then cast to ``dtype`` when given."""
+    parameter it reads; computed in the parameters' dtype, then cast to ``dtype`` when given. The
+    layers' key maps are read as they are when a :class:`~smdm_plugin.core.fsq_bank.KeyMapBank` holds
+    exactly them (``bank``: that bank, found here when not given), else stacked."""
     a0 = attns[0]
     E, H, hd, d, P = a0.embed_dim, a0.num_heads, a0.head_dim, a0.fsq.dim, a0.code_dim
     G = len(attns)
     W = _stack([a.in_proj_weight for a in attns])                          # [G, 3E, E]
     Wq, Wk, Wv = W.split(E, 1)
-    Wd, bd = _stack([a.key_down.weight for a in attns]), _stack([a.key_down.bias for a in attns])   # [G, d, hd], [G, d]
-    Wu = _stack([a.key_up.weight for a in attns])                          # [G, hd, d]
+    bank = shared_bank(attns) if bank is None else bank
+    if bank is not None:                                                   # [G, d, hd], [G, d], [G, hd, d]
+        Wd, bd, Wu = bank.down_weight, bank.down_bias, bank.up_weight
+    else:
+        Wd, bd = _stack([a.key_down.weight for a in attns]), _stack([a.key_down.bias for a in attns])
+        Wu = _stack([a.key_up.weight for a in attns])
     _, _, shift, half_width = a0.fsq.constants(Wu.dtype)
     # (every product below consumes U and D in their own layout, so that their gradients, and the
     # parameters' through the stacks, come out contiguous: no copy per layer when they are stored)
@@ -510,29 +517,34 @@ class fold_keys:
             a._call_proj = None
 
 
-def quantize_attention_keys(module: nn.Module, levels: Sequence[int]) -> int:
+def quantize_attention_keys(module: nn.Module, levels: Sequence[int], bank: bool = True) -> int:
     """In place: replace each ``self_attn`` ``nn.MultiheadAttention`` inside ``module`` (e.g. of
     ``nn.TransformerEncoderLayer`` / ``nn.TransformerDecoderLayer``) by
     :meth:`FSQMultiheadAttention.from_mha`. Cross-attention (``multihead_attn``) is left alone.
     ``nn.TransformerEncoder``'s nested-tensor setting stays (FSQ attention takes nested input;
-    ``sparsify`` turns it off and back on). Returns the number replaced."""
-    count = 0
+    ``sparsify`` turns it off and back on). ``bank``: the new layers' key maps held as stacked
+    parameters on ``module`` (:func:`~smdm_plugin.core.fsq_bank.bank_key_maps`, ``fsq_key_maps``;
+    the same values and state-dict keys). Returns the number replaced."""
+    new = []
     for m in list(module.modules()):
         attn = getattr(m, "self_attn", None)
         if isinstance(attn, nn.MultiheadAttention):
             m.self_attn = FSQMultiheadAttention.from_mha(attn, levels)
-            count += 1
-    return count
+            new.append(m.self_attn)
+    if bank:
+        bank_key_maps(module, new)
+    return len(new)
 
 
 def unquantize_attention_keys(module: nn.Module) -> int:
     """In place, the inverse of :func:`quantize_attention_keys`: each ``FSQMultiheadAttention``
     ``self_attn`` becomes an ``nn.MultiheadAttention`` with its current weights
-    (:meth:`FSQMultiheadAttention.to_mha`). Returns the number replaced."""
+    (:meth:`FSQMultiheadAttention.to_mha`), and the key-map banks go. Returns the number replaced."""
     count = 0
     for m in list(module.modules()):
         attn = getattr(m, "self_attn", None)
         if isinstance(attn, FSQMultiheadAttention):
             m.self_attn = attn.to_mha()
             count += 1
+    remove_banks(module)
     return count

@@ -14,6 +14,7 @@ from . import consts
 from .attention import attend_single_key, compute_dtype, heads as _heads, layout_copies
 from .checks import compiling
 from .fsq import FSQMultiheadAttention, folded_projections
+from .fsq_bank import key_map_tensors, shared_bank
 from .kernels.fsq_code import fsq_code
 
 __all__ = ["StockStack", "stock_stack"]
@@ -192,6 +193,9 @@ class StockStack:
         self.norm: Optional[nn.Module] = inner.norm
         self.layers = [_Layer(layer) for layer in inner.layers]
         self._folded = [a.self_attn.module for a in self.layers if a.self_attn.folded]
+        self._bank = shared_bank(self._folded)            # their key maps as stacked parameters, or None
+        # what the folds are made of, each tensor once (a parameter replaced is a registration: rebuilt)
+        self._fold_inputs = list({id(t): t for m in self._folded for t in _fold_tensors(m) if t is not None}.values())
         self._fsq = [m for m in inner.modules() if isinstance(m, FSQMultiheadAttention)]
         self._quantize = tuple(m.quantize for m in self._fsq)
         modules = list(inner.modules())
@@ -225,13 +229,13 @@ class StockStack:
         if not self._folded:
             return [None] * len(self.layers)
         if torch.is_grad_enabled() or compiling():
-            folds = iter(folded_projections(self._folded, dtype))
+            folds = iter(folded_projections(self._folded, dtype, self._bank))
             return [("fold",) + next(folds) if a.self_attn.folded else None for a in self.layers]
-        t = [t for m in self._folded for t in _fold_tensors(m) if t is not None]
+        t = self._fold_inputs
         key = (dtype, tuple(map(_VERSION, t)), tuple(map(Tensor.data_ptr, t)))
         if self._fold_cache is not None and self._fold_cache[0] == key:
             return self._fold_cache[1]
-        folds = iter(folded_projections(self._folded, dtype))
+        folds = iter(folded_projections(self._folded, dtype, self._bank))
         out = [("fold",) + next(folds) if a.self_attn.folded else None for a in self.layers]
         self._fold_cache = (key, out)
         return out
@@ -308,11 +312,10 @@ if _WATCHED:
 
 
 def _fold_tensors(m: FSQMultiheadAttention) -> Tuple[Tensor, ...]:
-    """What an FSQ layer's folded in-projection is made of (read without module attribute lookups)."""
-    mods, p = m._modules, m._parameters
-    down, up, fsq = mods["key_down"]._parameters, mods["key_up"]._parameters, mods["fsq"]._buffers
-    return (p["in_proj_weight"], p["in_proj_bias"], down["weight"], down["bias"], up["weight"],
-            fsq["_shift"], fsq["_half_width"])
+    """What an FSQ layer's folded in-projection is made of (read without module attribute lookups;
+    a banked layer's key maps: its bank's tensors)."""
+    p, fsq = m._parameters, m._modules["fsq"]._buffers
+    return (p["in_proj_weight"], p["in_proj_bias"], *key_map_tensors(m)[:3], fsq["_shift"], fsq["_half_width"])
 
 
 def _global_hooks() -> bool:

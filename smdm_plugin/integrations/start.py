@@ -61,9 +61,13 @@ def resolve(args: Any, config: SparseConfig, training: bool) -> Start:
 
 
 def apply(model: Any, args: Any, start: Start, diffusion: Any, mean: Any, std: Any, data: Any = None) -> Any:
-    """Make ``model`` sparse as ``start`` says (wrap, warm start or plain ``sparsify``)."""
+    """Make ``model`` sparse as ``start`` says (wrap, warm start or plain ``sparsify``); a training
+    loop that resumes it loads a 0.9 run's optimizer state too (:mod:`.resume`)."""
     from ..adapters.surgery import sparsify
     from ..adapters.warm import wrap_dense
+    from .resume import install_hooks
+
+    install_hooks()
 
     if start.wrap:
         origin = getattr(args, "model_path", None)

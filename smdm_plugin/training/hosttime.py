@@ -170,11 +170,14 @@ def host_work(fn: Callable[[], object], warmup: int = 2) -> HostWork:
     """The :class:`HostWork` of a call of ``fn`` after ``warmup`` calls (caches filled, as in a loop):
     its Python frames in one call, its aten ops in the next (the op counter's own frames are not
     counted), neither inside a charged fused op (on the CPU its composite runs there; CUDA launches
-    one kernel). The same call counts the same on any machine: what a test can budget (time is what
-    :func:`host_times` and ``scripts/host_time.py`` measure)."""
+    one kernel) nor inside ``F.scaled_dot_product_attention``, counted one op (on the CPU a mask or
+    unequal head sizes make it its math composite, ~13 ops; CUDA runs one kernel: as
+    :func:`host_times` charges it). The same call counts the same on any machine: what a test can
+    budget (time is what :func:`host_times` and ``scripts/host_time.py`` measure)."""
     for _ in range(warmup):
         fn()
     counter, frames, launches = _OpCounter(), [0], [0]
+    sdpa = F.scaled_dot_product_attention
 
     def observer(name: str, kernel: Callable, args: list):
         counter.inside += 1
@@ -184,11 +187,21 @@ def host_work(fn: Callable[[], object], warmup: int = 2) -> HostWork:
             counter.inside -= 1
             launches[0] += 1
 
+    def attention(*args, **kwargs):
+        counter.inside += 1
+        try:
+            return sdpa(*args, **kwargs)
+        finally:
+            counter.inside -= 1
+            if not counter.inside:
+                counter.ops += 1
+
     def profile(frame, event, arg):
-        if event == "call" and not counter.inside:
+        if event == "call" and not counter.inside and frame.f_code is not attention.__code__:
             frames[0] += 1
 
     OBSERVERS.append(observer)
+    F.scaled_dot_product_attention = attention
     try:
         previous = sys.getprofile()
         sys.setprofile(profile)
@@ -197,9 +210,11 @@ def host_work(fn: Callable[[], object], warmup: int = 2) -> HostWork:
         finally:
             sys.setprofile(previous)
         launches[0] = 0
+        counter.ops = 0
         with counter:
             fn()
     finally:
+        F.scaled_dot_product_attention = sdpa
         OBSERVERS.remove(observer)
     return HostWork(counter.ops + TRITON_LAUNCH_OPS * launches[0], frames[0])
 

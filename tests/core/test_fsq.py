@@ -221,10 +221,10 @@ def test_inside_transformer_encoder_train_and_eval(batch_first):
     # train: runs, gradients reach the quantiser and the projections
     enc.train()
     enc(x, src_key_padding_mask=kpm).pow(2).mean().backward()
-    for l in enc.layers:
-        for p in (l.self_attn.key_down.weight, l.self_attn.key_up.weight,
-                  l.self_attn.in_proj_weight):
-            assert p.grad is not None and p.grad.abs().sum() > 0
+    for l in enc.layers:                                           # (the key maps: rows of one bank)
+        a = l.self_attn
+        for g in (a.key_down.grad_of("weight"), a.key_up.grad_of("weight"), a.in_proj_weight.grad):
+            assert g is not None and g.abs().sum() > 0
     # eval: no_grad (where the fused fast path would be taken) == grad-enabled normal path
     enc.eval()
     dense.eval()
@@ -270,7 +270,7 @@ def test_inside_transformer_decoder_self_attention_only(batch_first):
     tkpm = torch.tensor([[False] * 6, [False] * 4 + [True] * 2])
     dec.train()
     dec(tgt, mem, tgt_key_padding_mask=tkpm).sum().backward()
-    assert dec.layers[0].self_attn.key_down.weight.grad.abs().sum() > 0
+    assert dec.layers[0].self_attn.key_down.grad_of("weight").abs().sum() > 0
     dec.eval()
     with torch.no_grad():
         y = dec(tgt, mem, tgt_key_padding_mask=tkpm,

@@ -244,6 +244,53 @@ def test_mdm_compiled_run_steps_a_fused_optimizer_across_a_resume(upstream_copy,
     assert len(steps) == 1 and steps.pop() > float(first) > 0, (float(first), steps)   # on from the saved counters
 
 
+#: a ``sitecustomize`` line that holds each FSQ layer's key maps apart, as 0.9 did (0.10: one bank per stack)
+PER_LAYER_KEY_MAPS = ("import smdm_plugin.core.fsq as F, smdm_plugin.families.mdm.model as M\n"
+                      "_quantize = F.quantize_attention_keys\n"
+                      "M.quantize_attention_keys = lambda module, levels, bank=True: _quantize(module, levels, bank=False)\n")
+
+
+@pytest.mark.skipif(not MDM_ROOT, reason="SMDM_MDM_ROOT not set (an MDM checkout)")
+def test_mdm_run_of_per_layer_key_maps_resumes_with_its_optimizer_state(upstream_copy, tmp_path, monkeypatch):
+    """A sparse run that 0.9 wrote (each FSQ layer's key maps apart: 4 tensors per layer for
+    ``AdamW``) resumes today (one bank: 4 tensors): upstream's ``_load_optimizer_state`` is handed the
+    state in today's layout, and the Adam counters go on from the saved ones. (Upstream's resume sets
+    ``capturable``, which torch's AdamW refuses on the CPU: the fused policy stands in for CUDA's.)"""
+    import torch
+
+    import test_mdm_upstream as M
+    from _upstream import FUSED_POLICY
+
+    repo = upstream_copy(MDM_ROOT, "mdm_resume_0_9")
+    for k, v in COMPILE_ENV.items():
+        monkeypatch.setenv(k, v)
+    common = [*M.TINY, *M.ARCH["trans_enc"], "--sparse", "--sparse_compile", "default"]
+    plain = os.environ.get("PYTHONPATH", "")
+    old_site, site = str(tmp_path / "old_site"), fused_policy_path(str(tmp_path / "site"))
+    os.makedirs(old_site)
+    with open(os.path.join(old_site, "sitecustomize.py"), "w") as f:
+        f.write(FUSED_POLICY + PER_LAYER_KEY_MAPS)
+    monkeypatch.setenv("PYTHONPATH", old_site + os.pathsep + plain)
+    old = str(tmp_path / "old")
+    M.mdm(repo, "train.train_mdm", ["--save_dir", old, "--num_steps", "3", *common], launcher=True)
+    ckpt = M.latest_checkpoint(old)
+    saved = torch.load(os.path.join(old, "opt" + os.path.basename(ckpt)[len("model"):]), map_location="cpu",
+                       weights_only=False)
+    monkeypatch.setenv("PYTHONPATH", site + os.pathsep + plain)
+    new = str(tmp_path / "new")
+    proc = M.mdm(repo, "train.train_mdm", ["--save_dir", new, "--num_steps", "6", "--resume_checkpoint", ckpt,
+                                           *common], launcher=True)
+    assert "loading optimizer state from checkpoint" in proc.stdout + proc.stderr
+    last = M.latest_checkpoint(new)
+    state = torch.load(os.path.join(new, "opt" + os.path.basename(last)[len("model"):]), map_location="cpu",
+                       weights_only=False)
+    n_old, n_new = (len(s["param_groups"][0]["params"]) for s in (saved, state))
+    assert n_old - n_new == 4 * 2 - 4                              # --layers 2
+    first = float(saved["state"][0]["step"])
+    steps = {float(s["step"]) for s in state["state"].values()}
+    assert len(steps) == 1 and steps.pop() > first > 0, (first, steps)
+
+
 #: harness code: ``sample.generate`` with ``ARGS``, counting what upstream's diffusion copies from the
 #: host to the device (on CUDA a blocking copy, after which PyTorch synchronizes the stream): the
 #: numpy tables inside ``p_sample`` (``torch.from_numpy``: one per ``_extract_into_tensor`` call

@@ -22,7 +22,7 @@ from ...adapters.call import CallInputs, reuse_for
 from ...adapters.diffusion_wrapper import training_keyframes
 from ...adapters.family import ModelFamily, Variant
 from ...adapters.request import KEYFRAMES_KEY, request_of, with_request
-from ...adapters.state import STATE_ATTR, FamilyState, SparseState, family_state_of
+from ...adapters.state import MISSING, STATE_ATTR, FamilyState, SparseState, family_state_of
 
 
 @dataclass
@@ -236,6 +236,18 @@ class MDMFamily(ModelFamily):
     def install(self, model: nn.Module, state: SparseState) -> None:
         config, attr = state.config, state.variant.transformer
         inner = getattr(model, attr)
+        if config.fsq:                                    # FSQ keys in the self-attention
+            for m in inner.modules():
+                if isinstance(getattr(m, "self_attn", None), nn.MultiheadAttention):
+                    state.originals[(m, "self_attn")] = m.self_attn
+            before = set(inner._modules)
+            quantize_attention_keys(inner, config.fsq_levels)     # (before the wrapper: it takes the bank too)
+            for name in inner._modules:
+                if name not in before:                    # the key maps' bank
+                    state.originals[(inner, name)] = MISSING
+            if isinstance(inner, nn.TransformerEncoder):   # FSQ layers: no nested-tensor fast path
+                state.originals[(inner, "use_nested_tensor")] = inner.use_nested_tensor
+                inner.use_nested_tensor = False
         # always interpolate: the "w/o interpolation" ablation (config.interpolate=False) changes the
         # training loss (keyframes only, with_keyframes below), sampling still returns every frame
         wrapper = KeyframeTransformer(inner, interpolate=True, backend=config.attention_backend)
@@ -248,14 +260,6 @@ class MDMFamily(ModelFamily):
         if isinstance(embed, nn.Module):
             state.handles += [embed.register_forward_pre_hook(functools.partial(_rows_pre_hook, state)),
                               embed.register_forward_hook(functools.partial(_rows_post_hook, state))]
-        if config.fsq:                                    # FSQ keys in the self-attention
-            for m in inner.modules():
-                if isinstance(getattr(m, "self_attn", None), nn.MultiheadAttention):
-                    state.originals[(m, "self_attn")] = m.self_attn
-            quantize_attention_keys(inner, config.fsq_levels)
-            if isinstance(inner, nn.TransformerEncoder):   # FSQ layers: no nested-tensor fast path
-                state.originals[(inner, "use_nested_tensor")] = inner.use_nested_tensor
-                inner.use_nested_tensor = False
 
     def uninstall(self, model: nn.Module, state: SparseState) -> None:
         """``unsparsify`` keeps the trained attention: each FSQ self-attention goes back as an
