@@ -523,8 +523,9 @@ def quantize_attention_keys(module: nn.Module, levels: Sequence[int], bank: bool
     :meth:`FSQMultiheadAttention.from_mha`. Cross-attention (``multihead_attn``) is left alone.
     ``nn.TransformerEncoder``'s nested-tensor setting stays (FSQ attention takes nested input;
     ``sparsify`` turns it off and back on). ``bank``: the new layers' key maps held as stacked
-    parameters on ``module`` (:func:`~smdm_plugin.core.fsq_bank.bank_key_maps`, ``fsq_key_maps``;
-    the same values and state-dict keys). Returns the number replaced."""
+    parameters on ``module`` (:func:`~smdm_plugin.core.fsq_bank.bank_key_maps`, ``fsq_key_maps``:
+    the same values; a state dict holds the bank's tensors, one of per-layer key maps loads).
+    Returns the number replaced."""
     new = []
     for m in list(module.modules()):
         attn = getattr(m, "self_attn", None)

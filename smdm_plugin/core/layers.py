@@ -194,7 +194,9 @@ class StockStack:
         self.layers = [_Layer(layer) for layer in inner.layers]
         self._folded = [a.self_attn.module for a in self.layers if a.self_attn.folded]
         self._bank = shared_bank(self._folded)            # their key maps as stacked parameters, or None
-        # what the folds are made of, each tensor once (a parameter replaced is a registration: rebuilt)
+        # what the folds are made of, each tensor once, for the sampling cache's key (a parameter
+        # replaced is a registration: rebuilt; a move or cast replaces the FSQ constants' buffers
+        # unregistered, but changes the parameters' storage too: the key changes)
         self._fold_inputs = list({id(t): t for m in self._folded for t in _fold_tensors(m) if t is not None}.values())
         self._fsq = [m for m in inner.modules() if isinstance(m, FSQMultiheadAttention)]
         self._quantize = tuple(m.quantize for m in self._fsq)

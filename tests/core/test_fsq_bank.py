@@ -234,3 +234,27 @@ def test_an_optimizer_state_saved_before_the_banks_resumes_the_same_training(gro
     key = [k for k, st in odd["state"].items() if st["exp_avg"].shape == (len(LEVELS), 8)][0]
     odd["state"][key]["step"] = odd["state"][key]["step"] + 1
     assert upgrade_optimizer_state(odd, banked, opt_b) is odd
+
+
+def test_the_stacks_sampling_cache_follows_the_bank_through_updates_and_casts():
+    """Without autograd the stack folds once and keeps it (``StockStack._projections``); an update
+    of the bank in place, a cast or a move of the model folds again (a stale fold would give the old
+    values or the old dtype)."""
+    from smdm_plugin.core.layers import stock_stack
+
+    banked, own = _pair()
+    banked.eval(), own.eval()
+    x = torch.randn(5, 2, 32)
+    stack = stock_stack(banked)
+    assert stack is not None and stack._bank is banked.fsq_key_maps
+    with torch.no_grad():
+        first = stack.run(x, None)
+        assert torch.equal(stack.run(x, None), first)
+        for m in (banked, own):                                     # in place: the bank's version moves
+            m.layers[1].self_attn.key_down.weight.mul_(1.5)
+        torch.testing.assert_close(stack.run(x, None), own(x), rtol=0, atol=1e-6)
+        assert not torch.equal(stack.run(x, None), first)
+        banked.double(), own.double()
+        out = stack.run(x.double(), None)
+        assert out.dtype == torch.float64
+        torch.testing.assert_close(out, own(x.double()), rtol=0, atol=1e-12)
