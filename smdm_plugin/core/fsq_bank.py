@@ -53,6 +53,7 @@ class KeyMapBank(nn.Module):
         done = {prefix + _NAMES[module, tensor] for module, tensor in _NAMES
                 if all((module, tensor, i) in rows for i in range(self.size))}
         missing_keys.extend(k for k in absent if k not in done)
+
     def extra_repr(self) -> str:
         w = self.down_weight
         return f"layers={self.size}, head_dim={w.shape[2]}, fsq_dim={w.shape[1]}"
