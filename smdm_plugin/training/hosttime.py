@@ -154,7 +154,8 @@ class HostWork:
 
 
 class _OpCounter(TorchDispatchMode):
-    """Counts the aten ops that reach the dispatcher's Python key, except inside a charged fused op."""
+    """Counts the aten ops that reach the dispatcher's Python key, except while ``inside`` (a charged
+    fused op or SDPA: :func:`host_work` counts those itself)."""
 
     def __init__(self) -> None:
         super().__init__()

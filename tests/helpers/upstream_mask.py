@@ -14,6 +14,12 @@ def generate_src_mask(self, T, length):
     return torch.tensor(rows, dtype=torch.float32).reshape(len(rows), T)
 
 
-#: a stand-in ``text2motion/models/transformer.py`` with that method on ``MotionTransformer``
-TRANSFORMER_SOURCE = ("import torch.nn as nn\n\n\nclass MotionTransformer(nn.Module):\n"
-                      + textwrap.indent(inspect.getsource(generate_src_mask), "    "))
+def stand_in_module(owner: str = "MotionTransformer") -> str:
+    """A stand-in ``text2motion/models/transformer.py``: a class named ``owner`` (the name the script
+    looks up) holding :func:`generate_src_mask` as its method; nothing else of upstream's file."""
+    method = textwrap.indent(inspect.getsource(generate_src_mask), " " * 4)
+    return f"class {owner}:\n{method}"
+
+
+#: the stand-in with the method on the class the script reads
+TRANSFORMER_SOURCE = stand_in_module()
