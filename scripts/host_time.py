@@ -3,9 +3,9 @@
     python scripts/host_time.py [--variants trans_enc trans_dec dip doubletake motiondiffuse] [--repeats 100]
                                 [--triton NAME ...] [--no-triton NAME ...]
 
-Each variant at MDM's depth and heads on tiny tensors, the static (GPU) code path; SDPA and
-foreach ops charged one launch each, fused ops that CUDA runs as Triton kernels TRITON_LAUNCH_OPS
-(smdm_plugin/training/hosttime.py); one thread. ``--triton`` / ``--no-triton`` switch Triton
+Each variant at MDM's depth and heads on tiny tensors, the static (GPU) code path; what CUDA runs
+as one kernel charged one launch (SDPA forward and backward, dropout, foreach ops), fused ops that
+CUDA runs as Triton kernels TRITON_LAUNCH_OPS (smdm_plugin/training/hosttime.py); one thread. ``--triton`` / ``--no-triton`` switch Triton
 kernels (by name: smdm_plugin.core.kernels.dispatch.TRITON_KERNELS) on or off for the run, as
 ``use_triton_kernels`` does (``--triton "FSQ code" "FSQ code gradient"``: 0.9.1's routing).
 Prints a markdown table: host ms per call and sparse / dense, and the counted host work (aten ops,

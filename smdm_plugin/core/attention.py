@@ -150,9 +150,10 @@ def layout_copies() -> bool:
 def heads(t: Tensor, H: int, copy: bool) -> Tensor:
     """``[S, B, H·e]`` (any strides) -> ``[B, H, S, e]``: a view; with ``copy`` a view of a
     contiguous ``[B, S, H·e]`` copy (:func:`use_layout_copies`)."""
+    S, B, _ = t.shape                              # (views by shape: no Python of Tensor.unflatten)
     if copy:
-        return t.transpose(0, 1).contiguous().unflatten(-1, (H, -1)).transpose(1, 2)
-    return t.unflatten(-1, (H, -1)).permute(1, 2, 0, 3)
+        return t.transpose(0, 1).contiguous().view(B, S, H, -1).transpose(1, 2)
+    return t.view(S, B, H, -1).permute(1, 2, 0, 3)
 
 
 def compute_dtype(t: Tensor) -> torch.dtype:

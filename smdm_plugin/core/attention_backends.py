@@ -180,21 +180,21 @@ def compact_backend(inner: nn.Module, x: torch.Tensor, plan: KeyframePlan, lead:
     R = lead + plan.capacity
     if not (torch.is_grad_enabled() and x.requires_grad):   # the slots' frames by index; lead tokens as they are
         slots = torch.gather(x[lead:], 0, plan.index.t().unsqueeze(-1).expand(R - lead, B, d))
-        xc = torch.cat([x[:lead], slots]) if lead else slots
+        rows = (torch.cat([x[:lead], slots]) if lead else slots).view(R * B, d)
     else:                                  # one gather (with autograd: one scatter back, not two + a sum)
-        xc = gather_rows(x.reshape(S * B, d), _slot_rows(plan, lead).reshape(-1)).view(R, B, d)
+        rows = gather_rows(x.reshape(S * B, d), _slot_rows(plan, lead).reshape(-1))      # [R·B, d]
     # the key bias in the dtype the attention runs in (autocast's): cast once, not in every layer
     dtype = compute_dtype(x)
     bias = _key_bias(plan, lead, lead_padding, dtype)
     stack = stock_stack(inner)
     if stack is None:                      # custom layers or hooks: the modules, as they are
-        out = _call_inner(inner, xc, bias, memory, memory_key_padding_mask)
-    else:                                  # stock layers as functions (core/layers.py)
+        out = _call_inner(inner, rows.view(R, B, d), bias, memory, memory_key_padding_mask).reshape(R * B, d)
+    else:                                  # stock layers as functions on the rows (core/layers.py)
         memory_bias = None
         if memory_key_padding_mask is not None:
             memory_bias = aligned_key_bias(float_mask(memory_key_padding_mask, dtype))
-        out = stack.run(xc, aligned_key_bias(bias), memory, memory_bias)
-    return out.reshape(R * B, d), arange_rows(R, B, x.device)
+        out = stack.run_rows(rows, R, aligned_key_bias(bias), memory, memory_bias)
+    return out, arange_rows(R, B, x.device)
 
 
 # ---------------------------------------------------------------------------------- varlen

@@ -3,7 +3,7 @@ from __future__ import annotations
 
 import math
 import operator
-from typing import Dict, List, Optional, Sequence, Tuple
+from typing import Callable, Dict, List, Optional, Sequence, Tuple
 
 import torch
 import torch.nn as nn
@@ -15,7 +15,7 @@ from .attention import attend_single_key, compute_dtype, heads as _heads, layout
 from .checks import compiling
 from .fsq import FSQMultiheadAttention, folded_projections
 from .fsq_bank import key_map_tensors, shared_bank
-from .kernels.fsq_code import fsq_code
+from .kernels.fsq_code import code_functions
 
 __all__ = ["StockStack", "stock_stack"]
 
@@ -33,13 +33,20 @@ def _merge(o: Tensor) -> Tensor:
 Casts = Optional[Dict[int, Tensor]]
 
 
-def _cast(t: Optional[Tensor], casts: Casts) -> Optional[Tensor]:
-    return t if casts is None or t is None else casts[id(t)]
-
-
-def _linear(m: nn.Module, casts: Casts = None) -> Tuple[Tensor, Optional[Tensor]]:
+def _linear(m: nn.Module, casts: Casts = None, weight: str = "weight", bias: str = "bias"
+            ) -> Tuple[Tensor, Optional[Tensor]]:
+    """``m``'s ``weight`` and ``bias`` parameters (named so), read from the module at each call (a move
+    or a reload is seen), from ``casts`` when given."""
     p = m._parameters
-    return _cast(p["weight"], casts), _cast(p["bias"], casts)
+    w, b = p[weight], p[bias]
+    if casts is None:
+        return w, b
+    return casts[id(w)], None if b is None else casts[id(b)]
+
+
+#: how a stack's FSQ layers make their codes in one run (:func:`~smdm_plugin.core.kernels.fsq_code.code_functions`):
+#: ``(with autograd, without)``
+Codes = Tuple[Callable[..., Tensor], Callable[..., Tensor]]
 
 
 class _Attention:
@@ -53,60 +60,54 @@ class _Attention:
         if self.folded:
             self.code_dim, self.scale = m.code_dim, 1.0 / math.sqrt(m.head_dim)
 
-    def self_attention(self, x: Tensor, bias: Optional[Tensor], p: float, proj: Optional[tuple],
-                       copy: bool, casts: Casts = None) -> Tensor:
-        """Self-attention of ``x [S, B, E]`` (key mask ``bias [B, 1, 1, S]`` or None, attention
-        dropout ``p``; ``proj``: how an FSQ layer makes its codes, :meth:`StockStack._projections`;
-        ``casts``: :meth:`StockStack._casts`): ``[S, B, E]``."""
-        S, B, E = x.shape
+    def self_attention(self, x: Tensor, S: int, bias: Optional[Tensor], p: float, proj: Optional[tuple],
+                       copy: bool, casts: Casts, codes: Optional[Codes]) -> Tensor:
+        """Self-attention of the rows ``x [S·B, E]`` of ``S`` tokens (key mask ``bias [B, 1, 1, S]``
+        or None, attention dropout ``p``; ``proj``: how an FSQ layer makes its codes,
+        :meth:`StockStack._projections`; ``casts``: :meth:`StockStack._casts`; ``codes``: the
+        run's :data:`Codes`): ``[S·B, E]``."""
+        E = x.shape[1]
         H, m = self.heads, self.module
         scale = None
         if self.folded:                                        # FSQ keys (core/fsq.py)
             P = self.code_dim
-            qc, z, v = F.linear(x, proj[1], proj[2]).split([H * P, H * P, E], dim=-1)   # one folded in-projection
+            # one folded in-projection, its tokens split out before the heads (a gradient meets its
+            # heads' in one copy, the split's, not one per head)
+            qc, z, v = F.linear(x, proj[1], proj[2]).view(S, -1, 2 * H * P + E).split_with_sizes([H * P, H * P, E], -1)
             buffers = m._buffers
-            codes = fsq_code(z, buffers["_code_neg_offset"], buffers["_code_half_l"])
-            q, k, v = _heads(qc, H, copy), _heads(codes, H, copy), _heads(v, H, copy)
+            code = codes[0] if z.requires_grad and torch.is_grad_enabled() else codes[1]
+            k = code(z, buffers["_code_neg_offset"], buffers["_code_half_l"])
+            q, k, v = _heads(qc, H, copy), _heads(k, H, copy), _heads(v, H, copy)
             scale = self.scale
         else:
-            params = m._parameters
-            qkv = F.linear(x, _cast(params["in_proj_weight"], casts), _cast(params["in_proj_bias"], casts))
-            q, k, v = (_heads(t, H, copy) for t in qkv.chunk(3, dim=-1))
+            qkv = F.linear(x, *_linear(m, casts, "in_proj_weight", "in_proj_bias")).view(S, -1, 3 * E)
+            q, k, v = qkv.chunk(3, dim=-1)
+            q, k, v = _heads(q, H, copy), _heads(k, H, copy), _heads(v, H, copy)
         o = F.scaled_dot_product_attention(q, k, v, attn_mask=bias, dropout_p=p, scale=scale)
-        return F.linear(_merge(o), *_linear(self.out, casts)).view(S, B, E)
+        return F.linear(_merge(o), *_linear(self.out, casts))
 
-    def cross_attention(self, x: Tensor, memory: Tensor, bias: Optional[Tensor], p: float,
-                        sample: Optional[Tensor], copy: bool, casts: Casts = None) -> Tensor:
-        """Attention of ``x [S, B, E]`` to ``memory [M, B, E]`` (key mask ``bias [B, 1, 1, M]`` or
-        None): ``[S, B, E]``. One key per sample (MDM trans_dec's condition token) needs no softmax
-        (:func:`~smdm_plugin.core.attention.attend_single_key`; ``sample [S·B]``)."""
-        S, B, E = x.shape
-        params = self.module._parameters
-        W, b = _cast(params["in_proj_weight"], casts), _cast(params["in_proj_bias"], casts)
+    def cross_attention(self, x: Tensor, S: int, memory: Tensor, bias: Optional[Tensor], p: float,
+                        sample: Optional[Tensor], copy: bool, casts: Casts) -> Tensor:
+        """Attention of the rows ``x [S·B, E]`` of ``S`` tokens to ``memory [M, B, E]`` (key mask
+        ``bias [B, 1, 1, M]`` or None): ``[S·B, E]``. One key per sample (MDM trans_dec's condition
+        token) needs no softmax (:func:`~smdm_plugin.core.attention.attend_single_key`; ``sample
+        [S·B]``)."""
         if sample is not None:
             o = attend_single_key(self.module, memory[0], sample)
         else:
-            H = self.heads
-            q = _heads(F.linear(x, W[:E], None if b is None else b[:E]), H, copy)
-            kv = F.linear(memory, W[E:], None if b is None else b[E:]).chunk(2, dim=-1)
-            k, v = (_heads(t, H, copy) for t in kv)
+            E, H = x.shape[1], self.heads
+            W, b = _linear(self.module, casts, "in_proj_weight", "in_proj_bias")
+            q = _heads(F.linear(x, W[:E], None if b is None else b[:E]).view(S, -1, E), H, copy)
+            k, v = F.linear(memory, W[E:], None if b is None else b[E:]).chunk(2, dim=-1)
+            k, v = _heads(k, H, copy), _heads(v, H, copy)
             o = _merge(F.scaled_dot_product_attention(q, k, v, attn_mask=bias, dropout_p=p))
-        return F.linear(o, *_linear(self.out, casts)).view(S, B, E)
+        return F.linear(o, *_linear(self.out, casts))
 
 
 def _layer_norm(x: Tensor, m: nn.LayerNorm) -> Tensor:
+    """``F.layer_norm`` by ``m``, without its Python wrapper (the same call)."""
     p = m._parameters
-    return F.layer_norm(x, m.normalized_shape, p["weight"], p["bias"], m.eps)
-
-
-def _dropout(x: Tensor, p: float) -> Tensor:
-    """Training's dropout (``F.dropout``; none for ``p = 0``)."""
-    return F.dropout(x, p, True) if p else x
-
-
-def _identity(x: Tensor, p: float) -> Tensor:
-    """Eval's dropout: ``x`` itself (no call)."""
-    return x
+    return torch.layer_norm(x, m.normalized_shape, p["weight"], p["bias"], m.eps, torch.backends.cudnn.enabled)
 
 
 class _Layer:
@@ -122,10 +123,6 @@ class _Layer:
         self.l1, self.l2 = layer.linear1, layer.linear2
         self.drops = [getattr(layer, n) for n in ("dropout", "dropout1", "dropout2", "dropout3") if hasattr(layer, n)]
 
-    def _ff(self, x: Tensor, training: bool, casts: Casts = None) -> Tensor:
-        h = self.module.activation(F.linear(x, *_linear(self.l1, casts)))
-        return F.linear(_dropout(h, self.drops[0].p) if training else h, *_linear(self.l2, casts))
-
     def matmul_parameters(self) -> List[Tensor]:
         """The parameters this layer reads as matmul weights and biases (what a sampling call may
         read in its compute dtype: :meth:`StockStack._casts`); not the norms' (autocast runs
@@ -138,27 +135,37 @@ class _Layer:
         out += [a._parameters[n] for a in attns for n in ("in_proj_weight", "in_proj_bias")]
         return [t for t in out if t is not None]
 
-    def forward(self, x: Tensor, bias: Optional[Tensor], proj: Optional[tuple], training: bool,
+    def forward(self, x: Tensor, S: int, bias: Optional[Tensor], proj: Optional[tuple], training: bool,
                 copy: bool, memory: Optional[Tensor] = None, memory_bias: Optional[Tensor] = None,
-                sample: Optional[Tensor] = None, casts: Casts = None) -> Tensor:
-        """The layer's ``forward`` (encoder or decoder, either ``norm_first``) on ``x [S, B, d]``
-        (``casts``: :meth:`StockStack._casts`)."""
-        d = self.drops
-        drop = _dropout if training else _identity           # (in eval no dropout call at all)
-        sa_p = self.self_attn.module.dropout if training else 0.0
-        blocks = [lambda h: drop(self.self_attn.self_attention(h, bias, sa_p, proj, copy, casts), d[1].p)]
-        if self.decoder:
-            ca_p = self.cross.module.dropout if training else 0.0
-            blocks.append(lambda h: drop(self.cross.cross_attention(h, memory, memory_bias, ca_p, sample, copy,
-                                                                    casts), d[2].p))
-        blocks.append(lambda h: drop(self._ff(h, training, casts), d[-1].p))
-        if self.module.norm_first:
-            for block, norm in zip(blocks, self.norms):
-                x = x + block(_layer_norm(x, norm))
-            return x
-        for block, norm in zip(blocks, self.norms):
-            x = _layer_norm(x + block(x), norm)
-        return x
+                sample: Optional[Tensor] = None, casts: Casts = None, codes: Optional[Codes] = None) -> Tensor:
+        """The layer's ``forward`` (encoder or decoder, either ``norm_first``) on the rows ``x [S·B,
+        d]`` of ``S`` tokens, sequence-first (``casts``: :meth:`StockStack._casts`; ``codes``: the
+        run's :data:`Codes`). Written out block by block (no closure or helper per block: a step
+        of MDM's eight layers pays Python per call); in eval no dropout call at all."""
+        d, norms, first = self.drops, self.norms, self.module.norm_first
+        # self-attention block
+        h = _layer_norm(x, norms[0]) if first else x
+        h = self.self_attn.self_attention(h, S, bias, self.self_attn.module.dropout if training else 0.0, proj,
+                                          copy, casts, codes)
+        if training and d[1].p:
+            h = F.dropout(h, d[1].p, True)
+        x = x + h if first else _layer_norm(x + h, norms[0])
+        if self.decoder:                                      # cross-attention block
+            h = _layer_norm(x, norms[1]) if first else x
+            h = self.cross.cross_attention(h, S, memory, memory_bias, self.cross.module.dropout if training else 0.0,
+                                           sample, copy, casts)
+            if training and d[2].p:
+                h = F.dropout(h, d[2].p, True)
+            x = x + h if first else _layer_norm(x + h, norms[1])
+        # feed-forward block
+        h = _layer_norm(x, norms[-1]) if first else x
+        h = self.module.activation(F.linear(h, *_linear(self.l1, casts)))
+        if training and d[0].p:
+            h = F.dropout(h, d[0].p, True)
+        h = F.linear(h, *_linear(self.l2, casts))
+        if training and d[-1].p:
+            h = F.dropout(h, d[-1].p, True)
+        return x + h if first else _layer_norm(x + h, norms[-1])
 
 
 def _is_stock_mha(m: nn.Module) -> bool:
@@ -278,20 +285,28 @@ class StockStack:
 
     def run(self, x: Tensor, bias: Optional[Tensor], memory: Optional[Tensor] = None,
             memory_bias: Optional[Tensor] = None) -> Tensor:
-        """``x [S, B, d]`` sequence-first through every layer (and the stack's norm); ``bias [B, 1,
-        1, S]`` additive key mask or None; decoders: ``memory [M, B, d]``, ``memory_bias [B, 1, 1,
-        M]`` or None."""
+        """``x [S, B, d]`` sequence-first through every layer (and the stack's norm): :meth:`run_rows`
+        on its rows, ``[S, B, d]``."""
+        S, B, d = x.shape
+        return self.run_rows(x.reshape(S * B, d), S, bias, memory, memory_bias).view(S, B, d)
+
+    def run_rows(self, x: Tensor, S: int, bias: Optional[Tensor], memory: Optional[Tensor] = None,
+                 memory_bias: Optional[Tensor] = None) -> Tensor:
+        """The rows ``x [S·B, d]`` of ``S`` tokens, sequence-first, through every layer (and the
+        stack's norm), ``[S·B, d]`` (the layers' linear maps on rows as they are: no reshape per
+        map and gradient); ``bias [B, 1, 1, S]`` additive key mask or None; decoders: ``memory [M,
+        B, d]``, ``memory_bias [B, 1, 1, M]`` or None."""
         training = self.layers[0].module.training     # (the wrapper keeps the stack unregistered)
         dtype = compute_dtype(x)
         projections = self._projections(dtype)
         sample = None
         if self.decoder and memory.shape[0] == 1 and memory_bias is None:   # one key per sample
-            S, B, _ = x.shape
-            sample = consts.arange(B, x.device).repeat(S)                # [S·B]: each row's sample
+            sample = consts.arange(x.shape[0] // S, x.device).repeat(S)   # [S·B]: each row's sample
         copy = layout_copies()                                # views unless switched on (use_layout_copies)
         casts = self._casts(x)
+        codes = code_functions(x) if self._folded else None
         for layer, proj in zip(self.layers, projections):
-            x = layer.forward(x, bias, proj, training, copy, memory, memory_bias, sample, casts)
+            x = layer.forward(x, S, bias, proj, training, copy, memory, memory_bias, sample, casts, codes)
         return x if self.norm is None else self.norm(x)
 
 

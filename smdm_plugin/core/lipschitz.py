@@ -270,7 +270,16 @@ class LipschitzMLP(nn.Module):
         """Every linear layer's normalised weight read without the parametrization's per-access
         machinery: with autograd one op each (:func:`~smdm_plugin.core.kernels.lipschitz_op.lipschitz_weight`;
         while tracing all in one pass, :func:`normalised_weights`), without it kept while unchanged
-        (:meth:`_sampling_weights`). The same values as the parametrizations."""
+        (:meth:`_sampling_weights`). The same values as the parametrizations. A contiguous input of
+        more than two dimensions runs as its rows ``[-1, in_features]`` (what ``F.linear`` does to
+        it in each layer, bit for bit: one view each way for the MLP, not two per layer)."""
+        lead = None
+        if x.dim() > 2 and x.is_contiguous():
+            lead, x = x.shape[:-1], x.view(-1, x.shape[-1])
+        x = self._rows(x)
+        return x if lead is None else x.view(*lead, x.shape[-1])
+
+    def _rows(self, x: Tensor) -> Tensor:
         pairs = self._weight_pairs()
         if pairs is None:                                            # baked: plain layers
             return self.net(x)

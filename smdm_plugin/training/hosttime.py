@@ -4,9 +4,10 @@ from __future__ import annotations
 
 import sys
 import time
-from contextlib import contextmanager
+from contextlib import contextmanager, nullcontext
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, Callable, Dict, Iterator, List, Optional
+from types import CodeType
+from typing import TYPE_CHECKING, Callable, Dict, Iterator, List, Optional, Set
 
 import torch
 import torch.nn.functional as F
@@ -29,6 +30,110 @@ HOST_SIZE = dict(latent_dim=16, ff_size=32, num_layers=8, num_heads=4, batch=2, 
 #: bf16 step took 4.2x its meter time; 204 µs / 4.2 / 1.4 µs (a small op on the meter) ≈ 34
 #: (docs/gpu.md, 0.9.2)
 TRITON_LAUNCH_OPS = 34
+
+
+#: ``charge(fn, *args, ops=n, **kwargs) -> fn(*args, **kwargs)``: runs a call that CUDA launches
+#: as ``n`` kernels, charging it ``n`` launches (the timer times it apart, the counter counts ``n``)
+Charge = Callable[..., object]
+
+
+class _OneEachWay(torch.autograd.Function):
+    """``fn(*inputs)`` (run within its caller's charge) whose gradient, the CPU graph's, runs in
+    one ``charge`` of its own: one launch each way, as CUDA's SDPA runs (one kernel forward, one
+    backward, where the CPU's math composite runs a dozen ops forward and about twenty backward)."""
+
+    @staticmethod
+    def forward(ctx, charge: Charge, fn: Callable, *inputs):
+        with torch.enable_grad():
+            leaves = [t.detach().requires_grad_(t.requires_grad) if isinstance(t, torch.Tensor) else t
+                      for t in inputs]
+            out = fn(*leaves)
+        ctx.charge, ctx.leaves, ctx.out = charge, leaves, out
+        return out.detach()
+
+    @staticmethod
+    def backward(ctx, grad):
+        wanted = [i for i, t in enumerate(ctx.leaves) if isinstance(t, torch.Tensor) and t.requires_grad]
+        got = ctx.charge(torch.autograd.grad, ctx.out, [ctx.leaves[i] for i in wanted], grad, allow_unused=True)
+        grads = [None] * len(ctx.leaves)
+        for i, g in zip(wanted, got):
+            grads[i] = g
+        ctx.leaves = ctx.out = None
+        return (None, None, *grads)
+
+
+def _attention_as_cuda(charge: Charge, sdpa: Callable) -> Callable:
+    """``F.scaled_dot_product_attention`` charged as CUDA runs it: one launch forward (and one per
+    cast autocast makes of its inputs), one backward under autograd (:class:`_OneEachWay`)."""
+    def attention(query, key, value, attn_mask=None, dropout_p=0.0, is_causal=False, scale=None, **kw):
+        tensors = (query, key, value, attn_mask)
+        kind = query.device.type
+        autocast = kind in ("cpu", "cuda") and torch.is_autocast_enabled(kind)
+        dtype = torch.get_autocast_dtype(kind) if autocast else None
+        casts: Dict[int, torch.Tensor] = {}          # what autocast casts, each tensor once (its cache)
+        for t in tensors:
+            if autocast and t is not None and t.is_floating_point() and t.dtype not in (dtype, torch.float64):
+                casts[id(t)] = t
+
+        def fn(q, k, v, m):
+            with torch.autocast(kind, enabled=False) if autocast else nullcontext():   # (cast below)
+                return sdpa(q, k, v, attn_mask=m, dropout_p=dropout_p, is_causal=is_causal, scale=scale, **kw)
+
+        def run():
+            cast = {i: t.to(dtype) for i, t in casts.items()}
+            q, k, v, m = [cast.get(id(t), t) for t in tensors]
+            if torch.is_grad_enabled() and (q.requires_grad or k.requires_grad or v.requires_grad
+                                            or m is not None and m.requires_grad):
+                return _OneEachWay.apply(charge, fn, q, k, v, m)
+            return fn(q, k, v, m)
+        return charge(run, ops=1 + len(casts))
+    attention.__name__ = attention.__qualname__ = "scaled_dot_product_attention"
+    return attention
+
+
+def _dropout_as_cuda(charge: Charge, dropout: Callable) -> Callable:
+    """The op under ``F.dropout`` (``torch._VF.dropout``) charged as CUDA runs it in training: one
+    launch (``native_dropout``; the CPU runs four ops); ``F.dropout``'s Python runs and counts as it
+    does on a GPU; the backward is one op on both (a multiply)."""
+    def vf_dropout(input, p, train):
+        return charge(dropout, input, p, train) if train and p > 0.0 else dropout(input, p, train)
+    return vf_dropout
+
+
+@contextmanager
+def _stand_ins(charge: Charge) -> Iterator[Set[CodeType]]:
+    """Within the block, SDPA and dropout charged as CUDA runs them (:func:`_attention_as_cuda`,
+    :func:`_dropout_as_cuda`); yields the stand-ins' code objects (their frames are not the
+    measured call's: :func:`_stand_in_frame`)."""
+    sdpa, vf = F.scaled_dot_product_attention, torch._VF
+    own = vf.__dict__.get("dropout")                  # (normally none: _VF looks ops up by name)
+    attention, drop = _attention_as_cuda(charge, sdpa), _dropout_as_cuda(charge, vf.dropout)
+    F.scaled_dot_product_attention, vf.dropout = attention, drop
+    try:
+        yield {attention.__code__, drop.__code__}
+    finally:
+        F.scaled_dot_product_attention = sdpa
+        if own is None:
+            del vf.dropout
+        else:
+            vf.dropout = own
+
+
+#: the Python frame that runs a custom autograd function's backward (its own, before ``backward``)
+_BACKWARD_APPLY = torch.autograd.function.BackwardCFunction.apply.__code__
+
+
+def _stand_in_frame(frame, own: Set[CodeType]) -> bool:
+    """Whether ``frame`` runs one of the ``own`` stand-ins (:func:`_stand_ins`), or is (or runs
+    within) the backward call of :class:`_OneEachWay`: not the measured call's frames (their
+    charged calls' frames are not counted anyway)."""
+    if frame.f_code in own:
+        return True
+    while frame is not None:
+        if frame.f_code is _BACKWARD_APPLY and getattr(frame.f_locals.get("self"), "_forward_cls", None) is _OneEachWay:
+            return True
+        frame = frame.f_back
+    return False
 
 
 @dataclass(frozen=True)
@@ -87,14 +192,15 @@ def _timed(charges: "_Charges", fn: Callable) -> Callable:
 
 @contextmanager
 def charging_kernels() -> Iterator[_Charges]:
-    """Within the block, the package's fused ops that CUDA runs as Triton kernels,
-    ``F.scaled_dot_product_attention`` and ``torch._foreach_*`` are timed apart (:class:`_Charges`),
-    so that a measurement can charge each at what it costs a GPU's host: a Triton launch
-    :data:`TRITON_LAUNCH_OPS` small ops, the others one. (They are looked up at call time by
-    ``nn.MultiheadAttention``, this package and ``torch.optim``.)"""
+    """Within the block, what CUDA runs as one kernel where the CPU runs several ops is timed apart
+    (:class:`_Charges`) and charged at what it costs a GPU's host: the package's fused ops that CUDA
+    runs as Triton kernels :data:`TRITON_LAUNCH_OPS` small ops each; ``F.scaled_dot_product_attention``
+    one launch forward and, under autograd, one backward (:class:`_OneEachWay`); dropout in training
+    one (``native_dropout``; ``F.dropout``'s own Python is measured); ``torch._foreach_*`` one. (They
+    are looked up at call time by ``nn.MultiheadAttention``, ``F.dropout``, this package and
+    ``torch.optim``.)"""
     charges = _Charges()
-    patched = [(F, "scaled_dot_product_attention")] + [(torch, n) for n in dir(torch) if n.startswith("_foreach_")]
-    originals = [(owner, name, getattr(owner, name)) for owner, name in patched]
+    originals = [(torch, n, getattr(torch, n)) for n in dir(torch) if n.startswith("_foreach_")]
 
     def observer(name: str, kernel: Callable, args: list):
         return charges.run(kernel, *args, ops=TRITON_LAUNCH_OPS)
@@ -103,7 +209,8 @@ def charging_kernels() -> Iterator[_Charges]:
     for owner, name, fn in originals:
         setattr(owner, name, _timed(charges, fn))
     try:
-        yield charges
+        with _stand_ins(charges.run):
+            yield charges
     finally:
         for owner, name, fn in originals:
             setattr(owner, name, fn)
@@ -113,9 +220,10 @@ def charging_kernels() -> Iterator[_Charges]:
 def host_times(fns: Dict[str, Callable[[], object]], repeats: int = 100, warmup: int = 3,
                quantile: float = 0.2) -> HostTime:
     """Host milliseconds per call of each callable in ``fns`` (run interleaved, ``repeats`` times
-    after ``warmup`` calls each): thread CPU time, with SDPA and foreach ops charged one launch each
-    and Triton-launching fused ops :data:`TRITON_LAUNCH_OPS` (:func:`charging_kernels`); the
-    ``quantile`` of the repeats. Run on the CPU, one thread."""
+    after ``warmup`` calls each): thread CPU time, what CUDA runs as one kernel charged at its launch
+    (:func:`charging_kernels`: SDPA one launch each way, dropout and foreach ops one, Triton-launching
+    fused ops :data:`TRITON_LAUNCH_OPS`); the ``quantile`` of the repeats. Run on the CPU, one
+    thread."""
     if repeats < 1:
         raise ValueError(f"host_times: repeats must be >= 1, got {repeats}")
     charge = launch_charge()
@@ -170,15 +278,16 @@ class _OpCounter(TorchDispatchMode):
 def host_work(fn: Callable[[], object], warmup: int = 2) -> HostWork:
     """The :class:`HostWork` of a call of ``fn`` after ``warmup`` calls (caches filled, as in a loop):
     its Python frames in one call, its aten ops in the next (the op counter's own frames are not
-    counted), neither inside a charged fused op (on the CPU its composite runs there; CUDA launches
-    one kernel) nor inside ``F.scaled_dot_product_attention``, counted one op (on the CPU a mask or
-    unequal head sizes make it its math composite, ~13 ops; CUDA runs one kernel: as
-    :func:`host_times` charges it). The same call counts the same on any machine: what a test can
-    budget (time is what :func:`host_times` and ``scripts/host_time.py`` measure)."""
+    counted), what CUDA runs as one kernel counted as :func:`host_times` charges it (a fused op that
+    CUDA runs as a Triton kernel :data:`TRITON_LAUNCH_OPS`, its CPU composite not counted; SDPA one
+    op forward and one backward, where the CPU runs its math composite wherever a mask or unequal
+    head sizes rule out its flash kernel, ~13 ops forward and ~20 backward; dropout in training one,
+    the CPU's four ops not counted), no frame of their own. The same call counts the same on any
+    machine: what a test can budget (time is what :func:`host_times` and ``scripts/host_time.py``
+    measure)."""
     for _ in range(warmup):
         fn()
     counter, frames, launches = _OpCounter(), [0], [0]
-    sdpa = F.scaled_dot_product_attention
 
     def observer(name: str, kernel: Callable, args: list):
         counter.inside += 1
@@ -188,34 +297,36 @@ def host_work(fn: Callable[[], object], warmup: int = 2) -> HostWork:
             counter.inside -= 1
             launches[0] += 1
 
-    def attention(*args, **kwargs):
+    def charge(f: Callable, *args, ops: int = 1, **kwargs):
         counter.inside += 1
         try:
-            return sdpa(*args, **kwargs)
+            return f(*args, **kwargs)
         finally:
             counter.inside -= 1
             if not counter.inside:
-                counter.ops += 1
+                counter.ops += ops
+
+    own: Set[CodeType] = {charge.__code__}
 
     def profile(frame, event, arg):
-        if event == "call" and not counter.inside and frame.f_code is not attention.__code__:
+        if event == "call" and not counter.inside and not _stand_in_frame(frame, own):
             frames[0] += 1
 
     OBSERVERS.append(observer)
-    F.scaled_dot_product_attention = attention
     try:
-        previous = sys.getprofile()
-        sys.setprofile(profile)
-        try:
-            fn()
-        finally:
-            sys.setprofile(previous)
-        launches[0] = 0
-        counter.ops = 0
-        with counter:
-            fn()
+        with _stand_ins(charge) as stand_ins:
+            own.update(stand_ins)
+            previous = sys.getprofile()
+            sys.setprofile(profile)
+            try:
+                fn()
+            finally:
+                sys.setprofile(previous)
+            launches[0] = 0
+            counter.ops = 0
+            with counter:
+                fn()
     finally:
-        F.scaled_dot_product_attention = sdpa
         OBSERVERS.remove(observer)
     return HostWork(counter.ops + TRITON_LAUNCH_OPS * launches[0], frames[0])
 

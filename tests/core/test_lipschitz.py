@@ -339,3 +339,27 @@ def test_lipschitz_weight_runs_its_composite_under_autograd_unless_triton_is_swi
             assert ops["aten.linalg_vector_norm.default"] == 1 and "_Weight" not in out["w"].grad_fn.name()
     torch.testing.assert_close(grads[True][0], grads[False][0], rtol=1e-5, atol=1e-6)
     torch.testing.assert_close(grads[True][1], grads[False][1], rtol=1e-5, atol=1e-6)
+
+
+@pytest.mark.parametrize("layout", ["contiguous", "permuted"])
+def test_mlp_equals_its_parametrized_modules_on_any_input_layout(layout):
+    """The MLP's forward (the normalised weights read directly; a contiguous input of more than two
+    dimensions as its rows) equals its modules run as they are (``mlp.net``: each layer's
+    parametrization and ``F.linear`` on the input as it comes) bit for bit: outputs and every
+    gradient, with and without autograd; a permuted input (``F.linear``'s other route) too."""
+    torch.manual_seed(0)
+    mlp = LipschitzMLP(12, 6, hidden=24)
+    g = torch.Generator().manual_seed(3)
+    x = torch.randn(5, 3, 12, generator=g)
+    if layout == "permuted":
+        x = torch.randn(3, 5, 12, generator=g).transpose(0, 1)
+    assert x.is_contiguous() == (layout == "contiguous")
+    x.requires_grad_()
+    out, ref = mlp(x), mlp.net(x)
+    assert out.shape == (5, 3, 6) and torch.equal(out, ref)
+    wrt = [x] + list(mlp.parameters())
+    grad = torch.randn(out.shape, generator=g)
+    for a, b in zip(torch.autograd.grad(out, wrt, grad), torch.autograd.grad(ref, wrt, grad)):
+        assert torch.equal(a, b)
+    with torch.no_grad():
+        assert torch.equal(mlp(x), mlp.net(x))

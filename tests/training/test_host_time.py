@@ -4,9 +4,9 @@ the aten ops the dispatcher runs (a fused op that CUDA runs as a Triton kernel c
 H200 paid for its launch) and the Python frames entered (``training/hosttime.py: host_work``). A
 training step and a sampling call, fp32 and bf16, every model variant. Counts are the same on any
 machine, so a budget holds without a margin for load; the time itself is measured by the meter
-(``scripts/host_time.py``, dense and sparse side by side), never in a test. 0.10.0's counts, sparse /
-dense: trans_enc training 1.19-1.21 ops / 1.05-1.06 frames (FSQ keys and Lipschitz layers, the
-keyframe selection and plan), the others 0.63-1.09 / 0.62-1.06."""
+(``scripts/host_time.py``, dense and sparse side by side), never in a test. 0.10.1's counts, sparse /
+dense: trans_enc training 1.15-1.17 ops / 0.96-0.97 frames (FSQ keys and Lipschitz layers, the
+keyframe selection and plan), the others 0.55-1.09 ops / 0.42-1.07 frames."""
 import pytest
 import torch
 
@@ -14,25 +14,26 @@ from smdm_plugin.core.checks import static_mode
 from smdm_plugin.training.hosttime import (HOST_VARIANTS, TRITON_LAUNCH_OPS, HostWork, charging_kernels, host_cells,
                                            host_times, host_work, launch_charge)
 
-#: sparse / dense (aten ops, Python frames), by (variant, call): 0.10.0's counts (the larger of fp32
+#: sparse / dense (aten ops, Python frames), by (variant, call): 0.10.1's counts (the larger of fp32
 #: and bf16) plus 0.005, rounded up: a change that adds host work to a sparse call fails (0.9.4's
 #: dropout call in eval, 48 per trans_enc guided call: frames 0.70 -> 0.74). Counts depend on the
 #: torch version (CI pins one); a change that lowers a count lowers its budget. 0.10.0: SDPA counted
-#: one op (0.9.x counted the CPU's math composite, ~13 ops, where a mask or the folded path's head
-#: sizes rule out its flash kernel: sparse sampling calls 1.24 -> 0.90); the FSQ codes'
-#: straight-through term as autograd's own ops (3 ops more per layer and step, no Python function:
-#: frames 1.24 -> 1.19) and the key maps as one bank per stack (frames 1.19 -> 1.06).
+#: one op (0.9.x counted the CPU's math composite forward); the FSQ key maps as one bank per stack.
+#: 0.10.1: SDPA's backward counted one op too and dropout in training one, as CUDA runs them (the
+#: same trees: trans_enc training 1.210 -> 1.244, trans_dec 0.928 -> 0.971); the stacks' tokens as
+#: rows, each layer written out (trans_enc training 1.244 / 1.053 -> 1.171 / 0.964, guided call
+#: 0.903 / 0.710 -> 0.779 / 0.490).
 WORK_BUDGET = {
-    ("trans_enc", "train"): (1.22, 1.07),      # 1.210 / 1.061 (0.9.6, SDPA's composite counted: 1.218 / 1.240)
-    ("trans_enc", "sample"): (0.91, 0.70),     # 0.903 / 0.692
-    ("trans_dec", "train"): (0.94, 1.01),      # 0.928 / 0.996 (0.9.6: 0.900 / 1.126)
-    ("trans_dec", "sample"): (0.65, 0.63),     # 0.641 / 0.623
-    ("dip", "train"): (0.94, 1.01),            # 0.935 / 1.003 (0.9.6: 0.906 / 1.132)
-    ("dip", "sample"): (0.67, 0.64),           # 0.659 / 0.635
-    ("doubletake", "train"): (1.22, 1.07),     # trans_enc's training step
-    ("doubletake", "sample"): (0.91, 0.70),    # 0.903 / 0.688: forced frames cost no more
-    ("motiondiffuse", "train"): (1.10, 1.07),  # 1.091 / 1.064 (linear attention: no SDPA)
-    ("motiondiffuse", "sample"): (1.04, 1.06),  # 1.035 / 1.055
+    ("trans_enc", "train"): (1.18, 0.98),      # 1.171 / 0.973
+    ("trans_enc", "sample"): (0.79, 0.50),     # 0.779 / 0.493
+    ("trans_dec", "train"): (0.93, 0.92),      # 0.919 / 0.910
+    ("trans_dec", "sample"): (0.57, 0.44),     # 0.557 / 0.426
+    ("dip", "train"): (0.94, 0.93),            # 0.928 / 0.917
+    ("dip", "sample"): (0.58, 0.45),           # 0.575 / 0.438
+    ("doubletake", "train"): (1.18, 0.98),     # trans_enc's training step
+    ("doubletake", "sample"): (0.79, 0.50),    # 0.779 / 0.489: forced frames cost no more
+    ("motiondiffuse", "train"): (1.10, 1.07),  # 1.090 / 1.065 (linear attention: no SDPA)
+    ("motiondiffuse", "sample"): (1.04, 1.07),  # 1.033 / 1.058
 }
 
 
@@ -84,6 +85,49 @@ def test_host_work_counts_ops_and_frames_and_a_fused_op_as_a_launch():
     assert torch.nn.functional.scaled_dot_product_attention.__name__ == "scaled_dot_product_attention"
 
 
+def test_host_work_counts_attention_and_dropout_as_cuda_runs_them():
+    """Under autograd SDPA counts one op forward and one backward (CUDA's two kernels; the CPU's math
+    composite runs about twenty ops backward), dropout in training one (CUDA's ``native_dropout``; the
+    CPU runs four; ``F.dropout``'s Python frame counts, as a GPU runs it), the stand-ins no frame of
+    their own; the gradients are SDPA's own; autocast's casts of its inputs count one each, as CUDA
+    launches them."""
+    F = torch.nn.functional
+    q = torch.randn(2, 4, 6, 8, requires_grad=True)
+    v = torch.randn(2, 4, 6, 16, requires_grad=True)
+    bias = torch.zeros(2, 1, 1, 6)
+
+    def doubled():                       # the same step with a plain op in place of SDPA / dropout
+        (q * 2).sum().backward()
+
+    def attention():
+        F.scaled_dot_product_attention(q, q, v, attn_mask=bias, dropout_p=0.1).sum().backward()
+
+    def dropout():
+        F.dropout(q, 0.1, True).sum().backward()
+
+    plain = host_work(doubled)
+    # the plain step: mul, sum; backward's ones, expand, mul, q's accumulation. SDPA: one op each way
+    # where the mul and its gradient were, plus the sum of q's two gradients (query and key) and v's
+    # accumulation
+    assert host_work(attention) == HostWork(plain.ops + 2, plain.calls)
+    assert host_work(dropout) == HostWork(plain.ops, plain.calls + 1)     # F.dropout's own Python (a GPU runs it)
+    with torch.autocast("cpu", torch.bfloat16):
+        cast = host_work(lambda: F.scaled_dot_product_attention(q, q, v, attn_mask=bias))
+    assert cast.ops == 1 + 3                  # q (once, as autocast's cache), v and the mask cast
+    assert host_work(lambda: F.dropout(q, 0.1, False)).ops == 0          # eval: no op
+    torch.manual_seed(0)
+    want = torch.autograd.grad(F.scaled_dot_product_attention(q, q, v, attn_mask=bias).square().sum(), [q, v])
+    counted = []
+
+    def grads():
+        counted.append(torch.autograd.grad(
+            F.scaled_dot_product_attention(q, q, v, attn_mask=bias).square().sum(), [q, v]))
+    host_work(grads)
+    assert all(torch.equal(a, b) for g in counted for a, b in zip(g, want))
+    assert F.scaled_dot_product_attention.__name__ == "scaled_dot_product_attention"
+    assert "dropout" not in vars(torch._VF)                      # (looked up by name again)
+
+
 def test_charged_kernels_count_what_a_gpu_host_pays():
     """The meter's rule: a fused op that CUDA runs as a Triton kernel is timed apart and charged
     ``TRITON_LAUNCH_OPS`` small ops, an SDPA call and a foreach op one each; plain ops, and a fused
@@ -112,6 +156,11 @@ def test_charged_kernels_count_what_a_gpu_host_pays():
         finally:
             use_triton_kernels(before["FSQ code"], ["FSQ code"])
         assert charges.count == 2 * TRITON_LAUNCH_OPS + 2
+        # under autograd SDPA is charged once each way, dropout once (its backward: one op anyway)
+        leaf = q.clone().requires_grad_()
+        torch.nn.functional.scaled_dot_product_attention(leaf, leaf, leaf).sum().backward()
+        torch.nn.functional.dropout(leaf, 0.5, True).sum().backward()
+        assert charges.count == 2 * TRITON_LAUNCH_OPS + 5
     assert torch.nn.functional.scaled_dot_product_attention.__name__ == "scaled_dot_product_attention"
     assert 0 < launch_charge(200) < 1e-3
 

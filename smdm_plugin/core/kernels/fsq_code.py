@@ -12,13 +12,15 @@ round half to even).
 """
 from __future__ import annotations
 
+from typing import Callable, Tuple
+
 import torch
 
 from .dispatch import FusedOp, TritonKernel
 
 Tensor = torch.Tensor
 
-__all__ = ["fsq_code", "fsq_code_composite", "fsq_code_grad_composite", "CODE", "GRAD"]
+__all__ = ["fsq_code", "code_functions", "fsq_code_composite", "fsq_code_grad_composite", "CODE", "GRAD"]
 
 
 def fsq_code_composite(z: Tensor, neg_offset: Tensor, half_l: Tensor) -> Tensor:
@@ -62,6 +64,13 @@ def straight_through_codes(z: Tensor, neg_offset: Tensor, half_l: Tensor) -> Ten
     b = torch.addcmul(neg_offset, torch.tanh(z.float()), half_l)
     bd = b.detach()
     return (b + (torch.round(bd) - bd)).to(z.dtype)
+
+
+def code_functions(like: Tensor) -> Tuple[Callable[..., Tensor], Callable[..., Tensor]]:
+    """``(with autograd, without)``: what :func:`fsq_code` runs for pre-codes on ``like``'s device
+    outside tracing, looked up once (a stack's run calls them per layer, without the lookups)."""
+    ste = _CodeSTE.apply if CODE.fused_on(like) and GRAD.fused_on(like) else straight_through_codes
+    return ste, CODE.eager
 
 
 def fsq_code(z: Tensor, neg_offset: Tensor, half_l: Tensor) -> Tensor:
