@@ -166,8 +166,8 @@ def launch_charge(repeats: int = 2000) -> float:
 
 class _Charges:
     """Thread time spent in charged kernels and how many launches' worth they cost (``count``: one
-    per SDPA or foreach call, :data:`TRITON_LAUNCH_OPS` per fused op that CUDA runs as a Triton
-    kernel), since the last :meth:`reset`."""
+    per SDPA call and its backward, dropout or foreach call, :data:`TRITON_LAUNCH_OPS` per fused op
+    that CUDA runs as a Triton kernel), since the last :meth:`reset`."""
 
     def __init__(self) -> None:
         self.seconds, self.count = 0.0, 0
