@@ -282,7 +282,8 @@ def host_work(fn: Callable[[], object], warmup: int = 2) -> HostWork:
     CUDA runs as a Triton kernel :data:`TRITON_LAUNCH_OPS`, its CPU composite not counted; SDPA one
     op forward and one backward, where the CPU runs its math composite wherever a mask or unequal
     head sizes rule out its flash kernel, ~13 ops forward and ~20 backward; dropout in training one,
-    the CPU's four ops not counted), no frame of their own. The same call counts the same on any
+    the CPU's four ops not counted; ``F.dropout``'s own Python frame counts, as a GPU runs it), the
+    stand-ins no frame of their own. The same call counts the same on any
     machine: what a test can budget (time is what :func:`host_times` and ``scripts/host_time.py``
     measure)."""
     for _ in range(warmup):
