@@ -10,7 +10,8 @@ import triton
 from triton.backends.compiler import GPUTarget
 from triton.compiler import ASTSource
 
-from smdm_plugin.core.kernels import fsq_triton, lipschitz_triton, perturb_triton, plan_triton, vw_triton
+from smdm_plugin.core.kernels import (fsq_triton, lipschitz_triton, perturb_triton, plan_triton, vw_perturb_triton,
+                                     vw_triton)
 
 CUOBJDUMP = os.path.join(os.path.dirname(triton.__file__), "backends/nvidia/bin/cuobjdump")
 CUBIN = os.path.join(tempfile.mkdtemp(prefix="smdm_sm90_"), "k.cubin")
@@ -57,7 +58,16 @@ def main() -> None:
                 print(f"vw_keyframes (N {N}, F {F}, blocks ({bn}, {bf}), rows {rows}, warps {warps}, forced {hf}, "
                       f"active {ha}):", resources(vw_triton._vw_kernel, vw_sig, {"HAS_FORCED": hf, "HAS_ACTIVE": ha,
                                                                                  "BLOCK_N": bn, "BLOCK_F": bf, "ROWS": rows}, warps))
-
+        fused_sig = {"X": "*fp32", "KEYBUF": "*fp64", "LEN": "*i64", "KEEP": "*i64", "FORCED": "*u8", "U": "*fp32",
+                     "OUT": "*i8", "PMASK": "*i8", "INDEX": "*i64", "VALID": "*i1", "COUNT": "*i64", "SLOTS": "*i64",
+                     "WEIGHT": "*fp32", "ROWS": "*i64", "BIAS": "*fp32", "B": i32, "N": i32, "F": i32, "sxb": i32,
+                     "sxn": i32, "sxf": i32, "amount": f32, "P": i32, "K": i32}
+        block_j = vw_perturb_triton.rank_block(bn, warps)
+        for hf, plan in ((False, False), (True, False), (False, True)):
+            print(f"vw_perturb (N {N}, F {F}, blocks ({bn}, {bf}, {block_j}), warps {warps}, forced {hf}, plan {plan}):",
+                  resources(vw_perturb_triton._vw_perturb_kernel, fused_sig, {
+                      "HAS_FORCED": hf, "BLOCK_N": bn, "BLOCK_F": bf, "KEY_ROWS": rows, "BLOCK_J": block_j, "PLAN": plan,
+                      "BLOCK_P": triton.next_power_of_2(N + 20) if plan else 1}, warps))
 
 if __name__ == "__main__":
     main()

@@ -67,7 +67,8 @@ PARTS = {"recipe": {}, "no FSQ": {"fsq": "off"}, "no Lipschitz": {"lipschitz": F
 #: the package's Triton kernels in the groups one decision switches (forward with its backward)
 KERNEL_GROUPS = {"FSQ codes": ["FSQ code", "FSQ code gradient"],
                  "Lipschitz weights": ["Lipschitz weight", "Lipschitz weight gradient"],
-                 "keyframe plan": ["keyframe plan"], "mask noise": ["mask-noise"], "VW": ["VW"]}
+                 "keyframe plan": ["keyframe plan"], "mask noise": ["mask-noise"], "VW": ["VW"],
+                 "VW with mask noise": ["VW with mask noise"]}
 assert sorted(n for g in KERNEL_GROUPS.values() for n in g) == sorted(TRITON_KERNELS)
 
 

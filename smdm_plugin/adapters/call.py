@@ -24,6 +24,7 @@ class PlanState(Protocol):
     schedule: MaskSchedule
     variant: Any                          # its prefix_len: DiP's dense prefix frames
     schedule_mask: Optional[torch.Tensor]
+    schedule_plan: Optional[KeyframePlan]
 
 
 @dataclass
@@ -142,7 +143,10 @@ def keyframe_plan(state: PlanState, frames: torch.Tensor, timesteps: Any, length
     B, N = frames.shape[:2]
     device = frames.device
     if mask is not None and mask is state.schedule_mask and forced is None and not compiling():
-        check, cubic = False, None                         # training: the schedule's own mask (valid, in capacity)
+        plan = state.schedule_plan                         # training: the schedule's own mask (valid, in capacity),
+        if plan is not None and plan.capacity == _slots(state, capacity, N):
+            return plan                                    # made with its plan (training_plan)
+        check, cubic = False, None
     elif mask is not None:                                 # training (or a caller's own mask)
         valid = consts.arange(N, device)[None] < lengths[:, None]
         # a mask chosen while loading (keyframe_collate) is still on the CPU: upstream loops move
@@ -202,16 +206,35 @@ def _forced_plan(state: PlanState, frames: torch.Tensor, t: Any, lengths: torch.
     return replace(plan, key_bias=plan.key_bias.to(dtype))
 
 
+def _slots(state: PlanState, capacity: Any, N: int) -> int:
+    """The slots of a plan of ``N`` frames with ``capacity`` keyframes (clamped to ``1..N``) after the
+    variant's always-kept prefix frames (DiP), if any."""
+    return max(1, min(int(capacity), N)) + state.variant.prefix_len
+
+
 def _build(state: PlanState, mask: torch.Tensor, capacity: Any, check: bool, cubic: Any = None) -> KeyframePlan:
     """The plan of keyframe ``mask [B, N]`` with ``capacity`` slots (clamped to ``1..N``), after the
     variant's always-kept prefix frames (DiP), if any."""
     B, N = mask.shape
-    capacity = max(1, min(int(capacity), N))
     prefix = state.variant.prefix_len
     if prefix:
         mask = torch.cat([mask.new_ones(B, prefix), mask], dim=1)
-        capacity += prefix
-    return KeyframePlan.build(mask, capacity, check=check, cubic=cubic)
+    return KeyframePlan.build(mask, _slots(state, capacity, N), check=check, cubic=cubic)
+
+
+def training_plan(state: PlanState, frames: torch.Tensor, lengths: torch.Tensor, noise: Any
+                  ) -> Tuple[torch.Tensor, int, Optional[KeyframePlan]]:
+    """``(mask [B, N], capacity, plan or None)``: the training keyframes of x0 ``frames [B, N, D]``
+    without forced frames (valid ``lengths [B]``, checked), drawn from ``noise`` (advanced by one),
+    with the plan :func:`keyframe_plan` would build of them where the schedule makes both in one op
+    (:meth:`MaskSchedule.training_plan`; else None: the call builds it)."""
+    schedule, N = state.schedule, frames.shape[1]
+    capacity = schedule.capacity(N, training=True)
+    made = schedule.training_plan(frames, lengths, _slots(state, capacity, N), state.variant.prefix_len, noise,
+                                  checked=True)
+    if made is None:
+        return schedule.training_mask(frames, lengths, None, noise, checked=True), capacity, None
+    return made[0], capacity, made[1]
 
 
 def protected_count(forced: Optional[torch.Tensor], lengths: torch.Tensor, bound: Optional[int] = None) -> int:

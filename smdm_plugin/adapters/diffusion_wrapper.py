@@ -11,7 +11,7 @@ from typing import Any, List, Optional, Tuple
 import torch.nn as nn
 
 from ..core.noise import NOISE_STEP, NOISE_TABLE, CounterNoise
-from .call import protected_count
+from .call import protected_count, training_plan
 from .state import find_sparse_model, get_state
 
 
@@ -88,16 +88,17 @@ def attach_diffusion(diffusion: Any, model: Optional[nn.Module] = None) -> Any:
         family = state.family
         call = family.training_inputs(state, x_start, model_kwargs or {})
         mask, capacity = call.mask, call.capacity
-        if mask is None:                         # else: chosen in data loading (mdm.keyframe_collate)
+        if mask is None and call.forced is None:  # valid by construction: the plan checks it no more
+            mask, capacity, state.schedule_plan = training_plan(state, call.frames, call.lengths, model_noise(sparse))
+            state.schedule_mask = mask
+        elif mask is None:                       # else: chosen in data loading (mdm.keyframe_collate)
             mask, capacity = training_keyframes(state.schedule, call.frames, call.lengths, call.forced,
                                                 model_noise(sparse))
-            if call.forced is None:              # valid by construction: the plan checks it no more
-                state.schedule_mask = mask
         model_kwargs = family.with_keyframes(state, model_kwargs or {}, mask, capacity)
         try:
             terms = original(model, x_start, t, model_kwargs, *args, **kwargs)
         finally:
-            state.schedule_mask = None
+            state.schedule_mask = state.schedule_plan = None
         return family.finish_losses(state, sparse, terms, mask)
 
     diffusion.training_losses = training_losses

@@ -150,7 +150,8 @@ class SparseState:
     prefix included), for families whose hooks share it (MDM: written by the model's forward
     pre-hook, read by the embedding hooks, cleared by the forward hook); ``schedule_mask``, the
     training mask the diffusion wrapper made with the model's own schedule for the running step
-    (in the valid frames, within its capacity by construction: the plan does not check it again).
+    (in the valid frames, within its capacity by construction: the plan does not check it again),
+    and ``schedule_plan``, its plan when the schedule made both in one op (else None: the call builds it).
     """
 
     config: SparseConfig
@@ -164,3 +165,4 @@ class SparseState:
     lipschitz_mlps: List[nn.Module] = field(default_factory=list)
     plan: Optional[KeyframePlan] = None
     schedule_mask: Optional[torch.Tensor] = None
+    schedule_plan: Optional[KeyframePlan] = None

@@ -8,6 +8,7 @@ import torch
 
 from .checks import require
 from .kernels.plan_op import keyframe_plan
+from .kernels.plan_tensors import Plan
 
 
 @dataclass(frozen=True)
@@ -90,13 +91,23 @@ class KeyframePlan:
         K = N if capacity is None else int(capacity)
         if not 1 <= K <= N:
             raise ValueError(f"KeyframePlan: capacity must be in [1, N={N}], got {capacity}")
-        index, valid, count, slots, weight, rows, key_bias = keyframe_plan(mask, K)
+        tensors = keyframe_plan(mask, K)
         if check:
+            count = tensors[2]
             require((count >= 1) & (count <= K),
                     f"KeyframePlan: every sample needs 1..{K} keyframes (capacity {K}); a keyframe mask "
                     "has more than the capacity or none")
         if cubic is not None and cubic is not True:
             cubic = torch.as_tensor(cubic, device=mask.device).to(torch.bool).reshape(-1).expand(B)
+        return cls.of_tensors(mask, tensors, cubic, taps)
+
+    @classmethod
+    def of_tensors(cls, mask: torch.Tensor, tensors: Plan, cubic: Union[None, bool, torch.Tensor] = None,
+                   taps: Optional[Tuple[torch.Tensor, torch.Tensor]] = None) -> "KeyframePlan":
+        """The plan of bool ``mask [B, N]`` from its plan op's ``tensors`` (``keyframe_plan(mask, K)``'s,
+        or a fused op's with the same values), unchecked."""
+        index, valid, count, slots, weight, rows, key_bias = tensors
+        N = mask.shape[1]
         return cls(mask, index, valid, count, slots[:, :N], slots[:, N:], weight, rows, cubic, taps, key_bias,
                    slots)
 

@@ -21,8 +21,8 @@ from .selection_features import KINDS, SelectionConstants, apply_selection_const
 from .interpolation import catmull_rom_taps
 from .noise import CounterNoise, default_noise_salt, default_noise_seed, noise_table
 from .plan import KeyframePlan, PlanTables
-from .selection import (keyframe_capacity, keyframe_count_table, perturb_checked, select_checked,
-                        uniform_table)
+from .selection import (SELECTORS, keyframe_capacity, keyframe_count_table, select_checked,
+                        select_perturbed_checked, select_perturbed_plan_checked, uniform_table)
 
 ArrayLike = Union[torch.Tensor, np.ndarray, Sequence[float], None]
 
@@ -216,13 +216,31 @@ class MaskSchedule:
         c = self.config
         counts, _ = self.tables(N, x0.device)
         with torch.no_grad():
-            mask = select_checked(self._features_checked(x0), lengths, counts[lengths], c.selector,
-                                  generator, forced)
-            if c.mask_noise > 0:
-                mask = perturb_checked(mask, lengths, c.mask_noise, generator, forced)
+            mask = select_perturbed_checked(self._features_checked(x0), lengths, counts[lengths], c.selector,
+                                            c.mask_noise, generator, forced)
             if isinstance(generator, CounterNoise):
                 generator.advance()
         return mask
+
+    def training_plan(self, x0: torch.Tensor, lengths, slots: int, prefix: int = 0,
+                      generator: Optional[torch.Generator] = None, *, checked: bool = False
+                      ) -> Optional[Tuple[torch.Tensor, KeyframePlan]]:
+        """``(mask [B, N], plan)``: :meth:`training_mask` without forced frames and the plan that
+        ``KeyframePlan.build`` makes of ``prefix`` always-kept frames then that mask with ``slots``
+        slots (the prefix's included), in one op (one kernel on CUDA) where the selector has that
+        form (VW with mask noise), in eager mode; else None, nothing drawn (the caller builds the
+        plan of :meth:`training_mask`'s). ``generator``, ``checked``: as :meth:`training_mask`."""
+        c = self.config
+        if compiling() or c.mask_noise <= 0 or SELECTORS.get(c.selector).with_noise_plan is None:
+            return None
+        N = x0.shape[1]
+        lengths, _ = _checked_inputs(x0, lengths, None, checked)
+        counts, _ = self.tables(N, x0.device)
+        mask, plan_mask, tensors = select_perturbed_plan_checked(self._features_checked(x0), lengths, counts[lengths],
+                                                                 c.selector, c.mask_noise, generator, slots, prefix)
+        if isinstance(generator, CounterNoise):
+            generator.advance()
+        return mask, KeyframePlan.of_tensors(plan_mask, tensors)
 
     def sampling_mask(self, x_t: torch.Tensor, t: torch.Tensor, lengths=None,
                       forced: Optional[torch.Tensor] = None, *, checked: bool = False) -> torch.Tensor:

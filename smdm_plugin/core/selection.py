@@ -13,6 +13,7 @@ from . import consts
 from .checks import LengthsLike, as_lengths, as_mask, require
 from .kernels.perturb import perturb_mask_op, rank_select
 from .kernels.vw import vw_keyframes
+from .kernels.vw_perturb import MaskAndPlan, vw_perturb_mask, vw_perturb_plan
 from .noise import CounterNoise
 from .scalars import as_float
 from .registry import Registry
@@ -28,12 +29,19 @@ class Selector:
     the forced frames itself; otherwise it is called without them, with ``counts`` reduced by the
     forced interior frames, and they are added to its mask. ``supports_active``: ``fn`` honours
     ``active`` (rows not selected at all); otherwise ``active`` is an error. ``host_sync``: it reads
-    device values on the host (an ablation selector, e.g. MDO), not for the GPU hot path."""
+    device values on the host (an ablation selector, e.g. MDO), not for the GPU hot path.
+    ``with_noise``: ``fn`` and the training mask noise in one op, or None (``with_noise(features,
+    lengths, counts, forced, u [B, N + 1], amount)``: :func:`perturb_checked`'s values on ``fn``'s
+    mask with those uniforms; :func:`select_perturbed_checked` uses it). ``with_noise_plan``: that op
+    with the keyframe plan made from its mask (``with_noise_plan(..., amount, slots, prefix) -> (mask,
+    plan mask, plan tensors)``: :func:`select_perturbed_plan_checked`), or None."""
 
     fn: Callable[..., torch.Tensor]
     handles_forced: bool = False
     supports_active: bool = False
     host_sync: bool = False
+    with_noise: Optional[Callable[..., torch.Tensor]] = None
+    with_noise_plan: Optional[Callable[..., MaskAndPlan]] = None
 
 
 #: the selectors by name (``SparseConfig.selector`` is validated against it)
@@ -41,10 +49,13 @@ SELECTORS: Registry[Selector] = Registry("keyframe selector")
 
 
 def register_selector(name: str, fn: Callable[..., torch.Tensor], *, handles_forced: bool = False,
-                      supports_active: bool = False, host_sync: bool = False, replace: bool = False) -> Selector:
+                      supports_active: bool = False, host_sync: bool = False,
+                      with_noise: Optional[Callable[..., torch.Tensor]] = None,
+                      with_noise_plan: Optional[Callable[..., MaskAndPlan]] = None, replace: bool = False) -> Selector:
     """Register a keyframe selector ``fn`` (signature: :class:`Selector`) under ``name``: then
     ``select_keyframes(..., method=name)`` and ``SparseConfig(selector=name)`` use it."""
-    return SELECTORS.register(name, Selector(fn, handles_forced, supports_active, host_sync), replace=replace)
+    return SELECTORS.register(name, Selector(fn, handles_forced, supports_active, host_sync, with_noise,
+                                             with_noise_plan), replace=replace)
 
 
 def selector_names() -> Tuple[str, ...]:
@@ -237,7 +248,7 @@ def _mdo(features: torch.Tensor, lengths: torch.Tensor, k_t: torch.Tensor) -> to
 
 
 register_selector("vw", lambda f, lengths, k, g, forced, active: vw_keyframes(f, lengths, k, forced, active),
-                  handles_forced=True, supports_active=True)
+                  handles_forced=True, supports_active=True, with_noise=vw_perturb_mask, with_noise_plan=vw_perturb_plan)
 register_selector("uniform", lambda f, lengths, k, g, forced, active: _uniform(lengths, k, f.shape[1]))
 register_selector("random", lambda f, lengths, k, g, forced, active: _random(lengths, k, f.shape[1], g))
 register_selector("mdo", lambda f, lengths, k, g, forced, active: _mdo(f.detach(), lengths, k), host_sync=True)
@@ -329,3 +340,34 @@ def perturb_checked(mask: torch.Tensor, lengths_t: torch.Tensor, amount: float,
     with torch.no_grad():
         u = _rand((B, N + 1), generator, mask.device)
         return perturb_mask_op(mask, lengths_t, u, float(amount), protected)
+
+
+def select_perturbed_checked(features: torch.Tensor, lengths: torch.Tensor, counts: torch.Tensor, method: str,
+                             amount: float, generator: Optional[torch.Generator] = None,
+                             forced: Optional[torch.Tensor] = None) -> torch.Tensor:
+    """A training mask on inputs already checked: :func:`select_checked`, then (``amount > 0``)
+    :func:`perturb_checked` with ``forced`` protected; one op where the selector has a ``with_noise``
+    form (VW: one launch on CUDA, :mod:`~smdm_plugin.core.kernels.vw_perturb`). The same values and
+    the same draws either way (the selector's draws, if any, before the noise's ``[B, N + 1]``)."""
+    with_noise = SELECTORS.get(method).with_noise
+    if amount <= 0 or with_noise is None:
+        mask = select_checked(features, lengths, counts, method, generator, forced)
+        return perturb_checked(mask, lengths, amount, generator, forced) if amount > 0 else mask
+    B, N = features.shape[:2]
+    with torch.no_grad():
+        return with_noise(features, lengths, counts, forced, _rand((B, N + 1), generator, features.device),
+                          float(amount))
+
+
+def select_perturbed_plan_checked(features: torch.Tensor, lengths: torch.Tensor, counts: torch.Tensor, method: str,
+                                  amount: float, generator: Optional[torch.Generator], slots: int, prefix: int = 0
+                                  ) -> MaskAndPlan:
+    """:func:`select_perturbed_checked` (no forced frames, ``amount > 0``) with the keyframe plan of
+    ``prefix`` always-kept frames then its mask, ``slots`` slots, in one op: the selector's
+    ``with_noise_plan`` (it must have one; VW: one launch on CUDA). ``(mask [B, N], plan mask [B,
+    prefix + N], plan tensors)``; the same draws as :func:`select_perturbed_checked`."""
+    B, N = features.shape[:2]
+    with torch.no_grad():
+        return SELECTORS.get(method).with_noise_plan(features, lengths, counts, None,
+                                                     _rand((B, N + 1), generator, features.device), float(amount),
+                                                     int(slots), int(prefix))

@@ -17,7 +17,7 @@ from smdm_plugin.core.noise import NOISE_STEP, NOISE_TABLE, TABLE_SIZE, CounterN
 from smdm_plugin.core.schedule import MaskSchedule
 from smdm_plugin.core.selection import keyframe_count
 
-from helpers.noise import noise_cases
+from helpers.noise import noise_cases, slow_perturb
 from helpers.paths import TESTS
 
 B, N = 4, 60
@@ -178,24 +178,6 @@ def test_ranks_draw_other_masks_from_equal_buffers(monkeypatch):
 
 
 # ----------------------------------------------------------------------------- smdm::perturb_mask (issue 27)
-def _slow_perturb(mask, lengths, u, amount, protected):
-    """The noise rule written out per sample with Python lists (the reference)."""
-    out = mask.clone()
-    for b in range(mask.shape[0]):
-        L, m = int(lengths[b]), mask[b].tolist()
-        k = sum(m)
-        mm = float(torch.round(torch.tensor(k, dtype=torch.float32) * torch.tensor(amount, dtype=torch.float32)))
-        c = min(float(torch.floor(u[b, 0] * torch.tensor(2 * mm + 1, dtype=torch.float32))) - mm, mm)
-        prot = protected[b].tolist() if protected is not None else [False] * len(m)
-        if c > 0:
-            cand, n = [i for i in range(L) if not m[i]], int(c)
-        else:
-            cand, n = [i for i in range(1, L - 1) if m[i] and not prot[i]], int(min(-c, k - 2))
-        for i in sorted(cand, key=lambda i: (float(u[b, 1 + i]), i))[:n]:
-            out[b, i] = not out[b, i]
-    return out
-
-
 @pytest.mark.parametrize("seed", [0, 1, 2])
 def test_perturb_op_equals_the_rule_written_out(seed):
     """``smdm::perturb_mask`` (one op: the composite on the CPU) equals the per-sample rule, with
@@ -207,7 +189,7 @@ def test_perturb_op_equals_the_rule_written_out(seed):
     for amount in (0.1, 0.5, 1.0):
         for prot in (None, protected):
             assert torch.equal(perturb_mask_op(mask, lengths, u, amount, prot),
-                               _slow_perturb(mask, lengths, u, amount, prot))
+                               slow_perturb(mask, lengths, u, amount, prot))
     assert count_launches(lambda: perturb_mask_op(mask, lengths, u, 0.1, protected)).count == 1
 
 

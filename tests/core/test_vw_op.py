@@ -15,44 +15,11 @@ import torch
 from smdm_plugin.core.kernels.vw import vw_keyframes
 from smdm_plugin.core.kernels.vw_numpy import vw_numpy
 from smdm_plugin.core.kernels.vw_torch import vw_torch
-from smdm_plugin.core.selection import keyframe_count, vw_reference
+from smdm_plugin.core.selection import keyframe_count
+
+from helpers.vw import cases, reference_mask
 
 HAS_TRITON = importlib.util.find_spec("triton") is not None
-
-
-def reference_mask(X, lengths, counts, forced=None, active=None):
-    B, N, _ = X.shape
-    out = np.zeros((B, N), dtype=bool)
-    for b in range(B):
-        if active is not None and not active[b]:
-            continue
-        L = int(lengths[b])
-        f = None if forced is None else forced[b, :L]
-        out[b, vw_reference(X[b, :L], int(counts[b]), f)] = True
-    return out
-
-
-def cases(seed):
-    """(X [B, N, F] float32, lengths, counts, forced or None, active or None): random walks,
-    ties (integer-valued), constant motion, every length 2..N, forced frames, inactive rows."""
-    rng = np.random.default_rng(seed)
-    B, N, F = 6, int(rng.integers(2, 48)), int(rng.integers(1, 7))
-    X = rng.standard_normal((B, N, F)).cumsum(1).astype(np.float32)
-    kind = seed % 4
-    if kind == 1:
-        X = np.round(X)                                    # many exact ties
-    elif kind == 2:
-        X[:] = 0.0                                         # constant motion: every key is 0
-        X[..., -1] = np.arange(N) * 0.1                    # (the frame-index column)
-    lengths = rng.integers(2, N + 1, B)
-    lengths[0] = N
-    red = float(rng.uniform(0.0, 0.95))
-    counts = np.array([keyframe_count(int(L), red) for L in lengths])
-    forced = None
-    if kind == 3:
-        forced = rng.random((B, N)) < 0.15
-    active = rng.random(B) < 0.8 if seed % 5 == 0 else None
-    return X, lengths, counts, forced, active
 
 
 def every_length(N=14, F=3):

@@ -98,8 +98,9 @@ class FusedOp:
                  fake: Optional[Callable[..., Any]] = None, opaque: bool = False) -> None:
         self.name, self.composite, self.cuda = name, composite, cuda
         self.kernels: Dict[str, Callable[..., Any]] = dict(kernels or {})
+        self.fallback = fallback or composite
         if cuda is not None:
-            fb = fallback or composite
+            fb = self.fallback
             self.kernels["cuda"] = lambda *args: cuda(fb, *args)
         if fake is not None:                  # meta tensors hold no values: the output's shape only
             self.kernels.setdefault("meta", fake)
@@ -107,18 +108,21 @@ class FusedOp:
         if opaque:
             self.traced = self._register(fake)
 
-    def eager(self, *args: Any) -> Any:
-        """The op outside tracing: the kernel of the first argument's device, else the composite."""
-        kernel = self.kernels.get(args[0].device.type, self.composite)
-        if OBSERVERS and self.launches_on_cuda:      # a launch counter: CUDA runs it as one kernel
-            return OBSERVERS[-1](f"smdm.{self.name}", kernel, list(args))
-        return kernel(*args)
+    def kernel(self, t: Any) -> Callable[..., Any]:
+        """The eager kernel for tensors on ``t``'s device (else the composite), unobserved: what a
+        fused op of fused ops runs inside its own launch."""
+        return self.kernels.get(t.device.type, self.composite)
 
-    @property
-    def launches_on_cuda(self) -> bool:
-        """Whether eager mode on CUDA runs this op as one kernel (its Triton kernel is on), not as
-        its composite's ops."""
-        return self.cuda is not None and self.cuda.enabled
+    def eager(self, *args: Any) -> Any:
+        """The op outside tracing: the kernel of the first argument's device, else the composite.
+        While an observer models CUDA (:data:`OBSERVERS`): one observed launch where CUDA runs its
+        kernel, else what CUDA runs instead (the fallback)."""
+        kernel = self.kernel(args[0])
+        if OBSERVERS and self.cuda is not None:
+            if self.cuda.enabled:                    # a launch counter: CUDA runs it as one kernel
+                return OBSERVERS[-1](f"smdm.{self.name}", kernel, list(args))
+            return self.fallback(*args)
+        return kernel(*args)
 
     def fused_on(self, t: Any) -> bool:
         """Whether eager mode runs a kernel of its own (not the composite) for tensors on ``t``'s

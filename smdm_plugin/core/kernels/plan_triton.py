@@ -22,11 +22,11 @@ def _min(a, b):
 
 
 @triton.jit
-def _plan_kernel(MASK, INDEX, VALID, COUNT, SLOTS, WEIGHT, ROWS, BIAS, B, N, K, ms, BLOCK: tl.constexpr):
-    b = tl.program_id(0).to(tl.int64)
+def plan_row(m, b, B, N, K, INDEX, VALID, COUNT, SLOTS, WEIGHT, ROWS, BIAS, BLOCK: tl.constexpr):
+    """Sample ``b``'s plan tensors from its keyframes ``m`` (``[BLOCK]`` int32, 1 = keyframe; 0 past
+    ``N``), written to the outputs."""
     n = tl.arange(0, BLOCK)
     inb = n < N
-    m = tl.load(MASK + b * ms + n, mask=inb, other=0).to(tl.int32)
     key = m > 0
     seen = tl.cumsum(m, 0)                                          # keyframes at or before n
     count = tl.sum(m, 0)
@@ -56,20 +56,29 @@ def _plan_kernel(MASK, INDEX, VALID, COUNT, SLOTS, WEIGHT, ROWS, BIAS, B, N, K, 
     tl.store(WEIGHT + b * N + n, tl.minimum(tl.maximum(w, 0.0), 1.0), mask=inb)
 
 
-def keyframe_plan_triton(mask: torch.Tensor, capacity: int) -> Plan:
-    B, N = mask.shape
-    K, dev = int(capacity), mask.device
+@triton.jit
+def _plan_kernel(MASK, INDEX, VALID, COUNT, SLOTS, WEIGHT, ROWS, BIAS, B, N, K, ms, BLOCK: tl.constexpr):
+    b = tl.program_id(0).to(tl.int64)
+    n = tl.arange(0, BLOCK)
+    m = tl.load(MASK + b * ms + n, mask=n < N, other=0).to(tl.int32)
+    plan_row(m, b, B, N, K, INDEX, VALID, COUNT, SLOTS, WEIGHT, ROWS, BIAS, BLOCK)
+
+def plan_outputs(B: int, N: int, K: int, device: torch.device) -> Plan:
+    """The plan tensors of ``B`` samples of ``N`` frames with ``K`` slots, uninitialised (a kernel
+    writes every element)."""
     if N > 1 << 16:
         raise ValueError(f"keyframe_plan_triton: at most 65536 frames, got {N}")
+    return (torch.empty(B, K, dtype=torch.long, device=device), torch.empty(B, K, dtype=torch.bool, device=device),
+            torch.empty(B, dtype=torch.long, device=device), torch.empty(B, 2 * N, dtype=torch.long, device=device),
+            torch.empty(B, N, dtype=torch.float32, device=device), torch.empty(K, B, dtype=torch.long, device=device),
+            torch.empty(B, 1 + K, dtype=torch.float32, device=device))
+
+
+def keyframe_plan_triton(mask: torch.Tensor, capacity: int) -> Plan:
+    B, N = mask.shape
+    K = int(capacity)
+    out = plan_outputs(B, N, K, mask.device)
     m = mask if mask.stride(1) == 1 else mask.contiguous()
-    index = torch.empty(B, K, dtype=torch.long, device=dev)
-    valid = torch.empty(B, K, dtype=torch.bool, device=dev)
-    count = torch.empty(B, dtype=torch.long, device=dev)
-    slots = torch.empty(B, 2 * N, dtype=torch.long, device=dev)
-    weight = torch.empty(B, N, dtype=torch.float32, device=dev)
-    rows = torch.empty(K, B, dtype=torch.long, device=dev)
-    bias = torch.empty(B, 1 + K, dtype=torch.float32, device=dev)
     if B and N:
-        _plan_kernel[(B,)](m, index, valid, count, slots, weight, rows, bias, B, N, K, m.stride(0),
-                           BLOCK=triton.next_power_of_2(N))
-    return index, valid, count, slots, weight, rows, bias
+        _plan_kernel[(B,)](m, *out, B, N, K, m.stride(0), BLOCK=triton.next_power_of_2(N))
+    return out

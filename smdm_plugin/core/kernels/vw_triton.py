@@ -20,11 +20,11 @@ import triton.language as tl
 
 
 @triton.jit
-def _vw_kernel(X, KEYBUF, LEN, KEEP, FORCED, ACTIVE, OUT,
-               N, F, sxb, sxn, sxf,
-               HAS_FORCED: tl.constexpr, HAS_ACTIVE: tl.constexpr,
-               BLOCK_N: tl.constexpr, BLOCK_F: tl.constexpr, ROWS: tl.constexpr):
-    b = tl.program_id(0).to(tl.int64)
+def vw_row(X, KEYBUF, LEN, KEEP, FORCED, ACTIVE, b, N, F, sxb, sxn, sxf,
+           HAS_FORCED: tl.constexpr, HAS_ACTIVE: tl.constexpr,
+           BLOCK_N: tl.constexpr, BLOCK_F: tl.constexpr, ROWS: tl.constexpr):
+    """Sample ``b``'s keyframes: ``[BLOCK_N]`` int8, 1 = kept (0 past ``N``, and everywhere for an
+    inactive sample)."""
     L = tl.load(LEN + b).to(tl.int32)
     K = tl.load(KEEP + b).to(tl.int32)
     i = tl.arange(0, BLOCK_N)
@@ -87,7 +87,19 @@ def _vw_kernel(X, KEYBUF, LEN, KEEP, FORCED, ACTIVE, OUT,
         key = tl.where((i == p) & ~prot, tl.maximum(aa * cc - ac * ac, 0.0), key)
         key = tl.where((i == n) & ~prot, tl.maximum(cc * ee - ce * ce, 0.0), key)
     keep = ((key < INF) | prot) & (i < L)
-    tl.store(OUT + b * N + i, tl.where(keep, act, 0).to(tl.int8), mask=i < N)
+    return tl.where(keep, act, 0).to(tl.int8)
+
+
+@triton.jit
+def _vw_kernel(X, KEYBUF, LEN, KEEP, FORCED, ACTIVE, OUT,
+               N, F, sxb, sxn, sxf,
+               HAS_FORCED: tl.constexpr, HAS_ACTIVE: tl.constexpr,
+               BLOCK_N: tl.constexpr, BLOCK_F: tl.constexpr, ROWS: tl.constexpr):
+    b = tl.program_id(0).to(tl.int64)
+    i = tl.arange(0, BLOCK_N)
+    keep = vw_row(X, KEYBUF, LEN, KEEP, FORCED, ACTIVE, b, N, F, sxb, sxn, sxf, HAS_FORCED, HAS_ACTIVE,
+                  BLOCK_N, BLOCK_F, ROWS)
+    tl.store(OUT + b * N + i, keep, mask=i < N)
 
 
 def launch_config(N: int, F: int):
