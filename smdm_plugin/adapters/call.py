@@ -143,9 +143,10 @@ def keyframe_plan(state: PlanState, frames: torch.Tensor, timesteps: Any, length
     B, N = frames.shape[:2]
     device = frames.device
     if mask is not None and mask is state.schedule_mask and forced is None and not compiling():
-        plan = state.schedule_plan                         # training: the schedule's own mask (valid, in capacity),
+        # training: the schedule's own mask (valid, in capacity), its plan made with it (training_plan)
+        plan = state.schedule_plan
         if plan is not None and plan.capacity == _slots(state, capacity, N):
-            return plan                                    # made with its plan (training_plan)
+            return plan
         check, cubic = False, None
     elif mask is not None:                                 # training (or a caller's own mask)
         valid = consts.arange(N, device)[None] < lengths[:, None]

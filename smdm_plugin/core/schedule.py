@@ -236,10 +236,12 @@ class MaskSchedule:
         N = x0.shape[1]
         lengths, _ = _checked_inputs(x0, lengths, None, checked)
         counts, _ = self.tables(N, x0.device)
-        mask, plan_mask, tensors = select_perturbed_plan_checked(self._features_checked(x0), lengths, counts[lengths],
-                                                                 c.selector, c.mask_noise, generator, slots, prefix)
-        if isinstance(generator, CounterNoise):
-            generator.advance()
+        with torch.no_grad():
+            mask, plan_mask, tensors = select_perturbed_plan_checked(self._features_checked(x0), lengths,
+                                                                     counts[lengths], c.selector, c.mask_noise,
+                                                                     generator, slots, prefix)
+            if isinstance(generator, CounterNoise):
+                generator.advance()
         return mask, KeyframePlan.of_tensors(plan_mask, tensors)
 
     def sampling_mask(self, x_t: torch.Tensor, t: torch.Tensor, lengths=None,
