@@ -24,7 +24,8 @@ Only the *harness* is changed, never upstream files:
   slower; runs that keep it check that no backward op yields NaN);
 * ``SMDM_SEED=n`` seeds ``random``, ``numpy`` and ``torch`` before the script runs (MotionDiffuse
   seeds nothing; priorMDM seeds itself);
-* ``SMDM_RECORD=path``: every training keyframe mask the plugin computes (``MaskSchedule.training_mask``),
+* ``SMDM_RECORD=path``: every training keyframe mask the plugin computes (``MaskSchedule.training_mask``,
+  ``training_plan``),
   every sampling call's plan (``adapters.call.keyframe_plan``), every mask handed to a ``KeyframeTransformer`` and, for MotionDiffuse, the
   number of tokens entering the first decoder block (with that call's mask) is recorded, with the
   sequence lengths, and pickled to ``path`` at exit, for the tests to check.
@@ -183,21 +184,33 @@ def install_recorder(path: str) -> None:
 
     records = []
 
-    def wrap_schedule(kind, original):
+    def record_training(mask, lengths, forced):
+        B, N = mask.shape
+        lengths = resolve_lengths(lengths, B, N, mask.device)
+        records.append({"kind": "train", "mask": mask.detach().cpu().numpy().copy(),
+                        "lengths": lengths.detach().cpu().numpy().copy(),
+                        "forced": None if forced is None else
+                        torch.as_tensor(forced).detach().cpu().bool().numpy().copy()})
+
+    def training_mask(original):
         def method(self, x, *a, **k):
             mask = original(self, x, *a, **k)
-            lengths = a[0] if a else k.get("lengths")               # (lengths, forced, ...)
-            forced = a[1] if len(a) > 1 else k.get("forced")
-            B, N = mask.shape
-            lengths = resolve_lengths(lengths, B, N, mask.device)
-            records.append({"kind": kind, "mask": mask.detach().cpu().numpy().copy(),
-                            "lengths": lengths.detach().cpu().numpy().copy(),
-                            "forced": None if forced is None else
-                            torch.as_tensor(forced).detach().cpu().bool().numpy().copy()})
+            record_training(mask, a[0] if a else k.get("lengths"),        # (lengths, forced, ...)
+                            a[1] if len(a) > 1 else k.get("forced"))
             return mask
         return method
 
-    MaskSchedule.training_mask = wrap_schedule("train", MaskSchedule.training_mask)
+    def training_plan(original):
+        # (the mask and its plan in one op: no forced frames; None when the schedule cannot)
+        def method(self, x, *a, **k):
+            made = original(self, x, *a, **k)
+            if made is not None:
+                record_training(made[0], a[0] if a else k.get("lengths"), None)
+            return made
+        return method
+
+    MaskSchedule.training_mask = training_mask(MaskSchedule.training_mask)
+    MaskSchedule.training_plan = training_plan(MaskSchedule.training_plan)
     import smdm_plugin.adapters.call as call
     original_plan = call.keyframe_plan
 
