@@ -21,6 +21,7 @@ from .attention import (accelerator_path, aligned_key_bias, attend, attend_with_
 from .checks import compiling
 from .fsq_bank import KeyMapBank, bank_key_maps, key_map_tensors, remove_banks, shared_bank
 from .kernels.fsq_code import fsq_code
+from .products import ProductStore, held_products, store_of
 
 __all__ = ["FSQ", "FSQMultiheadAttention", "quantize_attention_keys"]
 
@@ -188,7 +189,6 @@ class FSQMultiheadAttention(nn.Module):
         self.key_up = nn.Linear(self.fsq.dim, self.head_dim, **fk)
         self.quantize = True
         self._fold_cache: Optional[Tuple[tuple, Tuple[Tensor, ...]]] = None
-        self._proj_cache: Optional[Tuple[tuple, Tuple[Tensor, Tensor]]] = None
         self._call_proj: Optional[Tuple[Tensor, Tensor]] = None    # set by fold_keys for one call
         # the code channels of the folded path (:meth:`_forward_folded`): the ``d`` FSQ channels and
         # zeros up to a multiple of 8 (the head sizes GPU attention kernels take); per channel the
@@ -294,21 +294,34 @@ class FSQMultiheadAttention(nn.Module):
 
     def _projection(self, dtype: torch.dtype) -> Tuple[Tensor, Tensor]:
         """This layer's folded in-projection (:func:`folded_projections`) for a call computing in
-        ``dtype``: the one :class:`fold_keys` made for all layers, else, without autograd and
-        outside tracing, cached in ``dtype`` (keyed on the parameters' storage and version), else
-        made for this layer alone."""
+        ``dtype``: the one :class:`fold_keys` made for all layers, else, without autograd, kept in
+        ``dtype`` in its :class:`~smdm_plugin.core.products.ProductStore` (keyed on the parameters'
+        storage and version; an armed trace reads it as it is), else made for this layer alone."""
         call = self.__dict__.get("_call_proj")
         if call is not None:
             return call
-        key = None
-        if not torch.is_grad_enabled() and not compiling():
-            key = (dtype,) + tuple((t.data_ptr(), t._version) for t in self._fold_inputs())
-            if self._proj_cache is not None and self._proj_cache[0] == key:
-                return self._proj_cache[1]
-        out = folded_projections([self], None if key is None else dtype)[0]
-        if key is not None:
-            self._proj_cache = (key, out)
-        return out
+        if not torch.is_grad_enabled():
+            if not compiling():
+                return self.refresh_products(dtype)
+            held = held_products(self, dtype)
+            if held is not None:
+                return held
+        return folded_projections([self], None)[0]
+
+    def products(self) -> ProductStore:
+        """What this layer's calls without autograd make from its parameters alone."""
+        return store_of(self)
+
+    def refresh_products(self, dtype: Optional[torch.dtype] = None) -> Tuple[Tensor, Tensor]:
+        """The folded in-projection ``(weight, bias)`` in ``dtype`` (default: the dtype a call computes
+        in now, :func:`~smdm_plugin.core.attention.compute_dtype`), remade in place when a parameter
+        changed (with the other dtypes held: :meth:`ProductStore.refresh`)."""
+        dtype = compute_dtype(self.in_proj_weight) if dtype is None else dtype
+        return store_of(self).refresh(dtype, self._fold_inputs(), lambda d: folded_projections([self], d)[0])
+
+    def product_inputs(self) -> Tuple[Tensor, ...]:
+        """Every tensor the folded in-projection is made of (:mod:`~smdm_plugin.core.products`)."""
+        return self._fold_inputs()
 
     def _fold_inputs(self) -> Tuple[Tensor, ...]:
         b = self.in_proj_bias

@@ -16,6 +16,7 @@ from .checks import compiling
 from .fsq import FSQMultiheadAttention, folded_projections
 from .fsq_bank import key_map_tensors, shared_bank
 from .kernels.fsq_code import code_functions
+from .structure import structure_version
 
 __all__ = ["StockStack", "stock_stack"]
 
@@ -195,7 +196,7 @@ class StockStack:
 
     def __init__(self, inner: nn.Module) -> None:
         self.inner = inner
-        self.version = _STRUCTURE[0]
+        self.version = structure_version()
         self.decoder = isinstance(inner, nn.TransformerDecoder)
         self.norm: Optional[nn.Module] = inner.norm
         self.layers = [_Layer(layer) for layer in inner.layers]
@@ -221,7 +222,8 @@ class StockStack:
         """No module, parameter or buffer was registered anywhere since the stack was built (a
         replaced layer or submodule is a registration), and every FSQ attention still quantises as
         it did (``quantize`` is a plain attribute)."""
-        return _WATCHED and self.version == _STRUCTURE[0] and self._quantize == tuple(m.quantize for m in self._fsq)
+        version = structure_version()
+        return version is not None and self.version == version and self._quantize == tuple(m.quantize for m in self._fsq)
 
     def usable(self) -> bool:
         """No hook on any module of the stack (it would not run here), no global module hooks."""
@@ -255,10 +257,13 @@ class StockStack:
         float64 alone). Without autograd cast once, not at every call (autocast casts each weight
         at each use, its cache lasting one ``autocast`` block: ~6 casts per layer and call), kept
         while the parameters are the same tensors at the same versions (an optimizer step, a move
-        or a reload makes new copies); with autograd :meth:`_stacked_casts`. None while tracing,
-        without autocast, or when the parameters already are in its dtype."""
+        or a reload makes new copies); with autograd :meth:`_stacked_casts` (traced too: a compiled
+        training step casts each role once, not each weight). None while tracing a call without
+        autograd (the stack does not run there), without autocast, or when the parameters already
+        are in its dtype."""
         params = self._matmul
-        if compiling() or not params or x.device.type == "meta" or not torch.is_autocast_enabled(x.device.type):
+        if (compiling() and not torch.is_grad_enabled()) or not params or x.device.type == "meta" \
+                or not torch.is_autocast_enabled(x.device.type):
             return None
         dtype = torch.get_autocast_dtype(x.device.type)
         if all(t.dtype in (dtype, torch.float64) for t in params):
@@ -311,21 +316,6 @@ class StockStack:
 
 
 _VERSION = operator.attrgetter("_version")
-#: bumped whenever any module registers a submodule, parameter or buffer (torch's global
-#: registration hooks): a built :class:`StockStack` is rebuilt after one
-_STRUCTURE = [0]
-
-
-def _registered(*args) -> None:
-    _STRUCTURE[0] += 1
-
-
-_HOOKS = ("register_module_module_registration_hook", "register_module_parameter_registration_hook",
-          "register_module_buffer_registration_hook")
-_WATCHED = all(hasattr(nn.modules.module, h) for h in _HOOKS)   # torch >= 2.1 (else: rebuilt per call)
-if _WATCHED:
-    for _hook in _HOOKS:
-        getattr(nn.modules.module, _hook)(_registered)
 
 
 def _fold_tensors(m: FSQMultiheadAttention) -> Tuple[Tensor, ...]:
@@ -345,10 +335,16 @@ def _global_hooks() -> bool:
 def stock_stack(inner: nn.Module) -> Optional[StockStack]:
     """The :class:`StockStack` of ``inner`` when every layer is a stock layer and nothing hooks
     into its modules, else None (run the modules). Built once per stack (rebuilt after any module
-    registration, so a replaced submodule is seen). None while ``torch.compile`` traces: a traced
-    graph has no per-call Python to save, and the modules trace without guards on this cache."""
+    registration, so a replaced submodule is seen). While ``torch.compile`` traces a call with
+    autograd, built in the trace (no cache for the graph to guard on): its layers then read every
+    FSQ fold of the stack made at once (batched matmuls), not one fold per layer; a traced call
+    without autograd runs the modules (they read the folds a compiled call keeps:
+    :mod:`~smdm_plugin.core.products`)."""
     if compiling():
-        return None
+        if not torch.is_grad_enabled() or not all(_stock_layer(layer) for layer in inner.layers):
+            return None
+        stack = StockStack(inner)
+        return stack if stack.usable() else None
     stack = inner.__dict__.get("_smdm_stock")
     if stack is not None and stack.current():
         return stack if stack.usable() else None

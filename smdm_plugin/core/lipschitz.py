@@ -1,6 +1,7 @@
 """Lipschitz MLPs with sine activations (sMDM's input/output layers)."""
 from __future__ import annotations
 
+import functools
 import math
 from contextlib import nullcontext as _nullcontext
 from typing import List, Optional, Sequence, Tuple, Union
@@ -13,6 +14,7 @@ from torch.nn.utils import parametrize
 from .attention import compute_dtype
 from .checks import compiling as _compiling, module_device
 from .kernels.lipschitz_op import lipschitz_weight, row_abs_sum as _row_abs_sum
+from .products import ProductStore, held_products, store_of
 
 #: the per-weight op of eager mode (None: every layer's weights in one pass, as under tracing)
 lipschitz_weight_op = lipschitz_weight
@@ -40,15 +42,19 @@ def _inverse_softplus(y: Tensor) -> Tensor:
 class LipschitzWeight(nn.Module):
     """Parametrization ``W -> W * min(1, softplus(c) / rowsum|W|)`` with a learned scalar ``c``.
 
-    ``c`` starts at ``inverse_softplus(max_i rowsum_i|W0|)`` so that the initial weight is (up to
-    rounding) unchanged. Rows whose absolute sum is already ``<= softplus(c)`` pass through
+    ``c`` starts at ``inverse_softplus(max_i rowsum_i|W0| · (1 + 8ε))`` (``ε``: the weight dtype's
+    machine epsilon), so that the initial weight is exactly unchanged: every row's ratio exceeds 1 by
+    more than any kernel's rounding. (At ``softplus(c) = max rowsum`` exactly, ``c``'s gradient, which
+    only rows with ratio ``<= 1`` carry, would depend on how a kernel rounds the ratio: eager and
+    compiled steps disagreed there.) Rows whose absolute sum is ``<= softplus(c)`` pass through
     exactly (the scale is clamped to 1).
     """
 
     def __init__(self, weight: Tensor) -> None:
         super().__init__()
         with torch.no_grad():
-            init = _inverse_softplus(_row_abs_sum(weight.detach()).max())
+            top = _row_abs_sum(weight.detach()).max().double() * (1 + 8 * torch.finfo(weight.dtype).eps)
+            init = _inverse_softplus(top).to(weight.dtype)
         self.c = nn.Parameter(init.reshape(()).clone())
         self._cache: Optional[Tuple[tuple, Tensor]] = None
 
@@ -140,6 +146,14 @@ def normalised_weights(linears: List[nn.Linear], row_owner: Optional[Tensor] = N
     if row_owner is None:
         row_owner = _row_owner([w.shape[0] for _, w in params], params[0][1].device)
     return list(_NormalisedWeights.apply(row_owner, *(c for c, _ in params), *(w for _, w in params)))
+
+
+def _normalised(pairs: List[Tuple[Tensor, Tensor]], dtype: torch.dtype) -> List[Tensor]:
+    """Every ``(W, c)``'s normalised weight in ``dtype``, computed in the weights' own dtype (autocast
+    off, as the parametrization computes it)."""
+    device = pairs[0][0].device.type
+    with torch.autocast(device, enabled=False) if device in ("cpu", "cuda") else _nullcontext():
+        return [lipschitz_weight(w, c).to(dtype) for w, c in pairs]
 
 
 def _row_owner(sizes: List[int], device: torch.device) -> Tensor:
@@ -317,21 +331,30 @@ class LipschitzMLP(nn.Module):
     def _sampling_weights(self, x: Tensor, pairs: List[Tuple[Tensor, Tensor]]) -> Optional[List[Tensor]]:
         """Without autograd: every linear layer's normalised weight in the dtype it is used in
         (autocast's, else its own), made once and kept while every weight and ``c`` is the same
-        tensor at the same version (a sampling loop normalises once); None while tracing (the
+        tensor at the same version (:meth:`refresh_products`: a sampling loop normalises once);
+        while tracing, those of an armed call (:mod:`~smdm_plugin.core.products`), else None (the
         parametrizations run)."""
-        if _compiling():
-            return None
+        if not _compiling():
+            return list(self.refresh_products(pairs))
+        held = held_products(self, compute_dtype(pairs[0][0]))
+        return None if held is None else list(held)
+
+    def products(self) -> ProductStore:
+        """What calls without autograd make from the parameters alone."""
+        return store_of(self)
+
+    def product_inputs(self) -> List[Tensor]:
+        """Every tensor the normalised weights are made of (:mod:`~smdm_plugin.core.products`)."""
+        return [t for pair in self._weight_pairs() or () for t in pair]
+
+    def refresh_products(self, pairs: Optional[List[Tuple[Tensor, Tensor]]] = None) -> Tuple[Tensor, ...]:
+        """The normalised weights in the dtype a call computes in now, remade in place when a weight
+        or ``c`` changed (with the other dtypes held: :meth:`ProductStore.refresh`); ``()`` once baked."""
+        pairs = self._weight_pairs() if pairs is None else pairs
+        if pairs is None:
+            return ()
         tensors = [t for pair in pairs for t in pair]
-        device = tensors[0].device.type
-        dtype = compute_dtype(tensors[0])
-        key = (dtype, tuple(map(Tensor.data_ptr, tensors)), tuple(t._version for t in tensors))
-        cache = self.__dict__.get("_sampling_cache")
-        if cache is not None and cache[0] == key:
-            return cache[1]
-        with torch.autocast(device, enabled=False) if device in ("cpu", "cuda") else _nullcontext():
-            weights = [lipschitz_weight(w, c).to(dtype) for w, c in pairs]
-        self.__dict__["_sampling_cache"] = (key, weights)
-        return weights
+        return store_of(self).refresh(compute_dtype(tensors[0]), tensors, functools.partial(_normalised, pairs))
 
     def extra_repr(self) -> str:
         return (f"in_features={self.in_features}, out_features={self.out_features}, "

@@ -222,7 +222,10 @@ class CompiledFunction:
     * ``reduce-overhead`` on CUDA: ``cudagraph_mark_step_begin()`` before each call and the
       outputs cloned (a later replay never overwrites what a caller holds);
     * called while an outer compiled function traces, ``fn`` is traced inline (one graph); called
-      while one runs eagerly (its warm call), ``fn`` runs eagerly (no graph of its own).
+      while one runs eagerly (its warm call), ``fn`` runs eagerly (no graph of its own);
+    * a call without autograd of a ``model`` reads what its modules make from parameters alone
+      (FSQ's folded projections, Lipschitz weights) from their stores, refreshed in place before
+      the call (:mod:`~smdm_plugin.core.products`), instead of remaking them in its graph.
 
     ``prepare(args, kwargs) -> (args, kwargs)`` runs first, eagerly, on every call (text encoded,
     tensors on the motion's device: what cannot be captured)."""
@@ -282,6 +285,7 @@ class CompiledFunction:
 
     def __call__(self, *args: Any, **kwargs: Any) -> Any:
         from ..core.checks import compiling, static_mode   # here: a flag-off run loads only the options
+        from ..core.products import armed_products, refresh_products
 
         if compiling() or _EAGER_OUTER.depth:        # inside an outer compiled function: one graph
             return self._run(*args, **kwargs)        # (or that function's eager call: eager too)
@@ -309,11 +313,15 @@ class CompiledFunction:
         fn, graphs = self._function(x.device, fullgraph)
         self.setting.compiled_calls += 1
         before = _graph_count()
-        if graphs:
-            torch.compiler.cudagraph_mark_step_begin()
-            out = _clone_outputs(fn(*args, **kwargs))
-        else:
-            out = fn(*args, **kwargs)
+        armed = self.model is not None and not torch.is_grad_enabled()
+        if armed:                                    # what the graph reads instead of remaking
+            refresh_products(self.model)
+        with armed_products(armed):
+            if graphs:
+                torch.compiler.cudagraph_mark_step_begin()
+                out = _clone_outputs(fn(*args, **kwargs))
+            else:
+                out = fn(*args, **kwargs)
         if phase in self._traced and _graph_count() > before:
             self.setting.recompiles += 1
         self._traced.add(phase)

@@ -116,6 +116,136 @@ def test_whole_sampling_loop_replays_one_step_graph_and_equals_p_sample_loop(fam
     assert torch.allclose(got, want, rtol=1e-4, atol=1e-4)
 
 
+#: what a graph may do to a parameter without computing anything (views, item access)
+VIEWS = {"view", "reshape", "unsqueeze", "unflatten", "flatten", "split", "chunk", "unbind", "t", "transpose",
+         "permute", "expand", "getitem", "getattr", "mT", "contiguous", "size"}
+
+
+def fixed_ops(traced: tuple, model: torch.nn.Module) -> list:
+    """The compute ops of a Dynamo graph (``traced``: the graph and the real inputs it was traced
+    with) whose every input comes from ``model``'s parameters and buffers, or from its modules'
+    product stores, alone: work a call redoes that could be done once."""
+    gm, inputs = traced
+    fixed = {id(t) for t in (*model.parameters(), *model.buffers())}
+    fixed |= {id(t) for m in model.modules() for store in [m.__dict__.get("_products")] if store is not None
+              for held in store.tensors.values() for t in held}
+    placeholders = [n for n in gm.graph.nodes if n.op == "placeholder"]
+    assert len(placeholders) == len(inputs)
+    const = {n for n, t in zip(placeholders, inputs) if id(t) in fixed}
+    ops = []
+    for n in gm.graph.nodes:
+        if n.op in ("call_function", "call_method") and n.all_input_nodes and all(a in const for a in n.all_input_nodes):
+            const.add(n)
+            name = n.target if isinstance(n.target, str) else getattr(n.target, "__name__", str(n.target))
+            if name not in VIEWS:
+                ops.append(name)
+    return ops
+
+
+@pytest.mark.parametrize("family,arch", CASES, ids=IDS)
+def test_a_compiled_sampling_call_makes_nothing_from_parameters_alone_and_follows_their_updates(family, arch):
+    """FSQ's folded in-projections and the Lipschitz weights: the compiled guided call reads them
+    from the stores its wrapper refreshed (no op of its graph works on parameters alone; the same
+    model traced by ``torch.compile`` itself, unarmed, makes them in its graph: the count can fail);
+    after in-place updates (an optimizer step, a reload) the next call equals eager with the new
+    weights, in the same graph (refreshed in place: no recapture)."""
+    model, ref, _, work = build(family, arch)
+    graphs_seen = []
+
+    def backend(gm, example_inputs):
+        graphs_seen.append((gm, example_inputs))
+        return gm.forward
+
+    call = benchmark.guided_call(work, model, CPU, "default", backend)
+    eager = work.denoiser(ref)
+    data = batch(work, arch, seed=0)
+    tt = torch.full((B,), 15)
+    gen = torch.Generator().manual_seed(3)
+    with torch.no_grad():
+        for i in range(4):
+            got = call(data.x, tt, **work.sample_kwargs(data))
+            with static_mode():
+                want = eager(data.x, tt, **work.sample_kwargs(data))
+            assert torch.allclose(got, want, rtol=1e-5, atol=1e-5), i
+            for p, q in zip(model.parameters(), ref.parameters()):        # every weight moves
+                p.add_(torch.randn(p.shape, generator=gen), alpha=0.05), q.copy_(p)
+    s = C.compile_setting(call)
+    assert (s.warm_calls, s.compiled_calls, s.recompiles) == (1, 3, 0) and len(graphs_seen) == 1
+    assert fixed_ops(graphs_seen[0], model) == []
+    unarmed = torch.compile(lambda *a, **k: work.denoiser(model)(*a, **k), backend=backend, fullgraph=True)
+    with torch.no_grad(), static_mode():
+        unarmed(data.x, tt, **work.sample_kwargs(data))
+    assert len(fixed_ops(graphs_seen[-1], model)) > 5
+
+
+FOLD_OPS = ("matmul", "bmm", "baddbmm")          # a trans_enc graph's batched matmuls: the FSQ folds'
+
+
+@pytest.mark.parametrize("precision", ["fp32", "bf16"])
+def test_a_compiled_training_step_folds_every_layers_keys_at_once(precision):
+    """With autograd the compiled step runs the stock layers as functions (core/layers.py): every
+    layer's FSQ fold made in one batch of matmuls, as eagerly (one fold per layer: four more per
+    layer), and under autocast each matmul weight's role cast once for all layers (autocast: one
+    cast per weight), so neither grows with the depth. Loss and gradients equal eager's."""
+    from functorch.compile import make_boxed_func
+    from torch._dynamo.backends.common import aot_autograd
+
+    from smdm_plugin.adapters.surgery import sparsify
+    from smdm_plugin.core.config import SparseConfig
+    from smdm_plugin.reference.backbone import TinyMDM
+    from smdm_plugin.reference.simple_diffusion import SimpleDiffusion
+
+    bf16 = precision == "bf16"
+    folds, casts = {}, {}
+    for layers in (2, 4):
+        torch._dynamo.reset()
+        torch.manual_seed(layers)
+        model = TinyMDM(arch="trans_enc", latent_dim=16, ff_size=32, num_layers=layers, num_heads=2,
+                        dropout=0.0, cond_mask_prob=0.0)
+        diffusion = SimpleDiffusion(T)
+        sparsify(model, SparseConfig(mask_noise=0.0), diffusion=diffusion)
+        ref = copy.deepcopy(model)
+        names, forward = [], []
+
+        def keep(gm, example_inputs):                   # the forward's casts of its inputs (weights)
+            forward.extend(n for n in gm.graph.nodes if "_to_copy" in str(n.target)
+                           and getattr(n.args[0], "op", None) == "placeholder")
+            return make_boxed_func(gm.forward)
+
+        aot = aot_autograd(fw_compiler=keep, bw_compiler=lambda gm, ex: make_boxed_func(gm.forward))
+
+        def backend(gm, example_inputs):
+            names.extend(str(n.target) for n in gm.graph.nodes if n.op == "call_function")
+            return aot(gm, example_inputs)
+
+        loss_fn = C.compile_function(
+            lambda x, t, kw, noise: diffusion.training_losses(model, x, t, kw, noise=noise)["loss"].mean(),
+            "default", model=model, backend=backend, captures=C.CAPTURES_TRAIN)
+        lengths = torch.tensor([N, N - 9, N - 20])
+        x = torch.randn(B, 263, 1, N)
+        y = {"mask": (torch.arange(N) < lengths[:, None]).view(B, 1, 1, N), "lengths": lengths,
+             "text_embed": torch.randn(1, B, 512)}
+        t, noise = torch.tensor([3, 11, 17]), torch.randn(x.shape)
+        for _ in range(2):                              # eager (the phase's first call), then traced
+            with torch.autocast("cpu", torch.bfloat16, enabled=bf16):
+                got = loss_fn(x, t, {"y": dict(y)}, noise)
+            got.backward()
+        with static_mode(), torch.autocast("cpu", torch.bfloat16, enabled=bf16):
+            want = diffusion.training_losses(ref, x, t, {"y": dict(y)}, noise=noise)["loss"].mean()
+        want.backward()
+        tol = dict(rtol=2e-2, atol=2e-3) if bf16 else dict(rtol=1e-5, atol=1e-6)
+        torch.testing.assert_close(got, want, **tol)
+        for (name, p), q in zip(model.named_parameters(), ref.parameters()):
+            if q.grad is not None:                      # the compiled step ran twice: twice the gradient
+                torch.testing.assert_close(p.grad / 2, q.grad, **tol, msg=name)
+        assert C.compile_setting(loss_fn).compiled_calls == 1
+        folds[layers] = sum(any(n.endswith(f" {m} of type object") or f"method {m} of" in n for m in FOLD_OPS)
+                            for n in names)
+        casts[layers] = len(forward)
+    assert folds[4] == folds[2] > 0
+    assert casts[4] == casts[2]
+
+
 @pytest.mark.parametrize("arch", ["trans_enc", "dip"])
 def test_upstream_training_losses_compiled_whole_equal_eager_with_upstream_noise_draws(arch):
     """``--sparse_compile`` in an upstream training run (``compile_training_losses`` with MDM's

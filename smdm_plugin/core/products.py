@@ -1,0 +1,160 @@
+"""What a sampling call computes from parameters alone, made once outside a compiled graph.
+
+FSQ attention's folded in-projections and the Lipschitz layers' normalised weights depend on
+parameters only. Eagerly, a call without autograd keeps them in a :class:`ProductStore` while the
+parameters are the same tensors at the same versions. A compiled call without autograd would
+redo them in its graph at every call and guidance pass (a sparse trans_enc guided call: 64 matmuls
+and ~190 other ops), unless it runs *armed* (:func:`armed_products`): its wrapper
+(``runtime/compile.py``) first refreshes every store of the model in place (same storages: a CUDA
+graph reads them where they are, no guard changes), and only an armed trace reads the stores (a
+trace made elsewhere computes them itself: nothing stale is read).
+"""
+from __future__ import annotations
+
+import operator
+import sys
+from contextlib import contextmanager
+from typing import Callable, Dict, Iterator, Optional, Sequence, Tuple
+
+import torch
+from torch import Tensor, nn
+
+from .attention import compute_dtype
+from .structure import structure_version
+
+__all__ = ["ProductStore", "armed_products", "products_armed", "refresh_products", "store_of", "held_products"]
+
+#: True while a compiled call runs whose model's stores were refreshed for it (read while tracing:
+#: Dynamo guards on the value, so an armed and an unarmed trace are two graphs)
+_ARMED = [False]
+_VERSION = operator.attrgetter("_version")
+
+
+def products_armed() -> bool:
+    """Whether the call being traced (or run) may read :class:`ProductStore` tensors as they are."""
+    return _ARMED[0]
+
+
+@contextmanager
+def armed_products(enabled: bool = True) -> Iterator[None]:
+    """Within the block, traces read the stores' tensors (the caller refreshed them)."""
+    before, _ARMED[0] = _ARMED[0], bool(enabled)
+    try:
+        yield
+    finally:
+        _ARMED[0] = before
+
+
+def _writable_alike(held: Sequence[Tensor], new: Sequence[Tensor]) -> bool:
+    """Whether ``new``'s values can be copied into ``held``: the same layouts, and ``held`` not made
+    under ``torch.inference_mode`` while this call runs outside it (no in-place write allowed then)."""
+    if held and held[0].is_inference() and not torch.is_inference_mode_enabled():
+        return False
+    return len(held) == len(new) and all(
+        (x.shape, x.dtype, x.device, x.stride()) == (y.shape, y.dtype, y.device, y.stride()) for x, y in zip(held, new))
+
+
+class ProductStore:
+    """Per compute dtype, tensors made from ``inputs`` (parameters, buffers) alone, kept while every
+    input is the same tensor at the same version; remade values are copied into the kept tensors
+    when their layout is unchanged (a graph that reads them needs no new capture)."""
+
+    def __init__(self) -> None:
+        self.tensors: Dict[torch.dtype, Tuple[Tensor, ...]] = {}
+        self._keys: Dict[torch.dtype, tuple] = {}
+        self._unmarked: list = []                     # made before Dynamo was loaded
+
+    def _mark(self, tensors: Sequence[Tensor]) -> None:
+        """Tell CUDA graphs that ``tensors`` keep their storage (a captured graph reads them in place,
+        no copy per replay); once Dynamo is loaded (importing it costs an eager run a second)."""
+        self._unmarked.extend(tensors)
+        dynamo = sys.modules.get("torch._dynamo")
+        if dynamo is not None and hasattr(dynamo, "mark_static_address"):
+            for t in self._unmarked:
+                dynamo.mark_static_address(t)
+            self._unmarked = []
+
+    def get(self, dtype: torch.dtype, inputs: Sequence[Tensor], make: Callable[[], Sequence[Tensor]]
+            ) -> Tuple[Tensor, ...]:
+        """The tensors for ``dtype``, remade by ``make()`` (without autograd) when an input changed."""
+        key = (tuple(map(_VERSION, inputs)), tuple(map(Tensor.data_ptr, inputs)))   # (no Python frame per tensor)
+        held = self.tensors.get(dtype)
+        if held is not None and self._keys.get(dtype) == key:
+            if self._unmarked and "torch._dynamo" in sys.modules:
+                self._mark(())
+            return held
+        with torch.no_grad():
+            new = tuple(make())
+            if held is not None and _writable_alike(held, new):
+                for old, value in zip(held, new):
+                    old.copy_(value)
+            else:
+                held = tuple(t if t._base is None else t.clone() for t in new)   # own storages
+                self._mark(held)
+                self.tensors[dtype] = held
+        self._keys[dtype] = key
+        return held
+
+    def refresh(self, dtype: torch.dtype, inputs: Sequence[Tensor],
+                make: Callable[[torch.dtype], Sequence[Tensor]]) -> Tuple[Tensor, ...]:
+        """:meth:`get` for ``dtype`` and for every other dtype held (what an armed trace may read),
+        ``make(dtype)`` making them; returns ``dtype``'s."""
+        if len(self.tensors) > 1 or (self.tensors and dtype not in self.tensors):
+            for other in [d for d in self.tensors if d != dtype]:
+                self.get(other, inputs, lambda: make(other))
+        return self.get(dtype, inputs, lambda: make(dtype))
+
+    def read(self, dtype: torch.dtype) -> Optional[Tuple[Tensor, ...]]:
+        """While tracing an armed call: the tensors for ``dtype`` as they are (None when there are
+        none, or the call is not armed: the caller computes them)."""
+        return self.tensors.get(dtype) if _ARMED[0] else None
+
+
+def store_of(module: nn.Module) -> ProductStore:
+    """``module``'s store (made on first use: a module unpickled from an older version has none)."""
+    store = module.__dict__.get("_products")
+    if store is None:
+        store = module.__dict__["_products"] = ProductStore()
+    return store
+
+
+def held_products(module: nn.Module, dtype: torch.dtype) -> Optional[Tuple[Tensor, ...]]:
+    """While tracing: ``module``'s products for ``dtype`` when the call is armed and it has them, else
+    None (no store is made while tracing)."""
+    store = module.__dict__.get("_products")
+    return None if store is None else store.read(dtype)
+
+
+class _Holders:
+    """The modules of a model that keep products and every tensor their products are made of, for
+    one model structure; ``key``: those tensors' versions and storages (and the compute dtype) at
+    the last refresh."""
+
+    __slots__ = ("version", "modules", "inputs", "key")
+
+    def __init__(self, model: nn.Module, version: Optional[int]) -> None:
+        self.version = version
+        self.modules = [m for m in model.modules() if callable(getattr(type(m), "refresh_products", None))]
+        self.inputs = list({id(t): t for m in self.modules for t in m.product_inputs()}.values())
+        self.key: Optional[tuple] = None
+
+
+def refresh_products(model: nn.Module) -> None:
+    """Refresh the stores of every module of ``model`` that keeps products (``refresh_products()`` and
+    ``product_inputs()`` methods: FSQ attention, Lipschitz MLPs) for the dtype a call computes in
+    now. The modules are found once per model structure
+    (:func:`~smdm_plugin.core.structure.structure_version`); a call whose inputs are all the same
+    tensors at the same versions as at the last refresh, in the same dtype, checks one key."""
+    version = structure_version()
+    found = model.__dict__.get("_smdm_product_holders")
+    if found is None or version is None or found.version != version:
+        found = model.__dict__["_smdm_product_holders"] = _Holders(model, version)
+    if not found.inputs:
+        return
+    t = found.inputs
+    key = (compute_dtype(t[0]), tuple(map(_VERSION, t)), tuple(map(Tensor.data_ptr, t)))
+    if key == found.key:
+        return
+    for m in found.modules:
+        m.refresh_products()
+    found.key = key
