@@ -3,8 +3,8 @@
 FSQ attention's folded in-projections and the Lipschitz layers' normalised weights depend on
 parameters only. Eagerly, a call without autograd keeps them in a :class:`ProductStore` while the
 parameters are the same tensors at the same versions. A compiled call without autograd would
-redo them in its graph at every call and guidance pass (a sparse trans_enc guided call: 64 matmuls
-and ~190 other ops), unless it runs *armed* (:func:`armed_products`): its wrapper
+redo them in its graph at every call and guidance pass (a sparse trans_enc guided call: 192 ops,
+64 of them matmuls), unless it runs *armed* (:func:`armed_products`): its wrapper
 (``runtime/compile.py``) first refreshes every store of the model in place (same storages: a CUDA
 graph reads them where they are, no guard changes), and only an armed trace reads the stores (a
 trace made elsewhere computes them itself: nothing stale is read).
