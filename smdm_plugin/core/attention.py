@@ -15,7 +15,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
-from .checks import static_shapes
+from .checks import compiling, static_shapes
 
 
 def project_qkv(attn: nn.Module, query: Tensor, key: Tensor, value: Tensor) -> Tuple[Tensor, Tensor, Tensor]:
@@ -86,9 +86,13 @@ MASK_ALIGN = 16
 def aligned_key_bias(bias: Tensor) -> Tensor:
     """An additive key mask ``[B, S]`` as ``[B, 1, 1, S]`` (a 4-D mask as it is) whose rows start
     every :data:`MASK_ALIGN` elements: a copy into a padded buffer when they do not already (the
-    stride every SDPA kernel reads without a padded copy of its own; cuDNN reads it as given)."""
+    stride every SDPA kernel reads without a padded copy of its own; cuDNN reads it as given). While
+    tracing, the view as it is: a graph's layouts are its compiler's (inductor aligns SDPA's mask
+    itself), and an intermediate's storage offset is not known to the trace."""
     if bias.dim() == 2:
         bias = bias[:, None, None, :]
+    if compiling():
+        return bias
     if bias.stride(-1) == 1 and all(s % MASK_ALIGN == 0 for s in bias.stride()[:-1]) \
             and bias.storage_offset() % MASK_ALIGN == 0:
         return bias

@@ -74,6 +74,39 @@ def test_functional_layers_equal_the_modules(kind, M, norm_first, fsq, activatio
                     torch.testing.assert_close(a, b, rtol=1e-5, atol=1e-6 * float(b.abs().max()))
 
 
+@pytest.mark.parametrize("fsq", [True, False], ids=["fsq", "mha"])
+def test_a_decoder_stack_with_a_memory_mask_traces_whole_with_autograd(fsq):
+    """Under ``torch.compile`` with autograd the stack runs as functions (every FSQ fold at once);
+    DiP's text tokens come with a padding mask, made into an aligned bias inside the graph: one
+    ``fullgraph`` trace, output and gradients equal to the modules'."""
+    stack = _stack("decoder", False, fsq, "gelu")
+    S, B, M = 7, 3, 16                           # rows already 16-aligned: the offset would be read
+    g = torch.Generator().manual_seed(3)
+    x = torch.randn(S, B, 32, generator=g, dtype=torch.float64, requires_grad=True)
+    mem = torch.randn(M, B, 32, generator=g, dtype=torch.float64)
+    mpad = torch.zeros(B, M, dtype=torch.bool)
+    mpad[0, M - 2:] = True
+    ran = []
+
+    def call(x, mem, mpad):
+        run = stock_stack(stack)
+        ran.append(run is not None)
+        return run.run(x, None, mem, aligned_key_bias(float_mask(mpad, torch.float64)))
+
+    torch._dynamo.reset()
+    out = torch.compile(call, fullgraph=True, backend="aot_eager")(x, mem, mpad)
+    ref = stack(x, mem, memory_key_padding_mask=mpad)
+    torch.testing.assert_close(out, ref, rtol=1e-10, atol=1e-11)
+    params = [p for p in stack.parameters() if p.requires_grad]
+    grads = torch.autograd.grad(out.square().sum(), [x] + params, allow_unused=True)
+    grads_ref = torch.autograd.grad(ref.square().sum(), [x] + params, allow_unused=True)
+    for a, b in zip(grads, grads_ref):
+        if b is not None:
+            torch.testing.assert_close(a, b, rtol=1e-5, atol=1e-6 * float(b.abs().max()))
+    assert ran == [True]
+    torch._dynamo.reset()
+
+
 def test_hooks_and_custom_layers_run_the_modules():
     """A hook on any module of the stack, a global module hook, or a layer of another class: no
     functional path (the hook must run); removing the hook brings it back; a replaced submodule is
