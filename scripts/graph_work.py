@@ -20,51 +20,21 @@ from __future__ import annotations
 import argparse
 import sys
 import warnings
-from typing import Dict, List, Optional, Sequence, Tuple
+from typing import Dict, List, Optional
 
 import torch
 
 from smdm_plugin.training import workloads
 from smdm_plugin.training.benchmark import guided_call, training_loss
+from smdm_plugin.training.graphwork import aot_counter
 
 VARIANTS = {"trans_enc": "mdm", "trans_dec": "mdm", "dip": "mdm", "motiondiffuse": "motiondiffuse"}
-VIEWS = ("view", "reshape", "unsqueeze", "squeeze", "expand", "permute", "transpose", "t.default", "split",
-         "unbind", "select", "slice", "alias", "detach", "_unsafe_view", "as_strided", "clone")
-MATMULS = ("aten.mm.", "aten.bmm.", "aten.addmm.", "aten.baddbmm.", "scaled_dot_product", "aten.matmul")
 B, N = 4, 60
-
-
-def _compute(node: torch.fx.Node) -> bool:
-    name = str(node.target)
-    return node.op == "call_function" and "getitem" not in name and not any(v in name for v in VIEWS)
-
-
-def count(graph: torch.fx.Graph, fixed: Optional[Sequence[bool]] = None) -> Dict[str, int]:
-    """``ops``, ``matmuls`` of ``graph``; ``param-only`` when ``fixed`` tells which placeholders hold
-    parameters, buffers or products."""
-    nodes = list(graph.nodes)
-    ops = [n for n in nodes if _compute(n)]
-    out = {"ops": len(ops), "matmuls": sum(any(m in str(n.target) for m in MATMULS) for n in ops)}
-    if fixed is not None:
-        const = {n for n, f in zip([n for n in nodes if n.op == "placeholder"], fixed) if f}
-        for n in nodes:
-            if n.op == "call_function" and n.all_input_nodes and all(a in const for a in n.all_input_nodes):
-                const.add(n)
-        out["param-only"] = sum(n in const for n in ops)
-    return out
-
-
-def _fixed_ids(model: torch.nn.Module) -> set:
-    ids = {id(t) for t in (*model.parameters(), *model.buffers())}
-    return ids | {id(t) for m in model.modules() for store in [m.__dict__.get("_products")] if store is not None
-                  for held in store.tensors.values() for t in held}
 
 
 def graphs_of(variant: str, sparse: bool, precision: str, call: str, quick: bool) -> List[Dict[str, int]]:
     """The counts of every AOT graph one compiled call of ``variant`` traces (sampling: one forward
     graph; training: forward and backward)."""
-    from torch._dynamo.backends.common import aot_autograd
-
     family = VARIANTS[variant]
     torch._dynamo.reset()
     torch.manual_seed(0)
@@ -72,20 +42,7 @@ def graphs_of(variant: str, sparse: bool, precision: str, call: str, quick: bool
                                        family=family, frames=N)
     work = workloads.WORKLOADS.get(family)
     data = work.batch(B, N, torch.device("cpu"), quick, variant)
-    found: List[Dict[str, int]] = []
-    fixed: List[List[bool]] = []
-
-    def keep(gm: torch.fx.GraphModule, example_inputs) -> object:
-        found.append(count(gm.graph, fixed[-1] if call == "sample" else None))
-        return gm.forward
-
-    aot = aot_autograd(fw_compiler=keep, bw_compiler=keep)
-
-    def backend(gm: torch.fx.GraphModule, example_inputs) -> object:
-        ids = _fixed_ids(model)
-        fixed.append([id(t) in ids for t in example_inputs])
-        return aot(gm, example_inputs)
-
+    backend, found = aot_counter(model, with_fixed=call == "sample")
     bf16 = precision == "bf16"
     t = torch.full((B,), 3, dtype=torch.long)
     with warnings.catch_warnings():

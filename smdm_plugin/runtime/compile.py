@@ -199,6 +199,20 @@ def _none() -> None:
     return None
 
 
+class _Holder(nn.Module):
+    """``run`` as a module's forward, ``model`` its submodule: what ``torch.func.functional_call``
+    reparametrizes for a compiled call that reads the model's matmul weights from their casts
+    (parameter names ``model.<name>``)."""
+
+    def __init__(self, model: nn.Module, run: Callable) -> None:
+        super().__init__()
+        self._modules["model"] = model               # (not a registration: no structure change)
+        self.run = run
+
+    def forward(self, *args: Any, **kwargs: Any) -> Any:
+        return self.run(*args, **kwargs)
+
+
 class _EagerDepth(threading.local):
     """How many compiled functions are running eagerly (a phase's first call, a call outside the
     static batch) on this thread's stack: compiled functions they call run eagerly as well."""
@@ -260,9 +274,10 @@ class CompiledFunction:
         return (training, torch.is_grad_enabled(), _autocast_key(x.device), x.device.type, tuple(x.shape[1:]),
                 fullgraph)
 
-    def _function(self, device: torch.device, fullgraph: bool) -> Tuple[Callable, bool]:
-        """The compiled ``fn`` (made on the first compiled call; one per ``fullgraph``) and whether
-        CUDA graphs apply."""
+    def _function(self, device: torch.device, fullgraph: bool, casts: bool = False) -> Tuple[Callable, bool]:
+        """The compiled ``fn`` (made on the first compiled call; one per ``fullgraph`` and ``casts``:
+        called as ``fn(casts, *args)``, the model's matmul parameters read from ``casts``,
+        :mod:`~smdm_plugin.core.weight_casts`) and whether CUDA graphs apply."""
         s = self.setting
         if self._mode is None:
             self._mode = s.mode
@@ -271,21 +286,28 @@ class CompiledFunction:
                 s.note = (s.note + "; " if s.note else "") + \
                     f"reduce-overhead needs CUDA graphs; the model runs on {device.type}: compiled with default"
                 warnings.warn(f"{_WARN}: {s.note}", stacklevel=4)
-        if fullgraph not in self._compiled:
+        key = (fullgraph, casts)
+        if key not in self._compiled:
             kwargs: Dict[str, Any] = dict(fullgraph=fullgraph, dynamic=False, backend=s.backend)
             if s.backend == "inductor":
                 kwargs["mode"] = None if self._mode == "default" else self._mode
             run = self._run
+            if casts:
+                holder = _Holder(self.model, run)
 
-            def call(*args: Any, **kw: Any) -> Any:    # traced as one frame, the hooks inlined
-                return run(*args, **kw)
+                def call(over: Dict[str, torch.Tensor], *args: Any, **kw: Any) -> Any:
+                    return torch.func.functional_call(holder, over, args, kw)
+            else:
+                def call(*args: Any, **kw: Any) -> Any:    # traced as one frame, the hooks inlined
+                    return run(*args, **kw)
 
-            self._compiled[fullgraph] = torch.compile(call, **kwargs)
-        return self._compiled[fullgraph], self._mode == "reduce-overhead" and device.type == "cuda"
+            self._compiled[key] = torch.compile(call, **kwargs)
+        return self._compiled[key], self._mode == "reduce-overhead" and device.type == "cuda"
 
     def __call__(self, *args: Any, **kwargs: Any) -> Any:
         from ..core.checks import compiling, static_mode   # here: a flag-off run loads only the options
         from ..core.products import armed_products, refresh_products
+        from ..core.weight_casts import refresh_casts
 
         if compiling() or _EAGER_OUTER.depth:        # inside an outer compiled function: one graph
             return self._run(*args, **kwargs)        # (or that function's eager call: eager too)
@@ -310,12 +332,16 @@ class CompiledFunction:
                 warnings.warn(f"{_WARN}: a call with batch {x.shape[0]} (static batch {batch} for this "
                               f"shape) runs eagerly; the compiled graph keeps its static batch", stacklevel=3)
             return self._eager(args, kwargs)
-        fn, graphs = self._function(x.device, fullgraph)
-        self.setting.compiled_calls += 1
-        before = _graph_count()
         armed = self.model is not None and not torch.is_grad_enabled()
+        casts = None
         if armed:                                    # what the graph reads instead of remaking
             refresh_products(self.model)
+            casts = refresh_casts(self.model, x.device.type, "model.")
+        fn, graphs = self._function(x.device, fullgraph, casts is not None)
+        if casts is not None:
+            args = (casts,) + args
+        self.setting.compiled_calls += 1
+        before = _graph_count()
         with armed_products(armed):
             if graphs:
                 torch.compiler.cudagraph_mark_step_begin()

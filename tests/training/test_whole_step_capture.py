@@ -19,7 +19,7 @@ from torch._dynamo.utils import counters  # noqa: E402
 
 from smdm_plugin.core.checks import static_mode  # noqa: E402
 from smdm_plugin.runtime import compile as C
-from smdm_plugin.training import benchmark, workloads  # noqa: E402
+from smdm_plugin.training import benchmark, graphwork, workloads  # noqa: E402
 
 pytestmark = pytest.mark.usefixtures("one_thread", "fresh_dynamo")
 BACKEND = "aot_eager"
@@ -116,32 +116,6 @@ def test_whole_sampling_loop_replays_one_step_graph_and_equals_p_sample_loop(fam
     assert torch.allclose(got, want, rtol=1e-4, atol=1e-4)
 
 
-#: what a graph may do to a parameter without computing anything (views, item access)
-VIEWS = {"view", "reshape", "unsqueeze", "unflatten", "flatten", "split", "chunk", "unbind", "t", "transpose",
-         "permute", "expand", "getitem", "getattr", "mT", "contiguous", "size"}
-
-
-def fixed_ops(traced: tuple, model: torch.nn.Module) -> list:
-    """The compute ops of a Dynamo graph (``traced``: the graph and the real inputs it was traced
-    with) whose every input comes from ``model``'s parameters and buffers, or from its modules'
-    product stores, alone: work a call redoes that could be done once."""
-    gm, inputs = traced
-    fixed = {id(t) for t in (*model.parameters(), *model.buffers())}
-    fixed |= {id(t) for m in model.modules() for store in [m.__dict__.get("_products")] if store is not None
-              for held in store.tensors.values() for t in held}
-    placeholders = [n for n in gm.graph.nodes if n.op == "placeholder"]
-    assert len(placeholders) == len(inputs)
-    const = {n for n, t in zip(placeholders, inputs) if id(t) in fixed}
-    ops = []
-    for n in gm.graph.nodes:
-        if n.op in ("call_function", "call_method") and n.all_input_nodes and all(a in const for a in n.all_input_nodes):
-            const.add(n)
-            name = n.target if isinstance(n.target, str) else getattr(n.target, "__name__", str(n.target))
-            if name not in VIEWS:
-                ops.append(name)
-    return ops
-
-
 @pytest.mark.parametrize("family,arch", CASES, ids=IDS)
 def test_a_compiled_sampling_call_makes_nothing_from_parameters_alone_and_follows_their_updates(family, arch):
     """FSQ's folded in-projections and the Lipschitz weights: the compiled guided call reads them
@@ -150,12 +124,7 @@ def test_a_compiled_sampling_call_makes_nothing_from_parameters_alone_and_follow
     after in-place updates (an optimizer step, a reload) the next call equals eager with the new
     weights, in the same graph (refreshed in place: no recapture)."""
     model, ref, _, work = build(family, arch)
-    graphs_seen = []
-
-    def backend(gm, example_inputs):
-        graphs_seen.append((gm, example_inputs))
-        return gm.forward
-
+    backend, graphs_seen = graphwork.aot_counter(model)
     call = benchmark.guided_call(work, model, CPU, "default", backend)
     eager = work.denoiser(ref)
     data = batch(work, arch, seed=0)
@@ -171,11 +140,53 @@ def test_a_compiled_sampling_call_makes_nothing_from_parameters_alone_and_follow
                 p.add_(torch.randn(p.shape, generator=gen), alpha=0.05), q.copy_(p)
     s = C.compile_setting(call)
     assert (s.warm_calls, s.compiled_calls, s.recompiles) == (1, 3, 0) and len(graphs_seen) == 1
-    assert fixed_ops(graphs_seen[0], model) == []
+    assert graphs_seen[0]["param-only"] == 0
     unarmed = torch.compile(lambda *a, **k: work.denoiser(model)(*a, **k), backend=backend, fullgraph=True)
     with torch.no_grad(), static_mode():
         unarmed(data.x, tt, **work.sample_kwargs(data))
-    assert len(fixed_ops(graphs_seen[-1], model)) > 5
+    assert graphs_seen[-1]["param-only"] > 5
+
+
+@pytest.mark.parametrize("sparse", [False, True], ids=["dense", "sparse"])
+@pytest.mark.parametrize("family,arch", CASES, ids=IDS)
+def test_a_compiled_bf16_sampling_call_casts_no_weight_and_follows_their_updates(family, arch, sparse):
+    """Under autocast a compiled guided call reads the linear layers' weights and biases in bf16 from
+    the casts its wrapper refreshed (core/weight_casts.py): no op of its graph works on parameters
+    alone (0.10.3: a cast per weight, bias and guidance pass, dense and sparse); it equals eager
+    autocast, follows in-place updates in the same graph, and leaves the model's parameters as
+    they were."""
+    if sparse:
+        model, ref, _, work = build(family, arch)
+    else:
+        model, _ = workloads.build(arch, None, CPU, True, T, family=family, frames=N)
+        workloads.without_dropout(model)
+        ref, work = copy.deepcopy(model), workloads.WORKLOADS.get(family)
+    params = [(n, p, p.requires_grad) for n, p in model.named_parameters()]
+    backend, graphs_seen = graphwork.aot_counter(model)
+    call = benchmark.guided_call(work, model, CPU, "default", backend)
+    eager = work.denoiser(ref)
+    data = batch(work, arch, seed=0)
+    tt = torch.full((B,), 15)
+    gen = torch.Generator().manual_seed(3)
+    with torch.no_grad():
+        for i in range(4):
+            # (autocast per call: within one block autocast keeps its first cast of each parameter)
+            with torch.autocast("cpu", torch.bfloat16):
+                got = call(data.x, tt, **work.sample_kwargs(data))
+                with static_mode():
+                    want = eager(data.x, tt, **work.sample_kwargs(data))
+            torch.testing.assert_close(got, want, rtol=2e-2, atol=2e-2, msg=f"call {i}")
+            for p, q in zip(model.parameters(), ref.parameters()):        # every weight moves
+                p.add_(torch.randn(p.shape, generator=gen), alpha=0.05), q.copy_(p)
+    s = C.compile_setting(call)
+    assert (s.warm_calls, s.compiled_calls, s.recompiles) == (1, 3, 0) and len(graphs_seen) == 1
+    assert graphs_seen[0]["param-only"] == 0
+    unarmed = torch.compile(lambda *a, **k: work.denoiser(model)(*a, **k), backend=backend, fullgraph=True)
+    with torch.no_grad(), torch.autocast("cpu", torch.bfloat16), static_mode():
+        unarmed(data.x, tt, **work.sample_kwargs(data))
+    assert graphs_seen[-1]["param-only"] > 10                          # autocast's casts, at least
+    assert [(n, p, p.requires_grad) for n, p in model.named_parameters()] == params
+    assert all(type(p) is torch.nn.Parameter and p.dtype == torch.float32 for _, p, _ in params)
 
 
 FOLD_OPS = ("matmul", "bmm", "baddbmm")          # a trans_enc graph's batched matmuls: the FSQ folds'
