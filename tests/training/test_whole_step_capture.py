@@ -116,45 +116,56 @@ def test_whole_sampling_loop_replays_one_step_graph_and_equals_p_sample_loop(fam
     assert torch.allclose(got, want, rtol=1e-4, atol=1e-4)
 
 
-@pytest.mark.parametrize("family,arch", CASES, ids=IDS)
-def test_a_compiled_sampling_call_makes_nothing_from_parameters_alone_and_follows_their_updates(family, arch):
-    """FSQ's folded in-projections and the Lipschitz weights: the compiled guided call reads them
-    from the stores its wrapper refreshed (no op of its graph works on parameters alone; the same
-    model traced by ``torch.compile`` itself, unarmed, makes them in its graph: the count can fail);
-    after in-place updates (an optimizer step, a reload) the next call equals eager with the new
-    weights, in the same graph (refreshed in place: no recapture)."""
-    model, ref, _, work = build(family, arch)
+def compiled_calls_follow_updates(model, ref, work, arch: str, bf16: bool) -> list:
+    """Four compiled guided calls of ``model`` (eval, under bf16 autocast when ``bf16``: entered per
+    call, as within one block autocast keeps its first cast of each parameter), each equal to eager
+    on ``ref`` and followed by an in-place update of every weight of both (an optimizer step, a
+    reload); one graph, no recompile. Returns the counts of its graph and of the same model traced
+    by ``torch.compile`` itself (unarmed)."""
     backend, graphs_seen = graphwork.aot_counter(model)
     call = benchmark.guided_call(work, model, CPU, "default", backend)
     eager = work.denoiser(ref)
     data = batch(work, arch, seed=0)
     tt = torch.full((B,), 15)
     gen = torch.Generator().manual_seed(3)
+    tol = 2e-2 if bf16 else 1e-5
     with torch.no_grad():
         for i in range(4):
-            got = call(data.x, tt, **work.sample_kwargs(data))
-            with static_mode():
-                want = eager(data.x, tt, **work.sample_kwargs(data))
-            assert torch.allclose(got, want, rtol=1e-5, atol=1e-5), i
+            with torch.autocast("cpu", torch.bfloat16, enabled=bf16):
+                got = call(data.x, tt, **work.sample_kwargs(data))
+                with static_mode():
+                    want = eager(data.x, tt, **work.sample_kwargs(data))
+            torch.testing.assert_close(got, want, rtol=tol, atol=tol, msg=f"call {i}")
             for p, q in zip(model.parameters(), ref.parameters()):        # every weight moves
                 p.add_(torch.randn(p.shape, generator=gen), alpha=0.05), q.copy_(p)
     s = C.compile_setting(call)
     assert (s.warm_calls, s.compiled_calls, s.recompiles) == (1, 3, 0) and len(graphs_seen) == 1
-    assert graphs_seen[0]["param-only"] == 0
     unarmed = torch.compile(lambda *a, **k: work.denoiser(model)(*a, **k), backend=backend, fullgraph=True)
-    with torch.no_grad(), static_mode():
+    with torch.no_grad(), torch.autocast("cpu", torch.bfloat16, enabled=bf16), static_mode():
         unarmed(data.x, tt, **work.sample_kwargs(data))
-    assert graphs_seen[-1]["param-only"] > 5
+    return graphs_seen
+
+
+@pytest.mark.parametrize("family,arch", CASES, ids=IDS)
+def test_a_compiled_sampling_call_makes_nothing_from_parameters_alone_and_follows_their_updates(family, arch):
+    """FSQ's folded in-projections and the Lipschitz weights: the compiled guided call reads them
+    from the stores its wrapper refreshed (no op of its graph works on parameters alone; the same
+    model traced by ``torch.compile`` itself, unarmed, makes them in its graph: the count can fail);
+    after in-place updates the next call equals eager with the new weights, in the same graph
+    (refreshed in place: no recapture)."""
+    model, ref, _, work = build(family, arch)
+    armed, unarmed = compiled_calls_follow_updates(model, ref, work, arch, bf16=False)
+    assert armed["param-only"] == 0 and unarmed["param-only"] > 5
 
 
 @pytest.mark.parametrize("sparse", [False, True], ids=["dense", "sparse"])
 @pytest.mark.parametrize("family,arch", CASES, ids=IDS)
 def test_a_compiled_bf16_sampling_call_casts_no_weight_and_follows_their_updates(family, arch, sparse):
     """Under autocast a compiled guided call reads the linear layers' weights and biases in bf16 from
-    the casts its wrapper refreshed (core/weight_casts.py): no op of its graph works on parameters
-    alone (0.10.3: a cast per weight, bias and guidance pass, dense and sparse); it equals eager
-    autocast, follows in-place updates in the same graph, and leaves the model's parameters as
-    they were."""
+    the casts its wrapper refreshed (core/weight_casts.py), dense and sparse: no op of its graph works
+    on parameters alone (0.10.3 and an unarmed trace: a cast per weight, bias and guidance pass); it
+    equals eager autocast, follows in-place updates in the same graph, and leaves the model's
+    parameters as they were."""
     if sparse:
         model, ref, _, work = build(family, arch)
     else:
@@ -162,29 +173,8 @@ def test_a_compiled_bf16_sampling_call_casts_no_weight_and_follows_their_updates
         workloads.without_dropout(model)
         ref, work = copy.deepcopy(model), workloads.WORKLOADS.get(family)
     params = [(n, p, p.requires_grad) for n, p in model.named_parameters()]
-    backend, graphs_seen = graphwork.aot_counter(model)
-    call = benchmark.guided_call(work, model, CPU, "default", backend)
-    eager = work.denoiser(ref)
-    data = batch(work, arch, seed=0)
-    tt = torch.full((B,), 15)
-    gen = torch.Generator().manual_seed(3)
-    with torch.no_grad():
-        for i in range(4):
-            # (autocast per call: within one block autocast keeps its first cast of each parameter)
-            with torch.autocast("cpu", torch.bfloat16):
-                got = call(data.x, tt, **work.sample_kwargs(data))
-                with static_mode():
-                    want = eager(data.x, tt, **work.sample_kwargs(data))
-            torch.testing.assert_close(got, want, rtol=2e-2, atol=2e-2, msg=f"call {i}")
-            for p, q in zip(model.parameters(), ref.parameters()):        # every weight moves
-                p.add_(torch.randn(p.shape, generator=gen), alpha=0.05), q.copy_(p)
-    s = C.compile_setting(call)
-    assert (s.warm_calls, s.compiled_calls, s.recompiles) == (1, 3, 0) and len(graphs_seen) == 1
-    assert graphs_seen[0]["param-only"] == 0
-    unarmed = torch.compile(lambda *a, **k: work.denoiser(model)(*a, **k), backend=backend, fullgraph=True)
-    with torch.no_grad(), torch.autocast("cpu", torch.bfloat16), static_mode():
-        unarmed(data.x, tt, **work.sample_kwargs(data))
-    assert graphs_seen[-1]["param-only"] > 10                          # autocast's casts, at least
+    armed, unarmed = compiled_calls_follow_updates(model, ref, work, arch, bf16=True)
+    assert armed["param-only"] == 0 and unarmed["param-only"] > 10          # autocast's casts, at least
     assert [(n, p, p.requires_grad) for n, p in model.named_parameters()] == params
     assert all(type(p) is torch.nn.Parameter and p.dtype == torch.float32 for _, p, _ in params)
 
