@@ -6,9 +6,10 @@ though they change only with the parameters. :func:`refresh_casts` keeps them in
 :class:`~smdm_plugin.core.products.ProductStore` (remade in place when a parameter changed, marked
 static for CUDA graphs) and a compiled call reads them in place of the parameters
 (``torch.func.functional_call``, ``runtime/compile.py``): the values autocast would make, dense and
-sparse models alike. Cast are the parameters only autocast's lower-precision ops read: the weights
-and biases of plain linear layers and of stock multi-head attention's in-projection, float32,
-trainable (a frozen text encoder runs outside the graph), each read by one module.
+sparse models alike. Only parameters that autocast's lower-precision ops alone read are cast: the
+weights and biases of plain linear layers (a Lipschitz layer's bias) and of stock multi-head
+attention's in-projection, float32, trainable (a frozen text encoder runs outside the graph), each
+read by one module.
 """
 from __future__ import annotations
 
@@ -25,8 +26,7 @@ __all__ = ["cast_parameters", "refresh_casts"]
 
 #: the dtypes autocast lowers matmuls to
 _LOWER = (torch.bfloat16, torch.float16)
-
-
+#: the module types whose ``weight`` and ``bias`` only ``F.linear`` reads
 _LINEARS = (nn.Linear, nn.modules.linear.NonDynamicallyQuantizableLinear)
 
 
