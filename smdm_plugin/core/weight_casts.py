@@ -2,14 +2,11 @@
 
 Under autocast a traced sampling call casts every linear layer's weight and bias at every call and
 guidance pass (a bf16 trans_enc guided call: 148 casts dense, 116 sparse; ``scripts/graph_work.py``),
-though they change only with the parameters. :func:`refresh_casts` keeps them in the model's
-:class:`~smdm_plugin.core.products.ProductStore` (remade in place when a parameter changed, marked
-static for CUDA graphs) and a compiled call reads them in place of the parameters
-(``torch.func.functional_call``, ``runtime/compile.py``): the values autocast would make, dense and
-sparse models alike. Only parameters that autocast's lower-precision ops alone read are cast: the
-weights and biases of plain linear layers (a Lipschitz layer's bias) and of stock multi-head
-attention's in-projection, float32, trainable (a frozen text encoder runs outside the graph), each
-read by one module.
+though they change only with the parameters. :func:`refresh_casts` keeps them in a
+:class:`~smdm_plugin.core.products.ProductStore` on the model (remade in place, marked static for
+CUDA graphs); a compiled call reads them in place of the parameters (``torch.func.functional_call``,
+``runtime/compile.py``): autocast's values, dense and sparse alike. Cast are only parameters that
+autocast's lower-precision ops alone read (:func:`cast_parameters`; docs/modules.md).
 """
 from __future__ import annotations
 
@@ -45,7 +42,9 @@ def _own(module: nn.Module) -> Tuple[str, ...]:
 
 def cast_parameters(model: nn.Module) -> List[Tuple[str, Tensor]]:
     """``(name, parameter)`` of every parameter of ``model`` a compiled call without autograd reads
-    in autocast's dtype (module docstring), in module order."""
+    in autocast's dtype, in module order: the weights and biases of plain linear layers (a Lipschitz
+    layer's bias) and of stock multi-head attention's in-projection, float32, trainable (a frozen
+    text encoder runs outside the graph), each read by one module."""
     owners: Dict[int, int] = {}
     for _, p in model.named_parameters(remove_duplicate=False):
         owners[id(p)] = owners.get(id(p), 0) + 1
