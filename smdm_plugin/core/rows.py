@@ -1,7 +1,7 @@
 """Row operations on ``[rows, ...]`` tensors: gather / scatter of distinct rows and row-wise linear
-interpolation, written as native ops (autograd's own nodes: no Python in the backward; a Python
-autograd function per call cost a sparse training step more host time than autograd's
-``index_add`` costs on any device: docs/gpu.md, 0.10.4)."""
+interpolation, written as native ops (autograd's own nodes: no Python in the backward; the Python
+autograd functions they replace cost 25-29 µs more host time per call on the CPU meter; GPU
+unmeasured: docs/gpu.md, 0.10.4)."""
 from __future__ import annotations
 
 import torch
