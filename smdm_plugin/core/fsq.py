@@ -39,19 +39,16 @@ class _RoundSTE(torch.autograd.Function):
         return g
 
 
-def cast_once(cache: dict, bufs: Tuple[Tensor, ...], dtype: torch.dtype) -> Tuple[Tensor, ...]:
-    """``bufs`` in ``dtype``: cast once per dtype (outside tracing) and kept in ``cache``, keyed on the
-    buffers' storage and version (a move or an in-place update makes new copies), not at every use
-    (under autocast, each use of a float32 buffer in a bf16 op would be a cast kernel)."""
+def cast_once(module: nn.Module, name: str, bufs: Tuple[Tensor, ...], dtype: torch.dtype) -> Tuple[Tensor, ...]:
+    """``bufs`` in ``dtype``: cast once per dtype (outside tracing) and kept in ``module``'s store
+    ``name`` (:class:`~smdm_plugin.core.products.ProductStore`: a move or an in-place update makes new
+    copies), not at every use (under autocast, each use of a float32 buffer in a bf16 op would be a
+    cast kernel)."""
     if bufs[0].dtype == dtype:
         return bufs
     if compiling():
         return tuple(b.to(dtype) for b in bufs)
-    key = tuple((b.data_ptr(), b._version) for b in bufs)
-    hit = cache.get(dtype)
-    if hit is None or hit[0] != key:
-        hit = cache[dtype] = (key, tuple(b.to(dtype) for b in bufs))
-    return hit[1]
+    return store_of(module, name).get(dtype, bufs, lambda: [b.to(dtype) for b in bufs])
 
 
 class FSQ(nn.Module):
@@ -83,13 +80,13 @@ class FSQ(nn.Module):
         self.register_buffer("_shift", shift.float(), persistent=False)
         self.register_buffer("_half_width", (lv // 2).float(), persistent=False)
         self.register_buffer("_basis", basis, persistent=False)
-        self._cast: dict = {}                                    # per-dtype copies of the constants
 
     def constants(self, dtype: torch.dtype) -> Tuple[Tensor, Tensor, Tensor, Tensor]:
         """``(neg_offset, half_l, shift, half_width)`` ``[d]`` in ``dtype``: cast once per dtype and
         device (outside tracing), not at every use (under autocast, each use of a float32 buffer
         in a bf16 op would be a cast kernel); keyed on the buffers' storage and version."""
-        return cast_once(self._cast, (self._neg_offset, self._half_l, self._shift, self._half_width), dtype)
+        return cast_once(self, "_constant_casts", (self._neg_offset, self._half_l, self._shift, self._half_width),
+                         dtype)
 
     @property
     def dim(self) -> int:
@@ -188,7 +185,6 @@ class FSQMultiheadAttention(nn.Module):
         self.key_down = nn.Linear(self.head_dim, self.fsq.dim, **fk)
         self.key_up = nn.Linear(self.fsq.dim, self.head_dim, **fk)
         self.quantize = True
-        self._fold_cache: Optional[Tuple[tuple, Tuple[Tensor, ...]]] = None
         self._call_proj: Optional[Tuple[Tensor, Tensor]] = None    # set by fold_keys for one call
         # the code channels of the folded path (:meth:`_forward_folded`): the ``d`` FSQ channels and
         # zeros up to a multiple of 8 (the head sizes GPU attention kernels take); per channel the
@@ -202,7 +198,6 @@ class FSQMultiheadAttention(nn.Module):
         # gradient is exactly 0), and the folded path does not read it; frozen, so that optimizers
         # and DDP (find_unused_parameters=False) see no trainable parameter without a gradient
         self.key_up.bias.requires_grad_(False)
-        self._code_cast: dict = {}
         self._reset_parameters()
         if target.type != "cpu":
             self.to(target)
@@ -267,19 +262,16 @@ class FSQMultiheadAttention(nn.Module):
         compute ``dtype`` (autocast's, else the keys'): keyed on the parameters' storage and
         version, as the Lipschitz layers; so a sampling call under autocast casts none of them (the
         values autocast would make). With autograd: the parameters' dtype (autocast casts them)."""
-        down, up, fsq = self.key_down, self.key_up, self.fsq
-        key = None
         if not torch.is_grad_enabled() and not compiling():
-            key = (dtype,) + tuple((t.data_ptr(), t._version) for t in (
-                *key_map_tensors(self), fsq._shift, fsq._half_width))
-            if self._fold_cache is not None and self._fold_cache[0] == key:
-                return self._fold_cache[1]
+            inputs = (*key_map_tensors(self), self.fsq._shift, self.fsq._half_width)
+            return store_of(self, "_key_map_store").get(dtype, inputs,
+                                                        lambda: [t.to(dtype) for t in self._key_map_values()])
+        return self._key_map_values()
+
+    def _key_map_values(self) -> Tuple[Tensor, Tensor, Tensor, Tensor]:
+        down, up, fsq = self.key_down, self.key_up, self.fsq
         _, _, shift, half_width = fsq.constants(down.bias.dtype)
-        out = (down.bias + shift, down.weight.t(), up.weight / half_width, up.bias)
-        if key is not None:
-            out = tuple(t.to(dtype) for t in out)
-            self._fold_cache = (key, out)
-        return out
+        return (down.bias + shift, down.weight.t(), up.weight / half_width, up.bias)
 
     @property
     def code_dim(self) -> int:
@@ -290,7 +282,7 @@ class FSQMultiheadAttention(nn.Module):
     def code_constants(self, dtype: torch.dtype) -> Tuple[Tensor, Tensor]:
         """``(neg_offset, half_l)`` ``[H·P]`` of the folded path's bound (every head's ``P``
         channels) in ``dtype`` (cast once per dtype outside tracing, as :meth:`FSQ.constants`)."""
-        return cast_once(self._code_cast, (self._code_neg_offset, self._code_half_l), dtype)
+        return cast_once(self, "_code_casts", (self._code_neg_offset, self._code_half_l), dtype)
 
     def _projection(self, dtype: torch.dtype) -> Tuple[Tensor, Tensor]:
         """This layer's folded in-projection (:func:`folded_projections`) for a call computing in

@@ -2,7 +2,6 @@
 from __future__ import annotations
 
 import math
-import operator
 from typing import Callable, Dict, List, Optional, Sequence, Tuple
 
 import torch
@@ -15,6 +14,7 @@ from .attention import attend_single_key, compute_dtype, heads as _heads, layout
 from .checks import compiling
 from .fsq import FSQMultiheadAttention, folded_projections
 from .fsq_bank import key_map_tensors, shared_bank
+from .products import ProductStore
 from .kernels.fsq_code import code_functions
 from .structure import structure_version
 
@@ -214,9 +214,13 @@ class StockStack:
         self._hooks = [getattr(m, n) for m in modules for n in _HOOK_DICTS
                        if not (n == "_forward_pre_hooks" and id(m) in fsq)]
         self._fsq_pre = [m._forward_pre_hooks for m in self._fsq]
-        self._fold_cache: Optional[tuple] = None
+        # without autograd, outside tracing: the folds and the weights' casts kept while their
+        # parameters are unchanged (:class:`~smdm_plugin.core.products.ProductStore`); and the last
+        # per-layer view of each (remade only when the store holds other tensors)
+        self._fold_store, self._cast_store = ProductStore(), ProductStore()
+        self._fold_view: tuple = (None, None)
+        self._cast_view: tuple = (None, None)
         self._matmul = [t for layer in self.layers for t in layer.matmul_parameters()]
-        self._cast_cache: Optional[tuple] = None
 
     def current(self) -> bool:
         """No module, parameter or buffer was registered anywhere since the stack was built (a
@@ -242,14 +246,12 @@ class StockStack:
         if torch.is_grad_enabled() or compiling():
             folds = iter(folded_projections(self._folded, dtype, self._bank))
             return [("fold",) + next(folds) if a.self_attn.folded else None for a in self.layers]
-        t = self._fold_inputs
-        key = (dtype, tuple(map(_VERSION, t)), tuple(map(Tensor.data_ptr, t)))
-        if self._fold_cache is not None and self._fold_cache[0] == key:
-            return self._fold_cache[1]
-        folds = iter(folded_projections(self._folded, dtype, self._bank))
-        out = [("fold",) + next(folds) if a.self_attn.folded else None for a in self.layers]
-        self._fold_cache = (key, out)
-        return out
+        held = self._fold_store.get(dtype, self._fold_inputs, lambda: [
+            t for fold in folded_projections(self._folded, dtype, self._bank) for t in fold])
+        if self._fold_view[0] is not held:
+            folds = iter(zip(held[0::2], held[1::2]))
+            self._fold_view = (held, [("fold",) + next(folds) if a.self_attn.folded else None for a in self.layers])
+        return self._fold_view[1]
 
     def _casts(self, x: Tensor) -> Casts:
         """The layers' matmul weights and biases (:meth:`_Layer.matmul_parameters`) in autocast's
@@ -270,12 +272,11 @@ class StockStack:
             return None
         if torch.is_grad_enabled():
             return self._stacked_casts(dtype)
-        key = (dtype, tuple(map(_VERSION, params)), tuple(map(Tensor.data_ptr, params)))
-        if self._cast_cache is None or self._cast_cache[0] != key:
-            self._cast_cache = None                       # the old copies go before the new are made
-            self._cast_cache = (key, {id(t): t if t.dtype == torch.float64 else t.detach().to(dtype)
-                                      for t in params})
-        return self._cast_cache[1]
+        held = self._cast_store.get(dtype, params, lambda: [t if t.dtype == torch.float64 else t.detach().to(dtype)
+                                                            for t in params])  # (autocast leaves float64 alone)
+        if self._cast_view[0] is not held:
+            self._cast_view = (held, dict(zip(map(id, params), held)))
+        return self._cast_view[1]
 
     def _stacked_casts(self, dtype: torch.dtype) -> Casts:
         """With autograd: each matmul parameter's cast as one stack, cast and unbind per role over
@@ -313,9 +314,6 @@ class StockStack:
         for layer, proj in zip(self.layers, projections):
             x = layer.forward(x, S, bias, proj, training, copy, memory, memory_bias, sample, casts, codes)
         return x if self.norm is None else self.norm(x)
-
-
-_VERSION = operator.attrgetter("_version")
 
 
 def _fold_tensors(m: FSQMultiheadAttention) -> Tuple[Tensor, ...]:

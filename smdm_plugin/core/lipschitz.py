@@ -56,31 +56,25 @@ class LipschitzWeight(nn.Module):
             top = _row_abs_sum(weight.detach()).max().double() * (1 + 8 * torch.finfo(weight.dtype).eps)
             init = _inverse_softplus(top).to(weight.dtype)
         self.c = nn.Parameter(init.reshape(()).clone())
-        self._cache: Optional[Tuple[tuple, Tensor]] = None
 
     def bound(self) -> Tensor:
         """``softplus(c)``: the layer's ∞-norm bound (scalar, differentiable)."""
         return F.softplus(self.c)
 
     def forward(self, weight: Tensor) -> Tensor:
-        # Without autograd (sampling) the normalised weight only changes when W or c do: reuse it
-        # while both are the same tensors at the same version (in-place updates bump the version,
-        # a new tensor has a new storage). Never while torch.compile traces.
-        # Under autocast the cached weight is kept in autocast's dtype (the value autocast's cast
-        # would make at every call: the cached weight is no leaf, autocast would not cache its cast).
-        key = None
+        # Without autograd (sampling) the normalised weight only changes when W or c do: kept in a
+        # store (:class:`~smdm_plugin.core.products.ProductStore`, not static: a weight handed out is
+        # never changed afterwards) in the dtype it is used in (autocast's: the cached weight is no
+        # leaf, autocast would not cache its cast). Never while torch.compile traces.
         if not torch.is_grad_enabled() and not _compiling():
             dtype = compute_dtype(weight)
-            key = (weight.data_ptr(), weight._version, self.c.data_ptr(), self.c._version,
-                   weight.dtype, weight.device, weight.shape, dtype)
-            if self._cache is not None and self._cache[0] == key:
-                return self._cache[1]
+            return store_of(self, "_kept", static=False).get(
+                dtype, (weight, self.c), lambda: (self._normalised(weight).to(dtype),))[0]
+        return self._normalised(weight)
+
+    def _normalised(self, weight: Tensor) -> Tensor:
         rowsum = _row_abs_sum(weight).clamp_min(torch.finfo(weight.dtype).eps)  # 0-rows: scale 1
-        out = weight * torch.clamp(self.bound() / rowsum, max=1.0)
-        if key is not None:
-            out = out.to(key[-1])
-            self._cache = (key, out)
-        return out
+        return weight * torch.clamp(self.bound() / rowsum, max=1.0)
 
 
 class _NormalisedWeights(torch.autograd.Function):

@@ -2,7 +2,8 @@
 
 FSQ attention's folded in-projections and the Lipschitz layers' normalised weights depend on
 parameters only. Eagerly, a call without autograd keeps them in a :class:`ProductStore` while the
-parameters are the same tensors at the same versions. A compiled call without autograd would
+parameters are the same tensors at the same versions (the one such cache of the package: casts of
+constants and weights too). A compiled call without autograd would
 redo them in its graph at every call and guidance pass (a sparse trans_enc guided call: 192 ops,
 64 of them matmuls), unless it runs *armed* (:func:`armed_products`): its wrapper
 (``runtime/compile.py``) first refreshes every store of the model in place (same storages: a CUDA
@@ -56,13 +57,16 @@ def _writable_alike(held: Sequence[Tensor], new: Sequence[Tensor]) -> bool:
 
 class ProductStore:
     """Per compute dtype, tensors made from ``inputs`` (parameters, buffers) alone, kept while every
-    input is the same tensor at the same version; remade values are copied into the kept tensors
-    when their layout is unchanged (a graph that reads them needs no new capture)."""
+    input is the same tensor at the same version. ``static`` (default): remade values are copied
+    into the kept tensors when their layout is unchanged (a graph that reads them needs no new
+    capture); else they replace them (a value handed out is never changed afterwards: what a user
+    may keep, such as a parametrized weight)."""
 
-    def __init__(self) -> None:
+    def __init__(self, static: bool = True) -> None:
         self.tensors: Dict[torch.dtype, Tuple[Tensor, ...]] = {}
         self._keys: Dict[torch.dtype, tuple] = {}
         self._unmarked: list = []                     # made before Dynamo was loaded
+        self.static = static
 
     def _mark(self, tensors: Sequence[Tensor]) -> None:
         """Tell CUDA graphs that ``tensors`` keep their storage (a captured graph reads them in place,
@@ -84,14 +88,20 @@ class ProductStore:
                 self._mark(())
             return held
         with torch.no_grad():
+            if not self.static:
+                self.tensors.pop(dtype, None)                 # the old values go before the new are made
+                held = None
             new = tuple(make())
-            if held is not None and _writable_alike(held, new):
+            if held is not None and self.static and _writable_alike(held, new):
                 for old, value in zip(held, new):
                     old.copy_(value)
-            else:
-                held = tuple(t if t._base is None else t.clone() for t in new)   # own storages
+            elif self.static:
+                inputs_at = set(map(Tensor.data_ptr, inputs))   # own storages: no view, no input's memory
+                held = tuple(t.clone() if t._base is not None or t.data_ptr() in inputs_at else t for t in new)
                 self._mark(held)
                 self.tensors[dtype] = held
+            else:
+                held = self.tensors[dtype] = new
         self._keys[dtype] = key
         return held
 
@@ -110,11 +120,12 @@ class ProductStore:
         return self.tensors.get(dtype) if _ARMED[0] else None
 
 
-def store_of(module: nn.Module) -> ProductStore:
-    """``module``'s store (made on first use: a module unpickled from an older version has none)."""
-    store = module.__dict__.get("_products")
+def store_of(module: nn.Module, name: str = "_products", static: bool = True) -> ProductStore:
+    """``module``'s store ``name`` (made on first use, ``static`` as :class:`ProductStore`'s: a module
+    unpickled from an older version has none)."""
+    store = module.__dict__.get(name)
     if store is None:
-        store = module.__dict__["_products"] = ProductStore()
+        store = module.__dict__[name] = ProductStore(static)
     return store
 
 

@@ -232,6 +232,7 @@ def test_normalised_weight_is_reused_without_autograd_and_never_stale():
     with torch.no_grad():
         w1 = lin.weight
         assert lin.weight is w1                                   # cached: the same tensor
+        kept = w1.clone()
         out1 = mlp(x)
     opt = torch.optim.SGD(mlp.parameters(), lr=0.5)
     mlp(x).pow(2).sum().backward()                                # with autograd: computed afresh
@@ -240,6 +241,7 @@ def test_normalised_weight_is_reused_without_autograd_and_never_stale():
         w2 = lin.weight
         out2 = mlp(x)
         assert w2 is not w1 and not torch.equal(out2, out1)
+        assert torch.equal(w1, kept)                              # a weight handed out is never changed
         fresh = lin.parametrizations.weight.original
         p = lin.parametrizations.weight[0]
         expect = fresh * torch.clamp(p.bound() / fresh.abs().sum(1, keepdim=True), max=1.0)

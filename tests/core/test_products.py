@@ -51,6 +51,35 @@ def test_a_new_layout_gets_new_tensors_and_views_get_storages_of_their_own():
     assert bigger is not held and bigger[0].shape == (8, 4)
 
 
+def test_an_input_handed_back_is_held_as_a_copy_never_written_by_the_store():
+    """A product equal to an input (a cast to the dtype it has already) is held in a storage of its
+    own: remaking it in place writes the store's copy, never the input (whose version would move
+    and make every call a miss)."""
+    w = torch.randn(3, 4)
+    store = ProductStore()
+    held = store.get(torch.float32, [w], lambda: (w, w.t()))
+    assert held[0] is not w and held[0].data_ptr() != w.data_ptr() and held[1]._base is None
+    with torch.no_grad():
+        w.add_(1.0)
+    version = w._version
+    again = store.get(torch.float32, [w], lambda: (w, w.t()))
+    assert again is held and w._version == version and torch.equal(again[0], w) and torch.equal(again[1], w.t())
+    assert store.get(torch.float32, [w], lambda: (w, w.t())) is held and w._version == version
+
+
+def test_a_store_that_is_not_static_replaces_what_it_handed_out():
+    """``static=False``: a remade value is a new tensor, the one handed out keeps its values (what a
+    user may hold, such as a parametrized weight read without autograd)."""
+    w = torch.randn(3, 4)
+    store = ProductStore(static=False)
+    first = store.get(torch.float32, [w], lambda: (w * 2,))
+    kept = first[0].clone()
+    with torch.no_grad():
+        w.mul_(-1.0)
+    again = store.get(torch.float32, [w], lambda: (w * 2,))
+    assert again[0] is not first[0] and torch.equal(first[0], kept) and torch.equal(again[0], w * 2)
+
+
 def test_refresh_remakes_every_dtype_held_and_read_needs_arming():
     w = torch.randn(3, 4)
     store, make, calls = _store_with(w)
