@@ -14,7 +14,7 @@ from .attention import attend_single_key, compute_dtype, heads as _heads, layout
 from .checks import compiling
 from .fsq import FSQMultiheadAttention, folded_projections
 from .fsq_bank import key_map_tensors, shared_bank
-from .products import ProductStore
+from .products import ProductStore, Remade
 from .kernels.fsq_code import code_functions
 from .structure import structure_version
 
@@ -190,7 +190,7 @@ def _stock_layer(layer: nn.Module) -> bool:
                       if name.startswith(("linear", "norm", "dropout")))
 
 
-class StockStack:
+class StockStack(Remade):
     """The layers of a wrapped ``nn.TransformerEncoder`` / ``Decoder`` that run as functions
     (:func:`stock_stack`); :meth:`run` is the stack's forward on sequence-first tokens."""
 

@@ -23,7 +23,8 @@ from torch import Tensor, nn
 from .attention import compute_dtype
 from .structure import structure_version
 
-__all__ = ["ProductStore", "armed_products", "products_armed", "refresh_products", "store_of", "held_products"]
+__all__ = ["ProductStore", "Remade", "armed_products", "products_armed", "refresh_products", "store_of",
+           "held_products"]
 
 #: True while a compiled call runs whose model's stores were refreshed for it (read while tracing:
 #: Dynamo guards on the value, so an armed and an unarmed trace are two graphs)
@@ -55,7 +56,21 @@ def _writable_alike(held: Sequence[Tensor], new: Sequence[Tensor]) -> bool:
         (x.shape, x.dtype, x.device, x.stride()) == (y.shape, y.dtype, y.device, y.stride()) for x, y in zip(held, new))
 
 
-class ProductStore:
+def _none() -> None:
+    return None
+
+
+class Remade:
+    """A cache: pickled and deep-copied as None (its owner remakes it on first use, from the copy's own
+    tensors; an older version's pickle never meets this version's code)."""
+
+    __slots__ = ()
+
+    def __reduce__(self):
+        return (_none, ())
+
+
+class ProductStore(Remade):
     """Per compute dtype, tensors made from ``inputs`` (parameters, buffers) alone, kept while every
     input is the same tensor at the same version. ``static`` (default): remade values are copied
     into the kept tensors when their layout is unchanged (a graph that reads them needs no new
@@ -65,18 +80,21 @@ class ProductStore:
     def __init__(self, static: bool = True) -> None:
         self.tensors: Dict[torch.dtype, Tuple[Tensor, ...]] = {}
         self._keys: Dict[torch.dtype, tuple] = {}
-        self._unmarked: list = []                     # made before Dynamo was loaded
+        self._unmarked: Dict[torch.dtype, Tuple[Tensor, ...]] = {}   # held, made before Dynamo was loaded
         self.static = static
 
-    def _mark(self, tensors: Sequence[Tensor]) -> None:
-        """Tell CUDA graphs that ``tensors`` keep their storage (a captured graph reads them in place,
-        no copy per replay); once Dynamo is loaded (importing it costs an eager run a second)."""
-        self._unmarked.extend(tensors)
+    def _mark(self, dtype: Optional[torch.dtype] = None, tensors: Tuple[Tensor, ...] = ()) -> None:
+        """Tell CUDA graphs that the tensors held for ``dtype`` keep their storage (a captured graph
+        reads them in place, no copy per replay); once Dynamo is loaded (importing it costs an eager
+        run a second). Until then they wait, the ones replaced dropped (no reference kept to them)."""
+        if dtype is not None:
+            self._unmarked[dtype] = tensors
         dynamo = sys.modules.get("torch._dynamo")
         if dynamo is not None and hasattr(dynamo, "mark_static_address"):
-            for t in self._unmarked:
-                dynamo.mark_static_address(t)
-            self._unmarked = []
+            for held in self._unmarked.values():
+                for t in held:
+                    dynamo.mark_static_address(t)
+            self._unmarked = {}
 
     def get(self, dtype: torch.dtype, inputs: Sequence[Tensor], make: Callable[[], Sequence[Tensor]]
             ) -> Tuple[Tensor, ...]:
@@ -85,7 +103,7 @@ class ProductStore:
         held = self.tensors.get(dtype)
         if held is not None and self._keys.get(dtype) == key:
             if self._unmarked and "torch._dynamo" in sys.modules:
-                self._mark(())
+                self._mark()
             return held
         with torch.no_grad():
             if not self.static:
@@ -98,7 +116,7 @@ class ProductStore:
             elif self.static:
                 inputs_at = set(map(Tensor.data_ptr, inputs))   # own storages: no view, no input's memory
                 held = tuple(t.clone() if t._base is not None or t.data_ptr() in inputs_at else t for t in new)
-                self._mark(held)
+                self._mark(dtype, held)
                 self.tensors[dtype] = held
             else:
                 held = self.tensors[dtype] = new
@@ -136,7 +154,7 @@ def held_products(module: nn.Module, dtype: torch.dtype) -> Optional[Tuple[Tenso
     return None if store is None else store.read(dtype)
 
 
-class _Holders:
+class _Holders(Remade):
     """The modules of a model that keep products and every tensor their products are made of, for
     one model structure; ``key``: those tensors' versions and storages (and the compute dtype) at
     the last refresh."""

@@ -16,7 +16,7 @@ import torch
 from torch import Tensor, nn
 from torch.nn.utils import parametrize
 
-from .products import ProductStore
+from .products import ProductStore, Remade
 from .structure import structure_version
 
 __all__ = ["cast_parameters", "refresh_casts"]
@@ -57,7 +57,7 @@ def cast_parameters(model: nn.Module) -> List[Tuple[str, Tensor]]:
     return out
 
 
-class _Casts:
+class _Casts(Remade):
     """The cast parameters of one model structure (the casts themselves are kept apart: the same
     tensors after a rebuild that finds the same parameters)."""
 

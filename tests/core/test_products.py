@@ -169,3 +169,52 @@ def test_products_made_under_inference_mode_are_replaced_outside_it():
         w.add_(1.0)
         again = store.get(torch.float32, [w], make)
     assert again is not first and torch.equal(again[0], w * 2)
+
+
+def test_a_deep_copy_of_a_sparse_model_remakes_its_caches_from_its_own_weights():
+    """Every cache of values made from tensors alone (the stores, the eager stack's layout, the
+    weight casts' parameter lists) deep-copies as nothing (an EMA copy): the copy samples as the
+    original, under autocast too, and follows its own weights, not the original's. (A sparse model
+    is not picklable whole: torch refuses parametrized modules; a dense model's casts pickle as
+    nothing too, the same method.)"""
+    from smdm_plugin.adapters.surgery import sparsify
+    from smdm_plugin.core.config import SparseConfig
+    from smdm_plugin.core.products import Remade
+    from smdm_plugin.core.weight_casts import refresh_casts
+    from smdm_plugin.reference.backbone import TinyMDM
+
+    torch.manual_seed(0)
+    model = sparsify(TinyMDM(latent_dim=32, ff_size=64, num_layers=2, dropout=0.0, cond_mask_prob=0.0),
+                     SparseConfig()).eval()
+    B, N = 2, 30
+    g = torch.Generator().manual_seed(0)
+    x, t = torch.randn(B, 263, 1, N, generator=g), torch.tensor([3, 7])
+    y = {"mask": torch.ones(B, 1, 1, N, dtype=torch.bool), "lengths": torch.full((B,), N),
+         "text_embed": torch.randn(1, B, 512, generator=g)}
+
+    def run(m):
+        with torch.no_grad():
+            plain = m(x, t, y=dict(y))
+            with torch.autocast("cpu", torch.bfloat16):
+                refresh_casts(m, "cpu")
+                low = m(x, t, y=dict(y))
+        return plain, low
+
+    want = run(model)
+
+    def caches(m):
+        return [v for mod in m.modules() for v in vars(mod).values() if isinstance(v, Remade)]
+
+    assert len(caches(model)) >= 4                        # stores, the stack, the casts' list, the holders
+    twin = copy.deepcopy(model)
+    assert caches(twin) == []
+    got = run(twin)
+    for a, b in zip(got, want):
+        torch.testing.assert_close(a, b, rtol=0, atol=0)
+    with torch.no_grad():
+        for p in twin.parameters():
+            p.mul_(0.5)
+    changed = run(twin)
+    assert not torch.equal(changed[0], want[0]) and not torch.equal(changed[1], want[1])
+    for a, b in zip(run(model), want):
+        torch.testing.assert_close(a, b, rtol=0, atol=0)
