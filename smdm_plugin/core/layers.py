@@ -14,8 +14,8 @@ from .attention import attend_single_key, compute_dtype, heads as _heads, layout
 from .checks import compiling
 from .fsq import FSQMultiheadAttention, folded_projections
 from .fsq_bank import key_map_tensors, shared_bank
-from .products import ProductStore, Remade
 from .kernels.fsq_code import code_functions
+from .products import ProductStore, Remade
 from .structure import structure_version
 
 __all__ = ["StockStack", "stock_stack"]
@@ -250,7 +250,8 @@ class StockStack(Remade):
             t for fold in folded_projections(self._folded, dtype, self._bank) for t in fold])
         if self._fold_view[0] is not held:
             folds = iter(zip(held[0::2], held[1::2]))
-            self._fold_view = (held, [("fold",) + next(folds) if a.self_attn.folded else None for a in self.layers])
+            self._fold_view = (held, [("fold",) + next(folds) if a.self_attn.folded else None
+                                      for a in self.layers])
         return self._fold_view[1]
 
     def _casts(self, x: Tensor) -> Casts:

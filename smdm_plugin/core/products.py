@@ -1,14 +1,13 @@
 """What a sampling call computes from parameters alone, made once outside a compiled graph.
 
 FSQ attention's folded in-projections and the Lipschitz layers' normalised weights depend on
-parameters only. Eagerly, a call without autograd keeps them in a :class:`ProductStore` while the
-parameters are the same tensors at the same versions (the one such cache of the package: casts of
-constants and weights too). A compiled call without autograd would
-redo them in its graph at every call and guidance pass (a sparse trans_enc guided call: 192 ops,
-64 of them matmuls), unless it runs *armed* (:func:`armed_products`): its wrapper
-(``runtime/compile.py``) first refreshes every store of the model in place (same storages: a CUDA
-graph reads them where they are, no guard changes), and only an armed trace reads the stores (a
-trace made elsewhere computes them itself: nothing stale is read).
+parameters only. Eagerly, a call without autograd keeps them in a :class:`ProductStore` (the
+package's one cache of values made from tensors alone) while the parameters are the same tensors at
+the same versions. A compiled call without autograd would redo them in its graph at every call and
+guidance pass (a sparse trans_enc guided call: 192 ops, 64 of them matmuls), unless it runs *armed*
+(:func:`armed_products`): its wrapper (``runtime/compile.py``) first refreshes every store of the
+model in place (same storages: a CUDA graph reads them where they are, no guard changes), and only an
+armed trace reads the stores (a trace made elsewhere computes them itself: nothing stale is read).
 """
 from __future__ import annotations
 
