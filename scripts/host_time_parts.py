@@ -1,5 +1,7 @@
 """What the sparse trans_enc's host time is made of: the meter's cells with the paper's recipe, without
-FSQ keys, without Lipschitz layers, without either (docs/gpu.md, "Host time")."""
+FSQ keys, without Lipschitz layers, without either (docs/gpu.md, "Host time"); ``--optimizer``: a
+training step and its optimizer step alone, dense and sparse, Python frames and time (docs/gpu.md,
+"0.10.5")."""
 from __future__ import annotations
 
 import argparse
@@ -18,12 +20,36 @@ PARTS = {"the recipe": {}, "no FSQ keys": {"fsq": False}, "no Lipschitz layers":
          "neither": {"fsq": False, "lipschitz": False}}
 
 
+def optimizer_rows(variant: str, repeats: int) -> None:
+    """fp32: the training step and its optimizer step (``AdamW(foreach=True)``, as upstream builds it)
+    alone, dense and sparse: Python frames (``host_work``) and milliseconds (the meter)."""
+    print(f"{variant} fp32: the optimizer's share of a training step (torch {torch.__version__})\n")
+    print("| call | dense frames | sparse frames | dense ms | sparse ms |")
+    print("| --- | ---: | ---: | ---: | ---: |")
+    with static_mode():
+        cells = {side: hosttime.host_cells(variant, side == "sparse", "fp32") for side in ("dense", "sparse")}
+        for c in cells.values():
+            c["train"]()                                      # the gradients the optimizer step reads
+        for call, name in (("train", "training step"), ("step", "its optimizer step")):
+            fns = {side: c[call] for side, c in cells.items()}
+            frames = {side: hosttime.host_work(fn).calls for side, fn in fns.items()}
+            ms = hosttime.host_times(fns, repeats=repeats).ms
+            print(f"| {name} | {frames['dense']} | {frames['sparse']} | {ms['dense']:.2f} | {ms['sparse']:.2f} |")
+
+
 def main() -> int:
     p = argparse.ArgumentParser(description=__doc__)
-    p.add_argument("--variant", default="trans_enc", choices=hosttime.HOST_VARIANTS[:3])
+    p.add_argument("--variant", default="trans_enc", choices=hosttime.HOST_VARIANTS)
     p.add_argument("--repeats", type=int, default=60)
+    p.add_argument("--optimizer", action="store_true", help="the optimizer's share of a training step instead")
     args = p.parse_args()
     torch.set_num_threads(1)
+    if args.optimizer:
+        optimizer_rows(args.variant, args.repeats)
+        return 0
+    if args.variant not in hosttime.HOST_VARIANTS[:3]:
+        p.error(f"argument --variant: the parts apply to {', '.join(hosttime.HOST_VARIANTS[:3])}; "
+                f"got {args.variant!r} (--optimizer takes every variant)")
     print(f"{args.variant}: sparse / dense host time (the meter, torch {torch.__version__})\n")
     print("| sparse | fp32 train | fp32 sample | bf16 train | bf16 sample |")
     print("| --- | ---: | ---: | ---: | ---: |")

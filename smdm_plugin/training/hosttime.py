@@ -350,7 +350,8 @@ def host_cells(variant: str, sparse: bool, precision: str, config: Optional["Spa
     ``bf16`` (CPU autocast): ``train`` (``training_losses`` + backward + ``AdamW(foreach=True)``)
     and ``sample`` (one sampling call: both classifier-free-guidance passes for MDM's models, one
     pass for MotionDiffuse; DoubleTake's with its handshake frames forced; ``config``: another
-    sparse config). Each sets the model's mode only when it changes, as a loop does (0.9.5 and
+    sparse config); ``step``: the training step's optimizer step alone (run after ``train``: its
+    gradients). Each sets the model's mode only when it changes, as a loop does (0.9.5 and
     before: every call, which charged a sparse model its larger module tree). Run them under
     :func:`~smdm_plugin.core.checks.static_mode`."""
     from ..adapters.surgery import sparsify
@@ -418,7 +419,7 @@ def host_cells(variant: str, sparse: bool, precision: str, config: Optional["Spa
             else:
                 guided(x, torch.full((B,), 40), dict(sample_y))
 
-    return {"train": train, "sample": sample}
+    return {"train": train, "sample": sample, "step": opt.step}
 
 
 def _doubletake_y(y: Dict[str, object], lengths: torch.Tensor, N: int, sparse: bool) -> Dict[str, object]:

@@ -30,3 +30,17 @@ def test_the_parts_reach_the_sparse_model():
         opt = names["opt"].cell_contents                      # the optimizer of the sparse model
         counts.append(sum(len(g["params"]) for g in opt.param_groups))
     assert counts[0] > counts[1] and counts[0] > counts[2]
+
+
+def test_the_optimizer_rows_count_the_optimizer_step_inside_the_training_step():
+    """``--optimizer``: the training step and its optimizer step alone, dense and sparse; the optimizer
+    step is part of the training step (fewer frames) and steps more tensors for the sparse model."""
+    r = subprocess.run([sys.executable, str(SCRIPT), "--optimizer", "--repeats", "2"], capture_output=True, text=True,
+                       timeout=600)
+    assert r.returncode == 0, r.stderr
+    rows = [l.split("|")[1:-1] for l in r.stdout.splitlines() if l.startswith("| ") and "---" not in l][1:]
+    assert [c[0].strip() for c in rows] == ["training step", "its optimizer step"]
+    (train_d, train_s), (step_d, step_s) = [(int(c[1]), int(c[2])) for c in rows]
+    assert step_d < train_d and step_s < train_s and step_s > step_d
+    for c in rows:
+        assert all(float(v) > 0 for v in c[3:])
