@@ -344,7 +344,7 @@ HOST_HANDSHAKE = 3
 
 def host_cells(variant: str, sparse: bool, precision: str, config: Optional["SparseConfig"] = None
                ) -> Dict[str, Callable[[], object]]:
-    """The two calls whose host time counts, for ``variant`` (:data:`HOST_VARIANTS`) at
+    """The calls whose host time counts, for ``variant`` (:data:`HOST_VARIANTS`) at
     :data:`HOST_SIZE`, dense (the upstream model, no FSQ) or sparse (the paper's recipe,
     ``SparseConfig()``; MotionDiffuse: no FSQ, its attention is linear), ``precision`` ``fp32`` or
     ``bf16`` (CPU autocast): ``train`` (``training_losses`` + backward + ``AdamW(foreach=True)``)
