@@ -203,7 +203,7 @@ def checked_outputs(args: argparse.Namespace, parser: argparse.ArgumentParser) -
     paths = output_paths(args.out)
     try:
         for p in paths:
-            check_new_file(p, args.overwrite, "smdm bench: --out")
+            check_new_file(p, args.overwrite, "--out")
     except OutputExistsError as e:
         parser.error(str(e))
     return paths

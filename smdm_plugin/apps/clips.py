@@ -73,7 +73,8 @@ def main(argv: Optional[List[str]] = None) -> int:
 
     folder = os.path.dirname(os.path.abspath(out))
     if not os.path.isdir(folder):
-        p.error(f"argument --out: the folder {folder!r} does not exist")
+        p.error(f"argument --out: the folder {folder!r} " + ("is a file, not a folder" if os.path.lexists(folder)
+                                                            else "does not exist"))
     try:
         check_new_file(out, a.overwrite, what="--out")
     except OutputExistsError as e:

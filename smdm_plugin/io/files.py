@@ -1,5 +1,6 @@
 """Writing files safely: atomically (a temporary file in the same folder, then ``os.replace``), and
-never over something that exists unless asked (``overwrite=True``; the CLI's ``--overwrite``).
+never over something that exists unless asked (``overwrite=True``; the CLI's ``--overwrite``), and
+never after a run whose output cannot be written (:func:`check_writable`, before the run).
 
 ``atomic_open`` / ``atomic_write_text`` / ``atomic_write_json`` are implemented in
 :mod:`smdm_plugin.support.atomic` (``SparseConfig.save`` needs them, and ``core`` imports nothing
@@ -10,26 +11,60 @@ from __future__ import annotations
 
 import hashlib
 import os
+import secrets
 from typing import Dict, Iterable, List, Mapping
 
 from ..support.atomic import PathLike, atomic_open, atomic_write_json, atomic_write_text
 
-__all__ = ["OutputExistsError", "check_new_file", "check_new_dir", "atomic_open", "atomic_write_text",
-           "atomic_write_json", "fingerprint_files", "file_digests", "digests_fingerprint", "describe_changes"]
+__all__ = ["OutputExistsError", "OutputUnwritableError", "check_writable", "check_new_file", "check_new_dir",
+           "atomic_open", "atomic_write_text", "atomic_write_json", "fingerprint_files", "file_digests",
+           "digests_fingerprint", "describe_changes"]
 
 
 class OutputExistsError(FileExistsError):
     """An output file or non-empty folder exists and ``overwrite`` was not given."""
 
 
+class OutputUnwritableError(OutputExistsError):
+    """An output path this process cannot create or write: refused before anything is written, and
+    reported as the other refusals (one line; the CLI exits 2)."""
+
+
+def check_writable(path: PathLike, what: str = "output", inside: bool = False) -> None:
+    """Raise :class:`OutputUnwritableError` unless a file can be created in ``path``'s folder (``inside``:
+    in the folder ``path`` itself) or, where that folder does not exist yet, in the nearest folder above
+    it (where the missing ones would be made): probed by creating and removing a temporary file there
+    (a run killed in between leaves a ``.smdm-probe.*.tmp`` that listings ignore). ``what`` names
+    ``path`` in the message."""
+    shown = os.fspath(path)
+    folder = os.path.abspath(shown) if inside else os.path.dirname(os.path.abspath(shown))
+    while not os.path.isdir(folder):
+        if os.path.lexists(folder):
+            raise OutputUnwritableError(f"{what} {shown!r} cannot be created: {folder!r} is a file, not a folder")
+        folder = os.path.dirname(folder)
+    probe = os.path.join(folder, f".smdm-probe.{secrets.token_hex(4)}.tmp")
+    try:
+        fd = os.open(probe, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o600)
+    except OSError as e:
+        raise OutputUnwritableError(f"{what} {shown!r} cannot be written: {folder!r} takes no new file "
+                                    f"({e.strerror or e})") from None
+    os.close(fd)
+    try:
+        os.unlink(probe)
+    except OSError:
+        pass
+
+
 def check_new_file(path: PathLike, overwrite: bool = False, what: str = "output") -> str:
     """``path`` as str; raise :class:`OutputExistsError` when it exists (and not ``overwrite``) or
-    is a folder. ``what`` names it in the message (e.g. ``"--out"``)."""
+    is a folder, :class:`OutputUnwritableError` when it cannot be written (:func:`check_writable`).
+    ``what`` names it in the message (e.g. ``"--out"``)."""
     path = os.fspath(path)
     if os.path.isdir(path):
         raise OutputExistsError(f"{what} {path!r} is a folder, expected a file path")
     if os.path.lexists(path) and not overwrite:
         raise OutputExistsError(f"{what} {path!r} exists; pass --overwrite (overwrite=True) to replace it")
+    check_writable(path, what)
     return path
 
 

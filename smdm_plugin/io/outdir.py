@@ -15,7 +15,7 @@ import time
 from typing import Any, Callable, List, Mapping, Optional, Sequence
 
 from ..support.atomic import _fsync_dir, write_error
-from .files import OutputExistsError, PathLike, atomic_write_json
+from .files import OutputExistsError, OutputUnwritableError, PathLike, atomic_write_json, check_writable
 
 __all__ = ["OutputDir", "OutputLock", "run_in_output_dir", "OutputLockedError", "OutputOverlapError", "MANIFEST", "check_no_overlap",
            "describe_os_error", "partial_path", "lock_path"]
@@ -167,6 +167,14 @@ def _exchange(a: str, b: str) -> bool:
     raise OSError(err, os.strerror(err), a, None, b)
 
 
+def _for_target(e: BaseException, tmp: str, path: str) -> Optional[OSError]:
+    """The ``OSError`` ``e`` that names the temporary file ``tmp`` (it could not be created), naming
+    ``path``, the file it was for, instead; None for anything else."""
+    if isinstance(e, OSError) and e.filename == tmp:
+        return OSError(e.errno, e.strerror, path)
+    return None
+
+
 def _create_with_content(path: str, data: bytes, exists: Callable[[], BaseException]) -> None:
     """Create ``path`` holding ``data``, atomically: it appears complete or not at all (``exists()``
     is raised when it is there already). The content is written to a temporary file first and
@@ -182,7 +190,7 @@ def _create_with_content(path: str, data: bytes, exists: Callable[[], BaseExcept
                 f.flush()
                 os.fsync(f.fileno())
         except BaseException as e:
-            named = write_error(e, path)
+            named = write_error(e, path) or _for_target(e, tmp, path)
             raise (named if named is not None else e) from None
         try:
             os.link(tmp, path)
@@ -235,7 +243,12 @@ class OutputLock:
     def acquire(self) -> "OutputLock":
         if self.held:
             return self
-        os.makedirs(os.path.dirname(self.path), exist_ok=True)
+        check_writable(self._shown(), self.what)    # the folder the lock goes in takes new files
+        try:
+            os.makedirs(os.path.dirname(self.path), exist_ok=True)
+        except OSError as e:
+            raise OutputUnwritableError(f"{self.what} {self._shown()!r} cannot be created: "
+                                        f"{describe_os_error(e)}") from None
         info = {"pid": os.getpid(), "host": socket.gethostname(), "start": process_start(os.getpid()),
                 "command": self.command, "started": time.strftime("%Y-%m-%dT%H:%M:%S%z")}
         data = json.dumps(info).encode()
@@ -400,6 +413,9 @@ class OutputDir:
             raise OutputLockedError(self.lock.message())
         if os.path.lexists(self.out) and not os.path.isdir(self.out):
             raise OutputExistsError(f"{self.what} {shown!r} exists and is not a folder")
+        check_writable(shown, self.what)             # beside it: the lock (and the partial folder)
+        if os.path.isdir(self.out):
+            check_writable(shown, self.what, inside=True)   # in it: the run's files
         existing = _listing(self.out) if os.path.isdir(self.out) else []
         own = (_own_entries(self.out) or []) if existing else []
         if existing and not (self.overwrite or self.resume):

@@ -36,7 +36,10 @@ def atomic_open(path: PathLike, mode: str = "w", **kwargs: Any) -> Iterator[IO[A
         perms = os.stat(path).st_mode & 0o7777
     except OSError:
         perms = 0o666  # os.open applies the umask
-    fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL | getattr(os, "O_BINARY", 0), perms)
+    try:
+        fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL | getattr(os, "O_BINARY", 0), perms)
+    except OSError as e:  # the folder takes no new file: named by the file it was for, not the temporary
+        raise OSError(e.errno, e.strerror, path) from None
     try:
         with os.fdopen(fd, mode, **kwargs) as f:
             yield f

@@ -215,3 +215,68 @@ def test_result_records_are_checked_before_they_are_reported():
     assert check_record({"snapshots": [{"kind": "steps", "at": 10, "fid": "0.3"}]}) == \
         "snapshots[0].fid='0.3': expected a number or null"
     assert check_record({"snapshots": [{"kind": "steps", "at": 10, "fid": None, "loss": 0.1}]}) is None
+
+
+# ------------------------------------------------------------------------------ an output that cannot be written
+def _unwritable_outputs(tmp_path: Path):
+    """``(where, --out inside it, the reason the message gives)``: a path under a regular file (any
+    user), and on Linux a folder that takes no new file for any user, root included (``/proc``)."""
+    (tmp_path / "afile").write_text("mine")
+    yield tmp_path / "afile" / "sub", "is a file, not a folder"
+    if os.path.isdir("/proc/self"):
+        yield Path("/proc") / f"smdm-test-{os.getpid()}", "takes no new file"
+
+
+def _output_argv(command: str, out: Path, tmp_path: Path, data: Path):
+    grid = tmp_path / "g.yaml"
+    grid.write_text(GRID)
+    return {"train": ["train", "--data", str(data), "--out", str(out), "--steps", "2", *TINY],
+            "demo": ["demo", "--quick", "--no-gif", "--no-evaluator", "--out", str(out), "--threads", "1"],
+            "bench": ["bench", "--quick", "--out", str(out / "b.md"), "--threads", "1"],
+            "ablate": ["ablate", "--config", str(grid), "--out", str(out), "--data", str(data), "--no-progress"],
+            "clips": ["clips", "export", "02_01", "--out", str(out.parent / "walk.npy")]}[command]
+
+
+@pytest.mark.parametrize("command", ["train", "demo", "bench", "ablate", "clips"])
+def test_an_output_that_cannot_be_written_is_refused_before_the_run(tmp_path, data, command, monkeypatch, capsys):
+    """0.10.5: `smdm demo --out /proc/demo` said `/proc/..demo.lock.<pid>.<hex>.tmp: No such file or
+    directory` (a temporary file of the lock, not the argument), `smdm bench --out /proc/b.md` ran the
+    whole benchmark first, and the exit status differed by command. Now: exit 2, one line naming --out
+    and why, nothing run and nothing left in the input's folder."""
+    ran = []
+    monkeypatch.setattr(ablate, "run_variant", lambda *a, **k: ran.append(a))
+    monkeypatch.setattr(T.Trainer, "__init__", lambda *a, **k: ran.append(a))
+    from smdm_plugin.apps import bench
+    monkeypatch.setattr(bench, "run_bench", lambda *a, **k: ran.append(a))
+    for out, reason in _unwritable_outputs(tmp_path):
+        argv = _output_argv(command, out, tmp_path, data)
+        before = sorted(os.listdir(tmp_path))
+        rc = _status(argv)
+        err = capsys.readouterr()
+        line = _last_line(err.err)
+        assert rc == 2 and line.startswith(f"smdm {command}: ") and "--out" in line and reason in line, line
+        assert ".tmp" not in line and ".lock" not in line
+        assert sorted(os.listdir(tmp_path)) == before and not ran and "|" not in err.out   # no table: nothing ran
+
+
+def test_check_writable_probes_the_folder_that_would_hold_the_file(tmp_path):
+    from smdm_plugin.io.files import OutputUnwritableError, check_writable
+
+    check_writable(tmp_path / "new" / "deeper" / "x.json", "--out")     # folders to make: probed where they start
+    assert os.listdir(tmp_path) == []                                    # the probe is gone, nothing made
+    (tmp_path / "f").write_text("mine")
+    with pytest.raises(OutputUnwritableError, match=r"--out '.*f/x' cannot be created: '.*f' is a file"):
+        check_writable(tmp_path / "f" / "x", "--out")
+    if os.path.isdir("/proc/self"):
+        with pytest.raises(OutputUnwritableError, match=r"'/proc' takes no new file"):
+            check_writable("/proc/smdm-out", "--out")
+        with pytest.raises(OutputUnwritableError, match=r"'/proc/self' takes no new file"):
+            check_writable("/proc/self", "--out", inside=True)
+    assert (tmp_path / "f").read_text() == "mine"
+
+
+@pytest.mark.skipif(not os.path.isdir("/proc/self"), reason="needs a folder that takes no new file (Linux /proc)")
+def test_an_atomic_write_that_cannot_start_names_the_file_not_its_temporary():
+    with pytest.raises(OSError) as e:
+        atomic.atomic_write_text("/proc/smdm-out.json", "{}")
+    assert e.value.filename == "/proc/smdm-out.json"
