@@ -12,7 +12,8 @@ from ..core.config import BACKENDS
 from ..runtime.compile import COMPILE_MODES
 from ..training.benchmark import MODES, TARGETS, bench_keyframes, run_bench
 from ..training.workloads import FSQ_CHOICES, WORKLOADS, family_choices
-from .common.args import add_common_flags, add_overwrite, float_range, int_range, note_printer, progress_of, resolve_device
+from .common.args import (add_common_flags, add_overwrite, float_range, int_range, note_printer, output_path,
+                          progress_of, resolve_device)
 from .common.threads import apply_threads, load_average
 
 
@@ -139,7 +140,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--quick", action="store_true",
                    help=f"a smoke run: tiny model; batch, frames, repeats and warm-up default to {QUICK} "
                         "(values you pass win)")
-    p.add_argument("--out", default=None, help="write the result as <out>.json and the table as <out>.md")
+    p.add_argument("--out", default=None, type=output_path("file"),
+                   help="write the result as <out>.json and the table as <out>.md")
     add_overwrite(p)
     add_common_flags(p)  # --no-progress: no per-cell lines on stderr
 

@@ -16,7 +16,7 @@ import argparse
 import sys
 from typing import List, Optional
 
-from .common.args import add_overwrite, int_range
+from .common.args import add_overwrite, int_range, output_path
 
 FORMATS = ("joints", "joints66")
 
@@ -31,7 +31,7 @@ def build_parser() -> argparse.ArgumentParser:
     e = sub.add_parser("export", help="write one clip as a .npy motion file",
                        description="write one embedded clip as a .npy motion file")
     e.add_argument("name", metavar="NAME", help="clip name as 'smdm clips' lists it, e.g. 05_02")
-    e.add_argument("--out", default=None, metavar="FILE",
+    e.add_argument("--out", default=None, metavar="FILE", type=output_path("file"),
                    help="the .npy file to write (default: NAME.npy in the current folder)")
     e.add_argument("--format", choices=FORMATS, default="joints",
                    help="joints: [N, 22, 3] joint positions in metres, y up (default); joints66: the in-package "

@@ -35,7 +35,7 @@ OUTPUT_FILES = ("metrics.json", "metrics.md", "metrics.png")
 
 def build_parser() -> argparse.ArgumentParser:
     from ..metrics.evaluator.protocol import EVAL_MODES, PROTOCOLS
-    from .common.args import add_common_flags, add_overwrite, existing_path, int_range
+    from .common.args import add_common_flags, add_overwrite, existing_path, int_range, output_path
 
     p = argparse.ArgumentParser(prog="smdm eval", description=__doc__.split("\n\n")[0],
                                 epilog="example: smdm eval --data dataset/HumanML3D --evaluator checkpoints "
@@ -72,7 +72,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--inbetween-every", type=int_range(0, 10000), default=0, metavar="K",
                    help="with --model: in-betweening; every motion passes through the real motion's frames 0, K, "
                         "2K, ... and its last frame, and keyframe_error (m, joints) is reported (default 0: off)")
-    p.add_argument("--out", required=True, metavar="RDIR", help="results folder to write")
+    p.add_argument("--out", required=True, metavar="RDIR", type=output_path(), help="results folder to write")
     add_overwrite(p)
     p.add_argument("--seed", type=int_range(0), default=0,
                    help="seed of the caption draws, the generation noise and T2M's random pairs (default 0)")

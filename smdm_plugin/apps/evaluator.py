@@ -28,7 +28,7 @@ from .common.args import note_printer, progress_of
 
 def build_parser() -> argparse.ArgumentParser:
     from ..metrics.evaluator.train import DEFAULT_RECIPE, OWN_SIZES, RECIPES, SELECTIONS, T2M_SIZES, TrainSettings
-    from .common.args import add_common_flags, add_overwrite, existing_path, float_range, int_range
+    from .common.args import add_common_flags, add_overwrite, existing_path, float_range, int_range, output_path
 
     d = TrainSettings(recipe=DEFAULT_RECIPE)
     p = argparse.ArgumentParser(
@@ -41,7 +41,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help="HumanML3D-format folder: new_joint_vecs/, texts/ (caption#word/POS ...#from#to), Mean.npy, "
                         "Std.npy, train.txt (+ val.txt, test.txt for the held-out accuracy); default: the embedded "
                         "CMU clips (joints66 features, CMU's descriptions as captions)")
-    p.add_argument("--out", required=True, metavar="EDIR", help="evaluator folder to write")
+    p.add_argument("--out", required=True, metavar="EDIR", type=output_path(), help="evaluator folder to write")
     p.add_argument("--glove", type=existing_path("dir"), default=None, metavar="DIR",
                    help="T2M's GloVe folder (our_vab_data.npy, our_vab_words.pkl, our_vab_idx.pkl); default: word "
                         "embeddings learned from the training captions")

@@ -13,7 +13,7 @@ import torch
 from ..adapters.inbetween_sampling import POLICIES
 from ..reference.simple_diffusion import IMPUTATIONS
 from ..metrics.inbetween_metrics import keyframe_metrics
-from .common.args import add_common_flags, add_overwrite, int_range, note_printer, progress_of
+from .common.args import add_common_flags, add_overwrite, int_range, note_printer, progress_of, output_path
 from .common.bundle_inbetween import model_inputs, plan_keyframes, run_inbetween, summary_markdown
 from .common.motion_files import ACCEPTED, add_motion_file_options
 
@@ -43,7 +43,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help="which keyframes are tokens of a sparse model: ends of each run of consecutive "
                         "keyframes (default), all, none")
     add_motion_file_options(p)
-    p.add_argument("--out", default=os.path.join("smdm_out", "inbetween"), help="output folder")
+    p.add_argument("--out", default=os.path.join("smdm_out", "inbetween"), type=output_path(), help="output folder")
     p.add_argument("--no-gif", action="store_true", help="skip the animation")
     add_common_flags(p)
     add_overwrite(p)

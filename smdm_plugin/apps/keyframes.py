@@ -16,7 +16,7 @@ from typing import List, Optional
 
 from ..io.files import OutputExistsError, check_new_file
 from ..core.config import SparseConfig
-from .common.args import add_common_flags, add_overwrite, existing_path, float_range, note_printer
+from .common.args import add_common_flags, add_overwrite, existing_path, float_range, note_printer, output_path
 
 #: the library's default (docs/defaults.md), as in smdm demo
 FRAME_INDEX_SCALE: float = SparseConfig.frame_index_scale
@@ -34,7 +34,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--frame-index-scale", type=float_range(0.0), default=FRAME_INDEX_SCALE, metavar="M",
                    help="metres per frame appended to the joint positions for selection (>= 0; default "
                         f"{FRAME_INDEX_SCALE}, the library's SparseConfig default)")
-    p.add_argument("--plot", default=None, metavar="FILE",
+    p.add_argument("--plot", default=None, metavar="FILE", type=output_path("file"),
                    help=f"write the keyframe figure of the first window here ({', '.join(PLOT_FORMATS)})")
     add_overwrite(p)
     add_common_flags(p, device=None, progress=False, why_not="it selects keyframes on the CPU and shows no progress")

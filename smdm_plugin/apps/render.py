@@ -15,7 +15,7 @@ import os
 import sys
 from typing import List, Optional
 
-from .common.args import add_common_flags, add_overwrite, float_range, int_range, note_printer, progress_of
+from .common.args import add_common_flags, add_overwrite, float_range, int_range, note_printer, progress_of, output_path
 from .common.motion_files import ACCEPTED, add_motion_file_options
 
 
@@ -23,7 +23,8 @@ def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="smdm render", description=__doc__.split("\n\n")[0],
                                 epilog=f"accepted inputs: {ACCEPTED}")
     p.add_argument("motions", nargs="+", metavar="MOTION", help=".npy or .bvh file(s), drawn side by side")
-    p.add_argument("--out", default=None, help="GIF path (default: the first input's name with .gif, here)")
+    p.add_argument("--out", default=None, type=output_path("file"),
+                   help="GIF path (default: the first input's name with .gif, here)")
     p.add_argument("--keyframes", nargs="+", type=int_range(0), default=(), metavar="FRAME",
                    help="frames to highlight (0-based)")
     p.add_argument("--titles", nargs="+", default=None, help="one title per motion (default: file names)")

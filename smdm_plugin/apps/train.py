@@ -24,7 +24,7 @@ from ..training.data import MotionSet, check_clip_lengths
 from ..training.trainer import (DEFAULT_MODEL, TRAIN_CONFIG_FILENAME, TRAIN_STATE_FILENAME, TrainConfig, Trainer,
                                 TrainResult, resume)
 from .common.args import (add_common_flags, add_overwrite, compile_backend, float_range, int_range, note_printer,
-                          progress_of)
+                          output_path, progress_of)
 from .common.threads import apply_threads
 
 
@@ -44,7 +44,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help="frames per sample; longer motions are cut (default: 196)")
     p.add_argument("--min-frames", type=int_range(2, 10000), default=40,
                    help="skip shorter motions (default: 40)")
-    p.add_argument("--out", required=True, metavar="DIR",
+    p.add_argument("--out", required=True, metavar="DIR", type=output_path(),
                    help="checkpoint folder to write; each checkpoint appears there as it is made")
     add_overwrite(p)
     p.add_argument("--resume", action="store_true",

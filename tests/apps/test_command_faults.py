@@ -280,3 +280,27 @@ def test_an_atomic_write_that_cannot_start_names_the_file_not_its_temporary():
     with pytest.raises(OSError) as e:
         atomic.atomic_write_text("/proc/smdm-out.json", "{}")
     assert e.value.filename == "/proc/smdm-out.json"
+
+
+@pytest.mark.parametrize("argv,kind", [
+    (["train", "--data", "{data}", "--steps", "2"], "folder"), (["demo", "--quick"], "folder"),
+    (["bench", "--quick"], "file"), (["clips", "export", "02_01"], "file"), (["render", "{data}/walk.npy"], "file"),
+    (["ablate", "--config", "quick"], "folder"), (["ablate", "--config", "quality_compute"], "folder"),
+    (["inbetween", "--keyframes", "{data}/walk.npy"], "folder"), (["eval", "--motions", "{data}"], "folder"),
+    (["evaluator", "train"], "folder"), (["keyframes", "--plot"], "file")])
+def test_an_empty_output_path_is_refused_not_read_as_none_or_here(tmp_path, data, argv, kind, monkeypatch, capsys):
+    """0.10.5: `smdm bench --out ''` ran and wrote nothing, `smdm clips export 02_01 --out ''` wrote
+    02_01.npy, `smdm demo --out ''` refused '.' (the working folder): an empty path was read as no
+    option or as here. Now every output option refuses it by name (exit 2)."""
+    monkeypatch.chdir(tmp_path)
+    argv = [a.replace("{data}", str(data)) for a in argv]
+    option = "--plot" if argv[0] == "keyframes" else "--out"
+    if option == "--out":
+        argv += ["--out", ""]
+    else:
+        argv += [""]
+    before = sorted(os.listdir(tmp_path))
+    assert _status(argv) == 2
+    line = _last_line(capsys.readouterr().err)
+    assert line.endswith(f"argument {option}: expected a {kind} path, got ''"), line
+    assert sorted(os.listdir(tmp_path)) == before

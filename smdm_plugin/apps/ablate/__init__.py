@@ -13,7 +13,8 @@ import numpy as np
 import torch
 
 from ...io.files import OutputExistsError, atomic_write_json, atomic_write_text
-from ..common.args import add_common_flags, add_overwrite, existing_path, int_range, note_printer, progress_of, resolve_device
+from ..common.args import (add_common_flags, add_overwrite, existing_path, int_range, note_printer, output_path,
+                           progress_of, resolve_device)
 from ..common.provenance import make_provenance
 from .grid import SHARED_SETTINGS, config_path, load_config, select_variants, slug, sparse_config
 from .report import write_report
@@ -314,7 +315,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--config", default="table1",
                    help="the grid: a YAML path or a packaged grid name (table1, defaults, quick; quality_compute runs "
                         "the quality-versus-compute study)")
-    p.add_argument("--out", default=os.path.join("results", "ablate"), help="results folder (default results/ablate)")
+    p.add_argument("--out", default=os.path.join("results", "ablate"), type=output_path(),
+                   help="results folder (default results/ablate)")
     p.add_argument("--data", type=existing_path("dir"), default=None,
                    help="HumanML3D-format folder: new_joint_vecs/, Mean.npy, Std.npy, train.txt, val.txt or "
                         "test.txt (default: the grid's 'data'; required when the grid has none)")
@@ -338,8 +340,6 @@ def main(argv: Optional[List[str]] = None) -> int:
         return study.main(argv)
     p = build_parser()
     a = p.parse_args(argv)
-    if not a.out.strip():
-        p.error("argument --out: expected a folder path, got ''")
     try:
         cfg = load_config(a.config)
         from ...io.outdir import check_no_overlap

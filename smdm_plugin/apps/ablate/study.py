@@ -17,7 +17,8 @@ import torch
 
 from ...support.values import closest
 from ...io.files import OutputExistsError, atomic_open, atomic_write_json, atomic_write_text
-from ..common.args import add_common_flags, add_overwrite, existing_path, note_printer, progress_of, resolve_device
+from ..common.args import (add_common_flags, add_overwrite, existing_path, note_printer, output_path, progress_of,
+                           resolve_device)
 from .results import (MANIFEST, check_out_dir, FAILED_FILE, RESULT_FILE, CacheState, Cached, Record, Status, failure_record, is_ok, read_cached,
                       status_of)
 from .grid import (AblateConfigError, _check, _check_keys, config_path, over_defaults, select_variants, slug,
@@ -800,7 +801,8 @@ def build_parser() -> argparse.ArgumentParser:
         epilog="Exit status: 0 every run ok, 1 a run failed, 2 bad arguments or a refused --out, 130 interrupted.")
     p.add_argument("--config", default=KIND, help=f"the study config: a YAML path or packaged name (default {KIND})")
     p.add_argument("--quick", action="store_true", help="run the config's quick variant (<config>_quick: seconds)")
-    p.add_argument("--out", default=os.path.join("results", KIND), help=f"results folder (default results/{KIND})")
+    p.add_argument("--out", default=os.path.join("results", KIND), type=output_path(),
+                   help=f"results folder (default results/{KIND})")
     p.add_argument("--data", type=existing_path("dir"), default=None,
                    help=f"HumanML3D-format folder with texts/ (default: config 'data' or {DEFAULT_DATA})")
     p.add_argument("--only", nargs="+", default=None, metavar="VARIANT", help="run only these variants")

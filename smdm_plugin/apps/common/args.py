@@ -15,8 +15,8 @@ if TYPE_CHECKING:
 # the range-checked types live in core (the --sparse_* options use them too); re-exported here
 from ...support.argtypes import float_range, int_range, str2bool
 
-__all__ = ["int_range", "float_range", "str2bool", "existing_path", "device_type", "compile_backend", "resolve_device",
-           "add_overwrite", "add_common_flags", "progress_of", "note_printer", "COMMON_FLAGS"]
+__all__ = ["int_range", "float_range", "str2bool", "existing_path", "output_path", "device_type", "compile_backend",
+           "resolve_device", "add_overwrite", "add_common_flags", "progress_of", "note_printer", "COMMON_FLAGS"]
 
 
 def existing_path(kind: str = "any") -> Callable[[str], str]:
@@ -31,6 +31,21 @@ def existing_path(kind: str = "any") -> Callable[[str], str]:
             raise argparse.ArgumentTypeError(f"{text!r} is a folder, expected a file")
         if kind == "dir" and not os.path.isdir(text):
             raise argparse.ArgumentTypeError(f"{text!r} is not a folder")
+        return text
+
+    parse.__name__ = "path"
+    return parse
+
+
+def output_path(kind: str = "folder") -> Callable[[str], str]:
+    """argparse ``type``: where a command writes (``kind``: ``"folder"`` or ``"file"``), not empty (an
+    empty ``--out`` would be the working folder, or no output at all: refused, never read as either)."""
+    if kind not in ("folder", "file"):
+        raise ValueError(f"output_path: kind must be 'folder' or 'file', got {kind!r}")
+
+    def parse(text: str) -> str:
+        if not text.strip():
+            raise argparse.ArgumentTypeError(f"expected a {kind} path, got {text!r}")
         return text
 
     parse.__name__ = "path"

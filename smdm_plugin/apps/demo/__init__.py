@@ -12,7 +12,8 @@ import numpy as np
 import torch
 
 from ...io.files import atomic_open, atomic_write_json, atomic_write_text
-from ..common.args import add_common_flags, add_overwrite, float_range, int_range, note_printer, progress_of
+from ..common.args import (add_common_flags, add_overwrite, float_range, int_range, note_printer, output_path,
+                           progress_of)
 from ..common.keyframe_study import (FRAME_INDEX_SCALE, keyframe_markdown, keyframe_study, motion_source,
                                      plot_keyframes, require_windows, windows)
 
@@ -147,7 +148,7 @@ QUICK = {"max_clips": (None, 1), "reductions": ([0.6, 0.7, 0.8, 0.9], [0.8]),
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--bvh", nargs="+", default=None, help="BVH files or folders (default: see above)")
-    p.add_argument("--out", default=os.path.join("smdm_out", "demo"), help="output folder")
+    p.add_argument("--out", default=os.path.join("smdm_out", "demo"), type=output_path(), help="output folder")
     add_overwrite(p)
     p.add_argument("--minutes", type=float_range(0, 24 * 60, lo_open=True), default=2.0,
                    help="training time in minutes, dense + sparse together (default 2)")
