@@ -41,7 +41,10 @@ def check_writable(path: PathLike, what: str = "output", inside: bool = False) -
     while not os.path.isdir(folder):
         if os.path.lexists(folder):
             raise OutputUnwritableError(f"{what} {shown!r} cannot be created: {folder!r} is a file, not a folder")
-        folder = os.path.dirname(folder)
+        parent = os.path.dirname(folder)
+        if parent == folder:                        # a root that is no folder (a Windows drive that is not there)
+            raise OutputUnwritableError(f"{what} {shown!r} cannot be created: {folder!r} does not exist")
+        folder = parent
     probe = os.path.join(folder, f".smdm-probe.{secrets.token_hex(4)}.tmp")
     try:
         fd = os.open(probe, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o600)

@@ -259,7 +259,7 @@ def test_an_output_that_cannot_be_written_is_refused_before_the_run(tmp_path, da
         assert sorted(os.listdir(tmp_path)) == before and not ran and "|" not in err.out   # no table: nothing ran
 
 
-def test_check_writable_probes_the_folder_that_would_hold_the_file(tmp_path):
+def test_check_writable_probes_the_folder_that_would_hold_the_file(tmp_path, monkeypatch):
     from smdm_plugin.io.files import OutputUnwritableError, check_writable
 
     check_writable(tmp_path / "new" / "deeper" / "x.json", "--out")     # folders to make: probed where they start
@@ -273,6 +273,10 @@ def test_check_writable_probes_the_folder_that_would_hold_the_file(tmp_path):
         with pytest.raises(OutputUnwritableError, match=r"'/proc/self' takes no new file"):
             check_writable("/proc/self", "--out", inside=True)
     assert (tmp_path / "f").read_text() == "mine"
+    with monkeypatch.context() as m:      # no folder up to the root (a Windows drive that is not there): refused
+        m.setattr(os.path, "isdir", lambda p: False)
+        with pytest.raises(OutputUnwritableError, match="does not exist"):
+            check_writable(tmp_path / "x", "--out")
 
 
 @pytest.mark.skipif(not os.path.isdir("/proc/self"), reason="needs a folder that takes no new file (Linux /proc)")
