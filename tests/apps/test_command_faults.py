@@ -275,6 +275,7 @@ def test_check_writable_probes_the_folder_that_would_hold_the_file(tmp_path, mon
     assert (tmp_path / "f").read_text() == "mine"
     with monkeypatch.context() as m:      # no folder up to the root (a Windows drive that is not there): refused
         m.setattr(os.path, "isdir", lambda p: False)
+        m.setattr(os.path, "lexists", lambda p: False)
         with pytest.raises(OutputUnwritableError, match="does not exist"):
             check_writable(tmp_path / "x", "--out")
 
