@@ -298,7 +298,11 @@ def test_plan_keyframes():
     for args, msg in (((100, [5, 120], None, None, None, 196), "beyond the 100 frames"),
                       ((300, [0, 250], None, None, None, 196), "exceeds the 196 frames"),
                       ((100, [10, 20], None, 15, None, 196), "after the first keyframe"),
-                      ((100, [10, 20], None, None, 5, 196), "too short")):
+                      ((100, [10, 20], None, None, 5, 196), "too short"),
+                      # what the other options leave (0.10.5: "--length must be >= 2, got 1", none given)
+                      ((58, None, None, 57, None, 196), "--start 57 leaves 1 frame of the 58-frame keyframe file"),
+                      ((58, [5], None, None, None, 196), r"--frames \[5\] from --start 5 span 1 frame"),
+                      ((58, None, None, 10, 1, 196), "--length must be >= 2, got 1")):
         with pytest.raises(ValueError, match=msg):
             plan_keyframes(*args)
 

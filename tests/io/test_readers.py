@@ -44,6 +44,24 @@ def test_load_motion_refuses_unusable_files_in_one_line(motions, name, match):
     assert "\n" not in str(e.value)
 
 
+def test_a_sample_of_a_file_of_one_motion_is_refused_not_ignored(tmp_path):
+    """0.10.5 read ``--sample 5`` of a file holding one motion as its motion (the option dropped
+    silently); a batched file gives the sample asked for."""
+    rng = np.random.default_rng(1)
+    one, batch = rng.random((30, 22, 3)), rng.random((3, 30, 22, 3))
+    np.save(tmp_path / "one.npy", one)
+    np.save(tmp_path / "batch.npy", batch)
+    np.testing.assert_allclose(load_motion(str(tmp_path / "one.npy"), sample=0).joints, one)
+    with pytest.raises(ValueError, match=r"one.npy holds one motion: --sample 2 applies to batched files only"):
+        load_motion(str(tmp_path / "one.npy"), sample=2)
+    np.testing.assert_allclose(load_motion(str(tmp_path / "batch.npy"), sample=2).joints, batch[2])
+    with pytest.raises(ValueError, match=r"sample must be in \[0, 3\)"):
+        load_motion(str(tmp_path / "batch.npy"), sample=3)
+    (tmp_path / "one.bvh").write_text("HIERARCHY\n")
+    with pytest.raises(ValueError, match=r"one.bvh holds one motion: --sample 1"):
+        load_motion(str(tmp_path / "one.bvh"), sample=1)
+
+
 def test_feature_motion_loader_for_eval_motions(tmp_path):
     """The shared loader of `smdm eval --motions` files (io.validate.load_feature_motion)."""
     open(tmp_path / "empty.npy", "wb").close()

@@ -33,6 +33,7 @@ def plan_keyframes(n_source: int, frames: Optional[Sequence[int]], every: Option
                    length: Optional[int], max_frames: int) -> Keyframes:
     """Resolve ``--frames`` / ``--every`` / ``--start`` / ``--length`` against a source of
     ``n_source`` frames; ValueError with the option's name when they do not fit."""
+    given_length = length is not None
     if frames:
         fr = sorted(set(int(f) for f in frames))
         if len(fr) != len(frames):
@@ -67,8 +68,14 @@ def plan_keyframes(n_source: int, frames: Optional[Sequence[int]], every: Option
         out = Keyframes(rel, [start + f for f in rel], length, start, False)
     if out.length > max_frames:
         raise ValueError(f"--length {out.length} exceeds the {max_frames} frames the model was trained on")
-    if out.length < 2:
-        raise ValueError(f"--length must be >= 2, got {out.length}")
+    if out.length < 2:   # (the length given, or what the other options leave)
+        if given_length:
+            raise ValueError(f"--length must be >= 2, got {out.length}")
+        if frames:
+            raise ValueError(f"--frames {list(frames)} from --start {out.start} span 1 frame; an in-between needs "
+                             "at least 2: give --length")
+        raise ValueError(f"--start {out.start} leaves 1 frame of the {n_source}-frame keyframe file; an in-between "
+                         "needs at least 2")
     return out
 
 

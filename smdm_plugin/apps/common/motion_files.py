@@ -74,6 +74,7 @@ def load_motion(path: str, fps: float = 20.0, sample: int = 0, allow_pickle: boo
     if not os.path.isfile(path):
         raise FileNotFoundError(f"{path}: no such file")
     if path.lower().endswith(".bvh"):
+        _one_motion(path, sample)
         return _load_bvh(path, fps)
     if not path.lower().endswith(".npy"):
         raise ValueError(f"{path}: expected a .npy or .bvh file ({ACCEPTED})")
@@ -98,6 +99,8 @@ def load_motion(path: str, fps: float = 20.0, sample: int = 0, allow_pickle: boo
             raise ValueError(f"{path}: sample must be in [0, {arr.shape[0]}) for a [S, N, {arr.shape[-1]}] file, "
                              f"got {sample}")
         arr = arr[sample]
+    else:
+        _one_motion(path, sample)
     if arr.ndim == 3 and arr.shape[-1] == 3 and arr.shape[1] in (21, 22):
         out = LoadedMotion(arr, "joints", path, fps)
     elif arr.ndim == 2 and arr.shape[1] in (263, 251):
@@ -112,6 +115,13 @@ def load_motion(path: str, fps: float = 20.0, sample: int = 0, allow_pickle: boo
     if len(out.joints) < 1 or not np.isfinite(out.joints).all():
         raise ValueError(f"{path}: the motion is empty or holds NaN / inf")
     return check_plausible(out)
+
+
+def _one_motion(path: str, sample: int) -> None:
+    """A file of one motion has only sample 0: another ``sample`` cannot apply (an error, not ignored)."""
+    if sample != 0:
+        raise ValueError(f"{path} holds one motion: --sample {sample} applies to batched files only "
+                         "([B, N, J, 3] joints, [S, N, D] features, MDM's results.npy)")
 
 
 def check_real_values(arr: np.ndarray, path: str, what: str = "joint positions") -> np.ndarray:
