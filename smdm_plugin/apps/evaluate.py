@@ -68,7 +68,8 @@ def build_parser() -> argparse.ArgumentParser:
                    help="with --model: generations per caption for multimodality, over --mm-captions captions "
                         "(0: off; default 11 when --eval-mode has multimodality or --protocol is fixed, else 0; "
                         "T2M: 30)")
-    p.add_argument("--mm-captions", type=int_range(1, 100000), default=10, help="(default 10, T2M: 100)")
+    p.add_argument("--mm-captions", type=int_range(1, 100000), default=None,
+                   help="with --model: captions multimodality runs on (default 10, T2M: 100)")
     p.add_argument("--inbetween-every", type=int_range(0, 10000), default=0, metavar="K",
                    help="with --model: in-betweening; every motion passes through the real motion's frames 0, K, "
                         "2K, ... and its last frame, and keyframe_error (m, joints) is reported (default 0: off)")
@@ -308,6 +309,16 @@ def main(argv: Optional[List[str]] = None) -> int:
 
     if a.inbetween_every and not a.model:
         p.error("argument --inbetween-every: needs --model (the motions are generated through the keyframes)")
+    for option, value in (("--mm-repeats", a.mm_repeats), ("--mm-captions", a.mm_captions)):
+        if value and not a.model:   # multimodality generates several motions per caption
+            p.error(f"argument {option}: needs --model (multimodality generates several motions per caption)")
+    if a.mm_captions is None:
+        a.mm_captions = 10
+    from ..metrics.evaluator.protocol import EVAL_MODES
+
+    if not a.model and EVAL_MODES[a.eval_mode][1]:
+        print(f"smdm eval: warning: --eval-mode {a.eval_mode}'s multimodality needs --model: with --motions it is "
+              "not measured (its replications apply)", file=sys.stderr)
     from .common.threads import apply_threads
 
     apply_threads(a.threads)

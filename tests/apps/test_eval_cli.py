@@ -155,11 +155,24 @@ def test_eval_with_a_model_and_resume(tmp_path):
     (["evaluator", "train", "--out", "x", "--epochs", "0"], "--epochs"),
     (["evaluator", "fit"], "unknown subcommand"),
     (["eval", "--evaluator", ".", "--motions", "docs", "--out", "x", "--inbetween-every", "5"], "needs --model"),
+    # multimodality generates motions: with --motions its options cannot apply (0.10.5 ignored them)
+    (["eval", "--evaluator", ".", "--motions", "docs", "--out", "x", "--mm-repeats", "5"],
+     "argument --mm-repeats: needs --model"),
+    (["eval", "--evaluator", ".", "--motions", "docs", "--out", "x", "--mm-captions", "3"],
+     "argument --mm-captions: needs --model"),
 ])
 def test_bad_input_is_one_line(args, needle):
     r = subprocess.run([sys.executable, "-m", "smdm_plugin"] + args, capture_output=True, text=True, cwd=REPO,
                        env={**os.environ, "PYTHONPATH": REPO})
     assert r.returncode == 2 and needle in r.stderr and "Traceback" not in r.stderr
+
+
+def test_an_eval_mode_with_multimodality_on_motions_says_it_is_not_measured():
+    r = subprocess.run([sys.executable, "-m", "smdm_plugin", "eval", "--evaluator", ".", "--motions", "docs", "--out",
+                        "docs", "--eval-mode", "mm_short"], capture_output=True, text=True, cwd=REPO,
+                       env={**os.environ, "PYTHONPATH": REPO})
+    assert "smdm eval: warning: --eval-mode mm_short's multimodality needs --model" in r.stderr
+    assert r.returncode == 2 and "Traceback" not in r.stderr          # (then --out, inside the input, is refused)
 
 
 def test_eval_missing_motions_and_wrong_evaluator(tmp_path):
