@@ -131,6 +131,12 @@ def _parse(argv: Optional[List[str]]) -> Tuple[Any, TrainConfig]:
     for dest in _NOT_CLI_SPARSE:
         if getattr(a, dest) != p.get_default(dest):
             p.error(f"--{dest}: not an option of smdm train ({_NOT_CLI_SPARSE[dest]})")
+    if not a.sparse:   # a setting that cannot apply to a dense run is an error, never dropped silently
+        for dest in sorted(vars(a)):
+            if dest.startswith("sparse_") and getattr(a, dest) != p.get_default(dest):
+                p.error(f"--{dest}: applies only with --sparse (this run is dense)")
+    if a.init_amplitude != p.get_default("init_amplitude") and not (a.sparse and a.init_from):
+        p.error("--init-amplitude: applies only with --init-from and --sparse (the fitted sine layers)")
     try:
         sparse = SparseConfig.from_args(a) if a.sparse else None
     except ValueError as e:

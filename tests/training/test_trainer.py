@@ -228,6 +228,10 @@ def test_cli_writes_a_checkpoint_folder_and_never_overwrites(hml_dir, tmp_path, 
     (["--sparse", "--sparse_reduction", "1.5"], "argument --sparse_reduction: must be a finite number in [0, 1), got 1.5"),
     (["--sparse_text_encoder", "x"], "--sparse_text_encoder: not an option of smdm train"),
     (["--device", "nonsense"], "argument --device"),
+    # settings that cannot apply (0.10.5 trained dense and dropped them)
+    (["--sparse_reduction", "0.5"], "--sparse_reduction: applies only with --sparse (this run is dense)"),
+    (["--sparse_fsq", "false"], "--sparse_fsq: applies only with --sparse"),
+    (["--sparse", "--init-amplitude", "0.1"], "--init-amplitude: applies only with --init-from and --sparse"),
 ])
 def test_cli_bad_arguments_exit_2_with_one_line(args, message, tmp_path, capsys):
     with pytest.raises(SystemExit) as e:
