@@ -50,6 +50,9 @@ def test_table1_config_lists_the_paper_ablations():
     ({"variants": [{"name": "a", "spares": {}}]}, r"variants\[0\]: unknown key 'spares'; did you mean 'sparse'"),
     ({"variants": [{"dense": True}]}, r"variants\[0\]: every variant needs a unique name"),
     ({"variants": ["dense"]}, r"variants\[0\]='dense': expected a mapping"),
+    # sparse settings on a dense variant cannot apply (0.10.5 trained it dense and dropped them)
+    ({"variants": [{"name": "d", "dense": True, "sparse": {"reduction": 0.5}}]},
+     r"variants\[0\] \('d'\): sparse settings \['reduction'\] do not apply to a dense variant"),
 ])
 def test_bad_grid_is_a_clear_error(cfg, match):
     with pytest.raises(ValueError, match=match):

@@ -210,7 +210,12 @@ def test_study_config_is_validated():
     assert study.is_study_config("quality_compute") and not study.is_study_config("table1")
     for bad, match in (({"clock": "sun"}, "clock"), ({"snapshots": {"steps": [], "seconds": []}}, "snapshots"),
                        ({"bogus": 1}, "unknown key"), ({"seeds": [0, 0]}, "seeds"),
-                       ({"text": {"dim": 0}}, "text"), ({"evaluator": {"kind": "nope"}}, "evaluator.kind")):
+                       ({"text": {"dim": 0}}, "text"), ({"evaluator": {"kind": "nope"}}, "evaluator.kind"),
+                       # the grid's variant checks (0.10.5 took these): a bool dense, no sparse settings on a dense one
+                       ({"variants": [{"name": "d", "dense": "yes"}]}, r"variants\[0\].dense='yes'"),
+                       ({"variants": [{"name": "d", "dense": True, "sparse": {"fsq": False}}]},
+                        "do not apply to a dense variant"),
+                       ({"variants": [{"name": "a"}, {"name": "A"}]}, "have the same folder name 'a'")):
         raw = {**{k: v for k, v in cfg.items() if k != "data"}, **bad}
         with pytest.raises(ValueError, match=match):
             study.resolve_study(raw)

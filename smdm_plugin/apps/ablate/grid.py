@@ -138,6 +138,15 @@ def resolve(cfg: Dict[str, Any]) -> Dict[str, Any]:
     if not variants:
         raise AblateConfigError("the config lists no variants")
     _check("variants", variants, list)
+    check_variants(variants)
+    return out
+
+
+def check_variants(variants: List[Any]) -> None:
+    """Every variant of a grid or study (``{name, dense, sparse}``) well formed: a mapping of known keys,
+    a name, ``dense`` a bool, ``sparse`` a mapping (its values are checked when the variant runs), not
+    both ``dense: true`` and sparse settings (they cannot apply: refused, never dropped), names and
+    their folder names unique. Raises :class:`AblateConfigError` naming the variant."""
     seen: Dict[str, str] = {}
     for i, v in enumerate(variants):
         if not isinstance(v, dict):
@@ -147,13 +156,15 @@ def resolve(cfg: Dict[str, Any]) -> Dict[str, Any]:
             raise AblateConfigError(f"variants[{i}]: every variant needs a unique name, got {v.get('name')!r}")
         _check(f"variants[{i}].dense", v.get("dense", False), bool)
         _check(f"variants[{i}].sparse", v.get("sparse") or {}, dict)
+        if v.get("dense") and v.get("sparse"):
+            raise AblateConfigError(f"variants[{i}] ({v['name']!r}): sparse settings {sorted(v['sparse'])} do not "
+                                    "apply to a dense variant (dense: true); drop one of them")
         s = slug(v["name"])
         if s in seen:
             same = "the same name" if seen[s] == v["name"] else f"the same folder name {s!r}"
             raise AblateConfigError(f"variants {seen[s]!r} and {v['name']!r} have {same}; every variant needs a "
                                     "unique name (and folder name: lower case, runs of other characters as '-')")
         seen[s] = v["name"]
-    return out
 
 
 def slug(name: str) -> str:

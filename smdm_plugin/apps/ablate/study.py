@@ -21,8 +21,8 @@ from ..common.args import (add_common_flags, add_overwrite, existing_path, note_
                            resolve_device)
 from .results import (MANIFEST, check_out_dir, FAILED_FILE, RESULT_FILE, CacheState, Cached, Record, Status, failure_record, is_ok, read_cached,
                       status_of)
-from .grid import (AblateConfigError, _check, _check_keys, config_path, over_defaults, select_variants, slug,
-                   sparse_config)
+from .grid import (AblateConfigError, _check, _check_keys, check_variants, config_path, over_defaults, select_variants,
+                   slug, sparse_config)
 from ...io.files import fingerprint_files
 from ..common.provenance import make_provenance, stable_hash
 from .paired import reference_lines
@@ -122,14 +122,7 @@ def resolve_study(cfg: Dict[str, Any]) -> Dict[str, Any]:
     variants = out.get("variants")
     if not isinstance(variants, list) or not variants:
         raise AblateConfigError("the config lists no variants")
-    seen = set()
-    for i, v in enumerate(variants):
-        if not isinstance(v, dict) or not isinstance(v.get("name"), str) or not v["name"].strip():
-            raise AblateConfigError(f"variants[{i}]={v!r}: expected a mapping with a name")
-        _check_keys(f"variants[{i}]", v, ["name", "dense", "sparse"])
-        if slug(v["name"]) in seen:
-            raise AblateConfigError(f"variants[{i}]: the name {v['name']!r} (folder {slug(v['name'])!r}) is used twice")
-        seen.add(slug(v["name"]))
+    check_variants(variants)
     return out
 
 
