@@ -103,6 +103,21 @@ def test_the_launcher_child_installs_a_built_in_integration(tmp_path):
     assert run(repo, [sys.executable, "-c", code]) == 0
 
 
+def test_a_named_integration_that_another_recognises_is_refused_and_a_fork_is_said(tmp_path, capsys):
+    """0.10.5 ran an MDM checkout with MotionDiffuse's hooks when asked (nothing hooked: the flags did
+    nothing). A checkout another integration recognises is refused, naming both; one none recognises (a
+    fork) runs with the named hooks, with a warning."""
+    mdm_repo = layout(tmp_path / "mdm", "model/mdm.py", "utils/model_util.py")
+    with pytest.raises(ValueError, match=r"--integration motiondiffuse: --repo '.*mdm' is a mdm checkout"):
+        run(mdm_repo, [sys.executable, "-c", "pass"], integration="motiondiffuse")
+    assert run(mdm_repo, [sys.executable, "-c", "pass"], integration="mdm") == 0
+    fork = str(tmp_path / "fork")
+    os.makedirs(fork)
+    capsys.readouterr()
+    assert run(fork, [sys.executable, "-c", "import sys; sys.exit(4)"], integration="mdm") == 4
+    assert "does not have mdm's layout" in capsys.readouterr().err
+
+
 # ------------------------------------------------------------------------------ wrap_once
 def test_wrap_once_wraps_once_and_keeps_the_return_value():
     calls = []
