@@ -39,6 +39,27 @@ def test_choose_threads_order(monkeypatch):
     assert n >= 1 and why.startswith("auto")
 
 
+def test_more_threads_than_cores_is_said(monkeypatch, capsys):
+    """0.10.5 took `--threads 1000` on 2 cores silently (oversubscribed threads wait for each other)."""
+    import torch
+
+    from smdm_plugin.apps.common import threads
+
+    before = torch.get_num_threads()
+    monkeypatch.setattr(threads, "usable_cores", lambda: 2)
+    monkeypatch.delenv("OMP_NUM_THREADS", raising=False)
+    try:
+        assert threads.apply_threads(2).startswith("2 CPU threads") and capsys.readouterr().err == ""
+        threads.apply_threads(8)
+        assert ("smdm: warning: 8 CPU threads (--threads) on the 2 cores this process can use"
+                in capsys.readouterr().err) and torch.get_num_threads() == 8      # asked: warned, not changed
+        monkeypatch.setenv("OMP_NUM_THREADS", "3")
+        threads.apply_threads(None)
+        assert "3 CPU threads (OMP_NUM_THREADS) on the 2 cores" in capsys.readouterr().err
+    finally:
+        torch.set_num_threads(before)
+
+
 def test_cli_sets_passive_wait_policy_before_torch_loads(tmp_path):
     """In a fresh process, `smdm <cmd>` puts OMP_WAIT_POLICY=PASSIVE into the environment before
     torch is imported (and keeps a value the user set)."""

@@ -72,6 +72,10 @@ def apply_threads(requested: Optional[int] = None) -> str:
     import torch
 
     n, why = choose_threads(requested)
+    cores = usable_cores()
+    if n > cores:   # oversubscribed: the threads wait for each other (docs/threads.md), said, never silent
+        print(f"smdm: warning: {n} CPU threads ({why.split(':')[0]}) on the {cores} core{'s' if cores != 1 else ''} "
+              f"this process can use: they wait for each other, slower than --threads {cores}", file=sys.stderr)
     torch.set_num_threads(n)
     return f"{n} CPU thread{'s' if n != 1 else ''} ({why})"
 
