@@ -222,6 +222,9 @@ def test_resume_continues_exactly_and_glove(tmp_path):
     ev = load_evaluator(str(g))
     assert not ev.config.learned_words and ev.config.dim_word == 20 and ev.config.vocab_size == len(words)
     torch.testing.assert_close(ev.words.weight, torch.from_numpy(np.load(glove / "our_vab_data.npy")))
+    # loading it, GloVe (upstream's evaluator's option) cannot apply: its words are its own (0.10.5 ignored it)
+    with pytest.raises(ValueError, match=r"was trained here .*; glove applies to upstream's evaluator only"):
+        load_evaluator(str(g), glove=str(glove))
 
 
 def test_text_model_is_sampled_with_its_captions_and_guidance(tmp_path, monkeypatch):

@@ -275,8 +275,14 @@ def evaluator_layout(path: str) -> str:
 def load_evaluator(path: str, glove: Optional[str] = None, mean: Optional[np.ndarray] = None,
                    std: Optional[np.ndarray] = None, device: Any = "cpu") -> Evaluator:
     """An evaluator folder of either layout (:func:`evaluator_layout`), in ``eval`` mode on ``device``;
-    ``glove``/``mean``/``std`` apply to upstream's layout."""
+    ``glove``/``mean``/``std`` apply to upstream's layout (given for one trained here: a ``ValueError``,
+    never ignored: it keeps its own vocabulary and statistics)."""
     if evaluator_layout(path) == "own":
+        given = [name for name, v in (("glove", glove), ("mean", mean), ("std", std)) if v is not None]
+        if given:
+            raise ValueError(f"evaluator {path!r} was trained here ({CONFIG_FILENAME}: its own vocabulary and "
+                             f"statistics); {', '.join(given)} appl{'y' if len(given) > 1 else 'ies'} to upstream's "
+                             "evaluator only (--glove: leave it out)")
         return _load_own(path, device)
     return load_upstream_evaluator(path, glove=glove, mean=mean, std=std, device=device)
 
