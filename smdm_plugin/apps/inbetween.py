@@ -74,6 +74,9 @@ def main(argv: Optional[List[str]] = None) -> int:
         bundles = [load_bundle(m, device=dev) for m in models]
     except (OSError, ValueError, RuntimeError) as e:
         p.error(f"--model: {str(e).splitlines()[0]}")
+    if a.forced != p.get_default("forced") and not any(b.sparse for b in bundles):
+        p.error(f"--forced {a.forced}: applies to sparse models only (which keyframes are their tokens); every "
+                "--model is dense")
     inputs = {"--keyframes": a.keyframes, **{f"--model {m}": m for m in models}}
     try:
         check_no_overlap(a.out, inputs)

@@ -416,7 +416,10 @@ def test_cli_humanml3d_features_and_clear_errors(model_folders, hml_dir, tmp_pat
            (["--model", str(model_folders / "joints66-dense"), "--keyframes", str(feats), "--frames", "3", "--every", "2"],
             "give one of them"),
            (["--model", str(model_folders / "joints66-dense"), "--keyframes", str(tmp_path / "none.npy")],
-            "no such file")]
+            "no such file"),
+           # which keyframes are a sparse model's tokens: with dense models only it cannot apply (0.10.5 ignored it)
+           (["--model", str(model_folders / "humanml3d-dense"), "--keyframes", str(feats), "--forced", "all"],
+            "--forced all: applies to sparse models only")]
     for args, msg in bad:
         with pytest.raises(SystemExit) as e:
             cli.main([*args, "--out", str(tmp_path / "never")])
