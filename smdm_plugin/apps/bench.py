@@ -177,6 +177,9 @@ def check_family_options(args: argparse.Namespace, parser: argparse.ArgumentPars
         parser.error(f"argument --fsq: --family {args.family} has no softmax attention keys to quantise "
                      "(linear attention); leave --fsq out")
     args.fsq = args.fsq or ("paper" if work.fsq else "off")
+    if args.fastpath and set(args.modes) == {"train"}:   # a setting that cannot apply: refused, never dropped
+        parser.error("argument --fastpath: torch's fast path runs only without autograd (--modes sample, loop); "
+                     "--modes train never takes it")
     root = args.root if args.root is not None else (os.environ.get(work.root_env) or None if work.root_env else None)
     if root is not None:
         try:

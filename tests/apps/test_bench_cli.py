@@ -209,6 +209,8 @@ def test_bench_motiondiffuse_takes_the_upstream_class_from_root(tmp_path):
     (["--family", "motiondiffuse", "--fsq", "both"], "argument --fsq: --family motiondiffuse has no softmax"),
     (["--family", "motiondiffuse", "--root", "."], "argument --root: . is not a MotionDiffuse checkout"),
     (["--root", "."], "argument --root: --family mdm has no upstream model to load"),
+    # a setting that cannot apply (0.10.5 ran and recorded it): the fast path never runs under autograd
+    (["--fastpath", "--modes", "train"], "argument --fastpath: torch's fast path runs only without autograd"),
 ])
 def test_bad_family_options_are_one_line_errors(args, message):
     p = smdm("bench", *args)
