@@ -351,6 +351,11 @@ def settings_from_args(a: argparse.Namespace) -> Any:
         sizes["dim_coemb"] = a.dim
     if a.reversed_negatives and a.recipe != "t2m":
         raise ValueError("argument --reversed-negatives: only with --recipe t2m (a term of its margin loss)")
+    t2m = TrainSettings(recipe="t2m")   # the parser's defaults: a value other than these was given
+    for name, what in (("ae_epochs", "its first stage"), ("margin", "its margin loss")):
+        if a.recipe != "t2m" and getattr(a, name) != getattr(t2m, name):
+            raise ValueError(f"argument --{name.replace('_', '-')}: only with --recipe t2m ({what}); "
+                             f"--recipe {a.recipe} has no use for it")
     return TrainSettings(recipe=a.recipe, epochs=a.epochs, batch=a.batch, lr=a.lr, ae_epochs=a.ae_epochs,
                          margin=a.margin, seed=a.seed, sizes=sizes, select=a.select,
                          reversed_negatives=a.reversed_negatives)

@@ -117,7 +117,9 @@ def test_evaluator_train_prints_and_saves_its_check(tmp_path, capsys):
     blind = not (check["drop_reversed_top3"][0] - check["drop_reversed_top3"][1] > 0
                  and check["drop_swapped_top3"][0] - check["drop_swapped_top3"][1] > 0)
     assert ("warning: this evaluator's R-precision does not fall clearly" in captured.err) == blind
-    with pytest.raises(SystemExit) as e:
-        smdm(["evaluator", "train", "--out", str(tmp_path / "c"), "--recipe", "contrastive", "--reversed-negatives"])
-    assert e.value.code == 2 and "only with --recipe t2m" in capsys.readouterr().err
-    assert not (tmp_path / "c").exists()
+    for t2m_only, name in ((["--reversed-negatives"], "--reversed-negatives"), (["--margin", "5"], "--margin"),
+                           (["--ae-epochs", "3"], "--ae-epochs")):    # 0.10.5 ignored the last two
+        with pytest.raises(SystemExit) as e:
+            smdm(["evaluator", "train", "--out", str(tmp_path / "c"), "--recipe", "contrastive", *t2m_only])
+        assert e.value.code == 2 and f"argument {name}: only with --recipe t2m" in capsys.readouterr().err
+        assert not (tmp_path / "c").exists()
