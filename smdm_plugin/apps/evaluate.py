@@ -309,6 +309,9 @@ def main(argv: Optional[List[str]] = None) -> int:
 
     if a.inbetween_every and not a.model:
         p.error("argument --inbetween-every: needs --model (the motions are generated through the keyframes)")
+    if a.protocol == "fixed" and a.eval_mode != p.get_default("eval_mode"):
+        p.error(f"argument --eval-mode: upstream's eval modes are --protocol upstream's; --protocol fixed has no use "
+                "for it (--replications, --mm-repeats set its runs)")
     for option, value in (("--mm-repeats", a.mm_repeats), ("--mm-captions", a.mm_captions)):
         if value and not a.model:   # multimodality generates several motions per caption
             p.error(f"argument {option}: needs --model (multimodality generates several motions per caption)")

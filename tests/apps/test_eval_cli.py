@@ -160,6 +160,8 @@ def test_eval_with_a_model_and_resume(tmp_path):
      "argument --mm-repeats: needs --model"),
     (["eval", "--evaluator", ".", "--motions", "docs", "--out", "x", "--mm-captions", "3"],
      "argument --mm-captions: needs --model"),
+    (["eval", "--evaluator", ".", "--motions", "docs", "--out", "x", "--protocol", "fixed", "--eval-mode", "debug"],
+     "argument --eval-mode: upstream's eval modes are --protocol upstream's"),
 ])
 def test_bad_input_is_one_line(args, needle):
     r = subprocess.run([sys.executable, "-m", "smdm_plugin"] + args, capture_output=True, text=True, cwd=REPO,
