@@ -13,7 +13,7 @@ import torch
 from ..adapters.inbetween_sampling import POLICIES
 from ..reference.simple_diffusion import IMPUTATIONS
 from ..metrics.inbetween_metrics import keyframe_metrics
-from .common.args import add_common_flags, add_overwrite, int_range, note_printer, progress_of, output_path
+from .common.args import add_common_flags, add_overwrite, int_range, note_printer, output_path, progress_of
 from .common.bundle_inbetween import model_inputs, plan_keyframes, run_inbetween, summary_markdown
 from .common.motion_files import ACCEPTED, add_motion_file_options
 

@@ -125,8 +125,8 @@ def _check_named(repo: str, chosen: Integration) -> None:
     try:
         other = detect_repo(repo)
     except ValueError:
-        sys.stderr.write(f"smdm run: warning: --repo {repo!r} does not have {chosen.name}'s layout ({chosen.layout}); "
-                         f"running with the {chosen.name} hooks as --integration asks\n")
+        sys.stderr.write(f"smdm run: warning: --repo {repo!r} does not have {chosen.name}'s layout "
+                         f"({chosen.layout}); running with the {chosen.name} hooks as --integration asks\n")
         return
     raise ValueError(f"smdm run: --integration {chosen.name}: --repo {repo!r} is a {other} checkout, not "
                      f"{chosen.name}'s ({chosen.layout}); leave --integration out to use {other}'s hooks")

@@ -14,7 +14,7 @@ import sys
 import time
 from typing import Any, Callable, List, Mapping, Optional, Sequence
 
-from ..support.atomic import _fsync_dir, write_error
+from ..support.atomic import _fsync_dir, for_target, write_error
 from .files import OutputExistsError, OutputUnwritableError, PathLike, atomic_write_json, check_writable
 
 __all__ = ["OutputDir", "OutputLock", "run_in_output_dir", "OutputLockedError", "OutputOverlapError", "MANIFEST", "check_no_overlap",
@@ -167,14 +167,6 @@ def _exchange(a: str, b: str) -> bool:
     raise OSError(err, os.strerror(err), a, None, b)
 
 
-def _for_target(e: BaseException, tmp: str, path: str) -> Optional[OSError]:
-    """The ``OSError`` ``e`` that names the temporary file ``tmp`` (it could not be created), naming
-    ``path``, the file it was for, instead; None for anything else."""
-    if isinstance(e, OSError) and e.filename == tmp:
-        return OSError(e.errno, e.strerror, path)
-    return None
-
-
 def _create_with_content(path: str, data: bytes, exists: Callable[[], BaseException]) -> None:
     """Create ``path`` holding ``data``, atomically: it appears complete or not at all (``exists()``
     is raised when it is there already). The content is written to a temporary file first and
@@ -190,7 +182,7 @@ def _create_with_content(path: str, data: bytes, exists: Callable[[], BaseExcept
                 f.flush()
                 os.fsync(f.fileno())
         except BaseException as e:
-            named = write_error(e, path) or _for_target(e, tmp, path)
+            named = write_error(e, path) or for_target(e, tmp, path)
             raise (named if named is not None else e) from None
         try:
             os.link(tmp, path)

@@ -38,8 +38,8 @@ def atomic_open(path: PathLike, mode: str = "w", **kwargs: Any) -> Iterator[IO[A
         perms = 0o666  # os.open applies the umask
     try:
         fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL | getattr(os, "O_BINARY", 0), perms)
-    except OSError as e:  # the folder takes no new file: named by the file it was for, not the temporary
-        raise OSError(e.errno, e.strerror, path) from None
+    except OSError as e:  # the folder takes no new file
+        raise for_target(e, tmp, path) or e from None
     try:
         with os.fdopen(fd, mode, **kwargs) as f:
             yield f
@@ -56,6 +56,14 @@ def atomic_open(path: PathLike, mode: str = "w", **kwargs: Any) -> Iterator[IO[A
             raise named from None
         raise
     _fsync_dir(folder)
+
+
+def for_target(e: BaseException, tmp: str, path: str) -> Optional[OSError]:
+    """``e`` naming ``path``, the file a temporary ``tmp`` was for, when it is an ``OSError`` that names
+    ``tmp`` (it could not be created: the user never gave that name); None for anything else."""
+    if isinstance(e, OSError) and e.filename == tmp:
+        return OSError(e.errno, e.strerror, path)
+    return None
 
 
 #: how torch's zip writer reports a failed write (``torch.save``): a RuntimeError, not an OSError
