@@ -31,7 +31,7 @@ COMMANDS: Dict[str, Tuple[str, str]] = {
 def _usage() -> str:
     lines = ["usage: smdm <command> [options]", "", "commands:"]
     lines += [f"  {k:10s} {v[1]}" for k, v in COMMANDS.items()]
-    lines += ["", "'smdm <command> --help' for the options of a command; 'smdm --version'."]
+    lines += ["", "'smdm <command> --help' (or 'smdm help <command>') for the options of a command; 'smdm --version'."]
     return "\n".join(lines)
 
 
@@ -49,9 +49,18 @@ def main(argv: Optional[List[str]] = None) -> int:
         print(_usage(), file=sys.stderr)
         return 2
     if argv[0] in ("-h", "--help", "help"):
-        print(_usage())
-        return 0
+        if len(argv) == 1:
+            print(_usage())
+            return 0
+        if len(argv) > 2:
+            print(f"smdm: error: {argv[0]} takes at most one command name, got {' '.join(argv[1:])!r}",
+                  file=sys.stderr)
+            return 2
+        argv = [argv[1], "--help"]                    # `smdm help demo`: the command's own help
     if argv[0] in ("-V", "--version"):
+        if len(argv) > 1:
+            print(f"smdm: error: {argv[0]} takes no arguments, got {' '.join(argv[1:])!r}", file=sys.stderr)
+            return 2
         from .. import __version__
 
         print(f"smdm-plugin {__version__}")

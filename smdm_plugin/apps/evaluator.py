@@ -96,8 +96,12 @@ def main(argv: Optional[List[str]] = None) -> int:
                             "swap, the real-vs-real floor) and save the table beside it")
         top.parse_args(argv)      # prints the help and exits 0
     if argv[0] == "check":
+        from .common.args import existing_path, positional_type
+
         p = build_check_parser()
-        return run_check(p.parse_args(argv[1:]), p)
+        a = p.parse_args(argv[1:])
+        positional_type(p, a, "evaluator", existing_path("dir"), "EDIR")
+        return run_check(a, p)
     if argv[0] != "train":
         print(f"smdm evaluator: error: unknown subcommand {argv[0]!r} (expected: train, check)", file=sys.stderr)
         return 2
@@ -279,7 +283,7 @@ def build_check_parser() -> argparse.ArgumentParser:
                     "score of the real motions degraded (noise 0.1 / 0.3 / 1.0 x Std, 9-frame moving average, time "
                     "reversal, foot sliding, caption swap) beside the real-vs-real floor, under smdm eval's protocol. "
                     "Written to EDIR/sensitivity.json; smdm eval shows it beside every result.")
-    p.add_argument("evaluator", type=existing_path("dir"), metavar="EDIR",
+    p.add_argument("evaluator", metavar="EDIR",   # checked after parsing (positional_type)
                    help="an evaluator folder (trained here, or upstream's finest.tar layout)")
     p.add_argument("--data", type=existing_path("dir"), default=None, metavar="DIR",
                    help="HumanML3D-format folder the evaluator reads (default: the embedded CMU clips)")

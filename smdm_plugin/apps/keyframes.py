@@ -16,7 +16,8 @@ from typing import List, Optional
 
 from ..io.files import OutputExistsError, check_new_file
 from ..core.config import SparseConfig
-from .common.args import add_common_flags, add_overwrite, existing_path, float_range, note_printer, output_path
+from .common.args import (add_common_flags, add_overwrite, existing_path, float_range, note_printer, output_path,
+                          positional_type)
 
 #: the library's default (docs/defaults.md), as in smdm demo
 FRAME_INDEX_SCALE: float = SparseConfig.frame_index_scale
@@ -26,7 +27,7 @@ PLOT_FORMATS = (".png", ".pdf", ".svg", ".jpg", ".jpeg")
 
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="smdm keyframes", description=__doc__.split("\n\n")[0])
-    p.add_argument("bvh", nargs="*", type=existing_path("any"),
+    p.add_argument("bvh", nargs="*",   # checked after parsing (positional_type)
                    help="BVH files or folders (default: as smdm demo: the .bvh files of $SMDM_MOCAP when set, "
                         "else the 17 CMU clips embedded in the package)")
     p.add_argument("--reductions", nargs="+", type=float_range(0.0, 1.0, hi_open=True), default=[0.6, 0.7, 0.8, 0.9],
@@ -44,6 +45,7 @@ def build_parser() -> argparse.ArgumentParser:
 def main(argv: Optional[List[str]] = None) -> int:
     p = build_parser()
     a = p.parse_args(argv)
+    positional_type(p, a, "bvh", existing_path("any"))
     if a.plot is not None:
         if not a.plot.lower().endswith(PLOT_FORMATS):
             p.error(f"argument --plot: expected a file name ending in {', '.join(PLOT_FORMATS)}, got {a.plot!r}")

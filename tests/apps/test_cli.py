@@ -54,6 +54,11 @@ def test_global_entry():
     assert r.returncode == 0 and r.stdout.startswith("smdm-plugin ")
     r = smdm("--help")
     assert r.returncode == 0 and all(c in r.stdout for c in ("bench", "ablate", "demo", "run", "keyframes"))
+    user_error(smdm("--version", "extra"), "smdm: error: --version takes no arguments, got 'extra'")
+    r = smdm("help", "keyframes")                   # a command's own help
+    assert r.returncode == 0 and r.stdout.startswith("usage: smdm keyframes"), r
+    user_error(smdm("help", "bnech"), "unknown command 'bnech'; did you mean 'bench'?")
+    user_error(smdm("help", "demo", "train"), "help takes at most one command name, got 'demo train'")
 
 
 # ------------------------------------------------------------------------------ smdm ablate
@@ -160,6 +165,10 @@ def test_keyframes_bad_arguments(tmp_path):
     user_error(smdm("keyframes", "--reductions", "-0.2"), "argument --reductions")
     user_error(smdm("keyframes", "--frame-index-scale", "-1"), "argument --frame-index-scale: must be a finite")
     user_error(smdm("keyframes", tmp_path / "missing.bvh"), "argument bvh: no such file")
+    # a mistyped option is named, not its value read as a BVH path (0.10.6: "argument bvh: no such file: '0'")
+    user_error(smdm("keyframes", "--rates", "0"), "unrecognized arguments: --rates")
+    user_error(smdm("evaluator", "check", "--bogus", "1"), "unrecognized arguments: --bogus")
+    user_error(smdm("evaluator", "check", tmp_path / "none"), "argument EDIR: no such folder")
     user_error(smdm("keyframes", tmp_path), f"smdm keyframes: no .bvh file in {tmp_path}")
     user_error(smdm("keyframes", "--plot", tmp_path / "x.gif"), "argument --plot: expected a file name ending in .png")
 

@@ -15,7 +15,7 @@ if TYPE_CHECKING:
 # the range-checked types live in core (the --sparse_* options use them too); re-exported here
 from ...support.argtypes import float_range, int_range, str2bool
 
-__all__ = ["int_range", "float_range", "str2bool", "existing_path", "output_path", "device_type", "compile_backend",
+__all__ = ["int_range", "float_range", "str2bool", "existing_path", "positional_type", "output_path", "device_type", "compile_backend",
            "resolve_device", "add_overwrite", "add_common_flags", "progress_of", "note_printer", "COMMON_FLAGS"]
 
 
@@ -35,6 +35,20 @@ def existing_path(kind: str = "any") -> Callable[[str], str]:
 
     parse.__name__ = "path"
     return parse
+
+
+def positional_type(p: argparse.ArgumentParser, a: argparse.Namespace, dest: str, parse: Callable[[str], str],
+                    name: Optional[str] = None) -> None:
+    """Check a positional argument (``a.<dest>``: one value or a list) with ``parse`` (an argparse
+    ``type``) after parsing, not as its ``type``: argparse types a positional as soon as a value
+    fills it, so the value of a mistyped option (``--rates 0``) was checked as the positional (``no
+    such file: '0'``) before the unknown option was named. A bad value: ``p.error`` naming
+    ``name`` (default ``dest``), exit 2."""
+    value = getattr(a, dest)
+    try:
+        setattr(a, dest, [parse(v) for v in value] if isinstance(value, list) else parse(value))
+    except argparse.ArgumentTypeError as e:
+        p.error(f"argument {name or dest}: {e}")
 
 
 def output_path(kind: str = "folder") -> Callable[[str], str]:
