@@ -3,14 +3,16 @@ the files (:mod:`smdm_plugin.io.checkpoint_files`, which knows no model family);
 what the saved config describes."""
 from __future__ import annotations
 
+import os
 from typing import Any, Iterable, Optional, Tuple, Union
 
 import torch.nn as nn
 
 from ..core.config import SparseConfig
 from ..io import checkpoint_files as _io
-from .state import sparse_config_of
-from .surgery import is_sparse, sparsify
+from .family import ModelFamily
+from .state import find_sparse_model, sparse_config_of
+from .surgery import is_sparse, set_mean_std, sparsify
 from .text_encoder import swap_text_encoder, swapped_text_encoder
 
 
@@ -36,8 +38,9 @@ def prepare_model(model: nn.Module, config: SparseConfig, **sparsify_kwargs: Any
 
 
 def load_checkpoint(path: str, model: Optional[nn.Module] = None, map_location: Any = "cpu",
-                    strict: bool = True, allow_differences: Iterable[str] = (),
-                    **sparsify_kwargs: Any) -> Tuple[nn.Module, Optional[SparseConfig]]:
+                    strict: bool = True, allow_differences: Iterable[str] = (), *,
+                    mean: Any = None, std: Any = None, diffusion: Any = None,
+                    family: Union[str, ModelFamily, None] = None) -> Tuple[nn.Module, Optional[SparseConfig]]:
     """Load ``path`` (a ``.pt`` state dict) re-creating sparse mode from the saved config, for any
     registered model family.
 
@@ -49,16 +52,30 @@ def load_checkpoint(path: str, model: Optional[nn.Module] = None, map_location: 
             ``backbone.json`` beside the checkpoint.
         allow_differences: config fields an already-sparse ``model`` may set differently from the
             saved config on purpose (e.g. ``("gamma",)`` to sample with another schedule).
-        sparsify_kwargs: passed to :func:`sparsify` (``mean``, ``std``, ``diffusion``).
+        mean, std: the ``[D]`` dataset statistics a sparse model selects keyframes with (given to
+            :func:`sparsify`, or to :func:`set_mean_std` of an already-sparse ``model``; a dense
+            checkpoint needs none).
+        diffusion, family: given to :func:`sparsify` when the model is sparsified here (``diffusion``
+            with an already-sparse ``model`` is an error: attach it with ``attach_diffusion``).
     Returns:
         ``(model, config)``; config is None for a dense checkpoint.
     """
+    if not isinstance(path, (str, os.PathLike)):
+        raise TypeError(f"load_checkpoint: path must be a file path, got {type(path).__name__}")
+    if model is not None and not isinstance(model, nn.Module):
+        raise TypeError(f"load_checkpoint: model must be a torch.nn.Module or None, got {type(model).__name__}")
+    path, allowed = os.fspath(path), _io.allowed_differences(allow_differences)
     state, config, source = _io.read_checkpoint(path, map_location)
     if model is None:
         model = _io.build_backbone(path)
     if config is not None and config.enabled and _io.model_is_sparse(model):
-        _io.check_config_matches(sparse_config_of(model), config, source or path, allow_differences)
+        _io.check_config_matches(sparse_config_of(model), config, source or path, allowed)
+        if diffusion is not None:
+            raise ValueError("load_checkpoint: diffusion= is attached when the model is sparsified here, but the "
+                             "model is already sparse: call attach_diffusion(diffusion, model)")
+        if mean is not None or std is not None:
+            set_mean_std(find_sparse_model(model), mean, std)
     if config is not None and (config.text_encoder or (config.enabled and not _io.model_is_sparse(model))):
-        model = prepare_model(model, config, **sparsify_kwargs)
-    _io.load_weights(model, state, path, strict)
+        model = prepare_model(model, config, mean=mean, std=std, diffusion=diffusion, family=family)
+    _io.load_weights(model, state, path, strict, source)
     return model, config

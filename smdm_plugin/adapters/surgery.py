@@ -12,6 +12,7 @@ no buffer, no state) and a corrected retry works.
 """
 from __future__ import annotations
 
+import dataclasses
 from typing import Any, Dict, Mapping, Tuple, Union
 
 import torch
@@ -36,7 +37,7 @@ def as_config(config: ConfigLike, fn: str = "sparsify") -> SparseConfig:
     if config is None:
         return SparseConfig()
     if isinstance(config, SparseConfig):
-        return config
+        return dataclasses.replace(config)     # checked again (a field set after it was built), the caller's untouched
     if isinstance(config, Mapping):
         return SparseConfig.from_dict(config)
     raise TypeError(f"{fn}: config must be a SparseConfig, a dict of its fields or None, "
@@ -73,15 +74,32 @@ def _check_stats(name: str, value: Any, device: torch.device, fn: str) -> None:
             raise ValueError(f"{fn}: {name} must be [D] real numbers, got {type(value).__name__} ({e})") from None
     if t.is_complex() or t.dtype == torch.bool:
         raise ValueError(f"{fn}: {name} must be [D] real numbers, got dtype {t.dtype}")
+    if t.dim() != 1 or not t.numel():
+        raise ValueError(f"{fn}: {name} must be [D] (one value per motion feature), got shape {tuple(t.shape)}")
     if t.is_floating_point() and not bool(torch.isfinite(t).all()):  # once, at conversion: not the hot path
         bad = int(torch.nonzero(~torch.isfinite(t.reshape(-1)))[0])
         raise ValueError(f"{fn}: {name} holds a non-finite value ({float(t.reshape(-1)[bad])} at index {bad}); "
                          "the [D] statistics must be finite")
 
 
+def _check_stats_pair(mean: Any, std: Any, device: torch.device, fn: str) -> None:
+    """:func:`_check_stats` of both, and ``[D]`` both when both are given."""
+    _check_stats("mean", mean, device, fn)
+    _check_stats("std", std, device, fn)
+    if mean is not None and std is not None and len(mean) != len(std):
+        raise ValueError(f"{fn}: mean and std must both be [D], got {len(mean)} and {len(std)} values")
+
+
+def _module(model: Any, fn: str) -> nn.Module:
+    """``model``, an ``nn.Module``, else a ``TypeError`` naming ``fn``."""
+    if not isinstance(model, nn.Module):
+        raise TypeError(f"{fn}: model must be a torch.nn.Module, got {type(model).__name__}")
+    return model
+
+
 def is_sparse(model: nn.Module) -> bool:
     """Whether ``model`` itself was sparsified (see :func:`sparsify`)."""
-    return get_state(model) is not None
+    return get_state(_module(model, "is_sparse")) is not None
 
 
 def _lipschitz_layers(family: ModelFamily, model: nn.Module, config: SparseConfig
@@ -114,7 +132,10 @@ def sparsify(model: nn.Module, config: ConfigLike = None, *, diffusion: Any = No
         mean, std: ``[D]`` dataset statistics used to de-normalise motions for VW (HumanML3D/KIT).
         family: the family's name or object; None = the first registered family that matches.
     """
+    _module(model, "sparsify")
     config = as_config(config)
+    if family is not None and not isinstance(family, (str, ModelFamily)):
+        raise TypeError(f"sparsify: family must be a family name or a ModelFamily, got {type(family).__name__}")
     if not config.enabled:
         return model
     if is_sparse(model):
@@ -127,8 +148,7 @@ def sparsify(model: nn.Module, config: ConfigLike = None, *, diffusion: Any = No
         raise TypeError(f"sparsify: diffusion must be a Gaussian diffusion with a callable training_losses(model, "
                         "x_start, t, model_kwargs) and its step count (num_timesteps or original_num_steps), got "
                         f"{type(diffusion).__name__}")
-    _check_stats("mean", mean, device, "sparsify")
-    _check_stats("std", std, device, "sparsify")
+    _check_stats_pair(mean, std, device, "sparsify")
     variant = fam.variant(model)
     if diffusion is not None:
         config = config.replace(diffusion_steps=diffusion_steps(diffusion))
@@ -193,7 +213,7 @@ def unsparsify(model: nn.Module) -> nn.Module:
     dense equivalent). Family-specific changes with a dense equivalent keep their trained weights
     (MDM: FSQ self-attention becomes ``nn.MultiheadAttention`` with its current q/k/v/out weights).
     """
-    state = get_state(model)
+    state = get_state(_module(model, "unsparsify"))
     if state is None:
         return model
     _undo(model, state)
@@ -202,10 +222,9 @@ def unsparsify(model: nn.Module) -> nn.Module:
 
 def set_mean_std(model: nn.Module, mean: Any, std: Any) -> None:
     """Give a sparse model the dataset Mean/Std after the fact (e.g. once the data is loaded)."""
-    state = get_state(model)
+    state = get_state(_module(model, "set_mean_std"))
     if state is None:
         raise ValueError(f"set_mean_std: {type(model).__name__} is not sparse (sparsify it first)")
     device = model_device(model, "set_mean_std")
-    _check_stats("mean", mean, device, "set_mean_std")
-    _check_stats("std", std, device, "set_mean_std")
+    _check_stats_pair(mean, std, device, "set_mean_std")
     state.schedule = MaskSchedule(state.config, mean, std, noise_seed=state.schedule.noise_seed)

@@ -19,6 +19,10 @@ CONFIG_VERSION = 1
 #: name of the persistent buffer that marks a state dict as sparse (its value: the config version)
 MARKER = "smdm_sparse_version"
 FEATURES = ("auto", "humanml3d", "kit", "raw")
+#: the run options that share the ``sparse_`` prefix of :meth:`SparseConfig.from_args` but are no config
+#: field (the upstream integrations' ``--sparse_compile``, ``--sparse_preset``, ``--sparse_init_from``, and
+#: what a run records beside them in ``args.json``): any other unknown ``sparse_`` key is an error
+RUN_OPTIONS = ("sparse_compile", "sparse_compile_applied", "sparse_preset", "sparse_init_from", "sparse_init_origin")
 
 
 def _selector_names() -> Tuple[str, ...]:
@@ -286,7 +290,7 @@ class SparseConfig:
 
     @classmethod
     def _from_source(cls, src: PathLike, fmt: str, is_path: bool = False) -> "SparseConfig":
-        return cls.from_dict(*read_mapping(src, fmt, is_path))
+        return cls.from_dict(*read_mapping(src, fmt, is_path, [f.name for f in dataclasses.fields(cls)]))
 
     def save(self, directory_or_path: PathLike) -> str:
         """Write ``sparse_config.json`` into a directory, or to the given file path, atomically
@@ -331,9 +335,26 @@ class SparseConfig:
     @classmethod
     def from_args(cls, args: Any) -> "SparseConfig":
         """From a parsed namespace (or dict, e.g. MDM's ``args.json``) carrying ``sparse`` and
-        ``sparse_<field>`` keys; other keys are ignored."""
-        d = vars(args) if not isinstance(args, Mapping) else args
-        kw: Dict[str, Any] = {"enabled": d.get("sparse") or False}
+        ``sparse_<field>`` keys; keys without the prefix are ignored, an unknown ``sparse_`` key (a
+        misspelt field, never dropped silently; :data:`RUN_OPTIONS` aside) is a ``ValueError``."""
+        if isinstance(args, Mapping):
+            d = args
+        elif isinstance(args, argparse.Namespace) or hasattr(args, "__dict__"):
+            d = vars(args)
+        else:
+            raise ConfigTypeError(f"SparseConfig.from_args: expected an argparse namespace or a mapping, "
+                                  f"got {type(args).__name__}")
+        keys = [f"sparse_{f.name}" for f in dataclasses.fields(cls) if f.name != "enabled"]
+        unknown = [k for k in d if isinstance(k, str) and k.startswith("sparse_") and k not in keys
+                   and k not in RUN_OPTIONS]
+        if unknown:
+            raise ValueError(f"SparseConfig: unknown option {unknown[0]!r}{closest(unknown[0], keys)}")
+        enabled = d.get("sparse", False)
+        if enabled is None:
+            enabled = False
+        if not is_bool(enabled):
+            raise ConfigTypeError(f"SparseConfig: sparse must be true or false, got {enabled!r}")
+        kw: Dict[str, Any] = {"enabled": enabled}
         for f in dataclasses.fields(cls):
             key = f"sparse_{f.name}"
             if f.name == "enabled" or key not in d:

@@ -24,6 +24,12 @@ TRAIN_CONFIG_FILENAME = "train_config.json"
 #: what sampling a bundle needs besides the weights (``training.bundle``)
 MOTION_FILENAME = "motion.json"
 
+class CheckpointMismatchError(ValueError, RuntimeError):
+    """Weights that do not fit the model they are loaded into (sparse into dense or the reverse,
+    missing or unexpected keys, shapes or dtypes that differ). A ``ValueError``, as every bad input;
+    also a ``RuntimeError``, what 0.10 raised (and ``torch.nn.Module.load_state_dict`` raises)."""
+
+
 def _dir_of(path: str) -> str:
     return path if os.path.isdir(path) else os.path.dirname(os.path.abspath(path))
 
@@ -76,6 +82,9 @@ def find_config(checkpoint_path: str) -> Tuple[Optional[SparseConfig], Optional[
         require_fields(read_json_object(p), [f.name for f in dataclasses.fields(SparseConfig)], p)
     if os.path.exists(args):
         a = read_json_object(args)
+        if config is not None and config.enabled and "sparse" in a and not a["sparse"]:
+            raise ValueError(f"{args} and {p} disagree: {os.path.basename(args)} says the run was dense "
+                             f"(sparse: {a['sparse']!r}), {CONFIG_FILENAME} holds an enabled sparse config")
         if a.get("sparse"):
             try:
                 from_args = SparseConfig.from_args(a)
@@ -165,7 +174,7 @@ def _train_config_agrees(train: Mapping[str, Any], tpath: str, config: Optional[
             there = f"{config_file} holds a sparse config" if config is not None else f"no {CONFIG_FILENAME} is beside it"
             raise ValueError(f"{tpath} says the run was {'dense' if dense else 'sparse'}, but {there}")
         return
-    why = disagreement(config, {"sparse": True, **{f"sparse_{k}": v for k, v in section.items()}}, config_file, tpath)
+    why = disagreement(config, {"sparse": True, **{f"sparse_{k}": v for k, v in section.items() if k != "enabled"}}, config_file, tpath)
     if why:
         raise ValueError(why)
 
@@ -223,12 +232,12 @@ def check_state_dict(model: nn.Module, state_dict: Mapping[str, Any], source: st
     sd_sparse = state_dict_is_sparse(state_dict)
     model_sparse = model_is_sparse(model)
     if sd_sparse and not model_sparse:
-        raise RuntimeError(
+        raise CheckpointMismatchError(
             f"{source} holds a SPARSE (sMDM) model but the model being loaded is dense. Re-create it "
             "sparse: keep args.json/sparse_config.json beside the weights and use the patched "
             "upstream (or `smdm run`), pass --sparse, or call smdm_plugin.load_checkpoint().")
     if model_sparse and not sd_sparse:
-        raise RuntimeError(f"{source} holds a DENSE model but the model is sparse; load it into a dense "
+        raise CheckpointMismatchError(f"{source} holds a DENSE model but the model is sparse; load it into a dense "
                            "model (drop --sparse) or train a sparse one")
 
 
@@ -241,17 +250,33 @@ def unwrap_state_dict(obj: Any) -> Dict[str, torch.Tensor]:
     return dict(obj)
 
 
-def check_config_matches(current: Optional[SparseConfig], saved: SparseConfig, source: str,
-                         allow_differences: Iterable[str] = ()) -> None:
-    """Raise ``ValueError`` naming every field where an already-sparse model's config (``current``;
-    None: the model is dense, nothing to compare) differs from the ``saved`` one (``version`` and
-    the fields in ``allow_differences`` aside)."""
-    allowed = tuple(allow_differences)
-    fields = saved.to_dict()
+def allowed_differences(allow_differences: Iterable[str]) -> Tuple[str, ...]:
+    """``load_checkpoint``'s ``allow_differences``: field names of :class:`SparseConfig` (a string,
+    which would be read letter by letter, is a ``TypeError``; an unknown name a ``ValueError``)."""
+    import dataclasses
+
+    if isinstance(allow_differences, (str, bytes)):
+        raise TypeError(f"load_checkpoint: allow_differences must be a sequence of field names, got the string "
+                        f"{allow_differences!r} (write ({allow_differences!r},))")
+    try:
+        allowed = tuple(allow_differences)
+    except TypeError:
+        raise TypeError(f"load_checkpoint: allow_differences must be a sequence of field names, got "
+                        f"{type(allow_differences).__name__}") from None
+    fields = [f.name for f in dataclasses.fields(SparseConfig)]
     unknown = [k for k in allowed if k not in fields]
     if unknown:
         raise ValueError(f"load_checkpoint: allow_differences names unknown SparseConfig field(s) {unknown}; "
                          f"known: {', '.join(fields)}")
+    return allowed
+
+
+def check_config_matches(current: Optional[SparseConfig], saved: SparseConfig, source: str,
+                         allow_differences: Iterable[str] = ()) -> None:
+    """Raise ``ValueError`` naming every field where an already-sparse model's config (``current``;
+    None: the model is dense, nothing to compare) differs from the ``saved`` one (``version`` and
+    the fields in ``allow_differences`` aside: :func:`allowed_differences`)."""
+    allowed = allowed_differences(allow_differences)
     if current is None:
         return
     diff = saved.differences(current, ignore=("version", *allowed))
@@ -273,7 +298,7 @@ def read_checkpoint(path: str, map_location: Any = "cpu"
     state = unwrap_state_dict(read_state_dict(path, map_location=map_location))
     config, source = find_config(path)
     if state_dict_is_sparse(state) and config is None:
-        raise RuntimeError(f"load_checkpoint: {path} holds a sparse model but has no sparse config beside it "
+        raise CheckpointMismatchError(f"load_checkpoint: {path} holds a sparse model but has no sparse config beside it "
                            f"(expected {CONFIG_FILENAME} or args.json with sparse=true in "
                            f"{_dir_of(path)})")
     return state, config, source
@@ -294,12 +319,32 @@ def build_backbone(path: str) -> nn.Module:
         raise ValueError(f"load_checkpoint: {bpath}: cannot build TinyMDM from it: {e}") from None
 
 
-def load_weights(model: nn.Module, state: Mapping[str, Any], path: str, strict: bool = True) -> None:
+def load_weights(model: nn.Module, state: Mapping[str, Any], path: str, strict: bool = True,
+                 config_file: Optional[str] = None) -> None:
     """Load ``state`` (read from ``path``) into ``model``, which must be sparse exactly when the
-    state is; with ``strict``, a missing or unexpected key (CLIP's frozen weights aside) is an error."""
+    state is, with every tensor of the model's shape and kind (a floating weight from a floating
+    tensor: a bool or integer one would be cast without a word), the sparse marker holding the
+    config's version; with ``strict``, a missing or unexpected key (CLIP's frozen weights aside) is
+    an error. Errors (:class:`CheckpointMismatchError`) name ``path`` and the config it was read
+    with (``config_file``), whose settings shaped the model."""
     check_state_dict(model, state, path)
+    by = f" (the model was built as {config_file} describes: do the weights come from that run?)" if config_file else ""
+    own = model.state_dict()
+    for k, v in state.items():
+        mine = own.get(k)
+        if not isinstance(v, torch.Tensor) or not isinstance(mine, torch.Tensor):
+            continue
+        if tuple(v.shape) != tuple(mine.shape):
+            raise CheckpointMismatchError(f"load_checkpoint: {path}: {k} has shape {tuple(v.shape)}, the model's "
+                                          f"{tuple(mine.shape)}{by}")
+        if mine.is_floating_point() and not v.is_floating_point():
+            raise CheckpointMismatchError(f"load_checkpoint: {path}: {k} is {v.dtype}, expected a floating tensor "
+                                          f"(the model's {mine.dtype})")
+        if (k == MARKER or k.endswith("." + MARKER)) and v.numel() == 1 and int(v) != int(mine):
+            raise CheckpointMismatchError(f"load_checkpoint: {path}: {k} is {int(v)}, but the config it is loaded "
+                                          f"with has version {int(mine)}{by}")
     missing, unexpected = model.load_state_dict(state, strict=False)
     missing = [k for k in missing if not k.startswith("clip_model.")]
     if strict and (missing or unexpected):
-        raise RuntimeError(f"load_checkpoint: {path} does not match the model: missing {missing[:5]}, "
-                           f"unexpected {unexpected[:5]}")
+        raise CheckpointMismatchError(f"load_checkpoint: {path} does not match the model: missing {missing[:5]}, "
+                                      f"unexpected {unexpected[:5]}{by}")

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import json
 import os
-from typing import Any, Dict, Mapping, Optional, Union
+from typing import Any, Collection, Dict, Mapping, Optional, Union
 
 from .atomic import atomic_write_text
 from .values import ConfigTypeError
@@ -14,16 +14,18 @@ PathLike = Union[str, "os.PathLike[str]"]
 CONFIG_FILENAME = "sparse_config.json"
 
 
-def read_mapping(src: PathLike, fmt: str, is_path: bool = False) -> "tuple[Dict[str, Any], Optional[str]]":
+def read_mapping(src: PathLike, fmt: str, is_path: bool = False, fields: Collection[str] = ()
+                 ) -> "tuple[Dict[str, Any], Optional[str]]":
     """``(the config mapping, the file it came from or None)`` from JSON / YAML text or a file
-    (``fmt``: ``json`` or ``yaml``; a string that looks like a path is read as one)."""
+    (``fmt``: ``json`` or ``yaml``; a string that looks like a path is read as one); ``fields``:
+    :func:`config_section`'s."""
     where: Optional[str] = None
     if is_path or not isinstance(src, str) or looks_like_path(src, fmt):
         where = os.fspath(src)
         text = read_text(where)
     else:
         text = src
-    return config_section(parse(text, fmt, where), where), where
+    return config_section(parse(text, fmt, where), where, fields), where
 
 
 def config_path(path: PathLike) -> str:
@@ -84,15 +86,20 @@ def parse(text: str, fmt: str, where: Optional[str]) -> Any:
         raise ValueError(f"{label}: not valid YAML: {' '.join(str(e).split())}") from None
 
 
-def config_section(data: Any, where: Optional[str] = None) -> Dict[str, Any]:
+def config_section(data: Any, where: Optional[str] = None, fields: Collection[str] = ()) -> Dict[str, Any]:
     """The config mapping of a parsed file: its top-level ``sparse:`` section when there is one
-    (other top-level sections are then allowed), else the whole mapping (empty file: {})."""
+    (other top-level sections are then allowed, but not a top-level key among ``fields``, the config's
+    own: which of the two would apply is not clear), else the whole mapping (empty file: {})."""
     label = where or "SparseConfig"
     if data is None:
         return {}
     if not isinstance(data, Mapping):
         raise ConfigTypeError(f"{label}: expected a mapping of SparseConfig options, got {type(data).__name__}")
     if "sparse" in data:
+        beside = [k for k in data if k in fields]
+        if beside:
+            raise ConfigTypeError(f"{label}: option(s) {', '.join(map(repr, beside))} at the top level beside "
+                                  "the 'sparse' section; put them inside it (the section is the config)")
         section = data["sparse"]
         if section is None:
             return {}
