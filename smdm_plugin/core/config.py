@@ -199,6 +199,9 @@ class SparseConfig:
     def feature_kind(self, D: int) -> str:
         """What keyframe selection measures for motions of ``D`` features: ``feature``, or with
         ``feature="auto"`` humanml3d (D = 263), kit (D = 251), else raw."""
+        if not is_int(D) or int(D) < 1:
+            raise ConfigTypeError(f"SparseConfig.feature_kind: D must be a positive int (features per frame), "
+                                  f"got {D!r}")
         return FEATURE_KINDS_BY_DIM.get(int(D), "raw") if self.feature == "auto" else self.feature
 
     def sample_fill(self, D: int) -> str:
@@ -213,6 +216,8 @@ class SparseConfig:
 
     def differences(self, other: "SparseConfig", ignore: Iterable[str] = ("version",)) -> Dict[str, Tuple[Any, Any]]:
         """``{field: (self's value, other's value)}`` for every field that differs (but ``ignore``)."""
+        if not isinstance(other, SparseConfig):
+            raise TypeError(f"SparseConfig.differences: expected a SparseConfig, got {type(other).__name__}")
         skip = set(ignore)
         return {f.name: (getattr(self, f.name), getattr(other, f.name)) for f in dataclasses.fields(self)
                 if f.name not in skip and getattr(self, f.name) != getattr(other, f.name)}
@@ -416,7 +421,14 @@ def _check_field(name: str, spec: FieldSpec, v: Any) -> Any:
     # float
     x = as_float(v)
     if x is None:
-        raise bad(ConfigTypeError)
+        hint = ""
+        if isinstance(v, str):
+            try:
+                float(v)
+                hint = " (a number read as text: YAML reads 1e-1 as a string; write 1.0e-1 or 0.1)"
+            except ValueError:
+                pass
+        raise bad(ConfigTypeError, hint=hint)
     if not math.isfinite(x) or x not in spec.range:
         raise bad()
     return x

@@ -174,7 +174,8 @@ def _train_config_agrees(train: Mapping[str, Any], tpath: str, config: Optional[
             there = f"{config_file} holds a sparse config" if config is not None else f"no {CONFIG_FILENAME} is beside it"
             raise ValueError(f"{tpath} says the run was {'dense' if dense else 'sparse'}, but {there}")
         return
-    why = disagreement(config, {"sparse": True, **{f"sparse_{k}": v for k, v in section.items() if k != "enabled"}}, config_file, tpath)
+    options = {"sparse": True, **{f"sparse_{k}": v for k, v in section.items() if k != "enabled"}}
+    why = disagreement(config, options, config_file, tpath)
     if why:
         raise ValueError(why)
 
@@ -298,9 +299,9 @@ def read_checkpoint(path: str, map_location: Any = "cpu"
     state = unwrap_state_dict(read_state_dict(path, map_location=map_location))
     config, source = find_config(path)
     if state_dict_is_sparse(state) and config is None:
-        raise CheckpointMismatchError(f"load_checkpoint: {path} holds a sparse model but has no sparse config beside it "
-                           f"(expected {CONFIG_FILENAME} or args.json with sparse=true in "
-                           f"{_dir_of(path)})")
+        raise CheckpointMismatchError(f"load_checkpoint: {path} holds a sparse model but has no sparse config "
+                                      f"beside it (expected {CONFIG_FILENAME} or args.json with sparse=true in "
+                                      f"{_dir_of(path)})")
     return state, config, source
 
 

@@ -55,7 +55,7 @@ def looks_like_path(s: str, fmt: str) -> bool:
         return False
     if os.path.exists(s) or s.strip().endswith((".json", ".yaml", ".yml")):
         return True
-    return fmt == "json" and not s.lstrip().startswith("{")
+    return fmt == "json" and not s.lstrip().startswith(("{", "["))
 
 
 def read_text(path: str) -> str:

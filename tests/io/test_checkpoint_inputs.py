@@ -153,3 +153,15 @@ def test_mismatch_errors_are_value_errors_and_still_runtime_errors(tmp_path):
     with pytest.raises(CheckpointMismatchError) as e:
         load_checkpoint(str(tmp_path / "dense.pt"), model=sparsify(TinyMDM(**KW)))
     assert isinstance(e.value, ValueError) and isinstance(e.value, RuntimeError)
+
+
+@pytest.mark.parametrize("call,error,needle", [
+    (lambda: SparseConfig.from_json("[1]"), ValueError, "expected a mapping of SparseConfig options, got list"),
+    (lambda: SparseConfig.from_yaml("reduction: 1e-1"), ValueError, "YAML reads 1e-1 as a string"),
+    (lambda: SparseConfig().sample_fill(263.7), TypeError, "D must be a positive int"),
+    (lambda: SparseConfig().feature_kind("abc"), TypeError, "D must be a positive int"),
+    (lambda: SparseConfig().differences(5), TypeError, "differences: expected a SparseConfig, got int"),
+])
+def test_config_methods_name_what_they_expected(call, error, needle):
+    with pytest.raises(error, match=needle):
+        call()
