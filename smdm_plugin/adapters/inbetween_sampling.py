@@ -2,12 +2,13 @@
 from __future__ import annotations
 
 import inspect
+import warnings
 from dataclasses import dataclass
 from typing import Any, Callable, Dict, Optional, Sequence, Tuple, Union
 
 import torch
 
-from ..core.checks import as_lengths
+from ..core.checks import as_lengths, host_checkable, require
 from .request import with_forced
 
 #: which given frames become forced keyframes (:func:`forced_keyframes`)
@@ -158,16 +159,52 @@ def conditioning(constraint: KeyframeConstraint, njoints: int, nfeats: int = 1,
                  y: Optional[Dict[str, Any]] = None, policy: str = "ends") -> Dict[str, Any]:
     """MDM's ``y`` for in-betweening: a copy of ``y`` (text conditioning etc.) with
     ``inpainting_mask`` / ``inpainted_motion`` (``[B, J, F, N]``), forced keyframes (``[B, N]``,
-    per ``policy``, :func:`~smdm_plugin.adapters.request.with_forced`), and the valid frames ``mask [B, 1, 1, N]`` / ``lengths [B]`` unless ``y`` has them."""
+    per ``policy``, :func:`~smdm_plugin.adapters.request.with_forced`), and the valid frames
+    ``mask [B, 1, 1, N]`` / ``lengths [B]`` unless ``y`` has them (then they must agree with the
+    constraint's lengths)."""
+    return _conditioning(constraint, njoints, nfeats, y, policy, "conditioning")
+
+
+def _expect(value: Any, kind: Union[type, Tuple[type, ...]], fn: str, what: str, expected: str) -> None:
+    """``TypeError`` naming ``what`` unless ``value`` is a ``kind``."""
+    if not isinstance(value, kind):
+        raise TypeError(f"{fn}: {what} must be {expected}, got {type(value).__name__}")
+
+
+def _check_y_lengths(y: Dict[str, Any], L: torch.Tensor, N: int, fn: str) -> None:
+    """``y['lengths']`` and a ``y['mask'] [B, 1, 1, N]`` (what the model reads instead of the
+    constraint's lengths) give the constraint's valid frames ``L``: checked on the host for CPU
+    tensors, else with ``torch._assert_async`` (once per call, no sync)."""
+    B = L.shape[0]
+    mask = y.get("mask")
+    found: Dict[str, torch.Tensor] = {}
+    if y.get("lengths") is not None:
+        found["y['lengths']"] = as_lengths(y["lengths"], B, N, L.device, f"{fn}: y['lengths']")
+    if isinstance(mask, torch.Tensor) and mask.shape[-1:] == (N,) and mask.numel() == B * N:
+        found["y['mask']"] = mask.reshape(B, N).to(device=L.device, dtype=torch.long).sum(1)
+    for name, got in found.items():
+        shown = f" {got.tolist()}" if host_checkable(got) and host_checkable(L) else ""
+        want = f" {L.tolist()}" if shown else ""
+        require(got == L, f"{fn}: {name} gives lengths{shown} but the constraint's lengths are{want} "
+                          "(keyframe_constraint(lengths=)); pass the same, or leave them out of y")
+
+
+def _conditioning(constraint: KeyframeConstraint, njoints: int, nfeats: int, y: Optional[Dict[str, Any]],
+                  policy: str, fn: str) -> Dict[str, Any]:
+    """:func:`conditioning`, its errors naming ``fn``."""
+    _expect(constraint, KeyframeConstraint, fn, "constraint", "a KeyframeConstraint (from keyframe_constraint)")
+    _expect(y, (dict, type(None)), fn, "y", "a dict of conditions (text_embed, text, scale...) or None")
     out = dict(y or {})
     B, N, _ = constraint.target.shape
     out["inpainting_mask"] = to_frame_last(constraint.given, njoints, nfeats)
     out["inpainted_motion"] = to_frame_last(constraint.target, njoints, nfeats)
     out = with_forced(out, forced_keyframes(constraint.frames, constraint.lengths, policy))
+    L = constraint.lengths
     if "mask" not in out and "lengths" not in out:
-        L = constraint.lengths
         out["lengths"] = L
         out["mask"] = (torch.arange(N, device=L.device)[None] < L[:, None]).view(B, 1, 1, N)
+    else:
+        _check_y_lengths(out, L, N, fn)
     return out
 
 
@@ -180,15 +217,22 @@ def impute(x: torch.Tensor, mask: torch.Tensor, target: torch.Tensor) -> torch.T
 
 
 def _motion_dims(model: Any, D: int) -> Tuple[int, int]:
-    """``(njoints, nfeats)`` of an MDM-family model (looked up through wrappers), else ``(D, 1)``."""
+    """``(njoints, nfeats)`` of an MDM-family model (looked up through wrappers), else ``(D, 1)``;
+    a model whose ``njoints * nfeats`` is not ``D`` is a ``ValueError``."""
     seen = set()
+    found: Optional[Tuple[int, int]] = None
     m = model
     while m is not None and id(m) not in seen:
         seen.add(id(m))
         J, F_ = getattr(m, "njoints", None), getattr(m, "nfeats", None)
-        if isinstance(J, int) and isinstance(F_, int) and J * F_ == D:
-            return J, F_
+        if isinstance(J, int) and isinstance(F_, int):
+            if J * F_ == D:
+                return J, F_
+            found = found or (J, F_)
         m = getattr(m, "model", None)
+    if found is not None:
+        raise ValueError(f"sample_inbetween: the constraint has D={D} features per frame but the model takes "
+                         f"njoints * nfeats = {found[0]} * {found[1]} = {found[0] * found[1]}")
     return D, 1
 
 
@@ -203,14 +247,22 @@ def sample_inbetween(model: Callable, diffusion: Any, constraint: KeyframeConstr
         diffusion: the in-package ``SimpleDiffusion`` (every ``imputation``), or a diffusion with
             MDM's ``p_sample_loop(model, shape, clip_denoised=..., model_kwargs=..., progress=...)``
             that honours the in-painting keys (MDM's ``GaussianDiffusion``: ``imputation="x0"``).
-        y: extra conditioning (``text_embed``, ``text``, ``scale``...), copied, not changed.
+        y: extra conditioning (``text_embed``, ``text``, ``scale``...), copied, not changed; its
+            ``lengths`` / ``mask``, if any, must agree with the constraint's lengths.
         imputation: ``"x0"`` (MDM's) or ``"xt"``; see ``smdm_plugin.reference.simple_diffusion``.
         policy: which given frames are forced keyframes (:func:`forced_keyframes`).
-        generator: random generator (``SimpleDiffusion`` only).
+        generator: random generator (a diffusion whose ``p_sample_loop`` takes ``generator=``;
+            with another a warning: it draws from torch's global generator).
     """
+    fn = "sample_inbetween"
+    _expect(constraint, KeyframeConstraint, fn, "constraint", "a KeyframeConstraint (from keyframe_constraint)")
+    if not callable(getattr(diffusion, "p_sample_loop", None)):
+        raise TypeError(f"{fn}: diffusion must have a p_sample_loop (SimpleDiffusion, MDM's GaussianDiffusion), "
+                        f"got {type(diffusion).__name__}")
+    _expect(generator, (torch.Generator, type(None)), fn, "generator", "a torch.Generator or None")
     B, N, D = constraint.target.shape
     J, F_ = _motion_dims(model, D)
-    kwargs = {"y": conditioning(constraint, J, F_, y, policy)}
+    kwargs = {"y": _conditioning(constraint, J, F_, y, policy, fn)}
     shape = (B, J, F_, N)
     params = inspect.signature(diffusion.p_sample_loop).parameters
     if "imputation" in params:
@@ -218,9 +270,16 @@ def sample_inbetween(model: Callable, diffusion: Any, constraint: KeyframeConstr
                                       generator=generator, progress=progress, imputation=imputation)
     else:
         if imputation != "x0":
-            raise ValueError(f"sample_inbetween: imputation={imputation!r} needs a diffusion whose "
+            raise ValueError(f"{fn}: imputation={imputation!r} needs a diffusion whose "
                              f"p_sample_loop takes imputation= (SimpleDiffusion); "
                              f"{type(diffusion).__name__} imputes the clean prediction only ('x0')")
+        extra: Dict[str, Any] = {}
+        if "generator" in params:
+            extra["generator"] = generator
+        elif generator is not None:
+            warnings.warn(f"{fn}: generator is not used: {type(diffusion).__name__}.p_sample_loop takes no "
+                          "generator= and draws from torch's global generator (seed it with torch.manual_seed)",
+                          UserWarning, stacklevel=2)
         out = diffusion.p_sample_loop(model, shape, clip_denoised=False, model_kwargs=kwargs,
-                                      progress=progress)
+                                      progress=progress, **extra)
     return to_batch_major(out)

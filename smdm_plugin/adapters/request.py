@@ -7,6 +7,8 @@ from typing import Any, Dict, Mapping, Optional
 
 import torch
 
+from ..core.checks import host_checkable
+
 #: the one key of ``y`` (MDM) / of the model's keyword arguments (MotionDiffuse) that carries a
 #: :class:`KeyframeRequest`
 KEYFRAMES_KEY = "smdm_keyframes"
@@ -29,6 +31,9 @@ class KeyframeRequest:
         forced_bound: the most frames ``forced`` marks in any sample (a Python int >= 0), known on
             the host, or None. Given, a sampling call sizes its plan from it instead of reading
             ``forced`` (a device sync on an accelerator) and checks it on the device.
+
+    A ``mask`` on the CPU is checked here (on an accelerator, at the call): every sample has a
+    keyframe (``mask | forced``), none more than ``capacity`` in ``mask``.
     """
 
     mask: Optional[torch.Tensor] = None
@@ -38,10 +43,7 @@ class KeyframeRequest:
 
     def __post_init__(self) -> None:
         for name in ("mask", "forced"):
-            value = getattr(self, name)
-            if value is not None and not isinstance(value, torch.Tensor):
-                raise TypeError(f"KeyframeRequest.{name} must be a bool tensor [B, N] or None, "
-                                f"got {type(value).__name__}")
+            _check_frames(getattr(self, name), name)
         c = self.capacity
         if c is not None and (isinstance(c, bool) or not isinstance(c, int) or c < 1):
             raise TypeError(f"KeyframeRequest.capacity must be a Python int >= 1 or None, got {c!r}")
@@ -50,6 +52,33 @@ class KeyframeRequest:
         fb = self.forced_bound
         if fb is not None and (isinstance(fb, bool) or not isinstance(fb, int) or fb < 0):
             raise TypeError(f"KeyframeRequest.forced_bound must be a Python int >= 0 or None, got {fb!r}")
+        if self.mask is not None and host_checkable(self.mask):
+            self._check_counts()
+
+    def _check_counts(self) -> None:
+        """Every sample of a host-readable ``mask`` (with ``forced``) has 1 keyframe or more, and
+        ``mask`` no more than ``capacity`` (frames past a sample's length, dropped at the call, count)."""
+        marked = self.mask
+        if self.forced is not None and self.forced.shape == marked.shape and host_checkable(self.forced):
+            marked = marked | self.forced
+        empty = (~marked.any(1)).nonzero().flatten().tolist()
+        if empty:
+            raise ValueError(f"KeyframeRequest.mask: every sample needs 1 keyframe or more, samples {empty} have none")
+        most = int(self.mask.sum(1).max()) if self.capacity is not None and self.mask.shape[0] else 0
+        if self.capacity is not None and most > self.capacity:
+            raise ValueError(f"KeyframeRequest.capacity={self.capacity} is below the {most} keyframes a sample of "
+                             "mask marks: pass capacity >= the most keyframes of a sample (or None)")
+
+
+def _check_frames(value: Any, name: str) -> None:
+    """``KeyframeRequest.<name>`` is None or a bool tensor ``[B, N]`` (no silent cast)."""
+    if value is None:
+        return
+    if not isinstance(value, torch.Tensor) or value.dtype != torch.bool:
+        got = f"a {value.dtype} tensor" if isinstance(value, torch.Tensor) else type(value).__name__
+        raise TypeError(f"KeyframeRequest.{name} must be a bool tensor [B, N] or None, got {got}")
+    if value.dim() != 2:
+        raise ValueError(f"KeyframeRequest.{name} must be a bool tensor [B, N], got shape {tuple(value.shape)}")
 
 
 _EMPTY = KeyframeRequest()
@@ -60,6 +89,9 @@ def request_of(container: Optional[Mapping[str, Any]], where: str = "y") -> Keyf
 
     ``container``: MDM's ``y`` or MotionDiffuse's keyword arguments; ``where`` names it in errors.
     A value of another type, or one of the 0.3 string keys, is a ``TypeError``."""
+    if container is not None and not isinstance(container, Mapping):
+        raise TypeError(f"{where} must be a dict (MDM's y / MotionDiffuse's model keyword arguments) or None, "
+                        f"got {type(container).__name__}")
     if not container:
         return _EMPTY
     for key in OLD_KEYS:
@@ -79,9 +111,8 @@ def request_of(container: Optional[Mapping[str, Any]], where: str = "y") -> Keyf
 def with_request(container: Optional[Mapping[str, Any]], where: str = "y", **changes: Any) -> Dict[str, Any]:
     """A copy of ``container`` whose :class:`KeyframeRequest` has the fields in ``changes``
     (``mask=``, ``capacity=``, ``forced=``, ``forced_bound=``) replaced; the caller's dict is not changed."""
-    out = dict(container or {})
-    out[KEYFRAMES_KEY] = dataclasses.replace(request_of(container, where), **changes)
-    return out
+    request = dataclasses.replace(request_of(container, where), **changes)
+    return {**(container or {}), KEYFRAMES_KEY: request}
 
 
 def with_forced(y: Optional[Mapping[str, Any]], forced: Optional[torch.Tensor],

@@ -14,6 +14,12 @@ DEFAULT_CAPACITY = 131072
 Key = Tuple[str, str]
 
 
+def _check_capacity(capacity: Any, fn: str) -> None:
+    """A cache capacity is an int >= 1 (captions), not a bool."""
+    if not isinstance(capacity, int) or isinstance(capacity, bool) or capacity < 1:
+        raise ValueError(f"{fn}: capacity must be an int >= 1 (captions), got {capacity!r}")
+
+
 class TextEmbeddingCache:
     """LRU map ``(encoder identity, caption) -> tensor`` bounded to ``capacity`` entries.
 
@@ -21,8 +27,7 @@ class TextEmbeddingCache:
     frozen encoders are equal; entries are keyed by the encoder's identity anyway)."""
 
     def __init__(self, capacity: int = DEFAULT_CAPACITY) -> None:
-        if not isinstance(capacity, int) or isinstance(capacity, bool) or capacity < 1:
-            raise ValueError(f"TextEmbeddingCache: capacity must be an int >= 1 (captions), got {capacity!r}")
+        _check_capacity(capacity, "TextEmbeddingCache")
         self.capacity = capacity
         self._entries: "OrderedDict[Key, torch.Tensor]" = OrderedDict()
         self.hits = 0
@@ -150,12 +155,13 @@ class CachedTextEncoder:
             for a plain function (then ``identity`` is required).
         identity: what the cache keys on besides the caption (None: the encoder's class, its
             ``identity`` attribute when it has one, and :func:`module_fingerprint`).
-        cache: the :class:`TextEmbeddingCache` to use (None: a new one of ``capacity``).
+        cache: the :class:`TextEmbeddingCache` to use, or None: a new one of ``capacity`` captions
+            (None: :data:`DEFAULT_CAPACITY`).
     """
 
     def __init__(self, encode: Callable[[Sequence[str]], Any], encoder: Optional[nn.Module] = None, *,
                  identity: Optional[str] = None, cache: Optional[TextEmbeddingCache] = None,
-                 capacity: int = DEFAULT_CAPACITY) -> None:
+                 capacity: Optional[int] = None) -> None:
         if not callable(encode):
             raise TypeError(f"CachedTextEncoder: encode must be callable, got {type(encode).__name__}")
         if identity is None:
@@ -163,10 +169,13 @@ class CachedTextEncoder:
                 raise ValueError("CachedTextEncoder: give the encoder module or an identity string")
             identity = (f"{type(encoder).__name__}:{getattr(encoder, 'identity', '')}:"
                         f"{module_fingerprint(encoder)}")
+        _check_cache(cache, capacity, "CachedTextEncoder")
         self.encode = encode
         self.encoder = encoder
         self.identity = identity
-        self.cache = cache if cache is not None else TextEmbeddingCache(capacity)
+        if cache is None:
+            cache = TextEmbeddingCache(DEFAULT_CAPACITY if capacity is None else capacity)
+        self.cache = cache
         self.layout: Optional[str] = None
         self._warned = False
 
@@ -219,6 +228,20 @@ class CachedTextEncoder:
         return _assemble([rows[t] for t in texts], self.layout)
 
 
+def _check_cache(cache: Any, capacity: Optional[int], fn: str) -> None:
+    """``capacity`` is None or valid; ``cache`` is None or a :class:`TextEmbeddingCache`, and a
+    ``capacity`` beside it is its own."""
+    if capacity is not None:
+        _check_capacity(capacity, fn)
+    if cache is None:
+        return
+    if not isinstance(cache, TextEmbeddingCache):
+        raise TypeError(f"{fn}: cache must be a TextEmbeddingCache or None, got {type(cache).__name__}")
+    if capacity not in (None, cache.capacity):
+        raise ValueError(f"{fn}: capacity={capacity!r} does not apply to the given cache (its capacity is "
+                         f"{cache.capacity}); pass one of capacity or cache")
+
+
 # --------------------------------------------------------------------------- on a model
 def _encode_attr(model: nn.Module) -> str:
     if hasattr(model, "encode_text"):
@@ -229,25 +252,41 @@ def _encode_attr(model: nn.Module) -> str:
                     "text_encoder (TinyMDM) to cache")
 
 
-def install_text_cache(model: nn.Module, capacity: int = DEFAULT_CAPACITY,
+def _installed(current: Any) -> Optional[CachedTextEncoder]:
+    """The :class:`CachedTextEncoder` already wrapping ``current`` (the model's encoder), else None."""
+    if isinstance(current, nn.Module):
+        current = current.__dict__.get("forward")
+    return current if isinstance(current, CachedTextEncoder) else None
+
+
+def install_text_cache(model: nn.Module, capacity: Optional[int] = None,
                        cache: Optional[TextEmbeddingCache] = None) -> CachedTextEncoder:
     """Wrap ``model.encode_text`` (MDM, DiP) or ``model.text_encoder`` (TinyMDM) in a
-    :class:`CachedTextEncoder` (idempotent) and return it. The encoder module is
-    ``model.clip_model`` (MDM's CLIP / DistilBERT, or a swapped encoder) when there is one. A
-    ``text_encoder`` that is a registered submodule keeps its place (and its state-dict keys): its
-    ``forward`` is wrapped instead."""
+    :class:`CachedTextEncoder` and return it. The encoder module is ``model.clip_model`` (MDM's
+    CLIP / DistilBERT, or a swapped encoder) when there is one. A ``text_encoder`` that is a
+    registered submodule keeps its place (and its state-dict keys): its ``forward`` is wrapped.
+
+    ``capacity``: captions kept (None: :data:`DEFAULT_CAPACITY`); ``cache``: a cache to share
+    instead. Idempotent: a second call returns the installed wrapper; asking it for another
+    capacity or cache is a ``ValueError`` (:func:`remove_text_cache` first)."""
+    fn = "install_text_cache"
+    _check_cache(cache, capacity, fn)
     attr = _encode_attr(model)
     current = getattr(model, attr)
+    installed = _installed(current)
+    if installed is not None:
+        have = installed.cache
+        asked = ("another cache" if cache not in (None, have) else
+                 f"capacity={capacity}" if capacity not in (None, have.capacity) else None)
+        if asked:
+            raise ValueError(f"{fn}: a text cache of capacity {have.capacity} is already installed on "
+                             f"{type(model).__name__}; for {asked}, call remove_text_cache(model) first")
+        return installed
     if isinstance(current, nn.Module):
-        fwd = current.__dict__.get("forward")
-        if isinstance(fwd, CachedTextEncoder):
-            return fwd
         wrapped = CachedTextEncoder(current.forward, current, identity=_identity(current, model),
                                     cache=cache, capacity=capacity)
         current.forward = wrapped
         return wrapped
-    if isinstance(current, CachedTextEncoder):
-        return current
     encoder = getattr(model, "clip_model", None)
     encoder = encoder if isinstance(encoder, nn.Module) else None
     identity = (_identity(encoder, model) if encoder is not None

@@ -379,6 +379,16 @@ def text_encoder_of(model: nn.Module) -> Optional[nn.Module]:
     return getattr(model, "clip_model", None) if _installed(model) is not None else None
 
 
+def _warn_unused(**settings: Any) -> None:
+    """Warn about the settings (not at their defaults: None / False) that only build an encoder
+    from a hub id / folder, given with a ready module."""
+    given = [f"{k}={v!r}" for k, v in settings.items() if v not in (None, False)]
+    if given:
+        warnings.warn(f"swap_text_encoder: {', '.join(given)} ignored: they apply when encoder is a hub id / "
+                      "folder (an HFTextEncoder is built with them); a ready module is used as it is",
+                      UserWarning, stacklevel=3)
+
+
 def swap_text_encoder(model: nn.Module, encoder: Union[str, nn.Module], *, pooling: Optional[str] = None,
                       trust_remote_code: bool = False, dtype: Optional[torch.dtype] = None) -> nn.Module:
     """Replace the text encoder of an MDM / DiP / TinyMDM model in place and return the model.
@@ -386,8 +396,8 @@ def swap_text_encoder(model: nn.Module, encoder: Union[str, nn.Module], *, pooli
     Args:
         model: MDM (CLIP), DiP (DistilBERT, ``text_encoder_type='bert'``) or ``TinyMDM``.
         encoder: a hub id or local folder (an :class:`HFTextEncoder` is built with ``pooling``,
-            ``trust_remote_code``, ``dtype``), or a ready module with a ``width`` attribute that maps
-            ``texts [B]`` to ``[B, width]``.
+            ``trust_remote_code``, ``dtype``), or a ready module with a ``width`` attribute (a positive
+            int) that maps ``texts [B]`` to ``[B, width]`` (then those three settings are ignored: a warning).
 
     The encoder goes to ``model.clip_model`` (the name MDM's checkpoint code already leaves out of
     saved weights), ``model.embed_text`` becomes ``nn.Linear(width, latent_dim)`` (new weights: train
@@ -399,17 +409,25 @@ def swap_text_encoder(model: nn.Module, encoder: Union[str, nn.Module], *, pooli
     name = encoder if isinstance(encoder, str) else getattr(encoder, "name_or_path", type(encoder).__name__)
     if isinstance(encoder, str):
         encoder = HFTextEncoder(encoder, pooling=pooling, trust_remote_code=trust_remote_code, dtype=dtype)
-    if not isinstance(encoder, nn.Module) or not isinstance(getattr(encoder, "width", None), int):
+    elif not isinstance(encoder, nn.Module) or not hasattr(encoder, "width"):
         raise TypeError("swap_text_encoder: encoder must be a hub id / folder or an nn.Module with an int "
                         f"width, got {type(encoder).__name__}")
+    else:
+        _warn_unused(pooling=pooling, trust_remote_code=trust_remote_code, dtype=dtype)
+    width = encoder.width
+    if isinstance(width, bool) or not isinstance(width, int):
+        raise TypeError(f"swap_text_encoder: encoder.width must be a positive int (its embedding size), got "
+                        f"{type(width).__name__} {width!r}")
+    if width < 1:
+        raise ValueError(f"swap_text_encoder: encoder.width must be a positive int (its embedding size), got {width}")
     old: nn.Linear = model.embed_text
     ref = old.weight
     encoder.to(ref.device)
-    proj = nn.Linear(encoder.width, old.out_features, bias=old.bias is not None).to(ref.device, ref.dtype)
+    proj = nn.Linear(width, old.out_features, bias=old.bias is not None).to(ref.device, ref.dtype)
     if style == "flat" and "text_encoder" in model._modules:
         del model._modules["text_encoder"]
     model.clip_model = encoder
-    model.clip_dim = encoder.width
+    model.clip_dim = width
     model.embed_text = proj
     fn = EncodeText(encoder, style, name)
     if style == "flat":

@@ -35,7 +35,9 @@ class AttentionBackend:
 
 
 #: the attention backends by name (``SparseConfig.attention_backend`` is validated against it + auto)
-BACKENDS: Registry[AttentionBackend] = Registry("attention backend")
+BACKENDS: Registry[AttentionBackend] = Registry(
+    "attention backend", holds=AttentionBackend, reserved=("auto",),
+    fields=dict(fn="callable", available="callable", supports="callable", static_shapes="a bool", padded_lead="a bool"))
 #: where a backend cannot run (capability check failed): the backend that always can
 FALLBACK = "compact"
 
@@ -44,8 +46,8 @@ def register_backend(name: str, fn: Backend, available: Callable[[torch.device],
                      static_shapes: bool = True, supports: Callable[[nn.Module], bool] = lambda inner: True,
                      padded_lead: bool = True, replace: bool = False) -> AttentionBackend:
     """Register ``fn`` under ``name`` with its capabilities (see :class:`AttentionBackend`); a taken
-    name is a ``ValueError`` unless ``replace``. ``fn(inner, x, plan, lead, memory=None,
-    memory_key_padding_mask=None, lead_padding=None) -> (h [R, d], rows [lead + K, B] long)`` runs
+    name is a ``ValueError`` unless ``replace``, ``auto`` (the automatic choice) always. ``fn(inner, x, plan,
+    lead, memory=None, memory_key_padding_mask=None, lead_padding=None) -> (h [R, d], rows [lead + K, B] long)`` runs
     the ``lead`` tokens and the plan's keyframes of sequence-first ``x [S, B, d]`` through ``inner``,
     attending to each other only: ``rows[s, b]`` is the row of ``h`` for lead token ``s`` /
     keyframe slot ``s - lead`` of sample ``b`` (padded slots may point anywhere valid)."""

@@ -8,17 +8,28 @@ as ``choices``): a newly registered entry is a valid value at once.
 """
 from __future__ import annotations
 
-from typing import Callable, Dict, Generic, Iterator, List, Optional, Tuple, TypeVar
+from typing import Callable, Dict, Generic, Iterator, List, Mapping, Optional, Tuple, TypeVar
 
 T = TypeVar("T")
+
+#: what an entry's attribute may hold (a :class:`Registry`'s ``fields``), by the words its errors use
+KINDS: Dict[str, Callable[[object], bool]] = {
+    "callable": callable,
+    "callable or None": lambda v: v is None or callable(v),
+    "a bool": lambda v: isinstance(v, bool),
+}
 
 
 class Registry(Generic[T]):
     """Entries of one kind (``what``, for messages) by name. ``fill()``, when given, runs before
-    every read: it adds the entries that come from elsewhere (the model families' registrations)."""
+    every read: it adds the entries that come from elsewhere (the model families' registrations).
+    What an entry holds, checked when it is registered: an instance of ``holds`` whose attributes
+    ``fields`` maps to a kind of :data:`KINDS` (e.g. ``{"fn": "callable"}``); ``reserved``: names
+    that mean something else where the names are used (e.g. ``auto``)."""
 
-    def __init__(self, what: str, fill: Optional[Callable[[], None]] = None) -> None:
-        self.what = what
+    def __init__(self, what: str, fill: Optional[Callable[[], None]] = None, *, holds: Optional[type] = None,
+                 fields: Optional[Mapping[str, str]] = None, reserved: Tuple[str, ...] = ()) -> None:
+        self.what, self.holds, self.fields, self.reserved = what, holds, dict(fields or {}), tuple(reserved)
         self._items: Dict[str, T] = {}
         self._fill = fill
         self._filling = False
@@ -33,11 +44,21 @@ class Registry(Generic[T]):
         return self._items
 
     def register(self, name: str, entry: T, *, replace: bool = False) -> T:
-        """Add ``entry`` under ``name`` (a taken name is a ``ValueError`` unless ``replace``)."""
-        if not isinstance(name, str) or not name.strip():
-            raise ValueError(f"register {self.what}: name must be a non-empty string, got {name!r}")
+        """Add ``entry`` under ``name`` (a taken name is a ``ValueError`` unless ``replace``), checked."""
+        if not isinstance(name, str) or not name or name != name.strip():
+            raise ValueError(f"register {self.what}: name must be a non-empty string without surrounding "
+                             f"spaces, got {name!r}")
+        if name in self.reserved:
+            raise ValueError(f"register {self.what}: {name!r} is a reserved name")
         if name in self._items and not replace:   # (not filled: registering loads nothing)
             raise ValueError(f"register {self.what}: {name!r} is already registered (pass replace=True)")
+        if self.holds is not None and not isinstance(entry, self.holds):
+            raise TypeError(f"register {self.what} {name!r}: expected a {self.holds.__name__}, "
+                            f"got {type(entry).__name__}")
+        for field, kind in self.fields.items():
+            value = getattr(entry, field)
+            if not KINDS[kind](value):
+                raise TypeError(f"register {self.what} {name!r}: {field} must be {kind}, got {value!r}")
         self._items[name] = entry
         return entry
 

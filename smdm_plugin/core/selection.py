@@ -10,7 +10,7 @@ import numpy as np
 import torch
 
 from . import consts
-from .checks import LengthsLike, as_lengths, as_mask, require
+from .checks import LengthsLike, as_lengths, host_checkable, require
 from .kernels.perturb import perturb_mask_op, rank_select
 from .kernels.vw import vw_keyframes
 from .kernels.vw_perturb import MaskAndPlan, vw_perturb_mask, vw_perturb_plan
@@ -45,7 +45,10 @@ class Selector:
 
 
 #: the selectors by name (``SparseConfig.selector`` is validated against it)
-SELECTORS: Registry[Selector] = Registry("keyframe selector")
+SELECTORS: Registry[Selector] = Registry(
+    "keyframe selector", holds=Selector,
+    fields=dict(fn="callable", with_noise="callable or None", with_noise_plan="callable or None",
+                handles_forced="a bool", supports_active="a bool", host_sync="a bool"))
 
 
 def register_selector(name: str, fn: Callable[..., torch.Tensor], *, handles_forced: bool = False,
@@ -113,7 +116,11 @@ def _check(features, lengths: LengthsLike, reduction: float, fn: str
            ) -> Tuple[torch.Tensor, torch.Tensor]:
     """Validate inputs; returns (features as float, lengths [B] long on features' device)."""
     if not isinstance(features, torch.Tensor):
-        features = torch.as_tensor(np.asarray(features))
+        arr = np.asarray(features)
+        features = torch.as_tensor(arr) if arr.dtype.kind in "biuf" else features
+    if not isinstance(features, torch.Tensor) or features.dtype.is_complex:
+        got = features.dtype if isinstance(features, torch.Tensor) else type(features).__name__
+        raise TypeError(f"{fn}: features must be a real floating tensor [B, N, F] (integers are converted), got {got}")
     if features.dim() != 3:
         raise ValueError(f"{fn}: features must be 3-D [B, N, F], got shape {tuple(features.shape)}")
     if features.device.type == "meta":
@@ -130,6 +137,36 @@ def _check(features, lengths: LengthsLike, reduction: float, fn: str
         require(torch.isfinite(sums) | ~valid,
                 f"{fn}: features contain NaN or inf (or values too large to sum) within the valid frames")
     return features, lengths_t
+
+
+def _check_generator(generator: object, fn: str) -> None:
+    """A ``TypeError`` naming ``fn`` unless ``generator`` is what :func:`_rand` draws from."""
+    if generator is not None and not isinstance(generator, (torch.Generator, CounterNoise)):
+        raise TypeError(f"{fn}: generator must be a torch.Generator, a CounterNoise or None, "
+                        f"got {type(generator).__name__}")
+
+
+def _bool_tensor(t: object, shape: Tuple[int, ...], dims: str, what: str) -> torch.Tensor:
+    """``t`` itself when it is a bool tensor of ``shape`` (axes ``dims``, e.g. ``"B, N"``); else a
+    ``TypeError`` (not a bool tensor: never coerced) or ``ValueError`` (shape) naming ``what``.
+    Metadata only: free on any device."""
+    expected = f"{what} must be a bool tensor [{dims}]=[{', '.join(map(str, shape))}]"
+    if not isinstance(t, torch.Tensor) or t.dtype != torch.bool:
+        raise TypeError(f"{expected}, got {t.dtype if isinstance(t, torch.Tensor) else type(t).__name__}")
+    if tuple(t.shape) != shape:
+        raise ValueError(f"{expected}, got shape {tuple(t.shape)}")
+    return t
+
+
+def _as_bool(value: object, shape: Tuple[int, ...], dims: str, device: torch.device, what: str
+             ) -> Optional[torch.Tensor]:
+    """None, or ``value`` (a bool tensor, array or list) checked by :func:`_bool_tensor`, on ``device``."""
+    if value is None:
+        return None
+    if not isinstance(value, torch.Tensor):
+        arr = np.asarray(value)
+        value = torch.as_tensor(arr) if arr.dtype == np.bool_ else value
+    return _bool_tensor(value, shape, dims, what).to(device)
 
 
 def _work_dtype(device: torch.device) -> torch.dtype:
@@ -162,17 +199,40 @@ def select_keyframes(features: torch.Tensor, lengths: LengthsLike = None, reduct
     methods pick ``K - |forced interior frames|`` frames of their own). ``active [B]`` bool (VW
     only): rows to select at all; inactive rows come back all False and cost nothing.
     """
+    if not isinstance(method, str):
+        raise TypeError(f"select_keyframes: method must be a str (a selector's name), got {type(method).__name__}")
     if method not in SELECTORS:
         raise ValueError(f"select_keyframes: unknown method {method!r}; known: {SELECTORS.names()}")
+    _check_generator(generator, "select_keyframes")
     features, lengths_t = _check(features, lengths, reduction, "select_keyframes")
     B, N, _ = features.shape
-    forced = as_mask(forced, B, N, features.device, "select_keyframes: forced")
+    forced = _as_bool(forced, (B, N), "B, N", features.device, "select_keyframes: forced")
     if active is not None and not SELECTORS.get(method).supports_active:
         raise ValueError(f"select_keyframes: active rows are not supported by method={method!r}")
+    active = _as_bool(active, (B,), "B", features.device, "select_keyframes: active")
     if B == 0:
         return torch.zeros(B, N, dtype=torch.bool, device=features.device)
-    return select_checked(features, lengths_t, keyframe_counts(lengths_t, reduction), method, generator,
-                          forced, None if active is None else active.to(device=features.device, dtype=torch.bool))
+    counts = keyframe_counts(lengths_t, reduction)
+    mask = select_checked(features, lengths_t, counts, method, generator, forced, active)
+    _check_selected(mask, lengths_t, counts, active, method)
+    return mask
+
+
+def _check_selected(mask: torch.Tensor, lengths: torch.Tensor, counts: torch.Tensor, active: Optional[torch.Tensor],
+                    method: str) -> None:
+    """On the CPU only (a read of values: never a device sync): every selected row keeps frames 0
+    and ``L - 1`` and at least its ``counts`` keyframes, none past ``L``; an inactive row none."""
+    if not host_checkable(mask):
+        return
+    idx = torch.arange(mask.shape[1])[None]
+    ends = (idx == 0) | (idx == (lengths - 1)[:, None])
+    ok = (mask | ~ends).all(1) & ~(mask & (idx >= lengths[:, None])).any(1) & (mask.sum(1) >= counts)
+    ok = ok if active is None else torch.where(active, ok, ~mask.any(1))
+    if not bool(ok.all()):
+        b = int((~ok).nonzero()[0])
+        raise ValueError(f"select_keyframes: keyframe selector {method!r} must keep frames 0 and L - 1 and at least K "
+                         f"keyframes, none past L (an inactive row: none); sample {b} (L={int(lengths[b])}, "
+                         f"K={int(counts[b])}) got frames {mask[b].nonzero().flatten().tolist()}")
 
 
 def select_checked(features: torch.Tensor, lengths: torch.Tensor, counts: torch.Tensor, method: str = "vw",
@@ -183,14 +243,20 @@ def select_checked(features: torch.Tensor, lengths: torch.Tensor, counts: torch.
     sel = SELECTORS.get(method)
     with torch.no_grad():
         if sel.handles_forced:
-            return sel.fn(features, lengths, counts, generator, forced, active)
+            return _selected(sel, method, features, lengths, counts, generator, forced, active)
         idx = torch.arange(features.shape[1], device=features.device)[None]
         k = counts
         if forced is not None:
             interior = forced & (idx > 0) & (idx < (lengths - 1)[:, None])
             k = torch.clamp_min(k - interior.sum(1), 2)               # the forced frames' share of K
-        mask = sel.fn(features, lengths, k, generator, None, active)
+        mask = _selected(sel, method, features, lengths, k, generator, None, active)
         return mask if forced is None else mask | (forced & (idx < lengths[:, None]))
+
+
+def _selected(sel: Selector, method: str, features: torch.Tensor, *args: object) -> torch.Tensor:
+    """``sel.fn(features, *args)``, checked to be a bool ``[B, N]`` mask (metadata: free on any device)."""
+    return _bool_tensor(sel.fn(features, *args), tuple(features.shape[:2]), "B, N",
+                        f"keyframe selector {method!r}: its mask")
 
 
 def _uniform(lengths: torch.Tensor, k: torch.Tensor, N: int) -> torch.Tensor:
@@ -248,7 +314,8 @@ def _mdo(features: torch.Tensor, lengths: torch.Tensor, k_t: torch.Tensor) -> to
 
 
 register_selector("vw", lambda f, lengths, k, g, forced, active: vw_keyframes(f, lengths, k, forced, active),
-                  handles_forced=True, supports_active=True, with_noise=vw_perturb_mask, with_noise_plan=vw_perturb_plan)
+                  handles_forced=True, supports_active=True, with_noise=vw_perturb_mask,
+                  with_noise_plan=vw_perturb_plan)
 register_selector("uniform", lambda f, lengths, k, g, forced, active: _uniform(lengths, k, f.shape[1]))
 register_selector("random", lambda f, lengths, k, g, forced, active: _random(lengths, k, f.shape[1], g))
 register_selector("mdo", lambda f, lengths, k, g, forced, active: _mdo(f.detach(), lengths, k), host_sync=True)
@@ -320,13 +387,15 @@ def perturb_mask(mask: torch.Tensor, lengths: LengthsLike = None, amount: float 
     if not isinstance(mask, torch.Tensor) or mask.dim() != 2:
         shape = tuple(mask.shape) if isinstance(mask, torch.Tensor) else type(mask).__name__
         raise ValueError(f"perturb_mask: mask must be a 2-D bool tensor [B, N], got {shape}")
+    _bool_tensor(mask, tuple(mask.shape), "B, N", "perturb_mask: mask")             # its dtype
     if as_float(amount) is None or not 0.0 <= as_float(amount) <= 1.0:
         raise ValueError(f"perturb_mask: amount must be a float in [0, 1] (fraction of "
                          f"keyframes), got {amount!r}")
+    _check_generator(generator, "perturb_mask")
     B, N = mask.shape
     device = mask.device
     lengths_t = as_lengths(lengths, B, N, device, "perturb_mask")
-    protected = as_mask(protected, B, N, device, "perturb_mask: protected")
+    protected = _as_bool(protected, (B, N), "B, N", device, "perturb_mask: protected")
     return perturb_checked(mask, lengths_t, float(amount), generator, protected)
 
 

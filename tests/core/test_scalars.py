@@ -25,7 +25,7 @@ def test_numpy_scalars_are_numbers_and_dicts_are_configs():
         SparseConfig(diffusion_steps=np.float32(50))
     # the one conversion of what users pass as a config (sparsify's)
     assert as_config({"reduction": 0.7}) == SparseConfig(reduction=0.7)
-    assert as_config(c) is c and as_config(None) == SparseConfig()
+    assert as_config(c) == c and as_config(c) is not c and as_config(None) == SparseConfig()   # a checked copy
     with pytest.raises(ValueError, match=r"unknown option 'redution'; did you mean 'reduction'"):
         as_config({"redution": 0.7})
     with pytest.raises(TypeError, match=r"sparsify: config must be a SparseConfig, a dict of its fields or None"):
