@@ -117,6 +117,17 @@ def owner_gone(owner: Mapping[str, Any]) -> Optional[str]:
     return None
 
 
+def _manifest_command(folder: str) -> Optional[str]:
+    """The command named in ``folder``'s manifest (what wrote the folder), or None (no manifest,
+    unreadable, or written before manifests named it)."""
+    try:
+        with open(os.path.join(folder, MANIFEST), encoding="utf-8") as f:
+            command = json.load(f).get("command")
+    except (OSError, ValueError, AttributeError):
+        return None
+    return command if isinstance(command, str) else None
+
+
 def _own_entries(folder: str) -> Optional[List[str]]:
     """The top-level names listed in ``folder``'s manifest, or None when it has none (or it is
     unreadable). The manifest of a folder written in place (``live``) also holds the command's name
@@ -410,6 +421,13 @@ class OutputDir:
             check_writable(shown, self.what, inside=True)   # in it: the run's files
         existing = _listing(self.out) if os.path.isdir(self.out) else []
         own = (_own_entries(self.out) or []) if existing else []
+        other = _manifest_command(self.out) if existing else None
+        if other is not None and other != self.command and (self.resume or not self.overwrite):
+            # another command's output (its files are not this command's to replace or continue)
+            raise OutputExistsError(
+                f"{self.what} {shown!r} holds the output of {other}, not " + (
+                    f"a run of {self.command} to resume; pick another {self.what}" if self.resume else
+                    f"of {self.command}; pass --overwrite (overwrite=True) to replace it, or pick another {self.what}"))
         if existing and not (self.overwrite or self.resume):
             if self.resumable and own and set(existing) <= set(own) and not self._protected(own):
                 self._start_over = True  # a run that failed before its first checkpoint: nothing to keep

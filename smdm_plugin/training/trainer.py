@@ -600,8 +600,16 @@ def load_trained(folder: str, step: Optional[int] = None, map_location: Any = "c
 def resume(trainer: "Trainer", folder: str) -> str:
     """Load ``folder``'s ``train_state.pt`` and the model of its step into ``trainer``; returns a
     line saying what was resumed (nothing when the interrupted run saved no checkpoint yet)."""
+    import re
+
     path = os.path.join(folder, TRAIN_STATE_FILENAME)
     if not os.path.exists(path):
+        names = os.listdir(folder) if os.path.isdir(folder) else []
+        saved = sorted(n for n in names if re.fullmatch(r"model\d{9}\.pt", n))
+        if saved:  # checkpoints without the state that continues them: never a silent restart over them
+            raise ValueError(f"--resume: {folder} holds checkpoints ({', '.join(saved[-2:])}) but no "
+                             f"{TRAIN_STATE_FILENAME} (the optimizer state and step to continue from); restore it, "
+                             "or pass --overwrite to start over")
         return "no checkpoint saved yet; starting at step 0"
     from ..io.checkpoint_files import read_state_dict
 
