@@ -35,7 +35,7 @@ OUTPUT_FILES = ("metrics.json", "metrics.md", "metrics.png")
 
 def build_parser() -> argparse.ArgumentParser:
     from ..metrics.evaluator.protocol import EVAL_MODES, PROTOCOLS
-    from .common.args import add_common_flags, add_overwrite, existing_path, int_range, output_path
+    from .common.args import add_common_flags, add_overwrite, existing_path, int_range, output_path, seed_type
 
     p = argparse.ArgumentParser(prog="smdm eval", description=__doc__.split("\n\n")[0],
                                 epilog="example: smdm eval --data dataset/HumanML3D --evaluator checkpoints "
@@ -75,7 +75,7 @@ def build_parser() -> argparse.ArgumentParser:
                         "2K, ... and its last frame, and keyframe_error (m, joints) is reported (default 0: off)")
     p.add_argument("--out", required=True, metavar="RDIR", type=output_path(), help="results folder to write")
     add_overwrite(p)
-    p.add_argument("--seed", type=int_range(0), default=0,
+    p.add_argument("--seed", type=seed_type, default=0,
                    help="seed of the caption draws, the generation noise and T2M's random pairs (default 0)")
     add_common_flags(p)  # --no-progress: no per-replication lines; --quiet: no header line either
     return p

@@ -28,7 +28,8 @@ from .common.args import note_printer, progress_of
 
 def build_parser() -> argparse.ArgumentParser:
     from ..metrics.evaluator.train import DEFAULT_RECIPE, OWN_SIZES, RECIPES, SELECTIONS, T2M_SIZES, TrainSettings
-    from .common.args import add_common_flags, add_overwrite, existing_path, float_range, int_range, output_path
+    from .common.args import (add_common_flags, add_overwrite, existing_path, float_range, int_range, output_path,
+                              seed_type)
 
     d = TrainSettings(recipe=DEFAULT_RECIPE)
     p = argparse.ArgumentParser(
@@ -65,7 +66,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--batch", type=int_range(2, 4096), default=d.batch, help=f"motions per step (default: {d.batch})")
     p.add_argument("--lr", type=float_range(0.0, lo_open=True), default=None,
                    help=f"Adam, matching stage (default: {d.lr} for t2m, 1e-3 for contrastive)")
-    p.add_argument("--seed", type=int_range(0), default=d.seed,
+    p.add_argument("--seed", type=seed_type, default=d.seed,
                    help=f"seed of the initial weights, the batch order and the caption draws (default: {d.seed})")
     p.add_argument("--dim", type=int_range(4, 4096), default=None,
                    help=f"co-embedding size (default: {T2M_SIZES['dim_coemb']} for t2m, as upstream; "
@@ -275,7 +276,7 @@ def recipe_spread(settings: Any, glove: Optional[str]) -> str:
 
 def build_check_parser() -> argparse.ArgumentParser:
     from ..metrics.evaluator.protocol import PROTOCOLS
-    from .common.args import add_common_flags, existing_path, int_range
+    from .common.args import add_common_flags, existing_path, int_range, seed_type
 
     p = argparse.ArgumentParser(
         prog="smdm evaluator check",
@@ -294,7 +295,7 @@ def build_check_parser() -> argparse.ArgumentParser:
                    help="upstream: per replication, draws of 32 motions with random crops and captions (default); "
                         "fixed: every motion, offset 0")
     p.add_argument("--replications", type=int_range(1, 10000), default=20, help="replications (default: 20)")
-    p.add_argument("--seed", type=int_range(0), default=0, help="seed of the draws and the noise (default: 0)")
+    p.add_argument("--seed", type=seed_type, default=0, help="seed of the draws and the noise (default: 0)")
     add_common_flags(p, progress=False, why_not="it shows no progress")
     return p
 

@@ -13,7 +13,8 @@ import torch
 from ..adapters.inbetween_sampling import POLICIES
 from ..reference.simple_diffusion import IMPUTATIONS
 from ..metrics.inbetween_metrics import keyframe_metrics
-from .common.args import add_common_flags, add_overwrite, int_range, note_printer, output_path, progress_of
+from .common.args import (add_common_flags, add_overwrite, int_range, note_printer, output_path, progress_of,
+                          seed_type)
 from .common.bundle_inbetween import model_inputs, plan_keyframes, run_inbetween, summary_markdown
 from .common.motion_files import ACCEPTED, add_motion_file_options
 
@@ -35,7 +36,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--start", type=int_range(0), default=None, help="first frame of the file to in-between from")
     p.add_argument("--length", type=int_range(2, 1000), default=None, help="frames to generate")
     p.add_argument("--samples", type=int_range(1, 64), default=1, help="in-betweens per model (default 1)")
-    p.add_argument("--seed", type=int_range(0), default=0, help="random seed of the sampling noise (default 0)")
+    p.add_argument("--seed", type=seed_type, default=0, help="random seed of the sampling noise (default 0)")
     p.add_argument("--imputation", choices=IMPUTATIONS, default="x0",
                    help="how keyframes are imposed at each step: x0 = the clean prediction (MDM's edit mode), "
                         "xt = the noisy motion")
@@ -55,7 +56,7 @@ def main(argv: Optional[List[str]] = None) -> int:
     from ..io.files import OutputExistsError
     from ..io.outdir import OutputDir, check_no_overlap
     from .common.args import resolve_device
-    from .common.motion_files import load_motion
+    from .common.motion_files import load_motion, rate_differs
 
     p = build_parser()
     a = p.parse_args(argv)
@@ -85,6 +86,9 @@ def main(argv: Optional[List[str]] = None) -> int:
     fps = bundles[0].fps
     try:
         source = load_motion(a.keyframes, fps=fps, sample=a.sample, allow_pickle=a.allow_pickle)
+        differs = rate_differs(source, fps)
+        if differs:  # keyframes at another rate would be placed at the wrong times
+            raise ValueError(f"--keyframes: {differs}, the models' rate")
         kf = plan_keyframes(len(source.joints), a.frames, a.every, a.start, a.length,
                             min(b.max_frames for b in bundles))
         for b in bundles:

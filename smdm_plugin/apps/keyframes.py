@@ -32,8 +32,8 @@ def build_parser() -> argparse.ArgumentParser:
                         "else the 17 CMU clips embedded in the package)")
     p.add_argument("--reductions", nargs="+", type=float_range(0.0, 1.0, hi_open=True), default=[0.6, 0.7, 0.8, 0.9],
                    metavar="R", help="fractions of frames dropped, each in [0, 1) (default 0.6 0.7 0.8 0.9)")
-    p.add_argument("--frame-index-scale", type=float_range(0.0), default=FRAME_INDEX_SCALE, metavar="M",
-                   help="metres per frame appended to the joint positions for selection (>= 0; default "
+    p.add_argument("--frame-index-scale", type=float_range(0.0, 100.0), default=FRAME_INDEX_SCALE, metavar="M",
+                   help="metres per frame appended to the joint positions for selection (0-100; default "
                         f"{FRAME_INDEX_SCALE}, the library's SparseConfig default)")
     p.add_argument("--plot", default=None, metavar="FILE", type=output_path("file"),
                    help=f"write the keyframe figure of the first window here ({', '.join(PLOT_FORMATS)})")

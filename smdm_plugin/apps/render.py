@@ -41,7 +41,7 @@ def build_parser() -> argparse.ArgumentParser:
 def main(argv: Optional[List[str]] = None) -> int:
     from ..io.files import OutputExistsError
     from .common.animation import Panel, render_gif
-    from .common.motion_files import load_motion
+    from .common.motion_files import load_motion, rate_differs
 
     p = build_parser()
     a = p.parse_args(argv)
@@ -64,6 +64,9 @@ def main(argv: Optional[List[str]] = None) -> int:
             m = load_motion(path, fps=a.fps, sample=a.sample, allow_pickle=a.allow_pickle)
         except (OSError, ValueError) as e:
             p.error(str(e).splitlines()[0])
+        differs = rate_differs(m, a.fps)
+        if differs:  # drawn at the rate it has (it plays at its real speed), said
+            print(f"smdm render: warning: {differs}; drawn at {m.fps:g} fps", file=sys.stderr)
         bad = [f for f in a.keyframes if f >= len(m.joints)]
         if bad:
             p.error(f"--keyframes {bad} beyond the {len(m.joints)} frames of {path}")

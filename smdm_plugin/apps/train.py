@@ -24,7 +24,7 @@ from ..training.data import MotionSet, check_clip_lengths
 from ..training.trainer import (DEFAULT_MODEL, TRAIN_CONFIG_FILENAME, TRAIN_STATE_FILENAME, TrainConfig, Trainer,
                                 TrainResult, resume)
 from .common.args import (add_common_flags, add_overwrite, compile_backend, float_range, int_range, note_printer,
-                          output_path, progress_of)
+                          output_path, progress_of, seed_type)
 from .common.threads import apply_threads
 
 
@@ -68,7 +68,7 @@ def build_parser() -> argparse.ArgumentParser:
     t.add_argument("--weight-decay", type=float_range(0.0), default=0.0, help="AdamW weight decay (default 0)")
     t.add_argument("--grad-clip", type=float_range(0.0), default=0.0, help="max gradient norm (default 0: off)")
     t.add_argument("--diffusion-steps", type=int_range(1, 100000), default=100, help="diffusion steps T (default 100)")
-    t.add_argument("--seed", type=int_range(0), default=0, help="random seed (default 0)")
+    t.add_argument("--seed", type=seed_type, default=0, help="random seed (default 0)")
     t.add_argument("--save-every", type=int_range(0), default=0,
                    help="also save a checkpoint every this many steps (default 0: only at the end)")
     t.add_argument("--compile", nargs="?", const="default", default="none", choices=COMPILE_MODES, metavar="MODE",

@@ -317,18 +317,35 @@ def cmu_to_humanml22(positions: np.ndarray, names: Sequence[str]) -> np.ndarray:
     return np.stack(out, 1)
 
 
-def load_cmu_clip(path: Union[str, Path], fps: int = 20, drop_first: bool = True) -> np.ndarray:
-    """A CMU BVH clip as HumanML3D-ordered joints ``[T, 22, 3]`` in metres at ``fps``: frame 0
-    (the converter's synthetic T-pose) dropped, then every ``round(file_fps / fps)``-th frame
-    (120 -> 20 fps: file frames 1, 7, 13, ...)."""
-    bvh = read_bvh(path)
+def frame_step(file_fps: float, fps: float) -> int:
+    """Every how many frames a clip recorded at ``file_fps`` is sampled for about ``fps``:
+    ``round(file_fps / fps)``, at least 1 (frames are never made up); the clip's rate is then
+    ``file_fps / step``."""
+    return max(1, int(round(file_fps / fps)))
+
+
+def missing_cmu_joints(bvh: BVH) -> List[str]:
+    """The CMU joint names the 22-joint (HumanML3D) mapping needs that ``bvh`` lacks (none: a CMU skeleton)."""
     where = {n for e in HUMANML22_FROM_CMU for n in ((e,) if isinstance(e, str) else e)}
-    missing = sorted(where - set(bvh.names))
+    return sorted(where - set(bvh.names))
+
+
+def cmu_clip(bvh: BVH, step: int, drop_first: bool = True, path: Union[str, Path] = "<bvh>") -> np.ndarray:
+    """A read CMU clip as HumanML3D-ordered joints ``[T, 22, 3]`` in metres, every ``step``-th frame
+    (frame 0, the converter's synthetic T-pose, dropped first); not a CMU skeleton: ``BVHError``."""
+    missing = missing_cmu_joints(bvh)
     if missing:
         raise BVHError(path, f"not a CMU skeleton: lacks the joints {missing} that the 22-joint "
                        "(HumanML3D) mapping needs")
-    step = max(1, int(round(bvh.fps / fps)))
     pos = bvh_joint_positions(bvh, scale=CMU_TO_METRES)
     pos = pos[1:] if drop_first else pos
     return cmu_to_humanml22(pos[::step], bvh.names)
+
+
+def load_cmu_clip(path: Union[str, Path], fps: int = 20, drop_first: bool = True) -> np.ndarray:
+    """A CMU BVH clip as HumanML3D-ordered joints ``[T, 22, 3]`` in metres at about ``fps``: frame 0
+    (the converter's synthetic T-pose) dropped, then every :func:`frame_step`-th frame (120 -> 20
+    fps: file frames 1, 7, 13, ...)."""
+    bvh = read_bvh(path)
+    return cmu_clip(bvh, frame_step(bvh.fps, fps), drop_first, path)
 

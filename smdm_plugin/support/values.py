@@ -30,7 +30,7 @@ class Range:
     def describe(self, integer: bool) -> str:
         """``"an integer >= 1"``, ``"a number in [0, 1)"``..."""
         name = "an integer" if integer else "a number"
-        lo, hi = (None if b is None else format(b, "g") for b in (self.lo, self.hi))
+        lo, hi = (None if b is None else str(b) if isinstance(b, int) else format(b, "g") for b in (self.lo, self.hi))
         if lo is not None and self.lo == self.hi and not (self.lo_open or self.hi_open):
             return f"{name} equal to {lo}"
         if lo is not None and hi is not None:

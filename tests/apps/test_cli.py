@@ -164,6 +164,9 @@ def test_keyframes_bad_arguments(tmp_path):
     user_error(smdm("keyframes", "--reductions", "1.5"), "argument --reductions: must be a finite number in [0, 1)")
     user_error(smdm("keyframes", "--reductions", "-0.2"), "argument --reductions")
     user_error(smdm("keyframes", "--frame-index-scale", "-1"), "argument --frame-index-scale: must be a finite")
+    # a huge one overflowed the selection features (a traceback in 0.10.6)
+    user_error(smdm("keyframes", "--frame-index-scale", "1e300"), "argument --frame-index-scale: must be a finite "
+               "number in [0, 100]")
     user_error(smdm("keyframes", tmp_path / "missing.bvh"), "argument bvh: no such file")
     # a mistyped option is named, not its value read as a BVH path (0.10.6: "argument bvh: no such file: '0'")
     user_error(smdm("keyframes", "--rates", "0"), "unrecognized arguments: --rates")
@@ -262,3 +265,11 @@ def test_argument_types(tmp_path, monkeypatch):
         existing_path("file")(str(tmp_path))
     with pytest.raises(argparse.ArgumentTypeError, match="is not a folder"):
         existing_path("dir")(str(tmp_path / "f"))
+
+
+@pytest.mark.parametrize("command", [["train"], ["demo"], ["inbetween"], ["eval"], ["evaluator", "train"]])
+def test_every_seed_is_bounded_to_what_torch_takes(command):
+    """0.10.6: ``--seed 99999999999999999999`` was a traceback (``Overflow when unpacking long long``) in
+    smdm inbetween / demo, and an unnamed error in smdm train."""
+    user_error(smdm(*command, "--seed", "99999999999999999999"),
+               "argument --seed: must be an integer in [0, 9223372036854775807]")

@@ -142,3 +142,32 @@ def test_render_bvh(tmp_path, mocap_files):
     assert p.returncode == 0, p.stderr
     n = int(p.stdout.split(": ")[1].split()[0])  # "<file>: N frames, 22 joints (bvh)"
     assert Image.open(tmp_path / "c.gif").n_frames == len(range(0, n, 40))
+
+
+def two_joint_bvh(path, fps: float, frames: int = 30) -> str:
+    """A BVH of a two-joint skeleton (not CMU's) recorded at ``fps``, swinging its end."""
+    rows = "\n".join(f"0 90 0 0 0 0 0 0 {10 * np.sin(i / 3):.4f}" for i in range(frames))
+    path.write_text("HIERARCHY\nROOT Hips\n{\n  OFFSET 0 0 0\n  CHANNELS 6 Xposition Yposition Zposition "
+                    "Zrotation Xrotation Yrotation\n  JOINT Chest\n  {\n    OFFSET 0 10 0\n    CHANNELS 3 Zrotation "
+                    "Xrotation Yrotation\n    End Site\n    {\n      OFFSET 0 10 0\n    }\n  }\n}\nMOTION\n"
+                    f"Frames: {frames}\nFrame Time: {1 / fps:.6f}\n{rows}\n")
+    return str(path)
+
+
+def test_a_bvh_plays_at_the_rate_it_has_and_says_so(tmp_path):
+    """Frames of a BVH are only skipped: a file at 30 fps drawn for --fps 20 keeps every 2nd frame (15 fps), is
+    timed at 15 fps and says so (0.10.6 timed it at the asked 20: too fast; --fps 240 of a 120 fps file played
+    twice as fast); a rate the file gives exactly is timed at it, without a word."""
+    from smdm_plugin.apps.common.motion_files import load_motion, rate_differs
+
+    bvh = two_joint_bvh(tmp_path / "swing.bvh", 30.0)
+    m = load_motion(bvh, fps=20)
+    assert m.fps == 15 and len(m.joints) == 15 and "gives 15 fps, not 20" in rate_differs(m, 20)
+    assert load_motion(bvh, fps=30).fps == 30 and rate_differs(load_motion(bvh, fps=30), 30) is None
+    assert load_motion(bvh, fps=60).fps == 30           # never made up
+    p = render(bvh, "--fps", "20", "--out", "s.gif", "--no-progress", "--size", "1", cwd=tmp_path)
+    assert p.returncode == 0 and "warning: " in p.stderr and "gives 15 fps, not 20" in p.stderr, p.stderr
+    assert Image.open(tmp_path / "s.gif").info["duration"] in (60, 70)    # 1000 / 15 ms, in GIF's 10 ms steps
+    p = render(bvh, "--fps", "30", "--out", "t.gif", "--no-progress", "--size", "1", cwd=tmp_path)
+    assert p.returncode == 0 and "warning" not in p.stderr, p.stderr
+    assert Image.open(tmp_path / "t.gif").info["duration"] in (30, 40)

@@ -15,7 +15,11 @@ if TYPE_CHECKING:
 # the range-checked types live in core (the --sparse_* options use them too); re-exported here
 from ...support.argtypes import float_range, int_range, str2bool
 
-__all__ = ["int_range", "float_range", "str2bool", "existing_path", "positional_type", "output_path", "device_type", "compile_backend",
+#: argparse ``type`` of every ``--seed``: what torch's generators take (a larger int overflowed inside torch)
+seed_type = int_range(0, 2 ** 63 - 1)
+
+__all__ = ["int_range", "float_range", "str2bool", "seed_type", "existing_path", "positional_type", "output_path",
+           "device_type", "compile_backend",
            "resolve_device", "add_overwrite", "add_common_flags", "progress_of", "note_printer", "COMMON_FLAGS"]
 
 

@@ -37,18 +37,33 @@ class LoadedMotion:
 
 
 def _load_bvh(path: str, fps: float) -> LoadedMotion:
-    from ...io.bvh import bvh_joint_positions, load_cmu_clip, read_bvh
+    """A BVH file's joints every :func:`~smdm_plugin.io.bvh.frame_step`-th frame for ``fps``, with the
+    rate they then have (``fps`` when the file's rate is a multiple of it: check
+    :func:`rate_differs`): a CMU skeleton as HumanML3D's 22 joints, another with its own joints."""
+    from ...io.bvh import bvh_joint_positions, cmu_clip, frame_step, missing_cmu_joints, read_bvh
     from .animation import chains_from_parents
 
-    try:
-        return LoadedMotion(load_cmu_clip(path, fps=int(round(fps))), "bvh", path, fps)
-    except ValueError as e:
-        if "CMU joints" not in str(e):
-            raise
-    bvh = read_bvh(path)  # another skeleton: draw its own joints
-    step = max(1, int(round(bvh.fps / fps)))
-    pos = bvh_joint_positions(bvh)[::step]
-    return LoadedMotion(pos, "bvh", path, bvh.fps / step, chains=chains_from_parents(bvh.parents))
+    bvh = read_bvh(path)
+    step = frame_step(bvh.fps, fps)
+    rate = bvh.fps / step
+    rate = fps if _same_rate(rate, fps) else round(rate, 2)   # (a frame time is rounded: 120.0048 fps is 120)
+    if not missing_cmu_joints(bvh):
+        return LoadedMotion(cmu_clip(bvh, step, path=path), "bvh", path, rate)
+    pos = bvh_joint_positions(bvh)[::step]  # another skeleton: draw its own joints
+    return LoadedMotion(pos, "bvh", path, rate, chains=chains_from_parents(bvh.parents))
+
+
+def _same_rate(a: float, b: float) -> bool:
+    return abs(a - b) <= 1e-3 * b
+
+
+def rate_differs(motion: LoadedMotion, fps: float) -> Optional[str]:
+    """None when ``motion`` has the rate ``fps`` asked for, else why not (a BVH recorded at a rate
+    that is no multiple of it, or below it: frames are never made up)."""
+    if _same_rate(motion.fps, fps):
+        return None
+    return (f"{motion.source} gives {motion.fps:g} fps, not {fps:g}: a BVH's frames are only skipped, every "
+            "n-th kept (a file recorded at a multiple of the rate gives it exactly)")
 
 
 def _load_pickled(path: str, sample: int) -> LoadedMotion:

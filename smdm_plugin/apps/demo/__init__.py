@@ -13,7 +13,7 @@ import torch
 
 from ...io.files import atomic_open, atomic_write_json, atomic_write_text
 from ..common.args import (add_common_flags, add_overwrite, float_range, int_range, note_printer, output_path,
-                           progress_of)
+                           progress_of, seed_type)
 from ..common.keyframe_study import (FRAME_INDEX_SCALE, keyframe_markdown, keyframe_study, motion_source,
                                      plot_keyframes, require_windows, windows)
 
@@ -162,7 +162,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--latent", type=int_range(4, 4096), default=None, help="a multiple of 4 (heads); default 256")
     p.add_argument("--layers", type=int_range(1, 64), default=None, help="default 4")
     p.add_argument("--every", type=int_range(2, 196), default=30, help="in-betweening: a keyframe every EVERY frames (default 30)")
-    p.add_argument("--seed", type=int_range(0), default=0, help="random seed (default 0)")
+    p.add_argument("--seed", type=seed_type, default=0, help="random seed (default 0)")
     p.add_argument("--max-clips", type=int_range(1), default=None, help="use at most this many clips (default: all)")
     p.add_argument("--frame-index-scale", type=float_range(0, 100), default=FRAME_INDEX_SCALE, metavar="M",
                    help="metres per frame appended to the joint positions for VW selection, in the keyframe "
