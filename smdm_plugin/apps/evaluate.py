@@ -315,9 +315,17 @@ def main(argv: Optional[List[str]] = None) -> int:
     for option, value in (("--mm-repeats", a.mm_repeats), ("--mm-captions", a.mm_captions)):
         if value and not a.model:   # multimodality generates several motions per caption
             p.error(f"argument {option}: needs --model (multimodality generates several motions per caption)")
+    from ..metrics.evaluator.protocol import EVAL_MODES
+
+    if a.mm_repeats == 1:
+        p.error("argument --mm-repeats: must be 0 (off) or >= 2 (multimodality compares generations of one caption), "
+                "got 1")
+    mm_off = a.mm_repeats == 0 or (a.mm_repeats is None and a.protocol != "fixed" and not EVAL_MODES[a.eval_mode][1])
+    if a.model and a.mm_captions is not None and mm_off:
+        p.error("argument --mm-captions: multimodality is off (--mm-repeats 0, or --eval-mode wo_mm / debug without "
+                "--mm-repeats); give --mm-repeats N >= 2 or --eval-mode mm_short / full")
     if a.mm_captions is None:
         a.mm_captions = 10
-    from ..metrics.evaluator.protocol import EVAL_MODES
 
     if not a.model and EVAL_MODES[a.eval_mode][1]:
         print(f"smdm eval: warning: --eval-mode {a.eval_mode}'s multimodality needs --model: with --motions it is "

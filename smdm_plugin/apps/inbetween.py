@@ -13,8 +13,8 @@ import torch
 from ..adapters.inbetween_sampling import POLICIES
 from ..reference.simple_diffusion import IMPUTATIONS
 from ..metrics.inbetween_metrics import keyframe_metrics
-from .common.args import (add_common_flags, add_overwrite, int_range, note_printer, output_path, progress_of,
-                          seed_type)
+from .common.args import (add_common_flags, add_overwrite, existing_path, int_range, note_printer, output_path,
+                          progress_of, seed_type)
 from .common.bundle_inbetween import model_inputs, plan_keyframes, run_inbetween, summary_markdown
 from .common.motion_files import ACCEPTED, add_motion_file_options
 
@@ -29,7 +29,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--model", nargs="+", default=None, metavar="DIR",
                    help="model folders (smdm demo writes OUT/dense and OUT/sparse; default: "
                         + " ".join(DEFAULT_MODELS) + ")")
-    p.add_argument("--keyframes", required=True, metavar="FILE", help=".bvh or .npy motion holding the keyframes")
+    p.add_argument("--keyframes", required=True, metavar="FILE", type=existing_path("file"),
+                   help=".bvh or .npy motion holding the keyframes")
     p.add_argument("--frames", nargs="+", type=int_range(0), default=None, metavar="F",
                    help="keyframe frames of the file (0-based); with a file of K poses, the K output frames")
     p.add_argument("--every", type=int_range(1), default=None, help="a keyframe every EVERY frames (default 20)")

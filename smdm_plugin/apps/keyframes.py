@@ -78,8 +78,10 @@ def main(argv: Optional[List[str]] = None) -> int:
     for w in caught:  # tolerances applied while reading (e.g. one motion row too many)
         print(f"  note: {w.message}", file=sys.stderr)
     if not clips:
-        print(f"smdm keyframes: error: none of the BVH files of {source} could be used (see above); a CMU skeleton "
-              "is needed (22-joint mapping), or give no file to use the embedded CMU clips", file=sys.stderr)
+        where = "given" if a.bvh else f"of {source}"
+        print(f"smdm keyframes: error: none of the BVH files {where} could be used (the reason for each is above: a "
+              "readable CMU-skeleton clip of 20 frames or more at 20 fps is needed); give no file to use the embedded "
+              "CMU clips", file=sys.stderr)
         return 2
     say(f"smdm keyframes: motion from {source}", file=sys.stderr)
     wins = ks.windows(clips, 196)

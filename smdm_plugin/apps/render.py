@@ -15,7 +15,8 @@ import os
 import sys
 from typing import List, Optional
 
-from .common.args import add_common_flags, add_overwrite, float_range, int_range, note_printer, progress_of, output_path
+from .common.args import (add_common_flags, add_overwrite, existing_path, float_range, int_range, note_printer,
+                          output_path, positional_type, progress_of)
 from .common.motion_files import ACCEPTED, add_motion_file_options
 
 
@@ -45,6 +46,7 @@ def main(argv: Optional[List[str]] = None) -> int:
 
     p = build_parser()
     a = p.parse_args(argv)
+    positional_type(p, a, "motions", existing_path("file"), "MOTION")
     if a.titles is not None and len(a.titles) != len(a.motions):
         p.error(f"--titles: give one title per motion ({len(a.motions)}), got {len(a.titles)}")
     out = a.out or os.path.splitext(os.path.basename(a.motions[0]))[0] + ".gif"

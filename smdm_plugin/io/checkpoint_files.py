@@ -195,7 +195,8 @@ def read_state_dict(path: str, map_location: Any = "cpu", what: str = "checkpoin
     except Exception as e:  # torch raises RuntimeError, EOFError, UnpicklingError, zipfile errors ...
         if isinstance(e, OSError) and not isinstance(e, EOFError):
             raise
-        reason = " ".join(str(e).split())[:200] or type(e).__name__
+        reason = " ".join(str(e).split()).split(". ")[0] or type(e).__name__   # its first sentence, whole
+        reason = reason if len(reason) <= 200 else reason[:197] + "..."
         raise ValueError(f"{path}: not a readable {what} (truncated or corrupt: {reason})") from None
     if not isinstance(obj, Mapping):
         raise ValueError(f"{path}: expected a dict of tensors, got {type(obj).__name__}")

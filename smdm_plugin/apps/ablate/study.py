@@ -809,12 +809,32 @@ def build_parser() -> argparse.ArgumentParser:
     return p
 
 
+def _parse(p: argparse.ArgumentParser, argv: Optional[List[str]]) -> argparse.Namespace:
+    """``p.parse_args(argv)``, an ablation grid's option named as such (not "unrecognized": ``smdm ablate
+    --help`` lists it)."""
+    from . import build_parser as grid_parser
+
+    a, extra = p.parse_known_args(argv)
+    grid = grid_parser()._option_string_actions
+    for token in extra:
+        option = token.split("=", 1)[0]
+        if option.startswith("--") and option in grid:
+            p.error(f"argument {option}: an ablation grid's option; the quality-versus-compute study (--config "
+                    f"{a.config}{' --quick' if a.quick else ''}) sets it in its config")
+    if extra:
+        p.error(f"unrecognized arguments: {' '.join(extra)}")
+    return a
+
+
 def main(argv: Optional[List[str]] = None) -> int:
     p = build_parser()
-    a = p.parse_args(argv)
+    a = _parse(p, argv)
     if a.report_only and not a.resume:
         p.error("argument --report-only: needs --resume (an existing results folder)")
     name = a.config
+    if a.quick and not name.endswith("_quick") and not is_study_config(name) and os.path.exists(config_path(name)):
+        p.error(f"argument --quick: runs a study config's quick variant; --config {name!r} is an ablation grid "
+                "(drop --quick)")
     if a.quick and not name.endswith("_quick"):
         base = name[:-5] if name.endswith(".yaml") else name
         name = base + "_quick" + (".yaml" if name.endswith(".yaml") else "")

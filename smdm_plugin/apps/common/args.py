@@ -175,9 +175,10 @@ def add_common_flags(p: Any, *, device: Optional[str] = "auto", threads: bool = 
     else:
         refuse("--threads", 1)
     if progress:
-        p.add_argument("--no-progress", action="store_true", help="no progress bars or per-step progress lines "
-                       "(without it, bars show only when stderr is a terminal)")
-        p.add_argument("--progress", action="store_true", help="progress bars even when stderr is not a terminal")
+        bars = p.add_mutually_exclusive_group()        # (both given: one of them would be dropped)
+        bars.add_argument("--no-progress", action="store_true", help="no progress bars or per-step progress lines "
+                          "(without it, bars show only when stderr is a terminal)")
+        bars.add_argument("--progress", action="store_true", help="progress bars even when stderr is not a terminal")
     else:
         refuse("--no-progress", 0)
         refuse("--progress", 0)

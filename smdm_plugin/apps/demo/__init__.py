@@ -150,8 +150,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--bvh", nargs="+", default=None, help="BVH files or folders (default: see above)")
     p.add_argument("--out", default=os.path.join("smdm_out", "demo"), type=output_path(), help="output folder")
     add_overwrite(p)
-    p.add_argument("--minutes", type=float_range(0, 24 * 60, lo_open=True), default=2.0,
-                   help="training time in minutes, dense + sparse together (default 2)")
+    p.add_argument("--minutes", type=float_range(0, 24 * 60, lo_open=True), default=None,
+                   help="training time in minutes, dense + sparse together (default 2; with --quick, 3 steps each "
+                        "unless --minutes is given)")
     p.add_argument("--reductions", nargs="+", type=float_range(0, 1, hi_open=True), default=None,
                    help="keyframe study: fractions of frames dropped (default 0.6 0.7 0.8 0.9)")
     p.add_argument("--train-reduction", type=float_range(0, 1, hi_open=True), default=0.8,
@@ -354,11 +355,13 @@ def train_dense_and_sparse(run: DemoRun, motion: DemoMotion, crops: List[np.ndar
     trainers = {n: Trainer(TrainConfig(steps=0, batch=args.batch, lr=2e-4, diffusion_steps=diffusion_steps,
                                        seed=args.seed, model=model, sparse=sc), data, dist=ctx)
                 for n, sc in (("dense", None), ("sparse", sparse))}
-    seconds = 60.0 * args.minutes
+    seconds = 60.0 * (2.0 if args.minutes is None else args.minutes)
+    steps_cap = 3 if args.quick and args.minutes is None else None   # --quick's 3 steps; a given --minutes is kept
+    budget = f"{steps_cap} steps each (--quick)" if steps_cap else f"{seconds:.0f} s in total"
     run.say(f"\n## Training dense vs. sparse ({int(round(args.train_reduction * 100))}% dropped) for "
-            f"{seconds:.0f} s in total on {run.device}: {len(data)} crops of {args.frames} frames from "
+            f"{budget} on {run.device}: {len(data)} crops of {args.frames} frames from "
             f"{len(motion.train_clips)} clip(s), 66-D joint features, batch {_procs(ctx)}{args.batch}")
-    train = race_fair(trainers, seconds, max_steps=3 if args.quick else None, progress=run.progress,
+    train = race_fair(trainers, seconds, max_steps=steps_cap, progress=run.progress,
                       desc="training dense + sparse")
     snapshots = train.pop("equal_steps")
     train["equal_steps"] = {k: v for k, v in snapshots.items() if k != "states"}
@@ -481,7 +484,8 @@ def _demo_steps(run: DemoRun, t_start: float) -> int:
     args = run.args
     quick = apply_quick(args)
     if quick:
-        run.say("smdm demo --quick: " + ", ".join(quick) + ", 3 training steps each, 20 diffusion steps")
+        run.say("smdm demo --quick: " + ", ".join(quick) + (", 3 training steps each" if args.minutes is None else "")
+                + ", 20 diffusion steps")
     motion = load_motion(run)
     if run.main_rank:
         os.makedirs(args.out, exist_ok=True)
