@@ -6,7 +6,7 @@ import sys
 from typing import TYPE_CHECKING, Any, Dict, List
 
 
-__version__ = "0.10.6"
+__version__ = "0.10.7"
 
 _EXPORTS: Dict[str, str] = {
     # the method's settings

@@ -7,8 +7,6 @@ from typing import Any, Dict, Mapping, Optional
 
 import torch
 
-from ..core.checks import host_checkable
-
 #: the one key of ``y`` (MDM) / of the model's keyword arguments (MotionDiffuse) that carries a
 #: :class:`KeyframeRequest`
 KEYFRAMES_KEY = "smdm_keyframes"
@@ -32,8 +30,8 @@ class KeyframeRequest:
             the host, or None. Given, a sampling call sizes its plan from it instead of reading
             ``forced`` (a device sync on an accelerator) and checks it on the device.
 
-    A ``mask`` on the CPU is checked here (on an accelerator, at the call): every sample has a
-    keyframe (``mask | forced``), none more than ``capacity`` in ``mask``.
+    ``mask`` / ``forced`` are checked here to be bool ``[B, N]`` (a dtype and a shape: no sync);
+    their counts (a keyframe per sample, none beyond ``capacity``) at the call, which reads them.
     """
 
     mask: Optional[torch.Tensor] = None
@@ -42,8 +40,11 @@ class KeyframeRequest:
     forced_bound: Optional[int] = None
 
     def __post_init__(self) -> None:
-        for name in ("mask", "forced"):
-            _check_frames(getattr(self, name), name)
+        for name in ("mask", "forced"):    # (inline: built at every sparse call, a frame costs host time)
+            value = getattr(self, name)
+            if value is not None and not (isinstance(value, torch.Tensor) and value.dtype == torch.bool
+                                          and value.dim() == 2):
+                _bad_frames(value, name)
         c = self.capacity
         if c is not None and (isinstance(c, bool) or not isinstance(c, int) or c < 1):
             raise TypeError(f"KeyframeRequest.capacity must be a Python int >= 1 or None, got {c!r}")
@@ -52,33 +53,14 @@ class KeyframeRequest:
         fb = self.forced_bound
         if fb is not None and (isinstance(fb, bool) or not isinstance(fb, int) or fb < 0):
             raise TypeError(f"KeyframeRequest.forced_bound must be a Python int >= 0 or None, got {fb!r}")
-        if self.mask is not None and host_checkable(self.mask):
-            self._check_counts()
-
-    def _check_counts(self) -> None:
-        """Every sample of a host-readable ``mask`` (with ``forced``) has 1 keyframe or more, and
-        ``mask`` no more than ``capacity`` (frames past a sample's length, dropped at the call, count)."""
-        marked = self.mask
-        if self.forced is not None and self.forced.shape == marked.shape and host_checkable(self.forced):
-            marked = marked | self.forced
-        empty = (~marked.any(1)).nonzero().flatten().tolist()
-        if empty:
-            raise ValueError(f"KeyframeRequest.mask: every sample needs 1 keyframe or more, samples {empty} have none")
-        most = int(self.mask.sum(1).max()) if self.capacity is not None and self.mask.shape[0] else 0
-        if self.capacity is not None and most > self.capacity:
-            raise ValueError(f"KeyframeRequest.capacity={self.capacity} is below the {most} keyframes a sample of "
-                             "mask marks: pass capacity >= the most keyframes of a sample (or None)")
 
 
-def _check_frames(value: Any, name: str) -> None:
-    """``KeyframeRequest.<name>`` is None or a bool tensor ``[B, N]`` (no silent cast)."""
-    if value is None:
-        return
+def _bad_frames(value: Any, name: str) -> None:
+    """The error of ``KeyframeRequest.<name>`` that is not a bool tensor ``[B, N]`` (never cast)."""
     if not isinstance(value, torch.Tensor) or value.dtype != torch.bool:
         got = f"a {value.dtype} tensor" if isinstance(value, torch.Tensor) else type(value).__name__
         raise TypeError(f"KeyframeRequest.{name} must be a bool tensor [B, N] or None, got {got}")
-    if value.dim() != 2:
-        raise ValueError(f"KeyframeRequest.{name} must be a bool tensor [B, N], got shape {tuple(value.shape)}")
+    raise ValueError(f"KeyframeRequest.{name} must be a bool tensor [B, N], got shape {tuple(value.shape)}")
 
 
 _EMPTY = KeyframeRequest()
@@ -89,7 +71,7 @@ def request_of(container: Optional[Mapping[str, Any]], where: str = "y") -> Keyf
 
     ``container``: MDM's ``y`` or MotionDiffuse's keyword arguments; ``where`` names it in errors.
     A value of another type, or one of the 0.3 string keys, is a ``TypeError``."""
-    if container is not None and not isinstance(container, Mapping):
+    if container is not None and type(container) is not dict and not isinstance(container, Mapping):
         raise TypeError(f"{where} must be a dict (MDM's y / MotionDiffuse's model keyword arguments) or None, "
                         f"got {type(container).__name__}")
     if not container:

@@ -199,7 +199,7 @@ class SparseConfig:
     def feature_kind(self, D: int) -> str:
         """What keyframe selection measures for motions of ``D`` features: ``feature``, or with
         ``feature="auto"`` humanml3d (D = 263), kit (D = 251), else raw."""
-        if not is_int(D) or int(D) < 1:
+        if type(D) is not int and not is_int(D) or int(D) < 1:      # (an int first: called at every step)
             raise ConfigTypeError(f"SparseConfig.feature_kind: D must be a positive int (features per frame), "
                                   f"got {D!r}")
         return FEATURE_KINDS_BY_DIM.get(int(D), "raw") if self.feature == "auto" else self.feature

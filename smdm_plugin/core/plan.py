@@ -96,7 +96,8 @@ class KeyframePlan:
             count = tensors[2]
             require((count >= 1) & (count <= K),
                     f"KeyframePlan: every sample needs 1..{K} keyframes (capacity {K}); a keyframe mask "
-                    "has more than the capacity or none")
+                    "(KeyframeRequest.mask with its forced frames, or a training mask) has more than the capacity "
+                    "(KeyframeRequest.capacity) or none")
         if cubic is not None and cubic is not True:
             cubic = torch.as_tensor(cubic, device=mask.device).to(torch.bool).reshape(-1).expand(B)
         return cls.of_tensors(mask, tensors, cubic, taps)

@@ -54,18 +54,20 @@ def test_request_refuses_a_float_mask(field):
         KeyframeRequest(**{field: torch.full((2, N), 0.3)})
 
 
-def test_request_names_the_mask_for_a_sample_without_keyframes_and_capacity_below_the_count():
+def test_a_request_without_keyframes_or_beyond_its_capacity_is_named_at_the_call():
+    """Counts need the values: read where the call reads them (never a sync at construction), the error
+    naming the request's fields."""
+    from smdm_plugin import sparsify
+
+    model = sparsify(tiny(), dict(reduction=0.5)).eval()
+    x, t = torch.randn(2, D, 1, N), torch.tensor([1, 1])
     mask = torch.zeros(2, N, dtype=torch.bool)
     mask[0, [0, 5]] = True
-    with pytest.raises(ValueError, match=r"KeyframeRequest.mask: every sample needs 1 keyframe .*samples \[1\]"):
-        KeyframeRequest(mask=mask)
-    forced = torch.zeros(2, N, dtype=torch.bool)
-    forced[1, 3] = True
-    assert KeyframeRequest(mask=mask, forced=forced).mask is mask      # forced frames count
-    mask[1, 2] = True
-    with pytest.raises(ValueError, match="KeyframeRequest.capacity=1 is below the 2 keyframes"):
-        KeyframeRequest(mask=mask, capacity=1)
-    assert KeyframeRequest(mask=mask, capacity=2).capacity == 2
+    with pytest.raises(ValueError, match=r"KeyframePlan: every sample needs .*KeyframeRequest.mask"):
+        model(x, t, {"smdm_keyframes": KeyframeRequest(mask=mask)})
+    mask[1, [0, 2, 9]] = True
+    with pytest.raises(ValueError, match=r"more than the capacity \(KeyframeRequest.capacity\)"):
+        model(x, t, {"smdm_keyframes": KeyframeRequest(mask=mask, capacity=2)})
 
 
 @pytest.mark.parametrize("y", [5, [("text", "x")]])
