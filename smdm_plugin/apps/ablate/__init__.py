@@ -337,7 +337,7 @@ def main(argv: Optional[List[str]] = None) -> int:
     from . import study
 
     if study.wants_study(argv):  # kind: quality_compute (or --quick): the quality-versus-compute study
-        return study.main(argv)
+        return study.main(argv, list(build_parser()._option_string_actions))
     p = build_parser()
     a = p.parse_args(argv)
     try:

@@ -809,13 +809,12 @@ def build_parser() -> argparse.ArgumentParser:
     return p
 
 
-def _parse(p: argparse.ArgumentParser, argv: Optional[List[str]]) -> argparse.Namespace:
-    """``p.parse_args(argv)``, an ablation grid's option named as such (not "unrecognized": ``smdm ablate
-    --help`` lists it)."""
-    from . import build_parser as grid_parser
-
+def _parse(p: argparse.ArgumentParser, argv: Optional[List[str]], grid_options: Sequence[str] = ()
+           ) -> argparse.Namespace:
+    """``p.parse_args(argv)``, an ablation grid's option (``grid_options``) named as such (not
+    "unrecognized": ``smdm ablate --help`` lists it)."""
     a, extra = p.parse_known_args(argv)
-    grid = grid_parser()._option_string_actions
+    grid = set(grid_options)
     for token in extra:
         option = token.split("=", 1)[0]
         if option.startswith("--") and option in grid:
@@ -826,9 +825,11 @@ def _parse(p: argparse.ArgumentParser, argv: Optional[List[str]]) -> argparse.Na
     return a
 
 
-def main(argv: Optional[List[str]] = None) -> int:
+def main(argv: Optional[List[str]] = None, grid_options: Sequence[str] = ()) -> int:
+    """The study's command (``smdm ablate`` hands over when :func:`wants_study`); ``grid_options``: the
+    option strings of an ablation grid's parser, named when given here."""
     p = build_parser()
-    a = _parse(p, argv)
+    a = _parse(p, argv, grid_options)
     if a.report_only and not a.resume:
         p.error("argument --report-only: needs --resume (an existing results folder)")
     name = a.config
