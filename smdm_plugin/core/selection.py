@@ -254,9 +254,12 @@ def select_checked(features: torch.Tensor, lengths: torch.Tensor, counts: torch.
 
 
 def _selected(sel: Selector, method: str, features: torch.Tensor, *args: object) -> torch.Tensor:
-    """``sel.fn(features, *args)``, checked to be a bool ``[B, N]`` mask (metadata: free on any device)."""
-    return _bool_tensor(sel.fn(features, *args), tuple(features.shape[:2]), "B, N",
-                        f"keyframe selector {method!r}: its mask")
+    """``sel.fn(features, *args)``, checked to be a bool ``[B, N]`` mask (metadata: free on any device;
+    the message made only for an error)."""
+    mask = sel.fn(features, *args)
+    if isinstance(mask, torch.Tensor) and mask.dtype == torch.bool and mask.shape == features.shape[:2]:
+        return mask
+    return _bool_tensor(mask, tuple(features.shape[:2]), "B, N", f"keyframe selector {method!r}: its mask")
 
 
 def _uniform(lengths: torch.Tensor, k: torch.Tensor, N: int) -> torch.Tensor:
