@@ -284,6 +284,8 @@ def test_every_seed_is_bounded_to_what_torch_takes(command):
     (["eval", "--model", "{d}", "--evaluator", "{d}", "--out", "{d}/o", "--mm-captions", "5"],
      "argument --mm-captions: multimodality is off"),
     (["demo", "--no-progress", "--progress"], "argument --progress: not allowed with argument --no-progress"),
+    (["demo", "--quiet", "--progress"], "argument --progress: not allowed with argument --quiet"),
+    (["demo", "--progress", "--quiet"], "argument --quiet: not allowed with argument --progress"),
     # the study's parser does not take a grid's options: named as such, not "unrecognized" (0.10.6)
     (["ablate", "--config", "quality_compute", "--quick", "--steps", "1"], "argument --steps: an ablation grid's option"),
     (["ablate", "--config", "quick", "--quick"], "argument --quick: runs a study config's quick variant; --config "

@@ -5,6 +5,8 @@ from __future__ import annotations
 import argparse
 import io
 
+import pytest
+
 from helpers.commands import TINY_TRAIN
 from smdm_plugin.apps import train as train_cli
 from smdm_plugin.apps.common.args import add_common_flags, progress_of
@@ -32,8 +34,10 @@ def test_the_flags_give_the_decision():
     add_common_flags(p, device="cpu", threads_default=1)
     assert progress_of(p.parse_args([])) is True                          # the terminal decides
     assert progress_of(p.parse_args(["--progress"])) == ALWAYS
-    assert progress_of(p.parse_args(["--progress", "--no-progress"])) is False
-    assert progress_of(p.parse_args(["--progress", "--quiet"])) is False
+    assert progress_of(p.parse_args(["--no-progress"])) is False and progress_of(p.parse_args(["--quiet"])) is False
+    for both in (["--progress", "--no-progress"], ["--progress", "--quiet"], ["--quiet", "--progress"]):
+        with pytest.raises(SystemExit):                                     # one of the two would be dropped
+            p.parse_args(both)
 
 
 def test_a_command_writing_to_a_file_shows_no_bar(synthetic_hml, tmp_path, capsys):

@@ -144,6 +144,20 @@ class _NotApplicable(argparse.Action):
         parser.error(f"argument {option_string}: does not apply to {parser.prog} ({self.why})")
 
 
+class _StoreTrueApart(argparse._StoreTrueAction):
+    """``store_true`` refused beside the flag ``apart`` (its dest), in either order: ``--quiet`` shows no
+    progress, so ``--progress`` with it would be dropped."""
+
+    def __init__(self, option_strings, dest, apart: str = "", **kwargs: Any) -> None:
+        self.apart = apart
+        super().__init__(option_strings, dest, **kwargs)
+
+    def __call__(self, parser, namespace, values, option_string=None) -> None:
+        if getattr(namespace, self.apart, False):
+            parser.error(f"argument {option_string}: not allowed with argument --{self.apart.replace('_', '-')}")
+        super().__call__(parser, namespace, values, option_string)
+
+
 def add_common_flags(p: Any, *, device: Optional[str] = "auto", threads: bool = True,
                      threads_default: Optional[int] = None, progress: bool = True, quiet: bool = True,
                      why_not: str = "", device_help: str = "") -> None:
@@ -178,12 +192,13 @@ def add_common_flags(p: Any, *, device: Optional[str] = "auto", threads: bool = 
         bars = p.add_mutually_exclusive_group()        # (both given: one of them would be dropped)
         bars.add_argument("--no-progress", action="store_true", help="no progress bars or per-step progress lines "
                           "(without it, bars show only when stderr is a terminal)")
-        bars.add_argument("--progress", action="store_true", help="progress bars even when stderr is not a terminal")
+        bars.add_argument("--progress", action=_StoreTrueApart, apart="quiet",
+                          help="progress bars even when stderr is not a terminal")
     else:
         refuse("--no-progress", 0)
         refuse("--progress", 0)
     if quiet:
-        p.add_argument("--quiet", action="store_true",
+        p.add_argument("--quiet", action=_StoreTrueApart, apart="progress",
                        help="--no-progress, and no notes: only results, warnings and errors print")
     else:
         refuse("--quiet", 0)
