@@ -116,8 +116,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                         "frames forced at sampling); --family mdm only")
     p.add_argument("--reductions", nargs="+", type=float_range(0.0, 1.0, hi_open=True), default=[0.6, 0.7, 0.8, 0.9],
                    help="fractions of frames dropped, each in [0, 1)")
-    p.add_argument("--batch", type=int_range(1), default=None, help="motions per batch (default 64)")
-    p.add_argument("--frames", type=int_range(2), default=None, help="frames per motion (default 196)")
+    p.add_argument("--batch", type=int_range(1, 65536), default=None, help="motions per batch (default 64)")
+    p.add_argument("--frames", type=int_range(2, 4096), default=None,
+                   help="frames per motion (default 196; not --arch dip: DiP's 20 + 40)")
     p.add_argument("--repeats", type=int_range(1), default=None, help="timed runs per cell, median reported (default 3)")
     p.add_argument("--warmup", type=int_range(0), default=None, help="untimed runs before timing (default 1)")
     p.add_argument("--backend", default="auto", choices=BACKENDS,
@@ -177,6 +178,16 @@ def check_family_options(args: argparse.Namespace, parser: argparse.ArgumentPars
         parser.error(f"argument --fsq: --family {args.family} has no softmax attention keys to quantise "
                      "(linear attention); leave --fsq out")
     args.fsq = args.fsq or ("paper" if work.fsq else "off")
+    # settings that cannot apply: refused, never dropped
+    if args.backend != "auto" and not work.fsq:        # (no softmax attention: no keyframe attention backend)
+        parser.error(f"argument --backend: --family {args.family} has no keyframe attention backend to choose "
+                     "(linear attention); leave --backend out")
+    if args.backend != "auto" and any(m != "none" for m in args.compile_mode or ()):
+        parser.error(f"argument --backend: a compiled model runs the compact backend (--compile "
+                     f"{' '.join(args.compile_mode)}); leave --backend out, or time --compile none")
+    if args.frames is not None and "dip" in (args.arch or ()):
+        parser.error("argument --frames: --arch dip runs DiP's own 20 prefix + 40 predicted frames; leave --frames "
+                     "out" + (" (or time dip apart)" if len(set(args.arch)) > 1 else ""))
     if args.fastpath and set(args.modes) == {"train"}:   # a setting that cannot apply: refused, never dropped
         parser.error("argument --fastpath: torch's fast path runs only without autograd (--modes sample, loop); "
                      "--modes train never takes it")
@@ -205,6 +216,9 @@ def checked_outputs(args: argparse.Namespace, parser: argparse.ArgumentParser) -
 
     if not args.out:
         return None
+    if args.out.endswith(("/", os.sep)) or os.path.isdir(args.out):
+        parser.error(f"argument --out: expected a file path (<out>.json and <out>.md are written), got the folder "
+                     f"{args.out!r}")
     paths = output_paths(args.out)
     try:
         for p in paths:
@@ -242,9 +256,9 @@ def main_bench(args: argparse.Namespace, parser: argparse.ArgumentParser) -> Dic
 def main_keyframes(argv: List[str]) -> int:
     """``smdm bench keyframes``: VW selection alone, one line."""
     p = argparse.ArgumentParser(prog="smdm bench keyframes", description="time VW keyframe selection")
-    p.add_argument("--batch", type=int_range(1), default=64, help="motions per call (default 64)")
-    p.add_argument("--frames", type=int_range(2), default=196, help="frames per motion (default 196)")
-    p.add_argument("--dims", type=int_range(1), default=64,
+    p.add_argument("--batch", type=int_range(1, 65536), default=64, help="motions per call (default 64)")
+    p.add_argument("--frames", type=int_range(2, 4096), default=196, help="frames per motion (default 196)")
+    p.add_argument("--dims", type=int_range(1, 4096), default=64,
                    help="selection features per frame (default 64: 21 joints x 3 + frame index)")
     p.add_argument("--reduction", type=float_range(0.0, 1.0, hi_open=True), default=0.8,
                    help="fraction of frames dropped, in [0, 1) (default 0.8)")

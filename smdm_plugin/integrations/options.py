@@ -9,8 +9,10 @@ options (with the config these options describe): what runs lives in the integra
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import inspect
-from typing import Any, Dict, Mapping, Optional, Tuple
+import sys
+from typing import Any, Dict, List, Mapping, Optional, Tuple
 
 from ..core.config import SparseConfig
 
@@ -23,6 +25,36 @@ START_GROUP_TITLE = "sparse start (from a dense checkpoint; read from this comma
 FAMILY_DEFAULTS: Dict[str, Tuple[Dict[str, Any], str]] = {
     "motiondiffuse": ({"fsq": False}, "MotionDiffuse's self-attention is linear: FSQ keys cannot apply"),
 }
+
+
+#: ``--sparse_<field>`` options that apply to a dense run too (the sMDM-stella text encoder), or that
+#: an integration sets from the model: never "dropped" without ``--sparse``
+APPLY_WITHOUT_SPARSE = ("text_encoder", "diffusion_steps", "prefix_frames", "version", "enabled")
+
+
+def dropped_sparse_options(args: Any, family: Optional[str] = None) -> List[str]:
+    """The ``--sparse_<field>`` options of ``args`` (a run without ``--sparse``) set to another value
+    than their default (``family``'s own where it has one): what such a run would drop."""
+    defaults, _ = _defaults_of(family)
+    norm = lambda v: list(v) if isinstance(v, (list, tuple)) else v      # noqa: E731 (nargs="+": a list)
+    out = []
+    for f in dataclasses.fields(SparseConfig):
+        key = f"sparse_{f.name}"
+        if f.name not in APPLY_WITHOUT_SPARSE and hasattr(args, key) \
+                and norm(getattr(args, key)) != norm(defaults.get(f.name, f.default)):
+            out.append(f"--{key}")
+    return out
+
+
+def refuse_dropped_sparse_options(args: Any, family: Optional[str] = None) -> None:
+    """A run without ``--sparse`` given ``--sparse_<field>`` settings: one line naming the first,
+    exit status 2 (a dense run would drop them silently)."""
+    dropped = dropped_sparse_options(args, family)
+    if dropped:
+        more = f" (and {', '.join(dropped[1:])})" if len(dropped) > 1 else ""
+        sys.stderr.write(f"error: argument {dropped[0]}{more}: has no effect without --sparse (this run is dense); "
+                         "add --sparse, or leave it out\n")
+        raise SystemExit(2)
 
 
 def _defaults_of(family: Optional[str]) -> Tuple[Dict[str, Any], str]:

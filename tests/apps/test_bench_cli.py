@@ -106,8 +106,8 @@ def test_bench_keyframes_module_mode():
 
 
 @pytest.mark.parametrize("args,message", [
-    (["--batch", "0"], "argument --batch: must be an integer >= 1, got 0"),
-    (["--frames", "1"], "argument --frames: must be an integer >= 2, got 1"),
+    (["--batch", "0"], "argument --batch: must be an integer in [1, 65536], got 0"),
+    (["--frames", "1"], "argument --frames: must be an integer in [2, 4096], got 1"),
     (["--reductions", "1.0"], "argument --reductions: must be a finite number in [0, 1), got 1.0"),
     (["--repeats", "x"], "argument --repeats: expected an integer, got 'x'"),
     (["--steps", "-3"], "argument --steps: must be an integer >= 1, got -3"),

@@ -291,6 +291,15 @@ def test_every_seed_is_bounded_to_what_torch_takes(command):
     (["ablate", "--config", "quick", "--quick"], "argument --quick: runs a study config's quick variant; --config "
                                                 "'quick' is an ablation grid"),
     (["inbetween", "--model", "{d}", "--keyframes", "", "--out", "{d}/i"], "argument --keyframes: no such file: ''"),
+    # smdm bench: sizes bounded (a huge one was an allocation traceback), settings its mode ignores refused
+    (["bench", "--batch", "99999999999"], "argument --batch: must be an integer in [1, 65536]"),
+    (["bench", "keyframes", "--dims", "99999999999"], "argument --dims: must be an integer in [1, 4096]"),
+    (["bench", "--family", "motiondiffuse", "--backend", "masked"], "argument --backend: --family motiondiffuse has "
+                                                                      "no keyframe attention backend"),
+    (["bench", "--backend", "masked", "--compile", "default"], "argument --backend: a compiled model runs the compact"),
+    (["bench", "--arch", "dip", "--frames", "100"], "argument --frames: --arch dip runs DiP's own 20 prefix"),
+    (["bench", "--device", "cpu", "--quick", "--out", "{d}"], "argument --out: expected a file path"),
+    (["run", "--repo", "", "--", "python", "-c", "1"], "argument --repo: expected a non-empty string"),
     (["render", "{d}", "--out", "{d}/x.gif"], "argument MOTION: '{d}' is a folder, expected a file"),
 ])
 def test_options_that_cannot_apply_and_wrong_paths_are_named(tmp_path, args, needle):

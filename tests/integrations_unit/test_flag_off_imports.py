@@ -75,3 +75,30 @@ def test_a_flag_off_run_loads_only_what_the_options_need():
     extra = set(seen["build"]) - set(seen["parse"])
     assert extra <= {"smdm_plugin.families.mdm.upstream", "smdm_plugin.families.mdm.upstream_text",
                      "smdm_plugin.integrations.checkouts", "smdm_plugin.integrations._hooks"}, sorted(extra)
+
+
+def test_sparse_settings_without_the_flag_are_refused_not_dropped():
+    """``--sparse_reduction 0.5`` without ``--sparse``: 0.10.6 trained dense and dropped it; now one line
+    naming the option, exit status 2 (the sMDM-stella ``--sparse_text_encoder`` applies to dense runs)."""
+    calls = _patch_calls()
+    script = f"""
+        import argparse, importlib, torch
+        calls = {calls!r}
+        def call(name, *a):
+            return getattr(importlib.import_module(calls[name]), name)(*a)
+        parser = argparse.ArgumentParser()
+        call("add_compile_options", parser.add_argument_group("base"))
+        call("add_sparse_options", parser.add_argument_group("model"))
+        args = parser.parse_args(ARGV)
+        call("sparsify_mdm", torch.nn.Linear(3, 3), args, None, None)
+        print("built")
+        """
+    env = dict(os.environ, PYTHONPATH=os.pathsep.join([str(ROOT), os.environ.get("PYTHONPATH", "")]))
+    run = lambda argv: subprocess.run([sys.executable, "-c", textwrap.dedent(script.replace("ARGV", repr(argv)))],
+                                      env=env, capture_output=True, text=True, timeout=300)  # noqa: E731
+    r = run(["--sparse_reduction", "0.5", "--sparse_fsq", "false"])
+    assert r.returncode == 2 and "Traceback" not in r.stderr, r.stderr
+    assert r.stderr.strip() == ("error: argument --sparse_reduction (and --sparse_fsq): has no effect without --sparse "
+                                "(this run is dense); add --sparse, or leave it out")
+    r = run(["--sparse_reduction", "0.8"])             # the default, given: nothing is dropped
+    assert r.returncode == 0 and r.stdout.strip() == "built", r.stderr

@@ -56,6 +56,9 @@ def sparsify_priormdm(model: Any, args: Any, data: Any = None, diffusion: Any = 
 
     config = config if config is not None else SparseConfig.from_args(args)
     if not (config.enabled or getattr(args, "sparse_preset", None)):
+        from ...integrations.options import refuse_dropped_sparse_options
+
+        refuse_dropped_sparse_options(args)            # --sparse_* settings without --sparse: never dropped silently
         return model
     from ...integrations.messages import show_plugin_warnings
 

@@ -82,6 +82,9 @@ def sparsify_mdm(model: Any, args: Any, data: Any = None, diffusion: Any = None,
     (:mod:`smdm_plugin.integrations.messages`).
     """
     if config is None and not _asks_for_anything(args):
+        from ...integrations.options import refuse_dropped_sparse_options   # (loaded already: it added the options)
+
+        refuse_dropped_sparse_options(args)            # --sparse_* settings without --sparse: never dropped silently
         return model                                   # a flag-off run: upstream's model
     from ...integrations.messages import show_plugin_warnings
 
