@@ -334,6 +334,8 @@ def test_swap_rejects_models_without_text_conditioning(bert_dir):
 def mdm_args(tmp_path, **kw):
     d = dict(sparse=True, save_dir=str(tmp_path), diffusion_steps=50, sparse_feature="raw")
     d.update(kw)
+    if not d["sparse"]:                     # a dense run given a sparse setting is refused (it would drop it)
+        del d["sparse_feature"]
     return argparse.Namespace(**d)
 
 

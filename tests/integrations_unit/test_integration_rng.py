@@ -25,9 +25,9 @@ class DoubleTake_MDM(TinyMDM):  # priorMDM's class name is what selects the Doub
 
 
 def _args(sparse: bool) -> argparse.Namespace:
-    return argparse.Namespace(sparse=sparse, sparse_reduction=0.8, sparse_feature="raw",
-                              sparse_diffusion_steps=STEPS, sparse_gamma=0.5, blend_len=5,
-                              model_path="save/model.pt")
+    settings = dict(sparse_reduction=0.8, sparse_feature="raw", sparse_gamma=0.5) if sparse else {}  # (dense: none,
+    return argparse.Namespace(sparse=sparse, sparse_diffusion_steps=STEPS, blend_len=5,       # or it is refused)
+                              model_path="save/model.pt", **settings)
 
 
 def _upstream_like_run(cls, sparsify_fn, sparse: bool, seed: int = 7):

@@ -129,7 +129,8 @@ def _sampling_run(cwd, args: str, then: str, model: str = "doubleTake_TinyMDM", 
             pass
         kw = dict(njoints=8, nfeats=1, latent_dim=32, ff_size=64, num_layers=1, cond_mode="no_cond")
         m = {model}(**kw) if {model!r} != "DiP" else TinyMDM(context_len=20, pred_len=40, **kw)
-        args = argparse.Namespace(sparse={sparse}, sparse_feature="raw", sparse_reduction=0.75, blend_len=5, {args})
+        settings = dict(sparse_feature="raw", sparse_reduction=0.75) if {sparse} else {{}}  # (dense: none, or refused)
+        args = argparse.Namespace(sparse={sparse}, blend_len=5, {args}, **settings)
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")   # (no dataset Mean/Std here)
             sparsify_{entry}(m, args)
