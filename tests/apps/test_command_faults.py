@@ -291,7 +291,7 @@ def test_an_atomic_write_that_cannot_start_names_the_file_not_its_temporary():
     (["train", "--data", "{data}", "--steps", "2"], "folder"), (["demo", "--quick"], "folder"),
     (["bench", "--quick"], "file"), (["clips", "export", "02_01"], "file"), (["render", "{data}/walk.npy"], "file"),
     (["ablate", "--config", "quick"], "folder"), (["ablate", "--config", "quality_compute"], "folder"),
-    (["inbetween", "--keyframes", "{data}/walk.npy"], "folder"), (["eval", "--motions", "{data}"], "folder"),
+    (["inbetween", "--keyframes", "{data}/Mean.npy"], "folder"), (["eval", "--motions", "{data}"], "folder"),
     (["evaluator", "train"], "folder"), (["keyframes", "--plot"], "file")])
 def test_an_empty_output_path_is_refused_not_read_as_none_or_here(tmp_path, data, argv, kind, monkeypatch, capsys):
     """0.10.5: `smdm bench --out ''` ran and wrote nothing, `smdm clips export 02_01 --out ''` wrote
